@@ -1,0 +1,342 @@
+//! From six readings back to the six errors (DESIGN §3).
+//!
+//! - Linear with offset: `e = β⁻¹·(r − c)`. The paper's form has no `c`; with real installation
+//!   errors that is off by millimetres, so the offset (or a zero reference) is always part of it.
+//! - Nonlinear: Gauss–Newton on the forward model at the known travel D and follower d, started
+//!   from the linear estimate with β(D). Needed for large errors and long travel, where a fixed
+//!   β is wrong (the P1 lever grows with D).
+//! - Every estimate carries its covariance `(Jᵀ Σ⁻¹ J)⁻¹` from the PSD noise.
+
+pub mod jacobian;
+
+pub use jacobian::{conditioning, covariance, crlb, jacobian, sd_of, to_user_units};
+
+use crate::optics::{Layout, Pose};
+use crate::units::{Errors6, MM_PER_UM};
+use nalgebra::{Matrix6, Vector6};
+use thiserror::Error;
+
+/// Why a decoupling failed.
+#[derive(Clone, Debug, Error, PartialEq)]
+pub enum DecoupleError {
+    /// The model cannot trace the pose (a PSD would read nothing there).
+    #[error("the model gives no reading at this pose: {reason}")]
+    NotTraceable { reason: String },
+    /// β is singular: the readings do not determine the six errors.
+    #[error("the sensitivity matrix is singular: the readings do not determine all six errors")]
+    Singular,
+    /// Gauss–Newton did not converge.
+    #[error(
+        "no convergence after {iterations} iterations (last step {step_um:.3e} µm): the readings are far from any pose the model can trace"
+    )]
+    NoConvergence { iterations: u32, step_um: f64 },
+}
+
+/// An estimate of the six errors with its covariance (internal units).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Estimate {
+    pub errors: Errors6,
+    pub cov: Matrix6<f64>,
+    /// Gauss–Newton iterations used (0 for a linear estimate).
+    pub iterations: u32,
+}
+
+impl Estimate {
+    /// Standard deviation per DOF (internal units).
+    pub fn sd(&self) -> Errors6 {
+        sd_of(&self.cov)
+    }
+}
+
+/// A linear decoupler with offset: `e = β⁻¹·(r − c)`, covariance precomputed.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Linear {
+    pub beta: Matrix6<f64>,
+    pub offset: Vector6<f64>,
+    beta_inv: Matrix6<f64>,
+    cov: Matrix6<f64>,
+}
+
+impl Linear {
+    /// From β (mm per mm / per rad), offset c (mm) and reading noise (mm per channel).
+    pub fn new(
+        beta: Matrix6<f64>,
+        offset: Vector6<f64>,
+        sigma_mm: &[f64; 6],
+    ) -> Result<Self, DecoupleError> {
+        let beta_inv = beta.try_inverse().ok_or(DecoupleError::Singular)?;
+        let cov = covariance(&beta, sigma_mm).ok_or(DecoupleError::Singular)?;
+        Ok(Linear {
+            beta,
+            offset,
+            beta_inv,
+            cov,
+        })
+    }
+
+    /// The errors (internal units) for readings `r` (mm).
+    #[inline]
+    pub fn solve(&self, r: &Vector6<f64>) -> Vector6<f64> {
+        self.beta_inv * (r - self.offset)
+    }
+
+    /// The estimate with covariance.
+    pub fn estimate(&self, r: &Vector6<f64>) -> Estimate {
+        Estimate {
+            errors: Errors6::from_vector(&self.solve(r)),
+            cov: self.cov,
+            iterations: 0,
+        }
+    }
+}
+
+/// Stopping rule of the nonlinear solver: it stops when a step is below `tol_mm` in every
+/// translation and `tol_rad` in every rotation, and fails after `max_iter` iterations.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SolveOptions {
+    pub max_iter: u32,
+    pub tol_mm: f64,
+    pub tol_rad: f64,
+}
+
+impl Default for SolveOptions {
+    fn default() -> Self {
+        SolveOptions {
+            max_iter: 30,
+            tol_mm: 1e-8,
+            tol_rad: 5e-11,
+        }
+    }
+}
+
+/// The model's readings at a pose (geometry only, no aperture checks), or why there are none.
+pub fn model_readings(layout: &Layout, pose: &Pose) -> Result<Vector6<f64>, DecoupleError> {
+    let r = layout.forward_unbounded(pose);
+    r.vector().ok_or_else(|| DecoupleError::NotTraceable {
+        reason: r
+            .first_invalid()
+            .map(|i| layout.describe(&i))
+            .unwrap_or_default(),
+    })
+}
+
+/// The linear estimate with β(D) and offset f(0, D, d): one forward-model Jacobian, no
+/// iteration. Exact to first order.
+pub fn solve_linear(
+    layout: &Layout,
+    r: &Vector6<f64>,
+    travel: f64,
+    follower: f64,
+    sigma_mm: &[f64; 6],
+) -> Result<Estimate, DecoupleError> {
+    let pose0 = Pose::new(Errors6::ZERO, travel, follower);
+    let beta = jacobian(layout, &pose0)?;
+    let offset = model_readings(layout, &pose0)?;
+    Ok(Linear::new(beta, offset, sigma_mm)?.estimate(r))
+}
+
+/// Gauss–Newton on the forward model at travel `travel` and follower `follower`. Starts from
+/// the linear estimate with β(D); iterates with that Jacobian while it converges fast (each
+/// step at least 4× smaller than the last) and re-evaluates it at the current estimate
+/// otherwise.
+pub fn solve_nonlinear(
+    layout: &Layout,
+    r: &Vector6<f64>,
+    travel: f64,
+    follower: f64,
+    sigma_mm: &[f64; 6],
+    opts: &SolveOptions,
+) -> Result<Estimate, DecoupleError> {
+    let pose0 = Pose::new(Errors6::ZERO, travel, follower);
+    let mut j = jacobian(layout, &pose0)?;
+    let mut lu = j.lu();
+    let f0 = model_readings(layout, &pose0)?;
+    let mut e = lu.solve(&(r - f0)).ok_or(DecoupleError::Singular)?;
+    let mut prev = f64::INFINITY;
+    for it in 1..=opts.max_iter {
+        let pose = Pose::new(Errors6::from_vector(&e), travel, follower);
+        let f = model_readings(layout, &pose)?;
+        let de = lu.solve(&(r - f)).ok_or(DecoupleError::Singular)?;
+        e += de;
+        let step = (0..6)
+            .map(|k| de[k].abs() / if k < 3 { opts.tol_mm } else { opts.tol_rad })
+            .fold(0.0, f64::max);
+        if step <= 1.0 {
+            let cov = covariance(&j, sigma_mm).ok_or(DecoupleError::Singular)?;
+            return Ok(Estimate {
+                errors: Errors6::from_vector(&e),
+                cov,
+                iterations: it,
+            });
+        }
+        if step > 0.25 * prev {
+            j = jacobian(
+                layout,
+                &Pose::new(Errors6::from_vector(&e), travel, follower),
+            )?;
+            lu = j.lu();
+        }
+        prev = step;
+        if it == opts.max_iter {
+            return Err(DecoupleError::NoConvergence {
+                iterations: it,
+                step_um: de.fixed_rows::<3>(0).amax() / MM_PER_UM,
+            });
+        }
+    }
+    Err(DecoupleError::NoConvergence {
+        iterations: 0,
+        step_um: f64::NAN,
+    })
+}
+
+/// Where β and the offset come from.
+#[derive(Clone, Debug)]
+pub enum Source {
+    /// The nominal layout's model, no installation errors known.
+    Simulated(Layout),
+    /// The layout with calibrated installation errors (model-based calibration).
+    Model(Layout),
+    /// A fitted linear β and offset, valid at its reference travel; away from it the nominal
+    /// model's offset change with travel is applied (β stays fixed, as in the paper).
+    Linear {
+        linear: Linear,
+        nominal: Layout,
+        ref_travel: f64,
+        ref_follower: f64,
+    },
+}
+
+/// Linear (one-shot) or nonlinear (Gauss–Newton) decoupling for model sources.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Method {
+    Linear,
+    Nonlinear,
+}
+
+/// A configured decoupler: a source of β and offset, a method and the reading noise.
+#[derive(Clone, Debug)]
+pub struct Decoupler {
+    pub source: Source,
+    pub method: Method,
+    pub sigma_mm: [f64; 6],
+    pub options: SolveOptions,
+}
+
+impl Decoupler {
+    /// Decouple readings `r` (mm) taken at travel `travel` with the follower at `follower`.
+    pub fn decouple(
+        &self,
+        r: &Vector6<f64>,
+        travel: f64,
+        follower: f64,
+    ) -> Result<Estimate, DecoupleError> {
+        match &self.source {
+            Source::Simulated(l) | Source::Model(l) => match self.method {
+                Method::Linear => solve_linear(l, r, travel, follower, &self.sigma_mm),
+                Method::Nonlinear => {
+                    solve_nonlinear(l, r, travel, follower, &self.sigma_mm, &self.options)
+                }
+            },
+            Source::Linear {
+                linear,
+                nominal,
+                ref_travel,
+                ref_follower,
+            } => {
+                let shift = if travel == *ref_travel && follower == *ref_follower {
+                    Vector6::zeros()
+                } else {
+                    let at = model_readings(nominal, &Pose::new(Errors6::ZERO, travel, follower))?;
+                    let at_ref = model_readings(
+                        nominal,
+                        &Pose::new(Errors6::ZERO, *ref_travel, *ref_follower),
+                    )?;
+                    at - at_ref
+                };
+                Ok(linear.estimate(&(r - shift)))
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nonlinear_recovers_large_errors_at_long_travel() {
+        let l = Layout::reference();
+        let e = Errors6::from_user([400.0, -300.0, 250.0, 150.0, -120.0, 180.0]);
+        let pose = Pose::new(e, 600.0, 600.5);
+        let r = l.forward(&pose).vector().unwrap();
+        let est =
+            solve_nonlinear(&l, &r, 600.0, 600.5, &[1e-3; 6], &SolveOptions::default()).unwrap();
+        let got = est.errors.to_user();
+        let want = e.to_user();
+        for k in 0..6 {
+            assert!(
+                (got[k] - want[k]).abs() < 1e-4,
+                "dof {k}: {} vs {}",
+                got[k],
+                want[k]
+            );
+        }
+        // The linear estimate alone is visibly off at this size.
+        let lin = solve_linear(&l, &r, 600.0, 600.5, &[1e-3; 6]).unwrap();
+        let worst = (0..6)
+            .map(|k| (lin.errors.to_user()[k] - want[k]).abs())
+            .fold(0.0, f64::max);
+        assert!(worst > 0.01, "linear error {worst}");
+    }
+
+    #[test]
+    fn linear_source_applies_offset_and_travel_shift() {
+        let l = Layout::reference();
+        let beta = jacobian(&l, &Pose::default()).unwrap();
+        let lin = Linear::new(beta, Vector6::zeros(), &[1e-3; 6]).unwrap();
+        let d = Decoupler {
+            source: Source::Linear {
+                linear: lin,
+                nominal: l.clone(),
+                ref_travel: 0.0,
+                ref_follower: 0.0,
+            },
+            method: Method::Linear,
+            sigma_mm: [1e-3; 6],
+            options: SolveOptions::default(),
+        };
+        // Pure positioning at travel 50 with the follower at 49: X2 = dy + (D − d).
+        let e = Errors6 {
+            dy: 0.01,
+            ..Errors6::ZERO
+        };
+        let r = l.forward(&Pose::new(e, 50.0, 49.0)).vector().unwrap();
+        let est = d.decouple(&r, 50.0, 49.0).unwrap();
+        assert!((est.errors.dy - 0.01).abs() < 1e-9);
+        assert!(est.errors.ez.abs() < 1e-12);
+    }
+
+    #[test]
+    fn decoupling_model_ignores_apertures() {
+        // The PSDs would not see this spot (50 mm off PSD2), but a model used for decoupling
+        // must not refuse a reading that arrived.
+        let l = Layout::reference();
+        let pose = Pose::new(Errors6::ZERO, 50.0, 0.0);
+        assert!(l.forward(&pose).vector().is_none());
+        let r = model_readings(&l, &pose).unwrap();
+        assert!((r[2] - 50.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn parallel_beam_is_not_traceable() {
+        // Yaw of 90° turns MIRROR1 so P2 runs parallel to PSD2's plane.
+        let l = Layout::reference();
+        let e = Errors6 {
+            ez: std::f64::consts::FRAC_PI_2,
+            ..Errors6::ZERO
+        };
+        let err = model_readings(&l, &Pose::new(e, 0.0, 0.0)).unwrap_err();
+        assert!(matches!(err, DecoupleError::NotTraceable { .. }), "{err}");
+    }
+}

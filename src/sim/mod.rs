@@ -1,0 +1,32 @@
+//! The digital twin (DESIGN §9): the plant that real hardware would be, built on the same
+//! layout file and speaking the same interfaces, recording its truth so every test can compare
+//! what was measured with what was injected.
+//!
+//! So far: the optical head with random installation errors, PSD gain errors and noise
+//! (`head`), and a hexapod that applies calibration poses (`hexapod`).
+
+pub mod head;
+pub mod hexapod;
+pub mod rng;
+
+pub use head::{InstallSpec, TwinHead};
+pub use hexapod::{Hexapod, PoseWindow};
+pub use rng::Rng;
+
+use thiserror::Error;
+
+/// Why the twin could not be built.
+#[derive(Debug, Error, PartialEq)]
+pub enum SimError {
+    #[error(
+        "no head with installation errors of {offset_mm} mm / {tilt_deg}° could be aligned (every spot within {limit_mm} mm of its PSD centre) in {tries} draws: use smaller errors"
+    )]
+    CannotAlign {
+        offset_mm: f64,
+        tilt_deg: f64,
+        limit_mm: f64,
+        tries: usize,
+    },
+    #[error("{0}")]
+    Input(String),
+}
