@@ -4,6 +4,11 @@
 //!
 //! The poses must cover the operating window (positioning over the whole follower window):
 //! a linear β fitted over a small window leaves µm-level bias when used over a large one.
+//! For the model to hold over the travel, the poses must also span the travel (hexapod at
+//! several positions along a calibration bench): from one position the parameters that set
+//! the beams' directions relative to the travel are seen only over the hexapod's ±2 mm, far
+//! too short a lever to extrapolate to hundreds of millimetres (`axiscomp demo --bench-mm 0`
+//! shows it).
 
 pub mod file;
 pub mod linear;
@@ -163,7 +168,7 @@ pub fn calibrate(
 
     let lin_dec = Decoupler {
         source: Source::Linear {
-            linear: linear.linear(&sigma_mm)?,
+            linear: Box::new(linear.linear(&sigma_mm)?),
             nominal: nominal.clone(),
             ref_travel: linear.ref_travel,
             ref_follower: linear.ref_follower,
@@ -239,7 +244,7 @@ impl Calibration {
             },
             None => Decoupler {
                 source: Source::Linear {
-                    linear: self.linear.linear(&self.sigma_mm)?,
+                    linear: Box::new(self.linear.linear(&self.sigma_mm)?),
                     nominal: nominal.clone(),
                     ref_travel: self.linear.ref_travel,
                     ref_follower: self.linear.ref_follower,

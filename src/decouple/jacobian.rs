@@ -54,7 +54,7 @@ pub fn covariance(j: &Matrix6<f64>, sigma_mm: &[f64; 6]) -> Option<Matrix6<f64>>
     let mut w = *j;
     for r in 0..6 {
         let s = sigma_mm[r];
-        if !(s > 0.0) {
+        if s.is_nan() || s <= 0.0 {
             return None;
         }
         for c in 0..6 {

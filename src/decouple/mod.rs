@@ -200,7 +200,7 @@ pub enum Source {
     /// A fitted linear β and offset, valid at its reference travel; away from it the nominal
     /// model's offset change with travel is applied (β stays fixed, as in the paper).
     Linear {
-        linear: Linear,
+        linear: Box<Linear>,
         nominal: Layout,
         ref_travel: f64,
         ref_follower: f64,
@@ -297,7 +297,7 @@ mod tests {
         let lin = Linear::new(beta, Vector6::zeros(), &[1e-3; 6]).unwrap();
         let d = Decoupler {
             source: Source::Linear {
-                linear: lin,
+                linear: Box::new(lin),
                 nominal: l.clone(),
                 ref_travel: 0.0,
                 ref_follower: 0.0,

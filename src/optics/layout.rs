@@ -24,26 +24,31 @@ pub enum LayoutError {
     /// The file is not valid TOML or does not fit the schema.
     #[error("layout {path}: {message}")]
     Syntax { path: String, message: String },
-    /// One element is wrong.
-    #[error("layout {path}: element {element}: {problem}")]
-    Element {
+    /// The content is wrong; `at` names the element or path step ("element BS1",
+    /// "path P1 step 5 (BS2 reflect)"), empty for the layout as a whole.
+    #[error("layout {path}: {at}{problem}")]
+    Invalid {
         path: String,
-        element: String,
+        at: String,
         problem: String,
     },
-    /// One step of a path is wrong.
-    #[error("layout {path}: path {path_name} step {step} ({element} {action}): {problem}")]
-    Step {
-        path: String,
-        path_name: String,
-        step: usize,
-        element: String,
-        action: String,
-        problem: String,
-    },
-    /// The layout as a whole is wrong.
-    #[error("layout {path}: {problem}")]
-    Whole { path: String, problem: String },
+}
+
+impl LayoutError {
+    fn element(path: &str, element: &str, problem: impl Into<String>) -> Self {
+        LayoutError::Invalid {
+            path: path.to_string(),
+            at: format!("element {element}: "),
+            problem: problem.into(),
+        }
+    }
+    fn whole(path: &str, problem: impl Into<String>) -> Self {
+        LayoutError::Invalid {
+            path: path.to_string(),
+            at: String::new(),
+            problem: problem.into(),
+        }
+    }
 }
 
 /// What the TOML file says (first stage).
@@ -329,10 +334,7 @@ impl Layout {
 
     /// Second stage: validate.
     pub fn validate(raw: RawLayout, label: &str) -> Result<Layout, LayoutError> {
-        let whole = |problem: String| LayoutError::Whole {
-            path: label.to_string(),
-            problem,
-        };
+        let whole = |problem: String| LayoutError::whole(label, problem);
         let c = V3::from(raw.reference_point_mm);
         check_finite(&raw.reference_point_mm)
             .map_err(|_| whole("reference_point_mm has a non-finite value".into()))?;
@@ -349,17 +351,14 @@ impl Layout {
 
         let mut elements = Vec::with_capacity(raw.elements.len());
         for re in &raw.elements {
-            let el = validate_element(re).map_err(|problem| LayoutError::Element {
-                path: label.to_string(),
-                element: re.name.clone(),
-                problem,
-            })?;
+            let el = validate_element(re)
+                .map_err(|problem| LayoutError::element(label, &re.name, problem))?;
             if elements.iter().any(|e: &Element| e.name == el.name) {
-                return Err(LayoutError::Element {
-                    path: label.to_string(),
-                    element: re.name.clone(),
-                    problem: "the name is used twice: element names must be unique".into(),
-                });
+                return Err(LayoutError::element(
+                    label,
+                    &re.name,
+                    "the name is used twice: element names must be unique",
+                ));
             }
             elements.push(el);
         }
@@ -391,20 +390,20 @@ impl Layout {
             if el.kind == Kind::Psd {
                 let readers = validated.iter().filter(|p| p.psd == i).count();
                 if readers == 0 {
-                    return Err(LayoutError::Element {
-                        path: label.to_string(),
-                        element: el.name.clone(),
-                        problem: "this PSD is missing from the paths: no path ends on it".into(),
-                    });
+                    return Err(LayoutError::element(
+                        label,
+                        &el.name,
+                        "this PSD is missing from the paths: no path ends on it",
+                    ));
                 }
                 if readers > 1 {
-                    return Err(LayoutError::Element {
-                        path: label.to_string(),
-                        element: el.name.clone(),
-                        problem: format!(
+                    return Err(LayoutError::element(
+                        label,
+                        &el.name,
+                        format!(
                             "{readers} paths end on this PSD: each PSD gives one path's readings"
                         ),
-                    });
+                    ));
                 }
             }
         }
@@ -564,23 +563,20 @@ fn validate_path(
     elements: &[Element],
     label: &str,
 ) -> Result<OpticalPath, LayoutError> {
-    let step_err = |i: usize, el: &str, act: &str, problem: String| LayoutError::Step {
+    let step_err = |i: usize, el: &str, act: &str, problem: String| LayoutError::Invalid {
         path: label.to_string(),
-        path_name: rp.name.clone(),
-        step: i + 1,
-        element: el.to_string(),
-        action: act.to_string(),
+        at: format!("path {} step {} ({el} {act}): ", rp.name, i + 1),
         problem,
     };
     if rp.steps.len() < 2 {
-        return Err(LayoutError::Whole {
-            path: label.to_string(),
-            problem: format!(
+        return Err(LayoutError::whole(
+            label,
+            format!(
                 "path {} has {} steps: a path runs from a laser source to a PSD detect step",
                 rp.name,
                 rp.steps.len()
             ),
-        });
+        ));
     }
     let mut steps = Vec::with_capacity(rp.steps.len());
     let mut pol = Polarisation::P;

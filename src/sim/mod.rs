@@ -8,6 +8,7 @@
 pub mod head;
 pub mod hexapod;
 pub mod rng;
+pub mod study;
 
 pub use head::{InstallSpec, TwinHead};
 pub use hexapod::{Hexapod, PoseWindow};

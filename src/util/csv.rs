@@ -66,7 +66,7 @@ impl NumericCsv {
                         expected,
                     });
                 }
-                Some((_, l)) if l.is_empty() => continue,
+                Some((_, "")) => continue,
                 Some((_, l)) if l.starts_with('#') => comments.push(l[1..].trim().to_string()),
                 Some(x) => break x,
             }

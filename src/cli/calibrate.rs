@@ -1,0 +1,221 @@
+//! `axiscomp calibrate simulate|fit`.
+
+use super::{InputError, load_layout};
+use anyhow::{Context, Result};
+use axiscomp::calibrate::{
+    self, CalibrateOptions, CalibrationFile, PoseSample, parse_pose_csv, write_pose_csv,
+};
+use axiscomp::optics::Layout;
+use axiscomp::sim::{Hexapod, InstallSpec, PoseWindow, Rng, TwinHead};
+use axiscomp::units::{Errors6, MM_PER_UM};
+use axiscomp::util::progress::Progress;
+use clap::{Subcommand, ValueEnum};
+use std::path::{Path, PathBuf};
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Generate a pose set with the digital twin: a head with random installation errors
+    /// driven through random hexapod poses.
+    Simulate(SimulateArgs),
+    /// Fit β and offset (and the installation errors) to a pose set; print the report.
+    Fit(FitArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct SimulateArgs {
+    /// Number of poses.
+    #[arg(long)]
+    pub poses: usize,
+    /// Seed of the twin (head and poses).
+    #[arg(long)]
+    pub seed: u64,
+    /// Installation offset of every element, uniform within ± (mm).
+    #[arg(long, default_value_t = 0.5)]
+    pub install_error_mm: f64,
+    /// Installation tilt of every element, uniform within ± (degrees).
+    #[arg(long, default_value_t = 0.2)]
+    pub install_error_deg: f64,
+    /// PSD gain error, uniform within ± (relative, e.g. 0.01 for 1 %).
+    #[arg(long, default_value_t = 0.0)]
+    pub gain_error: f64,
+    /// PSD noise per axis (µm, standard deviation).
+    #[arg(long, default_value_t = 1.0)]
+    pub noise_um: f64,
+    /// Bench positions along the travel (mm), comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "0")]
+    pub travel_mm: Vec<f64>,
+    /// Half-range of the straightness poses (µm).
+    #[arg(long, default_value_t = 100.0)]
+    pub window_um: f64,
+    /// Half-range of the positioning poses: the follower window (mm).
+    #[arg(long, default_value_t = 2.0)]
+    pub window_positioning_mm: f64,
+    /// Half-range of the angular poses (arcsec).
+    #[arg(long, default_value_t = 60.0)]
+    pub window_arcsec: f64,
+    #[arg(long)]
+    pub layout: Option<PathBuf>,
+    /// Output CSV.
+    #[arg(long)]
+    pub output: PathBuf,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum, PartialEq)]
+pub enum FitMethod {
+    /// Linear β and offset, then the installation errors by Levenberg–Marquardt.
+    Model,
+    /// Linear β and offset only (the paper's method with an offset).
+    Linear,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct FitArgs {
+    /// Pose-set CSV.
+    #[arg(long)]
+    pub input: PathBuf,
+    /// Calibration file to write (TOML).
+    #[arg(long)]
+    pub output: PathBuf,
+    #[arg(long)]
+    pub layout: Option<PathBuf>,
+    #[arg(long, value_enum, default_value_t = FitMethod::Model)]
+    pub method: FitMethod,
+    /// Hold out every n-th pose to judge the fit (0: none).
+    #[arg(long, default_value_t = 5)]
+    pub holdout_every: usize,
+}
+
+pub fn run(c: Command) -> Result<()> {
+    match c {
+        Command::Simulate(a) => simulate(a),
+        Command::Fit(a) => fit(a),
+    }
+}
+
+fn positive(name: &str, v: f64, zero_ok: bool) -> Result<()> {
+    if v.is_finite() && (v > 0.0 || (zero_ok && v == 0.0)) {
+        Ok(())
+    } else {
+        Err(InputError(format!(
+            "{name} {v}: give a {} number",
+            if zero_ok { "non-negative" } else { "positive" }
+        ))
+        .into())
+    }
+}
+
+/// Build the twin head the way `simulate` and `demo` do.
+pub fn twin_head(
+    layout: &Layout,
+    spec: &InstallSpec,
+    noise_um: f64,
+    rng: &mut Rng,
+) -> Result<TwinHead> {
+    Ok(TwinHead::random(layout, spec, noise_um * MM_PER_UM, rng)?)
+}
+
+/// Comment lines recording the twin's true installation errors.
+pub fn truth_comments(head: &TwinHead) -> Vec<String> {
+    head.install
+        .to_named(&head.nominal)
+        .iter()
+        .map(|(name, e)| {
+            format!(
+                "truth {name}: offset_mm={:?} tilt_deg={:?} gain_error={:?}",
+                e.offset,
+                e.tilt.map(f64::to_degrees),
+                e.gain_error
+            )
+        })
+        .collect()
+}
+
+fn simulate(a: SimulateArgs) -> Result<()> {
+    if a.poses == 0 {
+        return Err(InputError("--poses 0: give the number of poses to generate".into()).into());
+    }
+    positive("--install-error-mm", a.install_error_mm, true)?;
+    positive("--install-error-deg", a.install_error_deg, true)?;
+    positive("--gain-error", a.gain_error, true)?;
+    positive("--noise-um", a.noise_um, true)?;
+    positive("--window-um", a.window_um, false)?;
+    positive("--window-positioning-mm", a.window_positioning_mm, false)?;
+    positive("--window-arcsec", a.window_arcsec, false)?;
+    for t in &a.travel_mm {
+        if !t.is_finite() {
+            return Err(InputError(format!("--travel-mm {t}: give finite positions in mm")).into());
+        }
+    }
+    let layout = load_layout(a.layout.as_deref())?;
+    let rng = Rng::new(a.seed);
+    let spec = InstallSpec {
+        offset_mm: a.install_error_mm,
+        tilt_deg: a.install_error_deg,
+        gain_error: a.gain_error,
+    };
+    let head = twin_head(&layout, &spec, a.noise_um, &mut rng.fork(1))?;
+    let window = PoseWindow {
+        half_range: Errors6::from_user([
+            a.window_um,
+            a.window_positioning_mm * 1000.0,
+            a.window_um,
+            a.window_arcsec,
+            a.window_arcsec,
+            a.window_arcsec,
+        ]),
+        travels: a.travel_mm.clone(),
+    };
+    let poses = window.draw(a.poses, &mut rng.fork(2));
+    let mut progress = Progress::new("hexapod poses", poses.len() as u64);
+    let (samples, skipped) =
+        Hexapod::default().acquire(&head, &poses, &mut rng.fork(3), &mut progress);
+    progress.finish(&format!(
+        "{} poses, {skipped} without a reading",
+        samples.len()
+    ));
+    let mut comments = vec![format!(
+        "axiscomp calibrate simulate --poses {} --seed {} --install-error-mm {} --install-error-deg {} --gain-error {} --noise-um {} (layout {} {})",
+        a.poses,
+        a.seed,
+        a.install_error_mm,
+        a.install_error_deg,
+        a.gain_error,
+        a.noise_um,
+        layout.name,
+        layout.hash()
+    )];
+    comments.extend(truth_comments(&head));
+    std::fs::write(&a.output, write_pose_csv(&samples, &comments))
+        .with_context(|| format!("writing {}", a.output.display()))?;
+    eprintln!("wrote {} poses to {}", samples.len(), a.output.display());
+    Ok(())
+}
+
+/// Read a pose-set CSV file.
+pub fn read_pose_file(path: &Path) -> Result<Vec<PoseSample>> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| InputError(format!("{}: cannot read it: {e}", path.display())))?;
+    Ok(parse_pose_csv(&text, &path.display().to_string())?)
+}
+
+fn fit(a: FitArgs) -> Result<()> {
+    let layout = load_layout(a.layout.as_deref())?;
+    let samples = read_pose_file(&a.input)?;
+    let opts = CalibrateOptions {
+        holdout_every: a.holdout_every,
+        model: a.method == FitMethod::Model,
+        ..CalibrateOptions::default()
+    };
+    let mut progress = Progress::new("model fit (iterations)", opts.model_options.max_iter as u64);
+    let mut last_iter = 0;
+    let cal = calibrate::calibrate(&samples, &layout, &opts, &mut |it, _cost| {
+        last_iter = it;
+        progress.set(it as u64);
+    })?;
+    progress.finish(&format!("{last_iter} iterations"));
+    let bound = cal.crlb(&layout)?;
+    print!("{}", cal.report(Some(&bound)));
+    CalibrationFile::from_calibration(&cal, &layout).save(&a.output)?;
+    eprintln!("wrote {}", a.output.display());
+    Ok(())
+}

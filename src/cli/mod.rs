@@ -1,0 +1,95 @@
+//! Subcommands. Each module turns arguments into library calls and prints the result; the
+//! measurement logic lives in the library.
+
+mod calibrate;
+mod decouple;
+mod demo;
+mod optics;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+use std::path::{Path, PathBuf};
+
+/// Input the user must fix (exit code 2).
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct InputError(pub String);
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "axiscomp",
+    version,
+    about = "Six-DOF geometric error measurement and compensation for machine-tool linear axes"
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// The end-to-end demo on the built-in digital twin.
+    Demo(demo::Args),
+    /// The optical model: trace poses, print the sensitivity matrix.
+    #[command(subcommand)]
+    Optics(optics::Command),
+    /// Calibrate the head from known poses.
+    #[command(subcommand)]
+    Calibrate(calibrate::Command),
+    /// Decouple PSD readings (CSV on standard input) into the six errors.
+    Decouple(decouple::Args),
+}
+
+/// Run a parsed command line.
+pub fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Demo(a) => demo::run(a),
+        Command::Optics(c) => optics::run(c),
+        Command::Calibrate(c) => calibrate::run(c),
+        Command::Decouple(a) => decouple::run(a),
+    }
+}
+
+/// 2 for input the user must fix, 1 for anything else.
+pub fn exit_code(e: &anyhow::Error) -> u8 {
+    use axiscomp::calibrate::CalError;
+    for cause in e.chain() {
+        if cause.is::<InputError>()
+            || cause.is::<axiscomp::optics::LayoutError>()
+            || cause.is::<axiscomp::util::csv::CsvError>()
+            || cause.is::<axiscomp::sim::SimError>()
+        {
+            return 2;
+        }
+        if let Some(c) = cause.downcast_ref::<CalError>() {
+            return match c {
+                CalError::Csv(_)
+                | CalError::Input(_)
+                | CalError::File { .. }
+                | CalError::TooFewPoses { .. }
+                | CalError::LowRank { .. } => 2,
+                _ => 1,
+            };
+        }
+    }
+    1
+}
+
+/// The default layout file, relative to the working directory, if present; otherwise the
+/// copy compiled into the binary.
+pub const DEFAULT_LAYOUT: &str = "configs/optics/reference.toml";
+
+/// Load `--layout FILE`, or the default.
+pub fn load_layout(path: Option<&Path>) -> Result<axiscomp::optics::Layout> {
+    Ok(match path {
+        Some(p) => axiscomp::optics::Layout::load(p)?,
+        None => {
+            let p = PathBuf::from(DEFAULT_LAYOUT);
+            if p.exists() {
+                axiscomp::optics::Layout::load(&p)?
+            } else {
+                axiscomp::optics::Layout::reference()
+            }
+        }
+    })
+}
