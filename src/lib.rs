@@ -2,13 +2,18 @@
 //!
 //! Data flows one way (DESIGN §5), and the modules follow it:
 //!
-//! `optics` (the head: layout, ray tracing, forward model) → `decouple` (readings → six errors
-//! with covariance) ← `calibrate` (β and installation errors from known poses).
+//! `acquire` (PSD registers → `Frame`) → `decouple` (readings → six errors with covariance,
+//! using the head's model from `optics` and its calibration from `calibrate`).
+//! Field links: `modbus` (the I/O module), `can` + `canopen` (the follower drive).
 //! `sim` is the digital twin the rest is tested against; `units` holds the conventions;
 //! `util` the small shared pieces.
 
+pub mod acquire;
 pub mod calibrate;
+pub mod can;
+pub mod canopen;
 pub mod decouple;
+pub mod modbus;
 pub mod optics;
 pub mod sim;
 pub mod units;

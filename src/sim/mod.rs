@@ -5,8 +5,10 @@
 //! So far: the optical head with random installation errors, PSD gain errors and noise
 //! (`head`), and a hexapod that applies calibration poses (`hexapod`).
 
+pub mod axis;
 pub mod head;
 pub mod hexapod;
+pub mod plant;
 pub mod rng;
 pub mod study;
 

@@ -1,0 +1,1 @@
+//! Modbus TCP: the client link (timeouts, reconnect), server scaffolding, register codecs.

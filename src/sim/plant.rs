@@ -1,0 +1,312 @@
+//! The twin's physical state, shared by its parts: the carriage on the measured axis, the
+//! follower stage carrying PSD2 (with its own positioning and vertical straightness errors),
+//! the head (installation errors, noise, laser pointing drift) and beam blockers.
+//!
+//! The twin's I/O module samples it (`sample`), the twin's drive sets the follower's encoder
+//! position (`set_follower_encoder`), the motion interface moves the carriage (`move_carriage`),
+//! and tests read the truth (`truth`).
+
+use super::axis::{AxisProfile, AxisSpec, Carriage, Direction};
+use super::{InstallSpec, Rng, SimError, TwinHead};
+use crate::optics::geometry::{V3, rot_zyx};
+use crate::optics::layout::Kind;
+use crate::optics::{Layout, Pose, Spot};
+use crate::units::{Errors6, MM_PER_UM};
+use std::f64::consts::PI;
+use std::sync::Mutex;
+use std::time::Instant;
+
+/// The follower stage's own errors (peaks over its travel).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FollowerSpec {
+    /// Peak positioning error along its axis (µm).
+    pub positioning_um: f64,
+    /// Peak vertical straightness (µm); it reads as roll (1.38″ per µm) unless stitched out.
+    pub straightness_um: f64,
+}
+
+impl Default for FollowerSpec {
+    fn default() -> Self {
+        FollowerSpec {
+            positioning_um: 4.0,
+            straightness_um: 2.0,
+        }
+    }
+}
+
+/// Everything the plant is built from.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlantSpec {
+    pub seed: u64,
+    pub axis: AxisSpec,
+    pub install: InstallSpec,
+    /// PSD noise per axis (mm).
+    pub noise_mm: f64,
+    /// Laser pointing drift: random-walk rate (rad per √s) of the beam's two tilt angles.
+    pub beam_drift_rad_per_sqrt_s: f64,
+    pub follower: FollowerSpec,
+    /// SUM signal with the beam on a PSD (V), and with it blocked.
+    pub sum_on_v: f64,
+    pub sum_off_v: f64,
+    /// Carriage feed (mm/s) and acceleration (mm/s²).
+    pub feed: f64,
+    pub accel: f64,
+}
+
+impl Default for PlantSpec {
+    fn default() -> Self {
+        PlantSpec {
+            seed: 1,
+            axis: AxisSpec::default(),
+            install: InstallSpec::default(),
+            noise_mm: 1e-3,
+            beam_drift_rad_per_sqrt_s: 0.0,
+            follower: FollowerSpec::default(),
+            sum_on_v: 5.0,
+            sum_off_v: 0.02,
+            feed: 50.0,
+            accel: 500.0,
+        }
+    }
+}
+
+/// What the PSDs deliver at one instant: spot (mm) and SUM (V) per PSD.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PsdSample {
+    pub spots: [Option<Spot>; 3],
+    pub sums: [f64; 3],
+}
+
+/// The twin's truth at one instant.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Truth {
+    /// Nominal carriage position D (mm) and whether it is moving.
+    pub travel: f64,
+    pub moving: bool,
+    /// The axis' true six errors at D (internal units).
+    pub errors: Errors6,
+    /// The follower's encoder position, and where PSD2 really is along and across its axis (mm).
+    pub follower_encoder: f64,
+    pub follower_true: f64,
+    pub follower_vertical: f64,
+}
+
+struct State {
+    carriage: Carriage,
+    follower_encoder: f64,
+    blocked: [bool; 3],
+    rng: Rng,
+    /// Beam tilt angles (rad) about the laser's u and v.
+    drift: [f64; 2],
+    drift_at: Instant,
+    /// The true layout with the current beam drift applied.
+    layout: Layout,
+}
+
+/// The twin's plant.
+pub struct Plant {
+    pub spec: PlantSpec,
+    pub head: TwinHead,
+    pub axis: AxisProfile,
+    follower_shape: [(f64, f64, f64); 2],
+    laser: Option<usize>,
+    t0: Instant,
+    state: Mutex<State>,
+}
+
+impl Plant {
+    /// Build the plant from `spec`, at rest at D = 0 with the follower at 0.
+    pub fn new(nominal: &Layout, spec: &PlantSpec, now: Instant) -> Result<Self, SimError> {
+        let root = Rng::new(spec.seed);
+        let head = TwinHead::random(nominal, &spec.install, spec.noise_mm, &mut root.fork(11))?;
+        let axis = AxisProfile::random(&spec.axis, &mut root.fork(12));
+        let mut r = root.fork(13);
+        let follower_shape = [
+            (
+                spec.follower.positioning_um,
+                r.uniform(0.5, 2.0),
+                r.uniform(0.0, 2.0 * PI),
+            ),
+            (
+                spec.follower.straightness_um,
+                r.uniform(0.5, 2.0),
+                r.uniform(0.0, 2.0 * PI),
+            ),
+        ];
+        let laser = head
+            .truth
+            .elements
+            .iter()
+            .position(|e| e.kind == Kind::Laser);
+        Ok(Plant {
+            state: Mutex::new(State {
+                carriage: Carriage::new(0.0, spec.feed, spec.accel, now),
+                follower_encoder: 0.0,
+                blocked: [false; 3],
+                rng: root.fork(14),
+                drift: [0.0; 2],
+                drift_at: now,
+                layout: head.truth.clone(),
+            }),
+            spec: spec.clone(),
+            head,
+            axis,
+            follower_shape,
+            laser,
+            t0: now,
+        })
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, State> {
+        // A panic while holding the lock leaves consistent plain data: keep going.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The follower stage's own errors (mm) at encoder position `d`: along its axis, vertical.
+    pub fn follower_errors(&self, d: f64) -> (f64, f64) {
+        let len = self.spec.axis.length_mm.max(1.0);
+        let f = |(peak, cycles, ph): (f64, f64, f64)| {
+            peak * MM_PER_UM * ((2.0 * PI * cycles * d / len + ph).sin() - ph.sin()) / 2.0
+        };
+        (f(self.follower_shape[0]), f(self.follower_shape[1]))
+    }
+
+    /// Command the carriage to nominal position `target` (mm).
+    pub fn move_carriage(&self, target: f64, now: Instant) {
+        self.lock().carriage.move_to(target, now);
+    }
+
+    /// Nominal carriage position and whether it is moving.
+    pub fn carriage(&self, now: Instant) -> (f64, bool) {
+        let s = self.lock();
+        (s.carriage.position(now), s.carriage.is_moving(now))
+    }
+
+    /// When the current carriage move ends.
+    pub fn carriage_move_end(&self) -> Instant {
+        self.lock().carriage.end()
+    }
+
+    /// Set the follower's encoder position (mm), as its drive moves it.
+    pub fn set_follower_encoder(&self, d: f64) {
+        self.lock().follower_encoder = d;
+    }
+
+    /// The follower's encoder position (mm).
+    pub fn follower_encoder(&self) -> f64 {
+        self.lock().follower_encoder
+    }
+
+    /// Block or unblock the beam to one PSD (0..3).
+    pub fn set_blocked(&self, psd: usize, blocked: bool) {
+        if let Some(b) = self.lock().blocked.get_mut(psd) {
+            *b = blocked;
+        }
+    }
+
+    /// The truth at `now`.
+    pub fn truth(&self, now: Instant) -> Truth {
+        let s = self.lock();
+        self.truth_locked(&s, now)
+    }
+
+    fn truth_locked(&self, s: &State, now: Instant) -> Truth {
+        let travel = s.carriage.position(now);
+        let hours = now.saturating_duration_since(self.t0).as_secs_f64() / 3600.0;
+        let dir: Direction = s.carriage.direction();
+        let (fu, fv) = self.follower_errors(s.follower_encoder);
+        Truth {
+            travel,
+            moving: s.carriage.is_moving(now),
+            errors: self.axis.errors(travel, dir, hours),
+            follower_encoder: s.follower_encoder,
+            follower_true: s.follower_encoder + fu,
+            follower_vertical: fv,
+        }
+    }
+
+    fn update_drift(&self, s: &mut State, now: Instant) {
+        let rate = self.spec.beam_drift_rad_per_sqrt_s;
+        let dt = now.saturating_duration_since(s.drift_at).as_secs_f64();
+        if rate <= 0.0 || dt < 0.05 {
+            return;
+        }
+        let step = rate * dt.sqrt();
+        s.drift[0] += s.rng.gauss(step);
+        s.drift[1] += s.rng.gauss(step);
+        s.drift_at = now;
+        if let Some(i) = self.laser {
+            let base = self.head.truth.elements[i].frame;
+            let r = rot_zyx(s.drift[0], s.drift[1], 0.0);
+            s.layout.elements[i].frame = base.perturbed(V3::zeros(), &r);
+        }
+    }
+
+    /// What the three PSDs deliver at `now`, with noise.
+    pub fn sample(&self, now: Instant) -> PsdSample {
+        let mut s = self.lock();
+        self.update_drift(&mut s, now);
+        let t = self.truth_locked(&s, now);
+        let pose = Pose::new(t.errors, t.travel, t.follower_true);
+        let r = s.layout.forward(&pose);
+        let mut spots = [None; 3];
+        let mut sums = [self.spec.sum_off_v; 3];
+        for k in 0..3 {
+            if s.blocked[k] {
+                continue;
+            }
+            if let Ok(mut spot) = r.psd[k] {
+                if k == 1 {
+                    // PSD2 sits higher by the follower's straightness: the spot reads lower.
+                    spot.y -= t.follower_vertical;
+                }
+                let noise = self.head.noise_mm;
+                spot.x += s.rng.gauss(noise);
+                spot.y += s.rng.gauss(noise);
+                spots[k] = Some(spot);
+                sums[k] = self.spec.sum_on_v * (1.0 + s.rng.gauss(0.002));
+            }
+        }
+        PsdSample { spots, sums }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    #[test]
+    fn sample_follows_carriage_and_follower() {
+        let t0 = Instant::now();
+        let spec = PlantSpec {
+            noise_mm: 0.0,
+            install: InstallSpec {
+                offset_mm: 0.0,
+                tilt_deg: 0.0,
+                gain_error: 0.0,
+            },
+            ..PlantSpec::default()
+        };
+        let plant = Plant::new(&Layout::reference(), &spec, t0).unwrap();
+        plant.move_carriage(1.0, t0);
+        let later = t0 + Duration::from_secs(2);
+        let truth = plant.truth(later);
+        assert_eq!(truth.travel, 1.0);
+        let s = plant.sample(later);
+        let x2 = s.spots[1].unwrap().x;
+        // X2 = dx + dy − 340·ez + (D − d) with d = 0 (encoder at 0, follower error 0 there).
+        let e = truth.errors;
+        let want = e.dx + e.dy - 340.0 * e.ez + 1.0;
+        assert!((x2 - want).abs() < 1e-6, "{x2} vs {want}");
+        plant.set_follower_encoder(1.0);
+        let (fu, fv) = plant.follower_errors(1.0);
+        let s = plant.sample(later);
+        assert!((s.spots[1].unwrap().x - (want - 1.0 - fu)).abs() < 1e-6);
+        let y2_nominal = 150.0 * (e.ey - e.ex);
+        assert!((s.spots[1].unwrap().y - (y2_nominal - fv)).abs() < 1e-6);
+        plant.set_blocked(2, true);
+        let s = plant.sample(later);
+        assert!(s.spots[2].is_none() && s.sums[2] < 0.1 && s.sums[0] > 4.0);
+    }
+}
