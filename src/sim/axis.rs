@@ -285,9 +285,11 @@ mod tests {
                 peak[k] = peak[k].max(up[k].abs());
             }
         }
-        assert!(peak[0] > 15.0 && peak[0] <= 20.0 + 1e-6, "{peak:?}");
+        // Peaks are set on a 401-point grid: the true maximum may exceed it by a hair.
+        assert!(peak[0] > 15.0 && peak[0] <= 20.0 * 1.01, "{peak:?}");
+        // Smooth shape, periodic term (its range is twice its amplitude) and half the backlash.
         assert!(
-            peak[1] > 25.0 && peak[1] <= 30.0 + 2.0 + 2.5 + 1e-6,
+            peak[1] > 25.0 && peak[1] <= 30.0 * 1.01 + 2.0 * 2.0 + 2.5,
             "{peak:?}"
         );
         // Zero at the start of travel, apart from backlash.
