@@ -2,7 +2,7 @@
 //!
 //! Data flows one way (DESIGN §5), and the modules follow it:
 //!
-//! `acquire` (PSD registers → `Frame`) → `decouple` (readings → six errors with covariance,
+//! `acquire` (PSD registers → `Frame`) → `track` (PSD2's stitched position) → `decouple` (readings → six errors with covariance,
 //! using the head's model from `optics` and its calibration from `calibrate`).
 //! Field links: `modbus` (the I/O module), `can` + `canopen` (the follower drive).
 //! `sim` is the digital twin the rest is tested against; `units` holds the conventions;
@@ -16,6 +16,7 @@ pub mod decouple;
 pub mod modbus;
 pub mod optics;
 pub mod sim;
+pub mod track;
 pub mod units;
 pub mod util;
 

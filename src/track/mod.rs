@@ -1,0 +1,825 @@
+//! Follower tracking and stitching (DESIGN §4): keep the laser spot on PSD2 by moving the
+//! follower stage, and know where PSD2 really is.
+//!
+//! Two strategies:
+//! - **Overlap** (the paper's method, made exact): hand over only while the carriage is at
+//!   rest. Average many frames before and after the follower's step; the difference of the
+//!   spot's position is the follower's true displacement, measured by the PSD itself — along its
+//!   axis (X2) and vertically (Y2), so neither the follower's positioning error nor its
+//!   straightness enters the result. Noise adds up as a random walk; every handover adds its
+//!   variance to the accumulated uncertainty. If the carriage runs the spot towards the PSD's
+//!   edge without stopping, the follower must follow anyway: that step is taken from the
+//!   encoder, with the encoder's uncertainty, and recorded as such.
+//! - **Encoder**: the follower follows continuously and PSD2's position is the encoder's.
+//!   Fast, but the follower's own positioning and vertical straightness enter 1:1 (1 µm of
+//!   follower straightness reads as 1.38″ of roll).
+//!
+//! Every handover is recorded (time, spot before and after, encoder before and after, counts),
+//! so a run can be re-stitched offline (`restitch`).
+//!
+//! The machine is sans-I/O: feed it frames (`handle_frame`) and follower states
+//! (`handle_follower`) with the time, take follower commands (`poll_command`) and events
+//! (`poll_event`); `stitch()` gives the current PSD2 position estimate for the decoupling.
+
+use crate::acquire::Frame;
+use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+/// How the follower's position is known.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Strategy {
+    Overlap,
+    Encoder,
+}
+
+/// Tracking settings (validated by the config layer).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrackSettings {
+    pub strategy: Strategy,
+    /// Overlap: hand over when the spot is this far from PSD2's centre at rest (mm).
+    pub handover_mm: f64,
+    /// Overlap: follow during motion when the spot gets this far out (mm), before it is lost.
+    pub edge_mm: f64,
+    /// At rest: the spot stays within ± this of its mean (mm) for `rest_time`.
+    pub rest_tolerance_mm: f64,
+    pub rest_time: Duration,
+    /// Frames averaged on each side of a handover.
+    pub average_frames: usize,
+    /// Wait after the follower reports its target reached.
+    pub settle: Duration,
+    /// Encoder: re-centre when the spot is this far out (mm), at most every `follow_interval`.
+    pub follow_band_mm: f64,
+    pub follow_interval: Duration,
+    /// The spot is lost when PSD2 has had no valid reading for this long.
+    pub lost_after: Duration,
+    /// Encoder accuracy: standard deviation `a + b·|travelled|` (mm, and mm per mm).
+    pub encoder_sd_mm: f64,
+    pub encoder_sd_per_mm: f64,
+    /// A follower move that has not finished after this long is abandoned.
+    pub move_timeout: Duration,
+}
+
+impl Default for TrackSettings {
+    fn default() -> Self {
+        TrackSettings {
+            strategy: Strategy::Overlap,
+            handover_mm: 1.5,
+            edge_mm: 3.5,
+            rest_tolerance_mm: 0.005,
+            rest_time: Duration::from_millis(300),
+            average_frames: 200,
+            settle: Duration::from_millis(100),
+            follow_band_mm: 0.3,
+            follow_interval: Duration::from_millis(20),
+            lost_after: Duration::from_millis(500),
+            encoder_sd_mm: 1e-3,
+            encoder_sd_per_mm: 5e-6,
+            move_timeout: Duration::from_secs(10),
+        }
+    }
+}
+
+/// What the follower drive reports.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FollowerState {
+    /// Encoder position (mm).
+    pub position_mm: f64,
+    /// Operation enabled, no fault, heartbeat alive.
+    pub ready: bool,
+    /// The last commanded target is reached.
+    pub target_reached: bool,
+}
+
+/// A command for the follower.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum FollowerCommand {
+    /// Move to an absolute encoder position (mm).
+    MoveTo(f64),
+}
+
+/// How a handover's displacement was measured.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum HandoverKind {
+    /// Optically, spot before minus spot after, carriage at rest.
+    Overlap,
+    /// From the encoder (encoder strategy, or the carriage moved during the handover).
+    Encoder,
+}
+
+/// One handover, enough to re-stitch offline.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct HandoverRecord {
+    pub unix_us: i64,
+    pub kind: HandoverKind,
+    /// Mean spot on PSD2 before and after (mm), and the frames averaged.
+    pub before: [f64; 2],
+    pub after: [f64; 2],
+    pub n_before: usize,
+    pub n_after: usize,
+    /// Standard deviation of single frames (mm, X2 and Y2), pooled over both windows.
+    pub frame_sd: [f64; 2],
+    pub encoder_before: f64,
+    pub encoder_after: f64,
+    /// Displacement used for the stitch (mm, along and across) and its variance (mm²).
+    pub delta: [f64; 2],
+    pub variance: [f64; 2],
+}
+
+/// Where PSD2 is, for the decoupling.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Stitch {
+    /// PSD2's position along the follower axis (mm): the `follower` argument of the model.
+    pub follower_mm: f64,
+    /// PSD2's vertical displacement since the reference (mm): add it to Y2.
+    pub vertical_mm: f64,
+    /// Accumulated variance (mm²) of each.
+    pub variance: [f64; 2],
+    pub handovers: usize,
+    pub strategy: Strategy,
+    /// False after the spot was lost: the stitch is broken until re-referenced.
+    pub valid: bool,
+}
+
+/// Events for the service.
+#[derive(Clone, Debug, PartialEq)]
+pub enum TrackEvent {
+    Handover(HandoverRecord),
+    /// The carriage ran the spot towards the edge without stopping: followed by encoder.
+    FollowedWhileMoving {
+        from_mm: f64,
+        to_mm: f64,
+    },
+    /// PSD2 lost its spot; the stitch is invalid until `reference` is called.
+    SpotLost,
+    /// PSD2 sees the spot again.
+    SpotFound,
+    /// A follower move did not finish in time or the follower is not ready.
+    FollowerProblem(String),
+}
+
+#[derive(Clone, Debug, PartialEq)]
+enum Phase {
+    /// Watching the spot.
+    Watch,
+    /// Overlap: averaging frames before the step.
+    Before { since: Instant },
+    /// A follower move is under way; `overlap` when it is a handover step.
+    Moving {
+        target: f64,
+        since: Instant,
+        overlap: bool,
+        reached_at: Option<Instant>,
+    },
+    /// Overlap: averaging frames after the step.
+    After { since: Instant },
+}
+
+/// Running mean and variance (Welford).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct Stats2 {
+    n: usize,
+    mean: [f64; 2],
+    m2: [f64; 2],
+}
+
+impl Stats2 {
+    fn push(&mut self, x: [f64; 2]) {
+        self.n += 1;
+        for ((xk, mean), m2) in x.iter().zip(&mut self.mean).zip(&mut self.m2) {
+            let d = xk - *mean;
+            *mean += d / self.n as f64;
+            *m2 += d * (xk - *mean);
+        }
+    }
+    fn var(&self) -> [f64; 2] {
+        if self.n < 2 {
+            return [0.0; 2];
+        }
+        self.m2.map(|m| m / (self.n - 1) as f64)
+    }
+}
+
+/// The tracking and stitching machine.
+#[derive(Debug)]
+pub struct Tracker {
+    settings: TrackSettings,
+    phase: Phase,
+    follower: Option<FollowerState>,
+    /// Recent PSD2 spots (time, x, y) for the rest test.
+    recent: VecDeque<(Instant, [f64; 2])>,
+    last_valid: Option<Instant>,
+    lost: bool,
+    last_follow_cmd: Option<Instant>,
+    before: Stats2,
+    after: Stats2,
+    encoder_before: f64,
+    /// Overlap: PSD2's position along the follower axis, stitched from the reference (mm).
+    follower_mm: f64,
+    /// The encoder position at the reference (mm).
+    reference_encoder: f64,
+    vertical_mm: f64,
+    variance: [f64; 2],
+    handovers: usize,
+    valid: bool,
+    commands: VecDeque<FollowerCommand>,
+    events: VecDeque<TrackEvent>,
+    last_frame_unix_us: i64,
+}
+
+impl Tracker {
+    /// A tracker that has not yet been referenced (its stitch is invalid until `reference`).
+    pub fn new(settings: TrackSettings) -> Self {
+        Tracker {
+            settings,
+            phase: Phase::Watch,
+            follower: None,
+            recent: VecDeque::new(),
+            last_valid: None,
+            lost: false,
+            last_follow_cmd: None,
+            before: Stats2::default(),
+            after: Stats2::default(),
+            encoder_before: 0.0,
+            follower_mm: 0.0,
+            reference_encoder: 0.0,
+            vertical_mm: 0.0,
+            variance: [0.0; 2],
+            handovers: 0,
+            valid: false,
+            commands: VecDeque::new(),
+            events: VecDeque::new(),
+            last_frame_unix_us: 0,
+        }
+    }
+
+    /// The settings in use.
+    pub fn settings(&self) -> &TrackSettings {
+        &self.settings
+    }
+
+    /// Switch strategy (takes effect at the next step; the stitch so far is kept).
+    pub fn set_strategy(&mut self, s: Strategy) {
+        self.settings.strategy = s;
+    }
+
+    /// Take the current follower position as the reference: PSD2 is where the encoder says,
+    /// with no vertical offset and no uncertainty. Called at the zero reference.
+    pub fn reference(&mut self) -> bool {
+        let Some(f) = self.follower else {
+            return false;
+        };
+        self.follower_mm = f.position_mm;
+        self.reference_encoder = f.position_mm;
+        self.vertical_mm = 0.0;
+        self.variance = [0.0; 2];
+        self.handovers = 0;
+        self.valid = !self.lost;
+        self.phase = Phase::Watch;
+        true
+    }
+
+    /// Where PSD2 is now.
+    pub fn stitch(&self) -> Stitch {
+        let (follower_mm, vertical_mm, variance) = match (self.settings.strategy, self.follower) {
+            (Strategy::Encoder, Some(f)) => {
+                (f.position_mm, 0.0, [self.encoder_var(f.position_mm), 0.0])
+            }
+            _ => (self.follower_mm, self.vertical_mm, self.variance),
+        };
+        Stitch {
+            follower_mm,
+            vertical_mm,
+            variance,
+            handovers: self.handovers,
+            strategy: self.settings.strategy,
+            valid: self.valid && !self.lost,
+        }
+    }
+
+    /// Whether the carriage is judged at rest (PSD2's spot steady for the rest time).
+    pub fn at_rest(&self, now: Instant) -> bool {
+        let window = self.settings.rest_time;
+        let Some((first, _)) = self.recent.front() else {
+            return false;
+        };
+        if now.saturating_duration_since(*first) < window.mul_f64(0.9) {
+            return false;
+        }
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for (_, p) in &self.recent {
+            for k in 0..2 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        }
+        (0..2).all(|k| hi[k] - lo[k] <= 2.0 * self.settings.rest_tolerance_mm)
+    }
+
+    /// Encoder strategy: variance of the encoder's position `at`, from the reference.
+    fn encoder_var(&self, at: f64) -> f64 {
+        let s = &self.settings;
+        let sd = s.encoder_sd_mm + s.encoder_sd_per_mm * (at - self.reference_encoder).abs();
+        sd * sd
+    }
+
+    /// A follower status update.
+    pub fn handle_follower(&mut self, state: FollowerState, now: Instant) {
+        self.follower = Some(state);
+        if let Phase::Moving {
+            target,
+            since,
+            overlap,
+            reached_at,
+        } = self.phase.clone()
+        {
+            if !state.ready {
+                self.events.push_back(TrackEvent::FollowerProblem(
+                    "the follower is not ready".into(),
+                ));
+                self.finish_encoder_step(now);
+                return;
+            }
+            if state.target_reached && (state.position_mm - target).abs() < 0.01 {
+                if reached_at.is_none() {
+                    self.phase = Phase::Moving {
+                        target,
+                        since,
+                        overlap,
+                        reached_at: Some(now),
+                    };
+                }
+            } else if now.saturating_duration_since(since) > self.settings.move_timeout {
+                self.events.push_back(TrackEvent::FollowerProblem(format!(
+                    "the follower did not reach {target:.3} mm in {:?}",
+                    self.settings.move_timeout
+                )));
+                self.finish_encoder_step(now);
+            }
+        }
+    }
+
+    /// A frame from the I/O module.
+    pub fn handle_frame(&mut self, frame: &Frame, now: Instant) {
+        self.last_frame_unix_us = frame.unix_us;
+        let spot = frame.spots[1].map(|s| [s.x, s.y]);
+        let Some(p) = spot else {
+            if !self.lost
+                && self
+                    .last_valid
+                    .is_none_or(|t| now.saturating_duration_since(t) > self.settings.lost_after)
+            {
+                self.lost = true;
+                self.valid = false;
+                self.recent.clear();
+                self.phase = Phase::Watch;
+                self.events.push_back(TrackEvent::SpotLost);
+            }
+            return;
+        };
+        if self.lost {
+            self.lost = false;
+            self.events.push_back(TrackEvent::SpotFound);
+        }
+        self.last_valid = Some(now);
+        self.recent.push_back((now, p));
+        while let Some((t, _)) = self.recent.front() {
+            if now.saturating_duration_since(*t) > self.settings.rest_time {
+                self.recent.pop_front();
+            } else {
+                break;
+            }
+        }
+        let Some(f) = self.follower else {
+            return;
+        };
+        match self.settings.strategy {
+            Strategy::Encoder => self.track_encoder(p, f, now),
+            Strategy::Overlap => self.track_overlap(p, f, now),
+        }
+    }
+
+    fn track_encoder(&mut self, p: [f64; 2], f: FollowerState, now: Instant) {
+        if !f.ready || p[0].abs() <= self.settings.follow_band_mm {
+            return;
+        }
+        let due = self
+            .last_follow_cmd
+            .is_none_or(|t| now.saturating_duration_since(t) >= self.settings.follow_interval);
+        if due {
+            // The spot moves +1 mm on PSD2 per mm the carriage leads the follower.
+            self.commands
+                .push_back(FollowerCommand::MoveTo(f.position_mm + p[0]));
+            self.last_follow_cmd = Some(now);
+            // In this strategy a "handover" is one follow step.
+            self.handovers += 1;
+        }
+    }
+
+    fn track_overlap(&mut self, p: [f64; 2], f: FollowerState, now: Instant) {
+        let s = self.settings;
+        match self.phase.clone() {
+            Phase::Watch => {
+                if !f.ready {
+                    return;
+                }
+                if p[0].abs() >= s.edge_mm {
+                    // Moving towards the edge: follow now, by the encoder.
+                    self.start_move(f.position_mm + p[0], false, now);
+                } else if p[0].abs() >= s.handover_mm && self.at_rest(now) {
+                    self.before = Stats2::default();
+                    self.phase = Phase::Before { since: now };
+                    self.before.push(p);
+                }
+            }
+            Phase::Before { .. } => {
+                if p[0].abs() >= s.edge_mm || !self.within_rest(p) {
+                    // The carriage moved: abandon this handover.
+                    self.phase = Phase::Watch;
+                    return;
+                }
+                self.before.push(p);
+                if self.before.n >= s.average_frames {
+                    let target = f.position_mm + self.before.mean[0];
+                    self.start_move(target, true, now);
+                }
+            }
+            Phase::Moving {
+                overlap,
+                reached_at: Some(t),
+                ..
+            } => {
+                if now.saturating_duration_since(t) >= s.settle {
+                    if overlap {
+                        self.after = Stats2::default();
+                        self.after.push(p);
+                        self.phase = Phase::After { since: now };
+                    } else {
+                        self.finish_encoder_step(now);
+                    }
+                }
+            }
+            Phase::Moving { .. } => {}
+            Phase::After { .. } => {
+                self.after.push(p);
+                if self.after.n >= s.average_frames {
+                    if self.after_is_steady() {
+                        self.finish_overlap_step();
+                    } else {
+                        self.finish_encoder_step(now);
+                    }
+                }
+            }
+        }
+    }
+
+    /// The before-window's spread so far stays within the rest tolerance.
+    fn within_rest(&self, p: [f64; 2]) -> bool {
+        (0..2).all(|k| (p[k] - self.before.mean[k]).abs() <= 4.0 * self.settings.rest_tolerance_mm)
+    }
+
+    fn after_is_steady(&self) -> bool {
+        let v = self.after.var();
+        let tol = self.settings.rest_tolerance_mm;
+        v[0].sqrt() <= tol && v[1].sqrt() <= tol
+    }
+
+    fn start_move(&mut self, target: f64, overlap: bool, now: Instant) {
+        if let Some(f) = self.follower {
+            self.encoder_before = f.position_mm;
+        }
+        self.commands.push_back(FollowerCommand::MoveTo(target));
+        self.phase = Phase::Moving {
+            target,
+            since: now,
+            overlap,
+            reached_at: None,
+        };
+    }
+
+    fn finish_overlap_step(&mut self) {
+        let enc_after = self
+            .follower
+            .map(|f| f.position_mm)
+            .unwrap_or(self.encoder_before);
+        let (b, a) = (self.before, self.after);
+        let (vb, va) = (b.var(), a.var());
+        let pooled = |k: usize| {
+            let dof = (b.n + a.n).saturating_sub(2).max(1) as f64;
+            (((b.n.max(1) - 1) as f64 * vb[k] + (a.n.max(1) - 1) as f64 * va[k]) / dof).sqrt()
+        };
+        let frame_sd = [pooled(0), pooled(1)];
+        let delta = [b.mean[0] - a.mean[0], b.mean[1] - a.mean[1]];
+        let variance = std::array::from_fn(|k| {
+            frame_sd[k].powi(2) * (1.0 / b.n.max(1) as f64 + 1.0 / a.n.max(1) as f64)
+        });
+        self.apply(HandoverRecord {
+            unix_us: self.last_frame_unix_us,
+            kind: HandoverKind::Overlap,
+            before: b.mean,
+            after: a.mean,
+            n_before: b.n,
+            n_after: a.n,
+            frame_sd,
+            encoder_before: self.encoder_before,
+            encoder_after: enc_after,
+            delta,
+            variance,
+        });
+    }
+
+    fn finish_encoder_step(&mut self, _now: Instant) {
+        let enc_after = self
+            .follower
+            .map(|f| f.position_mm)
+            .unwrap_or(self.encoder_before);
+        let moved = enc_after - self.encoder_before;
+        let s = self.settings;
+        let sd = s.encoder_sd_mm + s.encoder_sd_per_mm * moved.abs();
+        let record = HandoverRecord {
+            unix_us: self.last_frame_unix_us,
+            kind: HandoverKind::Encoder,
+            before: self.before.mean,
+            after: self.after.mean,
+            n_before: self.before.n,
+            n_after: self.after.n,
+            frame_sd: [0.0; 2],
+            encoder_before: self.encoder_before,
+            encoder_after: enc_after,
+            delta: [moved, 0.0],
+            variance: [sd * sd, 0.0],
+        };
+        if moved != 0.0 {
+            self.events.push_back(TrackEvent::FollowedWhileMoving {
+                from_mm: self.encoder_before,
+                to_mm: enc_after,
+            });
+        }
+        self.apply(record);
+    }
+
+    fn apply(&mut self, r: HandoverRecord) {
+        self.follower_mm += r.delta[0];
+        self.vertical_mm += r.delta[1];
+        self.variance[0] += r.variance[0];
+        self.variance[1] += r.variance[1];
+        self.handovers += 1;
+        self.before = Stats2::default();
+        self.after = Stats2::default();
+        self.phase = Phase::Watch;
+        self.recent.clear();
+        self.events.push_back(TrackEvent::Handover(r));
+    }
+
+    /// The next follower command.
+    pub fn poll_command(&mut self) -> Option<FollowerCommand> {
+        self.commands.pop_front()
+    }
+
+    /// The next event.
+    pub fn poll_event(&mut self) -> Option<TrackEvent> {
+        self.events.pop_front()
+    }
+}
+
+/// Re-stitch recorded handovers offline: PSD2's displacement from the reference and its
+/// variance, using each record's optical difference (`optical`) or its encoder difference.
+/// Encoder-kind records always use the encoder.
+pub fn restitch(records: &[HandoverRecord], optical: bool, settings: &TrackSettings) -> Stitch {
+    let mut out = Stitch {
+        follower_mm: 0.0,
+        vertical_mm: 0.0,
+        variance: [0.0; 2],
+        handovers: records.len(),
+        strategy: if optical {
+            Strategy::Overlap
+        } else {
+            Strategy::Encoder
+        },
+        valid: true,
+    };
+    for r in records {
+        if optical && r.kind == HandoverKind::Overlap {
+            out.follower_mm += r.delta[0];
+            out.vertical_mm += r.delta[1];
+            out.variance[0] += r.variance[0];
+            out.variance[1] += r.variance[1];
+        } else {
+            let moved = r.encoder_after - r.encoder_before;
+            let sd = settings.encoder_sd_mm + settings.encoder_sd_per_mm * moved.abs();
+            out.follower_mm += moved;
+            out.variance[0] += sd * sd;
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::optics::Spot;
+    use crate::sim::Rng;
+
+    /// A virtual plant: carriage at `carriage` (mm), follower encoder `enc`, the follower's own
+    /// errors along (`fu`) and across (`fv`), PSD noise 1 µm.
+    struct Bench {
+        t0: Instant,
+        now: Instant,
+        carriage: f64,
+        enc: f64,
+        target: Option<f64>,
+        rng: Rng,
+        seq: u64,
+    }
+
+    fn fu(d: f64) -> f64 {
+        3e-3 * (d / 10.0).sin()
+    }
+    fn fv(d: f64) -> f64 {
+        2e-3 * (d / 7.0 + 0.3).sin()
+    }
+
+    impl Bench {
+        fn new() -> Self {
+            let t0 = Instant::now();
+            Bench {
+                t0,
+                now: t0,
+                carriage: 0.0,
+                enc: 0.0,
+                target: None,
+                rng: Rng::new(3),
+                seq: 0,
+            }
+        }
+
+        fn frame(&mut self) -> Frame {
+            let noise = 1e-3;
+            let x = self.carriage - (self.enc + fu(self.enc)) + self.rng.gauss(noise);
+            let y = -fv(self.enc) + self.rng.gauss(noise);
+            self.seq += 1;
+            let other = Some(Spot { x: 0.0, y: 0.0 });
+            Frame {
+                seq: self.seq,
+                at: self.now,
+                unix_us: (self.now - self.t0).as_micros() as i64,
+                spots: [other, Some(Spot { x, y }), other],
+                sums: [5.0; 3],
+            }
+        }
+
+        /// Advance 2 ms: one frame; the follower runs at 100 mm/s towards its target.
+        fn step(&mut self, tr: &mut Tracker) {
+            self.now += Duration::from_millis(2);
+            if let Some(t) = self.target {
+                let max = 100.0 * 0.002;
+                let d = (t - self.enc).clamp(-max, max);
+                self.enc += d;
+                if (t - self.enc).abs() < 1e-12 {
+                    self.enc = t;
+                    self.target = None;
+                }
+            }
+            let f = self.frame();
+            tr.handle_frame(&f, self.now);
+            while let Some(FollowerCommand::MoveTo(t)) = tr.poll_command() {
+                self.target = Some(t);
+            }
+            tr.handle_follower(
+                FollowerState {
+                    position_mm: self.enc,
+                    ready: true,
+                    target_reached: self.target.is_none(),
+                },
+                self.now,
+            );
+        }
+
+        fn run(&mut self, tr: &mut Tracker, ms: u64) {
+            for _ in 0..ms / 2 {
+                self.step(tr);
+            }
+        }
+    }
+
+    fn referenced(strategy: Strategy) -> (Bench, Tracker) {
+        let mut b = Bench::new();
+        let mut tr = Tracker::new(TrackSettings {
+            strategy,
+            ..TrackSettings::default()
+        });
+        b.run(&mut tr, 50);
+        assert!(tr.reference());
+        (b, tr)
+    }
+
+    #[test]
+    fn overlap_stitch_measures_the_followers_true_displacement() {
+        let (mut b, mut tr) = referenced(Strategy::Overlap);
+        let (u0, v0) = (fu(b.enc), fv(b.enc));
+        // Step the carriage 1 mm at a time to 40 mm, resting 1.5 s at each step.
+        for k in 1..=40 {
+            b.carriage = k as f64;
+            b.run(&mut tr, 1500);
+        }
+        let s = tr.stitch();
+        assert!(s.valid);
+        assert!(s.handovers >= 15, "{} handovers", s.handovers);
+        let mut records = Vec::new();
+        while let Some(e) = tr.poll_event() {
+            if let TrackEvent::Handover(r) = e {
+                assert_eq!(r.kind, HandoverKind::Overlap);
+                records.push(r);
+            }
+        }
+        assert_eq!(records.len(), s.handovers);
+        // Truth: PSD2 is at enc + fu(enc) along, fv(enc) across, relative to the reference.
+        let true_u = b.enc + fu(b.enc) - u0;
+        let true_v = fv(b.enc) - v0;
+        let (sd_u, sd_v) = (s.variance[0].sqrt(), s.variance[1].sqrt());
+        assert!(sd_u > 0.0 && sd_u < 1e-3, "{sd_u}");
+        assert!(
+            (s.follower_mm - true_u).abs() < 4.0 * sd_u,
+            "{} vs {true_u} (sd {sd_u})",
+            s.follower_mm
+        );
+        assert!(
+            (s.vertical_mm - true_v).abs() < 4.0 * sd_v,
+            "{} vs {true_v} (sd {sd_v})",
+            s.vertical_mm
+        );
+        // The encoder alone would be off by the follower's own error.
+        assert!((fu(b.enc) - u0).abs() > 1e-3);
+        assert!((b.enc - true_u).abs() > 3.0 * sd_u, "sd {sd_u}");
+        // Offline re-stitching of the records gives the same.
+        let re = restitch(&records, true, tr.settings());
+        assert!((re.follower_mm - s.follower_mm).abs() < 1e-9);
+        assert!((re.vertical_mm - s.vertical_mm).abs() < 1e-12);
+        let enc = restitch(&records, false, tr.settings());
+        assert!((enc.follower_mm - b.enc).abs() < 1e-9);
+    }
+
+    #[test]
+    fn overlap_follows_by_encoder_when_the_carriage_does_not_stop() {
+        let (mut b, mut tr) = referenced(Strategy::Overlap);
+        // Move continuously at 5 mm/s for 4 s.
+        for _ in 0..2000 {
+            b.carriage += 5.0 * 0.002;
+            b.step(&mut tr);
+        }
+        b.run(&mut tr, 2000);
+        let mut kinds = Vec::new();
+        let mut followed = false;
+        while let Some(e) = tr.poll_event() {
+            match e {
+                TrackEvent::Handover(r) => kinds.push(r.kind),
+                TrackEvent::FollowedWhileMoving { .. } => followed = true,
+                _ => {}
+            }
+        }
+        assert!(followed);
+        assert!(kinds.contains(&HandoverKind::Encoder), "{kinds:?}");
+        let s = tr.stitch();
+        // The spot never left the PSD.
+        assert!(s.valid);
+        // Encoder steps carry the encoder's uncertainty.
+        assert!(s.variance[0].sqrt() >= tr.settings().encoder_sd_mm);
+    }
+
+    #[test]
+    fn encoder_strategy_follows_continuously() {
+        let (mut b, mut tr) = referenced(Strategy::Encoder);
+        for _ in 0..2000 {
+            b.carriage += 10.0 * 0.002;
+            b.step(&mut tr);
+        }
+        b.run(&mut tr, 500);
+        let s = tr.stitch();
+        assert_eq!(s.follower_mm, b.enc);
+        assert!((b.carriage - b.enc).abs() < 0.5, "spot kept near centre");
+        assert!(s.handovers > 10);
+        let sd = s.variance[0].sqrt();
+        let expect = 1e-3 + 5e-6 * b.enc.abs();
+        assert!((sd - expect).abs() < 1e-12, "{sd}");
+    }
+
+    #[test]
+    fn blocked_beam_invalidates_the_stitch() {
+        let (mut b, mut tr) = referenced(Strategy::Overlap);
+        for _ in 0..400 {
+            b.now += Duration::from_millis(2);
+            let mut f = b.frame();
+            f.spots[1] = None;
+            tr.handle_frame(&f, b.now);
+        }
+        assert!(!tr.stitch().valid);
+        assert_eq!(tr.poll_event(), Some(TrackEvent::SpotLost));
+        b.run(&mut tr, 20);
+        assert_eq!(tr.poll_event(), Some(TrackEvent::SpotFound));
+        assert!(!tr.stitch().valid, "still broken until re-referenced");
+        assert!(tr.reference());
+        assert!(tr.stitch().valid);
+    }
+}
