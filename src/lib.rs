@@ -12,6 +12,7 @@ pub mod acquire;
 pub mod calibrate;
 pub mod can;
 pub mod canopen;
+pub mod config;
 pub mod decouple;
 pub mod modbus;
 pub mod optics;

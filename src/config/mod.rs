@@ -1,0 +1,700 @@
+//! Configuration in two stages (DESIGN §8, ripgrep's flags): `RawConfig` is what the layers say —
+//! built-in defaults, `/etc/axiscomp/axiscomp.toml`, `--config FILE`, then
+//! `AXISCOMP__SECTION__KEY` environment variables, merged by the `config` crate — and `Settings`
+//! is the validated result. Every error names the key and where its value came from (the file,
+//! "the environment" or the built-in defaults) and says what to do.
+//!
+//! Each file is also parsed on its own first, so an unknown key or a wrong type is reported
+//! with that file's name and line.
+
+use serde::{Deserialize, Serialize};
+use std::net::{Ipv4Addr, SocketAddr};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use thiserror::Error;
+
+use crate::track::{Strategy, TrackSettings};
+
+/// The built-in defaults (the lowest layer).
+pub const DEFAULTS: &str = include_str!("defaults.toml");
+/// The system-wide file, read when it exists.
+pub const ETC_PATH: &str = "/etc/axiscomp/axiscomp.toml";
+/// Environment variable prefix; `AXISCOMP__IO__RATE_HZ=250` sets `io.rate_hz`.
+pub const ENV_PREFIX: &str = "AXISCOMP";
+
+/// A configuration error: where, which key, what is wrong and what to do.
+#[derive(Debug, Error, Clone, PartialEq)]
+#[error("config {origin}: {key}: {problem}")]
+pub struct ConfigError {
+    /// The file (with line when known), "the environment" or "built-in defaults".
+    pub origin: String,
+    /// The key, dotted (`io.rate_hz`), or empty when the whole file is wrong.
+    pub key: String,
+    pub problem: String,
+}
+
+/// `[service]`
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct RawService {
+    pub socket: String,
+    pub state_dir: String,
+    pub operator_group: String,
+    pub viewer_group: String,
+    pub snapshot_hz: f64,
+    pub watchdog: bool,
+}
+
+/// `[head]`
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct RawHead {
+    pub layout: String,
+    pub calibration: String,
+    pub noise_um: f64,
+    pub live_window_ms: u64,
+}
+
+/// `[io]`
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct RawIo {
+    pub address: String,
+    pub unit: i64,
+    pub map: String,
+    pub rate_hz: f64,
+    pub timeout_ms: u64,
+    pub reconnect_min_ms: u64,
+    pub reconnect_max_ms: u64,
+}
+
+/// `[can]`
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct RawCan {
+    pub transport: String,
+    pub interface: String,
+    pub local: String,
+    pub remote: String,
+    pub group: String,
+    pub port: i64,
+    pub iface: String,
+}
+
+/// `[follower]`
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct RawFollower {
+    pub node_id: i64,
+    pub heartbeat_ms: u64,
+    pub heartbeat_timeout_ms: u64,
+    pub sdo_timeout_ms: u64,
+    pub sync_ms: u64,
+    pub counts_per_mm: f64,
+    pub homing_method: i64,
+    pub homing_speed_mm_s: f64,
+    pub velocity_mm_s: f64,
+    pub accel_mm_s2: f64,
+    pub min_mm: f64,
+    pub max_mm: f64,
+    pub home_on_start: bool,
+}
+
+/// `[tracking]`
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct RawTracking {
+    pub strategy: String,
+    pub handover_mm: f64,
+    pub edge_mm: f64,
+    pub rest_tolerance_um: f64,
+    pub rest_ms: u64,
+    pub average_frames: u64,
+    pub settle_ms: u64,
+    pub follow_band_mm: f64,
+    pub follow_interval_ms: u64,
+    pub lost_after_ms: u64,
+    pub encoder_sd_um: f64,
+    pub encoder_sd_um_per_m: f64,
+    pub move_timeout_ms: u64,
+}
+
+/// What the layers say (first stage).
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct RawConfig {
+    pub service: RawService,
+    pub head: RawHead,
+    pub io: RawIo,
+    pub can: RawCan,
+    pub follower: RawFollower,
+    pub tracking: RawTracking,
+}
+
+/// Where a file, map or layout comes from: a path, or the copy built into the binary.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Resource {
+    Builtin(String),
+    File(PathBuf),
+}
+
+/// `[service]`, validated.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ServiceSettings {
+    pub socket: PathBuf,
+    pub state_dir: PathBuf,
+    pub operator_group: String,
+    pub viewer_group: String,
+    pub snapshot_period: Duration,
+    pub watchdog: bool,
+}
+
+/// `[head]`, validated.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HeadSettings {
+    pub layout: Resource,
+    pub calibration: Option<PathBuf>,
+    pub noise_mm: f64,
+    pub live_window: Duration,
+}
+
+/// `[io]`, validated.
+#[derive(Clone, Debug, PartialEq)]
+pub struct IoSettings {
+    pub address: SocketAddr,
+    pub unit: u8,
+    pub map: Resource,
+    /// Frame period; zero means as fast as the module answers.
+    pub period: Duration,
+    pub timeout: Duration,
+    pub reconnect_min: Duration,
+    pub reconnect_max: Duration,
+}
+
+/// `[can]`, validated: which transport.
+#[derive(Clone, Debug, PartialEq)]
+pub enum CanSettings {
+    SocketCan {
+        interface: String,
+    },
+    Cannelloni {
+        local: SocketAddr,
+        remote: SocketAddr,
+    },
+    PyCan {
+        group: Ipv4Addr,
+        port: u16,
+        iface: Ipv4Addr,
+    },
+}
+
+/// `[follower]`, validated.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FollowerSettings {
+    pub node_id: u8,
+    pub heartbeat_period: Duration,
+    pub heartbeat_timeout: Duration,
+    pub sdo_timeout: Duration,
+    pub sync_period: Duration,
+    pub counts_per_mm: f64,
+    pub homing_method: i8,
+    pub homing_speed_mm_s: f64,
+    pub velocity_mm_s: f64,
+    pub accel_mm_s2: f64,
+    pub min_mm: f64,
+    pub max_mm: f64,
+    pub home_on_start: bool,
+}
+
+/// The validated configuration.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Settings {
+    pub service: ServiceSettings,
+    pub head: HeadSettings,
+    pub io: IoSettings,
+    pub can: CanSettings,
+    pub follower: FollowerSettings,
+    pub tracking: TrackSettings,
+    /// The files that were read, in layer order (for `check` and the logs).
+    pub sources: Vec<String>,
+}
+
+/// Which layers to read.
+#[derive(Clone, Debug, Default)]
+pub struct Layers {
+    /// The system-wide file; read when present (`None`: skip it).
+    pub etc: Option<PathBuf>,
+    /// `--config FILE`: must exist.
+    pub file: Option<PathBuf>,
+    /// Environment variables (name, value); only `AXISCOMP__…` ones are used.
+    pub env: Vec<(String, String)>,
+}
+
+impl Layers {
+    /// The usual layers: `/etc/axiscomp/axiscomp.toml`, `--config`, the process environment.
+    pub fn standard(file: Option<&Path>) -> Self {
+        Layers {
+            etc: Some(PathBuf::from(ETC_PATH)),
+            file: file.map(Path::to_path_buf),
+            env: std::env::vars()
+                .filter(|(k, _)| k.starts_with(&format!("{ENV_PREFIX}__")))
+                .collect(),
+        }
+    }
+}
+
+fn toml_line(text: &str, e: &toml::de::Error) -> String {
+    crate::optics::layout::toml_error_line(text, e)
+}
+
+/// Check one file alone: TOML syntax, known keys, value types.
+fn check_file(path: &Path, text: &str) -> Result<(), ConfigError> {
+    toml::from_str::<RawConfig>(text)
+        .map(|_| ())
+        .map_err(|e| ConfigError {
+            origin: path.display().to_string(),
+            key: String::new(),
+            problem: format!(
+                "{}; see configs/axiscomp.toml for every key",
+                toml_line(text, &e)
+            ),
+        })
+}
+
+/// Read the layers, merge and validate.
+pub fn load(layers: &Layers) -> Result<Settings, ConfigError> {
+    use config::{Config, Environment, File, FileFormat};
+    let mut builder = Config::builder().add_source(File::from_str(DEFAULTS, FileFormat::Toml));
+    let mut sources = vec!["built-in defaults".to_string()];
+    let read = |p: &Path| -> Result<String, ConfigError> {
+        std::fs::read_to_string(p).map_err(|e| ConfigError {
+            origin: p.display().to_string(),
+            key: String::new(),
+            problem: format!("cannot read it: {e}"),
+        })
+    };
+    if let Some(etc) = &layers.etc
+        && etc.exists()
+    {
+        let text = read(etc)?;
+        check_file(etc, &text)?;
+        builder = builder.add_source(File::from(etc.as_path()).format(FileFormat::Toml));
+        sources.push(etc.display().to_string());
+    }
+    if let Some(f) = &layers.file {
+        let text = read(f)?;
+        check_file(f, &text)?;
+        builder = builder.add_source(File::from(f.as_path()).format(FileFormat::Toml));
+        sources.push(f.display().to_string());
+    }
+    let env: std::collections::HashMap<String, String> = layers
+        .env
+        .iter()
+        .filter(|(k, _)| k.starts_with(&format!("{ENV_PREFIX}__")))
+        .cloned()
+        .collect();
+    if !env.is_empty() {
+        sources.push("the environment".into());
+    }
+    builder = builder.add_source(
+        Environment::with_prefix(ENV_PREFIX)
+            .prefix_separator("__")
+            .separator("__")
+            .try_parsing(true)
+            .source(Some(env)),
+    );
+    let cfg = builder.build().map_err(|e| ConfigError {
+        origin: "configuration".into(),
+        key: String::new(),
+        problem: e.to_string(),
+    })?;
+    let raw: RawConfig = cfg.clone().try_deserialize().map_err(|e| ConfigError {
+        origin: if sources.len() > 1 {
+            sources[1..].join(" + ")
+        } else {
+            "built-in defaults".into()
+        },
+        key: String::new(),
+        problem: format!("{e}; environment variables are AXISCOMP__SECTION__KEY"),
+    })?;
+    // `get_table` keeps each value's origin (deserialising a single value drops it).
+    let origin = |key: &str| -> String {
+        let (section, name) = key.split_once('.').unwrap_or(("", key));
+        cfg.get_table(section)
+            .ok()
+            .and_then(|t| t.get(name).and_then(|v| v.origin().map(str::to_string)))
+            .unwrap_or_else(|| "built-in defaults".into())
+    };
+    validate(&raw, &origin, sources)
+}
+
+struct V<'a> {
+    origin: &'a dyn Fn(&str) -> String,
+}
+
+impl V<'_> {
+    fn err(&self, key: &str, problem: impl Into<String>) -> ConfigError {
+        ConfigError {
+            origin: (self.origin)(key),
+            key: key.into(),
+            problem: problem.into(),
+        }
+    }
+
+    fn positive(&self, key: &str, v: f64) -> Result<f64, ConfigError> {
+        if v.is_finite() && v > 0.0 {
+            Ok(v)
+        } else {
+            Err(self.err(key, format!("{v} must be a positive number")))
+        }
+    }
+
+    fn non_negative(&self, key: &str, v: f64) -> Result<f64, ConfigError> {
+        if v.is_finite() && v >= 0.0 {
+            Ok(v)
+        } else {
+            Err(self.err(key, format!("{v} must be zero or positive")))
+        }
+    }
+
+    fn ms(&self, key: &str, v: u64, min: u64) -> Result<Duration, ConfigError> {
+        if v < min {
+            return Err(self.err(key, format!("{v} ms is too short: give at least {min} ms")));
+        }
+        Ok(Duration::from_millis(v))
+    }
+
+    fn addr(&self, key: &str, s: &str) -> Result<SocketAddr, ConfigError> {
+        s.parse().map_err(|_| {
+            self.err(
+                key,
+                format!("\"{s}\" is not an address: write IP:port, e.g. \"192.168.1.20:502\""),
+            )
+        })
+    }
+
+    fn resource(&self, key: &str, s: &str, builtins: &[&str]) -> Result<Resource, ConfigError> {
+        if let Some(name) = s
+            .strip_prefix("builtin:")
+            .or((s == "builtin").then_some(""))
+        {
+            let name = if name.is_empty() { builtins[0] } else { name };
+            if builtins.contains(&name) {
+                return Ok(Resource::Builtin(name.to_string()));
+            }
+            return Err(self.err(
+                key,
+                format!(
+                    "no built-in \"{name}\": the built-ins are {}",
+                    builtins.join(", ")
+                ),
+            ));
+        }
+        if s.is_empty() {
+            return Err(self.err(key, "empty: give a file path or \"builtin\""));
+        }
+        Ok(Resource::File(PathBuf::from(s)))
+    }
+}
+
+fn validate(
+    raw: &RawConfig,
+    origin: &dyn Fn(&str) -> String,
+    sources: Vec<String>,
+) -> Result<Settings, ConfigError> {
+    let v = V { origin };
+    let s = &raw.service;
+    if s.socket.is_empty() {
+        return Err(v.err("service.socket", "empty: give the control socket's path"));
+    }
+    let service = ServiceSettings {
+        socket: PathBuf::from(&s.socket),
+        state_dir: PathBuf::from(&s.state_dir),
+        operator_group: s.operator_group.clone(),
+        viewer_group: s.viewer_group.clone(),
+        snapshot_period: Duration::from_secs_f64(
+            1.0 / v.positive("service.snapshot_hz", s.snapshot_hz)?,
+        ),
+        watchdog: s.watchdog,
+    };
+    let h = &raw.head;
+    let head = HeadSettings {
+        layout: v.resource("head.layout", &h.layout, &["reference"])?,
+        calibration: (!h.calibration.is_empty()).then(|| PathBuf::from(&h.calibration)),
+        noise_mm: v.positive("head.noise_um", h.noise_um)? * 1e-3,
+        live_window: v.ms("head.live_window_ms", h.live_window_ms, 10)?,
+    };
+    let i = &raw.io;
+    let unit = u8::try_from(i.unit).map_err(|_| {
+        v.err(
+            "io.unit",
+            format!("{} is not a Modbus unit id (0..=255)", i.unit),
+        )
+    })?;
+    let rate = v.non_negative("io.rate_hz", i.rate_hz)?;
+    let (rmin, rmax) = (
+        v.ms("io.reconnect_min_ms", i.reconnect_min_ms, 1)?,
+        v.ms("io.reconnect_max_ms", i.reconnect_max_ms, 1)?,
+    );
+    if rmax < rmin {
+        return Err(v.err(
+            "io.reconnect_max_ms",
+            format!(
+                "{} ms is below io.reconnect_min_ms ({} ms)",
+                i.reconnect_max_ms, i.reconnect_min_ms
+            ),
+        ));
+    }
+    let io = IoSettings {
+        address: v.addr("io.address", &i.address)?,
+        unit,
+        map: v.resource("io.map", &i.map, &["generic"])?,
+        period: if rate == 0.0 {
+            Duration::ZERO
+        } else {
+            Duration::from_secs_f64(1.0 / rate)
+        },
+        timeout: v.ms("io.timeout_ms", i.timeout_ms, 1)?,
+        reconnect_min: rmin,
+        reconnect_max: rmax,
+    };
+    let c = &raw.can;
+    let can = match c.transport.as_str() {
+        "socketcan" => {
+            if c.interface.is_empty() || c.interface.len() > 15 {
+                return Err(v.err(
+                    "can.interface",
+                    format!(
+                        "\"{}\" is not an interface name (1 to 15 characters, e.g. can0)",
+                        c.interface
+                    ),
+                ));
+            }
+            CanSettings::SocketCan {
+                interface: c.interface.clone(),
+            }
+        }
+        "cannelloni" => CanSettings::Cannelloni {
+            local: v.addr("can.local", &c.local)?,
+            remote: v.addr("can.remote", &c.remote)?,
+        },
+        "pycan" => CanSettings::PyCan {
+            group: c.group.parse().map_err(|_| {
+                v.err(
+                    "can.group",
+                    format!("\"{}\" is not an IPv4 multicast group", c.group),
+                )
+            })?,
+            port: u16::try_from(c.port)
+                .map_err(|_| v.err("can.port", format!("{} is not a UDP port", c.port)))?,
+            iface: c.iface.parse().map_err(|_| {
+                v.err(
+                    "can.iface",
+                    format!("\"{}\" is not an IPv4 interface address", c.iface),
+                )
+            })?,
+        },
+        other => {
+            return Err(v.err(
+                "can.transport",
+                format!("\"{other}\" is unknown: use socketcan, cannelloni or pycan"),
+            ));
+        }
+    };
+    if let CanSettings::PyCan { group, .. } = &can
+        && !group.is_multicast()
+    {
+        return Err(v.err(
+            "can.group",
+            format!("{group} is not a multicast address (224.0.0.0/4)"),
+        ));
+    }
+    let f = &raw.follower;
+    let node_id = u8::try_from(f.node_id)
+        .ok()
+        .filter(|n| (1..=127).contains(n))
+        .ok_or_else(|| {
+            v.err(
+                "follower.node_id",
+                format!("{} is not a CANopen node id (1..=127)", f.node_id),
+            )
+        })?;
+    let heartbeat_period = v.ms("follower.heartbeat_ms", f.heartbeat_ms, 1)?;
+    let heartbeat_timeout = v.ms("follower.heartbeat_timeout_ms", f.heartbeat_timeout_ms, 1)?;
+    if heartbeat_timeout <= heartbeat_period {
+        return Err(v.err(
+            "follower.heartbeat_timeout_ms",
+            format!(
+                "{} ms must exceed follower.heartbeat_ms ({} ms): give it 2–3 periods",
+                f.heartbeat_timeout_ms, f.heartbeat_ms
+            ),
+        ));
+    }
+    let homing_method = i8::try_from(f.homing_method).map_err(|_| {
+        v.err(
+            "follower.homing_method",
+            format!(
+                "{} is not a CiA 402 homing method (-128..=127)",
+                f.homing_method
+            ),
+        )
+    })?;
+    if !(f.min_mm.is_finite() && f.max_mm.is_finite() && f.min_mm < f.max_mm) {
+        return Err(v.err(
+            "follower.max_mm",
+            format!(
+                "the limits {} .. {} mm must be finite with min below max",
+                f.min_mm, f.max_mm
+            ),
+        ));
+    }
+    let follower = FollowerSettings {
+        node_id,
+        heartbeat_period,
+        heartbeat_timeout,
+        sdo_timeout: v.ms("follower.sdo_timeout_ms", f.sdo_timeout_ms, 1)?,
+        sync_period: v.ms("follower.sync_ms", f.sync_ms, 1)?,
+        counts_per_mm: v.positive("follower.counts_per_mm", f.counts_per_mm)?,
+        homing_method,
+        homing_speed_mm_s: v.positive("follower.homing_speed_mm_s", f.homing_speed_mm_s)?,
+        velocity_mm_s: v.positive("follower.velocity_mm_s", f.velocity_mm_s)?,
+        accel_mm_s2: v.positive("follower.accel_mm_s2", f.accel_mm_s2)?,
+        min_mm: f.min_mm,
+        max_mm: f.max_mm,
+        home_on_start: f.home_on_start,
+    };
+    let t = &raw.tracking;
+    let strategy = match t.strategy.as_str() {
+        "overlap" => Strategy::Overlap,
+        "encoder" => Strategy::Encoder,
+        other => {
+            return Err(v.err(
+                "tracking.strategy",
+                format!("\"{other}\" is unknown: use overlap or encoder"),
+            ));
+        }
+    };
+    let handover_mm = v.positive("tracking.handover_mm", t.handover_mm)?;
+    let edge_mm = v.positive("tracking.edge_mm", t.edge_mm)?;
+    if edge_mm <= handover_mm {
+        return Err(v.err(
+            "tracking.edge_mm",
+            format!("{edge_mm} mm must exceed tracking.handover_mm ({handover_mm} mm)"),
+        ));
+    }
+    if t.average_frames < 2 {
+        return Err(v.err(
+            "tracking.average_frames",
+            format!("{} is too few: give at least 2", t.average_frames),
+        ));
+    }
+    let tracking = TrackSettings {
+        strategy,
+        handover_mm,
+        edge_mm,
+        rest_tolerance_mm: v.positive("tracking.rest_tolerance_um", t.rest_tolerance_um)? * 1e-3,
+        rest_time: v.ms("tracking.rest_ms", t.rest_ms, 1)?,
+        average_frames: t.average_frames as usize,
+        settle: v.ms("tracking.settle_ms", t.settle_ms, 0)?,
+        follow_band_mm: v.positive("tracking.follow_band_mm", t.follow_band_mm)?,
+        follow_interval: v.ms("tracking.follow_interval_ms", t.follow_interval_ms, 1)?,
+        lost_after: v.ms("tracking.lost_after_ms", t.lost_after_ms, 1)?,
+        encoder_sd_mm: v.non_negative("tracking.encoder_sd_um", t.encoder_sd_um)? * 1e-3,
+        encoder_sd_per_mm: v.non_negative("tracking.encoder_sd_um_per_m", t.encoder_sd_um_per_m)?
+            * 1e-6,
+        move_timeout: v.ms("tracking.move_timeout_ms", t.move_timeout_ms, 1)?,
+    };
+    Ok(Settings {
+        service,
+        head,
+        io,
+        can,
+        follower,
+        tracking,
+        sources,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn load_text(text: &str, env: &[(&str, &str)]) -> Result<Settings, ConfigError> {
+        let dir = std::env::temp_dir().join(format!("axiscomp-cfg-{}", std::process::id()));
+        let _ = std::fs::create_dir_all(&dir);
+        let path = dir.join(format!("t{}.toml", text.len()));
+        std::fs::write(&path, text).unwrap();
+        let r = load(&Layers {
+            etc: None,
+            file: Some(path.clone()),
+            env: env
+                .iter()
+                .map(|(k, v)| (k.to_string(), v.to_string()))
+                .collect(),
+        });
+        let _ = std::fs::remove_file(&path);
+        r
+    }
+
+    #[test]
+    fn defaults_are_valid() {
+        let s = load(&Layers::default()).unwrap();
+        assert_eq!(s.io.period, Duration::from_millis(2));
+        assert_eq!(s.follower.node_id, 1);
+        assert_eq!(s.tracking.strategy, Strategy::Overlap);
+        assert_eq!(s.head.layout, Resource::Builtin("reference".into()));
+    }
+
+    #[test]
+    fn layers_override_in_order() {
+        let s = load_text(
+            "[io]\nrate_hz = 250.0\naddress = \"10.0.0.5:502\"\n",
+            &[
+                ("AXISCOMP__IO__RATE_HZ", "100"),
+                ("AXISCOMP__CAN__TRANSPORT", "cannelloni"),
+            ],
+        )
+        .unwrap();
+        assert_eq!(s.io.period, Duration::from_millis(10));
+        assert_eq!(s.io.address, "10.0.0.5:502".parse().unwrap());
+        assert!(matches!(s.can, CanSettings::Cannelloni { .. }));
+    }
+
+    #[test]
+    fn errors_name_key_and_file() {
+        let e = load_text("[io]\nrate_hz = -5.0\n", &[]).unwrap_err();
+        assert_eq!(e.key, "io.rate_hz");
+        assert!(e.origin.ends_with(".toml"), "{e}");
+        assert!(e.to_string().contains("must be zero or positive"));
+
+        let e = load_text(
+            "[io]\nrate_hz = 5.0\n",
+            &[("AXISCOMP__FOLLOWER__NODE_ID", "200")],
+        )
+        .unwrap_err();
+        assert_eq!(e.key, "follower.node_id");
+        assert_eq!(e.origin, "the environment");
+
+        let e = load_text("[io]\nratehz = 5.0\n", &[]).unwrap_err();
+        assert!(
+            e.to_string().contains("line 2") && e.to_string().contains("ratehz"),
+            "{e}"
+        );
+
+        let e = load_text("[io]\nrate_hz = \"fast\"\n", &[]).unwrap_err();
+        assert!(e.to_string().contains("line 2"), "{e}");
+
+        let e = load_text("[can]\ntransport = \"usb\"\n", &[]).unwrap_err();
+        assert!(
+            e.to_string().contains("can.transport")
+                && e.to_string().contains("socketcan, cannelloni or pycan"),
+            "{e}"
+        );
+
+        let e = load_text("[io]\naddress = \"plc\"\n", &[]).unwrap_err();
+        assert!(
+            e.to_string().contains("io.address") && e.to_string().contains("IP:port"),
+            "{e}"
+        );
+    }
+}
