@@ -224,6 +224,33 @@ pub struct Decoupler {
 }
 
 impl Decoupler {
+    /// The sensitivity β at a pose with zero error: the model's Jacobian, or the fitted β.
+    pub fn beta(&self, travel: f64, follower: f64) -> Result<Matrix6<f64>, DecoupleError> {
+        match &self.source {
+            Source::Simulated(l) | Source::Model(l) => {
+                jacobian(l, &Pose::new(Errors6::ZERO, travel, follower))
+            }
+            Source::Linear { linear, .. } => Ok(linear.beta),
+        }
+    }
+
+    /// Covariance of the errors caused by independent extra variances of the readings
+    /// (`var`, mm² per channel): `β⁻¹·diag(var)·β⁻ᵀ`. Used to carry the stitching uncertainty
+    /// of PSD2's position into the six errors.
+    pub fn propagate(
+        &self,
+        var: &[f64; 6],
+        travel: f64,
+        follower: f64,
+    ) -> Result<Matrix6<f64>, DecoupleError> {
+        let inv = self
+            .beta(travel, follower)?
+            .try_inverse()
+            .ok_or(DecoupleError::Singular)?;
+        let d = Matrix6::from_diagonal(&Vector6::from(*var));
+        Ok(inv * d * inv.transpose())
+    }
+
     /// Decouple readings `r` (mm) taken at travel `travel` with the follower at `follower`.
     pub fn decouple(
         &self,
@@ -315,6 +342,28 @@ mod tests {
         let est = d.decouple(&r, 50.0, 49.0).unwrap();
         assert!((est.errors.dy - 0.01).abs() < 1e-9);
         assert!(est.errors.ez.abs() < 1e-12);
+    }
+
+    #[test]
+    fn propagate_matches_covariance_formula() {
+        let l = Layout::reference();
+        let d = Decoupler {
+            source: Source::Simulated(l.clone()),
+            method: Method::Nonlinear,
+            sigma_mm: [1e-3; 6],
+            options: SolveOptions::default(),
+        };
+        // Variance on every channel must equal the noise covariance (Jᵀ Σ⁻¹ J)⁻¹.
+        let c = d.propagate(&[1e-6; 6], 0.0, 0.0).unwrap();
+        let j = jacobian(&l, &Pose::default()).unwrap();
+        let want = covariance(&j, &[1e-3; 6]).unwrap();
+        assert!((c - want).amax() / want.amax() < 1e-9);
+        // X2 alone (PSD2's position along its axis) moves dy 1:1 and nothing else.
+        let c = d
+            .propagate(&[0.0, 0.0, 1e-6, 0.0, 0.0, 0.0], 0.0, 0.0)
+            .unwrap();
+        assert!((c[(1, 1)] - 1e-6).abs() < 1e-12);
+        assert!(c[(0, 0)].abs() < 1e-15 && c[(5, 5)].abs() < 1e-15);
     }
 
     #[test]

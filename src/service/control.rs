@@ -1,0 +1,486 @@
+//! The control API (DESIGN §8): a Unix socket, newline-delimited JSON. One request per line,
+//! one response per line (`{"ok":true,...}` or `{"ok":false,"error":"..."}`); `subscribe` turns
+//! the connection into a stream of snapshots (`{"snapshot":{...}}` per line).
+//!
+//! Viewing (`status`, `subscribe`) needs the viewer role; anything that changes state needs the
+//! operator role. Roles come from the peer's credentials (`peer`). The socket itself is
+//! world-connectable: access is decided per request, so refusals can say why.
+
+use super::peer::{Peer, Role, RolePolicy};
+use super::shutdown::Shutdown;
+use super::snapshot::Snapshot;
+use crate::track::Strategy;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use thiserror::Error;
+use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
+use tokio::net::{UnixListener, UnixStream};
+use tokio::sync::{mpsc, oneshot, watch};
+
+/// Longest accepted request line (bytes).
+pub const MAX_LINE: usize = 64 * 1024;
+
+/// What the follower should do.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FollowerAction {
+    Home,
+    Enable,
+    Disable,
+    /// Relative move by `mm`.
+    Jog,
+    /// Absolute move to `mm`.
+    Move,
+    Stop,
+    FaultReset,
+}
+
+/// A control request.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "cmd", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Request {
+    /// The current snapshot.
+    Status,
+    /// A stream of snapshots at `hz` (default: the service's snapshot rate).
+    Subscribe {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        hz: Option<f64>,
+    },
+    /// Command the follower.
+    Follower {
+        action: FollowerAction,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        mm: Option<f64>,
+    },
+    /// Take the live errors here as the zero reference (and re-reference the stitching).
+    Zero,
+    /// Forget the zero reference.
+    ClearZero,
+    /// Set (or clear, with null) the nominal travel position the carriage is commanded to.
+    Nominal { mm: Option<f64> },
+    /// Switch the stitching strategy.
+    Strategy { strategy: Strategy },
+}
+
+impl Request {
+    /// The role the request needs.
+    pub fn needs(&self) -> Role {
+        match self {
+            Request::Status | Request::Subscribe { .. } => Role::Viewer,
+            _ => Role::Operator,
+        }
+    }
+}
+
+/// A request handed to the service core, with who asked and where to answer.
+#[derive(Debug)]
+pub struct Command {
+    pub request: Request,
+    pub peer: Peer,
+    pub reply: oneshot::Sender<Result<serde_json::Value, String>>,
+}
+
+/// Why the control socket could not be served.
+#[derive(Debug, Error)]
+pub enum ControlError {
+    #[error("control socket {path}: {source}")]
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
+}
+
+/// Bind the control socket at `path`: creates the parent directory, replaces a stale socket,
+/// opens it to every local user (access is checked per request).
+pub fn bind(path: &Path) -> Result<UnixListener, ControlError> {
+    let err = |source| ControlError::Io {
+        path: path.display().to_string(),
+        source,
+    };
+    if let Some(dir) = path.parent()
+        && !dir.as_os_str().is_empty()
+    {
+        std::fs::create_dir_all(dir).map_err(err)?;
+    }
+    if path.exists() {
+        std::fs::remove_file(path).map_err(err)?;
+    }
+    let listener = UnixListener::bind(path).map_err(err)?;
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o666)).map_err(err)?;
+    Ok(listener)
+}
+
+/// Serve the control socket until shutdown. Each connection gets its own task.
+pub async fn serve(
+    listener: UnixListener,
+    policy: RolePolicy,
+    snapshots: watch::Receiver<Snapshot>,
+    commands: mpsc::Sender<Command>,
+    snapshot_period: Duration,
+    mut shutdown: Shutdown,
+) {
+    loop {
+        tokio::select! {
+            _ = shutdown.recv() => break,
+            accepted = listener.accept() => match accepted {
+                Ok((stream, _)) => {
+                    let conn = Connection {
+                        policy: policy.clone(),
+                        snapshots: snapshots.clone(),
+                        commands: commands.clone(),
+                        snapshot_period,
+                        shutdown: shutdown.clone(),
+                    };
+                    tokio::spawn(conn.run(stream));
+                }
+                Err(e) => {
+                    tracing::warn!("control socket accept failed: {e}");
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                }
+            }
+        }
+    }
+}
+
+struct Connection {
+    policy: RolePolicy,
+    snapshots: watch::Receiver<Snapshot>,
+    commands: mpsc::Sender<Command>,
+    snapshot_period: Duration,
+    shutdown: Shutdown,
+}
+
+fn reply_line(v: &serde_json::Value) -> String {
+    let mut s = v.to_string();
+    s.push('\n');
+    s
+}
+
+fn error_line(msg: &str) -> String {
+    reply_line(&serde_json::json!({"ok": false, "error": msg}))
+}
+
+impl Connection {
+    async fn run(mut self, stream: UnixStream) {
+        let peer = match stream.peer_cred() {
+            Ok(c) => self.policy.peer(c.uid(), c.gid(), c.pid()),
+            Err(e) => {
+                tracing::warn!("control: no peer credentials: {e}");
+                return;
+            }
+        };
+        let (rd, mut wr) = stream.into_split();
+        let mut lines = BufReader::new(rd);
+        let mut buf = String::new();
+        let mut line_no = 0usize;
+        loop {
+            buf.clear();
+            let mut limited = (&mut lines).take(MAX_LINE as u64 + 1);
+            let n = tokio::select! {
+                _ = self.shutdown.recv() => return,
+                n = limited.read_line(&mut buf) => n,
+            };
+            match n {
+                Ok(0) | Err(_) => return,
+                Ok(_) => {}
+            }
+            line_no += 1;
+            if buf.len() > MAX_LINE {
+                let _ = wr
+                    .write_all(
+                        error_line(&format!("line {line_no}: longer than {MAX_LINE} bytes"))
+                            .as_bytes(),
+                    )
+                    .await;
+                return;
+            }
+            let text = buf.trim();
+            if text.is_empty() {
+                continue;
+            }
+            let request: Request = match serde_json::from_str(text) {
+                Ok(r) => r,
+                Err(e) => {
+                    let msg = format!(
+                        "line {line_no}: {e}; requests are JSON like {{\"cmd\":\"status\"}}"
+                    );
+                    if wr.write_all(error_line(&msg).as_bytes()).await.is_err() {
+                        return;
+                    }
+                    continue;
+                }
+            };
+            if peer.role.is_none_or(|r| r < request.needs()) {
+                let msg = format!(
+                    "user {} (uid {}) may not {}: it needs the {} role ({} group)",
+                    peer.user,
+                    peer.uid,
+                    serde_json::to_value(&request)
+                        .ok()
+                        .and_then(|v| v.get("cmd").and_then(|c| c.as_str().map(str::to_string)))
+                        .unwrap_or_default(),
+                    if request.needs() == Role::Operator {
+                        "operator"
+                    } else {
+                        "viewer"
+                    },
+                    if request.needs() == Role::Operator {
+                        "operator_group"
+                    } else {
+                        "viewer_group"
+                    },
+                );
+                if wr.write_all(error_line(&msg).as_bytes()).await.is_err() {
+                    return;
+                }
+                continue;
+            }
+            let out = match request {
+                Request::Status => {
+                    let snap = self.snapshots.borrow().clone();
+                    reply_line(&serde_json::json!({"ok": true, "snapshot": snap}))
+                }
+                Request::Subscribe { hz } => {
+                    let period = hz
+                        .filter(|h| h.is_finite() && *h > 0.0)
+                        .map(|h| Duration::from_secs_f64(1.0 / h.min(100.0)))
+                        .unwrap_or(self.snapshot_period);
+                    self.stream_snapshots(&mut wr, period).await;
+                    return;
+                }
+                request => {
+                    let (tx, rx) = oneshot::channel();
+                    let cmd = Command {
+                        request,
+                        peer: peer.clone(),
+                        reply: tx,
+                    };
+                    if self.commands.send(cmd).await.is_err() {
+                        error_line("the service is shutting down")
+                    } else {
+                        match tokio::time::timeout(Duration::from_secs(60), rx).await {
+                            Ok(Ok(Ok(v))) => {
+                                reply_line(&serde_json::json!({"ok": true, "result": v}))
+                            }
+                            Ok(Ok(Err(e))) => error_line(&e),
+                            Ok(Err(_)) => error_line("the service dropped the request"),
+                            Err(_) => error_line("no answer within 60 s"),
+                        }
+                    }
+                }
+            };
+            if wr.write_all(out.as_bytes()).await.is_err() {
+                return;
+            }
+        }
+    }
+
+    async fn stream_snapshots(
+        &mut self,
+        wr: &mut tokio::net::unix::OwnedWriteHalf,
+        period: Duration,
+    ) {
+        let mut tick = tokio::time::interval(period);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+        loop {
+            tokio::select! {
+                _ = self.shutdown.recv() => return,
+                _ = tick.tick() => {
+                    let snap = self.snapshots.borrow().clone();
+                    let line = reply_line(&serde_json::json!({"snapshot": snap}));
+                    if wr.write_all(line.as_bytes()).await.is_err() {
+                        return;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A client of the control API (for `axiscomp status` and the console).
+pub struct Client {
+    lines: tokio::io::Lines<BufReader<tokio::net::unix::OwnedReadHalf>>,
+    wr: tokio::net::unix::OwnedWriteHalf,
+    pub path: PathBuf,
+}
+
+/// Why a control client failed.
+#[derive(Debug, Error)]
+pub enum ClientError {
+    #[error(
+        "cannot connect to {path}: {source}; is the service running (systemctl status axiscomp)?"
+    )]
+    Connect {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("control connection: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("the service closed the connection")]
+    Closed,
+    #[error("bad reply from the service: {0}")]
+    Reply(String),
+    #[error("{0}")]
+    Refused(String),
+}
+
+impl Client {
+    /// Connect to the socket at `path`.
+    pub async fn connect(path: &Path) -> Result<Client, ClientError> {
+        let s = UnixStream::connect(path)
+            .await
+            .map_err(|source| ClientError::Connect {
+                path: path.display().to_string(),
+                source,
+            })?;
+        let (rd, wr) = s.into_split();
+        Ok(Client {
+            lines: BufReader::new(rd).lines(),
+            wr,
+            path: path.to_path_buf(),
+        })
+    }
+
+    async fn send(&mut self, r: &Request) -> Result<(), ClientError> {
+        let mut s = serde_json::to_string(r).map_err(|e| ClientError::Reply(e.to_string()))?;
+        s.push('\n');
+        self.wr.write_all(s.as_bytes()).await?;
+        Ok(())
+    }
+
+    async fn next_value(&mut self) -> Result<serde_json::Value, ClientError> {
+        let line = self.lines.next_line().await?.ok_or(ClientError::Closed)?;
+        serde_json::from_str(&line).map_err(|e| ClientError::Reply(format!("{e}: {line}")))
+    }
+
+    /// Send a request and return its `result` (or `snapshot` for status).
+    pub async fn request(&mut self, r: &Request) -> Result<serde_json::Value, ClientError> {
+        self.send(r).await?;
+        let v = self.next_value().await?;
+        if v.get("ok").and_then(|o| o.as_bool()) == Some(true) {
+            Ok(v.get("result")
+                .or_else(|| v.get("snapshot"))
+                .cloned()
+                .unwrap_or(serde_json::Value::Null))
+        } else {
+            Err(ClientError::Refused(
+                v.get("error")
+                    .and_then(|e| e.as_str())
+                    .unwrap_or("refused")
+                    .to_string(),
+            ))
+        }
+    }
+
+    /// The current snapshot.
+    pub async fn status(&mut self) -> Result<Snapshot, ClientError> {
+        let v = self.request(&Request::Status).await?;
+        serde_json::from_value(v).map_err(|e| ClientError::Reply(e.to_string()))
+    }
+
+    /// Start a snapshot stream; then call `next_snapshot`.
+    pub async fn subscribe(&mut self, hz: Option<f64>) -> Result<(), ClientError> {
+        self.send(&Request::Subscribe { hz }).await
+    }
+
+    /// The next snapshot of a stream.
+    pub async fn next_snapshot(&mut self) -> Result<Snapshot, ClientError> {
+        let v = self.next_value().await?;
+        if let Some(err) = v.get("error").and_then(|e| e.as_str()) {
+            return Err(ClientError::Refused(err.to_string()));
+        }
+        let snap = v
+            .get("snapshot")
+            .cloned()
+            .ok_or_else(|| ClientError::Reply(v.to_string()))?;
+        serde_json::from_value(snap).map_err(|e| ClientError::Reply(e.to_string()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn requests_parse_and_name_their_role() {
+        let r: Request =
+            serde_json::from_str(r#"{"cmd":"follower","action":"jog","mm":0.5}"#).unwrap();
+        assert_eq!(
+            r,
+            Request::Follower {
+                action: FollowerAction::Jog,
+                mm: Some(0.5)
+            }
+        );
+        assert_eq!(r.needs(), Role::Operator);
+        let r: Request = serde_json::from_str(r#"{"cmd":"status"}"#).unwrap();
+        assert_eq!(r.needs(), Role::Viewer);
+        let r: Request = serde_json::from_str(r#"{"cmd":"nominal","mm":null}"#).unwrap();
+        assert_eq!(r, Request::Nominal { mm: None });
+        let r: Request =
+            serde_json::from_str(r#"{"cmd":"strategy","strategy":"encoder"}"#).unwrap();
+        assert_eq!(
+            r,
+            Request::Strategy {
+                strategy: Strategy::Encoder
+            }
+        );
+        // A misspelt field is refused, not ignored (serde checks fields of struct variants).
+        let e = serde_json::from_str::<Request>(r#"{"cmd":"follower","action":"jog","mn":1}"#);
+        assert!(e.unwrap_err().to_string().contains("unknown field `mn`"));
+        assert!(serde_json::from_str::<Request>(r#"{"cmd":"launch"}"#).is_err());
+    }
+
+    #[tokio::test]
+    async fn socket_round_trip_and_refusal() {
+        let dir = std::env::temp_dir().join(format!("axiscomp-ctl-{}", std::process::id()));
+        let path = dir.join("control.sock");
+        let listener = bind(&path).unwrap();
+        let (snap_tx, snap_rx) = watch::channel(Snapshot {
+            unix_us: 42,
+            ..Snapshot::default()
+        });
+        let (cmd_tx, mut cmd_rx) = mpsc::channel::<Command>(4);
+        let (trigger, shutdown) = super::super::shutdown::channel();
+        // As the service's own user we are an operator (refusals are tested across users in
+        // the integration tests).
+        let me = RolePolicy::from_names("no-such-group-a", "no-such-group-b");
+        tokio::spawn(serve(
+            listener,
+            me,
+            snap_rx,
+            cmd_tx,
+            Duration::from_millis(20),
+            shutdown.clone(),
+        ));
+        tokio::spawn(async move {
+            while let Some(c) = cmd_rx.recv().await {
+                let _ = c
+                    .reply
+                    .send(Ok(serde_json::json!({"done": format!("{:?}", c.request)})));
+            }
+        });
+        let mut c = Client::connect(&path).await.unwrap();
+        assert_eq!(c.status().await.unwrap().unix_us, 42);
+        let v = c.request(&Request::Zero).await.unwrap();
+        assert_eq!(v["done"], "Zero");
+        // A malformed line gets an error naming the line, and the connection stays usable.
+        c.wr.write_all(b"{\"cmd\":\"fly\"}\n").await.unwrap();
+        let v = c.next_value().await.unwrap();
+        assert!(v["error"].as_str().unwrap().starts_with("line 3:"), "{v}");
+        c.subscribe(Some(50.0)).await.unwrap();
+        snap_tx.send_modify(|s| s.unix_us = 7);
+        let mut seen = false;
+        for _ in 0..20 {
+            if c.next_snapshot().await.unwrap().unix_us == 7 {
+                seen = true;
+                break;
+            }
+        }
+        assert!(seen);
+        trigger.trigger();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

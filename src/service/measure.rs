@@ -1,0 +1,293 @@
+//! The live measurement: each valid frame, with PSD2's stitched position, is decoupled into the
+//! six errors; the live value is the mean over a short window, with its covariance: the
+//! per-frame noise covariance divided by the frames averaged, plus the stitching uncertainty
+//! carried through β, plus the zero reference's own uncertainty when one is set.
+//!
+//! The nominal travel D comes from whoever knows it (the run plan, the CNC); without it D is
+//! estimated as PSD2's position plus the spot's offset on it, which is good enough for β but
+//! leaves positioning undefined (`LiveErrors::nominal` is `None`). Pure logic; time is an
+//! argument.
+
+use crate::acquire::Frame;
+use crate::decouple::{DecoupleError, Decoupler};
+use crate::track::Stitch;
+use crate::units::Errors6;
+use nalgebra::{Matrix6, Vector6};
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+/// The live six errors.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LiveErrors {
+    /// Mean over the window, minus the zero reference when set (internal units).
+    pub errors: Errors6,
+    /// Standard deviation of `errors` (internal units).
+    pub sd: Errors6,
+    /// Frames averaged.
+    pub frames: usize,
+    /// The travel D used for the decoupling (mm).
+    pub travel_mm: f64,
+    /// The nominal position, when known.
+    pub nominal: Option<f64>,
+    /// Measured carriage position: D + dy (mm).
+    pub position_mm: f64,
+    /// Whether a zero reference is subtracted.
+    pub zeroed: bool,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Zero {
+    errors: Vector6<f64>,
+    cov: Matrix6<f64>,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Sample {
+    at: Instant,
+    errors: Vector6<f64>,
+    travel: f64,
+    follower: f64,
+    stitch_var: [f64; 2],
+}
+
+/// The live pipeline.
+#[derive(Debug)]
+pub struct Measure {
+    decoupler: Decoupler,
+    window: Duration,
+    samples: VecDeque<Sample>,
+    frame_cov: Matrix6<f64>,
+    nominal: Option<f64>,
+    zero: Option<Zero>,
+}
+
+impl Measure {
+    /// A pipeline averaging over `window`.
+    pub fn new(decoupler: Decoupler, window: Duration) -> Self {
+        Measure {
+            decoupler,
+            window,
+            samples: VecDeque::new(),
+            frame_cov: Matrix6::zeros(),
+            nominal: None,
+            zero: None,
+        }
+    }
+
+    /// Set or clear the nominal travel; the averaging window restarts.
+    pub fn set_nominal(&mut self, nominal: Option<f64>) {
+        if nominal != self.nominal {
+            self.samples.clear();
+        }
+        self.nominal = nominal;
+    }
+
+    /// The nominal travel, when known.
+    pub fn nominal(&self) -> Option<f64> {
+        self.nominal
+    }
+
+    /// Drop the averaging window (the carriage moved, the stitch changed).
+    pub fn restart(&mut self) {
+        self.samples.clear();
+    }
+
+    /// Take the current live mean as the zero reference of all six errors.
+    pub fn set_zero(&mut self) -> Option<Errors6> {
+        self.zero = None;
+        let live = self.live()?;
+        let cov = self.window_cov()?;
+        let e = live.errors.to_vector();
+        self.zero = Some(Zero { errors: e, cov });
+        Some(live.errors)
+    }
+
+    /// Forget the zero reference.
+    pub fn clear_zero(&mut self) {
+        self.zero = None;
+    }
+
+    /// Feed one frame with PSD2's stitched position. Invalid frames (a PSD without its spot)
+    /// and frames without a valid stitch are skipped: never averaged in. Returns whether the
+    /// frame was used.
+    pub fn handle_frame(
+        &mut self,
+        frame: &Frame,
+        stitch: &Stitch,
+        now: Instant,
+    ) -> Result<bool, DecoupleError> {
+        while let Some(s) = self.samples.front() {
+            if now.saturating_duration_since(s.at) > self.window {
+                self.samples.pop_front();
+            } else {
+                break;
+            }
+        }
+        let Some(mut r) = frame.readings() else {
+            return Ok(false);
+        };
+        if !stitch.valid {
+            return Ok(false);
+        }
+        r[3] += stitch.vertical_mm;
+        let follower = stitch.follower_mm;
+        let travel = self.nominal.unwrap_or(follower + r[2]);
+        let est = self.decoupler.decouple(&r, travel, follower)?;
+        self.frame_cov = est.cov;
+        self.samples.push_back(Sample {
+            at: now,
+            errors: est.errors.to_vector(),
+            travel,
+            follower,
+            stitch_var: stitch.variance,
+        });
+        Ok(true)
+    }
+
+    /// Covariance of the window's mean: noise / n plus the stitching variance through β.
+    fn window_cov(&self) -> Option<Matrix6<f64>> {
+        let last = self.samples.back()?;
+        let n = self.samples.len() as f64;
+        let var = [0.0, 0.0, last.stitch_var[0], last.stitch_var[1], 0.0, 0.0];
+        let stitch = self
+            .decoupler
+            .propagate(&var, last.travel, last.follower)
+            .ok()?;
+        Some(self.frame_cov / n + stitch)
+    }
+
+    /// The live six errors, when the window holds any frame.
+    pub fn live(&self) -> Option<LiveErrors> {
+        let last = self.samples.back()?;
+        let n = self.samples.len();
+        let mean = self
+            .samples
+            .iter()
+            .fold(Vector6::zeros(), |acc, s| acc + s.errors)
+            / n as f64;
+        let mut cov = self.window_cov()?;
+        let mut e = mean;
+        if let Some(z) = &self.zero {
+            e -= z.errors;
+            cov += z.cov;
+        }
+        let errors = Errors6::from_vector(&e);
+        Some(LiveErrors {
+            errors,
+            sd: crate::decouple::sd_of(&cov),
+            frames: n,
+            travel_mm: last.travel,
+            nominal: self.nominal,
+            position_mm: last.travel + mean[1],
+            zeroed: self.zero.is_some(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::decouple::{Method, SolveOptions, Source};
+    use crate::optics::{Layout, Pose, Spot};
+    use crate::sim::Rng;
+    use crate::track::Strategy;
+
+    fn frame_at(layout: &Layout, pose: &Pose, rng: &mut Rng, t: Instant, noise: f64) -> Frame {
+        let r = layout.forward(pose).vector().unwrap();
+        let spots = std::array::from_fn(|k| {
+            Some(Spot {
+                x: r[2 * k] + rng.gauss(noise),
+                y: r[2 * k + 1] + rng.gauss(noise),
+            })
+        });
+        Frame {
+            seq: 0,
+            at: t,
+            unix_us: 0,
+            spots,
+            sums: [5.0; 3],
+        }
+    }
+
+    fn stitch(follower: f64, var: f64) -> Stitch {
+        Stitch {
+            follower_mm: follower,
+            vertical_mm: 0.0,
+            variance: [var, 0.0],
+            handovers: 0,
+            strategy: Strategy::Overlap,
+            valid: true,
+        }
+    }
+
+    #[test]
+    fn live_mean_matches_truth_within_stated_sd() {
+        let layout = Layout::reference();
+        let dec = Decoupler {
+            source: Source::Simulated(layout.clone()),
+            method: Method::Nonlinear,
+            sigma_mm: [1e-3; 6],
+            options: SolveOptions::default(),
+        };
+        let mut m = Measure::new(dec, Duration::from_millis(250));
+        m.set_nominal(Some(100.0));
+        let truth = Errors6::from_user([12.0, -7.0, 4.0, 3.0, -2.0, 5.0]);
+        let pose = Pose::new(truth, 100.0, 99.2);
+        let mut rng = Rng::new(4);
+        let t0 = Instant::now();
+        let mut worst: f64 = 0.0;
+        for trial in 0..24 {
+            for i in 0..125 {
+                let t = t0 + Duration::from_millis(2 * (i + 125 * trial));
+                let f = frame_at(&layout, &pose, &mut rng, t, 1e-3);
+                assert!(m.handle_frame(&f, &stitch(99.2, 0.0), t).unwrap());
+            }
+            let live = m.live().unwrap();
+            assert_eq!(live.frames, 125);
+            let (e, sd, tr) = (live.errors.to_array(), live.sd.to_array(), truth.to_array());
+            for k in 0..6 {
+                worst = worst.max((e[k] - tr[k]).abs() / sd[k]);
+            }
+            m.restart();
+        }
+        // 144 normal deviates: the largest should be well under 4.5 sd.
+        assert!(worst < 4.5 && worst > 1.0, "worst {worst}");
+    }
+
+    #[test]
+    fn stitch_variance_enters_positioning_and_invalid_frames_are_skipped() {
+        let layout = Layout::reference();
+        let dec = Decoupler {
+            source: Source::Simulated(layout.clone()),
+            method: Method::Linear,
+            sigma_mm: [1e-3; 6],
+            options: SolveOptions::default(),
+        };
+        let mut m = Measure::new(dec, Duration::from_millis(250));
+        let t = Instant::now();
+        // At D = 0, where the design's bound for dy (1.2137 µm at σ = 1 µm) applies.
+        let pose = Pose::new(Errors6::ZERO, 0.0, 0.0);
+        let mut rng = Rng::new(1);
+        let f = frame_at(&layout, &pose, &mut rng, t, 0.0);
+        m.handle_frame(&f, &stitch(0.0, (2e-3_f64).powi(2)), t)
+            .unwrap();
+        let live = m.live().unwrap();
+        // dy's sd: frame noise (1.2137 µm for one frame) and 2 µm of stitching, in quadrature.
+        let sd_dy = live.sd.to_user()[1];
+        assert!(
+            (sd_dy - (1.2137_f64.powi(2) + 4.0).sqrt()).abs() < 1e-3,
+            "{sd_dy}"
+        );
+        assert!(live.nominal.is_none());
+        assert!(live.position_mm.abs() < 1e-9);
+        let mut blocked = f;
+        blocked.spots[2] = None;
+        assert!(!m.handle_frame(&blocked, &stitch(0.0, 0.0), t).unwrap());
+        let mut broken = stitch(0.0, 0.0);
+        broken.valid = false;
+        assert!(!m.handle_frame(&f, &broken, t).unwrap());
+        assert_eq!(m.live().unwrap().frames, 1);
+        assert!(m.set_zero().is_some());
+        assert!(m.live().unwrap().zeroed);
+    }
+}

@@ -1,0 +1,114 @@
+//! The `Snapshot`: everything the console and `axiscomp status` show, published on a watch
+//! channel and sent over the control API as JSON. User units (µm, arcsec) throughout, since it
+//! is an edge.
+
+use serde::{Deserialize, Serialize};
+
+/// The service's state at one instant.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Snapshot {
+    /// When it was taken (µs since the Unix epoch).
+    pub unix_us: i64,
+    /// The last frame from the PSDs.
+    pub psd: Option<PsdView>,
+    /// The live six errors.
+    pub live: Option<LiveView>,
+    pub follower: FollowerView,
+    pub tracking: TrackingView,
+    pub links: LinksView,
+    /// Active and recently cleared alarms, newest first.
+    pub alarms: Vec<Alarm>,
+}
+
+/// The last PSD frame.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PsdView {
+    pub seq: u64,
+    /// Spot per PSD (X, Y in µm), `None` when its SUM is below threshold.
+    pub spots_um: [Option<[f64; 2]>; 3],
+    pub sums_v: [f64; 3],
+    /// PSD active-area half-size (µm), for drawing the boxes.
+    pub half_size_um: [f64; 3],
+    pub valid: bool,
+    /// Frames per second over the last second.
+    pub rate_hz: f64,
+    /// Invalid frames (beam blocked or off a PSD) since start.
+    pub invalid_frames: u64,
+}
+
+/// The live six errors in user units.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LiveView {
+    /// dx, dy, dz (µm), ex, ey, ez (arcsec).
+    pub errors: [f64; 6],
+    /// Standard deviations, same units.
+    pub sd: [f64; 6],
+    pub frames: usize,
+    pub travel_mm: f64,
+    /// The nominal position; without it positioning (dy) is not defined.
+    pub nominal_mm: Option<f64>,
+    pub position_mm: f64,
+    pub zeroed: bool,
+}
+
+/// The follower drive.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct FollowerView {
+    pub node_id: u8,
+    /// CiA 402 power state, e.g. "Operation enabled".
+    pub state: String,
+    pub position_mm: Option<f64>,
+    pub target_mm: Option<f64>,
+    pub homed: bool,
+    pub heartbeat_ok: bool,
+    /// The last emergency message, decoded.
+    pub last_emcy: Option<String>,
+}
+
+/// The follower tracking and stitching.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct TrackingView {
+    /// "overlap" or "encoder".
+    pub strategy: String,
+    pub valid: bool,
+    pub at_rest: bool,
+    /// PSD2's stitched position along the follower axis (mm) and vertical offset (µm).
+    pub follower_mm: f64,
+    pub vertical_um: f64,
+    /// Accumulated stitching standard deviation (µm), along and vertical.
+    pub sd_um: [f64; 2],
+    pub handovers: usize,
+}
+
+/// One field link.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LinkView {
+    /// "up", "connecting", "down", …
+    pub state: String,
+    /// Peer address or interface.
+    pub peer: String,
+    /// The last error, when down.
+    pub detail: Option<String>,
+    pub rate_hz: f64,
+    pub latency_p50_us: f64,
+    pub latency_p99_us: f64,
+    pub errors: u64,
+    pub reconnects: u64,
+}
+
+/// The field links.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LinksView {
+    pub io: LinkView,
+    pub can: LinkView,
+}
+
+/// An alarm.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Alarm {
+    /// Stable code, e.g. "heartbeat-lost", "drive-fault", "beam-blocked", "io-link-down".
+    pub code: String,
+    pub text: String,
+    pub since_unix_us: i64,
+    pub active: bool,
+}
