@@ -646,6 +646,36 @@ mod tests {
     }
 
     #[test]
+    fn shipped_example_is_valid() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/axiscomp.toml");
+        let s = load(&Layers {
+            etc: None,
+            file: Some(path),
+            env: vec![],
+        })
+        .unwrap();
+        assert_eq!(s.io.address, "192.168.10.20:502".parse().unwrap());
+        assert!(matches!(s.can, CanSettings::SocketCan { .. }));
+        // Every key of the built-in defaults appears in the example.
+        let defaults: toml::Table = toml::from_str(DEFAULTS).unwrap();
+        let example: toml::Table = toml::from_str(
+            &std::fs::read_to_string(
+                Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/axiscomp.toml"),
+            )
+            .unwrap(),
+        )
+        .unwrap();
+        for (section, keys) in &defaults {
+            for key in keys.as_table().unwrap().keys() {
+                assert!(
+                    example[section].as_table().unwrap().contains_key(key),
+                    "configs/axiscomp.toml lacks {section}.{key}"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn layers_override_in_order() {
         let s = load_text(
             "[io]\nrate_hz = 250.0\naddress = \"10.0.0.5:502\"\n",

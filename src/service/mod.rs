@@ -2,6 +2,7 @@
 
 pub mod control;
 pub mod measure;
+pub mod notify;
 pub mod peer;
 pub mod shutdown;
 pub mod snapshot;
