@@ -16,6 +16,7 @@ pub mod config;
 pub mod decouple;
 pub mod modbus;
 pub mod optics;
+pub mod run;
 pub mod service;
 pub mod sim;
 pub mod track;
