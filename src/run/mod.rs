@@ -2,6 +2,12 @@
 //! target, and the run state machine. A run produces `Capture`s, which `evaluate` turns into ISO
 //! figures and `comp` into compensation tables.
 
+pub mod plan;
+pub mod program;
+
+pub use plan::{Plan, PlanError, PlanSpec, Step, TargetKey};
+pub use program::{CaptureMode, Dialect, Handshake};
+
 use crate::units::Errors6;
 use serde::{Deserialize, Serialize};
 

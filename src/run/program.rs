@@ -1,0 +1,345 @@
+//! The ISO 230-2 part program for the CNC, generated from a `Plan` in one of four dialects.
+//!
+//! - ISO / Fanuc: `G01 X.. F..`, dwell `G04 P<ms>` (Fanuc's P is milliseconds), `M30`, `%`.
+//! - Siemens (Sinumerik): `N..` blocks, dwell `G4 F<s>`, `; comments`, `M30`.
+//! - Heidenhain conversational: `BEGIN PGM`, `L X+.. F..`, dwell cycle `CYCL DEF 9.0/9.1`,
+//!   `END PGM`, numbered lines.
+//! - LinuxCNC (rs274ngc): `G1 X.. F..`, dwell `G4 P<s>` (LinuxCNC's P is seconds), `M2`.
+//!
+//! Capture is by stability (the program only dwells) or by handshake with the PLC: at each
+//! target the program outputs the target's code and raises "at target", then waits for
+//! "captured". The handshake lines are emitted for the ISO/Fanuc dialect (custom macro B: an
+//! output variable and a WHILE wait on an input variable) and for LinuxCNC (M68 analog output,
+//! M64/M65 digital output, M66 wait on a digital input); which signals are used is the site's
+//! choice (`Handshake`). Siemens and Heidenhain programs dwell only.
+
+use super::Direction;
+use super::plan::{Plan, Step};
+use std::fmt::Write as _;
+use thiserror::Error;
+
+/// CNC program dialect.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Dialect {
+    Iso,
+    Siemens,
+    Heidenhain,
+    LinuxCnc,
+}
+
+impl Dialect {
+    /// Parse a dialect name: iso (or fanuc), siemens, heidenhain, linuxcnc.
+    pub fn parse(s: &str) -> Option<Dialect> {
+        Some(match s.to_ascii_lowercase().as_str() {
+            "iso" | "fanuc" => Dialect::Iso,
+            "siemens" | "sinumerik" => Dialect::Siemens,
+            "heidenhain" => Dialect::Heidenhain,
+            "linuxcnc" => Dialect::LinuxCnc,
+            _ => return None,
+        })
+    }
+
+    /// The usual file extension.
+    pub fn extension(self) -> &'static str {
+        match self {
+            Dialect::Iso => "nc",
+            Dialect::Siemens => "mpf",
+            Dialect::Heidenhain => "h",
+            Dialect::LinuxCnc => "ngc",
+        }
+    }
+}
+
+/// The PLC signals of the handshake (site's choice).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Handshake {
+    /// Output carrying the target code (Fanuc: a macro output variable such as #1132 for
+    /// UO000–UO031; LinuxCNC: analog output number for M68 E).
+    pub code_output: u32,
+    /// Digital output "at target" (Fanuc: output variable such as #1100; LinuxCNC: M64 P).
+    pub at_target_output: u32,
+    /// Digital input "captured" (Fanuc: input variable such as #1000; LinuxCNC: M66 P).
+    pub captured_input: u32,
+    /// Longest wait for "captured" (s); LinuxCNC aborts the wait after it.
+    pub timeout_s: f64,
+}
+
+impl Default for Handshake {
+    fn default() -> Self {
+        Handshake {
+            code_output: 0,
+            at_target_output: 0,
+            captured_input: 0,
+            timeout_s: 30.0,
+        }
+    }
+}
+
+/// How targets are captured.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum CaptureMode {
+    /// The program dwells; the service captures when the spot is at rest.
+    Stability,
+    /// The program tells the PLC it is at target k and waits for "captured".
+    Handshake(Handshake),
+}
+
+/// Why a program could not be generated.
+#[derive(Clone, Debug, Error, PartialEq)]
+pub enum ProgramError {
+    #[error(
+        "the {0:?} dialect has no handshake here: use stability capture (dwell) or the ISO/Fanuc or LinuxCNC dialect"
+    )]
+    NoHandshake(Dialect),
+}
+
+/// The code sent for a target: `run·1000 + target_index·2 + (0 up, 1 down)`; the PLC echoes it.
+pub fn target_code(run: u32, target_index: u32, direction: Direction) -> u32 {
+    run * 1000 + target_index * 2 + u32::from(direction == Direction::Down)
+}
+
+/// Decode a target code.
+pub fn decode_target_code(code: u32) -> (u32, u32, Direction) {
+    let run = code / 1000;
+    let rest = code % 1000;
+    let dir = if rest % 2 == 1 {
+        Direction::Down
+    } else {
+        Direction::Up
+    };
+    (run, rest / 2, dir)
+}
+
+/// Generate the program text.
+pub fn generate(plan: &Plan, dialect: Dialect, mode: CaptureMode) -> Result<String, ProgramError> {
+    if matches!(mode, CaptureMode::Handshake(_))
+        && matches!(dialect, Dialect::Siemens | Dialect::Heidenhain)
+    {
+        return Err(ProgramError::NoHandshake(dialect));
+    }
+    let s = &plan.spec;
+    let ax = s.axis.as_str();
+    let title = format!(
+        "axiscomp ISO 230-2 {ax} {:.3} to {:.3} mm, {} targets, {} runs, dwell {} s",
+        s.start_mm,
+        s.end_mm,
+        plan.targets.len(),
+        s.runs,
+        s.dwell_s
+    );
+    let steps = plan.steps();
+    let mut out = String::new();
+    let mut w = Writer {
+        dialect,
+        out: &mut out,
+        n: 0,
+    };
+    w.header(&title);
+    let mut last_run = 0;
+    for step in &steps {
+        if let Some(k) = step.target
+            && k.run != last_run
+        {
+            last_run = k.run;
+            w.comment(&format!("run {}", k.run));
+        }
+        w.move_to(ax, step, s.feed_mm_min);
+        if let Some(k) = step.target {
+            match mode {
+                CaptureMode::Stability => w.dwell(s.dwell_s),
+                CaptureMode::Handshake(h) => {
+                    w.dwell(s.dwell_s);
+                    w.handshake(&h, target_code(k.run, k.target_index, k.direction));
+                }
+            }
+        }
+    }
+    w.footer();
+    Ok(out)
+}
+
+struct Writer<'a> {
+    dialect: Dialect,
+    out: &'a mut String,
+    n: u32,
+}
+
+impl Writer<'_> {
+    fn line(&mut self, text: &str) {
+        match self.dialect {
+            Dialect::Siemens => {
+                self.n += 10;
+                let _ = writeln!(self.out, "N{} {text}", self.n);
+            }
+            Dialect::Heidenhain => {
+                let _ = writeln!(self.out, "{} {text}", self.n);
+                self.n += 1;
+            }
+            _ => {
+                let _ = writeln!(self.out, "{text}");
+            }
+        }
+    }
+
+    fn comment(&mut self, text: &str) {
+        match self.dialect {
+            // Fanuc comments are upper case without parentheses inside.
+            Dialect::Iso => self.line(&format!(
+                "({})",
+                text.to_uppercase().replace(['(', ')'], "")
+            )),
+            Dialect::LinuxCnc => self.line(&format!("({})", text.replace(['(', ')'], ""))),
+            Dialect::Siemens | Dialect::Heidenhain => self.line(&format!("; {text}")),
+        }
+    }
+
+    fn header(&mut self, title: &str) {
+        match self.dialect {
+            Dialect::Iso => {
+                let _ = writeln!(self.out, "%");
+                self.line("O2302");
+                self.comment(title);
+                self.line("G21 G90 G94");
+            }
+            Dialect::Siemens => {
+                self.comment(title);
+                self.line("G90 G71 G94");
+            }
+            Dialect::Heidenhain => {
+                self.line("BEGIN PGM AXISCOMP MM");
+                self.comment(title);
+            }
+            Dialect::LinuxCnc => {
+                self.comment(title);
+                self.line("G21 G90 G94 G17");
+            }
+        }
+    }
+
+    fn move_to(&mut self, ax: &str, step: &Step, feed: f64) {
+        let p = step.position_mm;
+        match self.dialect {
+            Dialect::Iso | Dialect::Siemens => self.line(&format!("G01 {ax}{p:.4} F{feed:.0}")),
+            Dialect::LinuxCnc => self.line(&format!("G1 {ax}{p:.4} F{feed:.0}")),
+            Dialect::Heidenhain => self.line(&format!("L {ax}{p:+.4} F{feed:.0}")),
+        }
+    }
+
+    fn dwell(&mut self, secs: f64) {
+        match self.dialect {
+            Dialect::Iso => self.line(&format!("G04 P{:.0}", secs * 1000.0)),
+            Dialect::Siemens => self.line(&format!("G4 F{secs:.3}")),
+            Dialect::LinuxCnc => self.line(&format!("G4 P{secs:.3}")),
+            Dialect::Heidenhain => {
+                self.line("CYCL DEF 9.0 DWELL TIME");
+                self.line(&format!("CYCL DEF 9.1 DWELL {secs:.3}"));
+            }
+        }
+    }
+
+    fn handshake(&mut self, h: &Handshake, code: u32) {
+        match self.dialect {
+            Dialect::Iso => {
+                self.line(&format!("#{} = {code}", 1132 + h.code_output));
+                self.line(&format!("#{} = 1", 1100 + h.at_target_output));
+                self.line(&format!("WHILE [#{} EQ 0] DO1", 1000 + h.captured_input));
+                self.line("END1");
+                self.line(&format!("#{} = 0", 1100 + h.at_target_output));
+            }
+            Dialect::LinuxCnc => {
+                self.line(&format!("M68 E{} Q{code}", h.code_output));
+                self.line(&format!("M64 P{}", h.at_target_output));
+                self.line(&format!("M66 P{} L3 Q{:.1}", h.captured_input, h.timeout_s));
+                self.line(&format!("M65 P{}", h.at_target_output));
+            }
+            Dialect::Siemens | Dialect::Heidenhain => {}
+        }
+    }
+
+    fn footer(&mut self) {
+        match self.dialect {
+            Dialect::Iso => {
+                self.line("M30");
+                let _ = writeln!(self.out, "%");
+            }
+            Dialect::Siemens => self.line("M30"),
+            Dialect::Heidenhain => self.line("END PGM AXISCOMP MM"),
+            Dialect::LinuxCnc => self.line("M2"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::run::plan::PlanSpec;
+
+    fn small_plan() -> Plan {
+        Plan::new(PlanSpec {
+            axis: "X".into(),
+            start_mm: 0.0,
+            end_mm: 100.0,
+            targets: 5,
+            runs: 2,
+            overrun_mm: 2.0,
+            dwell_s: 1.5,
+            feed_mm_min: 1000.0,
+            lead_mm: 0.0,
+            reference_mm: None,
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn dwell_units_differ_by_dialect() {
+        let p = small_plan();
+        let iso = generate(&p, Dialect::Iso, CaptureMode::Stability).unwrap();
+        assert!(iso.contains("\nG04 P1500\n"), "Fanuc P is ms");
+        assert!(iso.starts_with("%\nO2302\n") && iso.ends_with("M30\n%\n"));
+        let cnc = generate(&p, Dialect::LinuxCnc, CaptureMode::Stability).unwrap();
+        assert!(cnc.contains("\nG4 P1.500\n"), "LinuxCNC P is seconds");
+        assert!(cnc.ends_with("M2\n"));
+        let sie = generate(&p, Dialect::Siemens, CaptureMode::Stability).unwrap();
+        assert!(sie.contains(" G4 F1.500\n") && sie.contains("N20 G90 G71 G94"));
+        let hh = generate(&p, Dialect::Heidenhain, CaptureMode::Stability).unwrap();
+        assert!(hh.starts_with("0 BEGIN PGM AXISCOMP MM\n"));
+        assert!(hh.contains(" L X+25.0000 F1000\n") && hh.contains(" CYCL DEF 9.1 DWELL 1.500\n"));
+        let last = hh.lines().last().unwrap();
+        let n: usize = last.split(' ').next().unwrap().parse().unwrap();
+        assert_eq!(n + 1, hh.lines().count(), "consecutive line numbers");
+        assert!(last.ends_with("END PGM AXISCOMP MM"));
+    }
+
+    #[test]
+    fn every_target_is_visited_with_a_dwell() {
+        let p = small_plan();
+        let cnc = generate(&p, Dialect::LinuxCnc, CaptureMode::Stability).unwrap();
+        let moves = cnc.lines().filter(|l| l.starts_with("G1 X")).count();
+        assert_eq!(moves, p.steps().len());
+        let dwells = cnc.lines().filter(|l| l.starts_with("G4 P")).count();
+        assert_eq!(dwells, p.capture_count());
+    }
+
+    #[test]
+    fn handshake_lines_and_codes() {
+        let p = small_plan();
+        let hs = CaptureMode::Handshake(Handshake::default());
+        let cnc = generate(&p, Dialect::LinuxCnc, hs).unwrap();
+        assert_eq!(cnc.matches("M66 P0 L3 Q30.0").count(), p.capture_count());
+        assert!(cnc.contains("M68 E0 Q1000\n"), "run 1, target 0, up");
+        assert!(cnc.contains("M68 E0 Q2009\n"), "run 2, target 4, down");
+        let iso = generate(&p, Dialect::Iso, hs).unwrap();
+        assert!(iso.contains("#1132 = 1000\n#1100 = 1\nWHILE [#1000 EQ 0] DO1\nEND1\n#1100 = 0\n"));
+        assert_eq!(
+            generate(&p, Dialect::Siemens, hs),
+            Err(ProgramError::NoHandshake(Dialect::Siemens))
+        );
+        for run in 1..4 {
+            for t in 0..41 {
+                for d in [Direction::Up, Direction::Down] {
+                    assert_eq!(decode_target_code(target_code(run, t, d)), (run, t, d));
+                }
+            }
+        }
+    }
+}
