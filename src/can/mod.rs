@@ -7,6 +7,7 @@
 //! send from another; `recv` is cancel-safe (dropping its future loses no frame).
 
 pub mod memory;
+pub mod msgpack;
 
 use std::fmt;
 use std::future::Future;
@@ -136,6 +137,14 @@ pub enum CanError {
     Malformed(String),
 }
 
+impl CanError {
+    /// Whether the transport still works after this error and `recv`/`send` may simply be
+    /// called again: a receiver overrun, or one malformed datagram from a peer (dropped).
+    pub fn is_transient(&self) -> bool {
+        matches!(self, CanError::Lagged(_) | CanError::Malformed(_))
+    }
+}
+
 /// A carrier of CAN frames.
 pub trait CanTransport: Send + Sync + 'static {
     /// Send one frame.
@@ -161,5 +170,13 @@ mod tests {
         assert!(r.data().is_empty());
         let e = CanFrame::new_extended(0x1ABC_DEF0, &[0xFF]).unwrap();
         assert_eq!(format!("{e:?}"), "1ABCDEF0#FF");
+    }
+
+    #[test]
+    fn transient_errors() {
+        assert!(CanError::Lagged(3).is_transient());
+        assert!(CanError::Malformed("x".into()).is_transient());
+        assert!(!CanError::Closed.is_transient());
+        assert!(!CanError::Io("x".into()).is_transient());
     }
 }
