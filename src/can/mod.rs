@@ -6,6 +6,7 @@
 //! methods take `&self`, so a driver task can wait for a frame in one `select!` branch and
 //! send from another; `recv` is cancel-safe (dropping its future loses no frame).
 
+pub mod cannelloni;
 pub mod memory;
 pub mod msgpack;
 
