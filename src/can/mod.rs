@@ -9,6 +9,7 @@
 pub mod cannelloni;
 pub mod memory;
 pub mod msgpack;
+pub mod pycan;
 
 use std::fmt;
 use std::future::Future;
