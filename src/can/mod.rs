@@ -10,6 +10,7 @@ pub mod cannelloni;
 pub mod memory;
 pub mod msgpack;
 pub mod pycan;
+pub mod socketcan;
 
 use std::fmt;
 use std::future::Future;
