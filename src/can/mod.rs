@@ -1,12 +1,20 @@
 //! CAN frames and the transports that carry them (DESIGN §6): one trait, several carriers.
 //!
-//! - `memory`: an in-process bus for unit tests and the in-process twin.
+//! - `socketcan`: a Linux CAN_RAW socket (production; tested against vcan in a VM);
+//! - `cannelloni`: a remote CAN interface over UDP in the cannelloni v2 frame format (a
+//!   gateway; also how the digital twin connects);
+//! - `pycan`: python-can's `udp_multicast` bus, so python-can / python-canopen rigs share a bus
+//!   with us (its MessagePack subset is in `msgpack`);
+//! - `memory`: an in-process bus for unit tests and the in-process twin;
+//! - `fault`: a wrapper around any of these that drops, delays, or cuts the link, for the
+//!   reliability tests.
 //!
 //! A transport moves classic CAN frames (11- or 29-bit identifiers, up to 8 data bytes). Its
 //! methods take `&self`, so a driver task can wait for a frame in one `select!` branch and
 //! send from another; `recv` is cancel-safe (dropping its future loses no frame).
 
 pub mod cannelloni;
+pub mod fault;
 pub mod memory;
 pub mod msgpack;
 pub mod pycan;
