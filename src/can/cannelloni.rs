@@ -47,7 +47,7 @@ pub const MAX_DATAGRAM: usize = 1200;
 /// Largest datagram we accept (the whole UDP payload range; cannelloni itself sends ≤ 1472).
 const RECV_BUFFER: usize = 65_536;
 
-/// Frames that may wait for the writer task before `send` waits.
+/// Sends (single frames or batches) that may wait for the writer task before `send` waits.
 const QUEUE: usize = 1024;
 
 /// The byte layout: named field ranges, a checked view and an encoder (smoltcp `wire` style).
@@ -424,10 +424,11 @@ impl RxState {
             }
         };
         let mut frames = Vec::with_capacity(packet.count() as usize);
+        let mut skipped = 0;
         for r in packet.records() {
             match r.to_frame() {
                 Ok(Some(f)) => frames.push(f),
-                Ok(None) => bump(&counters.skipped, 1),
+                Ok(None) => skipped += 1,
                 Err(e) => {
                     bump(&counters.malformed, 1);
                     return Err(e);
@@ -444,6 +445,7 @@ impl RxState {
         self.expected_seq = Some(seq.wrapping_add(1));
         bump(&counters.datagrams_received, 1);
         bump(&counters.frames_received, frames.len() as u64);
+        bump(&counters.skipped, skipped);
         self.pending.extend(frames);
         Ok(())
     }

@@ -279,8 +279,8 @@ impl CanTransport for PyCanMulticast {
         Ok(())
     }
 
-    /// Cancel-safe: the only await is the socket's `recv_from`, which is; decoding after it
-    /// is synchronous.
+    /// Cancel-safe: the awaits are the buffer's lock and the socket's `recv_from`, both
+    /// cancel-safe; decoding after a datagram arrives is synchronous.
     async fn recv(&self) -> Result<CanFrame, CanError> {
         let mut buf = self.buf.lock().await;
         loop {
