@@ -1,12 +1,24 @@
 //! CAN frames and the transports that carry them (DESIGN §6): one trait, several carriers.
 //!
-//! - `memory`: an in-process bus for unit tests and the in-process twin.
+//! - `socketcan`: a Linux CAN_RAW socket (production; tested against vcan in a VM);
+//! - `cannelloni`: a remote CAN interface over UDP in the cannelloni v2 frame format (a
+//!   gateway; also how the digital twin connects);
+//! - `pycan`: python-can's `udp_multicast` bus, so python-can / python-canopen rigs share a bus
+//!   with us (its MessagePack subset is in `msgpack`);
+//! - `memory`: an in-process bus for unit tests and the in-process twin;
+//! - `fault`: a wrapper around any of these that drops, delays, or cuts the link, for the
+//!   reliability tests.
 //!
 //! A transport moves classic CAN frames (11- or 29-bit identifiers, up to 8 data bytes). Its
 //! methods take `&self`, so a driver task can wait for a frame in one `select!` branch and
 //! send from another; `recv` is cancel-safe (dropping its future loses no frame).
 
+pub mod cannelloni;
+pub mod fault;
 pub mod memory;
+pub mod msgpack;
+pub mod pycan;
+pub mod socketcan;
 
 use std::fmt;
 use std::future::Future;
@@ -136,6 +148,14 @@ pub enum CanError {
     Malformed(String),
 }
 
+impl CanError {
+    /// Whether the transport still works after this error and `recv`/`send` may simply be
+    /// called again: a receiver overrun, or one malformed datagram from a peer (dropped).
+    pub fn is_transient(&self) -> bool {
+        matches!(self, CanError::Lagged(_) | CanError::Malformed(_))
+    }
+}
+
 /// A carrier of CAN frames.
 pub trait CanTransport: Send + Sync + 'static {
     /// Send one frame.
@@ -161,5 +181,13 @@ mod tests {
         assert!(r.data().is_empty());
         let e = CanFrame::new_extended(0x1ABC_DEF0, &[0xFF]).unwrap();
         assert_eq!(format!("{e:?}"), "1ABCDEF0#FF");
+    }
+
+    #[test]
+    fn transient_errors() {
+        assert!(CanError::Lagged(3).is_transient());
+        assert!(CanError::Malformed("x".into()).is_transient());
+        assert!(!CanError::Closed.is_transient());
+        assert!(!CanError::Io("x".into()).is_transient());
     }
 }

@@ -78,3 +78,24 @@ pub fn reference_layout_text() -> String {
     )
     .expect("read reference layout")
 }
+
+/// Generous bound on anything a CAN test waits for, so a broken test fails instead of
+/// hanging; never a timing assertion (the VM runs about 14× slower than the host).
+pub const CAN_WAIT: std::time::Duration = std::time::Duration::from_secs(60);
+
+/// Await `fut`, failing the test with `what` if it takes longer than [`CAN_WAIT`].
+pub async fn within<T>(what: &str, fut: impl std::future::Future<Output = T>) -> T {
+    match tokio::time::timeout(CAN_WAIT, fut).await {
+        Ok(v) => v,
+        Err(_) => panic!("timed out after {CAN_WAIT:?}: {what}"),
+    }
+}
+
+/// A UDP port number nobody on this host holds right now (the kernel's pick for an ephemeral
+/// bind), so tests running in parallel — here or in another checkout — use distinct ports.
+pub fn unused_udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .expect("bind an ephemeral UDP port")
+        .port()
+}

@@ -3,5 +3,7 @@
 mod helpers;
 
 mod calibration;
+mod can;
 mod cli;
 mod decoupling;
+mod socketcan;
