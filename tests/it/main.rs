@@ -5,3 +5,4 @@ mod helpers;
 mod calibration;
 mod cli;
 mod decoupling;
+mod store;
