@@ -7,3 +7,4 @@ mod can;
 mod cli;
 mod decoupling;
 mod socketcan;
+mod store;

@@ -1,0 +1,280 @@
+//! Text shared by the HTML and Markdown renderers: file names, number formats, escaping, and
+//! the rows both reports show.
+
+use super::{Dof, EnvSample, RunMeta, Series};
+use crate::run::Direction;
+use crate::util::time::rfc3339;
+
+pub const HTML_FILE: &str = "report.html";
+pub const MARKDOWN_FILE: &str = "report.md";
+pub const SIX_SVG: &str = "six.svg";
+pub const SIX_PNG: &str = "six.png";
+
+/// Longest JSON value shown in a plan or configuration row.
+const MAX_VALUE_CHARS: usize = 120;
+
+/// "dy.png".
+pub fn dof_file(dof: Dof, ext: &str) -> String {
+    format!("{}.{ext}", dof.name())
+}
+
+/// "compare-dy.png".
+pub fn comparison_file(dof: Dof, ext: &str) -> String {
+    format!("compare-{}.{ext}", dof.name())
+}
+
+/// ↑ or ↓ (ISO 230-2).
+pub fn arrow(d: Direction) -> &'static str {
+    match d {
+        Direction::Up => "↑",
+        Direction::Down => "↓",
+    }
+}
+
+/// The report's heading: "Run 12 — axis Y".
+pub fn heading(m: &RunMeta) -> String {
+    format!("Run {} — axis {}", m.run_id, m.axis)
+}
+
+/// The six-error sheet's title.
+pub fn six_title(m: &RunMeta) -> String {
+    format!("Run {}, axis {}: the six errors", m.run_id, m.axis)
+}
+
+/// UTC date and time of a µs timestamp.
+pub fn date(unix_us: i64) -> String {
+    rfc3339(unix_us.div_euclid(1_000_000))
+}
+
+/// `v` with `decimals` decimals, never "-0.000".
+pub fn fixed(v: f64, decimals: usize) -> String {
+    let s = format!("{v:.decimals$}");
+    match s.strip_prefix('-') {
+        Some(rest) if rest.chars().all(|c| c == '0' || c == '.') => rest.to_string(),
+        _ => s,
+    }
+}
+
+/// A value of a DOF in its user unit, for tables.
+pub fn user(dof: Dof, internal: f64) -> String {
+    fixed(dof.to_user(internal), 3)
+}
+
+/// Escape text for HTML element content and quoted attributes.
+pub fn html(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&#39;"),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+/// Escape text for one line of Markdown (a table cell, a heading, a list item): markup
+/// characters are backslash-escaped, HTML is neutralised, line breaks become spaces.
+pub fn md(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '\\' | '`' | '*' | '_' | '[' | ']' | '|' | '#' | '!' => {
+                out.push('\\');
+                out.push(c);
+            }
+            '\r' => {}
+            '\n' => out.push(' '),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+/// Rows of a JSON snapshot: an object's top-level entries sorted by key (values as compact
+/// JSON, strings bare, long values shortened); anything else is one row named `name`.
+pub fn json_rows(name: &str, v: &serde_json::Value) -> Vec<(String, String)> {
+    let show = |v: &serde_json::Value| -> String {
+        let s = match v {
+            serde_json::Value::String(s) => s.clone(),
+            other => other.to_string(),
+        };
+        if s.chars().count() > MAX_VALUE_CHARS {
+            let short: String = s.chars().take(MAX_VALUE_CHARS - 1).collect();
+            format!("{short}…")
+        } else {
+            s
+        }
+    };
+    match v {
+        serde_json::Value::Object(map) => {
+            let mut rows: Vec<(String, String)> =
+                map.iter().map(|(k, v)| (k.clone(), show(v))).collect();
+            rows.sort_by(|a, b| a.0.cmp(&b.0));
+            rows
+        }
+        serde_json::Value::Null => Vec::new(),
+        other => vec![(name.to_string(), show(other))],
+    }
+}
+
+/// The run's metadata rows.
+pub fn meta_rows(m: &RunMeta) -> Vec<(&'static str, String)> {
+    vec![
+        ("Run", m.run_id.to_string()),
+        ("Axis", m.axis.clone()),
+        ("State", m.state.clone()),
+        ("Created", date(m.created_us)),
+        ("Updated", date(m.updated_us)),
+    ]
+}
+
+/// One row of a per-point table.
+pub struct PointRow {
+    pub position: String,
+    pub direction: &'static str,
+    pub n: String,
+    pub mean: String,
+    pub s: String,
+    pub two_s: String,
+    pub u: String,
+}
+
+/// Column headings of the per-point table.
+pub fn point_headings(dof: Dof) -> [String; 7] {
+    let u = dof.unit();
+    [
+        "Target (mm)".into(),
+        "Dir".into(),
+        "n".into(),
+        format!("Mean ({u})"),
+        format!("s ({u})"),
+        format!("2s ({u})"),
+        format!("u ({u})"),
+    ]
+}
+
+/// The per-point rows of a result: by direction (↑ first), then by position.
+pub fn point_rows(dof: Dof, series: &[Series]) -> Vec<PointRow> {
+    let mut ordered: Vec<&Series> = series.iter().collect();
+    ordered.sort_by_key(|s| s.direction);
+    let mut rows = Vec::new();
+    for s in ordered {
+        let mut idx: Vec<usize> = (0..s.positions_mm.len()).collect();
+        idx.sort_by(|&a, &b| s.positions_mm[a].total_cmp(&s.positions_mm[b]));
+        for i in idx {
+            rows.push(PointRow {
+                position: fixed(s.positions_mm[i], 3),
+                direction: arrow(s.direction),
+                n: s.n[i].to_string(),
+                mean: user(dof, s.mean[i]),
+                s: user(dof, s.s[i]),
+                two_s: user(dof, 2.0 * s.s[i]),
+                u: s.u
+                    .as_ref()
+                    .and_then(|u| u.get(i))
+                    .map_or_else(|| "—".to_string(), |&u| user(dof, u)),
+            });
+        }
+    }
+    rows
+}
+
+/// Column headings of the environment table.
+pub const ENV_HEADINGS: [&str; 5] = [
+    "Temperature",
+    "Min (°C)",
+    "Mean (°C)",
+    "Max (°C)",
+    "Samples",
+];
+
+/// Environment rows (material, air): min, mean, max, samples; "—" when not measured.
+pub fn env_rows(samples: &[EnvSample]) -> Vec<[String; 5]> {
+    let row = |name: &str, values: Vec<f64>| -> [String; 5] {
+        if values.is_empty() {
+            return [
+                name.to_string(),
+                "—".into(),
+                "—".into(),
+                "—".into(),
+                "0".into(),
+            ];
+        }
+        let min = values.iter().copied().fold(f64::INFINITY, f64::min);
+        let max = values.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let mean = values.iter().sum::<f64>() / values.len() as f64;
+        [
+            name.to_string(),
+            fixed(min, 2),
+            fixed(mean, 2),
+            fixed(max, 2),
+            values.len().to_string(),
+        ]
+    };
+    let finite = |f: fn(&EnvSample) -> Option<f64>| -> Vec<f64> {
+        samples
+            .iter()
+            .filter_map(f)
+            .filter(|v| v.is_finite())
+            .collect()
+    };
+    vec![
+        row("Material", finite(|s| s.material_c)),
+        row("Air", finite(|s| s.air_c)),
+    ]
+}
+
+/// "from … to …" of the samples, when there are any.
+pub fn env_span(samples: &[EnvSample]) -> Option<String> {
+    let first = samples.iter().map(|s| s.unix_us).min()?;
+    let last = samples.iter().map(|s| s.unix_us).max()?;
+    Some(format!("{} to {}", date(first), date(last)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fixed_never_shows_negative_zero() {
+        assert_eq!(fixed(-0.0, 3), "0.000");
+        assert_eq!(fixed(-0.0001, 3), "0.000");
+        assert_eq!(fixed(-0.0015, 3), "-0.002");
+        assert_eq!(fixed(12.5, 1), "12.5");
+    }
+
+    #[test]
+    fn escaping() {
+        assert_eq!(html(r#"<b>&"'"#), "&lt;b&gt;&amp;&quot;&#39;");
+        assert_eq!(
+            md("a|b *c* <x> & [l](u)\nnext"),
+            r"a\|b \*c\* &lt;x&gt; &amp; \[l\](u) next"
+        );
+    }
+
+    #[test]
+    fn json_rows_flatten_the_top_level() {
+        let v = serde_json::json!({"runs": 5, "name": "ISO", "targets": [0, 10]});
+        assert_eq!(
+            json_rows("plan", &v),
+            [
+                ("name".to_string(), "ISO".to_string()),
+                ("runs".to_string(), "5".to_string()),
+                ("targets".to_string(), "[0,10]".to_string()),
+            ]
+        );
+        assert_eq!(
+            json_rows("plan", &serde_json::json!(3)),
+            [("plan".to_string(), "3".to_string())]
+        );
+        let long = serde_json::json!({"k": "x".repeat(500)});
+        assert_eq!(json_rows("c", &long)[0].1.chars().count(), MAX_VALUE_CHARS);
+    }
+}
