@@ -5,6 +5,8 @@
 //! `acquire` (PSD registers → `Frame`) → `track` (PSD2's stitched position) → `decouple` (readings → six errors with covariance,
 //! using the head's model from `optics` and its calibration from `calibrate`).
 //! Field links: `modbus` (the I/O module), `can` + `canopen` (the follower drive).
+//! A run's captures go to `evaluate` (ISO 230-2/230-1 figures) and then to `comp` (compensation
+//! tables and controller exports).
 //! `sim` is the digital twin the rest is tested against; `units` holds the conventions;
 //! `util` the small shared pieces.
 
@@ -17,6 +19,12 @@ pub mod decouple;
 pub mod modbus;
 pub mod optics;
 pub mod run;
+
+// In data-flow order after `run` (not alphabetical): captures → ISO figures →
+pub mod evaluate;
+// → compensation tables and controller exports.
+pub mod comp;
+
 pub mod service;
 pub mod sim;
 pub mod track;

@@ -4,4 +4,6 @@ mod helpers;
 
 mod calibration;
 mod cli;
+mod comp;
 mod decoupling;
+mod evaluate;
