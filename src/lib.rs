@@ -1,21 +1,28 @@
 //! axiscomp: six-DOF geometric error measurement and compensation for machine-tool linear axes.
 //!
-//! Data flows one way (DESIGN §5), and the modules follow it:
+//! Data flows one way (DESIGN §5), from PSD readings to a published table:
 //!
-//! `acquire` (PSD registers → `Frame`) → `track` (PSD2's stitched position) → `decouple` (readings → six errors with covariance,
-//! using the head's model from `optics` and its calibration from `calibrate`).
-//! Field links: `modbus` (the I/O module), `can` + `canopen` (the follower drive).
-//! `store` keeps calibrations, runs, captures, tables and the audit log in SQLite; `report` draws
-//! plots and writes run reports.
-//! `sim` is the digital twin the rest is tested against; `units` holds the conventions;
-//! `util` the small shared pieces.
+//! 1. `acquire`: the I/O module's registers → a `Frame` of three PSD spots (over `modbus`);
+//! 2. `track`: PSD2's stitched position as the follower stage keeps the spot on it (the
+//!    follower is driven over `can` + `canopen`);
+//! 3. `decouple`: readings → the six errors with their covariance, using the head's model
+//!    (`optics`) and its calibration (`calibrate`);
+//! 4. `run`: the ISO 230-2 test cycle and the captures at each target;
+//! 5. `evaluate`: ISO 230-2 / 230-1 figures from the captures;
+//! 6. `comp`: compensation tables and controller exports.
+//!
+//! Around them: `service` (the live service: tasks, snapshot, control API), `store` (SQLite),
+//! `report` (plots and run reports), `config`, `sim` (the digital twin everything is tested
+//! against), `units` (the conventions) and `util`.
 
 pub mod acquire;
 pub mod calibrate;
 pub mod can;
 pub mod canopen;
+pub mod comp;
 pub mod config;
 pub mod decouple;
+pub mod evaluate;
 pub mod modbus;
 pub mod optics;
 pub mod report;

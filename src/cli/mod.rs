@@ -4,6 +4,7 @@
 mod calibrate;
 mod decouple;
 mod demo;
+mod evaluate;
 mod optics;
 
 use anyhow::Result;
@@ -38,6 +39,8 @@ enum Command {
     Calibrate(calibrate::Command),
     /// Decouple PSD readings (CSV on standard input) into the six errors.
     Decouple(decouple::Args),
+    /// ISO 230-2 positioning figures from a deviation table (CSV).
+    Evaluate(evaluate::Args),
 }
 
 /// Run a parsed command line.
@@ -47,6 +50,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Optics(c) => optics::run(c),
         Command::Calibrate(c) => calibrate::run(c),
         Command::Decouple(a) => decouple::run(a),
+        Command::Evaluate(a) => evaluate::run(a),
     }
 }
 
@@ -58,6 +62,7 @@ pub fn exit_code(e: &anyhow::Error) -> u8 {
             || cause.is::<axiscomp::optics::LayoutError>()
             || cause.is::<axiscomp::util::csv::CsvError>()
             || cause.is::<axiscomp::sim::SimError>()
+            || cause.is::<axiscomp::evaluate::EvalError>()
         {
             return 2;
         }

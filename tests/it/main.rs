@@ -5,6 +5,8 @@ mod helpers;
 mod calibration;
 mod can;
 mod cli;
+mod comp;
 mod decoupling;
+mod evaluate;
 mod socketcan;
 mod store;

@@ -1,0 +1,100 @@
+//! LinuxCNC joint compensation file (`[JOINT_n]COMP_FILE`, `COMP_FILE_TYPE`).
+//!
+//! One triplet per line, separated by spaces, nominal positions ascending, machine units (mm):
+//! - type 0: `nominal forward_actual reverse_actual` — where the joint really is when commanded
+//!   to `nominal` moving in the positive / negative direction: `nominal + e`;
+//! - type 1: `nominal forward_trim reverse_trim` — the loader uses them as given, and converts
+//!   type 0 with `trim = nominal − actual` (src/emc/motion/usrmotintf.cc, `usrmotLoadComp`),
+//!   so trim = −e.
+//!
+//! The loader reads with `sscanf("%lf %lf %lf")` and stops at the first line that does not give
+//! three numbers: the file has no header or comments. At most 256 triplets per joint
+//! (ini-config.adoc). With a `COMP_FILE`, `BACKLASH` is not used, so a table's backlash is folded
+//! into the reverse column (reverse = e + backlash).
+//!
+//! LinuxCNC interpolates linearly between arbitrary nominals, so the measured targets are
+//! written as they are when they fit; otherwise the table is resampled onto a uniform grid.
+
+use super::table::{CompTable, GridLimits, TableKind, fit_grid};
+use super::{CompError, Exported, fixed};
+use std::fmt::Write;
+
+/// Decimals written (mm): 1 nm.
+pub const DECIMALS: usize = 6;
+
+/// Type 0 (actual positions) or type 1 (trims).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CompFileType {
+    Type0,
+    Type1,
+}
+
+/// Compensation file options.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CompFileOptions {
+    pub file_type: CompFileType,
+    /// 256 in LinuxCNC.
+    pub max_points: usize,
+    /// Spacing when resampling is needed.
+    pub step_mm: Option<f64>,
+}
+
+impl CompFileOptions {
+    pub fn new(file_type: CompFileType) -> Self {
+        CompFileOptions {
+            file_type,
+            max_points: 256,
+            step_mm: None,
+        }
+    }
+}
+
+/// The compensation file of a positioning table.
+pub fn comp_file(table: &CompTable, o: &CompFileOptions) -> Result<Exported, CompError> {
+    const F: &str = "LinuxCNC comp file";
+    if table.kind != TableKind::Positioning || table.base_axis != table.comp_axis {
+        return Err(CompError::Unsupported {
+            format: F,
+            problem: format!(
+                "{} compensates {} over {}: a joint comp file acts on the joint's own position",
+                table.name, table.comp_axis, table.base_axis
+            ),
+        });
+    }
+    let (t, grid) = if table.positions_mm.len() <= o.max_points && o.step_mm.is_none() {
+        (table.clone(), None)
+    } else {
+        let g = fit_grid(
+            table,
+            &GridLimits {
+                max_points: o.max_points,
+                min_step_mm: 0.0,
+                step_quantum_mm: 0.0,
+                step_mm: o.step_mm,
+            },
+            F,
+        )?;
+        (table.resample(&g.positions()), Some(g))
+    };
+    let fwd = t.primary().to_vec();
+    let rev = t.reverse();
+    let mut out = String::new();
+    for ((p, f), r) in t.positions_mm.iter().zip(&fwd).zip(&rev) {
+        let (a, b) = match o.file_type {
+            CompFileType::Type0 => (p + f, p + r),
+            CompFileType::Type1 => (-f, -r),
+        };
+        let _ = writeln!(
+            out,
+            "{} {} {}",
+            fixed(*p, DECIMALS),
+            fixed(a, DECIMALS),
+            fixed(b, DECIMALS)
+        );
+    }
+    Ok(Exported {
+        text: out,
+        table: t,
+        grid,
+    })
+}

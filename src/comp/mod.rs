@@ -1,0 +1,152 @@
+//! Compensation tables and controller exports (DESIGN §7).
+//!
+//! `mapping` turns the head's frame into machine axes and ISO 230-1 names; `table` builds the
+//! positioning, straightness and Abbe tables from an `AxisEvaluation` (all holding
+//! `e = measured − nominal`, zeroed at the reference point) and fits them to a controller's grid;
+//! the exporters write each controller's file with its own sign rule:
+//!
+//! | exporter | file | value written | source |
+//! |---|---|---|---|
+//! | `siemens::lec` | `%_N_AX_EEC_INI`, `$AA_ENC_COMP[e,N,AX]` (mm) | `+e` | SINUMERIK 840D sl Function Manual Extended Functions, K3 Compensation, §"Measuring system error compensation (MSEC)" and its example (6FC5397-1BP40-3BA1, 03/2013, pp. 238–242) |
+//! | `siemens::cec` | `%_N_NC_CEC_INI`, `$AN_CEC[t,N]` (mm) | `+e` | same manual, §"Compensation of sag and angularity errors", table parameters (pp. 248–249); 802D sl K3 example `%_N_NC_CEC_INI` (6FC5397-1CP10-5BA0, p. 222) |
+//! | `fanuc::pitch` | parameter tape: 3620–3624 and pitch data `N1xxxx P` (incremental, units of detection unit × magnification) | `≈ −Δe` | FANUC Series 0i-PB Parameter Manual B-63980EN/01 (parameters 3620–3624, example p. 100); Series 16i/18i bidirectional pitch error compensation A-77810E (parameter list); 15i/30i parameter manuals B-63330EN/03 p. 25, B-63950EN/02 §3.3 (tape format) |
+//! | `heidenhain::com` | `*.COM` table: `NR AXISPOS <axis> [BACKLASH]` (mm) | `+e` | HEIDENHAIN MANUALplus 620 Technical Manual, "Entering compensation values" / "Assigning the compensation value tables" (pp. 716–718); TNC 407 Technical Manual (non-linear axis error compensation, .COM/.CMA) |
+//! | `linuxcnc::comp_file` | `[JOINT_n]COMP_FILE`, type 0: `nominal fwd_actual rev_actual`; type 1: `nominal fwd_trim rev_trim` | type 0: `nominal + e`; type 1: `−e` | LinuxCNC docs/src/config/ini-config.adoc (`COMP_FILE`, `COMP_FILE_TYPE`); src/emc/motion/usrmotintf.cc `usrmotLoadComp` (trim = nominal − actual) |
+//! | `neutral::csv`, `neutral::json` | our own | `+e` (µm) | — |
+//!
+//! Sign reasoning, for a +10 µm overshoot (the carriage stops 10 µm beyond nominal, e = +10 µm):
+//! Siemens: "a positive compensation value causes the machine axis to move in the negative
+//! direction" (MSEC) — so +0.010 mm; the K3 terms define the compensation value the same way for
+//! all interpolatory compensation (MSEC and CEC alike). Fanuc adds the compensation pulses to the
+//! command, so the absolute compensation is −e and the data are its increments per interval.
+//! LinuxCNC adds `trim = nominal − actual` to the command (usrmotintf.cc).
+//!
+//! Uncertain details (stated where they are used, to be confirmed on a machine):
+//! - Siemens CEC sign: taken equal to MSEC from the common K3 definition; no sentence in the
+//!   sources read says so for CEC alone. The `M17` closing the CEC file is copied from the EEC
+//!   example.
+//! - Fanuc: the pitch data block number `N(10000 + point)` and the keyword-free tape format are
+//!   those of 0i/15i/16i-era tapes; Series 30i tapes add `Q1` (parameters) and a data keyword for
+//!   pitch data that we do not emit. The value range (int8 −128..127 on 0i/16i-class controls,
+//!   int16 on later ones) and the highest point number are configurable because they differ by
+//!   series. Backlash (parameter 1851, detection units, positive for lost motion) is written
+//!   when the table carries one.
+//! - Heidenhain: the `.COM` layout (`BEGIN <name> MM`, column header, rows, `[END]`) follows
+//!   HEIDENHAIN's generic table files; the value sign (+e, the error as measured, as in the
+//!   ISO 230-1 error columns of KinematicsComp) and the meaning of `BACKLASH` (we write the
+//!   negative-direction values, read literally from "enter the compensation values measured in
+//!   the negative direction of traverse in the BACKLASH column") are not confirmed.
+//! - LinuxCNC: no header or comment lines — the loader stops at the first line that is not three
+//!   numbers. With a `COMP_FILE`, `BACKLASH` is ignored, so a backlash is folded into the reverse
+//!   column.
+
+pub mod fanuc;
+pub mod heidenhain;
+pub mod linuxcnc;
+pub mod mapping;
+pub mod neutral;
+pub mod siemens;
+pub mod table;
+
+pub use mapping::{AxisMapping, IsoName, MachineAxis, SignedAxis};
+pub use table::{
+    CompTable, Grid, GridLimits, PositioningMode, TableKind, TableSet, TableSpec, TableValues,
+    build_tables, fit_grid, interpolate,
+};
+
+use thiserror::Error;
+
+/// Why a table could not be built or exported.
+#[derive(Debug, Error, PartialEq)]
+pub enum CompError {
+    #[error("axis mapping: {0}")]
+    Mapping(String),
+    #[error("option {name}: {problem}")]
+    Option { name: &'static str, problem: String },
+    #[error("{format}: {problem}")]
+    Unsupported {
+        format: &'static str,
+        problem: String,
+    },
+    #[error("{format}: {what} = {value} at {position_mm} mm is outside {min}..={max}: {hint}")]
+    OutOfRange {
+        format: &'static str,
+        what: String,
+        value: i64,
+        min: i64,
+        max: i64,
+        position_mm: f64,
+        hint: &'static str,
+    },
+}
+
+/// A written file and exactly what it encodes: `table` is the resampled table (before rounding
+/// to the file's resolution) on the controller's grid.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Exported {
+    pub text: String,
+    pub table: CompTable,
+    /// The grid, when the table was resampled onto an equally spaced one.
+    pub grid: Option<Grid>,
+}
+
+/// `x` with `decimals` decimals, without a negative zero.
+pub(crate) fn fixed(x: f64, decimals: usize) -> String {
+    let s = format!("{x:.decimals$}");
+    if s.trim_start_matches('-')
+        .chars()
+        .all(|c| c == '0' || c == '.')
+    {
+        s.trim_start_matches('-').to_string()
+    } else {
+        s
+    }
+}
+
+/// `x` rounded to `decimals`, trailing zeros removed but one decimal kept: "0.003", "-200.0".
+pub(crate) fn trimmed(x: f64, decimals: usize) -> String {
+    let s = fixed(x, decimals);
+    if !s.contains('.') {
+        return format!("{s}.0");
+    }
+    let t = s.trim_end_matches('0');
+    if t.ends_with('.') {
+        format!("{t}0")
+    } else {
+        t.to_string()
+    }
+}
+
+/// A controller identifier: ASCII letters, digits and `_`, starting with a letter.
+pub(crate) fn check_identifier(name: &'static str, v: &str) -> Result<(), CompError> {
+    let ok = v.chars().next().is_some_and(|c| c.is_ascii_alphabetic())
+        && v.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
+    if ok {
+        Ok(())
+    } else {
+        Err(CompError::Option {
+            name,
+            problem: format!(
+                "\"{v}\" is not a controller name: letters, digits and _, starting with a letter"
+            ),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn number_formats() {
+        assert_eq!(fixed(-0.00001, 4), "0.0000");
+        assert_eq!(fixed(-0.00012, 4), "-0.0001");
+        assert_eq!(trimmed(0.003, 6), "0.003");
+        assert_eq!(trimmed(-200.0, 6), "-200.0");
+        assert_eq!(trimmed(-0.0000001, 6), "0.0");
+        assert_eq!(trimmed(6.73, 4), "6.73");
+        assert!(check_identifier("axis", "AX1").is_ok());
+        assert!(check_identifier("axis", "1X").is_err());
+        assert!(check_identifier("axis", "X 1").is_err());
+    }
+}

@@ -1,0 +1,530 @@
+//! Compensation tables (DESIGN §7) from an axis evaluation, and their resampling onto a
+//! controller's grid.
+//!
+//! Every table holds the error `e = measured − nominal` (mm) of one machine axis (the
+//! compensated axis) as a function of the position of the axis under test (the base axis),
+//! zeroed at the reference point; each exporter converts e to its controller's sign.
+//! - Positioning (base = compensated axis): unidirectional (the + direction's mean profile and
+//!   one backlash value, the mean of x̄↓ − x̄↑) or bidirectional (both profiles).
+//! - Straightness: cross-axis tables, compensated axis = the transverse machine axis the head's
+//!   x or z maps to; the bidirectional mean profile minus the chosen reference line (its slope is
+//!   the beam's alignment, not the machine's, so it is removed — which also removes any real
+//!   squareness, a separate measurement).
+//! - Abbe: the angular errors turned into translations at a functional point r (tool centre
+//!   relative to the head's measurement point, machine coordinates): Δ = ε × r (small angles),
+//!   one table per machine axis that Δ moves.
+//!
+//! Resampling onto a controller's grid is linear interpolation between the measured targets —
+//! the same interpolation the controllers apply between their own points — with the end values
+//! held outside the measured range (no extrapolated slope).
+
+use super::CompError;
+use super::mapping::{AxisMapping, MachineAxis};
+use crate::evaluate::{AxisEvaluation, Directions, ReferenceLine};
+use serde::Serialize;
+
+/// What a table compensates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum TableKind {
+    Positioning,
+    Straightness,
+    Abbe,
+}
+
+impl TableKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            TableKind::Positioning => "positioning",
+            TableKind::Straightness => "straightness",
+            TableKind::Abbe => "abbe",
+        }
+    }
+}
+
+/// The values of a table (mm, e = measured − nominal, one per position).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub enum TableValues {
+    /// One profile for both directions; `backlash_mm` (the mean of e↓ − e↑; positive for the
+    /// usual lost motion) when the positioning table is unidirectional from bidirectional data.
+    Single {
+        values: Vec<f64>,
+        backlash_mm: Option<f64>,
+    },
+    /// One profile per approach direction.
+    Bidirectional { up: Vec<f64>, down: Vec<f64> },
+}
+
+/// A compensation table in machine terms.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct CompTable {
+    pub kind: TableKind,
+    /// ISO 230-1 name ("EYY", "EXY") or, for Abbe tables, "ABBE_<axis>".
+    pub name: String,
+    /// The axis whose position indexes the table (the axis under test).
+    pub base_axis: MachineAxis,
+    /// The axis the values act on.
+    pub comp_axis: MachineAxis,
+    /// The reference point (mm, base-axis position) where the values are zero.
+    pub reference_mm: f64,
+    /// Base-axis positions, strictly increasing (mm).
+    pub positions_mm: Vec<f64>,
+    pub values: TableValues,
+}
+
+impl CompTable {
+    /// The positive-direction (or only) profile.
+    pub fn primary(&self) -> &[f64] {
+        match &self.values {
+            TableValues::Single { values, .. } => values,
+            TableValues::Bidirectional { up, .. } => up,
+        }
+    }
+
+    /// The profile that applies when travelling towards decreasing position: the down profile,
+    /// or the single profile plus the backlash.
+    pub fn reverse(&self) -> Vec<f64> {
+        match &self.values {
+            TableValues::Single {
+                values,
+                backlash_mm,
+            } => values
+                .iter()
+                .map(|v| v + backlash_mm.unwrap_or(0.0))
+                .collect(),
+            TableValues::Bidirectional { down, .. } => down.clone(),
+        }
+    }
+
+    /// Interpolate the table at `positions` (linear between points, end values held).
+    pub fn resample(&self, positions: &[f64]) -> CompTable {
+        let at = |v: &[f64]| -> Vec<f64> {
+            positions
+                .iter()
+                .map(|&x| interpolate(&self.positions_mm, v, x))
+                .collect()
+        };
+        let values = match &self.values {
+            TableValues::Single {
+                values,
+                backlash_mm,
+            } => TableValues::Single {
+                values: at(values),
+                backlash_mm: *backlash_mm,
+            },
+            TableValues::Bidirectional { up, down } => TableValues::Bidirectional {
+                up: at(up),
+                down: at(down),
+            },
+        };
+        CompTable {
+            positions_mm: positions.to_vec(),
+            values,
+            name: self.name.clone(),
+            ..*self
+        }
+    }
+
+    /// Mean spacing of the table's positions.
+    pub fn mean_step_mm(&self) -> f64 {
+        let n = self.positions_mm.len();
+        if n < 2 {
+            return 0.0;
+        }
+        (self.positions_mm[n - 1] - self.positions_mm[0]) / (n - 1) as f64
+    }
+}
+
+/// Piecewise-linear interpolation of `values` at `x`; the end values are held outside.
+/// `positions` must be strictly increasing and as long as `values` (non-empty).
+pub fn interpolate(positions: &[f64], values: &[f64], x: f64) -> f64 {
+    let n = positions.len().min(values.len());
+    if n == 0 {
+        return 0.0;
+    }
+    if x <= positions[0] {
+        return values[0];
+    }
+    if x >= positions[n - 1] {
+        return values[n - 1];
+    }
+    let k = positions[..n].partition_point(|&p| p <= x).clamp(1, n - 1);
+    let (p0, p1) = (positions[k - 1], positions[k]);
+    let t = (x - p0) / (p1 - p0);
+    values[k - 1] + t * (values[k] - values[k - 1])
+}
+
+/// How the positioning table is made.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum PositioningMode {
+    /// The + direction's profile and one backlash value (or the one direction measured).
+    Unidirectional,
+    /// One profile per direction (needs both).
+    Bidirectional,
+}
+
+/// What to build.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct TableSpec {
+    pub mapping: AxisMapping,
+    /// Reference point (mm, position of the axis under test).
+    pub reference_mm: f64,
+    pub positioning: PositioningMode,
+    pub straightness_line: ReferenceLine,
+    /// Functional point relative to the measurement point, machine coordinates (mm);
+    /// `None`: no Abbe tables.
+    pub functional_point_mm: Option<[f64; 3]>,
+}
+
+/// The tables of one axis.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct TableSet {
+    pub positioning: CompTable,
+    /// Head x, then head z.
+    pub straightness: Vec<CompTable>,
+    /// One per machine axis that the angular errors move at the functional point.
+    pub abbe: Vec<CompTable>,
+}
+
+/// Below this an Abbe component is taken as absent (mm): 1 pm, far below any controller unit.
+const ABBE_NEGLIGIBLE_MM: f64 = 1e-9;
+
+/// Build the tables of an evaluated axis.
+pub fn build_tables(eval: &AxisEvaluation, spec: &TableSpec) -> Result<TableSet, CompError> {
+    if !spec.reference_mm.is_finite() {
+        return Err(CompError::Option {
+            name: "reference_mm",
+            problem: format!("{} is not a finite position", spec.reference_mm),
+        });
+    }
+    if let Some(r) = spec.functional_point_mm
+        && r.iter().any(|x| !x.is_finite())
+    {
+        return Err(CompError::Option {
+            name: "functional_point_mm",
+            problem: format!("{r:?} is not a finite vector"),
+        });
+    }
+    let m = &spec.mapping;
+    let names = m.iso_names();
+    let base = m.axis();
+    let pos = &eval.positions_mm;
+    let zero = |v: Vec<f64>, basis: &[f64]| -> Vec<f64> {
+        let off = interpolate(pos, basis, spec.reference_mm);
+        v.into_iter().map(|x| x - off).collect()
+    };
+    let table = |kind, name: String, comp_axis, values| CompTable {
+        kind,
+        name,
+        base_axis: base,
+        comp_axis,
+        reference_mm: spec.reference_mm,
+        positions_mm: pos.clone(),
+        values,
+    };
+
+    // Positioning: machine sign of dy.
+    let dy = &eval.profiles[1];
+    let s = f64::from(names[1].sign);
+    let machine = |v: &[f64]| -> Vec<f64> { v.iter().map(|x| s * x).collect() };
+    let values = match (spec.positioning, eval.directions) {
+        (PositioningMode::Bidirectional, Directions::Both) => {
+            let (up, down) = (
+                machine(dy.up.as_deref().unwrap_or(&dy.mean)),
+                machine(dy.down.as_deref().unwrap_or(&dy.mean)),
+            );
+            TableValues::Bidirectional {
+                up: zero(up.clone(), &up),
+                down: zero(down, &up),
+            }
+        }
+        (PositioningMode::Bidirectional, d) => {
+            return Err(CompError::Option {
+                name: "positioning",
+                problem: format!(
+                    "a bidirectional table needs both directions; the data has {d:?}: use Unidirectional"
+                ),
+            });
+        }
+        (PositioningMode::Unidirectional, Directions::Both) => {
+            let up = machine(dy.up.as_deref().unwrap_or(&dy.mean));
+            let down = machine(dy.down.as_deref().unwrap_or(&dy.mean));
+            let backlash = down.iter().zip(&up).map(|(d, u)| d - u).sum::<f64>() / up.len() as f64;
+            TableValues::Single {
+                values: zero(up.clone(), &up),
+                backlash_mm: Some(backlash),
+            }
+        }
+        (PositioningMode::Unidirectional, _) => {
+            let one = machine(&dy.mean);
+            TableValues::Single {
+                values: zero(one.clone(), &one),
+                backlash_mm: None,
+            }
+        }
+    };
+    let positioning = table(TableKind::Positioning, names[1].name.clone(), base, values);
+
+    // Straightness: head x (dx) and head z (dz), residuals from the reference line.
+    let mut straightness = Vec::new();
+    for (k, st) in [(0usize, &eval.straightness_x), (2, &eval.straightness_z)] {
+        let n = &names[k];
+        let s = f64::from(n.sign);
+        let v: Vec<f64> = st
+            .mean
+            .line(spec.straightness_line)
+            .residuals
+            .iter()
+            .map(|r| s * r)
+            .collect();
+        straightness.push(table(
+            TableKind::Straightness,
+            n.name.clone(),
+            n.along,
+            TableValues::Single {
+                values: zero(v.clone(), &v),
+                backlash_mm: None,
+            },
+        ));
+    }
+
+    // Abbe: Δ = ε × r at every target.
+    let mut abbe = Vec::new();
+    if let Some(r) = spec.functional_point_mm {
+        let deltas: Vec<[f64; 3]> = (0..pos.len())
+            .map(|i| {
+                let e = m.to_machine([
+                    eval.profiles[3].mean[i],
+                    eval.profiles[4].mean[i],
+                    eval.profiles[5].mean[i],
+                ]);
+                [
+                    e[1] * r[2] - e[2] * r[1],
+                    e[2] * r[0] - e[0] * r[2],
+                    e[0] * r[1] - e[1] * r[0],
+                ]
+            })
+            .collect();
+        for a in MachineAxis::ALL {
+            let v: Vec<f64> = deltas.iter().map(|d| d[a.index()]).collect();
+            let v = zero(v.clone(), &v);
+            if v.iter().any(|x| x.abs() > ABBE_NEGLIGIBLE_MM) {
+                abbe.push(table(
+                    TableKind::Abbe,
+                    format!("ABBE_{a}"),
+                    a,
+                    TableValues::Single {
+                        values: v,
+                        backlash_mm: None,
+                    },
+                ));
+            }
+        }
+    }
+    Ok(TableSet {
+        positioning,
+        straightness,
+        abbe,
+    })
+}
+
+/// An equally spaced grid `start + k·step`, k = 0..count.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Grid {
+    pub start_mm: f64,
+    pub step_mm: f64,
+    pub count: usize,
+    /// Index of the reference point in the grid (it lies on it by construction).
+    pub reference_index: usize,
+}
+
+impl Grid {
+    pub fn positions(&self) -> Vec<f64> {
+        (0..self.count)
+            .map(|k| self.start_mm + k as f64 * self.step_mm)
+            .collect()
+    }
+    pub fn end_mm(&self) -> f64 {
+        self.start_mm + (self.count.saturating_sub(1)) as f64 * self.step_mm
+    }
+}
+
+/// A controller's grid limits.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct GridLimits {
+    /// Most points the controller holds for one table.
+    pub max_points: usize,
+    /// Smallest spacing the controller accepts (mm).
+    pub min_step_mm: f64,
+    /// The spacing must be a multiple of this (mm); 0 for any.
+    pub step_quantum_mm: f64,
+    /// Wanted spacing (mm); default: the mean spacing of the measured targets. Made coarser when
+    /// the points would not fit.
+    pub step_mm: Option<f64>,
+}
+
+/// Fit a grid through the reference point that covers the measured range and the reference,
+/// within `limits`: the spacing starts at the wanted one (at least the minimum, rounded up to
+/// the quantum) and grows until the points fit. A reference point outside the measured range
+/// widens the grid (the end values are held out there), so far outside it coarsens the table.
+pub fn fit_grid(
+    table: &CompTable,
+    limits: &GridLimits,
+    format: &'static str,
+) -> Result<Grid, CompError> {
+    let bad = |name: &'static str, problem: String| CompError::Option { name, problem };
+    if limits.max_points < 2 {
+        return Err(bad(
+            "max_points",
+            format!("{}: a table needs at least 2 points", limits.max_points),
+        ));
+    }
+    if !(limits.min_step_mm >= 0.0 && limits.min_step_mm.is_finite()) {
+        return Err(bad(
+            "min_step_mm",
+            format!("{} mm is not a spacing", limits.min_step_mm),
+        ));
+    }
+    if !(limits.step_quantum_mm >= 0.0 && limits.step_quantum_mm.is_finite()) {
+        return Err(bad(
+            "step_quantum_mm",
+            format!("{} mm is not a spacing", limits.step_quantum_mm),
+        ));
+    }
+    if let Some(s) = limits.step_mm
+        && !(s > 0.0 && s.is_finite())
+    {
+        return Err(bad("step_mm", format!("{s} mm: give a positive spacing")));
+    }
+    let p = &table.positions_mm;
+    let (Some(&first), Some(&last)) = (p.first(), p.last()) else {
+        return Err(CompError::Unsupported {
+            format,
+            problem: "the table is empty".into(),
+        });
+    };
+    let r = table.reference_mm;
+    let (lo, hi) = (first.min(r), last.max(r));
+    let quantise = |s: f64| {
+        let q = limits.step_quantum_mm;
+        if q > 0.0 {
+            (s / q - 1e-9).ceil().max(1.0) * q
+        } else {
+            s
+        }
+    };
+    let mut step = quantise(
+        limits
+            .step_mm
+            .unwrap_or_else(|| table.mean_step_mm())
+            .max(limits.min_step_mm)
+            .max(f64::MIN_POSITIVE),
+    );
+    if !step.is_finite() || step <= 0.0 {
+        step = quantise((hi - lo).max(1e-3));
+    }
+    for _ in 0..200 {
+        let k_lo = ((lo - r) / step + 1e-9).floor();
+        let k_hi = ((hi - r) / step - 1e-9).ceil();
+        let count = (k_hi - k_lo) as usize + 1;
+        if count <= limits.max_points {
+            return Ok(Grid {
+                start_mm: r + k_lo * step,
+                step_mm: step,
+                count,
+                reference_index: (-k_lo) as usize,
+            });
+        }
+        let grown = step * (count as f64 / limits.max_points as f64);
+        step = quantise(grown.max(step * (1.0 + 1e-6)));
+    }
+    Err(CompError::Unsupported {
+        format,
+        problem: format!(
+            "no grid of at most {} points covers {lo}..{hi} mm",
+            limits.max_points
+        ),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn table(pos: Vec<f64>, v: Vec<f64>, r: f64) -> CompTable {
+        CompTable {
+            kind: TableKind::Positioning,
+            name: "EYY".into(),
+            base_axis: MachineAxis::Y,
+            comp_axis: MachineAxis::Y,
+            reference_mm: r,
+            positions_mm: pos,
+            values: TableValues::Single {
+                values: v,
+                backlash_mm: None,
+            },
+        }
+    }
+
+    #[test]
+    fn interpolation_is_linear_with_held_ends() {
+        let p = [0.0, 10.0, 30.0];
+        let v = [0.0, 1.0, -1.0];
+        assert_eq!(interpolate(&p, &v, -5.0), 0.0);
+        assert_eq!(interpolate(&p, &v, 5.0), 0.5);
+        assert_eq!(interpolate(&p, &v, 10.0), 1.0);
+        assert_eq!(interpolate(&p, &v, 20.0), 0.0);
+        assert_eq!(interpolate(&p, &v, 99.0), -1.0);
+    }
+
+    #[test]
+    fn grid_through_reference_within_limits() {
+        let pos: Vec<f64> = (0..41).map(|k| 2.0 + 24.5 * k as f64).collect();
+        let t = table(pos, vec![0.0; 41], 0.0);
+        let lim = GridLimits {
+            max_points: 1000,
+            min_step_mm: 0.0,
+            step_quantum_mm: 0.001,
+            step_mm: Some(10.0),
+        };
+        let g = fit_grid(&t, &lim, "test").unwrap();
+        assert_eq!((g.start_mm, g.step_mm, g.reference_index), (0.0, 10.0, 0));
+        // Covers 0 .. 982 mm: 0, 10, …, 990.
+        assert_eq!(g.count, 100);
+        let g = fit_grid(
+            &t,
+            &GridLimits {
+                max_points: 20,
+                ..lim
+            },
+            "test",
+        )
+        .unwrap();
+        assert!(g.count <= 20 && g.end_mm() >= 982.0, "{g:?}");
+        assert!(((g.step_mm / 0.001).round() * 0.001 - g.step_mm).abs() < 1e-9);
+        // Reference inside: it is a grid point.
+        let t = table(vec![-100.0, 0.0, 250.0], vec![0.0; 3], 40.0);
+        let g = fit_grid(
+            &t,
+            &GridLimits {
+                step_mm: Some(30.0),
+                ..lim
+            },
+            "test",
+        )
+        .unwrap();
+        let p = g.positions();
+        assert!((p[g.reference_index] - 40.0).abs() < 1e-9);
+        assert!(p[0] <= -100.0 && *p.last().unwrap() >= 250.0);
+        assert!(
+            fit_grid(
+                &t,
+                &GridLimits {
+                    max_points: 1,
+                    ..lim
+                },
+                "test"
+            )
+            .is_err()
+        );
+    }
+}
