@@ -2,9 +2,11 @@
 //! target, and the run state machine. A run produces `Capture`s, which `evaluate` turns into ISO
 //! figures and `comp` into compensation tables.
 
+pub mod machine;
 pub mod plan;
 pub mod program;
 
+pub use machine::{CaptureSettings, FrameSample, RunAction, RunMachine};
 pub use plan::{Plan, PlanError, PlanSpec, Step, TargetKey};
 pub use program::{CaptureMode, Dialect, Handshake};
 

@@ -1,0 +1,730 @@
+//! The run state machine: from live frame estimates to one capture per target, run and
+//! direction, exactly once (sans-I/O; time is an argument).
+//!
+//! Capture by stability: the carriage is at rest (its measured position stays within a
+//! tolerance for the settle time) near a target; the direction is the side it came from; the
+//! run is the lowest run whose capture of that target and direction is still missing. Then
+//! frames are averaged. Rests elsewhere (reversal points) are ignored, and after a capture the
+//! carriage must leave before the next one can start. Identifying targets by where the carriage
+//! rests rather than by counting makes a resumed run (service restarted mid-run) pick up
+//! wherever the CNC is; targets passed while nobody watched stay missing and `missing()` lists
+//! them for a make-up program.
+//!
+//! Capture by handshake: the PLC reports "at target <code>"; the machine averages the next
+//! frames and answers with the code (`RunAction::Acknowledge`).
+//!
+//! The nominal position the frames are decoupled with is set by the machine (`SetNominal`):
+//! the target the carriage rests at. A frame's measured position (`position_mm`, nominal plus
+//! dy) is valid whatever nominal it was decoupled with, so rest detection does not depend on it.
+
+use super::plan::{Plan, TargetKey};
+use super::{Capture, Direction};
+use crate::units::Errors6;
+use std::collections::{BTreeSet, VecDeque};
+use std::time::{Duration, Instant};
+
+/// How captures are taken.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CaptureSettings {
+    /// The carriage is at rest when its position stays within ± this (mm) for `settle`.
+    pub rest_tolerance_mm: f64,
+    pub settle: Duration,
+    /// A rest counts as a target when within this of it (mm); must be below the overrun.
+    pub target_tolerance_mm: f64,
+    /// Frames averaged per capture.
+    pub frames: usize,
+    /// With no capture for this long the run fails.
+    pub timeout: Duration,
+}
+
+impl Default for CaptureSettings {
+    fn default() -> Self {
+        CaptureSettings {
+            rest_tolerance_mm: 0.005,
+            settle: Duration::from_millis(250),
+            target_tolerance_mm: 0.5,
+            frames: 150,
+            timeout: Duration::from_secs(120),
+        }
+    }
+}
+
+/// One decoupled frame, as the live pipeline gives it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameSample {
+    pub at: Instant,
+    pub unix_us: i64,
+    /// Measured carriage position: the nominal used plus dy (mm).
+    pub position_mm: f64,
+    /// The nominal the frame was decoupled with (mm), if any.
+    pub nominal: Option<f64>,
+    /// The six errors (internal units).
+    pub errors: Errors6,
+    /// Per-frame variance of each error from the PSD noise (internal units squared).
+    pub var: Errors6,
+    /// Variance of each error from the stitching of PSD2's position (same for every frame
+    /// until the next handover).
+    pub stitch_var: Errors6,
+    pub material_c: Option<f64>,
+    pub air_c: Option<f64>,
+}
+
+/// What the service must do.
+#[derive(Clone, Debug, PartialEq)]
+pub enum RunAction {
+    /// Decouple the following frames with this nominal position.
+    SetNominal(Option<f64>),
+    /// Store this capture.
+    Captured(Capture),
+    /// Handshake: tell the PLC this target code is captured.
+    Acknowledge { code: u32 },
+    /// Every capture of the plan is taken.
+    Finished,
+    /// The run cannot go on.
+    Failed(String),
+}
+
+#[derive(Clone, Debug, PartialEq)]
+enum Phase {
+    /// Looking for a rest near a target.
+    Watch,
+    /// Averaging frames for `key` at `position`.
+    Averaging {
+        key: TargetKey,
+        code: Option<u32>,
+        since: Instant,
+    },
+    /// After a capture at `position`: wait until the carriage leaves it.
+    Leaving {
+        position: f64,
+    },
+    Done,
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+struct Acc {
+    n: usize,
+    sum: [f64; 6],
+    sum_sq: [f64; 6],
+    var: [f64; 6],
+    stitch_var: [f64; 6],
+    material: (f64, usize),
+    air: (f64, usize),
+    first_us: i64,
+}
+
+/// The run machine.
+#[derive(Debug)]
+pub struct RunMachine {
+    plan: Plan,
+    settings: CaptureSettings,
+    handshake: bool,
+    done: BTreeSet<TargetKey>,
+    total: usize,
+    phase: Phase,
+    rest: VecDeque<(Instant, f64)>,
+    /// Positions over the last seconds, to tell the approach direction.
+    history: VecDeque<(Instant, f64)>,
+    acc: Acc,
+    nominal: Option<f64>,
+    last_progress: Option<Instant>,
+    actions: VecDeque<RunAction>,
+}
+
+impl RunMachine {
+    /// A machine for `plan`; `completed` are captures already stored (a resumed run).
+    pub fn new(
+        plan: Plan,
+        settings: CaptureSettings,
+        handshake: bool,
+        completed: BTreeSet<TargetKey>,
+    ) -> Self {
+        let total = plan.capture_count();
+        let mut m = RunMachine {
+            plan,
+            settings,
+            handshake,
+            done: completed,
+            total,
+            phase: Phase::Watch,
+            rest: VecDeque::new(),
+            history: VecDeque::new(),
+            acc: Acc::default(),
+            nominal: None,
+            last_progress: None,
+            actions: VecDeque::new(),
+        };
+        if m.done.len() >= m.total {
+            m.phase = Phase::Done;
+            m.actions.push_back(RunAction::Finished);
+        }
+        m
+    }
+
+    /// Captures taken and expected.
+    pub fn progress(&self) -> (usize, usize) {
+        (self.done.len(), self.total)
+    }
+
+    /// The keys still missing, in cycle order.
+    pub fn missing(&self) -> Vec<TargetKey> {
+        self.plan
+            .steps()
+            .iter()
+            .filter_map(|s| s.target)
+            .filter(|k| !self.done.contains(k))
+            .collect()
+    }
+
+    /// Whether every capture is taken.
+    pub fn is_finished(&self) -> bool {
+        self.phase == Phase::Done
+    }
+
+    /// The next action.
+    pub fn poll_action(&mut self) -> Option<RunAction> {
+        self.actions.pop_front()
+    }
+
+    fn set_nominal(&mut self, n: Option<f64>) {
+        if self.nominal != n {
+            self.nominal = n;
+            self.actions.push_back(RunAction::SetNominal(n));
+        }
+    }
+
+    /// The target nearest to `p` within the tolerance.
+    fn target_at(&self, p: f64) -> Option<(u32, f64)> {
+        self.plan
+            .targets
+            .iter()
+            .enumerate()
+            .map(|(i, &t)| (i as u32, t))
+            .filter(|(_, t)| (p - t).abs() <= self.settings.target_tolerance_mm)
+            .min_by(|a, b| (p - a.1).abs().total_cmp(&(p - b.1).abs()))
+    }
+
+    /// The side the carriage came from to rest at `p`: the last remembered position farther
+    /// than the target tolerance.
+    fn approach(&self, p: f64) -> Option<Direction> {
+        self.history
+            .iter()
+            .rev()
+            .find(|(_, x)| (x - p).abs() > self.settings.target_tolerance_mm)
+            .map(|(_, x)| {
+                if *x < p {
+                    Direction::Up
+                } else {
+                    Direction::Down
+                }
+            })
+    }
+
+    fn first_missing(&self, target_index: u32, dir: Direction) -> Option<TargetKey> {
+        (1..=self.plan.spec.runs)
+            .map(|run| TargetKey {
+                run,
+                target_index,
+                direction: dir,
+            })
+            .find(|k| !self.done.contains(k))
+    }
+
+    fn at_rest(&self, now: Instant) -> Option<f64> {
+        let (first, _) = self.rest.front()?;
+        if now.saturating_duration_since(*first) < self.settings.settle.mul_f64(0.9) {
+            return None;
+        }
+        let (lo, hi) = self
+            .rest
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), (_, x)| {
+                (a.min(*x), b.max(*x))
+            });
+        (hi - lo <= 2.0 * self.settings.rest_tolerance_mm).then_some(0.5 * (lo + hi))
+    }
+
+    /// A handshake report: the CNC is at the target with this code.
+    pub fn handle_at_target(&mut self, code: u32, now: Instant) {
+        if self.phase == Phase::Done {
+            return;
+        }
+        let (run, index, dir) = super::program::decode_target_code(code);
+        let key = TargetKey {
+            run,
+            target_index: index,
+            direction: dir,
+        };
+        if (index as usize) >= self.plan.targets.len() || run == 0 || run > self.plan.spec.runs {
+            self.actions.push_back(RunAction::Failed(format!(
+                "the PLC reported target code {code}, which is not in the plan"
+            )));
+            return;
+        }
+        if self.done.contains(&key) {
+            // Already stored (a resumed run): acknowledge at once so the CNC goes on.
+            self.actions.push_back(RunAction::Acknowledge { code });
+            return;
+        }
+        self.set_nominal(Some(self.plan.targets[index as usize]));
+        self.acc = Acc::default();
+        self.phase = Phase::Averaging {
+            key,
+            code: Some(code),
+            since: now,
+        };
+    }
+
+    /// A frame estimate from the live pipeline.
+    pub fn handle_sample(&mut self, s: &FrameSample, now: Instant) {
+        if self.phase == Phase::Done {
+            return;
+        }
+        self.last_progress.get_or_insert(now);
+        self.rest.push_back((now, s.position_mm));
+        while self
+            .rest
+            .front()
+            .is_some_and(|(t, _)| now.saturating_duration_since(*t) > self.settings.settle)
+        {
+            self.rest.pop_front();
+        }
+        let keep = Duration::from_secs(30);
+        if self
+            .history
+            .back()
+            .is_none_or(|(t, _)| now.saturating_duration_since(*t) >= Duration::from_millis(20))
+        {
+            self.history.push_back((now, s.position_mm));
+        }
+        while self
+            .history
+            .front()
+            .is_some_and(|(t, _)| now.saturating_duration_since(*t) > keep)
+        {
+            self.history.pop_front();
+        }
+        match self.phase.clone() {
+            Phase::Done => {}
+            Phase::Leaving { position } => {
+                if (s.position_mm - position).abs() > self.settings.target_tolerance_mm {
+                    self.phase = Phase::Watch;
+                }
+            }
+            Phase::Watch => {
+                if self.handshake {
+                    return;
+                }
+                let Some(p) = self.at_rest(now) else {
+                    return;
+                };
+                let Some((index, target)) = self.target_at(p) else {
+                    return;
+                };
+                let Some(dir) = self.approach(p) else {
+                    return;
+                };
+                let Some(key) = self.first_missing(index, dir) else {
+                    // Every run of this target and direction is in: nothing to do here.
+                    self.phase = Phase::Leaving { position: p };
+                    return;
+                };
+                // Frames must be decoupled at the target: restart the average from here.
+                self.set_nominal(Some(target));
+                self.acc = Acc::default();
+                self.phase = Phase::Averaging {
+                    key,
+                    code: None,
+                    since: now,
+                };
+            }
+            Phase::Averaging { key, code, .. } => {
+                let target = self.plan.targets[key.target_index as usize];
+                if s.nominal != Some(target) {
+                    return; // decoupled with another nominal: wait for the switch
+                }
+                if code.is_none()
+                    && (s.position_mm - target).abs() > self.settings.target_tolerance_mm
+                {
+                    // The carriage moved off before the average was complete: start over.
+                    self.phase = Phase::Watch;
+                    return;
+                }
+                if code.is_none() && self.at_rest(now).is_none() {
+                    self.phase = Phase::Watch;
+                    return;
+                }
+                self.accumulate(s);
+                if self.acc.n >= self.settings.frames {
+                    self.finish_capture(key, code, target, s.position_mm, now);
+                }
+            }
+        }
+    }
+
+    fn accumulate(&mut self, s: &FrameSample) {
+        let a = &mut self.acc;
+        if a.n == 0 {
+            a.first_us = s.unix_us;
+        }
+        a.n += 1;
+        let (e, v, sv) = (
+            s.errors.to_array(),
+            s.var.to_array(),
+            s.stitch_var.to_array(),
+        );
+        for k in 0..6 {
+            a.sum[k] += e[k];
+            a.sum_sq[k] += e[k] * e[k];
+            a.var[k] += v[k];
+            a.stitch_var[k] = sv[k];
+        }
+        if let Some(t) = s.material_c {
+            a.material.0 += t;
+            a.material.1 += 1;
+        }
+        if let Some(t) = s.air_c {
+            a.air.0 += t;
+            a.air.1 += 1;
+        }
+    }
+
+    fn finish_capture(
+        &mut self,
+        key: TargetKey,
+        code: Option<u32>,
+        target: f64,
+        position: f64,
+        now: Instant,
+    ) {
+        let a = self.acc;
+        let n = a.n as f64;
+        let mean: [f64; 6] = std::array::from_fn(|k| a.sum[k] / n);
+        let frame_sd: [f64; 6] = std::array::from_fn(|k| {
+            if a.n < 2 {
+                0.0
+            } else {
+                ((a.sum_sq[k] - n * mean[k] * mean[k]) / (n - 1.0))
+                    .max(0.0)
+                    .sqrt()
+            }
+        });
+        // Standard uncertainty of the mean: the noise (model variance or scatter, whichever is
+        // larger) over n frames, plus the stitching, which averaging does not reduce.
+        let u: [f64; 6] = std::array::from_fn(|k| {
+            let noise = (a.var[k] / n).max(frame_sd[k] * frame_sd[k]);
+            (noise / n + a.stitch_var[k]).sqrt()
+        });
+        let avg = |(s, c): (f64, usize)| (c > 0).then(|| s / c as f64);
+        let capture = Capture {
+            run: key.run,
+            target_index: key.target_index,
+            target_mm: target,
+            direction: key.direction,
+            errors: Errors6::from_array(mean),
+            frame_sd: Errors6::from_array(frame_sd),
+            u: Errors6::from_array(u),
+            frames: a.n as u32,
+            material_c: avg(a.material),
+            air_c: avg(a.air),
+            unix_us: a.first_us,
+        };
+        self.done.insert(key);
+        self.actions.push_back(RunAction::Captured(capture));
+        if let Some(code) = code {
+            self.actions.push_back(RunAction::Acknowledge { code });
+        }
+        self.last_progress = Some(now);
+        self.acc = Acc::default();
+        self.rest.clear();
+        if self.done.len() >= self.total {
+            self.phase = Phase::Done;
+            self.set_nominal(None);
+            self.actions.push_back(RunAction::Finished);
+        } else {
+            self.phase = if code.is_some() {
+                Phase::Watch
+            } else {
+                Phase::Leaving { position }
+            };
+        }
+    }
+
+    /// Check the progress timeout.
+    pub fn handle_timeout(&mut self, now: Instant) {
+        if self.phase == Phase::Done {
+            return;
+        }
+        if let Some(t) = self.last_progress
+            && now.saturating_duration_since(t) > self.settings.timeout
+        {
+            let missing = self.missing();
+            self.actions.push_back(RunAction::Failed(format!(
+                "no capture for {:?}; {} captures missing, next {:?}",
+                self.settings.timeout,
+                missing.len(),
+                missing.first()
+            )));
+            self.last_progress = Some(now);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::run::plan::PlanSpec;
+    use crate::sim::Rng;
+
+    fn plan() -> Plan {
+        Plan::new(PlanSpec {
+            axis: "X".into(),
+            start_mm: 0.0,
+            end_mm: 100.0,
+            targets: 5,
+            runs: 2,
+            overrun_mm: 3.0,
+            dwell_s: 1.0,
+            feed_mm_min: 3000.0,
+            lead_mm: 0.0,
+            reference_mm: None,
+        })
+        .unwrap()
+    }
+
+    /// Feed the machine a carriage running the plan's cycle at 50 mm/s with 2 ms frames.
+    /// The measured position is the truth plus noise; errors are a function of position
+    /// (dy = 1 µm per 10 mm) so captures can be checked.
+    struct Feed {
+        t0: Instant,
+        now: Instant,
+        nominal: Option<f64>,
+        rng: Rng,
+    }
+
+    impl Feed {
+        fn sample(&mut self, pos: f64) -> FrameSample {
+            let dy = 1e-4 * pos + self.rng.gauss(1e-3);
+            FrameSample {
+                at: self.now,
+                unix_us: (self.now - self.t0).as_micros() as i64,
+                position_mm: pos + self.rng.gauss(1e-3),
+                nominal: self.nominal,
+                errors: Errors6 {
+                    dy,
+                    ..Errors6::ZERO
+                },
+                var: Errors6::from_array([1e-6; 6]),
+                stitch_var: Errors6::from_array([1e-8; 6]),
+                material_c: Some(20.5),
+                air_c: None,
+            }
+        }
+
+        fn run(
+            &mut self,
+            m: &mut RunMachine,
+            moves: &[(f64, f64)],
+            skip: Option<(usize, usize)>,
+        ) -> Vec<Capture> {
+            let mut out = Vec::new();
+            let mut pos = moves[0].0;
+            for (i, &(to, dwell)) in moves.iter().enumerate() {
+                let skipped = skip.is_some_and(|(a, b)| i >= a && i < b);
+                // Move at 50 mm/s, then dwell.
+                while (to - pos).abs() > 1e-9 {
+                    pos += (to - pos).clamp(-0.1, 0.1);
+                    self.step(m, pos, skipped, &mut out);
+                }
+                for _ in 0..(dwell / 0.002) as usize {
+                    self.step(m, pos, skipped, &mut out);
+                }
+            }
+            out
+        }
+
+        fn step(&mut self, m: &mut RunMachine, pos: f64, skipped: bool, out: &mut Vec<Capture>) {
+            self.now += Duration::from_millis(2);
+            if !skipped {
+                let s = self.sample(pos);
+                m.handle_sample(&s, self.now);
+            }
+            while let Some(a) = m.poll_action() {
+                match a {
+                    RunAction::SetNominal(n) => self.nominal = n,
+                    RunAction::Captured(c) => out.push(c),
+                    _ => {}
+                }
+            }
+        }
+    }
+
+    fn cycle(p: &Plan) -> Vec<(f64, f64)> {
+        p.steps()
+            .iter()
+            .map(|s| {
+                (
+                    s.position_mm,
+                    if s.target.is_some() {
+                        p.spec.dwell_s
+                    } else {
+                        0.2
+                    },
+                )
+            })
+            .collect()
+    }
+
+    fn feed() -> Feed {
+        let t0 = Instant::now();
+        Feed {
+            t0,
+            now: t0,
+            nominal: None,
+            rng: Rng::new(8),
+        }
+    }
+
+    #[test]
+    fn stability_capture_takes_every_target_once_in_order() {
+        let p = plan();
+        let mut m = RunMachine::new(
+            p.clone(),
+            CaptureSettings::default(),
+            false,
+            BTreeSet::new(),
+        );
+        let caps = feed().run(&mut m, &cycle(&p), None);
+        assert!(m.is_finished());
+        assert_eq!(caps.len(), p.capture_count());
+        let keys: Vec<TargetKey> = caps
+            .iter()
+            .map(|c| TargetKey {
+                run: c.run,
+                target_index: c.target_index,
+                direction: c.direction,
+            })
+            .collect();
+        let expected: Vec<TargetKey> = p.steps().iter().filter_map(|s| s.target).collect();
+        assert_eq!(keys, expected);
+        for c in &caps {
+            assert_eq!(c.frames, 150);
+            // dy = 1e-4·position, measured with 1 µm noise over 150 frames.
+            assert!((c.errors.dy - 1e-4 * c.target_mm).abs() < 5.0 * 1e-3 / 150f64.sqrt());
+            assert!((c.u.dy - (1e-6 / 150.0 + 1e-8f64).sqrt()).abs() < 2e-5);
+            assert_eq!(c.material_c, Some(20.5));
+        }
+    }
+
+    #[test]
+    fn resumed_run_takes_what_is_missing_and_lists_what_was_passed() {
+        let p = plan();
+        let steps = cycle(&p);
+        // First service: sees the first 8 stops only.
+        let mut m = RunMachine::new(
+            p.clone(),
+            CaptureSettings::default(),
+            false,
+            BTreeSet::new(),
+        );
+        let mut f = feed();
+        let first = f.run(&mut m, &steps[..8], None);
+        let done: BTreeSet<TargetKey> = first
+            .iter()
+            .map(|c| TargetKey {
+                run: c.run,
+                target_index: c.target_index,
+                direction: c.direction,
+            })
+            .collect();
+        // The service is down while the CNC does stops 8..10; a new machine resumes after.
+        let mut m2 = RunMachine::new(p.clone(), CaptureSettings::default(), false, done.clone());
+        let second = f.run(&mut m2, &steps[8..], Some((0, 2)));
+        let mut all: Vec<TargetKey> = done.iter().copied().collect();
+        all.extend(second.iter().map(|c| TargetKey {
+            run: c.run,
+            target_index: c.target_index,
+            direction: c.direction,
+        }));
+        let unique: BTreeSet<TargetKey> = all.iter().copied().collect();
+        assert_eq!(unique.len(), all.len(), "no capture twice");
+        let missing = m2.missing();
+        assert_eq!(missing.len() + all.len(), p.capture_count());
+        assert!(!missing.is_empty() && missing.len() <= 2, "{missing:?}");
+        // A make-up pass over the missing targets completes the run.
+        let mut makeup = Vec::new();
+        for k in &missing {
+            let t = p.targets[k.target_index as usize];
+            let from = match k.direction {
+                Direction::Up => t - 2.0,
+                Direction::Down => t + 2.0,
+            };
+            makeup.push((from, 0.2));
+            makeup.push((t, 1.0));
+        }
+        let third = f.run(&mut m2, &makeup, None);
+        assert_eq!(third.len(), missing.len());
+        assert!(m2.is_finished());
+    }
+
+    #[test]
+    fn handshake_capture_and_acknowledge() {
+        let p = plan();
+        let mut m = RunMachine::new(
+            p.clone(),
+            CaptureSettings {
+                frames: 10,
+                ..CaptureSettings::default()
+            },
+            true,
+            BTreeSet::new(),
+        );
+        let mut f = feed();
+        let code = crate::run::program::target_code(1, 2, Direction::Up);
+        m.handle_at_target(code, f.now);
+        assert_eq!(
+            m.poll_action(),
+            Some(RunAction::SetNominal(Some(p.targets[2])))
+        );
+        f.nominal = Some(p.targets[2]);
+        let mut acts = Vec::new();
+        for _ in 0..10 {
+            f.now += Duration::from_millis(2);
+            let s = f.sample(p.targets[2]);
+            m.handle_sample(&s, f.now);
+            while let Some(a) = m.poll_action() {
+                acts.push(a);
+            }
+        }
+        assert!(matches!(acts[0], RunAction::Captured(c) if c.target_index == 2 && c.run == 1));
+        assert_eq!(acts[1], RunAction::Acknowledge { code });
+        // The same code again (a resumed PLC) is acknowledged without a second capture.
+        m.handle_at_target(code, f.now);
+        assert_eq!(m.poll_action(), Some(RunAction::Acknowledge { code }));
+        m.handle_at_target(99_999, f.now);
+        assert!(matches!(m.poll_action(), Some(RunAction::Failed(_))));
+    }
+
+    #[test]
+    fn timeout_fails_the_run() {
+        let p = plan();
+        let mut m = RunMachine::new(
+            p,
+            CaptureSettings {
+                timeout: Duration::from_secs(5),
+                ..CaptureSettings::default()
+            },
+            false,
+            BTreeSet::new(),
+        );
+        let mut f = feed();
+        let s = f.sample(50.0);
+        m.handle_sample(&s, f.now);
+        m.handle_timeout(f.now + Duration::from_secs(6));
+        let mut failed = false;
+        while let Some(a) = m.poll_action() {
+            failed |= matches!(a, RunAction::Failed(_));
+        }
+        assert!(failed);
+    }
+}
