@@ -373,11 +373,11 @@ impl RunMachine {
             s.var.to_array(),
             s.stitch_var.to_array(),
         );
+        a.stitch_var = sv;
         for k in 0..6 {
             a.sum[k] += e[k];
             a.sum_sq[k] += e[k] * e[k];
             a.var[k] += v[k];
-            a.stitch_var[k] = sv[k];
         }
         if let Some(t) = s.material_c {
             a.material.0 += t;
