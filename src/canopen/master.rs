@@ -1253,11 +1253,15 @@ impl Master {
             return Progress::Wait;
         };
         let st = sw.state();
-        if cond == Cond::NotFault {
-            return match st {
-                Some(s) if !s.is_fault() => Progress::Next,
-                _ => Progress::Wait,
-            };
+        match cond {
+            Cond::Applied => return Progress::Next,
+            Cond::NotFault => {
+                return match st {
+                    Some(s) if !s.is_fault() => Progress::Next,
+                    _ => Progress::Wait,
+                };
+            }
+            _ => {}
         }
         if st.is_some_and(PowerState::is_fault) {
             return Progress::Fail(self.fault());
@@ -1268,7 +1272,7 @@ impl Master {
             state: st.map_or("an unknown state".into(), |s| s.to_string()),
         };
         match cond {
-            Cond::Applied => Progress::Next,
+            Cond::Applied | Cond::NotFault => Progress::Next,
             Cond::AckSet | Cond::AckClear | Cond::TargetReached if !enabled => {
                 Progress::Fail(not_enabled())
             }
@@ -1300,7 +1304,6 @@ impl Master {
                     st,
                     Some(PowerState::QuickStopActive | PowerState::OperationEnabled)
                 )),
-            Cond::NotFault => Progress::Next,
         }
     }
 }
@@ -1315,4 +1318,642 @@ fn uploaded(o: SdoOutcome) -> Vec<u8> {
 
 fn yes(b: bool) -> Progress {
     if b { Progress::Next } else { Progress::Wait }
+}
+
+#[cfg(test)]
+mod tests {
+    //! The master against the twin drive's machine, both on one virtual clock: frames are
+    //! delivered at once, time jumps from deadline to deadline.
+    use super::*;
+    use crate::canopen::pdo::{RPDO1_MAP, TPDO1_MAP};
+    use crate::sim::drive::{SdoRefusal, TwinDrive, TwinDriveConfig};
+    use std::sync::{Arc, Mutex};
+
+    struct Rig {
+        t: Instant,
+        t0: Instant,
+        m: Master,
+        d: TwinDrive,
+        events: Vec<(Duration, Event)>,
+        log: Vec<String>,
+        plant: Arc<Mutex<f64>>,
+    }
+
+    impl Rig {
+        fn new(cfg: DriveConfig, twin: TwinDriveConfig) -> Rig {
+            let t0 = Instant::now();
+            let plant = Arc::new(Mutex::new(f64::NAN));
+            let p = plant.clone();
+            let d = TwinDrive::new(twin, Box::new(move |mm| *p.lock().unwrap() = mm), t0).unwrap();
+            let mut r = Rig {
+                t: t0,
+                t0,
+                m: Master::new(&cfg).unwrap(),
+                d,
+                events: vec![],
+                log: vec![],
+                plant,
+            };
+            r.pump();
+            r
+        }
+
+        fn default() -> Rig {
+            Rig::new(
+                DriveConfig::default(),
+                TwinDriveConfig {
+                    start_mm: 2.0,
+                    ..Default::default()
+                },
+            )
+        }
+
+        fn pump(&mut self) {
+            for _ in 0..10_000 {
+                let mut any = false;
+                while let Some(f) = self.m.poll_transmit() {
+                    self.log.push(format!("{f:?}"));
+                    self.d.handle_frame(&f, self.t);
+                    any = true;
+                }
+                while let Some(f) = self.d.poll_transmit() {
+                    self.log.push(format!("{f:?}"));
+                    self.m.handle_frame(&f, self.t);
+                    any = true;
+                }
+                while let Some(e) = self.m.poll_event() {
+                    self.events.push((self.t - self.t0, e));
+                }
+                if !any {
+                    return;
+                }
+            }
+            panic!("the machines keep talking");
+        }
+
+        /// Let `dur` of virtual time pass.
+        fn advance(&mut self, dur: Duration) {
+            let end = self.t + dur;
+            for _ in 0..10_000_000 {
+                self.pump();
+                let next = [self.m.poll_timeout(), self.d.poll_timeout()]
+                    .into_iter()
+                    .flatten()
+                    .min();
+                match next {
+                    Some(n) if n <= end => {
+                        self.t = self.t.max(n);
+                        self.m.handle_timeout(self.t);
+                        self.d.handle_timeout(self.t);
+                    }
+                    _ => {
+                        self.t = end;
+                        self.pump();
+                        return;
+                    }
+                }
+            }
+            panic!("time does not advance");
+        }
+
+        fn completion(&self, id: OpId) -> Option<Result<Reply, DriveError>> {
+            self.events.iter().find_map(|(_, e)| match e {
+                Event::Completed { id: i, result } if *i == id => Some(result.clone()),
+                _ => None,
+            })
+        }
+
+        /// Submit and run until done (at most `limit` of virtual time).
+        fn run(&mut self, cmd: Command, limit: Duration) -> Result<Reply, DriveError> {
+            let id = self.m.submit(cmd, self.t);
+            let end = self.t + limit;
+            while self.t < end {
+                self.advance(Duration::from_millis(5));
+                if let Some(r) = self.completion(id) {
+                    return r;
+                }
+            }
+            panic!("command {id} not done within {limit:?}");
+        }
+
+        fn ok(&mut self, cmd: Command) {
+            let name = cmd.name();
+            if let Err(e) = self.run(cmd, Duration::from_secs(60)) {
+                panic!("{name}: {e}");
+            }
+        }
+
+        fn ready(&mut self) {
+            self.ok(Command::Configure);
+            self.ok(Command::Start);
+            self.ok(Command::Enable);
+            self.ok(Command::Home);
+        }
+
+        fn from_log(&self, start: usize, prefix: &str) -> Vec<String> {
+            self.log[start..]
+                .iter()
+                .filter(|l| l.starts_with(prefix))
+                .cloned()
+                .collect()
+        }
+
+        /// The distinct successive controlwords of the RPDO1 frames since `start`.
+        fn controlwords(&self, start: usize) -> Vec<u16> {
+            let mut v: Vec<u16> = vec![];
+            for l in self.from_log(start, "201#") {
+                let cw = u16::from_str_radix(&l[6..8], 16).unwrap() << 8
+                    | u16::from_str_radix(&l[4..6], 16).unwrap();
+                if v.last() != Some(&cw) {
+                    v.push(cw);
+                }
+            }
+            v
+        }
+    }
+
+    #[test]
+    fn configure_writes_the_pdo_mapping_and_the_drive_honours_it() {
+        let mut r = Rig::default();
+        let start = r.log.len();
+        r.ok(Command::Configure);
+        let sdo = r.from_log(start, "601#");
+        // Reset communication, boot-up, pre-operational, then SDO: first the device type.
+        assert_eq!(r.log[start], "000#8201");
+        assert_eq!(r.log[start + 1], "701#00");
+        assert_eq!(r.log[start + 2], "000#8001");
+        assert_eq!(sdo[0], "601#4000100000000000");
+        // Heartbeat time 100 ms = 0x0064 as UNSIGNED16 (0x2B: 2 bytes).
+        assert_eq!(sdo[1], "601#2B17100064000000");
+        // RPDO1: disable (bit 31), type 1, count 0, 0x60400010, 0x607A0020, count 2, enable.
+        // Bytes: command (0x23: 4 bytes, 0x2F: 1 byte), index LE, sub-index, value LE.
+        assert_eq!(
+            &sdo[2..9],
+            &[
+                "601#2300140101020080",
+                "601#2F00140201000000",
+                "601#2F00160000000000",
+                "601#2300160110004060",
+                "601#2300160220007A60",
+                "601#2F00160002000000",
+                "601#2300140101020000",
+            ]
+        );
+        // TPDO1 likewise.
+        assert_eq!(
+            &sdo[9..16],
+            &[
+                "601#2300180181010080",
+                "601#2F00180201000000",
+                "601#2F001A0000000000",
+                "601#23001A0110004160",
+                "601#23001A0220006460",
+                "601#2F001A0002000000",
+                "601#2300180181010000",
+            ]
+        );
+        // The twin has no PDOs 2–4: its "object does not exist" aborts are tolerated.
+        assert_eq!(r.from_log(start, "581#80011401").len(), 1);
+        let s = r.d.status();
+        assert_eq!(s.rpdo1_map, RPDO1_MAP.to_vec());
+        assert_eq!(s.tpdo1_map, TPDO1_MAP.to_vec());
+        assert!(s.rpdo1_valid && s.tpdo1_valid);
+        assert_eq!(s.heartbeat_ms, 100);
+        let st = r.m.status();
+        assert!(st.configured && st.heartbeat_ok);
+        assert_eq!(st.nmt, Some(NmtState::PreOperational));
+        assert_eq!(st.state, Some(PowerState::SwitchOnDisabled));
+        assert_eq!(st.position_mm, Some(0.0));
+        assert!(
+            r.events
+                .iter()
+                .any(|(_, e)| *e == Event::BootUp { expected: true })
+        );
+    }
+
+    #[test]
+    fn enable_walks_shutdown_switch_on_enable_operation() {
+        let mut r = Rig::default();
+        r.ok(Command::Configure);
+        r.ok(Command::Start);
+        assert!(r.m.status().sync_running);
+        assert_eq!(r.m.status().nmt, Some(NmtState::Operational));
+        let start = r.log.len();
+        r.ok(Command::Enable);
+        // The first TPDO after the request already leads to shutdown: 0x06, 0x07, 0x0F.
+        assert_eq!(r.controlwords(start), vec![0x0006, 0x0007, 0x000F]);
+        assert_eq!(r.m.status().state, Some(PowerState::OperationEnabled));
+        let states: Vec<PowerState> = r
+            .events
+            .iter()
+            .filter_map(|(_, e)| match e {
+                Event::PowerState { to, .. } => Some(*to),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(
+            states,
+            vec![
+                PowerState::SwitchOnDisabled,
+                PowerState::ReadyToSwitchOn,
+                PowerState::SwitchedOn,
+                PowerState::OperationEnabled
+            ]
+        );
+        // Each RPDO goes out right before its SYNC.
+        let i = r.log.iter().rposition(|l| l.starts_with("201#")).unwrap();
+        assert_eq!(r.log[i + 1], "080#");
+        let start = r.log.len();
+        r.ok(Command::Disable);
+        assert_eq!(r.controlwords(start), vec![0x0000]);
+        assert_eq!(r.m.status().state, Some(PowerState::SwitchOnDisabled));
+    }
+
+    #[test]
+    fn homing_handshake() {
+        let mut r = Rig::default();
+        r.ok(Command::Configure);
+        r.ok(Command::Start);
+        r.ok(Command::Enable);
+        // Moves are refused before homing.
+        assert_eq!(
+            r.run(Command::MoveTo { target_mm: 1.0 }, Duration::from_secs(1)),
+            Err(DriveError::NotHomed)
+        );
+        let start = r.log.len();
+        r.ok(Command::Home);
+        // 0x6060 = 6 (homing) by SDO, confirmed in 0x6061; bit 4 up, then down.
+        assert!(
+            r.from_log(start, "601#")
+                .contains(&"601#2F60600006000000".to_string())
+        );
+        assert!(
+            r.from_log(start, "601#")
+                .contains(&"601#4061600000000000".to_string())
+        );
+        assert_eq!(r.controlwords(start), vec![0x001F, 0x000F]);
+        let st = r.m.status();
+        assert!(st.homed);
+        assert_eq!(st.mode, Some(6));
+        assert_eq!(st.position_counts, Some(0));
+        // The stage went from 2 mm to the switch at 0, which the plant saw.
+        assert_eq!(*r.plant.lock().unwrap(), 0.0);
+        assert!(r.d.status().homed);
+    }
+
+    #[test]
+    fn homing_error_is_reported() {
+        let cfg = DriveConfig {
+            homing: crate::canopen::HomingConfig {
+                method: 0,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let mut r = Rig::new(cfg, TwinDriveConfig::default());
+        r.ok(Command::Configure);
+        r.ok(Command::Start);
+        r.ok(Command::Enable);
+        assert_eq!(
+            r.run(Command::Home, Duration::from_secs(5)),
+            Err(DriveError::Homing(HomingStatus::ErrorStopped))
+        );
+        // Bit 4 is not left standing.
+        assert_eq!(r.m.status().controlword & CW_NEW_SETPOINT, 0);
+    }
+
+    #[test]
+    fn profile_position_handshake_and_positions() {
+        let mut r = Rig::default();
+        r.ready();
+        let cpm = r.m.settings().counts_per_mm();
+        for target in [3.0, -1.25, 7.5, 7.5, 0.0] {
+            let start = r.log.len();
+            let t0 = r.t;
+            r.ok(Command::MoveTo { target_mm: target });
+            // New set-point (bit 4) with the target, then bit 4 down after the acknowledge.
+            let cws = r.controlwords(start);
+            assert!(cws.ends_with(&[0x001F, 0x000F]), "{target}: {cws:?}");
+            assert!(cws.iter().all(|c| [0x000F, 0x001F].contains(c)), "{cws:?}");
+            let want = (target * cpm).round() as i32;
+            let rpdo = format!("201#1F00{}", hex_le(want));
+            assert!(r.from_log(start, "201#1F00").contains(&rpdo), "{rpdo}");
+            let st = r.m.status();
+            assert!(st.target_reached);
+            assert!(
+                (st.position_mm.unwrap() - target).abs() <= 1.0 / cpm,
+                "{st:?}"
+            );
+            assert_eq!(st.commanded_mm, Some(want as f64 / cpm));
+            // The plant sees the stage at the commanded increment.
+            assert!((*r.plant.lock().unwrap() - want as f64 / cpm).abs() < 1e-9);
+            // A 10 mm/s, 100 mm/s² profile: a move over x mm takes x/10 + 0.1 s (or less).
+            let took = (r.t - t0).as_secs_f64();
+            assert!(took < 1.5 + 0.1 * 10.0, "{took}");
+        }
+    }
+
+    fn hex_le(v: i32) -> String {
+        v.to_le_bytes().iter().map(|b| format!("{b:02X}")).collect()
+    }
+
+    #[test]
+    fn relative_jog_and_limits() {
+        let mut r = Rig::default();
+        r.ready();
+        r.ok(Command::MoveTo { target_mm: 3.0 });
+        let start = r.log.len();
+        r.ok(Command::Jog { delta_mm: -1.0 });
+        // Bit 6 (relative) with bit 4: 0x5F; the target is the increment.
+        let cpm = r.m.settings().counts_per_mm();
+        let delta = ((2.0 * cpm).round() - (3.0 * cpm).round()) as i32;
+        assert!(
+            r.from_log(start, "201#5F00")
+                .contains(&format!("201#5F00{}", hex_le(delta)))
+        );
+        assert!((r.m.status().position_mm.unwrap() - 2.0).abs() < 1e-4);
+        let e = r
+            .run(Command::MoveTo { target_mm: 30.0 }, Duration::from_secs(1))
+            .unwrap_err();
+        assert!(matches!(e, DriveError::OutOfLimits { .. }));
+        assert_eq!(
+            e.to_string(),
+            "target 30 mm is outside the travel limits -25..25 mm"
+        );
+        let e = r
+            .run(Command::Jog { delta_mm: -30.0 }, Duration::from_secs(1))
+            .unwrap_err();
+        assert!(
+            matches!(e, DriveError::OutOfLimits { target_mm, .. } if (target_mm + 28.0).abs() < 1e-4)
+        );
+    }
+
+    /// A tracker's set-point with "change set immediately" replaces a running move.
+    #[test]
+    fn change_set_immediately() {
+        let mut r = Rig::default();
+        r.ready();
+        let id = r.m.submit(Command::MoveTo { target_mm: 10.0 }, r.t);
+        r.advance(Duration::from_millis(300));
+        assert!(r.completion(id).is_none());
+        let start = r.log.len();
+        r.ok(Command::SetTarget { target_mm: 1.0 });
+        assert!(r.controlwords(start).contains(&0x003F));
+        // The waiting move completes when the drive reaches the new target.
+        r.advance(Duration::from_secs(3));
+        assert!(r.completion(id).unwrap().is_ok());
+        assert!((r.m.status().position_mm.unwrap() - 1.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn halt_and_quick_stop_preempt() {
+        let mut r = Rig::default();
+        r.ready();
+        let id = r.m.submit(Command::MoveTo { target_mm: 20.0 }, r.t);
+        r.advance(Duration::from_millis(500));
+        r.ok(Command::Stop);
+        assert_eq!(
+            r.completion(id),
+            Some(Err(DriveError::Interrupted { by: "stop" }))
+        );
+        let p = r.m.status().position_mm.unwrap();
+        assert!(p > 2.0 && p < 10.0, "{p}");
+        assert!(r.m.status().controlword & CW_HALT != 0);
+        // The next move clears halt.
+        r.ok(Command::MoveTo { target_mm: 1.0 });
+        assert_eq!(r.m.status().controlword & CW_HALT, 0);
+        let id = r.m.submit(Command::MoveTo { target_mm: 20.0 }, r.t);
+        let queued = r.m.submit(Command::MoveTo { target_mm: 0.0 }, r.t);
+        r.advance(Duration::from_millis(500));
+        let start = r.log.len();
+        r.ok(Command::QuickStop);
+        assert!(r.controlwords(start).contains(&0x0002));
+        assert_eq!(
+            r.completion(id),
+            Some(Err(DriveError::Interrupted { by: "quick stop" }))
+        );
+        assert_eq!(
+            r.completion(queued),
+            Some(Err(DriveError::Interrupted { by: "quick stop" }))
+        );
+        assert_eq!(r.m.status().state, Some(PowerState::SwitchOnDisabled));
+        r.ok(Command::Enable);
+        assert_eq!(r.m.status().state, Some(PowerState::OperationEnabled));
+    }
+
+    #[test]
+    fn drive_fault_by_emcy_then_fault_reset() {
+        let mut r = Rig::default();
+        r.ready();
+        let id = r.m.submit(Command::MoveTo { target_mm: 15.0 }, r.t);
+        r.advance(Duration::from_millis(300));
+        r.d.inject_fault(0x8611, [0xDE, 0xAD, 0, 0, 1], r.t);
+        r.advance(Duration::from_millis(500));
+        let emcy = r
+            .events
+            .iter()
+            .find_map(|(_, e)| match e {
+                Event::Emcy(e) => Some(*e),
+                _ => None,
+            })
+            .unwrap();
+        assert_eq!(emcy.code, 0x8611);
+        assert_eq!(emcy.text(), "following error");
+        assert_eq!(emcy.register, 0x21);
+        assert_eq!(emcy.manufacturer, [0xDE, 0xAD, 0, 0, 1]);
+        let err = r.completion(id).unwrap().unwrap_err();
+        assert_eq!(err, DriveError::Fault { emcy: Some(emcy) });
+        assert!(err.to_string().contains("following error"), "{err}");
+        let st = r.m.status();
+        assert_eq!(st.state, Some(PowerState::Fault));
+        assert!(st.emcy_active);
+        // Fault reaction active came first.
+        assert!(r.events.iter().any(|(_, e)| matches!(
+            e,
+            Event::PowerState {
+                to: PowerState::FaultReactionActive,
+                ..
+            }
+        )));
+        // Enabling is refused while in fault.
+        assert!(matches!(
+            r.run(Command::Enable, Duration::from_secs(2)),
+            Err(DriveError::Fault { .. })
+        ));
+        let start = r.log.len();
+        r.ok(Command::FaultReset);
+        // Bit 7 rises from 0 (a disable-voltage controlword), then drops again.
+        assert_eq!(r.controlwords(start), vec![0x0000, 0x0080, 0x0000]);
+        assert_eq!(r.m.status().state, Some(PowerState::SwitchOnDisabled));
+        assert!(!r.m.status().emcy_active);
+        assert!(
+            r.events
+                .iter()
+                .any(|(_, e)| matches!(e, Event::Emcy(e) if e.is_reset()))
+        );
+        r.ok(Command::Enable);
+        r.ok(Command::MoveTo { target_mm: 4.0 });
+        assert!((r.m.status().position_mm.unwrap() - 4.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn heartbeat_loss_is_detected_within_the_consumer_time() {
+        let mut r = Rig::default();
+        r.ok(Command::Configure);
+        r.ok(Command::Start);
+        r.advance(Duration::from_millis(250));
+        let last_hb = |r: &Rig| r.m.hb.last_heard().unwrap();
+        r.d.set_heartbeat(false, r.t);
+        let stopped = r.t;
+        let heard = last_hb(&r);
+        r.advance(Duration::from_secs(1));
+        let (at, _) = r
+            .events
+            .iter()
+            .find(|(_, e)| *e == Event::HeartbeatLost)
+            .unwrap();
+        // Declared lost exactly one consumer time after the last heartbeat.
+        assert_eq!(r.t0 + *at, heard + Duration::from_millis(350));
+        assert!(r.t0 + *at <= stopped + Duration::from_millis(350));
+        assert!(!r.m.status().heartbeat_ok);
+        r.d.set_heartbeat(true, r.t);
+        r.advance(Duration::from_millis(200));
+        assert!(r.events.iter().any(|(_, e)| *e == Event::HeartbeatResumed));
+        assert!(r.m.status().heartbeat_ok);
+    }
+
+    #[test]
+    fn drive_abort_is_a_typed_error_naming_object_and_text() {
+        let mut r = Rig::default();
+        r.d.refuse_sdo(Some(SdoRefusal {
+            index: Some(0x6081),
+            code: AbortCode::VALUE_TOO_HIGH,
+        }));
+        let e = r
+            .run(Command::Configure, Duration::from_secs(10))
+            .unwrap_err();
+        assert_eq!(
+            e,
+            DriveError::Sdo(SdoError::Aborted {
+                dir: super::super::sdo::Direction::Download,
+                obj: ObjAddr::new(0x6081, 0),
+                code: AbortCode::VALUE_TOO_HIGH,
+            })
+        );
+        assert_eq!(
+            e.to_string(),
+            "SDO write of 0x6081:00: the drive aborted with 0x06090031 (value of parameter written too high (download only))"
+        );
+        assert!(!r.m.status().configured);
+    }
+
+    #[test]
+    fn slow_drive_times_out_and_gets_an_abort() {
+        let mut r = Rig::default();
+        r.d.set_sdo_delay(Duration::from_secs(2));
+        let start = r.log.len();
+        let e = r
+            .run(
+                Command::SdoRead(ObjAddr::new(0x6041, 0)),
+                Duration::from_secs(5),
+            )
+            .unwrap_err();
+        assert!(
+            matches!(e, DriveError::Sdo(SdoError::Timeout { .. })),
+            "{e}"
+        );
+        assert_eq!(
+            r.from_log(start, "601#"),
+            vec!["601#4041600000000000", "601#8041600000000405"]
+        );
+        // The late answer arrives and is dropped; the next transfer works.
+        r.d.set_sdo_delay(Duration::ZERO);
+        r.advance(Duration::from_secs(3));
+        let Ok(Reply::Data(d)) = r.run(
+            Command::SdoRead(ObjAddr::new(0x1000, 0)),
+            Duration::from_secs(1),
+        ) else {
+            panic!()
+        };
+        assert_eq!(d, 0x0002_0192u32.to_le_bytes());
+    }
+
+    #[test]
+    fn long_objects_over_sdo() {
+        let mut r = Rig::default();
+        let Ok(Reply::Data(name)) = r.run(
+            Command::SdoRead(ObjAddr::new(0x1008, 0)),
+            Duration::from_secs(1),
+        ) else {
+            panic!()
+        };
+        assert_eq!(name, crate::sim::drive::DEVICE_NAME.as_bytes());
+        assert!(name.len() > 32);
+        let data: Vec<u8> = (0..200u32).map(|i| (i * 7 % 251) as u8).collect();
+        r.ok(Command::SdoWrite(ObjAddr::new(0x2000, 0), data.clone()));
+        let Ok(Reply::Data(back)) = r.run(
+            Command::SdoRead(ObjAddr::new(0x2000, 0)),
+            Duration::from_secs(1),
+        ) else {
+            panic!()
+        };
+        assert_eq!(back, data);
+    }
+
+    #[test]
+    fn commands_need_the_right_state() {
+        let mut r = Rig::default();
+        assert_eq!(
+            r.run(Command::Enable, Duration::from_secs(1)),
+            Err(DriveError::NotOperational { what: "enable" })
+        );
+        assert_eq!(
+            r.run(Command::Start, Duration::from_secs(1)),
+            Err(DriveError::NotConfigured { what: "start" })
+        );
+        r.ok(Command::Configure);
+        r.ok(Command::Start);
+        assert!(matches!(
+            r.run(Command::Home, Duration::from_secs(1)),
+            Err(DriveError::NotEnabled { what: "home", .. })
+        ));
+    }
+
+    #[test]
+    fn unexpected_reboot_forgets_the_configuration() {
+        let mut r = Rig::default();
+        r.ready();
+        // Someone else resets the node.
+        r.d.handle_frame(&CanFrame::new(0, &[0x81, 0x01]).unwrap(), r.t);
+        r.advance(Duration::from_millis(50));
+        assert!(
+            r.events
+                .iter()
+                .any(|(_, e)| *e == Event::BootUp { expected: false })
+        );
+        let st = r.m.status();
+        assert!(!st.configured && !st.homed && !st.sync_running);
+        assert_eq!(st.controlword, 0);
+        assert!(matches!(
+            r.run(Command::MoveTo { target_mm: 1.0 }, Duration::from_secs(1)),
+            Err(DriveError::NotOperational { .. })
+        ));
+        // Configure again and carry on.
+        r.ready();
+        r.ok(Command::MoveTo { target_mm: 1.0 });
+    }
+
+    #[test]
+    fn nmt_commands_are_confirmed_by_heartbeat() {
+        let mut r = Rig::default();
+        r.ok(Command::Configure);
+        r.ok(Command::Start);
+        r.ok(Command::Nmt(NmtCommand::StopRemoteNode));
+        assert_eq!(r.m.status().nmt, Some(NmtState::Stopped));
+        assert!(!r.m.status().sync_running);
+        r.ok(Command::Nmt(NmtCommand::EnterPreOperational));
+        assert_eq!(r.m.status().nmt, Some(NmtState::PreOperational));
+        r.ok(Command::Nmt(NmtCommand::ResetNode));
+        assert!(!r.m.status().configured);
+    }
 }

@@ -5,9 +5,11 @@
 //! message (the node has just entered pre-operational), otherwise its NMT state (0x04 stopped,
 //! 0x05 operational, 0x7F pre-operational; bit 7 is the node-guarding toggle and ignored).
 //!
-//! The consumer starts watching at the first heartbeat or boot-up (CiA 301: a consumer is
-//! active once it has heard the producer) and reports the loss once when nothing is heard for
-//! the consumer time, then the resumption when heartbeats return.
+//! The consumer starts watching at the first heartbeat (CiA 301: a consumer is active once it
+//! has heard the producer) and reports the loss once when nothing is heard for the consumer
+//! time, then the resumption when heartbeats return. A boot-up message disarms it until the
+//! next heartbeat: after a reset the producer time is back at its default (often 0, no
+//! heartbeat) until the master writes 0x1017 again.
 
 use super::{cob, frame};
 use crate::can::CanFrame;
@@ -40,6 +42,7 @@ pub struct HeartbeatConsumer {
     node: NodeId,
     timeout: Duration,
     last: Option<Instant>,
+    armed: bool,
     state: Option<NmtState>,
     lost: bool,
     events: VecDeque<HeartbeatEvent>,
@@ -52,6 +55,7 @@ impl HeartbeatConsumer {
             node,
             timeout,
             last: None,
+            armed: false,
             state: None,
             lost: false,
             events: VecDeque::new(),
@@ -63,9 +67,10 @@ impl HeartbeatConsumer {
         self.state
     }
 
-    /// Whether heartbeats are arriving (false before the first one and while lost).
+    /// Whether heartbeats are arriving (false before the first one, after a boot-up until
+    /// the next one, and while lost).
     pub fn is_alive(&self) -> bool {
-        self.last.is_some() && !self.lost
+        self.armed && !self.lost
     }
 
     /// When the last heartbeat or boot-up arrived.
@@ -89,9 +94,11 @@ impl HeartbeatConsumer {
             self.events.push_back(HeartbeatEvent::Resumed);
         }
         let state = if byte & 0x7F == 0 {
+            self.armed = false;
             self.events.push_back(HeartbeatEvent::BootUp);
             NmtState::PreOperational
         } else {
+            self.armed = true;
             match NmtState::from_wire(byte) {
                 Ok(s) => s,
                 // A reserved state value: the node is alive, its state unknown.
@@ -118,7 +125,7 @@ impl HeartbeatConsumer {
     /// When the node will be declared lost if nothing arrives.
     pub fn poll_timeout(&self) -> Option<Instant> {
         match self.last {
-            Some(t) if !self.lost => Some(t + self.timeout),
+            Some(t) if self.armed && !self.lost => Some(t + self.timeout),
             _ => None,
         }
     }
@@ -176,8 +183,12 @@ mod tests {
             Some(HeartbeatEvent::State(NmtState::PreOperational))
         );
         assert_eq!(c.poll_event(), None);
+        // A boot-up alone does not arm the consumer (the producer time may be 0).
+        assert_eq!(c.poll_timeout(), None);
+        assert!(!c.is_alive());
         c.handle_frame(&hb(1, 0x7F), ms(100));
         assert_eq!(c.poll_event(), None);
+        assert_eq!(c.poll_timeout(), Some(ms(400)));
         c.handle_frame(&hb(1, 0x05), ms(200));
         assert_eq!(
             c.poll_event(),
