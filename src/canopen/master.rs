@@ -1450,7 +1450,7 @@ mod tests {
             self.ok(Command::Home);
         }
 
-        fn from_log(&self, start: usize, prefix: &str) -> Vec<String> {
+        fn frames_since(&self, start: usize, prefix: &str) -> Vec<String> {
             self.log[start..]
                 .iter()
                 .filter(|l| l.starts_with(prefix))
@@ -1461,7 +1461,7 @@ mod tests {
         /// The distinct successive controlwords of the RPDO1 frames since `start`.
         fn controlwords(&self, start: usize) -> Vec<u16> {
             let mut v: Vec<u16> = vec![];
-            for l in self.from_log(start, "201#") {
+            for l in self.frames_since(start, "201#") {
                 let cw = u16::from_str_radix(&l[6..8], 16).unwrap() << 8
                     | u16::from_str_radix(&l[4..6], 16).unwrap();
                 if v.last() != Some(&cw) {
@@ -1477,7 +1477,7 @@ mod tests {
         let mut r = Rig::default();
         let start = r.log.len();
         r.ok(Command::Configure);
-        let sdo = r.from_log(start, "601#");
+        let sdo = r.frames_since(start, "601#");
         // Reset communication, boot-up, pre-operational, then SDO: first the device type.
         assert_eq!(r.log[start], "000#8201");
         assert_eq!(r.log[start + 1], "701#00");
@@ -1513,7 +1513,7 @@ mod tests {
             ]
         );
         // The twin has no PDOs 2–4: its "object does not exist" aborts are tolerated.
-        assert_eq!(r.from_log(start, "581#80011401").len(), 1);
+        assert_eq!(r.frames_since(start, "581#80011401").len(), 1);
         let s = r.d.status();
         assert_eq!(s.rpdo1_map, RPDO1_MAP.to_vec());
         assert_eq!(s.tpdo1_map, TPDO1_MAP.to_vec());
@@ -1584,11 +1584,11 @@ mod tests {
         r.ok(Command::Home);
         // 0x6060 = 6 (homing) by SDO, confirmed in 0x6061; bit 4 up, then down.
         assert!(
-            r.from_log(start, "601#")
+            r.frames_since(start, "601#")
                 .contains(&"601#2F60600006000000".to_string())
         );
         assert!(
-            r.from_log(start, "601#")
+            r.frames_since(start, "601#")
                 .contains(&"601#4061600000000000".to_string())
         );
         assert_eq!(r.controlwords(start), vec![0x001F, 0x000F]);
@@ -1637,7 +1637,7 @@ mod tests {
             assert!(cws.iter().all(|c| [0x000F, 0x001F].contains(c)), "{cws:?}");
             let want = (target * cpm).round() as i32;
             let rpdo = format!("201#1F00{}", hex_le(want));
-            assert!(r.from_log(start, "201#1F00").contains(&rpdo), "{rpdo}");
+            assert!(r.frames_since(start, "201#1F00").contains(&rpdo), "{rpdo}");
             let st = r.m.status();
             assert!(st.target_reached);
             assert!(
@@ -1668,7 +1668,7 @@ mod tests {
         let cpm = r.m.settings().counts_per_mm();
         let delta = ((2.0 * cpm).round() - (3.0 * cpm).round()) as i32;
         assert!(
-            r.from_log(start, "201#5F00")
+            r.frames_since(start, "201#5F00")
                 .contains(&format!("201#5F00{}", hex_le(delta)))
         );
         assert!((r.m.status().position_mm.unwrap() - 2.0).abs() < 1e-4);
@@ -1863,7 +1863,7 @@ mod tests {
             "{e}"
         );
         assert_eq!(
-            r.from_log(start, "601#"),
+            r.frames_since(start, "601#"),
             vec!["601#4041600000000000", "601#8041600000000405"]
         );
         // The late answer arrives and is dropped; the next transfer works.

@@ -1864,7 +1864,7 @@ mod tests {
         let t0 = Instant::now();
         let mut d = drive(t0);
         out(&mut d);
-        let mut sw = |d: &mut TwinDrive, cw: u16| {
+        let sw = |d: &mut TwinDrive, cw: u16| {
             let v = cw.to_le_bytes();
             ask(d, &format!("601#2B406000{:02X}{:02X}0000", v[0], v[1]), t0);
             d.status().statusword
