@@ -193,6 +193,9 @@ pub struct DriveConfig {
     pub state_timeout: Duration,
     /// Wait at most this long for the boot-up after a reset.
     pub boot_timeout: Duration,
+    /// Quiet time after a boot-up before talking to the drive: a late boot-up (from power-on)
+    /// or late SDO responses still in flight are absorbed, not mistaken for new ones.
+    pub boot_settle: Duration,
     /// Reset communication (and wait for the boot-up) at the start of `configure`, so the
     /// drive starts from its default communication objects.
     pub reset_communication: bool,
@@ -214,6 +217,7 @@ impl Default for DriveConfig {
             sync_period: Duration::from_millis(10),
             state_timeout: Duration::from_secs(1),
             boot_timeout: Duration::from_secs(5),
+            boot_settle: Duration::from_millis(100),
             reset_communication: true,
             require_homing: true,
             scaling: Scaling::default(),

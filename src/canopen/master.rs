@@ -289,6 +289,8 @@ enum Step {
     RequireHomed,
     Nmt(NmtCommand),
     AwaitBootUp,
+    /// Let time pass (stale responses drain, further boot-ups count as expected).
+    Settle(Duration),
     AwaitNmt(NmtState),
     Write(SdoWrite),
     Read(ObjAddr, ReadUse),
@@ -298,7 +300,10 @@ enum Step {
     SyncOff,
     AwaitTpdo,
     Power(PowerState),
-    Cw { set: u16, clear: u16 },
+    Cw {
+        set: u16,
+        clear: u16,
+    },
     Target(i32),
     Commanded(i32),
     Plan(Motion),
@@ -319,6 +324,8 @@ struct Op {
     boot_mark: u64,
     /// For homing: "in progress" has been seen.
     seen_progress: bool,
+    /// Times a configure started over after an unexpected boot-up.
+    restarts: u32,
     reply: Option<Vec<u8>>,
 }
 
@@ -491,15 +498,28 @@ impl Master {
                     self.boot_count += 1;
                     let expected = matches!(
                         self.op.as_ref().and_then(|o| o.steps.front()),
-                        Some(Step::AwaitBootUp)
+                        Some(Step::AwaitBootUp | Step::Settle(_))
                     );
                     self.events.push_back(Event::BootUp { expected });
                     if !expected {
                         tracing::warn!("follower drive rebooted unexpectedly");
                         self.forget_configuration();
-                        if let Some(op) = self.op.take() {
+                        if let Some(mut op) = self.op.take() {
                             self.cancel_sdo_of(&op);
-                            self.finish(op, Err(DriveError::Rebooted));
+                            if op.name == Command::Configure.name() && op.restarts < 2 {
+                                // A boot-up during configure (a late power-on boot-up taken
+                                // for the reset's, or a drive that restarted): what was
+                                // written is gone, so start over on the fresh drive.
+                                op.restarts += 1;
+                                op.steps = self.plan_configure(false);
+                                op.steps
+                                    .push_front(Step::Settle(self.s.config().boot_settle));
+                                op.started = false;
+                                op.deadline = None;
+                                self.op = Some(op);
+                            } else {
+                                self.finish(op, Err(DriveError::Rebooted));
+                            }
                         }
                     }
                 }
@@ -512,7 +532,7 @@ impl Master {
                     self.events.push_back(Event::HeartbeatLost);
                     let resetting = matches!(
                         self.op.as_ref().and_then(|o| o.steps.front()),
-                        Some(Step::AwaitBootUp)
+                        Some(Step::AwaitBootUp | Step::Settle(_))
                     );
                     if !resetting && let Some(op) = self.op.take() {
                         self.cancel_sdo_of(&op);
@@ -641,6 +661,7 @@ impl Master {
                     after_sync: 0,
                     boot_mark: 0,
                     seen_progress: false,
+                    restarts: 0,
                     reply: None,
                 });
             }
@@ -729,28 +750,7 @@ impl Master {
         let c = self.s.config();
         let mut v = Vec::new();
         match cmd {
-            Command::Configure => {
-                v.push(Step::SyncOff);
-                v.push(Step::SetConfigured(false));
-                if c.reset_communication {
-                    v.push(Step::Nmt(NmtCommand::ResetCommunication));
-                    v.push(Step::AwaitBootUp);
-                }
-                v.push(Step::Nmt(NmtCommand::EnterPreOperational));
-                v.push(Step::Read(ObjAddr::new(0x1000, 0), ReadUse::DeviceType));
-                v.push(Step::Write(SdoWrite::u16(0x1017, 0, self.s.heartbeat_ms())));
-                for w in pdo::follower_pdo_sequence(self.s.node()) {
-                    v.push(Step::Write(w));
-                }
-                for w in self.parameter_writes() {
-                    v.push(Step::Write(w));
-                }
-                v.push(Step::Read(ObjAddr::new(0x6041, 0), ReadUse::Statusword));
-                v.push(Step::Read(ObjAddr::new(0x6064, 0), ReadUse::Position));
-                v.push(Step::Read(ObjAddr::new(0x6061, 0), ReadUse::Mode));
-                v.push(Step::AwaitNmt(NmtState::PreOperational));
-                v.push(Step::SetConfigured(true));
-            }
+            Command::Configure => return self.plan_configure(c.reset_communication),
             Command::Start => {
                 v.push(Step::RequireConfigured);
                 v.push(Step::Nmt(NmtCommand::StartRemoteNode));
@@ -772,7 +772,8 @@ impl Master {
                         v.push(Step::AwaitNmt(NmtState::PreOperational))
                     }
                     NmtCommand::ResetNode | NmtCommand::ResetCommunication => {
-                        v.push(Step::AwaitBootUp)
+                        v.push(Step::AwaitBootUp);
+                        v.push(Step::Settle(c.boot_settle));
                     }
                 }
             }
@@ -857,6 +858,31 @@ impl Master {
                 data.clone(),
             ))),
         }
+        v.into()
+    }
+
+    fn plan_configure(&self, reset: bool) -> VecDeque<Step> {
+        let mut v = vec![Step::SyncOff, Step::SetConfigured(false)];
+        if reset {
+            v.push(Step::Nmt(NmtCommand::ResetCommunication));
+            v.push(Step::AwaitBootUp);
+            // A power-on boot-up still in flight may have been taken for the reset's.
+            v.push(Step::Settle(self.s.config().boot_settle));
+        }
+        v.push(Step::Nmt(NmtCommand::EnterPreOperational));
+        v.push(Step::Read(ObjAddr::new(0x1000, 0), ReadUse::DeviceType));
+        v.push(Step::Write(SdoWrite::u16(0x1017, 0, self.s.heartbeat_ms())));
+        for w in pdo::follower_pdo_sequence(self.s.node()) {
+            v.push(Step::Write(w));
+        }
+        for w in self.parameter_writes() {
+            v.push(Step::Write(w));
+        }
+        v.push(Step::Read(ObjAddr::new(0x6041, 0), ReadUse::Statusword));
+        v.push(Step::Read(ObjAddr::new(0x6064, 0), ReadUse::Position));
+        v.push(Step::Read(ObjAddr::new(0x6061, 0), ReadUse::Mode));
+        v.push(Step::AwaitNmt(NmtState::PreOperational));
+        v.push(Step::SetConfigured(true));
         v.into()
     }
 
@@ -977,6 +1003,10 @@ impl Master {
             }
             Step::AwaitNmt(_) => {
                 op.deadline = Some(now + self.nmt_timeout());
+                self.poll_step(op, step, now)
+            }
+            Step::Settle(d) => {
+                op.deadline = Some(now + *d);
                 self.poll_step(op, step, now)
             }
             Step::Write(w) => {
@@ -1114,6 +1144,13 @@ impl Master {
         match step {
             Step::AwaitBootUp => {
                 if self.boot_count > op.boot_mark {
+                    Progress::Next
+                } else {
+                    Progress::Wait
+                }
+            }
+            Step::Settle(_) => {
+                if op.deadline.is_none_or(|d| now >= d) {
                     Progress::Next
                 } else {
                     Progress::Wait
@@ -1941,6 +1978,39 @@ mod tests {
         // Configure again and carry on.
         r.ready();
         r.ok(Command::MoveTo { target_mm: 1.0 });
+    }
+
+    /// A boot-up in the middle of configure (here a drive that restarts while its PDOs are
+    /// being written): the master settles, then configures the fresh drive from the start.
+    #[test]
+    fn configure_starts_over_after_a_boot_up() {
+        let mut r = Rig::default();
+        let start = r.log.len();
+        let id = r.m.submit(Command::Configure, r.t);
+        // Run until the RPDO mapping is being written, then reboot the drive.
+        while !r.log[start..]
+            .iter()
+            .any(|l| l.starts_with("601#2300160110004060"))
+        {
+            r.advance(Duration::from_millis(1));
+        }
+        r.d.handle_frame(&CanFrame::new(0, &[0x82, 0x01]).unwrap(), r.t);
+        r.advance(Duration::from_secs(2));
+        assert!(
+            matches!(r.completion(id), Some(Ok(_))),
+            "{:?}",
+            r.completion(id)
+        );
+        assert!(
+            r.events
+                .iter()
+                .any(|(_, e)| *e == Event::BootUp { expected: false })
+        );
+        // The device type was read twice: configure ran again from the top.
+        assert_eq!(r.frames_since(start, "601#4000100000000000").len(), 2);
+        let s = r.d.status();
+        assert_eq!(s.rpdo1_map, RPDO1_MAP.to_vec());
+        assert!(s.rpdo1_valid && s.tpdo1_valid && r.m.status().configured);
     }
 
     #[test]

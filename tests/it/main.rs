@@ -3,5 +3,6 @@
 mod helpers;
 
 mod calibration;
+mod canopen;
 mod cli;
 mod decoupling;
