@@ -49,7 +49,12 @@ async fn drive<T: CanTransport>(
     let mut pending: HashMap<OpId, ReplyTx> = HashMap::new();
     loop {
         while let Some(f) = m.poll_transmit() {
-            bus.send(&f).await?;
+            match bus.send(&f).await {
+                Ok(()) => {}
+                Err(CanError::Closed) => return Err(CanError::Closed),
+                // A frame lost on a busy bus is recovered by the protocols' own timeouts.
+                Err(e) => tracing::warn!("CANopen master could not send {f:?}: {e}"),
+            }
         }
         while let Some(ev) = m.poll_event() {
             match ev {
@@ -74,7 +79,9 @@ async fn drive<T: CanTransport>(
         tokio::select! {
             r = bus.recv() => match r {
                 Ok(f) => m.handle_frame(&f, Instant::now()),
-                Err(CanError::Lagged(n)) => tracing::warn!("CANopen master fell behind: {n} frames lost"),
+                Err(e @ (CanError::Lagged(_) | CanError::Malformed(_))) => {
+                    tracing::warn!("CANopen master: {e}")
+                }
                 Err(e) => return Err(e),
             },
             c = commands.recv() => match c {

@@ -1576,7 +1576,11 @@ async fn twin_task<T: CanTransport>(
 ) -> Result<(), CanError> {
     loop {
         while let Some(f) = d.poll_transmit() {
-            bus.send(&f).await?;
+            match bus.send(&f).await {
+                Ok(()) => {}
+                Err(CanError::Closed) => return Err(CanError::Closed),
+                Err(e) => tracing::warn!("twin drive could not send {f:?}: {e}"),
+            }
         }
         let s = d.status();
         status.send_if_modified(|old| {
@@ -1588,7 +1592,9 @@ async fn twin_task<T: CanTransport>(
         tokio::select! {
             r = bus.recv() => match r {
                 Ok(f) => d.handle_frame(&f, Instant::now()),
-                Err(CanError::Lagged(n)) => tracing::warn!("twin drive fell behind: {n} frames lost"),
+                Err(e @ (CanError::Lagged(_) | CanError::Malformed(_))) => {
+                    tracing::warn!("twin drive: {e}")
+                }
                 Err(e) => return Err(e),
             },
             c = control.recv() => {
