@@ -1484,7 +1484,7 @@ impl TwinDrive {
         self.tx.pop_front()
     }
 
-    pub fn status(&mut self) -> TwinStatus {
+    pub fn status(&self) -> TwinStatus {
         TwinStatus {
             nmt: self.nmt,
             state: self.fsa,
@@ -1561,7 +1561,7 @@ pub fn spawn_twin_drive<T: CanTransport>(
     config: TwinDriveConfig,
     on_position: impl FnMut(f64) + Send + 'static,
 ) -> Result<(TwinDriveHandle, JoinHandle<Result<(), CanError>>), SimError> {
-    let mut d = TwinDrive::new(config, Box::new(on_position), Instant::now())?;
+    let d = TwinDrive::new(config, Box::new(on_position), Instant::now())?;
     let (control, rx) = mpsc::unbounded_channel();
     let (status_tx, status) = watch::channel(d.status());
     let join = tokio::spawn(twin_task(d, transport, rx, status_tx));
