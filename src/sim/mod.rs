@@ -3,15 +3,18 @@
 //! what was measured with what was injected.
 //!
 //! So far: the optical head with random installation errors, PSD gain errors and noise
-//! (`head`), and a hexapod that applies calibration poses (`hexapod`).
+//! (`head`), a hexapod that applies calibration poses (`hexapod`), and the follower's CiA 402
+//! drive on a CAN transport (`drive`).
 
 pub mod axis;
+pub mod drive;
 pub mod head;
 pub mod hexapod;
 pub mod plant;
 pub mod rng;
 pub mod study;
 
+pub use drive::{TwinDrive, TwinDriveConfig, TwinDriveHandle, spawn_twin_drive};
 pub use head::{InstallSpec, TwinHead};
 pub use hexapod::{Hexapod, PoseWindow};
 pub use rng::Rng;

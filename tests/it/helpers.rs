@@ -104,3 +104,80 @@ pub fn unused_udp_port() -> u16 {
         .expect("bind an ephemeral UDP port")
         .port()
 }
+
+/// The CANopen master and the twin drive on one in-memory bus, with a plant whose follower
+/// encoder the twin moves.
+pub struct DriveRig {
+    pub master: axiscomp::canopen::DriveHandle,
+    pub twin: axiscomp::sim::TwinDriveHandle,
+    pub plant: std::sync::Arc<axiscomp::sim::plant::Plant>,
+    pub counts_per_mm: f64,
+    tasks: Vec<tokio::task::JoinHandle<Result<(), axiscomp::can::CanError>>>,
+}
+
+impl DriveRig {
+    /// Start both tasks (inside a tokio runtime).
+    pub fn start(
+        cfg: axiscomp::canopen::DriveConfig,
+        twin: axiscomp::sim::TwinDriveConfig,
+    ) -> DriveRig {
+        use axiscomp::sim::plant::{Plant, PlantSpec};
+        let bus = axiscomp::can::memory::MemoryBus::default();
+        let plant = std::sync::Arc::new(
+            Plant::new(
+                &axiscomp::optics::Layout::reference(),
+                &PlantSpec::default(),
+                std::time::Instant::now(),
+            )
+            .expect("plant"),
+        );
+        let p = plant.clone();
+        // The master listens before the twin boots, as on a real bus powered up together.
+        let (master, mt) = axiscomp::canopen::spawn_drive(bus.port(), &cfg).expect("master");
+        let (twin, tt) =
+            axiscomp::sim::spawn_twin_drive(bus.port(), twin, move |mm| p.set_follower_encoder(mm))
+                .expect("twin drive");
+        DriveRig {
+            master,
+            twin,
+            plant,
+            counts_per_mm: cfg.validate().expect("config").counts_per_mm(),
+            tasks: vec![mt, tt],
+        }
+    }
+}
+
+impl Drop for DriveRig {
+    fn drop(&mut self) {
+        for t in &self.tasks {
+            t.abort();
+        }
+    }
+}
+
+/// Await `fut`, failing the test with `what` if it takes longer than `secs` (generous bounds
+/// only: they catch hangs, they do not measure anything).
+pub async fn within_s<T>(secs: u64, what: &str, fut: impl std::future::Future<Output = T>) -> T {
+    match tokio::time::timeout(std::time::Duration::from_secs(secs), fut).await {
+        Ok(v) => v,
+        Err(_) => panic!("{what}: not done within {secs} s"),
+    }
+}
+
+/// Wait for the first event matching `pick`.
+pub async fn event<T>(
+    rx: &mut tokio::sync::broadcast::Receiver<axiscomp::canopen::Event>,
+    mut pick: impl FnMut(&axiscomp::canopen::Event) -> Option<T>,
+) -> T {
+    loop {
+        match rx.recv().await {
+            Ok(e) => {
+                if let Some(v) = pick(&e) {
+                    return v;
+                }
+            }
+            Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => continue,
+            Err(e) => panic!("event stream ended: {e}"),
+        }
+    }
+}

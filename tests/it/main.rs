@@ -4,6 +4,7 @@ mod helpers;
 
 mod calibration;
 mod can;
+mod canopen;
 mod cli;
 mod comp;
 mod decoupling;

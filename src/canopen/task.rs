@@ -1,0 +1,198 @@
+//! The driver task: owns a `CanTransport`, runs the [`Master`] on the real clock, answers
+//! commands from cloneable [`DriveHandle`]s, publishes [`DriveStatus`] on a watch channel and
+//! the other [`Event`]s on a broadcast channel. It ends when every handle is dropped or the
+//! transport closes.
+
+use super::config::{ConfigError, DriveConfig};
+use super::master::{Command, DriveError, DriveStatus, Event, Master, OpId, Reply};
+use super::sdo::ObjAddr;
+use crate::can::{CanError, CanTransport};
+use canopen_rs::NmtCommand;
+use std::collections::HashMap;
+use std::time::Instant;
+use tokio::sync::{broadcast, mpsc, oneshot, watch};
+use tokio::task::JoinHandle;
+
+type ReplyTx = oneshot::Sender<Result<Reply, DriveError>>;
+
+/// Start the driver task for the drive in `config` on `transport`.
+pub fn spawn_drive<T: CanTransport>(
+    transport: T,
+    config: &DriveConfig,
+) -> Result<(DriveHandle, JoinHandle<Result<(), CanError>>), ConfigError> {
+    let master = Master::new(config)?;
+    let (cmd_tx, cmd_rx) = mpsc::channel(64);
+    let (status_tx, status_rx) = watch::channel(master.status().clone());
+    let (event_tx, _) = broadcast::channel(1024);
+    let join = tokio::spawn(drive(
+        master,
+        transport,
+        cmd_rx,
+        status_tx,
+        event_tx.clone(),
+    ));
+    let handle = DriveHandle {
+        cmd: cmd_tx,
+        status: status_rx,
+        events: event_tx,
+    };
+    Ok((handle, join))
+}
+
+async fn drive<T: CanTransport>(
+    mut m: Master,
+    bus: T,
+    mut commands: mpsc::Receiver<(Command, ReplyTx)>,
+    status: watch::Sender<DriveStatus>,
+    events: broadcast::Sender<Event>,
+) -> Result<(), CanError> {
+    let mut pending: HashMap<OpId, ReplyTx> = HashMap::new();
+    loop {
+        while let Some(f) = m.poll_transmit() {
+            match bus.send(&f).await {
+                Ok(()) => {}
+                Err(CanError::Closed) => return Err(CanError::Closed),
+                // A frame lost on a busy bus is recovered by the protocols' own timeouts.
+                Err(e) => tracing::warn!("CANopen master could not send {f:?}: {e}"),
+            }
+        }
+        while let Some(ev) = m.poll_event() {
+            match ev {
+                Event::Completed { id, result } => {
+                    if let Some(tx) = pending.remove(&id) {
+                        let _ = tx.send(result);
+                    }
+                }
+                ev => {
+                    let _ = events.send(ev);
+                }
+            }
+        }
+        status.send_if_modified(|s| {
+            let changed = s != m.status();
+            if changed {
+                *s = m.status().clone();
+            }
+            changed
+        });
+        let deadline = m.poll_timeout();
+        tokio::select! {
+            r = bus.recv() => match r {
+                Ok(f) => m.handle_frame(&f, Instant::now()),
+                Err(e @ (CanError::Lagged(_) | CanError::Malformed(_))) => {
+                    tracing::warn!("CANopen master: {e}")
+                }
+                Err(e) => return Err(e),
+            },
+            c = commands.recv() => match c {
+                Some((cmd, reply)) => {
+                    let id = m.submit(cmd, Instant::now());
+                    pending.insert(id, reply);
+                }
+                None => return Ok(()),
+            },
+            _ = sleep_until(deadline) => m.handle_timeout(Instant::now()),
+        }
+    }
+}
+
+async fn sleep_until(deadline: Option<Instant>) {
+    match deadline {
+        Some(d) => tokio::time::sleep_until(tokio::time::Instant::from_std(d)).await,
+        None => std::future::pending().await,
+    }
+}
+
+/// Commands and status for the follower drive; clone it freely.
+#[derive(Clone, Debug)]
+pub struct DriveHandle {
+    cmd: mpsc::Sender<(Command, ReplyTx)>,
+    status: watch::Receiver<DriveStatus>,
+    events: broadcast::Sender<Event>,
+}
+
+impl DriveHandle {
+    /// Run one command and wait for its result.
+    pub async fn request(&self, cmd: Command) -> Result<Reply, DriveError> {
+        let (tx, rx) = oneshot::channel();
+        self.cmd
+            .send((cmd, tx))
+            .await
+            .map_err(|_| DriveError::Closed)?;
+        rx.await.map_err(|_| DriveError::Closed)?
+    }
+
+    async fn done(&self, cmd: Command) -> Result<(), DriveError> {
+        self.request(cmd).await.map(|_| ())
+    }
+
+    /// SDO configuration in pre-operational (see `Command::Configure`).
+    pub async fn configure(&self) -> Result<(), DriveError> {
+        self.done(Command::Configure).await
+    }
+    /// NMT start and SYNC.
+    pub async fn start(&self) -> Result<(), DriveError> {
+        self.done(Command::Start).await
+    }
+    pub async fn nmt(&self, cmd: NmtCommand) -> Result<(), DriveError> {
+        self.done(Command::Nmt(cmd)).await
+    }
+    /// To operation enabled.
+    pub async fn enable(&self) -> Result<(), DriveError> {
+        self.done(Command::Enable).await
+    }
+    /// To switch on disabled.
+    pub async fn disable(&self) -> Result<(), DriveError> {
+        self.done(Command::Disable).await
+    }
+    pub async fn home(&self) -> Result<(), DriveError> {
+        self.done(Command::Home).await
+    }
+    /// Absolute move; returns at "target reached".
+    pub async fn move_to(&self, target_mm: f64) -> Result<(), DriveError> {
+        self.done(Command::MoveTo { target_mm }).await
+    }
+    /// Relative move; returns at "target reached".
+    pub async fn jog(&self, delta_mm: f64) -> Result<(), DriveError> {
+        self.done(Command::Jog { delta_mm }).await
+    }
+    /// New set-point, changed immediately; returns at the drive's acknowledge.
+    pub async fn set_target(&self, target_mm: f64) -> Result<(), DriveError> {
+        self.done(Command::SetTarget { target_mm }).await
+    }
+    pub async fn stop(&self) -> Result<(), DriveError> {
+        self.done(Command::Stop).await
+    }
+    pub async fn quick_stop(&self) -> Result<(), DriveError> {
+        self.done(Command::QuickStop).await
+    }
+    pub async fn fault_reset(&self) -> Result<(), DriveError> {
+        self.done(Command::FaultReset).await
+    }
+    pub async fn sdo_read(&self, index: u16, sub: u8) -> Result<Vec<u8>, DriveError> {
+        match self
+            .request(Command::SdoRead(ObjAddr::new(index, sub)))
+            .await?
+        {
+            Reply::Data(d) => Ok(d),
+            Reply::Done => Ok(Vec::new()),
+        }
+    }
+    pub async fn sdo_write(&self, index: u16, sub: u8, data: Vec<u8>) -> Result<(), DriveError> {
+        self.done(Command::SdoWrite(ObjAddr::new(index, sub), data))
+            .await
+    }
+
+    /// The latest status.
+    pub fn status(&self) -> DriveStatus {
+        self.status.borrow().clone()
+    }
+    /// A watch of the status (updated at least at every TPDO, i.e. at SYNC rate).
+    pub fn watch_status(&self) -> watch::Receiver<DriveStatus> {
+        self.status.clone()
+    }
+    /// Events from now on (boot-up, NMT, heartbeat lost/resumed, EMCY, power state).
+    pub fn events(&self) -> broadcast::Receiver<Event> {
+        self.events.subscribe()
+    }
+}

@@ -1,0 +1,262 @@
+//! The CANopen master driving the twin's CiA 402 drive over the in-memory bus, in real time
+//! (generous bounds catch hangs; nothing here measures wall-clock time).
+
+use crate::helpers::{DriveRig, event, within_s};
+use axiscomp::canopen::pdo::{RPDO1_MAP, TPDO1_MAP};
+use axiscomp::canopen::sdo::Direction;
+use axiscomp::canopen::{
+    AbortCode, DriveConfig, DriveError, Event, NmtState, ObjAddr, PowerState, SdoError,
+};
+use axiscomp::sim::TwinDriveConfig;
+use axiscomp::sim::drive::{DEVICE_NAME, SdoRefusal};
+use std::time::Duration;
+
+fn twin() -> TwinDriveConfig {
+    TwinDriveConfig {
+        start_mm: 2.0,
+        ..Default::default()
+    }
+}
+
+async fn ready(r: &DriveRig) {
+    let m = &r.master;
+    within_s(10, "configure", m.configure())
+        .await
+        .expect("configure");
+    within_s(10, "start", m.start()).await.expect("start");
+    within_s(10, "enable", m.enable()).await.expect("enable");
+    within_s(30, "home", m.home()).await.expect("home");
+}
+
+#[tokio::test]
+async fn configure_start_enable_home_and_move() {
+    let r = DriveRig::start(DriveConfig::default(), twin());
+    let m = &r.master;
+    within_s(10, "configure", m.configure())
+        .await
+        .expect("configure");
+    // The drive holds exactly the mapping the master wrote by SDO.
+    let t = r.twin.status();
+    assert_eq!(t.rpdo1_map, RPDO1_MAP.to_vec());
+    assert_eq!(t.tpdo1_map, TPDO1_MAP.to_vec());
+    assert_eq!(t.heartbeat_ms, 100);
+    assert_eq!(m.status().nmt, Some(NmtState::PreOperational));
+    // More than 32 bytes over SDO (canopen-rs stops at 32).
+    let name = within_s(5, "read 0x1008", m.sdo_read(0x1008, 0))
+        .await
+        .unwrap();
+    assert_eq!(name, DEVICE_NAME.as_bytes());
+
+    within_s(10, "start", m.start()).await.expect("start");
+    assert_eq!(m.status().nmt, Some(NmtState::Operational));
+    within_s(10, "enable", m.enable()).await.expect("enable");
+    assert_eq!(m.status().state, Some(PowerState::OperationEnabled));
+    // The stage starts 2 mm from the home switch; homing drives it there.
+    assert_eq!(r.plant.follower_encoder(), 2.0);
+    within_s(30, "home", m.home()).await.expect("home");
+    let st = m.status();
+    assert!(st.homed);
+    assert_eq!(st.position_counts, Some(0));
+    assert_eq!(r.plant.follower_encoder(), 0.0);
+
+    let window = DriveConfig::default().profile.position_window_mm;
+    for target in [1.5, -2.0, 4.25, 0.3] {
+        within_s(10, "move", m.move_to(target)).await.expect("move");
+        let st = m.status();
+        let pos = st.position_mm.unwrap();
+        assert!(
+            (pos - target).abs() <= window,
+            "reported {pos} mm for {target} mm"
+        );
+        assert!(st.target_reached && !st.following_error);
+        // The plant's follower encoder is where the drive says.
+        let enc = r.plant.follower_encoder();
+        assert!((enc - pos).abs() < 1.0 / r.counts_per_mm, "{enc} vs {pos}");
+    }
+    // Relative jog.
+    within_s(10, "jog", m.jog(-0.8)).await.expect("jog");
+    assert!((m.status().position_mm.unwrap() + 0.5).abs() <= window);
+    // The status keeps coming at SYNC rate.
+    let mut w = m.watch_status();
+    let n0 = w.borrow_and_update().tpdo_count;
+    within_s(5, "TPDOs", async {
+        while w.borrow_and_update().tpdo_count < n0 + 10 {
+            w.changed().await.unwrap();
+        }
+    })
+    .await;
+}
+
+#[tokio::test]
+async fn drive_fault_by_emcy_then_fault_reset() {
+    let r = DriveRig::start(DriveConfig::default(), twin());
+    ready(&r).await;
+    let m = &r.master;
+    let mut events = m.events();
+    let mv = {
+        let m = m.clone();
+        tokio::spawn(async move { m.move_to(20.0).await })
+    };
+    // Fault while moving: following error.
+    within_s(5, "moving", async {
+        let mut w = m.watch_status();
+        while w.borrow_and_update().position_mm.unwrap_or(0.0) < 0.5 {
+            w.changed().await.unwrap();
+        }
+    })
+    .await;
+    r.twin.inject_fault(0x8611, [0x01, 0x02, 0x03, 0x04, 0x05]);
+    let emcy = within_s(
+        5,
+        "EMCY",
+        event(&mut events, |e| match e {
+            Event::Emcy(e) => Some(*e),
+            _ => None,
+        }),
+    )
+    .await;
+    assert_eq!(emcy.code, 0x8611);
+    assert_eq!(emcy.text(), "following error");
+    assert_eq!(emcy.manufacturer, [1, 2, 3, 4, 5]);
+    within_s(
+        5,
+        "fault state",
+        event(&mut events, |e| {
+            matches!(
+                e,
+                Event::PowerState {
+                    to: PowerState::Fault,
+                    ..
+                }
+            )
+            .then_some(())
+        }),
+    )
+    .await;
+    let err = within_s(5, "move result", mv).await.unwrap().unwrap_err();
+    assert!(matches!(err, DriveError::Fault { emcy: Some(e) } if e.code == 0x8611));
+    assert!(
+        err.to_string().contains("EMCY 0x8611 following error"),
+        "{err}"
+    );
+    assert_eq!(m.status().last_emcy.map(|e| e.code), Some(0x8611));
+    // Enable is refused in fault; a fault reset on command clears it.
+    assert!(matches!(
+        within_s(5, "enable", m.enable()).await,
+        Err(DriveError::Fault { .. })
+    ));
+    within_s(5, "fault reset", m.fault_reset())
+        .await
+        .expect("fault reset");
+    assert_eq!(m.status().state, Some(PowerState::SwitchOnDisabled));
+    within_s(
+        5,
+        "EMCY reset",
+        event(&mut events, |e| match e {
+            Event::Emcy(e) if e.is_reset() => Some(()),
+            _ => None,
+        }),
+    )
+    .await;
+    within_s(10, "enable", m.enable())
+        .await
+        .expect("enable again");
+    assert_eq!(m.status().state, Some(PowerState::OperationEnabled));
+    within_s(10, "move", m.move_to(1.0))
+        .await
+        .expect("move after reset");
+    assert!((m.status().position_mm.unwrap() - 1.0).abs() <= 0.001);
+}
+
+#[tokio::test]
+async fn heartbeat_loss_is_reported() {
+    let cfg = DriveConfig {
+        heartbeat_period: Duration::from_millis(50),
+        heartbeat_timeout: Duration::from_millis(200),
+        ..Default::default()
+    };
+    let r = DriveRig::start(cfg, twin());
+    let m = &r.master;
+    within_s(10, "configure", m.configure())
+        .await
+        .expect("configure");
+    within_s(10, "start", m.start()).await.expect("start");
+    assert!(m.status().heartbeat_ok);
+    let mut events = m.events();
+    r.twin.set_heartbeat(false);
+    within_s(
+        5,
+        "heartbeat lost",
+        event(&mut events, |e| (*e == Event::HeartbeatLost).then_some(())),
+    )
+    .await;
+    assert!(!m.status().heartbeat_ok);
+    r.twin.set_heartbeat(true);
+    within_s(
+        5,
+        "heartbeat resumed",
+        event(&mut events, |e| {
+            (*e == Event::HeartbeatResumed).then_some(())
+        }),
+    )
+    .await;
+    assert!(m.status().heartbeat_ok);
+}
+
+#[tokio::test]
+async fn sdo_abort_from_the_drive_is_a_typed_error() {
+    let r = DriveRig::start(DriveConfig::default(), twin());
+    r.twin.refuse_sdo(Some(SdoRefusal {
+        index: Some(0x6098),
+        code: AbortCode::INVALID_VALUE,
+    }));
+    let err = within_s(10, "configure", r.master.configure())
+        .await
+        .unwrap_err();
+    assert_eq!(
+        err,
+        DriveError::Sdo(SdoError::Aborted {
+            dir: Direction::Download,
+            obj: ObjAddr::new(0x6098, 0),
+            code: AbortCode(0x0609_0030),
+        })
+    );
+    let text = err.to_string();
+    assert!(text.contains("0x6098:00"), "{text}");
+    assert!(text.contains("invalid value for parameter"), "{text}");
+    assert!(!r.master.status().configured);
+    // Served again, the same configuration goes through.
+    r.twin.refuse_sdo(None);
+    within_s(10, "configure", r.master.configure())
+        .await
+        .expect("configure");
+}
+
+#[tokio::test]
+async fn quick_stop_interrupts_a_move() {
+    let r = DriveRig::start(DriveConfig::default(), twin());
+    ready(&r).await;
+    let m = &r.master;
+    let mv = {
+        let m = m.clone();
+        tokio::spawn(async move { m.move_to(20.0).await })
+    };
+    within_s(5, "moving", async {
+        let mut w = m.watch_status();
+        while w.borrow_and_update().position_mm.unwrap_or(0.0) < 0.5 {
+            w.changed().await.unwrap();
+        }
+    })
+    .await;
+    within_s(5, "quick stop", m.quick_stop())
+        .await
+        .expect("quick stop");
+    assert_eq!(
+        within_s(5, "move", mv).await.unwrap(),
+        Err(DriveError::Interrupted { by: "quick stop" })
+    );
+    assert_eq!(m.status().state, Some(PowerState::SwitchOnDisabled));
+    let p = m.status().position_mm.unwrap();
+    assert!(p < 20.0);
+    assert!(!r.twin.status().moving);
+}
