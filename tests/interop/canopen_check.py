@@ -24,6 +24,7 @@ import argparse
 import os
 import signal
 import subprocess
+import threading
 import sys
 import time
 
@@ -70,6 +71,10 @@ def main():
     node = BaseNode402(args.node_id, canopen_drive.build_od(args.node_id, drive_args))
     network.add_node(node)
     node.nmt.state  # noqa: B018  (the NMT master listens from here on)
+    # Count boot-ups from the moment we listen, so one that arrives before we start waiting
+    # for it is not lost (python-canopen's wait_for_bootup only sees later ones).
+    global BOOTUPS
+    BOOTUPS = Bootups(network, args.node_id)
 
     drive = subprocess.Popen(
         [sys.executable, os.path.join(HERE, "canopen_drive.py"), str(args.port),
@@ -99,8 +104,30 @@ def main():
     return 0 if not FAILED else 1
 
 
+class Bootups:
+    """Counts the node's boot-up messages (0x700 + id with byte 0 = 0)."""
+
+    def __init__(self, network, node_id):
+        self.cond = threading.Condition()
+        self.count = 0
+        network.subscribe(0x700 + node_id, self.on_message)
+
+    def on_message(self, can_id, data, timestamp):
+        if data and data[0] == 0:
+            with self.cond:
+                self.count += 1
+                self.cond.notify_all()
+
+    def wait_beyond(self, seen, timeout):
+        """Wait until more than `seen` boot-ups have arrived; return the new count."""
+        with self.cond:
+            if not self.cond.wait_for(lambda: self.count > seen, timeout):
+                raise TimeoutError(f"no boot-up within {timeout} s")
+            return self.count
+
+
 def run(node, network, cpm):
-    node.nmt.wait_for_bootup(10)
+    seen = BOOTUPS.wait_beyond(0, 10)
     check("boot-up", True)
     check("device type 0x1000", node.sdo[0x1000].raw == 0x00020192)
     name = node.sdo[0x1008].raw
@@ -110,7 +137,7 @@ def run(node, network, cpm):
     # Reset communication, as axiscomp's configure does: boot-up again, 0x1017 at its default.
     node.sdo[0x1017].raw = 250
     node.nmt.state = "RESET COMMUNICATION"
-    node.nmt.wait_for_bootup(5)
+    seen = BOOTUPS.wait_beyond(seen, 5)
     check("reset communication: boot-up, defaults back", node.sdo[0x1017].raw == 0)
 
     node.sdo[0x1017].raw = 100

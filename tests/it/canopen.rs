@@ -260,3 +260,86 @@ async fn quick_stop_interrupts_a_move() {
     assert!(p < 20.0);
     assert!(!r.twin.status().moving);
 }
+
+/// python-canopen's `LocalNode` scripted as a CiA 402 drive (tests/interop/canopen_drive.py),
+/// an independent implementation, on python-can's udp_multicast bus: our master configures its
+/// PDOs by SDO, starts it, enables it, homes it and moves it, over our python-can transport.
+#[tokio::test]
+#[ignore = "needs python-canopen and python-can: run by tests/interop/canopen.sh"]
+async fn python_canopen_drive_over_udp_multicast() {
+    use axiscomp::can::pycan::{DEFAULT_GROUP, PyCanMulticast};
+    use std::io::{BufRead, BufReader};
+    use std::process::{Command, Stdio};
+
+    let port = crate::helpers::unused_udp_port();
+    let node = 5u8;
+    // Our end listens before the drive boots, as on a bus powered up together.
+    let transport = PyCanMulticast::open(DEFAULT_GROUP, port, std::net::Ipv4Addr::LOCALHOST)
+        .await
+        .expect("join the python-can multicast bus");
+    // Python answers more slowly than a drive: generous timeouts (they bound hangs only).
+    let cfg = DriveConfig {
+        node_id: node,
+        heartbeat_timeout: Duration::from_secs(2),
+        sdo_timeout: Duration::from_secs(2),
+        state_timeout: Duration::from_secs(5),
+        boot_timeout: Duration::from_secs(30),
+        sync_period: Duration::from_millis(20),
+        ..DriveConfig::default()
+    };
+    let counts_per_mm = cfg.validate().expect("config").counts_per_mm();
+    let (m, task) = axiscomp::canopen::spawn_drive(transport, &cfg).expect("master");
+    let mut child = Command::new("python3")
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args([
+            "tests/interop/canopen_drive.py",
+            &port.to_string(),
+            &node.to_string(),
+        ])
+        .args(["--start-mm", "2.0", "--timeout", "240"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("start python3 tests/interop/canopen_drive.py");
+    let out = child.stdout.take().expect("drive stdout");
+    let log = std::sync::Arc::new(std::sync::Mutex::new(Vec::<String>::new()));
+    let log2 = log.clone();
+    std::thread::spawn(move || {
+        for line in BufReader::new(out).lines().map_while(Result::ok) {
+            log2.lock().unwrap().push(line);
+        }
+    });
+
+    within_s(60, "configure the python drive", m.configure())
+        .await
+        .expect("configure");
+    within_s(30, "start", m.start()).await.expect("start");
+    assert_eq!(m.status().nmt, Some(NmtState::Operational));
+    within_s(30, "enable", m.enable()).await.expect("enable");
+    assert_eq!(m.status().state, Some(PowerState::OperationEnabled));
+    within_s(60, "home", m.home()).await.expect("home");
+    assert!(m.status().homed);
+    for target in [1.5, -1.0, 0.25] {
+        within_s(60, "move", m.move_to(target))
+            .await
+            .unwrap_or_else(|e| panic!("move to {target} mm: {e}"));
+        let st = m.status();
+        let counts = st.position_counts.expect("position from TPDO1");
+        assert_eq!(
+            counts,
+            (target * counts_per_mm).round() as i32,
+            "at {target} mm"
+        );
+        assert!(st.target_reached);
+    }
+    let _ = Command::new("kill").arg(child.id().to_string()).status();
+    let _ = child.wait();
+    task.abort();
+    let log = log.lock().unwrap().join("\n");
+    // The drive saw its mapping written by SDO and went through the CiA 402 states.
+    assert!(log.contains("mapping"), "drive log:\n{log}");
+    assert!(
+        log.to_lowercase().contains("operation enabled"),
+        "drive log:\n{log}"
+    );
+}
