@@ -3,11 +3,14 @@
 //! what was measured with what was injected.
 //!
 //! So far: the optical head with random installation errors, PSD gain errors and noise
-//! (`head`), and a hexapod that applies calibration poses (`hexapod`).
+//! (`head`), a hexapod that applies calibration poses (`hexapod`), the plant's shared physical
+//! state (`plant`), and the I/O module that serves the PSDs as raw counts over Modbus TCP
+//! following an I/O-module map, with fault injection (`iomodule`).
 
 pub mod axis;
 pub mod head;
 pub mod hexapod;
+pub mod iomodule;
 pub mod plant;
 pub mod rng;
 pub mod study;

@@ -2,6 +2,8 @@
 
 mod helpers;
 
+mod acquire;
 mod calibration;
 mod cli;
 mod decoupling;
+mod modbus;
