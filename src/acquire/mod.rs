@@ -2,6 +2,20 @@
 //! through an I/O-module map (counts → volts → spot position) into a `Frame` of three spots.
 //! A PSD whose SUM is below threshold has no spot: the beam is blocked or off it, and the frame
 //! is never averaged in.
+//!
+//! - `map`: I/O-module maps (`plc-maps/io/*.toml`), raw then validated, conditioned or
+//!   electrode channel modes.
+//! - `decode`: registers → volts → spots (and the inverse, for the twin), pure functions.
+//! - `task`: the acquisition loop over a `modbus::Link`, publishing frames on a broadcast
+//!   channel and the latest on a watch, with statistics.
+
+pub mod decode;
+pub mod map;
+pub mod task;
+
+pub use decode::{DecodeError, Reading};
+pub use map::{IoMap, MapError};
+pub use task::{AcquireConfig, AcquireStats, Acquisition};
 
 use crate::optics::Spot;
 use nalgebra::Vector6;

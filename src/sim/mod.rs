@@ -3,13 +3,16 @@
 //! what was measured with what was injected.
 //!
 //! So far: the optical head with random installation errors, PSD gain errors and noise
-//! (`head`), a hexapod that applies calibration poses (`hexapod`), and the follower's CiA 402
-//! drive on a CAN transport (`drive`).
+//! (`head`), a hexapod that applies calibration poses (`hexapod`), the plant's shared physical
+//! state (`plant`: the measured axis, the follower, the beam), the I/O module that serves the
+//! PSDs as raw counts over Modbus TCP following an I/O-module map, with fault injection
+//! (`iomodule`), and the follower's CiA 402 drive on a CAN transport (`drive`).
 
 pub mod axis;
 pub mod drive;
 pub mod head;
 pub mod hexapod;
+pub mod iomodule;
 pub mod plant;
 pub mod rng;
 pub mod study;

@@ -2,6 +2,7 @@
 
 mod helpers;
 
+mod acquire;
 mod calibration;
 mod can;
 mod canopen;
@@ -9,5 +10,6 @@ mod cli;
 mod comp;
 mod decoupling;
 mod evaluate;
+mod modbus;
 mod socketcan;
 mod store;

@@ -1,0 +1,249 @@
+//! The acquisition loop: one block read per frame through the [`Link`], decoded by the map,
+//! timestamped on arrival, published on a `broadcast` channel (every frame) and a `watch`
+//! (the latest), with statistics.
+//!
+//! At `rate_hz > 0` reads start on a fixed schedule (missed ticks are skipped, never
+//! bunched); at `rate_hz = 0` the next read starts as soon as the previous reply is in.
+//! While the link is down the loop waits for it instead of spinning. Frames with a PSD below
+//! its SUM threshold are published marked invalid (that spot `None`) and counted; consumers
+//! must not average them in.
+
+use super::Frame;
+use super::decode::{self, DecodeError};
+use super::map::IoMap;
+use crate::modbus::Link;
+use crate::modbus::link::{LinkError, LinkState, Window};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use tokio::sync::{broadcast, watch};
+use tokio::task::JoinHandle;
+
+/// Acquisition settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AcquireConfig {
+    /// Frames per second; 0 reads as fast as the link answers (default 200).
+    pub rate_hz: f64,
+    /// Frames a slow subscriber may fall behind before it loses some (default 4096).
+    pub capacity: usize,
+    /// Frames in the statistics window (default 1024).
+    pub window: usize,
+}
+
+impl Default for AcquireConfig {
+    fn default() -> Self {
+        AcquireConfig {
+            rate_hz: 200.0,
+            capacity: 4096,
+            window: 1024,
+        }
+    }
+}
+
+/// Acquisition statistics (a snapshot).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AcquireStats {
+    /// Frames published.
+    pub frames: u64,
+    /// Of which invalid (a PSD without its spot).
+    pub invalid_frames: u64,
+    /// Reads that failed (link errors) and blocks that did not decode.
+    pub read_errors: u64,
+    pub decode_errors: u64,
+    /// The last error, if any.
+    pub last_error: Option<AcquireError>,
+    /// Frames per second over the window.
+    pub frames_per_s: f64,
+    /// Request-to-reply time per frame over the window.
+    pub latency_p50: Option<Duration>,
+    pub latency_p99: Option<Duration>,
+    /// The link's state.
+    pub link: LinkState,
+}
+
+/// What went wrong with one read.
+#[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
+pub enum AcquireError {
+    #[error("read failed: {0}")]
+    Link(#[from] LinkError),
+    #[error("block did not decode: {0}")]
+    Decode(#[from] DecodeError),
+}
+
+struct Counters {
+    frames: u64,
+    invalid: u64,
+    read_errors: u64,
+    decode_errors: u64,
+    last_error: Option<AcquireError>,
+    window: Window,
+}
+
+/// A running acquisition. Dropping it (or [`stop`](Self::stop)) ends the loop.
+pub struct Acquisition {
+    frames: broadcast::Sender<Frame>,
+    latest: watch::Receiver<Option<Frame>>,
+    counters: Arc<Mutex<Counters>>,
+    link: Link,
+    task: JoinHandle<()>,
+}
+
+impl Drop for Acquisition {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+fn lock(c: &Mutex<Counters>) -> std::sync::MutexGuard<'_, Counters> {
+    c.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+fn unix_us(now: SystemTime) -> i64 {
+    match now.duration_since(UNIX_EPOCH) {
+        Ok(d) => d.as_micros() as i64,
+        Err(e) => -(e.duration().as_micros() as i64),
+    }
+}
+
+impl Acquisition {
+    /// Start reading `map`'s block through `link` (on the current Tokio runtime).
+    pub fn spawn(link: Link, map: Arc<IoMap>, config: AcquireConfig) -> Acquisition {
+        let (frames, _) = broadcast::channel(config.capacity.max(1));
+        let (latest_tx, latest) = watch::channel(None);
+        let counters = Arc::new(Mutex::new(Counters {
+            frames: 0,
+            invalid: 0,
+            read_errors: 0,
+            decode_errors: 0,
+            last_error: None,
+            window: Window::new(config.window),
+        }));
+        let task = tokio::spawn(run(
+            link.clone(),
+            map,
+            config,
+            frames.clone(),
+            latest_tx,
+            counters.clone(),
+        ));
+        Acquisition {
+            frames,
+            latest,
+            counters,
+            link,
+            task,
+        }
+    }
+
+    /// Every frame from now on.
+    pub fn subscribe(&self) -> broadcast::Receiver<Frame> {
+        self.frames.subscribe()
+    }
+
+    /// The latest frame.
+    pub fn latest(&self) -> watch::Receiver<Option<Frame>> {
+        self.latest.clone()
+    }
+
+    /// A statistics snapshot.
+    pub fn stats(&self) -> AcquireStats {
+        let c = lock(&self.counters);
+        AcquireStats {
+            frames: c.frames,
+            invalid_frames: c.invalid,
+            read_errors: c.read_errors,
+            decode_errors: c.decode_errors,
+            last_error: c.last_error,
+            frames_per_s: c.window.rate_hz(Instant::now()),
+            latency_p50: c.window.quantile(0.5),
+            latency_p99: c.window.quantile(0.99),
+            link: *self.link.state().borrow(),
+        }
+    }
+
+    /// End the loop.
+    pub fn stop(self) {
+        drop(self);
+    }
+}
+
+async fn run(
+    link: Link,
+    map: Arc<IoMap>,
+    config: AcquireConfig,
+    frames: broadcast::Sender<Frame>,
+    latest: watch::Sender<Option<Frame>>,
+    counters: Arc<Mutex<Counters>>,
+) {
+    let mut ticker = (config.rate_hz > 0.0 && config.rate_hz.is_finite()).then(|| {
+        let mut t = tokio::time::interval(Duration::from_secs_f64(1.0 / config.rate_hz));
+        t.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+        t
+    });
+    let mut state = link.state();
+    let mut seq = 0u64;
+    loop {
+        if let Some(t) = ticker.as_mut() {
+            t.tick().await;
+        }
+        let sent = Instant::now();
+        let result = link.read(map.kind, map.unit_id, map.block).await;
+        let at = Instant::now();
+        let wall = SystemTime::now();
+        let error = match result {
+            Ok(block) => match decode::frame(&map, &block, seq, at, unix_us(wall)) {
+                Ok(frame) => {
+                    seq += 1;
+                    {
+                        let mut c = lock(&counters);
+                        c.frames += 1;
+                        if !frame.is_valid() {
+                            c.invalid += 1;
+                        }
+                        c.window.push(at, at.saturating_duration_since(sent));
+                    }
+                    latest.send_replace(Some(frame));
+                    // No subscriber is not an error: the watch still has the frame.
+                    let _ = frames.send(frame);
+                    continue;
+                }
+                Err(e) => AcquireError::Decode(e),
+            },
+            Err(e) => AcquireError::Link(e),
+        };
+        {
+            let mut c = lock(&counters);
+            match error {
+                AcquireError::Link(_) => c.read_errors += 1,
+                AcquireError::Decode(_) => c.decode_errors += 1,
+            }
+            c.last_error = Some(error);
+        }
+        match error {
+            AcquireError::Link(LinkError::Closed) => return,
+            AcquireError::Link(e) if !e.drops_connection() && !link_down(&e) => {
+                // The device answered (an exception) or the map does not fit it: retry at
+                // the configured rate, or after a short pause when unthrottled.
+                if ticker.is_none() {
+                    tokio::time::sleep(Duration::from_millis(10)).await;
+                }
+            }
+            AcquireError::Link(_) => {
+                // Wait for the link to come back rather than spinning on errors.
+                let _ = tokio::time::timeout(
+                    Duration::from_secs(1),
+                    state.wait_for(|s| s.is_up() || *s == LinkState::Closed),
+                )
+                .await;
+            }
+            AcquireError::Decode(_) => {
+                if ticker.is_none() {
+                    tokio::time::sleep(Duration::from_millis(10)).await;
+                }
+            }
+        }
+    }
+}
+
+fn link_down(e: &LinkError) -> bool {
+    matches!(e, LinkError::Disconnected | LinkError::Connect(_))
+}

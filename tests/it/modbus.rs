@@ -1,0 +1,188 @@
+//! The Modbus link against our server scaffolding on loopback: timeouts and the off-by-one
+//! reply, exceptions, writes, the allow-list, link state and shutdown.
+
+use axiscomp::modbus::server::{MemoryBank, ServerConfig, ServerHandle};
+use axiscomp::modbus::{Exception, Link, LinkConfig, LinkError, LinkState, ReadRange};
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+async fn server(allow: Option<Vec<std::net::IpAddr>>) -> (ServerHandle, Arc<MemoryBank>) {
+    // Input register k holds k; holding registers 0..20, writable 10..15.
+    let bank = Arc::new(MemoryBank::new(
+        (0..200).collect(),
+        vec![0; 20],
+        Some((10, 5)),
+    ));
+    let cfg = ServerConfig {
+        bind: "127.0.0.1:0".parse().unwrap(),
+        allow,
+    };
+    let h = ServerHandle::start(cfg, bank.clone()).await.unwrap();
+    (h, bank)
+}
+
+fn link(addr: SocketAddr, timeout_ms: u64) -> Link {
+    Link::spawn(LinkConfig {
+        timeout: Duration::from_millis(timeout_ms),
+        backoff_min: Duration::from_millis(20),
+        backoff_max: Duration::from_millis(200),
+        ..LinkConfig::new(addr)
+    })
+}
+
+fn r(start: u16, count: u16) -> ReadRange {
+    ReadRange::new(start, count).unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_timed_out_call_never_shifts_the_next_reply() {
+    let (srv, _) = server(None).await;
+    let link = link(srv.local_addr(), 100);
+    assert_eq!(link.read_input_registers(1, r(0, 2)).await, Ok(vec![0, 1]));
+    srv.set_delay(Duration::from_millis(300));
+    assert_eq!(
+        link.read_input_registers(1, r(0, 2)).await,
+        Err(LinkError::Timeout(Duration::from_millis(100)))
+    );
+    srv.set_delay(Duration::ZERO);
+    // The late reply to (0, 2) is on its way; the link dropped that connection, so the next
+    // call gets its own answer, not the stale [0, 1]. (Calls made before the new connection
+    // is up fail fast with `Disconnected`.)
+    let t0 = std::time::Instant::now();
+    while link.stats().reconnects == 0 {
+        assert!(t0.elapsed() < Duration::from_secs(2), "reconnected");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    assert_eq!(
+        link.read_input_registers(1, r(50, 2)).await,
+        Ok(vec![50, 51])
+    );
+    for k in 0..20u16 {
+        assert_eq!(
+            link.read_input_registers(1, r(k, 1)).await,
+            Ok(vec![k]),
+            "call {k} after the timeout"
+        );
+    }
+    let st = link.stats();
+    assert_eq!(st.timeouts, 1);
+    assert!(st.reconnects >= 1);
+    assert_eq!(srv.stats().accepted, 2);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_exception_keeps_the_connection() {
+    let (srv, _) = server(None).await;
+    let link = link(srv.local_addr(), 500);
+    srv.set_exception(Some(Exception::ServerDeviceBusy));
+    let e = link.read_input_registers(1, r(0, 1)).await.unwrap_err();
+    assert_eq!(e, LinkError::Exception(Exception::ServerDeviceBusy));
+    assert_eq!(
+        e.to_string(),
+        "the device answered with exception 0x06 (server device busy)"
+    );
+    srv.set_exception(None);
+    assert_eq!(link.read_input_registers(1, r(199, 1)).await, Ok(vec![199]));
+    assert_eq!(
+        link.read_input_registers(1, r(150, 60)).await,
+        Err(LinkError::Exception(Exception::IllegalDataAddress))
+    );
+    let st = link.stats();
+    assert_eq!((st.exceptions, st.reconnects, st.ok), (2, 0, 1));
+    assert_eq!(srv.stats().accepted, 1);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn writes_round_trip_within_the_writable_range() {
+    let (srv, bank) = server(None).await;
+    let link = link(srv.local_addr(), 500);
+    link.write_single_register(1, 10, 0xBEEF).await.unwrap();
+    link.write_multiple_registers(1, 11, &[1, 2, 3])
+        .await
+        .unwrap();
+    assert_eq!(
+        link.read_holding_registers(1, r(9, 6)).await,
+        Ok(vec![0, 0xBEEF, 1, 2, 3, 0])
+    );
+    assert_eq!(&bank.holding()[10..14], &[0xBEEF, 1, 2, 3]);
+    assert_eq!(
+        link.write_single_register(1, 15, 1).await,
+        Err(LinkError::Exception(Exception::IllegalDataAddress))
+    );
+    assert!(matches!(
+        link.write_multiple_registers(1, 0, &[0; 124]).await,
+        Err(LinkError::Address(_))
+    ));
+    assert!(matches!(
+        link.write_multiple_registers(1, 0, &[]).await,
+        Err(LinkError::Address(_))
+    ));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn peers_outside_the_allow_list_are_closed_on_accept() {
+    let (srv, _) = server(Some(vec!["192.0.2.1".parse().unwrap()])).await;
+    let link = link(srv.local_addr(), 300);
+    // The TCP connect succeeds, then the server closes it: the call fails and nothing is read.
+    let e = link.read_input_registers(1, r(0, 1)).await.unwrap_err();
+    assert!(
+        matches!(e, LinkError::Io(_) | LinkError::Disconnected),
+        "{e}"
+    );
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let st = srv.stats();
+    assert!(
+        st.refused >= 1 && st.accepted == 0 && st.requests == 0,
+        "{st:?}"
+    );
+
+    let (ok, _) = server(Some(vec!["127.0.0.1".parse().unwrap()])).await;
+    let link = self::link(ok.local_addr(), 300);
+    assert_eq!(link.read_input_registers(1, r(7, 1)).await, Ok(vec![7]));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn link_state_follows_the_device_and_ends_with_the_handles() {
+    let (srv, _) = server(None).await;
+    let link = link(srv.local_addr(), 300);
+    assert!(link.wait_up(Duration::from_secs(2)).await);
+    srv.stop().await;
+    assert!(!srv.is_running());
+    // The next call notices the closed connection; reconnects are refused while stopped.
+    assert!(link.read_input_registers(1, r(0, 1)).await.is_err());
+    let mut st = link.state();
+    // (Hold no watch `Ref` across awaits: it blocks the link task's next state update.)
+    let down = tokio::time::timeout(
+        Duration::from_secs(2),
+        st.wait_for(|s| {
+            matches!(
+                s,
+                LinkState::Down {
+                    error: LinkError::Connect(std::io::ErrorKind::ConnectionRefused),
+                    ..
+                }
+            )
+        }),
+    )
+    .await
+    .is_ok();
+    assert!(down, "state {:?}", *link.state().borrow());
+    assert_eq!(
+        link.read_input_registers(1, r(0, 1)).await,
+        Err(LinkError::Disconnected),
+        "calls fail fast while down"
+    );
+    srv.restart().await.unwrap();
+    assert!(link.wait_up(Duration::from_secs(2)).await);
+    assert_eq!(link.read_input_registers(1, r(3, 1)).await, Ok(vec![3]));
+    let mut st = link.state();
+    drop(link);
+    let closed = tokio::time::timeout(
+        Duration::from_secs(2),
+        st.wait_for(|s| *s == LinkState::Closed),
+    )
+    .await
+    .is_ok();
+    assert!(closed, "the task ends when the handles are gone");
+}
