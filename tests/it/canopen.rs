@@ -274,7 +274,9 @@ async fn python_canopen_drive_over_udp_multicast() {
     let port = crate::helpers::unused_udp_port();
     let node = 5u8;
     // Our end listens before the drive boots, as on a bus powered up together.
-    let transport = PyCanMulticast::open(DEFAULT_GROUP, port, std::net::Ipv4Addr::LOCALHOST)
+    // iface 0.0.0.0: join and send where python-can does by default (the kernel picks the
+    // interface by route), so a stock python-can peer on this host hears us.
+    let transport = PyCanMulticast::open(DEFAULT_GROUP, port, std::net::Ipv4Addr::UNSPECIFIED)
         .await
         .expect("join the python-can multicast bus");
     // Python answers more slowly than a drive: generous timeouts (they bound hangs only).
@@ -309,6 +311,17 @@ async fn python_canopen_drive_over_udp_multicast() {
             log2.lock().unwrap().push(line);
         }
     });
+    /// Prints the drive's log when the test fails, so a failure says what the drive saw.
+    struct ShowLog(std::sync::Arc<std::sync::Mutex<Vec<String>>>);
+    impl Drop for ShowLog {
+        fn drop(&mut self) {
+            if std::thread::panicking() {
+                let log = self.0.lock().map(|l| l.join("\n")).unwrap_or_default();
+                eprintln!("--- python drive log ---\n{log}");
+            }
+        }
+    }
+    let _show = ShowLog(log.clone());
 
     within_s(60, "configure the python drive", m.configure())
         .await
