@@ -6,6 +6,7 @@ mod decouple;
 mod demo;
 mod evaluate;
 mod optics;
+mod service;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -41,6 +42,14 @@ enum Command {
     Decouple(decouple::Args),
     /// ISO 230-2 positioning figures from a deviation table (CSV).
     Evaluate(evaluate::Args),
+    /// Run the measurement service (systemd: Type=notify).
+    Serve(service::ServeArgs),
+    /// Print the running service's live snapshot.
+    Status(service::StatusArgs),
+    /// Check the configuration and every file it names, offline.
+    Check(service::ServeArgs),
+    /// Run the digital twin (I/O module, follower drive, axis) for the service to measure.
+    Sim(service::SimArgs),
 }
 
 /// Run a parsed command line.
@@ -51,6 +60,10 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Calibrate(c) => calibrate::run(c),
         Command::Decouple(a) => decouple::run(a),
         Command::Evaluate(a) => evaluate::run(a),
+        Command::Serve(a) => service::serve(a),
+        Command::Status(a) => service::status(a),
+        Command::Check(a) => service::check(a),
+        Command::Sim(a) => service::sim(a),
     }
 }
 

@@ -13,6 +13,9 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 use thiserror::Error;
 
+use crate::acquire::AcquireConfig;
+use crate::canopen::{DriveConfig, HomingConfig, ProfileConfig, Scaling, TravelLimits};
+use crate::modbus::LinkConfig;
 use crate::track::{Strategy, TrackSettings};
 
 /// The built-in defaults (the lowest layer).
@@ -90,11 +93,23 @@ pub struct RawFollower {
     pub heartbeat_timeout_ms: u64,
     pub sdo_timeout_ms: u64,
     pub sync_ms: u64,
-    pub counts_per_mm: f64,
+    pub feed_mm: f64,
+    pub shaft_revolutions: u32,
+    pub encoder_increments: u32,
+    pub motor_revolutions: u32,
+    pub gear_ratio: f64,
     pub homing_method: i64,
-    pub homing_speed_mm_s: f64,
+    pub homing_switch_speed_mm_s: f64,
+    pub homing_zero_speed_mm_s: f64,
+    pub homing_accel_mm_s2: f64,
+    pub homing_offset_mm: f64,
+    pub homing_timeout_ms: u64,
     pub velocity_mm_s: f64,
     pub accel_mm_s2: f64,
+    pub decel_mm_s2: f64,
+    pub quick_stop_decel_mm_s2: f64,
+    pub position_window_um: f64,
+    pub following_error_window_mm: f64,
     pub min_mm: f64,
     pub max_mm: f64,
     pub home_on_start: bool,
@@ -116,6 +131,8 @@ pub struct RawTracking {
     pub lost_after_ms: u64,
     pub encoder_sd_um: f64,
     pub encoder_sd_um_per_m: f64,
+    pub vertical_sd_um: f64,
+    pub vertical_sd_um_per_m: f64,
     pub move_timeout_ms: u64,
 }
 
@@ -161,14 +178,13 @@ pub struct HeadSettings {
 /// `[io]`, validated.
 #[derive(Clone, Debug, PartialEq)]
 pub struct IoSettings {
-    pub address: SocketAddr,
+    /// The Modbus link to the module.
+    pub link: LinkConfig,
+    /// The unit id overriding the map's; 0 keeps the map's.
     pub unit: u8,
     pub map: Resource,
-    /// Frame period; zero means as fast as the module answers.
-    pub period: Duration,
-    pub timeout: Duration,
-    pub reconnect_min: Duration,
-    pub reconnect_max: Duration,
+    /// Frames per second (0: as fast as the module answers) and buffering.
+    pub acquire: AcquireConfig,
 }
 
 /// `[can]`, validated: which transport.
@@ -191,18 +207,8 @@ pub enum CanSettings {
 /// `[follower]`, validated.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FollowerSettings {
-    pub node_id: u8,
-    pub heartbeat_period: Duration,
-    pub heartbeat_timeout: Duration,
-    pub sdo_timeout: Duration,
-    pub sync_period: Duration,
-    pub counts_per_mm: f64,
-    pub homing_method: i8,
-    pub homing_speed_mm_s: f64,
-    pub velocity_mm_s: f64,
-    pub accel_mm_s2: f64,
-    pub min_mm: f64,
-    pub max_mm: f64,
+    /// The CiA 402 drive, checked by `DriveConfig::validate`.
+    pub drive: DriveConfig,
     pub home_on_start: bool,
 }
 
@@ -328,6 +334,36 @@ pub fn load(layers: &Layers) -> Result<Settings, ConfigError> {
     validate(&raw, &origin, sources)
 }
 
+/// The `[follower]` key behind an error of `DriveConfig::validate`.
+fn follower_key(e: &crate::canopen::ConfigError) -> String {
+    let inner = match e {
+        crate::canopen::ConfigError::Invalid { key, .. } => *key,
+        crate::canopen::ConfigError::NodeId(_) => "node_id",
+    };
+    let name = match inner {
+        "heartbeat_period" => "heartbeat_ms".to_string(),
+        "heartbeat_timeout" => "heartbeat_timeout_ms".to_string(),
+        "sdo_timeout" => "sdo_timeout_ms".to_string(),
+        "sync_period" => "sync_ms".to_string(),
+        "homing.timeout" => "homing_timeout_ms".to_string(),
+        "profile.position_window_mm" => "position_window_um".to_string(),
+        "limits" | "limits.min_mm" => "min_mm".to_string(),
+        "limits.max_mm" => "max_mm".to_string(),
+        k => {
+            if let Some(rest) = k.strip_prefix("scaling.") {
+                rest.to_string()
+            } else if let Some(rest) = k.strip_prefix("homing.") {
+                format!("homing_{rest}")
+            } else if let Some(rest) = k.strip_prefix("profile.") {
+                rest.to_string()
+            } else {
+                k.to_string()
+            }
+        }
+    };
+    format!("follower.{name}")
+}
+
 struct V<'a> {
     origin: &'a dyn Fn(&str) -> String,
 }
@@ -445,18 +481,19 @@ fn validate(
             ),
         ));
     }
+    let address = v.addr("io.address", &i.address)?;
+    let mut link = LinkConfig::new(address);
+    link.timeout = v.ms("io.timeout_ms", i.timeout_ms, 1)?;
+    link.backoff_min = rmin;
+    link.backoff_max = rmax;
     let io = IoSettings {
-        address: v.addr("io.address", &i.address)?,
+        link,
         unit,
         map: v.resource("io.map", &i.map, &["generic"])?,
-        period: if rate == 0.0 {
-            Duration::ZERO
-        } else {
-            Duration::from_secs_f64(1.0 / rate)
+        acquire: AcquireConfig {
+            rate_hz: rate,
+            ..AcquireConfig::default()
         },
-        timeout: v.ms("io.timeout_ms", i.timeout_ms, 1)?,
-        reconnect_min: rmin,
-        reconnect_max: rmax,
     };
     let c = &raw.can;
     let can = match c.transport.as_str() {
@@ -519,17 +556,6 @@ fn validate(
                 format!("{} is not a CANopen node id (1..=127)", f.node_id),
             )
         })?;
-    let heartbeat_period = v.ms("follower.heartbeat_ms", f.heartbeat_ms, 1)?;
-    let heartbeat_timeout = v.ms("follower.heartbeat_timeout_ms", f.heartbeat_timeout_ms, 1)?;
-    if heartbeat_timeout <= heartbeat_period {
-        return Err(v.err(
-            "follower.heartbeat_timeout_ms",
-            format!(
-                "{} ms must exceed follower.heartbeat_ms ({} ms): give it 2–3 periods",
-                f.heartbeat_timeout_ms, f.heartbeat_ms
-            ),
-        ));
-    }
     let homing_method = i8::try_from(f.homing_method).map_err(|_| {
         v.err(
             "follower.homing_method",
@@ -548,19 +574,49 @@ fn validate(
             ),
         ));
     }
-    let follower = FollowerSettings {
+    let drive = DriveConfig {
         node_id,
-        heartbeat_period,
-        heartbeat_timeout,
-        sdo_timeout: v.ms("follower.sdo_timeout_ms", f.sdo_timeout_ms, 1)?,
-        sync_period: v.ms("follower.sync_ms", f.sync_ms, 1)?,
-        counts_per_mm: v.positive("follower.counts_per_mm", f.counts_per_mm)?,
-        homing_method,
-        homing_speed_mm_s: v.positive("follower.homing_speed_mm_s", f.homing_speed_mm_s)?,
-        velocity_mm_s: v.positive("follower.velocity_mm_s", f.velocity_mm_s)?,
-        accel_mm_s2: v.positive("follower.accel_mm_s2", f.accel_mm_s2)?,
-        min_mm: f.min_mm,
-        max_mm: f.max_mm,
+        heartbeat_period: Duration::from_millis(f.heartbeat_ms),
+        heartbeat_timeout: Duration::from_millis(f.heartbeat_timeout_ms),
+        sdo_timeout: Duration::from_millis(f.sdo_timeout_ms),
+        sync_period: Duration::from_millis(f.sync_ms),
+        scaling: Scaling {
+            feed_mm: f.feed_mm,
+            shaft_revolutions: f.shaft_revolutions,
+            encoder_increments: f.encoder_increments,
+            motor_revolutions: f.motor_revolutions,
+            gear_ratio: f.gear_ratio,
+        },
+        homing: HomingConfig {
+            method: homing_method,
+            switch_speed_mm_s: f.homing_switch_speed_mm_s,
+            zero_speed_mm_s: f.homing_zero_speed_mm_s,
+            accel_mm_s2: f.homing_accel_mm_s2,
+            offset_mm: f.homing_offset_mm,
+            timeout: Duration::from_millis(f.homing_timeout_ms),
+        },
+        profile: ProfileConfig {
+            velocity_mm_s: f.velocity_mm_s,
+            accel_mm_s2: f.accel_mm_s2,
+            decel_mm_s2: f.decel_mm_s2,
+            quick_stop_decel_mm_s2: f.quick_stop_decel_mm_s2,
+            position_window_mm: f.position_window_um * 1e-3,
+            following_error_window_mm: f.following_error_window_mm,
+            ..ProfileConfig::default()
+        },
+        limits: TravelLimits {
+            min_mm: f.min_mm,
+            max_mm: f.max_mm,
+            write_to_drive: true,
+        },
+        ..DriveConfig::default()
+    };
+    if let Err(e) = drive.validate() {
+        let key = follower_key(&e);
+        return Err(v.err(&key, e.to_string()));
+    }
+    let follower = FollowerSettings {
+        drive,
         home_on_start: f.home_on_start,
     };
     let t = &raw.tracking;
@@ -602,6 +658,10 @@ fn validate(
         encoder_sd_mm: v.non_negative("tracking.encoder_sd_um", t.encoder_sd_um)? * 1e-3,
         encoder_sd_per_mm: v.non_negative("tracking.encoder_sd_um_per_m", t.encoder_sd_um_per_m)?
             * 1e-6,
+        vertical_sd_mm: v.non_negative("tracking.vertical_sd_um", t.vertical_sd_um)? * 1e-3,
+        vertical_sd_per_mm: v
+            .non_negative("tracking.vertical_sd_um_per_m", t.vertical_sd_um_per_m)?
+            * 1e-6,
         move_timeout: v.ms("tracking.move_timeout_ms", t.move_timeout_ms, 1)?,
     };
     Ok(Settings {
@@ -639,8 +699,9 @@ mod tests {
     #[test]
     fn defaults_are_valid() {
         let s = load(&Layers::default()).unwrap();
-        assert_eq!(s.io.period, Duration::from_millis(2));
-        assert_eq!(s.follower.node_id, 1);
+        assert_eq!(s.io.acquire.rate_hz, 500.0);
+        assert_eq!(s.follower.drive.node_id, 1);
+        assert!((s.follower.drive.scaling.counts_per_mm() - 26214.4).abs() < 1e-9);
         assert_eq!(s.tracking.strategy, Strategy::Overlap);
         assert_eq!(s.head.layout, Resource::Builtin("reference".into()));
     }
@@ -654,7 +715,7 @@ mod tests {
             env: vec![],
         })
         .unwrap();
-        assert_eq!(s.io.address, "192.168.10.20:502".parse().unwrap());
+        assert_eq!(s.io.link.addr, "192.168.10.20:502".parse().unwrap());
         assert!(matches!(s.can, CanSettings::SocketCan { .. }));
         // Every key of the built-in defaults appears in the example.
         let defaults: toml::Table = toml::from_str(DEFAULTS).unwrap();
@@ -685,8 +746,8 @@ mod tests {
             ],
         )
         .unwrap();
-        assert_eq!(s.io.period, Duration::from_millis(10));
-        assert_eq!(s.io.address, "10.0.0.5:502".parse().unwrap());
+        assert_eq!(s.io.acquire.rate_hz, 100.0);
+        assert_eq!(s.io.link.addr, "10.0.0.5:502".parse().unwrap());
         assert!(matches!(s.can, CanSettings::Cannelloni { .. }));
     }
 
@@ -720,6 +781,11 @@ mod tests {
                 && e.to_string().contains("socketcan, cannelloni or pycan"),
             "{e}"
         );
+
+        let e = load_text("[follower]\nfeed_mm = 0.0\n", &[]).unwrap_err();
+        assert_eq!(e.key, "follower.feed_mm", "{e}");
+        let e = load_text("[follower]\nheartbeat_timeout_ms = 50\n", &[]).unwrap_err();
+        assert_eq!(e.key, "follower.heartbeat_timeout_ms", "{e}");
 
         let e = load_text("[io]\naddress = \"plc\"\n", &[]).unwrap_err();
         assert!(

@@ -147,8 +147,24 @@ pub fn solve_nonlinear(
     sigma_mm: &[f64; 6],
     opts: &SolveOptions,
 ) -> Result<Estimate, DecoupleError> {
+    let j = jacobian(layout, &Pose::new(Errors6::ZERO, travel, follower))?;
+    solve_nonlinear_from(layout, r, travel, follower, sigma_mm, opts, j)
+}
+
+/// `solve_nonlinear` starting from a given β (the Jacobian at zero error near this travel and
+/// follower position, e.g. cached from the previous frame). The solution does not depend on
+/// it as long as the iteration converges: every step uses the exact forward model.
+pub fn solve_nonlinear_from(
+    layout: &Layout,
+    r: &Vector6<f64>,
+    travel: f64,
+    follower: f64,
+    sigma_mm: &[f64; 6],
+    opts: &SolveOptions,
+    beta: Matrix6<f64>,
+) -> Result<Estimate, DecoupleError> {
     let pose0 = Pose::new(Errors6::ZERO, travel, follower);
-    let mut j = jacobian(layout, &pose0)?;
+    let mut j = beta;
     let mut lu = j.lu();
     let f0 = model_readings(layout, &pose0)?;
     let mut e = lu.solve(&(r - f0)).ok_or(DecoupleError::Singular)?;
@@ -188,6 +204,39 @@ pub fn solve_nonlinear(
         iterations: 0,
         step_um: f64::NAN,
     })
+}
+
+/// β(D) kept between frames: reused while travel and follower stay within `BETA_REUSE_MM` of
+/// where it was computed (β changes by about 0.3 % per mm of travel; the nonlinear solution
+/// does not depend on the β it starts from, only on the exact forward model).
+#[derive(Clone, Debug, Default)]
+pub struct BetaCache {
+    at: Option<(f64, f64)>,
+    beta: Matrix6<f64>,
+    inverse: Matrix6<f64>,
+}
+
+/// How far travel or follower may move before β(D) is recomputed (mm).
+pub const BETA_REUSE_MM: f64 = 0.05;
+
+impl BetaCache {
+    fn get(
+        &mut self,
+        dec: &Decoupler,
+        travel: f64,
+        follower: f64,
+    ) -> Result<(Matrix6<f64>, Matrix6<f64>), DecoupleError> {
+        let fresh = self.at.is_some_and(|(t, f)| {
+            (t - travel).abs() < BETA_REUSE_MM && (f - follower).abs() < BETA_REUSE_MM
+        });
+        if !fresh {
+            let beta = dec.beta(travel, follower)?;
+            self.inverse = beta.try_inverse().ok_or(DecoupleError::Singular)?;
+            self.beta = beta;
+            self.at = Some((travel, follower));
+        }
+        Ok((self.beta, self.inverse))
+    }
 }
 
 /// Where β and the offset come from.
@@ -249,6 +298,27 @@ impl Decoupler {
             .ok_or(DecoupleError::Singular)?;
         let d = Matrix6::from_diagonal(&Vector6::from(*var));
         Ok(inv * d * inv.transpose())
+    }
+
+    /// `decouple` and `propagate` together, reusing β(D) from `cache` when travel and follower
+    /// have hardly moved: the per-frame path of the live service.
+    pub fn decouple_cached(
+        &self,
+        r: &Vector6<f64>,
+        travel: f64,
+        follower: f64,
+        extra_var: &[f64; 6],
+        cache: &mut BetaCache,
+    ) -> Result<(Estimate, Matrix6<f64>), DecoupleError> {
+        let (beta, inv) = cache.get(self, travel, follower)?;
+        let est = match (&self.source, self.method) {
+            (Source::Simulated(l) | Source::Model(l), Method::Nonlinear) => {
+                solve_nonlinear_from(l, r, travel, follower, &self.sigma_mm, &self.options, beta)?
+            }
+            _ => self.decouple(r, travel, follower)?,
+        };
+        let d = Matrix6::from_diagonal(&Vector6::from(*extra_var));
+        Ok((est, inv * d * inv.transpose()))
     }
 
     /// Decouple readings `r` (mm) taken at travel `travel` with the follower at `follower`.

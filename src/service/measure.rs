@@ -9,7 +9,8 @@
 //! argument.
 
 use crate::acquire::Frame;
-use crate::decouple::{DecoupleError, Decoupler};
+use crate::decouple::{BetaCache, DecoupleError, Decoupler};
+use crate::run::FrameSample;
 use crate::track::Stitch;
 use crate::units::Errors6;
 use nalgebra::{Matrix6, Vector6};
@@ -54,6 +55,7 @@ struct Sample {
 #[derive(Debug)]
 pub struct Measure {
     decoupler: Decoupler,
+    beta: BetaCache,
     window: Duration,
     samples: VecDeque<Sample>,
     frame_cov: Matrix6<f64>,
@@ -66,6 +68,7 @@ impl Measure {
     pub fn new(decoupler: Decoupler, window: Duration) -> Self {
         Measure {
             decoupler,
+            beta: BetaCache::default(),
             window,
             samples: VecDeque::new(),
             frame_cov: Matrix6::zeros(),
@@ -108,14 +111,14 @@ impl Measure {
     }
 
     /// Feed one frame with PSD2's stitched position. Invalid frames (a PSD without its spot)
-    /// and frames without a valid stitch are skipped: never averaged in. Returns whether the
-    /// frame was used.
+    /// and frames without a valid stitch are skipped: never averaged in. Returns the frame's
+    /// estimate when it was used.
     pub fn handle_frame(
         &mut self,
         frame: &Frame,
         stitch: &Stitch,
         now: Instant,
-    ) -> Result<bool, DecoupleError> {
+    ) -> Result<Option<FrameSample>, DecoupleError> {
         while let Some(s) = self.samples.front() {
             if now.saturating_duration_since(s.at) > self.window {
                 self.samples.pop_front();
@@ -124,15 +127,18 @@ impl Measure {
             }
         }
         let Some(mut r) = frame.readings() else {
-            return Ok(false);
+            return Ok(None);
         };
         if !stitch.valid {
-            return Ok(false);
+            return Ok(None);
         }
         r[3] += stitch.vertical_mm;
         let follower = stitch.follower_mm;
         let travel = self.nominal.unwrap_or(follower + r[2]);
-        let est = self.decoupler.decouple(&r, travel, follower)?;
+        let var = [0.0, 0.0, stitch.variance[0], stitch.variance[1], 0.0, 0.0];
+        let (est, stitch_cov) =
+            self.decoupler
+                .decouple_cached(&r, travel, follower, &var, &mut self.beta)?;
         self.frame_cov = est.cov;
         self.samples.push_back(Sample {
             at: now,
@@ -141,7 +147,17 @@ impl Measure {
             follower,
             stitch_var: stitch.variance,
         });
-        Ok(true)
+        Ok(Some(FrameSample {
+            at: now,
+            unix_us: frame.unix_us,
+            position_mm: travel + est.errors.dy,
+            nominal: self.nominal,
+            errors: est.errors,
+            var: Errors6::from_array(std::array::from_fn(|k| est.cov[(k, k)])),
+            stitch_var: Errors6::from_array(std::array::from_fn(|k| stitch_cov[(k, k)])),
+            material_c: None,
+            air_c: None,
+        }))
     }
 
     /// Covariance of the window's mean: noise / n plus the stitching variance through β.
@@ -240,7 +256,7 @@ mod tests {
             for i in 0..125 {
                 let t = t0 + Duration::from_millis(2 * (i + 125 * trial));
                 let f = frame_at(&layout, &pose, &mut rng, t, 1e-3);
-                assert!(m.handle_frame(&f, &stitch(99.2, 0.0), t).unwrap());
+                assert!(m.handle_frame(&f, &stitch(99.2, 0.0), t).unwrap().is_some());
             }
             let live = m.live().unwrap();
             assert_eq!(live.frames, 125);
@@ -282,10 +298,14 @@ mod tests {
         assert!(live.position_mm.abs() < 1e-9);
         let mut blocked = f;
         blocked.spots[2] = None;
-        assert!(!m.handle_frame(&blocked, &stitch(0.0, 0.0), t).unwrap());
+        assert!(
+            m.handle_frame(&blocked, &stitch(0.0, 0.0), t)
+                .unwrap()
+                .is_none()
+        );
         let mut broken = stitch(0.0, 0.0);
         broken.valid = false;
-        assert!(!m.handle_frame(&f, &broken, t).unwrap());
+        assert!(m.handle_frame(&f, &broken, t).unwrap().is_none());
         assert_eq!(m.live().unwrap().frames, 1);
         assert!(m.set_zero().is_some());
         assert!(m.live().unwrap().zeroed);

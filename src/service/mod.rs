@@ -1,8 +1,176 @@
-//! The live service (DESIGN §5, §8): tasks wired around a `Snapshot` on a watch channel.
+//! The live service (DESIGN §5, §8): the I/O-module link and acquisition, the follower drive,
+//! the core task (tracking, stitching, live decoupling, alarms), the control socket, systemd
+//! notification — wired around a `Snapshot` on a watch channel. `run(settings, shutdown)` is the
+//! whole service; `prepare` loads and checks everything it reads (also `axiscomp check`).
 
 pub mod control;
+mod core;
 pub mod measure;
 pub mod notify;
 pub mod peer;
 pub mod shutdown;
 pub mod snapshot;
+
+use crate::acquire::{Acquisition, IoMap, MapError};
+use crate::calibrate::{CalError, Calibration, CalibrationFile};
+use crate::can::CanError;
+use crate::can::cannelloni::Cannelloni;
+use crate::can::pycan::PyCanMulticast;
+use crate::can::socketcan::SocketCan;
+use crate::canopen::{DriveHandle, spawn_drive};
+use crate::config::{CanSettings, Resource, Settings};
+use crate::decouple::{Decoupler, Method, SolveOptions, Source};
+use crate::modbus::Link;
+use crate::optics::{Layout, LayoutError};
+use shutdown::Shutdown;
+use snapshot::Snapshot;
+use thiserror::Error;
+use tokio::sync::{mpsc, watch};
+
+/// Why the service could not start or had to stop.
+#[derive(Debug, Error)]
+pub enum ServiceError {
+    #[error(transparent)]
+    Layout(#[from] LayoutError),
+    #[error(transparent)]
+    Calibration(#[from] CalError),
+    #[error(transparent)]
+    Map(#[from] MapError),
+    #[error("CAN transport {what}: {source}")]
+    Can { what: String, source: CanError },
+    #[error("follower drive settings: {0}")]
+    Drive(#[from] crate::canopen::ConfigError),
+    #[error(transparent)]
+    Control(#[from] control::ControlError),
+    #[error("decoupling: {0}")]
+    Decouple(#[from] crate::decouple::DecoupleError),
+}
+
+impl ServiceError {
+    /// Whether the cause is input the user must fix (a file or setting), not the field.
+    pub fn is_input(&self) -> bool {
+        matches!(
+            self,
+            ServiceError::Layout(_)
+                | ServiceError::Map(_)
+                | ServiceError::Drive(_)
+                | ServiceError::Calibration(
+                    CalError::File { .. } | CalError::Input(_) | CalError::Csv(_)
+                )
+        )
+    }
+}
+
+/// Everything the service reads from files, loaded and checked.
+#[derive(Clone, Debug)]
+pub struct Prepared {
+    pub settings: Settings,
+    pub layout: Layout,
+    pub calibration: Option<Calibration>,
+    pub map: IoMap,
+    pub decoupler: Decoupler,
+}
+
+/// Load and check the layout, the calibration, the I/O map and the drive settings.
+pub fn prepare(settings: &Settings) -> Result<Prepared, ServiceError> {
+    let layout = match &settings.head.layout {
+        Resource::Builtin(_) => Layout::reference(),
+        Resource::File(p) => Layout::load(p)?,
+    };
+    let map = match &settings.io.map {
+        Resource::Builtin(_) => IoMap::generic()?,
+        Resource::File(p) => IoMap::load(p)?,
+    };
+    settings.follower.drive.validate()?;
+    let calibration = match &settings.head.calibration {
+        Some(p) => Some(CalibrationFile::load(p, &layout)?),
+        None => None,
+    };
+    let decoupler = match &calibration {
+        Some(c) => c.decoupler(&layout)?,
+        None => Decoupler {
+            source: Source::Simulated(layout.clone()),
+            method: Method::Nonlinear,
+            sigma_mm: [settings.head.noise_mm; 6],
+            options: SolveOptions::default(),
+        },
+    };
+    Ok(Prepared {
+        settings: settings.clone(),
+        layout,
+        calibration,
+        map,
+        decoupler,
+    })
+}
+
+/// Start the drive's master on the configured transport.
+async fn start_drive(
+    p: &Prepared,
+) -> Result<
+    (
+        DriveHandle,
+        tokio::task::JoinHandle<Result<(), CanError>>,
+        String,
+    ),
+    ServiceError,
+> {
+    let cfg = &p.settings.follower.drive;
+    let can_err = |what: String| move |source| ServiceError::Can { what, source };
+    Ok(match &p.settings.can {
+        CanSettings::SocketCan { interface } => {
+            let t = SocketCan::open(interface).map_err(can_err(interface.clone()))?;
+            let (h, j) = spawn_drive(t, cfg)?;
+            (h, j, interface.clone())
+        }
+        CanSettings::Cannelloni { local, remote } => {
+            let what = format!("cannelloni {local} → {remote}");
+            let t = Cannelloni::open(*local, *remote)
+                .await
+                .map_err(can_err(what.clone()))?;
+            let (h, j) = spawn_drive(t, cfg)?;
+            (h, j, what)
+        }
+        CanSettings::PyCan { group, port, iface } => {
+            let what = format!("python-can udp_multicast {group}:{port} on {iface}");
+            let t = PyCanMulticast::open(*group, *port, *iface)
+                .await
+                .map_err(can_err(what.clone()))?;
+            let (h, j) = spawn_drive(t, cfg)?;
+            (h, j, what)
+        }
+    })
+}
+
+/// Run the service until `shutdown` fires. Returns when every task has stopped.
+pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
+    let s = &p.settings;
+    tracing::info!(sources = ?s.sources, "axiscomp service starting");
+    let listener = control::bind(&s.service.socket)?;
+    let link = Link::spawn(s.io.link.clone());
+    let mut map = p.map.clone();
+    if s.io.unit != 0 {
+        map.unit_id = s.io.unit;
+    }
+    let acquisition = Acquisition::spawn(link.clone(), std::sync::Arc::new(map), s.io.acquire);
+    let (drive, drive_task, can_peer) = start_drive(&p).await?;
+    let (snap_tx, snap_rx) = watch::channel(Snapshot::default());
+    let (cmd_tx, cmd_rx) = mpsc::channel(32);
+    let policy = peer::RolePolicy::from_names(&s.service.operator_group, &s.service.viewer_group);
+    let control = tokio::spawn(control::serve(
+        listener,
+        policy,
+        snap_rx,
+        cmd_tx,
+        s.service.snapshot_period,
+        shutdown.clone(),
+    ));
+    let core = core::Core::new(&p, link, acquisition, drive, can_peer, snap_tx);
+    let result = core.run(cmd_rx, shutdown).await;
+    notify::stopping();
+    drive_task.abort();
+    let _ = control.await;
+    let _ = std::fs::remove_file(&s.service.socket);
+    tracing::info!("axiscomp service stopped");
+    result
+}

@@ -34,6 +34,9 @@ pub struct PsdView {
     pub rate_hz: f64,
     /// Invalid frames (beam blocked or off a PSD) since start.
     pub invalid_frames: u64,
+    /// Frames the core was too late to decouple (tracked, not averaged) since start.
+    #[serde(default)]
+    pub late_frames: u64,
 }
 
 /// The live six errors in user units.

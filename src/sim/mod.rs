@@ -9,6 +9,7 @@
 //! (`iomodule`), and the follower's CiA 402 drive on a CAN transport (`drive`).
 
 pub mod axis;
+pub mod config;
 pub mod drive;
 pub mod head;
 pub mod hexapod;
@@ -16,6 +17,7 @@ pub mod iomodule;
 pub mod plant;
 pub mod rng;
 pub mod study;
+pub mod twin;
 
 pub use drive::{TwinDrive, TwinDriveConfig, TwinDriveHandle, spawn_twin_drive};
 pub use head::{InstallSpec, TwinHead};

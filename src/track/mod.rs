@@ -57,6 +57,11 @@ pub struct TrackSettings {
     /// Encoder accuracy: standard deviation `a + b·|travelled|` (mm, and mm per mm).
     pub encoder_sd_mm: f64,
     pub encoder_sd_per_mm: f64,
+    /// The follower's vertical straightness as a standard deviation `a + b·|travelled|` (mm,
+    /// and mm per mm): what an encoder step leaves unmeasured across the axis (it reads as
+    /// roll, 1.38″ per µm).
+    pub vertical_sd_mm: f64,
+    pub vertical_sd_per_mm: f64,
     /// A follower move that has not finished after this long is abandoned.
     pub move_timeout: Duration,
 }
@@ -76,6 +81,8 @@ impl Default for TrackSettings {
             lost_after: Duration::from_millis(500),
             encoder_sd_mm: 1e-3,
             encoder_sd_per_mm: 5e-6,
+            vertical_sd_mm: 0.2e-3,
+            vertical_sd_per_mm: 3e-6,
             move_timeout: Duration::from_secs(10),
         }
     }
@@ -281,12 +288,21 @@ impl Tracker {
         true
     }
 
+    /// Mark the stitch broken (the follower was moved outside the tracker's control); it stays
+    /// invalid until `reference`.
+    pub fn invalidate(&mut self) {
+        self.valid = false;
+        self.phase = Phase::Watch;
+    }
+
     /// Where PSD2 is now.
     pub fn stitch(&self) -> Stitch {
         let (follower_mm, vertical_mm, variance) = match (self.settings.strategy, self.follower) {
-            (Strategy::Encoder, Some(f)) => {
-                (f.position_mm, 0.0, [self.encoder_var(f.position_mm), 0.0])
-            }
+            (Strategy::Encoder, Some(f)) => (
+                f.position_mm,
+                0.0,
+                self.encoder_var(f.position_mm - self.reference_encoder),
+            ),
             _ => (self.follower_mm, self.vertical_mm, self.variance),
         };
         Stitch {
@@ -318,11 +334,13 @@ impl Tracker {
         (0..2).all(|k| hi[k] - lo[k] <= 2.0 * self.settings.rest_tolerance_mm)
     }
 
-    /// Encoder strategy: variance of the encoder's position `at`, from the reference.
-    fn encoder_var(&self, at: f64) -> f64 {
+    /// Variance (along, vertical) of PSD2's position after the follower travelled `moved`
+    /// mm by its encoder alone.
+    fn encoder_var(&self, moved: f64) -> [f64; 2] {
         let s = &self.settings;
-        let sd = s.encoder_sd_mm + s.encoder_sd_per_mm * (at - self.reference_encoder).abs();
-        sd * sd
+        let along = s.encoder_sd_mm + s.encoder_sd_per_mm * moved.abs();
+        let vertical = s.vertical_sd_mm + s.vertical_sd_per_mm * moved.abs();
+        [along * along, vertical * vertical]
     }
 
     /// A follower status update.
@@ -344,6 +362,11 @@ impl Tracker {
             }
             if state.target_reached && (state.position_mm - target).abs() < 0.01 {
                 if reached_at.is_none() {
+                    tracing::debug!(
+                        position_mm = state.position_mm,
+                        target_mm = target,
+                        "follower at target"
+                    );
                     self.phase = Phase::Moving {
                         target,
                         since,
@@ -443,6 +466,12 @@ impl Tracker {
                 self.before.push(p);
                 if self.before.n >= s.average_frames {
                     let target = f.position_mm + self.before.mean[0];
+                    tracing::debug!(
+                        before_mm = ?self.before.mean,
+                        encoder_mm = f.position_mm,
+                        target_mm = target,
+                        "handover: follower step"
+                    );
                     self.start_move(target, true, now);
                 }
             }
@@ -465,6 +494,7 @@ impl Tracker {
             Phase::After { .. } => {
                 self.after.push(p);
                 if self.after.n >= s.average_frames {
+                    tracing::debug!(after_mm = ?self.after.mean, "handover: after window");
                     if self.after_is_steady() {
                         self.finish_overlap_step();
                     } else {
@@ -536,8 +566,7 @@ impl Tracker {
             .map(|f| f.position_mm)
             .unwrap_or(self.encoder_before);
         let moved = enc_after - self.encoder_before;
-        let s = self.settings;
-        let sd = s.encoder_sd_mm + s.encoder_sd_per_mm * moved.abs();
+        let variance = self.encoder_var(moved);
         let record = HandoverRecord {
             unix_us: self.last_frame_unix_us,
             kind: HandoverKind::Encoder,
@@ -549,7 +578,7 @@ impl Tracker {
             encoder_before: self.encoder_before,
             encoder_after: enc_after,
             delta: [moved, 0.0],
-            variance: [sd * sd, 0.0],
+            variance,
         };
         if moved != 0.0 {
             self.events.push_back(TrackEvent::FollowedWhileMoving {
@@ -608,9 +637,11 @@ pub fn restitch(records: &[HandoverRecord], optical: bool, settings: &TrackSetti
             out.variance[1] += r.variance[1];
         } else {
             let moved = r.encoder_after - r.encoder_before;
-            let sd = settings.encoder_sd_mm + settings.encoder_sd_per_mm * moved.abs();
+            let along = settings.encoder_sd_mm + settings.encoder_sd_per_mm * moved.abs();
+            let vertical = settings.vertical_sd_mm + settings.vertical_sd_per_mm * moved.abs();
             out.follower_mm += moved;
-            out.variance[0] += sd * sd;
+            out.variance[0] += along * along;
+            out.variance[1] += vertical * vertical;
         }
     }
     out
@@ -803,6 +834,11 @@ mod tests {
         let sd = s.variance[0].sqrt();
         let expect = 1e-3 + 5e-6 * b.enc.abs();
         assert!((sd - expect).abs() < 1e-12, "{sd}");
+        let sd_v = s.variance[1].sqrt();
+        assert!(
+            (sd_v - (0.2e-3 + 3e-6 * b.enc.abs())).abs() < 1e-12,
+            "{sd_v}"
+        );
     }
 
     #[test]

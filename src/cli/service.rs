@@ -1,0 +1,268 @@
+//! `axiscomp serve|status|check|sim`: the service, its status, the offline check, the twin.
+
+use super::InputError;
+use anyhow::{Context, Result};
+use axiscomp::config::{self, Layers, Resource};
+use axiscomp::service::control::Client;
+use axiscomp::service::shutdown::{self, Trigger};
+use axiscomp::service::snapshot::Snapshot;
+use axiscomp::service::{self, ServiceError};
+use std::path::{Path, PathBuf};
+
+#[derive(clap::Args, Debug)]
+pub struct ServeArgs {
+    /// Configuration file (layered over /etc/axiscomp/axiscomp.toml and the defaults).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct StatusArgs {
+    /// The control socket (default: from the configuration).
+    #[arg(long)]
+    pub socket: Option<PathBuf>,
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Print the snapshot as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct SimArgs {
+    /// The twin's configuration (see configs/sim.toml).
+    #[arg(long)]
+    pub config: PathBuf,
+}
+
+fn init_logs() {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    // Under systemd, journald stamps the time itself and shows no colours.
+    let journald = std::env::var_os("JOURNAL_STREAM").is_some();
+    let b = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(!journald && std::io::IsTerminal::is_terminal(&std::io::stderr()));
+    let _ = if journald {
+        b.without_time().try_init()
+    } else {
+        b.try_init()
+    };
+}
+
+fn load_settings(file: Option<&Path>) -> Result<config::Settings> {
+    config::load(&Layers::standard(file)).map_err(|e| InputError(e.to_string()).into())
+}
+
+fn service_error(e: ServiceError) -> anyhow::Error {
+    if e.is_input() {
+        InputError(e.to_string()).into()
+    } else {
+        e.into()
+    }
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("starting the async runtime")
+}
+
+/// SIGTERM or SIGINT fires the shutdown.
+fn on_signals(trigger: Trigger) -> Result<()> {
+    use tokio::signal::unix::{SignalKind, signal};
+    let mut term = signal(SignalKind::terminate()).context("installing the SIGTERM handler")?;
+    let mut int = signal(SignalKind::interrupt()).context("installing the SIGINT handler")?;
+    tokio::spawn(async move {
+        tokio::select! {
+            _ = term.recv() => tracing::info!("SIGTERM: shutting down"),
+            _ = int.recv() => tracing::info!("SIGINT: shutting down"),
+        }
+        service::notify::stopping();
+        trigger.trigger();
+    });
+    Ok(())
+}
+
+pub fn serve(a: ServeArgs) -> Result<()> {
+    init_logs();
+    let settings = load_settings(a.config.as_deref())?;
+    let prepared = service::prepare(&settings).map_err(service_error)?;
+    runtime()?.block_on(async move {
+        let (trigger, listener) = shutdown::channel();
+        on_signals(trigger)?;
+        service::run(prepared, listener)
+            .await
+            .map_err(service_error)
+    })
+}
+
+fn resource(r: &Resource) -> String {
+    match r {
+        Resource::Builtin(n) => format!("built-in {n}"),
+        Resource::File(p) => p.display().to_string(),
+    }
+}
+
+pub fn check(a: ServeArgs) -> Result<()> {
+    let settings = load_settings(a.config.as_deref())?;
+    let p = service::prepare(&settings).map_err(service_error)?;
+    println!("configuration: {}", settings.sources.join(" + "));
+    println!(
+        "layout: {} ({}), {} elements",
+        resource(&settings.head.layout),
+        p.layout.hash(),
+        p.layout.elements.len()
+    );
+    match (&settings.head.calibration, &p.calibration) {
+        (Some(path), Some(c)) => println!(
+            "calibration: {} ({} poses, {}, made {})",
+            path.display(),
+            c.poses,
+            if c.model.is_some() {
+                "model-based"
+            } else {
+                "linear β"
+            },
+            c.created
+        ),
+        _ => println!("calibration: none (the layout's own model)"),
+    }
+    println!(
+        "I/O module: {} unit {} via map {} ({} registers from {}, {:?})",
+        settings.io.link.addr,
+        if settings.io.unit == 0 {
+            p.map.unit_id
+        } else {
+            settings.io.unit
+        },
+        resource(&settings.io.map),
+        p.map.block.count(),
+        p.map.block.start(),
+        p.map.kind
+    );
+    println!(
+        "CAN: {:?}, follower node {}",
+        settings.can, settings.follower.drive.node_id
+    );
+    println!("control socket: {}", settings.service.socket.display());
+    println!("ok");
+    Ok(())
+}
+
+fn print_snapshot(s: &Snapshot) {
+    println!(
+        "links: I/O {} ({}; {:.0} frames/s, p99 {:.0} µs), CAN {} ({})",
+        s.links.io.state,
+        s.links.io.peer,
+        s.links.io.rate_hz,
+        s.links.io.latency_p99_us,
+        s.links.can.state,
+        s.links.can.peer
+    );
+    match &s.psd {
+        Some(p) => {
+            for (k, spot) in p.spots_um.iter().enumerate() {
+                match spot {
+                    Some([x, y]) => println!(
+                        "PSD{}: X {x:>9.1} µm  Y {y:>9.1} µm  SUM {:.2} V",
+                        k + 1,
+                        p.sums_v[k]
+                    ),
+                    None => println!("PSD{}: no spot (SUM {:.2} V)", k + 1, p.sums_v[k]),
+                }
+            }
+        }
+        None => println!("PSDs: no frame yet"),
+    }
+    let f = &s.follower;
+    println!(
+        "follower (node {}): {}, position {}, homed {}, heartbeat {}{}",
+        f.node_id,
+        f.state,
+        f.position_mm
+            .map(|p| format!("{p:.4} mm"))
+            .unwrap_or_else(|| "?".into()),
+        f.homed,
+        if f.heartbeat_ok { "ok" } else { "LOST" },
+        f.last_emcy
+            .as_ref()
+            .map(|e| format!(", last EMCY {e}"))
+            .unwrap_or_default()
+    );
+    let t = &s.tracking;
+    println!(
+        "tracking: {} {}, PSD2 at {:.4} mm (±{:.2} µm), {} handovers{}",
+        t.strategy,
+        if t.valid { "valid" } else { "NOT referenced" },
+        t.follower_mm,
+        t.sd_um[0],
+        t.handovers,
+        if t.at_rest { ", at rest" } else { "" }
+    );
+    match &s.live {
+        Some(l) => {
+            let names = ["dx", "dy", "dz", "ex", "ey", "ez"];
+            let units = ["µm", "µm", "µm", "″", "″", "″"];
+            println!(
+                "errors ({} frames, travel {:.3} mm, nominal {}{}):",
+                l.frames,
+                l.travel_mm,
+                l.nominal_mm
+                    .map(|n| format!("{n:.3} mm"))
+                    .unwrap_or_else(|| "not set".into()),
+                if l.zeroed { ", zeroed" } else { "" }
+            );
+            for k in 0..6 {
+                println!(
+                    "  {} {:>10.3} ± {:.3} {}",
+                    names[k], l.errors[k], l.sd[k], units[k]
+                );
+            }
+        }
+        None => println!("errors: none yet"),
+    }
+    for a in s.alarms.iter().filter(|a| a.active) {
+        println!("ALARM {}: {}", a.code, a.text);
+    }
+}
+
+pub fn status(a: StatusArgs) -> Result<()> {
+    let socket = match a.socket {
+        Some(s) => s,
+        None => load_settings(a.config.as_deref())?.service.socket,
+    };
+    let snap = runtime()?.block_on(async {
+        let mut c = Client::connect(&socket).await?;
+        c.status().await
+    })?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&snap)?);
+    } else {
+        print_snapshot(&snap);
+    }
+    Ok(())
+}
+
+pub fn sim(a: SimArgs) -> Result<()> {
+    init_logs();
+    let (layout, spec) = axiscomp::sim::config::load(&a.config)?;
+    runtime()?.block_on(async move {
+        let twin = axiscomp::sim::twin::Twin::start(&layout, spec).await?;
+        println!(
+            "twin up: I/O module on {}, control on {}",
+            twin.io.local_addr(),
+            twin.control_addr()
+                .map(|a| a.to_string())
+                .unwrap_or_default()
+        );
+        let (trigger, mut listener) = shutdown::channel();
+        on_signals(trigger)?;
+        listener.recv().await;
+        drop(twin);
+        Ok(())
+    })
+}

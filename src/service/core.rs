@@ -1,0 +1,598 @@
+//! The core task: the one place that owns the tracking machine and the live measurement. It
+//! takes frames from the acquisition, follower status and events from the drive, requests from
+//! the control socket, and publishes the `Snapshot`. Drive commands go out as their own small
+//! tasks, so the loop never waits on the bus.
+
+use super::Prepared;
+use super::control::{Command, FollowerAction, Request};
+use super::measure::Measure;
+use super::notify;
+use super::shutdown::Shutdown;
+use super::snapshot::{
+    Alarm, FollowerView, LinkView, LinksView, LiveView, PsdView, Snapshot, TrackingView,
+};
+use crate::acquire::{Acquisition, Frame};
+use crate::canopen::{DriveHandle, DriveStatus, Event, PowerState};
+use crate::modbus::{Link, LinkState};
+use crate::optics::layout::{Aperture, Kind};
+use crate::track::{FollowerCommand, FollowerState, TrackEvent, Tracker};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use tokio::sync::{broadcast, mpsc, oneshot, watch};
+
+/// A frame older than this when the core gets to it is not decoupled (it is still tracked).
+const LATE: Duration = Duration::from_millis(100);
+
+fn now_us() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_micros() as i64)
+        .unwrap_or(0)
+}
+
+/// Active and recently cleared alarms.
+#[derive(Debug, Default)]
+struct Alarms {
+    list: Vec<Alarm>,
+}
+
+impl Alarms {
+    fn raise(&mut self, code: &str, text: String) {
+        if let Some(a) = self.list.iter_mut().find(|a| a.code == code && a.active) {
+            a.text = text;
+            return;
+        }
+        tracing::warn!(alarm = code, "{text}");
+        self.list.insert(
+            0,
+            Alarm {
+                code: code.into(),
+                text,
+                since_unix_us: now_us(),
+                active: true,
+            },
+        );
+        self.list.truncate(50);
+    }
+
+    fn clear(&mut self, code: &str) {
+        for a in self.list.iter_mut().filter(|a| a.code == code && a.active) {
+            a.active = false;
+            tracing::info!(alarm = code, "cleared");
+        }
+    }
+
+    fn is_active(&self, code: &str) -> bool {
+        self.list.iter().any(|a| a.code == code && a.active)
+    }
+}
+
+fn link_view(state: &LinkState, peer: String) -> LinkView {
+    let (state, detail) = match state {
+        LinkState::Up { .. } => ("up".to_string(), None),
+        LinkState::Connecting { attempt } => {
+            ("connecting".to_string(), Some(format!("attempt {attempt}")))
+        }
+        LinkState::Down { error, .. } => ("down".to_string(), Some(error.to_string())),
+        LinkState::Closed => ("closed".to_string(), None),
+    };
+    LinkView {
+        state,
+        peer,
+        detail,
+        ..LinkView::default()
+    }
+}
+
+fn power_name(s: Option<PowerState>) -> String {
+    s.map(|p| format!("{p:?}"))
+        .unwrap_or_else(|| "unknown".into())
+}
+
+pub(super) struct Core {
+    tracker: Tracker,
+    measure: Measure,
+    link: Link,
+    acquisition: Acquisition,
+    drive: DriveHandle,
+    drive_status: DriveStatus,
+    can_peer: String,
+    node_id: u8,
+    snapshot: watch::Sender<Snapshot>,
+    snapshot_period: Duration,
+    alarms: Alarms,
+    last_frame: Option<Frame>,
+    half_size_um: [f64; 3],
+    home_on_start: bool,
+    watchdog: bool,
+    /// A zero request waiting for the averaging window to refill.
+    pending_zero: Option<(Instant, oneshot::Sender<Result<serde_json::Value, String>>)>,
+    live_window: Duration,
+    ready_sent: bool,
+    started: Instant,
+    /// Frames not decoupled because the core was behind.
+    late_frames: u64,
+}
+
+impl Core {
+    pub(super) fn new(
+        p: &Prepared,
+        link: Link,
+        acquisition: Acquisition,
+        drive: DriveHandle,
+        can_peer: String,
+        snapshot: watch::Sender<Snapshot>,
+    ) -> Core {
+        let s = &p.settings;
+        let mut half_size_um = [0.0; 3];
+        for (k, path) in p.layout.paths.iter().enumerate() {
+            let el = &p.layout.elements[path.psd];
+            if el.kind == Kind::Psd {
+                half_size_um[k] = match el.aperture {
+                    Aperture::Square { half } | Aperture::Circle { radius: half } => half * 1e3,
+                };
+            }
+        }
+        Core {
+            tracker: Tracker::new(s.tracking),
+            measure: Measure::new(p.decoupler.clone(), s.head.live_window),
+            link,
+            acquisition,
+            drive_status: drive.status(),
+            drive,
+            can_peer,
+            node_id: s.follower.drive.node_id,
+            snapshot,
+            snapshot_period: s.service.snapshot_period,
+            alarms: Alarms::default(),
+            last_frame: None,
+            half_size_um,
+            home_on_start: s.follower.home_on_start,
+            watchdog: s.service.watchdog,
+            pending_zero: None,
+            live_window: s.head.live_window,
+            ready_sent: false,
+            started: Instant::now(),
+            late_frames: 0,
+        }
+    }
+
+    pub(super) async fn run(
+        mut self,
+        mut commands: mpsc::Receiver<Command>,
+        mut shutdown: Shutdown,
+    ) -> Result<(), super::ServiceError> {
+        let mut frames = self.acquisition.subscribe();
+        let mut status = self.drive.watch_status();
+        let mut events = self.drive.events();
+        let mut io_state = self.link.state();
+        let bring_up = tokio::spawn(bring_up(
+            self.drive.clone(),
+            self.home_on_start,
+            shutdown.clone(),
+        ));
+        let mut tick = tokio::time::interval(self.snapshot_period.min(Duration::from_millis(100)));
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+        let watchdog = notify::watchdog_period().filter(|_| self.watchdog);
+        let mut last_watchdog = Instant::now();
+        loop {
+            tokio::select! {
+                _ = shutdown.recv() => break,
+                f = frames.recv() => match f {
+                    Ok(f) => self.handle_frame(&f),
+                    Err(broadcast::error::RecvError::Lagged(n)) => {
+                        tracing::warn!("core fell behind the acquisition by {n} frames");
+                    }
+                    Err(broadcast::error::RecvError::Closed) => break,
+                },
+                r = status.changed() => {
+                    if r.is_err() { break; }
+                    let st = status.borrow_and_update().clone();
+                    self.handle_drive_status(st);
+                }
+                e = events.recv() => match e {
+                    Ok(e) => self.handle_drive_event(e),
+                    Err(broadcast::error::RecvError::Lagged(_)) => {}
+                    Err(broadcast::error::RecvError::Closed) => break,
+                },
+                r = io_state.changed() => {
+                    if r.is_ok() {
+                        let st = *io_state.borrow_and_update();
+                        self.handle_io_state(&st);
+                    }
+                }
+                c = commands.recv() => match c {
+                    Some(c) => self.handle_command(c),
+                    None => break,
+                },
+                _ = tick.tick() => {
+                    self.on_tick();
+                    if let Some(period) = watchdog
+                        && last_watchdog.elapsed() >= period
+                    {
+                        notify::watchdog();
+                        last_watchdog = Instant::now();
+                    }
+                }
+            }
+        }
+        bring_up.abort();
+        // Leave the follower at rest.
+        let _ = tokio::time::timeout(Duration::from_secs(1), self.drive.stop()).await;
+        Ok(())
+    }
+
+    fn follower_state(&self) -> Option<FollowerState> {
+        let st = &self.drive_status;
+        Some(FollowerState {
+            position_mm: st.position_mm?,
+            ready: st.state == Some(PowerState::OperationEnabled)
+                && st.heartbeat_ok
+                && !st.emcy_active,
+            target_reached: st.target_reached,
+        })
+    }
+
+    fn handle_frame(&mut self, f: &Frame) {
+        // The machines run on the frame's own time (when the module answered), so a frame
+        // handled late is still judged at the moment it describes.
+        let now = f.at;
+        let late = Instant::now().saturating_duration_since(f.at) > LATE;
+        self.last_frame = Some(*f);
+        match f.spots.iter().position(Option::is_none) {
+            Some(k) => self.alarms.raise(
+                "beam-blocked",
+                format!("PSD{} has no spot (SUM {:.2} V): beam blocked or off the PSD; frames are not used", k + 1, f.sums[k]),
+            ),
+            None => self.alarms.clear("beam-blocked"),
+        }
+        self.tracker.handle_frame(f, now);
+        // The stitch starts where the follower is when the service first sees it ready, homed
+        // and idle, with the spot on PSD2.
+        if !self.tracker.stitch().valid
+            && self.tracker.stitch().handovers == 0
+            && !self.alarms.is_active("stitch-broken")
+            && f.spots[1].is_some()
+            && self.drive_status.homed
+            && self.drive_status.busy.is_none()
+            && self
+                .follower_state()
+                .is_some_and(|s| s.ready && s.target_reached)
+        {
+            self.tracker.reference();
+        }
+        self.drain_tracker();
+        if late {
+            // Behind: tracking keeps every frame, the live average skips the late ones until
+            // the core has caught up.
+            self.late_frames += 1;
+            return;
+        }
+        match self.measure.handle_frame(f, &self.tracker.stitch(), now) {
+            Ok(_) => self.alarms.clear("decoupling"),
+            Err(e) => self
+                .alarms
+                .raise("decoupling", format!("a frame could not be decoupled: {e}")),
+        }
+    }
+
+    fn drain_tracker(&mut self) {
+        while let Some(cmd) = self.tracker.poll_command() {
+            let FollowerCommand::MoveTo(mm) = cmd;
+            let drive = self.drive.clone();
+            tokio::spawn(async move {
+                if let Err(e) = drive.set_target(mm).await {
+                    tracing::warn!("follower to {mm:.4} mm: {e}");
+                }
+            });
+        }
+        while let Some(e) = self.tracker.poll_event() {
+            match e {
+                TrackEvent::Handover(r) => {
+                    tracing::debug!(?r.kind, delta_mm = r.delta[0], "handover");
+                    self.measure.restart();
+                }
+                TrackEvent::FollowedWhileMoving { from_mm, to_mm } => {
+                    tracing::debug!(from_mm, to_mm, "followed by encoder while moving");
+                    self.measure.restart();
+                }
+                TrackEvent::SpotLost => self.alarms.raise(
+                    "stitch-broken",
+                    "PSD2 lost the spot: positioning has lost its reference; zero again (control: zero)".into(),
+                ),
+                TrackEvent::SpotFound => tracing::info!("PSD2 sees the spot again"),
+                TrackEvent::FollowerProblem(p) => self.alarms.raise("follower", p),
+            }
+        }
+    }
+
+    fn handle_drive_status(&mut self, st: DriveStatus) {
+        self.drive_status = st;
+        if let Some(fs) = self.follower_state() {
+            self.tracker.handle_follower(fs, Instant::now());
+            self.drain_tracker();
+        }
+    }
+
+    fn handle_drive_event(&mut self, e: Event) {
+        match e {
+            Event::HeartbeatLost => {
+                self.alarms.raise(
+                    "heartbeat-lost",
+                    format!(
+                        "the follower drive's heartbeat stopped ({}): follower stopped",
+                        self.can_peer
+                    ),
+                );
+                let drive = self.drive.clone();
+                tokio::spawn(async move {
+                    let _ = drive.quick_stop().await;
+                });
+            }
+            Event::HeartbeatResumed => self.alarms.clear("heartbeat-lost"),
+            Event::Emcy(emcy) => {
+                if !emcy.is_reset() {
+                    self.alarms.raise("drive-fault", format!("follower drive EMCY: {emcy}; reset it with the follower fault_reset command"));
+                } else {
+                    self.alarms.clear("drive-fault");
+                }
+            }
+            Event::BootUp { expected: false } => {
+                self.alarms.raise(
+                    "drive-rebooted",
+                    "the follower drive rebooted: reconfiguring it".into(),
+                );
+                self.tracker.invalidate();
+            }
+            _ => {}
+        }
+    }
+
+    fn handle_io_state(&mut self, st: &LinkState) {
+        match st {
+            LinkState::Up { .. } => self.alarms.clear("io-link-down"),
+            LinkState::Down { error, .. } => self.alarms.raise(
+                "io-link-down",
+                format!(
+                    "PSD I/O module {} unreachable: {error}; reconnecting",
+                    self.link.addr()
+                ),
+            ),
+            _ => {}
+        }
+    }
+
+    fn reply(
+        reply: oneshot::Sender<Result<serde_json::Value, String>>,
+        r: Result<serde_json::Value, String>,
+    ) {
+        let _ = reply.send(r);
+    }
+
+    fn handle_command(&mut self, c: Command) {
+        tracing::info!(user = %c.peer.user, uid = c.peer.uid, request = ?c.request, "control request");
+        match c.request {
+            Request::Status | Request::Subscribe { .. } => Self::reply(
+                c.reply,
+                Err("status and subscribe are answered by the socket".into()),
+            ),
+            Request::Nominal { mm } => {
+                if mm.is_some_and(|x| !x.is_finite()) {
+                    return Self::reply(
+                        c.reply,
+                        Err("nominal must be a finite number of mm or null".into()),
+                    );
+                }
+                self.measure.set_nominal(mm);
+                Self::reply(c.reply, Ok(serde_json::json!({"nominal_mm": mm})));
+            }
+            Request::Strategy { strategy } => {
+                self.tracker.set_strategy(strategy);
+                Self::reply(c.reply, Ok(serde_json::json!({"strategy": strategy})));
+            }
+            Request::ClearZero => {
+                self.measure.clear_zero();
+                Self::reply(c.reply, Ok(serde_json::json!({"zeroed": false})));
+            }
+            Request::Zero => {
+                if !self.tracker.reference() {
+                    return Self::reply(
+                        c.reply,
+                        Err("the follower's position is not known yet: is the drive up?".into()),
+                    );
+                }
+                self.alarms.clear("stitch-broken");
+                self.measure.clear_zero();
+                self.measure.restart();
+                // Answer once the averaging window has refilled at the new reference.
+                self.pending_zero = Some((
+                    Instant::now() + self.live_window + Duration::from_millis(50),
+                    c.reply,
+                ));
+            }
+            Request::Follower { action, mm } => {
+                let drive = self.drive.clone();
+                if matches!(
+                    action,
+                    FollowerAction::Jog | FollowerAction::Move | FollowerAction::Home
+                ) {
+                    // A manual move is not a measured handover: the stitch must be re-zeroed.
+                    self.tracker.invalidate();
+                    self.alarms.raise(
+                        "stitch-broken",
+                        "the follower was moved by hand: zero again before measuring".into(),
+                    );
+                }
+                tokio::spawn(async move {
+                    let r = match (action, mm) {
+                        (FollowerAction::Home, _) => drive.home().await,
+                        (FollowerAction::Enable, _) => drive.enable().await,
+                        (FollowerAction::Disable, _) => drive.disable().await,
+                        (FollowerAction::Stop, _) => drive.stop().await,
+                        (FollowerAction::FaultReset, _) => match drive.fault_reset().await {
+                            Ok(()) => drive.enable().await,
+                            Err(e) => Err(e),
+                        },
+                        (FollowerAction::Jog, Some(d)) => drive.jog(d).await,
+                        (FollowerAction::Move, Some(t)) => drive.move_to(t).await,
+                        (FollowerAction::Jog | FollowerAction::Move, None) => {
+                            let _ = c.reply.send(Err("jog and move need \"mm\"".into()));
+                            return;
+                        }
+                    };
+                    let _ = c.reply.send(
+                        r.map(|()| serde_json::json!({"position_mm": drive.status().position_mm}))
+                            .map_err(|e| format!("follower {action:?}: {e}")),
+                    );
+                });
+            }
+        }
+    }
+
+    fn on_tick(&mut self) {
+        let now = Instant::now();
+        if let Some((when, _)) = &self.pending_zero
+            && now >= *when
+            && let Some((_, reply)) = self.pending_zero.take()
+        {
+            let r = match self.measure.set_zero() {
+                Some(z) => Ok(serde_json::json!({"zeroed": true, "offsets": z.to_user()})),
+                None => Err("no valid frames to zero on: is the beam on all three PSDs?".into()),
+            };
+            let _ = reply.send(r);
+        }
+        if !self.ready_sent {
+            let io_up = self.link.state().borrow().is_up();
+            let drive_up = self.drive_status.state == Some(PowerState::OperationEnabled);
+            if (io_up && drive_up) || self.started.elapsed() > Duration::from_secs(30) {
+                let status = format!(
+                    "measuring: I/O module {}, follower drive {}",
+                    if io_up { "up" } else { "DOWN" },
+                    if drive_up { "enabled" } else { "NOT ready" }
+                );
+                notify::ready(&status);
+                tracing::info!("{status}");
+                self.ready_sent = true;
+            }
+        }
+        let snap = self.build_snapshot();
+        self.snapshot.send_replace(snap);
+    }
+
+    fn build_snapshot(&self) -> Snapshot {
+        let stats = self.acquisition.stats();
+        let psd = self.last_frame.map(|f| PsdView {
+            seq: f.seq,
+            spots_um: f.spots.map(|s| s.map(|s| [s.x * 1e3, s.y * 1e3])),
+            sums_v: f.sums,
+            half_size_um: self.half_size_um,
+            valid: f.is_valid(),
+            rate_hz: stats.frames_per_s,
+            invalid_frames: stats.invalid_frames,
+            late_frames: self.late_frames,
+        });
+        let live = self.measure.live().map(|l| LiveView {
+            errors: l.errors.to_user(),
+            sd: l.sd.to_user(),
+            frames: l.frames,
+            travel_mm: l.travel_mm,
+            nominal_mm: l.nominal,
+            position_mm: l.position_mm,
+            zeroed: l.zeroed,
+        });
+        let st = &self.drive_status;
+        let stitch = self.tracker.stitch();
+        let link_stats = self.link.stats();
+        let mut io = link_view(&self.link.state().borrow(), self.link.addr().to_string());
+        io.rate_hz = stats.frames_per_s;
+        io.latency_p50_us = link_stats
+            .latency_p50
+            .map(|d| d.as_secs_f64() * 1e6)
+            .unwrap_or(0.0);
+        io.latency_p99_us = link_stats
+            .latency_p99
+            .map(|d| d.as_secs_f64() * 1e6)
+            .unwrap_or(0.0);
+        io.errors = link_stats.errors;
+        io.reconnects = link_stats.reconnects;
+        let can = LinkView {
+            state: if st.heartbeat_ok {
+                "up".into()
+            } else {
+                "no heartbeat".into()
+            },
+            peer: self.can_peer.clone(),
+            detail: st.nmt.map(|n| format!("NMT {n:?}")),
+            rate_hz: 0.0,
+            ..LinkView::default()
+        };
+        Snapshot {
+            unix_us: now_us(),
+            psd,
+            live,
+            follower: FollowerView {
+                node_id: self.node_id,
+                state: power_name(st.state),
+                position_mm: st.position_mm,
+                target_mm: st.commanded_mm,
+                homed: st.homed,
+                heartbeat_ok: st.heartbeat_ok,
+                last_emcy: st.last_emcy.map(|e| e.to_string()),
+            },
+            tracking: TrackingView {
+                strategy: format!("{:?}", stitch.strategy).to_lowercase(),
+                valid: stitch.valid,
+                at_rest: self.tracker.at_rest(Instant::now()),
+                follower_mm: stitch.follower_mm,
+                vertical_um: stitch.vertical_mm * 1e3,
+                sd_um: stitch.variance.map(|v| v.sqrt() * 1e3),
+                handovers: stitch.handovers,
+            },
+            links: LinksView { io, can },
+            alarms: self.alarms.list.clone(),
+        }
+    }
+}
+
+/// Bring the drive up: configure its PDOs, start it, enable it (and home it when asked),
+/// retrying while it is unreachable; again whenever it reboots.
+async fn bring_up(drive: DriveHandle, home: bool, mut shutdown: Shutdown) {
+    let mut events = drive.events();
+    loop {
+        let attempt = async {
+            drive.configure().await?;
+            drive.start().await?;
+            drive.enable().await?;
+            if home || !drive.status().homed {
+                drive.home().await?;
+            }
+            Ok::<(), crate::canopen::DriveError>(())
+        };
+        let r = tokio::select! {
+            _ = shutdown.recv() => return,
+            r = attempt => r,
+        };
+        match r {
+            Ok(()) => {
+                tracing::info!("follower drive configured, enabled and homed");
+                // Wait for a reboot, then do it again.
+                loop {
+                    tokio::select! {
+                        _ = shutdown.recv() => return,
+                        e = events.recv() => match e {
+                            Ok(Event::BootUp { expected: false }) => break,
+                            Ok(_) | Err(broadcast::error::RecvError::Lagged(_)) => {}
+                            Err(broadcast::error::RecvError::Closed) => return,
+                        },
+                    }
+                }
+            }
+            Err(e) => {
+                tracing::warn!("follower drive bring-up failed: {e}; retrying in 2 s");
+                tokio::select! {
+                    _ = shutdown.recv() => return,
+                    _ = tokio::time::sleep(Duration::from_secs(2)) => {}
+                }
+            }
+        }
+    }
+}

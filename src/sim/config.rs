@@ -1,0 +1,297 @@
+//! The twin's configuration file (`axiscomp sim --config configs/sim.toml`), in two stages:
+//! what the file says (`RawSimConfig`, unknown keys refused) and the validated `TwinSpec`.
+//! Errors name the file and the key.
+
+use super::axis::AxisSpec;
+use super::drive::TwinDriveConfig;
+use super::plant::{FollowerSpec, PlantSpec};
+use super::twin::{TwinCan, TwinSpec};
+use super::{InstallSpec, SimError};
+use crate::acquire::IoMap;
+use crate::canopen::Scaling;
+use crate::optics::Layout;
+use serde::Deserialize;
+use std::net::SocketAddr;
+use std::path::Path;
+use std::time::Duration;
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSimConfig {
+    twin: RawTwin,
+    io: RawIo,
+    can: RawCan,
+    drive: RawDrive,
+    control: RawControl,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawTwin {
+    seed: u64,
+    layout: String,
+    axis: RawAxis,
+    head: RawHead,
+    follower: RawFollower,
+    carriage: RawCarriage,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawAxis {
+    length_mm: f64,
+    positioning_um: f64,
+    periodic_um: f64,
+    lead_mm: f64,
+    backlash_um: f64,
+    straightness_um: f64,
+    pitch_yaw_arcsec: f64,
+    roll_arcsec: f64,
+    thermal_um_per_m_per_h: f64,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawHead {
+    install_offset_mm: f64,
+    install_tilt_deg: f64,
+    gain_error: f64,
+    noise_um: f64,
+    beam_drift_urad_per_sqrt_s: f64,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawFollower {
+    positioning_um: f64,
+    straightness_um: f64,
+    start_mm: f64,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawCarriage {
+    feed_mm_s: f64,
+    accel_mm_s2: f64,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawIo {
+    listen: String,
+    map: String,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawCan {
+    transport: String,
+    #[serde(default)]
+    local: String,
+    #[serde(default)]
+    remote: String,
+    #[serde(default)]
+    group: String,
+    #[serde(default)]
+    port: u16,
+    #[serde(default)]
+    iface: String,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawDrive {
+    node_id: u8,
+    feed_mm: f64,
+    shaft_revolutions: u32,
+    encoder_increments: u32,
+    motor_revolutions: u32,
+    gear_ratio: f64,
+    heartbeat_ms: u16,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawControl {
+    listen: String,
+}
+
+/// The twin's layout and spec from a file.
+pub fn load(path: &Path) -> Result<(Layout, TwinSpec), SimError> {
+    let label = path.display().to_string();
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| SimError::Input(format!("twin config {label}: cannot read it: {e}")))?;
+    parse(&text, &label)
+}
+
+/// Parse twin configuration text; `label` names it in errors.
+pub fn parse(text: &str, label: &str) -> Result<(Layout, TwinSpec), SimError> {
+    let raw: RawSimConfig = toml::from_str(text).map_err(|e| {
+        SimError::Input(format!(
+            "twin config {label}: {}; see configs/sim.toml for every key",
+            crate::optics::layout::toml_error_line(text, &e)
+        ))
+    })?;
+    let bad = |key: &str, problem: String| {
+        SimError::Input(format!("twin config {label}: {key}: {problem}"))
+    };
+    let addr = |key: &str, s: &str| -> Result<SocketAddr, SimError> {
+        s.parse()
+            .map_err(|_| bad(key, format!("\"{s}\" is not an address: write IP:port")))
+    };
+    let non_neg = |key: &str, v: f64| -> Result<f64, SimError> {
+        if v.is_finite() && v >= 0.0 {
+            Ok(v)
+        } else {
+            Err(bad(key, format!("{v} must be zero or positive")))
+        }
+    };
+    let t = &raw.twin;
+    let layout = match t.layout.as_str() {
+        "builtin" | "builtin:reference" => Layout::reference(),
+        p => Layout::load(Path::new(p)).map_err(|e| bad("twin.layout", e.to_string()))?,
+    };
+    let a = &t.axis;
+    if !(a.length_mm.is_finite() && a.length_mm > 0.0) {
+        return Err(bad(
+            "twin.axis.length_mm",
+            format!("{} must be positive", a.length_mm),
+        ));
+    }
+    let h = &t.head;
+    let plant = PlantSpec {
+        seed: t.seed,
+        axis: AxisSpec {
+            length_mm: a.length_mm,
+            positioning_um: non_neg("twin.axis.positioning_um", a.positioning_um)?,
+            periodic_um: non_neg("twin.axis.periodic_um", a.periodic_um)?,
+            lead_mm: non_neg("twin.axis.lead_mm", a.lead_mm)?,
+            backlash_um: non_neg("twin.axis.backlash_um", a.backlash_um)?,
+            straightness_um: non_neg("twin.axis.straightness_um", a.straightness_um)?,
+            pitch_yaw_arcsec: non_neg("twin.axis.pitch_yaw_arcsec", a.pitch_yaw_arcsec)?,
+            roll_arcsec: non_neg("twin.axis.roll_arcsec", a.roll_arcsec)?,
+            thermal_um_per_m_per_h: a.thermal_um_per_m_per_h,
+        },
+        install: InstallSpec {
+            offset_mm: non_neg("twin.head.install_offset_mm", h.install_offset_mm)?,
+            tilt_deg: non_neg("twin.head.install_tilt_deg", h.install_tilt_deg)?,
+            gain_error: non_neg("twin.head.gain_error", h.gain_error)?,
+        },
+        noise_mm: non_neg("twin.head.noise_um", h.noise_um)? * 1e-3,
+        beam_drift_rad_per_sqrt_s: non_neg(
+            "twin.head.beam_drift_urad_per_sqrt_s",
+            h.beam_drift_urad_per_sqrt_s,
+        )? * 1e-6,
+        follower: FollowerSpec {
+            positioning_um: non_neg("twin.follower.positioning_um", t.follower.positioning_um)?,
+            straightness_um: non_neg("twin.follower.straightness_um", t.follower.straightness_um)?,
+        },
+        feed: non_neg("twin.carriage.feed_mm_s", t.carriage.feed_mm_s)?,
+        accel: non_neg("twin.carriage.accel_mm_s2", t.carriage.accel_mm_s2)?,
+        ..PlantSpec::default()
+    };
+    let io_map = match raw.io.map.as_str() {
+        "builtin" | "builtin:generic" => IoMap::generic(),
+        p => IoMap::load(Path::new(p)),
+    }
+    .map_err(|e| bad("io.map", e.to_string()))?;
+    let c = &raw.can;
+    let can = match c.transport.as_str() {
+        "cannelloni" => TwinCan::Cannelloni {
+            local: addr("can.local", &c.local)?,
+            remote: addr("can.remote", &c.remote)?,
+        },
+        "pycan" => TwinCan::PyCan {
+            group: c
+                .group
+                .parse()
+                .map_err(|_| bad("can.group", format!("\"{}\" is not an IPv4 group", c.group)))?,
+            port: c.port,
+            iface: c.iface.parse().map_err(|_| {
+                bad(
+                    "can.iface",
+                    format!("\"{}\" is not an IPv4 address", c.iface),
+                )
+            })?,
+        },
+        other => {
+            return Err(bad(
+                "can.transport",
+                format!("\"{other}\": the twin speaks cannelloni or pycan"),
+            ));
+        }
+    };
+    let d = &raw.drive;
+    let drive = TwinDriveConfig {
+        node_id: d.node_id,
+        scaling: Scaling {
+            feed_mm: d.feed_mm,
+            shaft_revolutions: d.shaft_revolutions,
+            encoder_increments: d.encoder_increments,
+            motor_revolutions: d.motor_revolutions,
+            gear_ratio: d.gear_ratio,
+        },
+        start_mm: t.follower.start_mm,
+        default_heartbeat_ms: d.heartbeat_ms,
+        tick: Duration::from_millis(2),
+        ..TwinDriveConfig::default()
+    };
+    if !(1..=127).contains(&drive.node_id) {
+        return Err(bad(
+            "drive.node_id",
+            format!("{} is not a CANopen node id (1..=127)", drive.node_id),
+        ));
+    }
+    Ok((
+        layout,
+        TwinSpec {
+            plant,
+            io_bind: addr("io.listen", &raw.io.listen)?,
+            io_map,
+            can,
+            drive,
+            control: Some(addr("control.listen", &raw.control.listen)?),
+        },
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_sim_config_is_valid() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/sim.toml");
+        let (_, spec) = load(&path).unwrap();
+        assert_eq!(spec.plant.axis.length_mm, 1000.0);
+        assert!(matches!(spec.can, TwinCan::Cannelloni { .. }));
+    }
+
+    #[test]
+    fn errors_name_file_and_key() {
+        let text =
+            std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/sim.toml"))
+                .unwrap();
+        let e = parse(
+            &text.replace("noise_um = 1.0", "noise_um = -1.0"),
+            "sim.toml",
+        )
+        .unwrap_err();
+        assert!(
+            e.to_string().contains("sim.toml: twin.head.noise_um"),
+            "{e}"
+        );
+        let e = parse(
+            &text.replace("[control]", "[control]\ncolour = 1"),
+            "sim.toml",
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("unknown field `colour`"), "{e}");
+        let e = parse(
+            &text.replace("transport = \"cannelloni\"", "transport = \"usb\""),
+            "sim.toml",
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("can.transport"), "{e}");
+    }
+}

@@ -1,0 +1,274 @@
+//! The assembled digital twin: the plant, its I/O module on Modbus TCP, the follower's CiA 402
+//! drive on a CAN transport, and a control socket for what a test (or an operator at the twin)
+//! would do to the plant: move the carriage, read the truth, inject faults.
+//!
+//! Control protocol: TCP, newline-delimited JSON, one reply line per request:
+//! - `{"cmd":"move","mm":100.0}` → `{"ok":true,"duration_s":2.1}`
+//! - `{"cmd":"wait"}` → waits until the carriage is at rest
+//! - `{"cmd":"truth"}` → `{"ok":true,"truth":{...}}` (user units)
+//! - `{"cmd":"block","psd":2,"on":true}` (PSD 1..3)
+//! - `{"cmd":"io","action":"stop"|"restart"}`, `{"cmd":"io","delay_ms":50}`
+//! - `{"cmd":"drive","fault":34321}`, `{"cmd":"drive","heartbeat":false}`
+
+use super::SimError;
+use super::drive::{TwinDriveConfig, TwinDriveHandle, spawn_twin_drive};
+use super::iomodule::{IoModule, IoModuleConfig};
+use super::plant::{Plant, PlantSpec, Truth};
+use crate::acquire::IoMap;
+use crate::can::cannelloni::Cannelloni;
+use crate::can::memory::MemoryBus;
+use crate::can::pycan::PyCanMulticast;
+use crate::can::{CanError, CanTransport};
+use crate::optics::Layout;
+use serde::{Deserialize, Serialize};
+use std::net::{Ipv4Addr, SocketAddr};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+use tokio::net::{TcpListener, TcpStream};
+use tokio::task::JoinHandle;
+
+/// How the twin's drive reaches the bus.
+#[derive(Clone, Debug)]
+pub enum TwinCan {
+    /// A cannelloni UDP gateway: the twin listens on `local` and sends to `remote`.
+    Cannelloni {
+        local: SocketAddr,
+        remote: SocketAddr,
+    },
+    /// python-can's udp_multicast bus.
+    PyCan {
+        group: Ipv4Addr,
+        port: u16,
+        iface: Ipv4Addr,
+    },
+    /// An in-process bus (the service must be in the same process).
+    Memory(MemoryBus),
+}
+
+/// Everything the twin is built from.
+#[derive(Clone, Debug)]
+pub struct TwinSpec {
+    pub plant: PlantSpec,
+    pub io_bind: SocketAddr,
+    pub io_map: IoMap,
+    pub can: TwinCan,
+    pub drive: TwinDriveConfig,
+    /// Where the control socket listens (None: no socket).
+    pub control: Option<SocketAddr>,
+}
+
+/// The running twin.
+pub struct Twin {
+    pub plant: Arc<Plant>,
+    pub io: IoModule,
+    pub drive: TwinDriveHandle,
+    drive_task: JoinHandle<Result<(), CanError>>,
+    control: Option<(SocketAddr, JoinHandle<()>)>,
+}
+
+impl Drop for Twin {
+    fn drop(&mut self) {
+        self.drive_task.abort();
+        if let Some((_, t)) = &self.control {
+            t.abort();
+        }
+    }
+}
+
+/// The truth in user units, as the control socket reports it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TruthView {
+    pub travel_mm: f64,
+    pub moving: bool,
+    /// dx, dy, dz (µm), ex, ey, ez (arcsec).
+    pub errors: [f64; 6],
+    pub follower_encoder_mm: f64,
+    pub follower_true_mm: f64,
+    pub follower_vertical_um: f64,
+}
+
+impl From<Truth> for TruthView {
+    fn from(t: Truth) -> Self {
+        TruthView {
+            travel_mm: t.travel,
+            moving: t.moving,
+            errors: t.errors.to_user(),
+            follower_encoder_mm: t.follower_encoder,
+            follower_true_mm: t.follower_true,
+            follower_vertical_um: t.follower_vertical * 1e3,
+        }
+    }
+}
+
+fn spawn_drive_on<T: CanTransport>(
+    transport: T,
+    cfg: TwinDriveConfig,
+    plant: Arc<Plant>,
+) -> Result<(TwinDriveHandle, JoinHandle<Result<(), CanError>>), SimError> {
+    spawn_twin_drive(transport, cfg, move |mm| plant.set_follower_encoder(mm))
+}
+
+impl Twin {
+    /// Build and start the twin (inside a tokio runtime).
+    pub async fn start(layout: &Layout, spec: TwinSpec) -> Result<Twin, SimError> {
+        let plant = Arc::new(Plant::new(layout, &spec.plant, Instant::now())?);
+        let io = IoModule::start(
+            plant.clone(),
+            spec.io_map.clone(),
+            IoModuleConfig {
+                bind: spec.io_bind,
+                ..IoModuleConfig::default()
+            },
+        )
+        .await
+        .map_err(|e| SimError::Input(format!("twin I/O module: {e}")))?;
+        let can_err = |e: CanError| SimError::Input(format!("twin CAN transport: {e}"));
+        let (drive, drive_task) = match &spec.can {
+            TwinCan::Cannelloni { local, remote } => spawn_drive_on(
+                Cannelloni::open(*local, *remote).await.map_err(can_err)?,
+                spec.drive,
+                plant.clone(),
+            )?,
+            TwinCan::PyCan { group, port, iface } => spawn_drive_on(
+                PyCanMulticast::open(*group, *port, *iface)
+                    .await
+                    .map_err(can_err)?,
+                spec.drive,
+                plant.clone(),
+            )?,
+            TwinCan::Memory(bus) => spawn_drive_on(bus.port(), spec.drive, plant.clone())?,
+        };
+        let mut twin = Twin {
+            plant,
+            io,
+            drive,
+            drive_task,
+            control: None,
+        };
+        if let Some(bind) = spec.control {
+            let listener = TcpListener::bind(bind)
+                .await
+                .map_err(|e| SimError::Input(format!("twin control socket {bind}: {e}")))?;
+            let addr = listener
+                .local_addr()
+                .map_err(|e| SimError::Input(format!("twin control socket: {e}")))?;
+            let ctx = Ctx {
+                plant: twin.plant.clone(),
+                drive: twin.drive.clone(),
+                io: twin.io.server().clone(),
+            };
+            let task = tokio::spawn(serve_control(listener, ctx));
+            twin.control = Some((addr, task));
+        }
+        Ok(twin)
+    }
+
+    /// The control socket's address.
+    pub fn control_addr(&self) -> Option<SocketAddr> {
+        self.control.as_ref().map(|(a, _)| *a)
+    }
+
+    /// Move the carriage to `mm` and wait until it is at rest.
+    pub async fn move_and_wait(&self, mm: f64) {
+        self.plant.move_carriage(mm, Instant::now());
+        let end = self.plant.carriage_move_end();
+        tokio::time::sleep_until(tokio::time::Instant::from_std(end)).await;
+    }
+}
+
+#[derive(Clone)]
+struct Ctx {
+    plant: Arc<Plant>,
+    drive: TwinDriveHandle,
+    io: crate::modbus::ServerHandle,
+}
+
+async fn serve_control(listener: TcpListener, ctx: Ctx) {
+    loop {
+        match listener.accept().await {
+            Ok((s, _)) => {
+                tokio::spawn(control_connection(s, ctx.clone()));
+            }
+            Err(e) => {
+                tracing::warn!("twin control accept: {e}");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+    }
+}
+
+async fn control_connection(s: TcpStream, ctx: Ctx) {
+    let (rd, mut wr) = s.into_split();
+    let mut lines = BufReader::new(rd).lines();
+    while let Ok(Some(line)) = lines.next_line().await {
+        let reply = match serde_json::from_str::<serde_json::Value>(&line) {
+            Ok(v) => handle(&ctx, &v)
+                .await
+                .unwrap_or_else(|e| serde_json::json!({"ok": false, "error": e})),
+            Err(e) => serde_json::json!({"ok": false, "error": format!("not JSON: {e}")}),
+        };
+        let mut text = reply.to_string();
+        text.push('\n');
+        if wr.write_all(text.as_bytes()).await.is_err() {
+            return;
+        }
+    }
+}
+
+async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, String> {
+    let cmd = v.get("cmd").and_then(|c| c.as_str()).ok_or("no \"cmd\"")?;
+    let num = |k: &str| v.get(k).and_then(|x| x.as_f64());
+    match cmd {
+        "move" => {
+            let mm = num("mm").ok_or("move needs \"mm\"")?;
+            let now = Instant::now();
+            ctx.plant.move_carriage(mm, now);
+            let d = ctx.plant.carriage_move_end().saturating_duration_since(now);
+            Ok(serde_json::json!({"ok": true, "duration_s": d.as_secs_f64()}))
+        }
+        "wait" => {
+            let end = ctx.plant.carriage_move_end();
+            tokio::time::sleep_until(tokio::time::Instant::from_std(end)).await;
+            Ok(serde_json::json!({"ok": true}))
+        }
+        "truth" => {
+            let t = TruthView::from(ctx.plant.truth(Instant::now()));
+            Ok(serde_json::json!({"ok": true, "truth": t}))
+        }
+        "block" => {
+            let psd = num("psd").ok_or("block needs \"psd\" (1..3)")? as usize;
+            if !(1..=3).contains(&psd) {
+                return Err(format!("psd {psd}: use 1, 2 or 3"));
+            }
+            let on = v.get("on").and_then(|x| x.as_bool()).unwrap_or(true);
+            ctx.plant.set_blocked(psd - 1, on);
+            Ok(serde_json::json!({"ok": true}))
+        }
+        "io" => {
+            if let Some(ms) = num("delay_ms") {
+                ctx.io
+                    .set_delay(Duration::from_secs_f64(ms.max(0.0) / 1000.0));
+            }
+            match v.get("action").and_then(|a| a.as_str()) {
+                Some("stop") => ctx.io.stop().await,
+                Some("restart") => ctx.io.restart().await.map_err(|e| e.to_string())?,
+                Some(other) => return Err(format!("io action \"{other}\": use stop or restart")),
+                None => {}
+            }
+            Ok(serde_json::json!({"ok": true}))
+        }
+        "drive" => {
+            if let Some(code) = num("fault") {
+                ctx.drive.inject_fault(code as u16, [0; 5]);
+            }
+            if let Some(on) = v.get("heartbeat").and_then(|x| x.as_bool()) {
+                ctx.drive.set_heartbeat(on);
+            }
+            Ok(serde_json::json!({"ok": true}))
+        }
+        other => Err(format!(
+            "unknown cmd \"{other}\": use move, wait, truth, block, io or drive"
+        )),
+    }
+}
