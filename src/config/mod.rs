@@ -128,6 +128,7 @@ pub struct RawTracking {
     pub settle_ms: u64,
     pub follow_band_mm: f64,
     pub follow_interval_ms: u64,
+    pub lead_ms: u64,
     pub lost_after_ms: u64,
     pub encoder_sd_um: f64,
     pub encoder_sd_um_per_m: f64,
@@ -654,6 +655,7 @@ fn validate(
         settle: v.ms("tracking.settle_ms", t.settle_ms, 0)?,
         follow_band_mm: v.positive("tracking.follow_band_mm", t.follow_band_mm)?,
         follow_interval: v.ms("tracking.follow_interval_ms", t.follow_interval_ms, 1)?,
+        lead: v.ms("tracking.lead_ms", t.lead_ms, 0)?,
         lost_after: v.ms("tracking.lost_after_ms", t.lost_after_ms, 1)?,
         encoder_sd_mm: v.non_negative("tracking.encoder_sd_um", t.encoder_sd_um)? * 1e-3,
         encoder_sd_per_mm: v.non_negative("tracking.encoder_sd_um_per_m", t.encoder_sd_um_per_m)?

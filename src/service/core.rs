@@ -60,10 +60,6 @@ impl Alarms {
             tracing::info!(alarm = code, "cleared");
         }
     }
-
-    fn is_active(&self, code: &str) -> bool {
-        self.list.iter().any(|a| a.code == code && a.active)
-    }
 }
 
 fn link_view(state: &LinkState, peer: String) -> LinkView {
@@ -111,6 +107,10 @@ pub(super) struct Core {
     started: Instant,
     /// Frames not decoupled because the core was behind.
     late_frames: u64,
+    /// The stitch was referenced automatically once; after that only `zero` does it.
+    referenced_once: bool,
+    /// The follower target the tracker wants (the follower task sends the latest).
+    follow: watch::Sender<Option<f64>>,
 }
 
 impl Core {
@@ -153,6 +153,8 @@ impl Core {
             ready_sent: false,
             started: Instant::now(),
             late_frames: 0,
+            referenced_once: false,
+            follow: watch::channel(None).0,
         }
     }
 
@@ -168,6 +170,11 @@ impl Core {
         let bring_up = tokio::spawn(bring_up(
             self.drive.clone(),
             self.home_on_start,
+            shutdown.clone(),
+        ));
+        let follower = tokio::spawn(follow(
+            self.drive.clone(),
+            self.follow.subscribe(),
             shutdown.clone(),
         ));
         let mut tick = tokio::time::interval(self.snapshot_period.min(Duration::from_millis(100)));
@@ -216,6 +223,7 @@ impl Core {
             }
         }
         bring_up.abort();
+        follower.abort();
         // Leave the follower at rest.
         let _ = tokio::time::timeout(Duration::from_secs(1), self.drive.stop()).await;
         Ok(())
@@ -225,9 +233,13 @@ impl Core {
         let st = &self.drive_status;
         Some(FollowerState {
             position_mm: st.position_mm?,
+            // Homed and not homing: before that its encoder is not the stage's position, and
+            // following would fight the homing procedure.
             ready: st.state == Some(PowerState::OperationEnabled)
                 && st.heartbeat_ok
-                && !st.emcy_active,
+                && !st.emcy_active
+                && st.homed
+                && st.busy != Some("home"),
             target_reached: st.target_reached,
         })
     }
@@ -248,9 +260,8 @@ impl Core {
         self.tracker.handle_frame(f, now);
         // The stitch starts where the follower is when the service first sees it ready, homed
         // and idle, with the spot on PSD2.
-        if !self.tracker.stitch().valid
-            && self.tracker.stitch().handovers == 0
-            && !self.alarms.is_active("stitch-broken")
+        if !self.referenced_once
+            && !self.tracker.stitch().valid
             && f.spots[1].is_some()
             && self.drive_status.homed
             && self.drive_status.busy.is_none()
@@ -278,12 +289,8 @@ impl Core {
     fn drain_tracker(&mut self) {
         while let Some(cmd) = self.tracker.poll_command() {
             let FollowerCommand::MoveTo(mm) = cmd;
-            let drive = self.drive.clone();
-            tokio::spawn(async move {
-                if let Err(e) = drive.set_target(mm).await {
-                    tracing::warn!("follower to {mm:.4} mm: {e}");
-                }
-            });
+            // Only the latest target matters: the follower task skips superseded ones.
+            self.follow.send_replace(Some(mm));
         }
         while let Some(e) = self.tracker.poll_event() {
             match e {
@@ -549,6 +556,31 @@ impl Core {
             },
             links: LinksView { io, can },
             alarms: self.alarms.list.clone(),
+        }
+    }
+}
+
+/// Send the tracker's follower targets, always the latest: a set-point takes a couple of SYNC
+/// periods, and targets that were superseded meanwhile are never sent.
+async fn follow(
+    drive: DriveHandle,
+    mut targets: watch::Receiver<Option<f64>>,
+    mut shutdown: Shutdown,
+) {
+    loop {
+        tokio::select! {
+            _ = shutdown.recv() => return,
+            r = targets.changed() => {
+                if r.is_err() {
+                    return;
+                }
+                let target = *targets.borrow_and_update();
+                if let Some(mm) = target
+                    && let Err(e) = drive.set_target(mm).await
+                {
+                    tracing::warn!("follower to {mm:.4} mm: {e}");
+                }
+            }
         }
     }
 }

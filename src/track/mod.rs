@@ -26,6 +26,10 @@ use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
+/// The carriage's velocity is estimated over this much history: short, so the lead stops
+/// pushing soon after the carriage stops.
+const VELOCITY_WINDOW: Duration = Duration::from_millis(50);
+
 /// How the follower's position is known.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -49,9 +53,12 @@ pub struct TrackSettings {
     pub average_frames: usize,
     /// Wait after the follower reports its target reached.
     pub settle: Duration,
-    /// Encoder: re-centre when the spot is this far out (mm), at most every `follow_interval`.
+    /// Following: re-centre when the spot is this far out (mm), at most every
+    /// `follow_interval`, aiming `lead` ahead of the carriage's estimated motion (a position
+    /// drive stops at each target: without feed-forward it falls behind a moving carriage).
     pub follow_band_mm: f64,
     pub follow_interval: Duration,
+    pub lead: Duration,
     /// The spot is lost when PSD2 has had no valid reading for this long.
     pub lost_after: Duration,
     /// Encoder accuracy: standard deviation `a + b·|travelled|` (mm, and mm per mm).
@@ -78,6 +85,7 @@ impl Default for TrackSettings {
             settle: Duration::from_millis(100),
             follow_band_mm: 0.3,
             follow_interval: Duration::from_millis(20),
+            lead: Duration::from_millis(50),
             lost_after: Duration::from_millis(500),
             encoder_sd_mm: 1e-3,
             encoder_sd_per_mm: 5e-6,
@@ -173,13 +181,15 @@ enum Phase {
     Watch,
     /// Overlap: averaging frames before the step.
     Before { since: Instant },
-    /// A follower move is under way; `overlap` when it is a handover step.
+    /// An overlap handover's follower step is under way.
     Moving {
         target: f64,
         since: Instant,
-        overlap: bool,
         reached_at: Option<Instant>,
     },
+    /// The carriage runs the spot along: the follower follows continuously; PSD2's
+    /// displacement over this segment comes from the encoder.
+    Following { encoder_start: f64 },
     /// Overlap: averaging frames after the step.
     After { since: Instant },
 }
@@ -215,8 +225,13 @@ pub struct Tracker {
     settings: TrackSettings,
     phase: Phase,
     follower: Option<FollowerState>,
+    /// The last two follower positions with their arrival times, to place the follower at a
+    /// frame's time (positions arrive every SYNC; frames more often).
+    follower_track: [Option<(Instant, f64)>; 2],
     /// Recent PSD2 spots (time, x, y) for the rest test.
     recent: VecDeque<(Instant, [f64; 2])>,
+    /// Recent carriage position estimates (encoder + spot), for its velocity.
+    carriage: VecDeque<(Instant, f64)>,
     last_valid: Option<Instant>,
     lost: bool,
     last_follow_cmd: Option<Instant>,
@@ -243,7 +258,9 @@ impl Tracker {
             settings,
             phase: Phase::Watch,
             follower: None,
+            follower_track: [None; 2],
             recent: VecDeque::new(),
+            carriage: VecDeque::new(),
             last_valid: None,
             lost: false,
             last_follow_cmd: None,
@@ -343,13 +360,36 @@ impl Tracker {
         [along * along, vertical * vertical]
     }
 
+    /// Where the follower was at `t`: its last reported position, moved on by its velocity
+    /// between the last two reports — unless it reports its target reached, or no report came
+    /// for longer than the last interval (then it has stopped, or its reports are late).
+    fn follower_at(&self, t: Instant) -> Option<f64> {
+        let (t1, p1) = self.follower_track[1]?;
+        let Some((t0, p0)) = self.follower_track[0] else {
+            return Some(p1);
+        };
+        if self.follower.is_some_and(|f| f.target_reached) {
+            return Some(p1);
+        }
+        let dt = t1.saturating_duration_since(t0).as_secs_f64();
+        let ahead = t.saturating_duration_since(t1).as_secs_f64();
+        if dt <= 0.0 || dt > 0.1 || ahead > dt {
+            return Some(p1);
+        }
+        Some(p1 + (p1 - p0) / dt * ahead)
+    }
+
     /// A follower status update.
     pub fn handle_follower(&mut self, state: FollowerState, now: Instant) {
+        if !state.ready {
+            self.follower_track = [None; 2];
+        } else if self.follower_track[1].is_none_or(|(_, p)| p != state.position_mm) {
+            self.follower_track = [self.follower_track[1], Some((now, state.position_mm))];
+        }
         self.follower = Some(state);
         if let Phase::Moving {
             target,
             since,
-            overlap,
             reached_at,
         } = self.phase.clone()
         {
@@ -370,7 +410,6 @@ impl Tracker {
                     self.phase = Phase::Moving {
                         target,
                         since,
-                        overlap,
                         reached_at: Some(now),
                     };
                 }
@@ -418,14 +457,46 @@ impl Tracker {
         let Some(f) = self.follower else {
             return;
         };
+        if !f.ready {
+            // A follower that is not ready may be homing: its coordinates jump. Keep no
+            // history across that.
+            self.carriage.clear();
+            self.follower_track = [None; 2];
+            return;
+        }
+        let follower_now = self.follower_at(now).unwrap_or(f.position_mm);
+        self.carriage.push_back((now, follower_now + p[0]));
+        while self
+            .carriage
+            .front()
+            .is_some_and(|(t, _)| now.saturating_duration_since(*t) > VELOCITY_WINDOW)
+        {
+            self.carriage.pop_front();
+        }
         match self.settings.strategy {
-            Strategy::Encoder => self.track_encoder(p, f, now),
+            Strategy::Encoder => self.follow_step(p, f, now),
             Strategy::Overlap => self.track_overlap(p, f, now),
         }
     }
 
-    fn track_encoder(&mut self, p: [f64; 2], f: FollowerState, now: Instant) {
-        if !f.ready || p[0].abs() <= self.settings.follow_band_mm {
+    /// The carriage's velocity (mm/s) over the last `VELOCITY_WINDOW`, from encoder plus spot.
+    fn carriage_velocity(&self) -> f64 {
+        match (self.carriage.front(), self.carriage.back()) {
+            (Some((t0, c0)), Some((t1, c1))) => {
+                let dt = t1.saturating_duration_since(*t0).as_secs_f64();
+                if dt >= 0.02 { (c1 - c0) / dt } else { 0.0 }
+            }
+            _ => 0.0,
+        }
+    }
+
+    /// One step of continuous following: aim at the carriage plus its motion over the lead.
+    fn follow_step(&mut self, p: [f64; 2], f: FollowerState, now: Instant) {
+        if !f.ready {
+            return;
+        }
+        let v = self.carriage_velocity();
+        if p[0].abs() <= self.settings.follow_band_mm && v.abs() < 2.0 {
             return;
         }
         let due = self
@@ -433,11 +504,22 @@ impl Tracker {
             .is_none_or(|t| now.saturating_duration_since(t) >= self.settings.follow_interval);
         if due {
             // The spot moves +1 mm on PSD2 per mm the carriage leads the follower.
-            self.commands
-                .push_back(FollowerCommand::MoveTo(f.position_mm + p[0]));
+            let here = self.follower_at(now).unwrap_or(f.position_mm);
+            let target = here + p[0] + v * self.settings.lead.as_secs_f64();
+            tracing::trace!(
+                reported = f.position_mm,
+                here,
+                x2 = p[0],
+                v,
+                target,
+                "follow"
+            );
+            self.commands.push_back(FollowerCommand::MoveTo(target));
             self.last_follow_cmd = Some(now);
-            // In this strategy a "handover" is one follow step.
-            self.handovers += 1;
+            if self.settings.strategy == Strategy::Encoder {
+                // In this strategy a "handover" is one follow step.
+                self.handovers += 1;
+            }
         }
     }
 
@@ -449,8 +531,11 @@ impl Tracker {
                     return;
                 }
                 if p[0].abs() >= s.edge_mm {
-                    // Moving towards the edge: follow now, by the encoder.
-                    self.start_move(f.position_mm + p[0], false, now);
+                    // The carriage runs the spot towards the edge: follow now, by the encoder.
+                    self.phase = Phase::Following {
+                        encoder_start: f.position_mm,
+                    };
+                    self.follow_step(p, f, now);
                 } else if p[0].abs() >= s.handover_mm && self.at_rest(now) {
                     self.before = Stats2::default();
                     self.phase = Phase::Before { since: now };
@@ -472,22 +557,24 @@ impl Tracker {
                         target_mm = target,
                         "handover: follower step"
                     );
-                    self.start_move(target, true, now);
+                    self.start_move(target, now);
                 }
             }
             Phase::Moving {
-                overlap,
                 reached_at: Some(t),
                 ..
             } => {
                 if now.saturating_duration_since(t) >= s.settle {
-                    if overlap {
-                        self.after = Stats2::default();
-                        self.after.push(p);
-                        self.phase = Phase::After { since: now };
-                    } else {
-                        self.finish_encoder_step(now);
-                    }
+                    self.after = Stats2::default();
+                    self.after.push(p);
+                    self.phase = Phase::After { since: now };
+                }
+            }
+            Phase::Following { encoder_start } => {
+                self.follow_step(p, f, now);
+                if self.at_rest(now) && p[0].abs() <= s.follow_band_mm && f.target_reached {
+                    self.encoder_before = encoder_start;
+                    self.finish_encoder_step(now);
                 }
             }
             Phase::Moving { .. } => {}
@@ -516,7 +603,7 @@ impl Tracker {
         v[0].sqrt() <= tol && v[1].sqrt() <= tol
     }
 
-    fn start_move(&mut self, target: f64, overlap: bool, now: Instant) {
+    fn start_move(&mut self, target: f64, now: Instant) {
         if let Some(f) = self.follower {
             self.encoder_before = f.position_mm;
         }
@@ -524,7 +611,6 @@ impl Tracker {
         self.phase = Phase::Moving {
             target,
             since: now,
-            overlap,
             reached_at: None,
         };
     }

@@ -252,3 +252,181 @@ pub fn free_port() -> u16 {
         .expect("free port")
         .port()
 }
+
+// ---------- The service against the twin, in one process, over loopback ----------
+
+/// Options for a `ServiceRig`.
+pub struct RigOptions {
+    /// Extra TOML appended to the service configuration (e.g. a `[tracking]` section).
+    pub service_toml: String,
+    pub plant: PlantSpec,
+}
+
+impl Default for RigOptions {
+    fn default() -> Self {
+        RigOptions {
+            service_toml: String::new(),
+            plant: PlantSpec {
+                seed: 10,
+                install: axiscomp::sim::InstallSpec {
+                    offset_mm: 0.0,
+                    tilt_deg: 0.0,
+                    gain_error: 0.0,
+                },
+                ..PlantSpec::default()
+            },
+        }
+    }
+}
+
+/// The twin and the service on loopback: Modbus TCP on an ephemeral port, CANopen over a
+/// cannelloni UDP pair, the control API on a Unix socket in a temporary directory.
+pub struct ServiceRig {
+    pub twin: axiscomp::sim::twin::Twin,
+    pub socket: std::path::PathBuf,
+    /// The service's configuration file.
+    pub config: std::path::PathBuf,
+    trigger: Option<axiscomp::service::shutdown::Trigger>,
+    service: Option<tokio::task::JoinHandle<Result<(), axiscomp::service::ServiceError>>>,
+    _dir: TempDir,
+}
+
+impl ServiceRig {
+    /// Start the twin and the service, and wait until the follower is homed and the stitch
+    /// referenced.
+    pub async fn start(opts: RigOptions) -> ServiceRig {
+        use axiscomp::sim::drive::TwinDriveConfig;
+        use axiscomp::sim::twin::{Twin, TwinCan, TwinSpec};
+        // AXISCOMP_TEST_LOG=axiscomp::track=debug shows the service's logs in a failing test.
+        if let Ok(filter) = tracing_subscriber::EnvFilter::try_from_env("AXISCOMP_TEST_LOG") {
+            let _ = tracing_subscriber::fmt()
+                .with_env_filter(filter)
+                .with_test_writer()
+                .try_init();
+        }
+        let dir = TempDir::new("service");
+        let (svc_port, twin_port) = (unused_udp_port(), unused_udp_port());
+        let twin = Twin::start(
+            &Layout::reference(),
+            TwinSpec {
+                plant: opts.plant,
+                io_bind: "127.0.0.1:0".parse().expect("addr"),
+                io_map: axiscomp::acquire::IoMap::generic().expect("generic map"),
+                can: TwinCan::Cannelloni {
+                    local: format!("127.0.0.1:{twin_port}").parse().expect("addr"),
+                    remote: format!("127.0.0.1:{svc_port}").parse().expect("addr"),
+                },
+                drive: TwinDriveConfig {
+                    start_mm: 2.0,
+                    ..TwinDriveConfig::default()
+                },
+                control: None,
+            },
+        )
+        .await
+        .expect("twin");
+        let socket = dir.path("control.sock");
+        let config = dir.write(
+            "axiscomp.toml",
+            &format!(
+                "[service]\nsocket = \"{}\"\nstate_dir = \"{}\"\nsnapshot_hz = 20.0\n\n\
+                 [io]\naddress = \"{}\"\nrate_hz = 500.0\n\n\
+                 [can]\ntransport = \"cannelloni\"\nlocal = \"127.0.0.1:{svc_port}\"\nremote = \"127.0.0.1:{twin_port}\"\n\n{}",
+                socket.display(),
+                dir.path("state").display(),
+                twin.io.local_addr(),
+                opts.service_toml
+            ),
+        );
+        let settings = axiscomp::config::load(&axiscomp::config::Layers {
+            etc: None,
+            file: Some(config.clone()),
+            env: vec![],
+        })
+        .expect("service config");
+        let prepared = axiscomp::service::prepare(&settings).expect("prepare");
+        let (trigger, shutdown) = axiscomp::service::shutdown::channel();
+        let service = tokio::spawn(axiscomp::service::run(prepared, shutdown));
+        let rig = ServiceRig {
+            twin,
+            socket,
+            config,
+            trigger: Some(trigger),
+            service: Some(service),
+            _dir: dir,
+        };
+        rig.wait_for(
+            60,
+            "the follower homed, the stitch referenced, the spot at rest",
+            |s| s.follower.homed && s.tracking.valid && s.tracking.at_rest && s.live.is_some(),
+        )
+        .await;
+        rig
+    }
+
+    /// A control client.
+    pub async fn client(&self) -> axiscomp::service::control::Client {
+        for _ in 0..100 {
+            if let Ok(c) = axiscomp::service::control::Client::connect(&self.socket).await {
+                return c;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        panic!("cannot connect to {}", self.socket.display());
+    }
+
+    /// The current snapshot.
+    pub async fn snapshot(&self) -> axiscomp::service::snapshot::Snapshot {
+        self.client().await.status().await.expect("status")
+    }
+
+    /// Send a request and return its result.
+    pub async fn request(
+        &self,
+        r: axiscomp::service::control::Request,
+    ) -> Result<serde_json::Value, axiscomp::service::control::ClientError> {
+        self.client().await.request(&r).await
+    }
+
+    /// Poll snapshots (every 50 ms) until `pred` holds; fail after `secs` seconds.
+    pub async fn wait_for(
+        &self,
+        secs: u64,
+        what: &str,
+        mut pred: impl FnMut(&axiscomp::service::snapshot::Snapshot) -> bool,
+    ) -> axiscomp::service::snapshot::Snapshot {
+        let end = Instant::now() + Duration::from_secs(secs);
+        let mut c = self.client().await;
+        loop {
+            let s = c.status().await.expect("status");
+            if pred(&s) {
+                return s;
+            }
+            if Instant::now() > end {
+                panic!("waited {secs} s for {what}; last snapshot:\n{s:#?}");
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    /// Stop the service and wait for it.
+    pub async fn stop(mut self) {
+        if let Some(t) = self.trigger.take() {
+            t.trigger();
+        }
+        if let Some(s) = self.service.take() {
+            let r = tokio::time::timeout(Duration::from_secs(10), s)
+                .await
+                .expect("service stops within 10 s");
+            r.expect("service task").expect("service result");
+        }
+    }
+}
+
+impl Drop for ServiceRig {
+    fn drop(&mut self) {
+        if let Some(t) = self.trigger.take() {
+            t.trigger();
+        }
+    }
+}

@@ -11,5 +11,6 @@ mod comp;
 mod decoupling;
 mod evaluate;
 mod modbus;
+mod service;
 mod socketcan;
 mod store;
