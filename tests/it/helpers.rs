@@ -284,8 +284,6 @@ impl Default for RigOptions {
 pub struct ServiceRig {
     pub twin: axiscomp::sim::twin::Twin,
     pub socket: std::path::PathBuf,
-    /// The service's configuration file.
-    pub config: std::path::PathBuf,
     trigger: Option<axiscomp::service::shutdown::Trigger>,
     service: Option<tokio::task::JoinHandle<Result<(), axiscomp::service::ServiceError>>>,
     _dir: TempDir,
@@ -350,7 +348,6 @@ impl ServiceRig {
         let rig = ServiceRig {
             twin,
             socket,
-            config,
             trigger: Some(trigger),
             service: Some(service),
             _dir: dir,
