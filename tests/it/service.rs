@@ -3,7 +3,7 @@
 //! on a Unix socket): tracking and stitching over 100 mm for both strategies, compared with the
 //! twin's truth, and the faults (issue 3).
 
-use crate::helpers::{RigOptions, ServiceRig};
+use crate::helpers::{RigOptions, ServiceRig, run, stderr};
 use axiscomp::service::control::Request;
 use axiscomp::service::snapshot::Snapshot;
 use axiscomp::sim::plant::Truth;
@@ -213,4 +213,265 @@ async fn overlap_stitching_over_100_mm_matches_the_truth() {
 #[ignore = "continuous following needs cyclic synchronous position (CSP); profile position stalls on its set-point handshake"]
 async fn encoder_tracking_over_100_mm_matches_the_truth() {
     hundred_mm(Strategy::Encoder).await;
+}
+
+/// The I/O module stops and comes back: the link reconnects within 2 s, frames resume, and the
+/// alarm comes and goes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn io_module_outage_reconnects_within_2_s() {
+    let rig = ServiceRig::start(rig_options("overlap")).await;
+    let server = rig.twin.io.server().clone();
+    server.stop().await;
+    let s = rig
+        .wait_for(10, "the io-link-down alarm", |s| {
+            s.alarms
+                .iter()
+                .any(|a| a.code == "io-link-down" && a.active)
+        })
+        .await;
+    assert_ne!(s.links.io.state, "up");
+    let seq_down = s.psd.as_ref().map(|p| p.seq).unwrap_or(0);
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    server.restart().await.expect("restart the I/O module");
+    let back = Instant::now();
+    let s = rig
+        .wait_for(10, "frames again", |s| {
+            s.psd.as_ref().is_some_and(|p| p.seq > seq_down + 10) && s.links.io.state == "up"
+        })
+        .await;
+    let took = back.elapsed();
+    eprintln!("I/O module back: frames resumed after {took:?} (snapshot polling adds up to 50 ms)");
+    assert!(
+        took <= Duration::from_secs(2),
+        "frames resumed after {took:?}"
+    );
+    assert!(
+        s.alarms
+            .iter()
+            .all(|a| a.code != "io-link-down" || !a.active)
+    );
+    rig.stop().await;
+}
+
+/// The drive's heartbeat stops: alarm in the snapshot, the follower shown lost; it comes back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn heartbeat_loss_raises_an_alarm_and_stops_the_follower() {
+    let rig = ServiceRig::start(rig_options("overlap")).await;
+    rig.twin.drive.set_heartbeat(false);
+    let s = rig
+        .wait_for(10, "the heartbeat-lost alarm", |s| {
+            s.alarms
+                .iter()
+                .any(|a| a.code == "heartbeat-lost" && a.active)
+        })
+        .await;
+    assert!(!s.follower.heartbeat_ok);
+    assert!(s.alarms.iter().any(|a| a.text.contains("follower stopped")));
+    // The follower is not moved while its drive is lost.
+    let held = rig.twin.plant.follower_encoder();
+    rig.twin.move_and_wait(3.0).await;
+    tokio::time::sleep(Duration::from_millis(800)).await;
+    assert_eq!(rig.twin.plant.follower_encoder(), held);
+    rig.twin.drive.set_heartbeat(true);
+    rig.wait_for(10, "the heartbeat back", |s| {
+        s.follower.heartbeat_ok
+            && s.alarms
+                .iter()
+                .all(|a| a.code != "heartbeat-lost" || !a.active)
+    })
+    .await;
+    rig.stop().await;
+}
+
+/// The drive faults with an EMCY: alarm with the decoded text; a fault reset on command
+/// brings it back to operation.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn drive_fault_alarm_and_reset_on_command() {
+    let rig = ServiceRig::start(rig_options("overlap")).await;
+    rig.twin.drive.inject_fault(0x8611, [0; 5]);
+    let s = rig
+        .wait_for(10, "the drive-fault alarm", |s| {
+            s.alarms.iter().any(|a| a.code == "drive-fault" && a.active)
+        })
+        .await;
+    let text = &s
+        .alarms
+        .iter()
+        .find(|a| a.code == "drive-fault")
+        .expect("alarm")
+        .text;
+    assert!(
+        text.contains("8611") || text.to_lowercase().contains("following"),
+        "{text}"
+    );
+    assert_eq!(s.follower.state, "Fault");
+    assert!(s.follower.last_emcy.is_some());
+    let r = rig
+        .request(Request::Follower {
+            action: axiscomp::service::control::FollowerAction::FaultReset,
+            mm: None,
+        })
+        .await
+        .expect("fault reset");
+    assert!(r.get("position_mm").is_some(), "{r}");
+    rig.wait_for(10, "the drive enabled again", |s| {
+        s.follower.state == "OperationEnabled"
+            && s.alarms
+                .iter()
+                .all(|a| a.code != "drive-fault" || !a.active)
+    })
+    .await;
+    rig.stop().await;
+}
+
+/// The beam is blocked: frames are marked invalid, no errors are published from them, and
+/// the live errors come back when it is unblocked.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn blocked_beam_frames_are_invalid_and_not_published() {
+    let rig = ServiceRig::start(rig_options("overlap")).await;
+    rig.twin.plant.set_blocked(2, true);
+    let s = rig
+        .wait_for(10, "frames invalid and no live errors", |s| {
+            s.psd
+                .as_ref()
+                .is_some_and(|p| !p.valid && p.spots_um[2].is_none())
+                && s.live.is_none()
+        })
+        .await;
+    let alarm = s
+        .alarms
+        .iter()
+        .find(|a| a.code == "beam-blocked" && a.active)
+        .expect("alarm");
+    assert!(alarm.text.contains("PSD3"), "{}", alarm.text);
+    let invalid = s.psd.as_ref().map(|p| p.invalid_frames).unwrap_or(0);
+    assert!(invalid > 0);
+    rig.twin.plant.set_blocked(2, false);
+    rig.wait_for(10, "live errors again", |s| {
+        s.live.as_ref().is_some_and(|l| l.frames > 10)
+    })
+    .await;
+    rig.stop().await;
+}
+
+/// A peer that is neither operator nor viewer is refused, by name, and changes nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stranger_is_refused_by_peer_credentials() {
+    use std::os::unix::process::CommandExt;
+    if unsafe { libc::geteuid() } != 0 {
+        eprintln!("not root: cannot connect as another user; skipping");
+        return;
+    }
+    let rig = ServiceRig::start(rig_options("overlap")).await;
+    // Let "nobody" reach the socket through the temporary directories.
+    let mut dir = rig.socket.parent().map(std::path::Path::to_path_buf);
+    while let Some(d) = dir {
+        use std::os::unix::fs::PermissionsExt;
+        if let Ok(m) = std::fs::metadata(&d) {
+            let mut p = m.permissions();
+            p.set_mode(p.mode() | 0o011);
+            let _ = std::fs::set_permissions(&d, p);
+        }
+        dir = d.parent().map(std::path::Path::to_path_buf);
+    }
+    let script = format!(
+        "import socket,json\nfor req in ({{'cmd':'zero'}},{{'cmd':'status'}}):\n s=socket.socket(socket.AF_UNIX); s.connect({:?}); s.sendall((json.dumps(req)+'\\n').encode()); print(s.makefile().readline().strip()); s.close()\n",
+        rig.socket.display().to_string()
+    );
+    let socket_path = rig.socket.clone();
+    let out = tokio::task::spawn_blocking(move || {
+        std::process::Command::new("python3")
+            .arg("-c")
+            .arg(script)
+            .uid(65534)
+            .gid(65534)
+            .output()
+    })
+    .await
+    .expect("join")
+    .expect("python3 as nobody");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text} {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 2, "{text} (socket {})", socket_path.display());
+    assert!(
+        lines[0].contains("may not zero") && lines[0].contains("operator"),
+        "{}",
+        lines[0]
+    );
+    assert!(
+        lines[1].contains("may not status") && lines[1].contains("viewer"),
+        "{}",
+        lines[1]
+    );
+    // Nothing changed: no zero reference was taken.
+    let s = rig.snapshot().await;
+    assert!(!s.live.as_ref().is_some_and(|l| l.zeroed));
+    rig.stop().await;
+}
+
+/// A malformed configuration or map: a clear error naming the key and the file, exit code 2.
+#[test]
+fn malformed_config_and_map_exit_2_naming_key_and_file() {
+    let dir = crate::helpers::TempDir::new("badconfig");
+    let bad = dir.write("axiscomp.toml", "[io]\nrate_hz = -5.0\n");
+    let o = run(&["check", "--config", bad.to_str().unwrap()], "");
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    let e = stderr(&o);
+    assert!(
+        e.contains("io.rate_hz") && e.contains("axiscomp.toml"),
+        "{e}"
+    );
+    assert_eq!(e.lines().count(), 1, "{e}");
+
+    let unknown = dir.write("unknown.toml", "[follower]\nnode = 3\n");
+    let o = run(&["check", "--config", unknown.to_str().unwrap()], "");
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        stderr(&o).contains("unknown.toml") && stderr(&o).contains("unknown field `node`"),
+        "{}",
+        stderr(&o)
+    );
+
+    let o = run(&["serve", "--config", bad.to_str().unwrap()], "");
+    assert_eq!(
+        o.status.code(),
+        Some(2),
+        "serve refuses too: {}",
+        stderr(&o)
+    );
+
+    // A map with a channel outside its block, referenced from a valid config.
+    let map = dir.write(
+        "map.toml",
+        &std::fs::read_to_string(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("plc-maps/io/generic.toml"),
+        )
+        .unwrap()
+        .replacen("x = { register = 0 }", "x = { register = 40 }", 1),
+    );
+    let cfg = dir.write(
+        "withmap.toml",
+        &format!("[io]\nmap = \"{}\"\n", map.display()),
+    );
+    let o = run(&["check", "--config", cfg.to_str().unwrap()], "");
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("map.toml"), "{}", stderr(&o));
+
+    // The production example names a calibration this machine does not have: check says so.
+    let o = run(&["check", "--config", "configs/axiscomp.toml"], "");
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        stderr(&o).contains("/var/lib/axiscomp/calibration.toml"),
+        "{}",
+        stderr(&o)
+    );
+    // The twin's service configuration passes.
+    let o = run(&["check", "--config", "configs/twin-service.toml"], "");
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(crate::helpers::stdout(&o).ends_with("ok\n"));
 }
