@@ -5,62 +5,21 @@
 
 use super::Prepared;
 use super::control::{Command, FollowerAction, Request};
-use super::measure::Measure;
 use super::notify;
+use super::pipeline::{Output, Pipeline, now_us};
 use super::shutdown::Shutdown;
 use super::snapshot::{
-    Alarm, FollowerView, LinkView, LinksView, LiveView, PsdView, Snapshot, TrackingView,
+    FollowerView, LinkView, LinksView, LiveView, PsdView, Snapshot, TrackingView,
 };
 use crate::acquire::{Acquisition, Frame};
 use crate::canopen::{DriveHandle, DriveStatus, Event, PowerState};
 use crate::modbus::{Link, LinkState};
 use crate::optics::layout::{Aperture, Kind};
-use crate::track::{FollowerCommand, FollowerState, TrackEvent, Tracker};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 use tokio::sync::{broadcast, mpsc, oneshot, watch};
 
 /// A frame older than this when the core gets to it is not decoupled (it is still tracked).
 const LATE: Duration = Duration::from_millis(100);
-
-fn now_us() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_micros() as i64)
-        .unwrap_or(0)
-}
-
-/// Active and recently cleared alarms.
-#[derive(Debug, Default)]
-struct Alarms {
-    list: Vec<Alarm>,
-}
-
-impl Alarms {
-    fn raise(&mut self, code: &str, text: String) {
-        if let Some(a) = self.list.iter_mut().find(|a| a.code == code && a.active) {
-            a.text = text;
-            return;
-        }
-        tracing::warn!(alarm = code, "{text}");
-        self.list.insert(
-            0,
-            Alarm {
-                code: code.into(),
-                text,
-                since_unix_us: now_us(),
-                active: true,
-            },
-        );
-        self.list.truncate(50);
-    }
-
-    fn clear(&mut self, code: &str) {
-        for a in self.list.iter_mut().filter(|a| a.code == code && a.active) {
-            a.active = false;
-            tracing::info!(alarm = code, "cleared");
-        }
-    }
-}
 
 fn link_view(state: &LinkState, peer: String) -> LinkView {
     let (state, detail) = match state {
@@ -85,8 +44,7 @@ fn power_name(s: Option<PowerState>) -> String {
 }
 
 pub(super) struct Core {
-    tracker: Tracker,
-    measure: Measure,
+    pipeline: Pipeline,
     link: Link,
     acquisition: Acquisition,
     drive: DriveHandle,
@@ -95,20 +53,14 @@ pub(super) struct Core {
     node_id: u8,
     snapshot: watch::Sender<Snapshot>,
     snapshot_period: Duration,
-    alarms: Alarms,
-    last_frame: Option<Frame>,
     half_size_um: [f64; 3],
     home_on_start: bool,
     watchdog: bool,
-    /// A zero request waiting for the averaging window to refill.
-    pending_zero: Option<(Instant, oneshot::Sender<Result<serde_json::Value, String>>)>,
+    /// The reply owed to a zero request, answered once the window has refilled.
+    zero_reply: Option<oneshot::Sender<Result<serde_json::Value, String>>>,
     live_window: Duration,
     ready_sent: bool,
     started: Instant,
-    /// Frames not decoupled because the core was behind.
-    late_frames: u64,
-    /// The stitch was referenced automatically once; after that only `zero` does it.
-    referenced_once: bool,
     /// The follower target the tracker wants (the follower task sends the latest).
     follow: watch::Sender<Option<f64>>,
 }
@@ -133,8 +85,7 @@ impl Core {
             }
         }
         Core {
-            tracker: Tracker::new(s.tracking),
-            measure: Measure::new(p.decoupler.clone(), s.head.live_window),
+            pipeline: Pipeline::new(s.tracking, p.decoupler.clone(), s.head.live_window),
             link,
             acquisition,
             drive_status: drive.status(),
@@ -143,17 +94,13 @@ impl Core {
             node_id: s.follower.drive.node_id,
             snapshot,
             snapshot_period: s.service.snapshot_period,
-            alarms: Alarms::default(),
-            last_frame: None,
             half_size_um,
             home_on_start: s.follower.home_on_start,
             watchdog: s.service.watchdog,
-            pending_zero: None,
+            zero_reply: None,
             live_window: s.head.live_window,
             ready_sent: false,
             started: Instant::now(),
-            late_frames: 0,
-            referenced_once: false,
             follow: watch::channel(None).0,
         }
     }
@@ -194,10 +141,15 @@ impl Core {
                 r = status.changed() => {
                     if r.is_err() { break; }
                     let st = status.borrow_and_update().clone();
-                    self.handle_drive_status(st);
+                    self.pipeline.handle_drive_status(&st, Instant::now());
+                    self.drive_status = st;
+                    self.pump();
                 }
                 e = events.recv() => match e {
-                    Ok(e) => self.handle_drive_event(e),
+                    Ok(e) => {
+                        self.pipeline.handle_drive_event(&e, &self.can_peer);
+                        self.pump();
+                    }
                     Err(broadcast::error::RecvError::Lagged(_)) => {}
                     Err(broadcast::error::RecvError::Closed) => break,
                 },
@@ -229,135 +181,39 @@ impl Core {
         Ok(())
     }
 
-    fn follower_state(&self) -> Option<FollowerState> {
-        let st = &self.drive_status;
-        Some(FollowerState {
-            position_mm: st.position_mm?,
-            // Homed and not homing: before that its encoder is not the stage's position, and
-            // following would fight the homing procedure.
-            ready: st.state == Some(PowerState::OperationEnabled)
-                && st.heartbeat_ok
-                && !st.emcy_active
-                && st.homed
-                && st.busy != Some("home"),
-            target_reached: st.target_reached,
-        })
-    }
-
     fn handle_frame(&mut self, f: &Frame) {
-        // The machines run on the frame's own time (when the module answered), so a frame
-        // handled late is still judged at the moment it describes.
-        let now = f.at;
+        // The pipeline judges a frame at its own time (when the module answered); a frame the
+        // core reaches late is tracked but not decoupled, so the core catches up.
         let late = Instant::now().saturating_duration_since(f.at) > LATE;
-        self.last_frame = Some(*f);
-        match f.spots.iter().position(Option::is_none) {
-            Some(k) => self.alarms.raise(
-                "beam-blocked",
-                format!("PSD{} has no spot (SUM {:.2} V): beam blocked or off the PSD; frames are not used", k + 1, f.sums[k]),
-            ),
-            None => self.alarms.clear("beam-blocked"),
-        }
-        self.tracker.handle_frame(f, now);
-        // The stitch starts where the follower is when the service first sees it ready, homed
-        // and idle, with the spot on PSD2.
-        if !self.referenced_once
-            && !self.tracker.stitch().valid
-            && f.spots[1].is_some()
-            && self.drive_status.homed
-            && self.drive_status.busy.is_none()
-            && self
-                .follower_state()
-                .is_some_and(|s| s.ready && s.target_reached)
-        {
-            self.tracker.reference();
-        }
-        self.drain_tracker();
-        if late {
-            // Behind: tracking keeps every frame, the live average skips the late ones until
-            // the core has caught up.
-            self.late_frames += 1;
-            return;
-        }
-        match self.measure.handle_frame(f, &self.tracker.stitch(), now) {
-            Ok(_) => self.alarms.clear("decoupling"),
-            Err(e) => self
-                .alarms
-                .raise("decoupling", format!("a frame could not be decoupled: {e}")),
-        }
+        self.pipeline.handle_frame(f, late);
+        self.pump();
     }
 
-    fn drain_tracker(&mut self) {
-        while let Some(cmd) = self.tracker.poll_command() {
-            let FollowerCommand::MoveTo(mm) = cmd;
-            // Only the latest target matters: the follower task skips superseded ones.
-            self.follow.send_replace(Some(mm));
-        }
-        while let Some(e) = self.tracker.poll_event() {
-            match e {
-                TrackEvent::Handover(r) => {
-                    tracing::debug!(?r.kind, delta_mm = r.delta[0], "handover");
-                    self.measure.restart();
+    /// Carry out what the pipeline asks.
+    fn pump(&mut self) {
+        while let Some(out) = self.pipeline.poll_output() {
+            match out {
+                // Only the latest target matters: the follower task skips superseded ones.
+                Output::Follow(mm) => {
+                    self.follow.send_replace(Some(mm));
                 }
-                TrackEvent::FollowedWhileMoving { from_mm, to_mm } => {
-                    tracing::debug!(from_mm, to_mm, "followed by encoder while moving");
-                    self.measure.restart();
+                Output::QuickStop => {
+                    let drive = self.drive.clone();
+                    tokio::spawn(async move {
+                        let _ = drive.quick_stop().await;
+                    });
                 }
-                TrackEvent::SpotLost => self.alarms.raise(
-                    "stitch-broken",
-                    "PSD2 lost the spot: positioning has lost its reference; zero again (control: zero)".into(),
-                ),
-                TrackEvent::SpotFound => tracing::info!("PSD2 sees the spot again"),
-                TrackEvent::FollowerProblem(p) => self.alarms.raise("follower", p),
+                Output::Handover(_) => {}
+                Output::Captured(c) => tracing::info!(?c.run, c.target_index, "captured"),
+                Output::Acknowledge(_) | Output::RunFinished | Output::RunFailed(_) => {}
             }
-        }
-    }
-
-    fn handle_drive_status(&mut self, st: DriveStatus) {
-        self.drive_status = st;
-        if let Some(fs) = self.follower_state() {
-            self.tracker.handle_follower(fs, Instant::now());
-            self.drain_tracker();
-        }
-    }
-
-    fn handle_drive_event(&mut self, e: Event) {
-        match e {
-            Event::HeartbeatLost => {
-                self.alarms.raise(
-                    "heartbeat-lost",
-                    format!(
-                        "the follower drive's heartbeat stopped ({}): follower stopped",
-                        self.can_peer
-                    ),
-                );
-                let drive = self.drive.clone();
-                tokio::spawn(async move {
-                    let _ = drive.quick_stop().await;
-                });
-            }
-            Event::HeartbeatResumed => self.alarms.clear("heartbeat-lost"),
-            Event::Emcy(emcy) => {
-                if !emcy.is_reset() {
-                    self.alarms.raise("drive-fault", format!("follower drive EMCY: {emcy}; reset it with the follower fault_reset command"));
-                } else {
-                    self.alarms.clear("drive-fault");
-                }
-            }
-            Event::BootUp { expected: false } => {
-                self.alarms.raise(
-                    "drive-rebooted",
-                    "the follower drive rebooted: reconfiguring it".into(),
-                );
-                self.tracker.invalidate();
-            }
-            _ => {}
         }
     }
 
     fn handle_io_state(&mut self, st: &LinkState) {
         match st {
-            LinkState::Up { .. } => self.alarms.clear("io-link-down"),
-            LinkState::Down { error, .. } => self.alarms.raise(
+            LinkState::Up { .. } => self.pipeline.alarms.clear("io-link-down"),
+            LinkState::Down { error, .. } => self.pipeline.alarms.raise(
                 "io-link-down",
                 format!(
                     "PSD I/O module {} unreachable: {error}; reconnecting",
@@ -389,32 +245,31 @@ impl Core {
                         Err("nominal must be a finite number of mm or null".into()),
                     );
                 }
-                self.measure.set_nominal(mm);
+                if self.pipeline.run_progress().is_some() {
+                    return Self::reply(
+                        c.reply,
+                        Err("a run is under way: it sets the nominal".into()),
+                    );
+                }
+                self.pipeline.measure.set_nominal(mm);
                 Self::reply(c.reply, Ok(serde_json::json!({"nominal_mm": mm})));
             }
             Request::Strategy { strategy } => {
-                self.tracker.set_strategy(strategy);
+                self.pipeline.tracker.set_strategy(strategy);
                 Self::reply(c.reply, Ok(serde_json::json!({"strategy": strategy})));
             }
             Request::ClearZero => {
-                self.measure.clear_zero();
+                self.pipeline.measure.clear_zero();
                 Self::reply(c.reply, Ok(serde_json::json!({"zeroed": false})));
             }
             Request::Zero => {
-                if !self.tracker.reference() {
+                if !self.pipeline.begin_zero(Instant::now(), self.live_window) {
                     return Self::reply(
                         c.reply,
                         Err("the follower's position is not known yet: is the drive up?".into()),
                     );
                 }
-                self.alarms.clear("stitch-broken");
-                self.measure.clear_zero();
-                self.measure.restart();
-                // Answer once the averaging window has refilled at the new reference.
-                self.pending_zero = Some((
-                    Instant::now() + self.live_window + Duration::from_millis(50),
-                    c.reply,
-                ));
+                self.zero_reply = Some(c.reply);
             }
             Request::Follower { action, mm } => {
                 let drive = self.drive.clone();
@@ -423,10 +278,8 @@ impl Core {
                     FollowerAction::Jog | FollowerAction::Move | FollowerAction::Home
                 ) {
                     // A manual move is not a measured handover: the stitch must be re-zeroed.
-                    self.tracker.invalidate();
-                    self.alarms.raise(
-                        "stitch-broken",
-                        "the follower was moved by hand: zero again before measuring".into(),
+                    self.pipeline.invalidate_stitch(
+                        "the follower was moved by hand: zero again before measuring",
                     );
                 }
                 tokio::spawn(async move {
@@ -457,11 +310,10 @@ impl Core {
 
     fn on_tick(&mut self) {
         let now = Instant::now();
-        if let Some((when, _)) = &self.pending_zero
-            && now >= *when
-            && let Some((_, reply)) = self.pending_zero.take()
+        if let Some(z) = self.pipeline.zero_ready(now)
+            && let Some(reply) = self.zero_reply.take()
         {
-            let r = match self.measure.set_zero() {
+            let r = match z {
                 Some(z) => Ok(serde_json::json!({"zeroed": true, "offsets": z.to_user()})),
                 None => Err("no valid frames to zero on: is the beam on all three PSDs?".into()),
             };
@@ -487,7 +339,8 @@ impl Core {
 
     fn build_snapshot(&self) -> Snapshot {
         let stats = self.acquisition.stats();
-        let psd = self.last_frame.map(|f| PsdView {
+        let p = &self.pipeline;
+        let psd = p.last_frame.map(|f| PsdView {
             seq: f.seq,
             spots_um: f.spots.map(|s| s.map(|s| [s.x * 1e3, s.y * 1e3])),
             sums_v: f.sums,
@@ -495,9 +348,9 @@ impl Core {
             valid: f.is_valid(),
             rate_hz: stats.frames_per_s,
             invalid_frames: stats.invalid_frames,
-            late_frames: self.late_frames,
+            late_frames: p.late_frames,
         });
-        let live = self.measure.live().map(|l| LiveView {
+        let live = p.measure.live().map(|l| LiveView {
             errors: l.errors.to_user(),
             sd: l.sd.to_user(),
             frames: l.frames,
@@ -507,7 +360,7 @@ impl Core {
             zeroed: l.zeroed,
         });
         let st = &self.drive_status;
-        let stitch = self.tracker.stitch();
+        let stitch = p.tracker.stitch();
         let link_stats = self.link.stats();
         let mut io = link_view(&self.link.state().borrow(), self.link.addr().to_string());
         io.rate_hz = stats.frames_per_s;
@@ -548,14 +401,14 @@ impl Core {
             tracking: TrackingView {
                 strategy: format!("{:?}", stitch.strategy).to_lowercase(),
                 valid: stitch.valid,
-                at_rest: self.tracker.at_rest(Instant::now()),
+                at_rest: p.tracker.at_rest(Instant::now()),
                 follower_mm: stitch.follower_mm,
                 vertical_um: stitch.vertical_mm * 1e3,
                 sd_um: stitch.variance.map(|v| v.sqrt() * 1e3),
                 handovers: stitch.handovers,
             },
             links: LinksView { io, can },
-            alarms: self.alarms.list.clone(),
+            alarms: p.alarms.list().to_vec(),
         }
     }
 }

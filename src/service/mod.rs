@@ -8,6 +8,7 @@ mod core;
 pub mod measure;
 pub mod notify;
 pub mod peer;
+pub mod pipeline;
 pub mod shutdown;
 pub mod snapshot;
 

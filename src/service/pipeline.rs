@@ -1,0 +1,356 @@
+//! The service's measurement logic, sans-I/O: frames, follower status and drive events go in
+//! (with the time), outputs come out (follower targets, captures, handovers, run results),
+//! and alarms are kept. The live service's core task drives it from its sockets; the
+//! virtual-time lab (`sim::lab`) drives the very same logic on a simulated clock.
+
+use super::measure::Measure;
+use super::snapshot::Alarm;
+use crate::acquire::Frame;
+use crate::canopen::{DriveStatus, Event, PowerState};
+use crate::decouple::Decoupler;
+use crate::run::{Capture, RunAction, RunMachine};
+use crate::track::{
+    FollowerCommand, FollowerState, HandoverRecord, TrackEvent, TrackSettings, Tracker,
+};
+use crate::units::Errors6;
+use std::collections::VecDeque;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+/// Now as µs since the Unix epoch.
+pub fn now_us() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_micros() as i64)
+        .unwrap_or(0)
+}
+
+/// Active and recently cleared alarms, newest first.
+#[derive(Debug, Default)]
+pub struct Alarms {
+    list: Vec<Alarm>,
+}
+
+impl Alarms {
+    /// Raise (or update) the alarm `code`.
+    pub fn raise(&mut self, code: &str, text: String) {
+        if let Some(a) = self.list.iter_mut().find(|a| a.code == code && a.active) {
+            a.text = text;
+            return;
+        }
+        tracing::warn!(alarm = code, "{text}");
+        self.list.insert(
+            0,
+            Alarm {
+                code: code.into(),
+                text,
+                since_unix_us: now_us(),
+                active: true,
+            },
+        );
+        self.list.truncate(50);
+    }
+
+    /// Clear the alarm `code` (it stays in the list, inactive).
+    pub fn clear(&mut self, code: &str) {
+        for a in self.list.iter_mut().filter(|a| a.code == code && a.active) {
+            a.active = false;
+            tracing::info!(alarm = code, "cleared");
+        }
+    }
+
+    /// The alarms, newest first.
+    pub fn list(&self) -> &[Alarm] {
+        &self.list
+    }
+}
+
+/// What the pipeline asks of its driver.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Output {
+    /// Move the follower towards this position (the latest wins).
+    Follow(f64),
+    /// Stop the follower now (its drive is lost).
+    QuickStop,
+    /// Keep this handover record.
+    Handover(HandoverRecord),
+    /// Store this capture of the active run.
+    Captured(Capture),
+    /// Handshake: tell the PLC this target code is captured.
+    Acknowledge(u32),
+    /// The active run has every capture.
+    RunFinished,
+    /// The active run cannot go on.
+    RunFailed(String),
+}
+
+/// The measurement logic.
+#[derive(Debug)]
+pub struct Pipeline {
+    pub tracker: Tracker,
+    pub measure: Measure,
+    pub alarms: Alarms,
+    drive: Option<DriveStatus>,
+    referenced_once: bool,
+    run: Option<RunMachine>,
+    outputs: VecDeque<Output>,
+    pub last_frame: Option<Frame>,
+    pub late_frames: u64,
+    /// When a zero reference was asked for: it is taken once the window has refilled.
+    zero_due: Option<Instant>,
+}
+
+impl Pipeline {
+    /// A pipeline with these tracking settings, decoupler and live window.
+    pub fn new(tracking: TrackSettings, decoupler: Decoupler, live_window: Duration) -> Self {
+        Pipeline {
+            tracker: Tracker::new(tracking),
+            measure: Measure::new(decoupler, live_window),
+            alarms: Alarms::default(),
+            drive: None,
+            referenced_once: false,
+            run: None,
+            outputs: VecDeque::new(),
+            last_frame: None,
+            late_frames: 0,
+            zero_due: None,
+        }
+    }
+
+    /// The next output.
+    pub fn poll_output(&mut self) -> Option<Output> {
+        self.outputs.pop_front()
+    }
+
+    /// The follower as the tracker needs it: ready only when homed and not homing (before
+    /// that its encoder is not the stage's position, and following would fight the homing).
+    fn follower_state(&self) -> Option<FollowerState> {
+        let st = self.drive.as_ref()?;
+        Some(FollowerState {
+            position_mm: st.position_mm?,
+            ready: st.state == Some(PowerState::OperationEnabled)
+                && st.heartbeat_ok
+                && !st.emcy_active
+                && st.homed
+                && st.busy != Some("home"),
+            target_reached: st.target_reached,
+        })
+    }
+
+    /// A frame, judged at its own time `f.at`. A `late` frame (the driver fell behind) is
+    /// tracked but not decoupled.
+    pub fn handle_frame(&mut self, f: &Frame, late: bool) {
+        let now = f.at;
+        self.last_frame = Some(*f);
+        match f.spots.iter().position(Option::is_none) {
+            Some(k) => self.alarms.raise(
+                "beam-blocked",
+                format!(
+                    "PSD{} has no spot (SUM {:.2} V): beam blocked or off the PSD; frames are not used",
+                    k + 1,
+                    f.sums[k]
+                ),
+            ),
+            None => self.alarms.clear("beam-blocked"),
+        }
+        self.tracker.handle_frame(f, now);
+        // The stitch starts where the follower is when first seen ready, homed and idle, with
+        // the spot on PSD2; after that only a zero reference re-references it.
+        if !self.referenced_once
+            && !self.tracker.stitch().valid
+            && f.spots[1].is_some()
+            && self
+                .drive
+                .as_ref()
+                .is_some_and(|d| d.homed && d.busy.is_none())
+            && self
+                .follower_state()
+                .is_some_and(|s| s.ready && s.target_reached)
+        {
+            self.referenced_once = self.tracker.reference();
+        }
+        self.drain_tracker();
+        if late {
+            self.late_frames += 1;
+            return;
+        }
+        match self.measure.handle_frame(f, &self.tracker.stitch(), now) {
+            Ok(sample) => {
+                self.alarms.clear("decoupling");
+                if let (Some(run), Some(s)) = (self.run.as_mut(), sample) {
+                    run.handle_sample(&s, now);
+                    run.handle_timeout(now);
+                    self.drain_run();
+                }
+            }
+            Err(e) => self
+                .alarms
+                .raise("decoupling", format!("a frame could not be decoupled: {e}")),
+        }
+    }
+
+    fn drain_tracker(&mut self) {
+        while let Some(cmd) = self.tracker.poll_command() {
+            let FollowerCommand::MoveTo(mm) = cmd;
+            self.outputs.push_back(Output::Follow(mm));
+        }
+        while let Some(e) = self.tracker.poll_event() {
+            match e {
+                TrackEvent::Handover(r) => {
+                    tracing::debug!(?r.kind, delta_mm = r.delta[0], "handover");
+                    self.measure.restart();
+                    self.outputs.push_back(Output::Handover(r));
+                }
+                TrackEvent::FollowedWhileMoving { from_mm, to_mm } => {
+                    tracing::debug!(from_mm, to_mm, "followed by encoder while moving");
+                    self.measure.restart();
+                }
+                TrackEvent::SpotLost => {
+                    self.alarms.raise(
+                        "stitch-broken",
+                        "PSD2 lost the spot: positioning has lost its reference; zero again (control: zero)".into(),
+                    );
+                    if self.run.is_some() {
+                        self.fail_run("PSD2 lost the spot during the run".into());
+                    }
+                }
+                TrackEvent::SpotFound => tracing::info!("PSD2 sees the spot again"),
+                TrackEvent::FollowerProblem(p) => self.alarms.raise("follower", p),
+            }
+        }
+    }
+
+    fn drain_run(&mut self) {
+        let Some(run) = self.run.as_mut() else {
+            return;
+        };
+        let mut finished = None;
+        while let Some(a) = run.poll_action() {
+            match a {
+                RunAction::SetNominal(n) => self.measure.set_nominal(n),
+                RunAction::Captured(c) => self.outputs.push_back(Output::Captured(c)),
+                RunAction::Acknowledge { code } => {
+                    self.outputs.push_back(Output::Acknowledge(code))
+                }
+                RunAction::Finished => finished = Some(Output::RunFinished),
+                RunAction::Failed(msg) => finished = Some(Output::RunFailed(msg)),
+            }
+        }
+        if let Some(out) = finished {
+            self.run = None;
+            self.measure.set_nominal(None);
+            self.outputs.push_back(out);
+        }
+    }
+
+    fn fail_run(&mut self, msg: String) {
+        self.run = None;
+        self.measure.set_nominal(None);
+        self.outputs.push_back(Output::RunFailed(msg));
+    }
+
+    /// A follower drive status update.
+    pub fn handle_drive_status(&mut self, st: &DriveStatus, now: Instant) {
+        self.drive = Some(st.clone());
+        if let Some(fs) = self.follower_state() {
+            self.tracker.handle_follower(fs, now);
+            self.drain_tracker();
+        }
+    }
+
+    /// A follower drive event; `peer` names the CAN link in alarms.
+    pub fn handle_drive_event(&mut self, e: &Event, peer: &str) {
+        match e {
+            Event::HeartbeatLost => {
+                self.alarms.raise(
+                    "heartbeat-lost",
+                    format!("the follower drive's heartbeat stopped ({peer}): follower stopped"),
+                );
+                self.outputs.push_back(Output::QuickStop);
+            }
+            Event::HeartbeatResumed => self.alarms.clear("heartbeat-lost"),
+            Event::Emcy(emcy) => {
+                if emcy.is_reset() {
+                    self.alarms.clear("drive-fault");
+                } else {
+                    self.alarms.raise(
+                        "drive-fault",
+                        format!("follower drive EMCY: {emcy}; reset it with the follower fault_reset command"),
+                    );
+                }
+            }
+            Event::BootUp { expected: false } => {
+                self.alarms.raise(
+                    "drive-rebooted",
+                    "the follower drive rebooted: reconfiguring it".into(),
+                );
+                self.tracker.invalidate();
+            }
+            _ => {}
+        }
+    }
+
+    /// Break the stitch (the follower was moved outside the tracker's control).
+    pub fn invalidate_stitch(&mut self, why: &str) {
+        self.tracker.invalidate();
+        self.alarms.raise("stitch-broken", why.to_string());
+    }
+
+    /// Start a zero reference: re-reference the stitch now and take the live mean as zero
+    /// once the averaging window has refilled (`zero_ready`). False when the follower's
+    /// position is not known yet.
+    pub fn begin_zero(&mut self, now: Instant, window: Duration) -> bool {
+        if !self.tracker.reference() {
+            return false;
+        }
+        self.referenced_once = true;
+        self.alarms.clear("stitch-broken");
+        self.measure.clear_zero();
+        self.measure.restart();
+        self.zero_due = Some(now + window + Duration::from_millis(50));
+        true
+    }
+
+    /// When a zero reference is pending and due at `now`: take it (`Some(Some(offsets))`), or
+    /// report that there were no valid frames (`Some(None)`).
+    pub fn zero_ready(&mut self, now: Instant) -> Option<Option<Errors6>> {
+        let due = self.zero_due?;
+        if now < due {
+            return None;
+        }
+        self.zero_due = None;
+        Some(self.measure.set_zero())
+    }
+
+    /// Start measuring a run.
+    pub fn start_run(&mut self, machine: RunMachine) {
+        self.run = Some(machine);
+        self.drain_run();
+    }
+
+    /// Stop the active run, if any.
+    pub fn abort_run(&mut self) -> bool {
+        let had = self.run.take().is_some();
+        if had {
+            self.measure.set_nominal(None);
+        }
+        had
+    }
+
+    /// The active run's progress (captures taken, expected).
+    pub fn run_progress(&self) -> Option<(usize, usize)> {
+        self.run.as_ref().map(RunMachine::progress)
+    }
+
+    /// The active run's missing captures.
+    pub fn run_missing(&self) -> Option<Vec<crate::run::TargetKey>> {
+        self.run.as_ref().map(RunMachine::missing)
+    }
+
+    /// A handshake report from the PLC: the CNC is at the target with this code.
+    pub fn handle_at_target(&mut self, code: u32, now: Instant) {
+        if let Some(run) = self.run.as_mut() {
+            run.handle_at_target(code, now);
+            self.drain_run();
+        }
+    }
+}
