@@ -9,6 +9,7 @@
 //! (`iomodule`), and the follower's CiA 402 drive on a CAN transport (`drive`).
 
 pub mod axis;
+pub mod cnc;
 pub mod config;
 pub mod drive;
 pub mod head;

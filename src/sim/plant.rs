@@ -176,6 +176,13 @@ impl Plant {
         self.lock().carriage.move_to(target, now);
     }
 
+    /// Set the carriage's feed (mm/s) for the following moves (the CNC's programmed feed).
+    pub fn set_feed(&self, feed_mm_s: f64) {
+        if feed_mm_s.is_finite() && feed_mm_s > 0.0 {
+            self.lock().carriage.feed = feed_mm_s;
+        }
+    }
+
     /// Nominal carriage position and whether it is moving.
     pub fn carriage(&self, now: Instant) -> (f64, bool) {
         let s = self.lock();
