@@ -110,8 +110,62 @@ pub fn decode_target_code(code: u32) -> (u32, u32, Direction) {
     (run, rest / 2, dir)
 }
 
-/// Generate the program text.
+/// Generate the program text for the whole cycle.
 pub fn generate(plan: &Plan, dialect: Dialect, mode: CaptureMode) -> Result<String, ProgramError> {
+    generate_steps(plan, &plan.steps(), "", dialect, mode)
+}
+
+/// The rest of the cycle after the captures in `done`: from the stop before the first missing
+/// capture (so it is approached from the right side) to the end. `None` when nothing is
+/// missing.
+pub fn remaining_steps(
+    plan: &Plan,
+    done: &std::collections::BTreeSet<super::TargetKey>,
+) -> Option<Vec<Step>> {
+    let steps = plan.steps();
+    let first = steps
+        .iter()
+        .position(|s| s.target.is_some_and(|k| !done.contains(&k)))?;
+    let mut rest = steps[first.saturating_sub(1)..].to_vec();
+    if first > 0 {
+        // The stop before is only an approach point: no dwell, no capture there.
+        rest[0].target = None;
+    }
+    Some(rest)
+}
+
+/// A make-up pass over `missing` captures: each target approached from its direction's side,
+/// starting `approach_mm` before it.
+pub fn makeup_steps(plan: &Plan, missing: &[super::TargetKey], approach_mm: f64) -> Vec<Step> {
+    let mut out = Vec::with_capacity(2 * missing.len());
+    for k in missing {
+        let Some(&t) = plan.targets.get(k.target_index as usize) else {
+            continue;
+        };
+        let from = match k.direction {
+            Direction::Up => t - approach_mm,
+            Direction::Down => t + approach_mm,
+        };
+        out.push(Step {
+            position_mm: from,
+            target: None,
+        });
+        out.push(Step {
+            position_mm: t,
+            target: Some(*k),
+        });
+    }
+    out
+}
+
+/// Generate the program text for `steps` of `plan`; `note` is added to the title.
+pub fn generate_steps(
+    plan: &Plan,
+    steps: &[Step],
+    note: &str,
+    dialect: Dialect,
+    mode: CaptureMode,
+) -> Result<String, ProgramError> {
     if matches!(mode, CaptureMode::Handshake(_))
         && matches!(dialect, Dialect::Siemens | Dialect::Heidenhain)
     {
@@ -120,14 +174,18 @@ pub fn generate(plan: &Plan, dialect: Dialect, mode: CaptureMode) -> Result<Stri
     let s = &plan.spec;
     let ax = s.axis.as_str();
     let title = format!(
-        "axiscomp ISO 230-2 {ax} {:.3} to {:.3} mm, {} targets, {} runs, dwell {} s",
+        "axiscomp ISO 230-2 {ax} {:.3} to {:.3} mm, {} targets, {} runs, dwell {} s{}",
         s.start_mm,
         s.end_mm,
         plan.targets.len(),
         s.runs,
-        s.dwell_s
+        s.dwell_s,
+        if note.is_empty() {
+            String::new()
+        } else {
+            format!(", {note}")
+        }
     );
-    let steps = plan.steps();
     let mut out = String::new();
     let mut w = Writer {
         dialect,
@@ -136,7 +194,7 @@ pub fn generate(plan: &Plan, dialect: Dialect, mode: CaptureMode) -> Result<Stri
     };
     w.header(&title);
     let mut last_run = 0;
-    for step in &steps {
+    for step in steps {
         if let Some(k) = step.target
             && k.run != last_run
         {
@@ -318,6 +376,37 @@ mod tests {
         assert_eq!(moves, p.steps().len());
         let dwells = cnc.lines().filter(|l| l.starts_with("G4 P")).count();
         assert_eq!(dwells, p.capture_count());
+    }
+
+    #[test]
+    fn remaining_and_makeup_steps() {
+        let p = small_plan();
+        let all: Vec<_> = p.steps().iter().filter_map(|s| s.target).collect();
+        let done: std::collections::BTreeSet<_> = all[..3].iter().copied().collect();
+        let rest = remaining_steps(&p, &done).unwrap();
+        // Starts at the stop before the 4th capture, so it is approached from below.
+        assert_eq!(rest[1].target, Some(all[3]));
+        assert_eq!(rest[0].target, None, "the approach point is no capture");
+        assert!(rest[0].position_mm < rest[1].position_mm);
+        assert_eq!(
+            rest.iter().filter(|s| s.target.is_some()).count(),
+            all.len() - 3
+        );
+        let everything: std::collections::BTreeSet<_> = all.iter().copied().collect();
+        assert!(remaining_steps(&p, &everything).is_none());
+        let down = all
+            .iter()
+            .find(|k| k.direction == Direction::Down)
+            .copied()
+            .unwrap();
+        let m = makeup_steps(&p, &[down], 2.0);
+        assert_eq!(m.len(), 2);
+        assert!(m[0].position_mm > m[1].position_mm, "approached from above");
+        let text =
+            generate_steps(&p, &m, "make-up", Dialect::LinuxCnc, CaptureMode::Stability).unwrap();
+        assert!(text.starts_with(
+            "(axiscomp ISO 230-2 X 0.000 to 100.000 mm, 5 targets, 2 runs, dwell 1.5 s, make-up)"
+        ));
     }
 
     #[test]
