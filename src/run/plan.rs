@@ -90,6 +90,17 @@ pub struct TargetKey {
     pub direction: Direction,
 }
 
+impl TargetKey {
+    /// The key of a capture.
+    pub fn of(c: &super::Capture) -> TargetKey {
+        TargetKey {
+            run: c.run,
+            target_index: c.target_index,
+            direction: c.direction,
+        }
+    }
+}
+
 /// A validated plan.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Plan {

@@ -9,6 +9,8 @@
 //! - `{"cmd":"block","psd":2,"on":true}` (PSD 1..3)
 //! - `{"cmd":"io","action":"stop"|"restart"}`, `{"cmd":"io","delay_ms":50}`
 //! - `{"cmd":"drive","fault":34321}`, `{"cmd":"drive","heartbeat":false}`
+//! - `{"cmd":"program","dialect":"linuxcnc","axis":"X","text":"..."}`: run a part program on
+//!   the twin's CNC (replacing one that runs); `{"cmd":"cnc"}` → its state
 
 use super::SimError;
 use super::drive::{TwinDriveConfig, TwinDriveHandle, spawn_twin_drive};
@@ -20,6 +22,7 @@ use crate::can::memory::MemoryBus;
 use crate::can::pycan::PyCanMulticast;
 use crate::can::{CanError, CanTransport};
 use crate::optics::Layout;
+use crate::run::Dialect;
 use serde::{Deserialize, Serialize};
 use std::net::{Ipv4Addr, SocketAddr};
 use std::sync::Arc;
@@ -58,11 +61,29 @@ pub struct TwinSpec {
     pub control: Option<SocketAddr>,
 }
 
+/// The twin CNC's state, shared with whoever plays its PLC side.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct CncState {
+    pub running: bool,
+    pub done: bool,
+    /// Programs started so far.
+    pub programs: u32,
+    /// Handshake outputs of the CNC.
+    pub code: u32,
+    pub at_target: bool,
+    /// The PLC's "captured" input to the CNC.
+    pub captured: bool,
+    /// The program time of the last completed program (s).
+    pub last_program_s: Option<f64>,
+}
+
 /// The running twin.
 pub struct Twin {
     pub plant: Arc<Plant>,
     pub io: IoModule,
     pub drive: TwinDriveHandle,
+    pub cnc: Arc<std::sync::Mutex<CncState>>,
+    cnc_task: Arc<std::sync::Mutex<Option<JoinHandle<()>>>>,
     drive_task: JoinHandle<Result<(), CanError>>,
     control: Option<(SocketAddr, JoinHandle<()>)>,
 }
@@ -70,6 +91,14 @@ pub struct Twin {
 impl Drop for Twin {
     fn drop(&mut self) {
         self.drive_task.abort();
+        if let Some(t) = self
+            .cnc_task
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .take()
+        {
+            t.abort();
+        }
         if let Some((_, t)) = &self.control {
             t.abort();
         }
@@ -143,6 +172,8 @@ impl Twin {
             plant,
             io,
             drive,
+            cnc: Arc::new(std::sync::Mutex::new(CncState::default())),
+            cnc_task: Arc::new(std::sync::Mutex::new(None)),
             drive_task,
             control: None,
         };
@@ -157,6 +188,8 @@ impl Twin {
                 plant: twin.plant.clone(),
                 drive: twin.drive.clone(),
                 io: twin.io.server().clone(),
+                cnc: twin.cnc.clone(),
+                cnc_task: twin.cnc_task.clone(),
             };
             let task = tokio::spawn(serve_control(listener, ctx));
             twin.control = Some((addr, task));
@@ -167,6 +200,11 @@ impl Twin {
     /// The control socket's address.
     pub fn control_addr(&self) -> Option<SocketAddr> {
         self.control.as_ref().map(|(a, _)| *a)
+    }
+
+    /// Run a part program on the twin's CNC, replacing one that runs.
+    pub fn run_program(&self, text: &str, dialect: Dialect, axis: &str) -> Result<(), String> {
+        start_program(&self.plant, &self.cnc, &self.cnc_task, text, dialect, axis)
     }
 
     /// Move the carriage to `mm` and wait until it is at rest.
@@ -182,6 +220,60 @@ struct Ctx {
     plant: Arc<Plant>,
     drive: TwinDriveHandle,
     io: crate::modbus::ServerHandle,
+    cnc: Arc<std::sync::Mutex<CncState>>,
+    cnc_task: Arc<std::sync::Mutex<Option<JoinHandle<()>>>>,
+}
+
+/// Parse `text` and run it on a fresh CNC task (aborting the one that runs).
+fn start_program(
+    plant: &Arc<Plant>,
+    cnc: &Arc<std::sync::Mutex<CncState>>,
+    task: &Arc<std::sync::Mutex<Option<JoinHandle<()>>>>,
+    text: &str,
+    dialect: Dialect,
+    axis: &str,
+) -> Result<(), String> {
+    let ops = super::cnc::parse(text, dialect, axis).map_err(|e| e.to_string())?;
+    let mut slot = task.lock().unwrap_or_else(|p| p.into_inner());
+    if let Some(old) = slot.take() {
+        old.abort();
+    }
+    {
+        let mut st = cnc.lock().unwrap_or_else(|p| p.into_inner());
+        st.running = true;
+        st.done = false;
+        st.programs += 1;
+        st.at_target = false;
+    }
+    let (plant, cnc) = (plant.clone(), cnc.clone());
+    *slot = Some(tokio::spawn(async move {
+        let mut m = super::cnc::Cnc::new(ops);
+        loop {
+            let captured = cnc.lock().map(|s| s.captured).unwrap_or(false);
+            m.step(Instant::now(), &plant, captured);
+            {
+                let mut st = cnc.lock().unwrap_or_else(|p| p.into_inner());
+                st.code = m.handshake.code;
+                st.at_target = m.handshake.at_target;
+                if m.is_done() {
+                    st.running = false;
+                    st.done = true;
+                    st.last_program_s = match (m.started, m.finished) {
+                        (Some(a), Some(b)) => Some((b - a).as_secs_f64()),
+                        _ => None,
+                    };
+                    return;
+                }
+            }
+            // Wake at the next event, or soon while waiting for the PLC.
+            let next = m
+                .next_wake()
+                .map(|w| w.min(Instant::now() + Duration::from_millis(5)))
+                .unwrap_or(Instant::now() + Duration::from_millis(5));
+            tokio::time::sleep_until(tokio::time::Instant::from_std(next)).await;
+        }
+    }));
+    Ok(())
 }
 
 async fn serve_control(listener: TcpListener, ctx: Ctx) {
@@ -267,8 +359,26 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
             }
             Ok(serde_json::json!({"ok": true}))
         }
+        "program" => {
+            let text = v
+                .get("text")
+                .and_then(|t| t.as_str())
+                .ok_or("program needs \"text\"")?;
+            let dialect = v
+                .get("dialect")
+                .and_then(|d| d.as_str())
+                .and_then(Dialect::parse)
+                .ok_or("program needs \"dialect\": iso or linuxcnc")?;
+            let axis = v.get("axis").and_then(|a| a.as_str()).unwrap_or("X");
+            start_program(&ctx.plant, &ctx.cnc, &ctx.cnc_task, text, dialect, axis)?;
+            Ok(serde_json::json!({"ok": true}))
+        }
+        "cnc" => {
+            let st = ctx.cnc.lock().map(|s| s.clone()).unwrap_or_default();
+            Ok(serde_json::json!({"ok": true, "cnc": st}))
+        }
         other => Err(format!(
-            "unknown cmd \"{other}\": use move, wait, truth, block, io or drive"
+            "unknown cmd \"{other}\": use move, wait, truth, block, io, drive, program or cnc"
         )),
     }
 }

@@ -23,9 +23,9 @@ mod records;
 pub mod schema;
 
 pub use records::{
-    Actor, AuditEntry, AuditRecord, CalibrationId, CalibrationRecord, CalibrationSummary,
-    CaptureKey, NewRun, Publication, PublicationOutcome, PublicationRecord, RunId, RunRecord,
-    RunState, StoredHandover, TableEntry, TableId, TableRecord,
+    Actor, AuditEntry, AuditRecord, CalibrationId, CalibrationRecord, CalibrationSummary, NewRun,
+    Publication, PublicationOutcome, PublicationRecord, RunId, RunRecord, RunState, StoredHandover,
+    TableEntry, TableId, TableRecord,
 };
 
 use rusqlite::{Connection, ErrorCode, OpenFlags, TransactionBehavior};

@@ -2,7 +2,7 @@
 
 use super::{Store, StoreError, now_us};
 use crate::calibrate::file::CalibrationFile;
-use crate::run::{Capture, Direction};
+use crate::run::{Capture, Direction, TargetKey};
 use crate::track::{HandoverKind, HandoverRecord};
 use crate::units::Errors6;
 use rusqlite::types::{FromSql, FromSqlError, FromSqlResult, ToSqlOutput, ValueRef};
@@ -178,25 +178,6 @@ fn raw_run(r: &Row<'_>) -> rusqlite::Result<RawRun> {
 
 // ---------------------------------------------------------------------------------------------
 // Captures
-
-/// What makes a capture unique within its run: a capture is stored once per key.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-pub struct CaptureKey {
-    pub run: u32,
-    pub target_index: u32,
-    pub direction: Direction,
-}
-
-impl CaptureKey {
-    /// The key of a capture.
-    pub fn of(c: &Capture) -> CaptureKey {
-        CaptureKey {
-            run: c.run,
-            target_index: c.target_index,
-            direction: c.direction,
-        }
-    }
-}
 
 /// A `Direction` as its stored sign.
 struct Sign(Direction);
@@ -692,7 +673,7 @@ impl Store {
     // ----- captures
 
     /// Store a capture of run `run`: `Ok(true)` when stored, `Ok(false)` when a capture with the
-    /// same key (`CaptureKey`) is already there — that one is kept, so a resumed run may offer
+    /// same key (`TargetKey`) is already there — that one is kept, so a resumed run may offer
     /// its last capture again. One statement, one transaction: it is committed and synced to
     /// disk before this returns. Non-finite values, and negative standard deviations or
     /// uncertainties, are refused (`Invalid`) before anything is written.
@@ -759,14 +740,14 @@ impl Store {
 
     /// The keys of a run's stored captures: a resumed run skips these and continues at the
     /// first target of its plan that is not in the set.
-    pub fn completed_keys(&self, run: RunId) -> Result<BTreeSet<CaptureKey>, StoreError> {
+    pub fn completed_keys(&self, run: RunId) -> Result<BTreeSet<TargetKey>, StoreError> {
         let what = "read completed captures";
         let mut stmt = self
             .conn
             .prepare_cached("SELECT run, target_index, direction FROM captures WHERE run_id = ?1")
             .map_err(|e| self.fail(what, e))?;
         stmt.query_map([run.0], |r| {
-            Ok(CaptureKey {
+            Ok(TargetKey {
                 run: r.get(0)?,
                 target_index: r.get(1)?,
                 direction: r.get::<_, Sign>(2)?.0,

@@ -1,6 +1,6 @@
 use super::*;
 use crate::calibrate::file::{CalibrationFile, LinearSection, Meta};
-use crate::run::{Capture, Direction};
+use crate::run::{Capture, Direction, TargetKey};
 use crate::track::{HandoverKind, HandoverRecord};
 use crate::units::Errors6;
 use serde_json::json;
@@ -265,13 +265,13 @@ fn captures_are_stored_exactly_once_and_round_trip() {
     assert_eq!(
         keys.into_iter().collect::<Vec<_>>(),
         [
-            CaptureKey::of(&c1),
-            CaptureKey {
+            TargetKey::of(&c1),
+            TargetKey {
                 run: 1,
                 target_index: 1,
                 direction: Direction::Up
             },
-            CaptureKey::of(&c3),
+            TargetKey::of(&c3),
         ]
     );
     assert!(matches!(

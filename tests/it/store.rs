@@ -6,8 +6,8 @@
 //! `crash_writer_child` runs and it does the writing (no helper binary).
 
 use crate::helpers::TempDir;
-use axiscomp::run::{Capture, Direction};
-use axiscomp::store::{CaptureKey, NewRun, RunId, Store};
+use axiscomp::run::{Capture, Direction, TargetKey};
+use axiscomp::store::{NewRun, RunId, Store};
 use axiscomp::units::Errors6;
 use std::collections::BTreeSet;
 use std::io::{BufRead, BufReader};
@@ -46,7 +46,7 @@ fn nth_capture(i: u32) -> Capture {
     }
 }
 
-fn key_line(k: &CaptureKey) -> String {
+fn key_line(k: &TargetKey) -> String {
     format!(
         "{COMMITTED}{} {} {}",
         k.run,
@@ -57,7 +57,7 @@ fn key_line(k: &CaptureKey) -> String {
 
 /// The key in a "committed" line. The harness may have printed "test … ... " without a newline
 /// just before the first one, so the marker is looked for anywhere in the line.
-fn parse_key(line: &str) -> Option<CaptureKey> {
+fn parse_key(line: &str) -> Option<TargetKey> {
     let mut f = line.split_once(COMMITTED)?.1.split(' ');
     let run = f.next()?.parse().ok()?;
     let target_index = f.next()?.parse().ok()?;
@@ -66,7 +66,7 @@ fn parse_key(line: &str) -> Option<CaptureKey> {
         "-" => Direction::Down,
         _ => return None,
     };
-    Some(CaptureKey {
+    Some(TargetKey {
         run,
         target_index,
         direction,
@@ -89,7 +89,7 @@ fn crash_writer_child() {
     for i in 0..20 * TARGETS {
         let c = nth_capture(i);
         assert!(store.insert_capture(run, &c).expect("insert"));
-        writeln!(out, "{}", key_line(&CaptureKey::of(&c))).expect("parent reads");
+        writeln!(out, "{}", key_line(&TargetKey::of(&c))).expect("parent reads");
         out.flush().expect("parent reads");
     }
 }
@@ -142,7 +142,7 @@ fn captures_survive_sigkill_of_the_writer() {
     let mut child = spawn_writer(&path, run);
     let stdout = child.0.stdout.take().expect("child stdout");
     let mut lines = BufReader::new(stdout).lines();
-    let mut printed: Vec<CaptureKey> = Vec::new();
+    let mut printed: Vec<TargetKey> = Vec::new();
     let mut reader: Option<Store> = None;
     // Vary the moment between runs without a random source: some kills land after SQLite's
     // first automatic checkpoint (about 1000 WAL pages, some 470 captures), some before.
@@ -209,7 +209,7 @@ fn captures_survive_sigkill_of_the_writer() {
         printed.len()
     );
     for (i, key) in printed.iter().enumerate() {
-        assert_eq!(CaptureKey::of(&stored[i]), *key);
+        assert_eq!(TargetKey::of(&stored[i]), *key);
         assert_eq!(stored[i], nth_capture(i as u32));
     }
     let printed_set: BTreeSet<_> = printed.iter().copied().collect();
@@ -219,7 +219,7 @@ fn captures_survive_sigkill_of_the_writer() {
         assert!(!store.insert_capture(run, &nth_capture(i)).unwrap());
     }
     let next = nth_capture(stored.len() as u32);
-    assert!(!keys.contains(&CaptureKey::of(&next)));
+    assert!(!keys.contains(&TargetKey::of(&next)));
     assert!(store.insert_capture(run, &next).unwrap());
     assert_eq!(store.captures(run).unwrap().len(), stored.len() + 1);
     assert_eq!(store.integrity_check().unwrap(), ["ok"]);
