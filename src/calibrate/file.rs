@@ -282,7 +282,7 @@ impl CalibrationFile {
     pub fn parse(text: &str, label: &str) -> Result<CalibrationFile, CalError> {
         toml::from_str(text).map_err(|e| CalError::File {
             path: label.to_string(),
-            problem: crate::optics::layout::toml_error_line(text, &e),
+            problem: crate::util::toml_error_line(text, &e),
         })
     }
 

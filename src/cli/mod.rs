@@ -6,6 +6,7 @@ mod decouple;
 mod demo;
 mod evaluate;
 mod optics;
+mod run;
 mod service;
 
 use anyhow::Result;
@@ -50,6 +51,13 @@ enum Command {
     Check(service::ServeArgs),
     /// Run the digital twin (I/O module, follower drive, axis) for the service to measure.
     Sim(service::SimArgs),
+    /// ISO 230-2 measurement runs on the running service.
+    #[command(subcommand)]
+    Run(run::Command),
+    /// Write a run's report (plots, ISO figures, HTML and Markdown) from the store.
+    Report(run::ReportArgs),
+    /// Export a run's compensation table for a controller.
+    Export(run::ExportArgs),
 }
 
 /// Run a parsed command line.
@@ -64,6 +72,9 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Status(a) => service::status(a),
         Command::Check(a) => service::check(a),
         Command::Sim(a) => service::sim(a),
+        Command::Run(c) => run::run(c),
+        Command::Report(a) => run::report(a),
+        Command::Export(a) => run::export(a),
     }
 }
 
@@ -76,6 +87,7 @@ pub fn exit_code(e: &anyhow::Error) -> u8 {
             || cause.is::<axiscomp::util::csv::CsvError>()
             || cause.is::<axiscomp::sim::SimError>()
             || cause.is::<axiscomp::evaluate::EvalError>()
+            || cause.is::<axiscomp::comp::CompError>()
         {
             return 2;
         }

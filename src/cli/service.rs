@@ -51,6 +51,11 @@ fn init_logs() {
     };
 }
 
+/// The layered configuration with `--config FILE` (for other subcommands too).
+pub fn settings(file: Option<&Path>) -> Result<config::Settings> {
+    load_settings(file)
+}
+
 fn load_settings(file: Option<&Path>) -> Result<config::Settings> {
     config::load(&Layers::standard(file)).map_err(|e| InputError(e.to_string()).into())
 }

@@ -16,6 +16,7 @@ use thiserror::Error;
 use crate::acquire::AcquireConfig;
 use crate::canopen::{DriveConfig, HomingConfig, ProfileConfig, Scaling, TravelLimits};
 use crate::modbus::LinkConfig;
+use crate::run::{CaptureSettings, Dialect};
 use crate::track::{Strategy, TrackSettings};
 
 /// The built-in defaults (the lowest layer).
@@ -137,6 +138,26 @@ pub struct RawTracking {
     pub move_timeout_ms: u64,
 }
 
+/// `[cnc]`
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct RawCnc {
+    pub mode: String,
+    pub twin: String,
+    pub dialect: String,
+}
+
+/// `[capture]`
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct RawCapture {
+    pub rest_tolerance_um: f64,
+    pub settle_ms: u64,
+    pub target_tolerance_mm: f64,
+    pub frames: u64,
+    pub timeout_s: u64,
+}
+
 /// What the layers say (first stage).
 #[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
@@ -147,6 +168,8 @@ pub struct RawConfig {
     pub can: RawCan,
     pub follower: RawFollower,
     pub tracking: RawTracking,
+    pub cnc: RawCnc,
+    pub capture: RawCapture,
 }
 
 /// Where a file, map or layout comes from: a path, or the copy built into the binary.
@@ -213,6 +236,22 @@ pub struct FollowerSettings {
     pub home_on_start: bool,
 }
 
+/// How a run's part program reaches the CNC.
+#[derive(Clone, Debug, PartialEq)]
+pub enum CncMode {
+    /// Written to the state directory for the operator.
+    Manual,
+    /// Sent to the digital twin's control socket.
+    Twin(SocketAddr),
+}
+
+/// `[cnc]`, validated.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CncSettings {
+    pub mode: CncMode,
+    pub dialect: Dialect,
+}
+
 /// The validated configuration.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Settings {
@@ -222,6 +261,8 @@ pub struct Settings {
     pub can: CanSettings,
     pub follower: FollowerSettings,
     pub tracking: TrackSettings,
+    pub cnc: CncSettings,
+    pub capture: CaptureSettings,
     /// The files that were read, in layer order (for `check` and the logs).
     pub sources: Vec<String>,
 }
@@ -250,10 +291,6 @@ impl Layers {
     }
 }
 
-fn toml_line(text: &str, e: &toml::de::Error) -> String {
-    crate::optics::layout::toml_error_line(text, e)
-}
-
 /// Check one file alone: TOML syntax, known keys, value types.
 fn check_file(path: &Path, text: &str) -> Result<(), ConfigError> {
     toml::from_str::<RawConfig>(text)
@@ -263,7 +300,7 @@ fn check_file(path: &Path, text: &str) -> Result<(), ConfigError> {
             key: String::new(),
             problem: format!(
                 "{}; see configs/axiscomp.toml for every key",
-                toml_line(text, &e)
+                crate::util::toml_error_line(text, &e)
             ),
         })
 }
@@ -666,6 +703,42 @@ fn validate(
             * 1e-6,
         move_timeout: v.ms("tracking.move_timeout_ms", t.move_timeout_ms, 1)?,
     };
+    let c = &raw.cnc;
+    let cnc = CncSettings {
+        mode: match c.mode.as_str() {
+            "manual" => CncMode::Manual,
+            "twin" => CncMode::Twin(v.addr("cnc.twin", &c.twin)?),
+            other => {
+                return Err(v.err(
+                    "cnc.mode",
+                    format!("\"{other}\" is unknown: use manual or twin"),
+                ));
+            }
+        },
+        dialect: Dialect::parse(&c.dialect).ok_or_else(|| {
+            v.err(
+                "cnc.dialect",
+                format!(
+                    "\"{}\" is unknown: use iso, siemens, heidenhain or linuxcnc",
+                    c.dialect
+                ),
+            )
+        })?,
+    };
+    let k = &raw.capture;
+    if k.frames < 2 {
+        return Err(v.err(
+            "capture.frames",
+            format!("{} is too few: give at least 2", k.frames),
+        ));
+    }
+    let capture = CaptureSettings {
+        rest_tolerance_mm: v.positive("capture.rest_tolerance_um", k.rest_tolerance_um)? * 1e-3,
+        settle: v.ms("capture.settle_ms", k.settle_ms, 1)?,
+        target_tolerance_mm: v.positive("capture.target_tolerance_mm", k.target_tolerance_mm)?,
+        frames: k.frames as usize,
+        timeout: Duration::from_secs(k.timeout_s.max(1)),
+    };
     Ok(Settings {
         service,
         head,
@@ -673,6 +746,8 @@ fn validate(
         can,
         follower,
         tracking,
+        cnc,
+        capture,
         sources,
     })
 }

@@ -296,7 +296,7 @@ impl Layout {
     pub fn parse(text: &str, label: &str) -> Result<Layout, LayoutError> {
         let raw: RawLayout = toml::from_str(text).map_err(|e| LayoutError::Syntax {
             path: label.to_string(),
-            message: toml_error_line(text, &e),
+            message: crate::util::toml_error_line(text, &e),
         })?;
         Layout::validate(raw, label)
     }
@@ -424,18 +424,6 @@ impl Layout {
 
 /// The reference layout shipped with the crate.
 pub const REFERENCE_TOML: &str = include_str!("../../configs/optics/reference.toml");
-
-/// The TOML error with its line number in front, on one line.
-pub(crate) fn toml_error_line(text: &str, e: &toml::de::Error) -> String {
-    let msg = e.message().replace('\n', " ");
-    match e.span() {
-        Some(span) => {
-            let line = text[..span.start.min(text.len())].matches('\n').count() + 1;
-            format!("line {line}: {msg}")
-        }
-        None => msg,
-    }
-}
 
 fn check_finite(a: &[f64; 3]) -> Result<(), ()> {
     if a.iter().all(|x| x.is_finite()) {

@@ -17,6 +17,7 @@
 mod html;
 mod markdown;
 pub mod plot;
+pub mod runs;
 mod text;
 #[cfg(test)]
 mod xml_check;

@@ -61,13 +61,25 @@ pub enum Request {
     Nominal { mm: Option<f64> },
     /// Switch the stitching strategy.
     Strategy { strategy: Strategy },
+    /// Start an ISO 230-2 run: the plan, optionally another program dialect than configured.
+    RunStart {
+        plan: crate::run::PlanSpec,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        dialect: Option<String>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        notes: Option<String>,
+    },
+    /// The active (or last) run's progress.
+    RunStatus,
+    /// Stop the active run (its captures stay stored).
+    RunAbort,
 }
 
 impl Request {
     /// The role the request needs.
     pub fn needs(&self) -> Role {
         match self {
-            Request::Status | Request::Subscribe { .. } => Role::Viewer,
+            Request::Status | Request::Subscribe { .. } | Request::RunStatus => Role::Viewer,
             _ => Role::Operator,
         }
     }

@@ -9,12 +9,18 @@ use super::notify;
 use super::pipeline::{Output, Pipeline, now_us};
 use super::shutdown::Shutdown;
 use super::snapshot::{
-    FollowerView, LinkView, LinksView, LiveView, PsdView, Snapshot, TrackingView,
+    FollowerView, LinkView, LinksView, LiveView, PsdView, RunView, Snapshot, TrackingView,
 };
 use crate::acquire::{Acquisition, Frame};
 use crate::canopen::{DriveHandle, DriveStatus, Event, PowerState};
+use crate::config::CncMode;
 use crate::modbus::{Link, LinkState};
 use crate::optics::layout::{Aperture, Kind};
+use crate::run::program::{CaptureMode, generate_steps, makeup_steps, remaining_steps};
+use crate::run::{CaptureSettings, Dialect, Plan, RunMachine, TargetKey};
+use crate::store::{NewRun, RunId, RunState, Store};
+use std::collections::BTreeSet;
+use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use tokio::sync::{broadcast, mpsc, oneshot, watch};
 
@@ -63,6 +69,75 @@ pub(super) struct Core {
     started: Instant,
     /// The follower target the tracker wants (the follower task sends the latest).
     follow: watch::Sender<Option<f64>>,
+    store: Store,
+    run: Option<ActiveRun>,
+    cnc: CncMode,
+    dialect: Dialect,
+    capture: CaptureSettings,
+    state_dir: PathBuf,
+    /// Results of the core's own asynchronous work (talking to the CNC).
+    events_tx: mpsc::UnboundedSender<CoreEvent>,
+    events_rx: Option<mpsc::UnboundedReceiver<CoreEvent>>,
+    last_cnc_poll: Instant,
+}
+
+/// A run being measured.
+#[derive(Debug)]
+struct ActiveRun {
+    id: RunId,
+    plan: Plan,
+    dialect: Dialect,
+    /// Where the last program went.
+    program: String,
+    /// Programs sent to the twin's CNC for this run (the twin counts programs it started).
+    programs_sent: u32,
+    /// The twin's program count when this run's latest program was sent.
+    twin_programs_at_send: Option<u32>,
+    /// Captures a make-up program was already sent for.
+    makeup_for: BTreeSet<TargetKey>,
+}
+
+/// The outcome of asynchronous work the core started.
+#[derive(Debug)]
+enum CoreEvent {
+    /// A program was (or was not) delivered to the twin; the twin's program count after it.
+    Delivered(Result<u32, String>),
+    /// The twin CNC's state.
+    Cnc(serde_json::Value),
+}
+
+/// Send one JSON request to the twin's control socket and read its reply.
+async fn twin_request(
+    addr: std::net::SocketAddr,
+    req: serde_json::Value,
+) -> Result<serde_json::Value, String> {
+    use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+    let s = tokio::time::timeout(Duration::from_secs(5), tokio::net::TcpStream::connect(addr))
+        .await
+        .map_err(|_| format!("twin CNC {addr}: no connection within 5 s"))?
+        .map_err(|e| format!("twin CNC {addr}: {e}"))?;
+    let (rd, mut wr) = s.into_split();
+    let mut line = req.to_string();
+    line.push('\n');
+    wr.write_all(line.as_bytes())
+        .await
+        .map_err(|e| format!("twin CNC {addr}: {e}"))?;
+    let mut lines = BufReader::new(rd).lines();
+    let reply = tokio::time::timeout(Duration::from_secs(5), lines.next_line())
+        .await
+        .map_err(|_| format!("twin CNC {addr}: no reply within 5 s"))?
+        .map_err(|e| format!("twin CNC {addr}: {e}"))?
+        .ok_or_else(|| format!("twin CNC {addr}: closed"))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&reply).map_err(|e| format!("twin CNC {addr}: {e}"))?;
+    if v.get("ok").and_then(|o| o.as_bool()) == Some(true) {
+        Ok(v)
+    } else {
+        Err(format!(
+            "twin CNC {addr}: {}",
+            v.get("error").and_then(|e| e.as_str()).unwrap_or("refused")
+        ))
+    }
 }
 
 impl Core {
@@ -73,7 +148,9 @@ impl Core {
         drive: DriveHandle,
         can_peer: String,
         snapshot: watch::Sender<Snapshot>,
+        store: Store,
     ) -> Core {
+        let (events_tx, events_rx) = mpsc::unbounded_channel();
         let s = &p.settings;
         let mut half_size_um = [0.0; 3];
         for (k, path) in p.layout.paths.iter().enumerate() {
@@ -102,6 +179,15 @@ impl Core {
             ready_sent: false,
             started: Instant::now(),
             follow: watch::channel(None).0,
+            store,
+            run: None,
+            cnc: s.cnc.mode.clone(),
+            dialect: s.cnc.dialect,
+            capture: s.capture,
+            state_dir: s.service.state_dir.clone(),
+            events_tx,
+            events_rx: Some(events_rx),
+            last_cnc_poll: Instant::now(),
         }
     }
 
@@ -128,9 +214,15 @@ impl Core {
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
         let watchdog = notify::watchdog_period().filter(|_| self.watchdog);
         let mut last_watchdog = Instant::now();
+        let mut core_events = self
+            .events_rx
+            .take()
+            .ok_or(super::ServiceError::Internal("core events"))?;
+        self.resume_run();
         loop {
             tokio::select! {
                 _ = shutdown.recv() => break,
+                Some(e) = core_events.recv() => self.handle_core_event(e),
                 f = frames.recv() => match f {
                     Ok(f) => self.handle_frame(&f),
                     Err(broadcast::error::RecvError::Lagged(n)) => {
@@ -203,10 +295,299 @@ impl Core {
                         let _ = drive.quick_stop().await;
                     });
                 }
-                Output::Handover(_) => {}
-                Output::Captured(c) => tracing::info!(?c.run, c.target_index, "captured"),
-                Output::Acknowledge(_) | Output::RunFinished | Output::RunFailed(_) => {}
+                Output::Handover(r) => {
+                    let run = self.run.as_ref().map(|a| a.id);
+                    if let Err(e) = self.store.insert_handover(run, &r) {
+                        self.pipeline
+                            .alarms
+                            .raise("store", format!("handover not stored: {e}"));
+                    }
+                }
+                Output::Captured(c) => {
+                    let Some(run) = self.run.as_ref() else {
+                        continue;
+                    };
+                    match self.store.insert_capture(run.id, &c) {
+                        Ok(true) => tracing::info!(
+                            run = run.id.0,
+                            pass = c.run,
+                            target = c.target_index,
+                            direction = c.direction.sign(),
+                            "captured"
+                        ),
+                        Ok(false) => {
+                            tracing::info!("capture {:?} was already stored", TargetKey::of(&c))
+                        }
+                        Err(e) => self.pipeline.alarms.raise(
+                            "store",
+                            format!("capture not stored: {e}; the run will take it again"),
+                        ),
+                    }
+                }
+                Output::Acknowledge(_) => {}
+                Output::RunFinished => self.end_run(RunState::Finished, "all captures taken"),
+                Output::RunFailed(why) => self.end_run(RunState::Failed, &why),
             }
+        }
+    }
+
+    fn end_run(&mut self, state: RunState, why: &str) {
+        let Some(run) = self.run.take() else {
+            return;
+        };
+        if let Err(e) = self.store.set_run_state(run.id, state) {
+            self.pipeline
+                .alarms
+                .raise("store", format!("run {} state not stored: {e}", run.id.0));
+        }
+        if state == RunState::Failed {
+            let _ = self.store.set_run_notes(run.id, why);
+            self.pipeline
+                .alarms
+                .raise("run-failed", format!("run {} failed: {why}", run.id.0));
+        } else {
+            self.pipeline.alarms.clear("run-failed");
+        }
+        tracing::info!(run = run.id.0, ?state, "run ended: {why}");
+    }
+
+    /// Resume a run the store says is still running (the service stopped or crashed in it):
+    /// what is stored is kept, and the CNC gets the rest of the cycle.
+    fn resume_run(&mut self) {
+        let runs = match self.store.runs_in_state(RunState::Running) {
+            Ok(r) => r,
+            Err(e) => {
+                self.pipeline
+                    .alarms
+                    .raise("store", format!("cannot look for runs to resume: {e}"));
+                return;
+            }
+        };
+        let Some(rec) = runs.into_iter().max_by_key(|r| r.id.0) else {
+            return;
+        };
+        let plan: Result<Plan, String> =
+            serde_json::from_value(rec.plan.clone()).map_err(|e| e.to_string());
+        let done = self.store.completed_keys(rec.id);
+        match (plan, done) {
+            (Ok(plan), Ok(done)) => {
+                tracing::info!(run = rec.id.0, captured = done.len(), "resuming run");
+                let dialect = self.dialect;
+                self.begin_run(rec.id, plan, dialect, done, "resumed");
+            }
+            (Err(e), _) => self.end_run_record(rec.id, &format!("its plan does not load: {e}")),
+            (_, Err(e)) => self.end_run_record(rec.id, &format!("its captures do not load: {e}")),
+        }
+    }
+
+    fn end_run_record(&mut self, id: RunId, why: &str) {
+        let _ = self.store.set_run_state(id, RunState::Failed);
+        let _ = self.store.set_run_notes(id, why);
+        self.pipeline
+            .alarms
+            .raise("run-failed", format!("run {} cannot resume: {why}", id.0));
+    }
+
+    /// Start measuring `id` with `done` captures already stored, and send the CNC what is
+    /// left of the cycle.
+    fn begin_run(
+        &mut self,
+        id: RunId,
+        plan: Plan,
+        dialect: Dialect,
+        done: BTreeSet<TargetKey>,
+        note: &str,
+    ) {
+        let steps = remaining_steps(&plan, &done).unwrap_or_default();
+        let machine = RunMachine::new(plan.clone(), self.capture, false, done);
+        self.run = Some(ActiveRun {
+            id,
+            plan,
+            dialect,
+            program: String::new(),
+            programs_sent: 0,
+            twin_programs_at_send: None,
+            makeup_for: BTreeSet::new(),
+        });
+        self.pipeline.start_run(machine);
+        self.pump();
+        if !steps.is_empty() {
+            self.deliver(&steps, note);
+        }
+    }
+
+    /// Write or send a program for `steps` of the active run.
+    fn deliver(&mut self, steps: &[crate::run::Step], note: &str) {
+        let Some(run) = self.run.as_mut() else {
+            return;
+        };
+        let text = match generate_steps(&run.plan, steps, note, run.dialect, CaptureMode::Stability)
+        {
+            Ok(t) => t,
+            Err(e) => {
+                self.pipeline
+                    .alarms
+                    .raise("run", format!("no program: {e}"));
+                return;
+            }
+        };
+        run.programs_sent += 1;
+        let dir = self.state_dir.join("runs").join(run.id.0.to_string());
+        let file = dir.join(format!(
+            "program-{}.{}",
+            run.programs_sent,
+            run.dialect.extension()
+        ));
+        if let Err(e) = std::fs::create_dir_all(&dir).and_then(|()| std::fs::write(&file, &text)) {
+            self.pipeline
+                .alarms
+                .raise("run", format!("cannot write {}: {e}", file.display()));
+        }
+        run.program = file.display().to_string();
+        if let CncMode::Twin(addr) = self.cnc {
+            let dialect = match run.dialect {
+                Dialect::LinuxCnc => "linuxcnc",
+                _ => "iso",
+            };
+            let req = serde_json::json!({"cmd": "program", "dialect": dialect, "axis": run.plan.spec.axis, "text": text});
+            let tx = self.events_tx.clone();
+            tokio::spawn(async move {
+                let r = match twin_request(addr, req).await {
+                    Ok(_) => twin_request(addr, serde_json::json!({"cmd": "cnc"}))
+                        .await
+                        .map(|v| v["cnc"]["programs"].as_u64().unwrap_or(0) as u32),
+                    Err(e) => Err(e),
+                };
+                let _ = tx.send(CoreEvent::Delivered(r));
+            });
+        }
+    }
+
+    fn handle_core_event(&mut self, e: CoreEvent) {
+        match e {
+            CoreEvent::Delivered(Ok(n)) => {
+                if let Some(run) = self.run.as_mut() {
+                    run.twin_programs_at_send = Some(n);
+                }
+                self.pipeline.alarms.clear("cnc");
+            }
+            CoreEvent::Delivered(Err(e)) => self.pipeline.alarms.raise("cnc", e),
+            CoreEvent::Cnc(v) => {
+                let done = v["cnc"]["done"].as_bool().unwrap_or(false);
+                let programs = v["cnc"]["programs"].as_u64().unwrap_or(0) as u32;
+                let Some(run) = self.run.as_ref() else {
+                    return;
+                };
+                // The program this run sent has ended and captures are still missing.
+                if !done || run.twin_programs_at_send != Some(programs) {
+                    return;
+                }
+                let missing: Vec<TargetKey> = self.pipeline.run_missing().unwrap_or_default();
+                if missing.is_empty() {
+                    return;
+                }
+                if missing.iter().all(|k| run.makeup_for.contains(k)) {
+                    let why = format!(
+                        "{} captures still missing after a make-up pass",
+                        missing.len()
+                    );
+                    self.pipeline.abort_run();
+                    self.end_run(RunState::Failed, &why);
+                    return;
+                }
+                let steps = makeup_steps(
+                    &run.plan,
+                    &missing,
+                    2.0 * self.capture.target_tolerance_mm.max(1.0),
+                );
+                if let Some(run) = self.run.as_mut() {
+                    run.makeup_for.extend(missing.iter().copied());
+                    run.twin_programs_at_send = None;
+                }
+                tracing::info!(
+                    missing = missing.len(),
+                    "the program ended with captures missing: make-up pass"
+                );
+                self.deliver(&steps, "make-up");
+            }
+        }
+    }
+
+    /// Start a run on request.
+    fn start_run_request(
+        &mut self,
+        spec: crate::run::PlanSpec,
+        dialect: Option<String>,
+        notes: Option<String>,
+        who: &str,
+    ) -> Result<serde_json::Value, String> {
+        if let Some(r) = &self.run {
+            return Err(format!("run {} is under way: abort it first", r.id.0));
+        }
+        let plan = Plan::new(spec).map_err(|e| e.to_string())?;
+        if plan.spec.overrun_mm <= self.capture.target_tolerance_mm {
+            return Err(format!(
+                "the overrun ({} mm) must exceed capture.target_tolerance_mm ({} mm), or reversals look like targets",
+                plan.spec.overrun_mm, self.capture.target_tolerance_mm
+            ));
+        }
+        let dialect = match dialect {
+            Some(d) => Dialect::parse(&d).ok_or_else(|| {
+                format!("dialect \"{d}\": use iso, siemens, heidenhain or linuxcnc")
+            })?,
+            None => self.dialect,
+        };
+        if matches!(self.cnc, CncMode::Twin(_))
+            && !matches!(dialect, Dialect::Iso | Dialect::LinuxCnc)
+        {
+            return Err("the twin's CNC runs iso or linuxcnc programs".into());
+        }
+        let id = self
+            .store
+            .create_run(&NewRun {
+                axis: plan.spec.axis.clone(),
+                plan: serde_json::to_value(&plan).map_err(|e| e.to_string())?,
+                config: serde_json::json!({"capture": format!("{:?}", self.capture), "dialect": format!("{dialect:?}")}),
+                calibration: None,
+                notes: notes.unwrap_or_else(|| format!("started by {who}")),
+            })
+            .map_err(|e| e.to_string())?;
+        self.store
+            .set_run_state(id, RunState::Running)
+            .map_err(|e| e.to_string())?;
+        let expected = plan.capture_count();
+        self.begin_run(id, plan, dialect, BTreeSet::new(), "");
+        let program = self
+            .run
+            .as_ref()
+            .map(|r| r.program.clone())
+            .unwrap_or_default();
+        Ok(
+            serde_json::json!({"run_id": id.0, "captures_expected": expected, "program": program,
+            "cnc": match self.cnc { CncMode::Twin(a) => format!("sent to the twin at {a}"), CncMode::Manual => "load the program on the CNC and start it".into() }}),
+        )
+    }
+
+    fn run_status(&self) -> serde_json::Value {
+        match (&self.run, self.pipeline.run_progress()) {
+            (Some(r), Some((done, total))) => serde_json::json!({
+                "run_id": r.id.0, "state": "running", "captures": done, "expected": total,
+                "missing": self.pipeline.run_missing().map(|m| m.len()).unwrap_or(0),
+                "program": r.program,
+            }),
+            _ => match self
+                .store
+                .list_runs()
+                .ok()
+                .and_then(|v| v.into_iter().max_by_key(|r| r.id.0))
+            {
+                Some(r) => serde_json::json!({
+                    "run_id": r.id.0, "state": r.state.as_str(),
+                    "captures": self.store.captures(r.id).map(|c| c.len()).unwrap_or(0),
+                    "notes": r.notes,
+                }),
+                None => serde_json::json!({"state": "none"}),
+            },
         }
     }
 
@@ -271,6 +652,24 @@ impl Core {
                 }
                 self.zero_reply = Some(c.reply);
             }
+            Request::RunStart {
+                plan,
+                dialect,
+                notes,
+            } => {
+                let r = self.start_run_request(plan, dialect, notes, &c.peer.user);
+                Self::reply(c.reply, r);
+            }
+            Request::RunStatus => Self::reply(c.reply, Ok(self.run_status())),
+            Request::RunAbort => {
+                if self.pipeline.abort_run() {
+                    let id = self.run.as_ref().map(|r| r.id.0);
+                    self.end_run(RunState::Aborted, &format!("aborted by {}", c.peer.user));
+                    Self::reply(c.reply, Ok(serde_json::json!({"aborted": id})));
+                } else {
+                    Self::reply(c.reply, Err("no run is under way".into()));
+                }
+            }
             Request::Follower { action, mm } => {
                 let drive = self.drive.clone();
                 if matches!(
@@ -332,6 +731,19 @@ impl Core {
                 tracing::info!("{status}");
                 self.ready_sent = true;
             }
+        }
+        // In twin mode, watch the CNC so a program that ended with captures missing gets a
+        // make-up pass.
+        if let (Some(_), CncMode::Twin(addr)) = (&self.run, &self.cnc)
+            && self.last_cnc_poll.elapsed() >= Duration::from_secs(1)
+        {
+            self.last_cnc_poll = Instant::now();
+            let (addr, tx) = (*addr, self.events_tx.clone());
+            tokio::spawn(async move {
+                if let Ok(v) = twin_request(addr, serde_json::json!({"cmd": "cnc"})).await {
+                    let _ = tx.send(CoreEvent::Cnc(v));
+                }
+            });
         }
         let snap = self.build_snapshot();
         self.snapshot.send_replace(snap);
@@ -409,6 +821,16 @@ impl Core {
             },
             links: LinksView { io, can },
             alarms: p.alarms.list().to_vec(),
+            run: self.run.as_ref().map(|r| {
+                let (captures, expected) = p.run_progress().unwrap_or((0, 0));
+                RunView {
+                    id: r.id.0,
+                    axis: r.plan.spec.axis.clone(),
+                    captures,
+                    expected,
+                    program: r.program.clone(),
+                }
+            }),
         }
     }
 }

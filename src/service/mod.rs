@@ -45,6 +45,15 @@ pub enum ServiceError {
     Control(#[from] control::ControlError),
     #[error("decoupling: {0}")]
     Decouple(#[from] crate::decouple::DecoupleError),
+    #[error(transparent)]
+    Store(#[from] crate::store::StoreError),
+    #[error("state directory {path}: {source}; create it or set service.state_dir")]
+    StateDir {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("internal: {0}")]
+    Internal(&'static str),
 }
 
 impl ServiceError {
@@ -154,6 +163,11 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
         map.unit_id = s.io.unit;
     }
     let acquisition = Acquisition::spawn(link.clone(), std::sync::Arc::new(map), s.io.acquire);
+    std::fs::create_dir_all(&s.service.state_dir).map_err(|source| ServiceError::StateDir {
+        path: s.service.state_dir.display().to_string(),
+        source,
+    })?;
+    let store = crate::store::Store::open(s.service.state_dir.join("axiscomp.db"))?;
     let (drive, drive_task, can_peer) = start_drive(&p).await?;
     let (snap_tx, snap_rx) = watch::channel(Snapshot::default());
     let (cmd_tx, cmd_rx) = mpsc::channel(32);
@@ -166,7 +180,7 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
         s.service.snapshot_period,
         shutdown.clone(),
     ));
-    let core = core::Core::new(&p, link, acquisition, drive, can_peer, snap_tx);
+    let core = core::Core::new(&p, link, acquisition, drive, can_peer, snap_tx, store);
     let result = core.run(cmd_rx, shutdown).await;
     notify::stopping();
     drive_task.abort();

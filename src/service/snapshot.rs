@@ -18,6 +18,20 @@ pub struct Snapshot {
     pub links: LinksView,
     /// Active and recently cleared alarms, newest first.
     pub alarms: Vec<Alarm>,
+    /// The active run, if any.
+    #[serde(default)]
+    pub run: Option<RunView>,
+}
+
+/// A measurement run in progress.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct RunView {
+    pub id: i64,
+    pub axis: String,
+    pub captures: usize,
+    pub expected: usize,
+    /// Where the part program went (a file, or "twin").
+    pub program: String,
 }
 
 /// The last PSD frame.

@@ -129,7 +129,7 @@ pub fn parse(text: &str, label: &str) -> Result<(Layout, TwinSpec), SimError> {
     let raw: RawSimConfig = toml::from_str(text).map_err(|e| {
         SimError::Input(format!(
             "twin config {label}: {}; see configs/sim.toml for every key",
-            crate::optics::layout::toml_error_line(text, &e)
+            crate::util::toml_error_line(text, &e)
         ))
     })?;
     let bad = |key: &str, problem: String| {
