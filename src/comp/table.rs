@@ -134,24 +134,7 @@ impl CompTable {
     }
 }
 
-/// Piecewise-linear interpolation of `values` at `x`; the end values are held outside.
-/// `positions` must be strictly increasing and as long as `values` (non-empty).
-pub fn interpolate(positions: &[f64], values: &[f64], x: f64) -> f64 {
-    let n = positions.len().min(values.len());
-    if n == 0 {
-        return 0.0;
-    }
-    if x <= positions[0] {
-        return values[0];
-    }
-    if x >= positions[n - 1] {
-        return values[n - 1];
-    }
-    let k = positions[..n].partition_point(|&p| p <= x).clamp(1, n - 1);
-    let (p0, p1) = (positions[k - 1], positions[k]);
-    let t = (x - p0) / (p1 - p0);
-    values[k - 1] + t * (values[k] - values[k - 1])
-}
+pub use crate::util::interpolate;
 
 /// How the positioning table is made.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]

@@ -91,8 +91,39 @@ pub struct Truth {
     pub follower_vertical: f64,
 }
 
+/// A correction profile along the travel (mm), linear between points, held beyond the ends;
+/// separate values for the − direction when given.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Profile {
+    pub positions_mm: Vec<f64>,
+    pub up_mm: Vec<f64>,
+    pub down_mm: Option<Vec<f64>>,
+}
+
+impl Profile {
+    /// The correction at `d` approached in `dir`.
+    pub fn at(&self, d: f64, dir: Direction) -> f64 {
+        let v = match (dir, &self.down_mm) {
+            (Direction::Down, Some(down)) => down,
+            _ => &self.up_mm,
+        };
+        crate::util::interpolate(&self.positions_mm, v, d)
+    }
+}
+
+/// Compensation the twin's PLC applies to the axis: corrections added to the carriage's
+/// position along the travel (head y) and across it (head x, head z), as a controller adds
+/// its table values to the commanded position.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Compensation {
+    pub dy: Option<Profile>,
+    pub dx: Option<Profile>,
+    pub dz: Option<Profile>,
+}
+
 struct State {
     carriage: Carriage,
+    compensation: Compensation,
     follower_encoder: f64,
     blocked: [bool; 3],
     rng: Rng,
@@ -141,6 +172,7 @@ impl Plant {
         Ok(Plant {
             state: Mutex::new(State {
                 carriage: Carriage::new(0.0, spec.feed, spec.accel, now),
+                compensation: Compensation::default(),
                 follower_encoder: 0.0,
                 blocked: [false; 3],
                 rng: root.fork(14),
@@ -174,6 +206,16 @@ impl Plant {
     /// Command the carriage to nominal position `target` (mm).
     pub fn move_carriage(&self, target: f64, now: Instant) {
         self.lock().carriage.move_to(target, now);
+    }
+
+    /// Apply (or remove) the compensation the PLC accepted.
+    pub fn set_compensation(&self, c: Compensation) {
+        self.lock().compensation = c;
+    }
+
+    /// The compensation in effect.
+    pub fn compensation(&self) -> Compensation {
+        self.lock().compensation.clone()
     }
 
     /// Set the carriage's feed (mm/s) for the following moves (the CNC's programmed feed).
@@ -222,10 +264,21 @@ impl Plant {
         let hours = now.saturating_duration_since(self.t0).as_secs_f64() / 3600.0;
         let dir: Direction = s.carriage.direction();
         let (fu, fv) = self.follower_errors(s.follower_encoder);
+        let mut errors = self.axis.errors(travel, dir, hours);
+        let c = &s.compensation;
+        if let Some(p) = &c.dy {
+            errors.dy += p.at(travel, dir);
+        }
+        if let Some(p) = &c.dx {
+            errors.dx += p.at(travel, dir);
+        }
+        if let Some(p) = &c.dz {
+            errors.dz += p.at(travel, dir);
+        }
         Truth {
             travel,
             moving: s.carriage.is_moving(now),
-            errors: self.axis.errors(travel, dir, hours),
+            errors,
             follower_encoder: s.follower_encoder,
             follower_true: s.follower_encoder + fu,
             follower_vertical: fv,
@@ -282,6 +335,26 @@ impl Plant {
 mod tests {
     use super::*;
     use std::time::Duration;
+
+    #[test]
+    fn compensation_moves_the_axis() {
+        let t0 = Instant::now();
+        let plant = Plant::new(&Layout::reference(), &PlantSpec::default(), t0).unwrap();
+        plant.move_carriage(500.0, t0);
+        let t = t0 + Duration::from_secs(30);
+        let before = plant.truth(t).errors;
+        plant.set_compensation(Compensation {
+            dy: Some(Profile {
+                positions_mm: vec![0.0, 1000.0],
+                up_mm: vec![0.0, -0.02],
+                down_mm: None,
+            }),
+            ..Compensation::default()
+        });
+        let after = plant.truth(t).errors;
+        assert!((after.dy - (before.dy - 0.01)).abs() < 1e-12);
+        assert_eq!(after.dx, before.dx);
+    }
 
     #[test]
     fn sample_follows_carriage_and_follower() {
