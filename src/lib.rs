@@ -11,9 +11,10 @@
 //! 5. `evaluate`: ISO 230-2 / 230-1 figures from the captures;
 //! 6. `comp`: compensation tables and controller exports.
 //!
-//! Around them: `service` (the live service: tasks, snapshot, control API), `store` (SQLite),
-//! `report` (plots and run reports), `config`, `sim` (the digital twin everything is tested
-//! against), `units` (the conventions) and `util`.
+//! Around them: `service` (the live service: tasks, snapshot, control API), `console` (the
+//! terminal UI over the control API), `store` (SQLite), `report` (plots and run reports),
+//! `config`, `sim` (the digital twin everything is tested against), `units` (the conventions)
+//! and `util`.
 
 pub mod acquire;
 pub mod calibrate;
@@ -21,6 +22,7 @@ pub mod can;
 pub mod canopen;
 pub mod comp;
 pub mod config;
+pub mod console;
 pub mod decouple;
 pub mod evaluate;
 pub mod modbus;

@@ -3,7 +3,7 @@
 //! the connection into a stream of snapshots (`{"snapshot":{...}}` per line).
 //!
 //! Viewing (`status`, `subscribe`) needs the viewer role; anything that changes state needs the
-//! operator role. Roles come from the peer's credentials (`peer`). The socket itself is
+//! operator role; the `status` reply names the peer's `user` and `role`. Roles come from the peer's credentials (`peer`). The socket itself is
 //! world-connectable: access is decided per request, so refusals can say why.
 
 use super::peer::{Peer, Role, RolePolicy};
@@ -251,8 +251,12 @@ impl Connection {
             }
             let out = match request {
                 Request::Status => {
+                    // Who asked and with which role, so a client (the console) can show a
+                    // read-only mode before anything is refused.
                     let snap = self.snapshots.borrow().clone();
-                    reply_line(&serde_json::json!({"ok": true, "snapshot": snap}))
+                    reply_line(
+                        &serde_json::json!({"ok": true, "snapshot": snap, "user": peer.user, "role": peer.role}),
+                    )
                 }
                 Request::Subscribe { hz } => {
                     let period = hz
