@@ -49,6 +49,29 @@ impl Default for CaptureSettings {
     }
 }
 
+impl CaptureSettings {
+    /// The shortest dwell that leaves a capture time at `rate_hz` frames per second: the
+    /// settling time, the frames, and half a second for the follower to come to rest after
+    /// the carriage and for frames the link drops.
+    pub fn min_dwell(&self, rate_hz: f64) -> Duration {
+        self.settle + Duration::from_secs_f64(self.frames as f64 / rate_hz.max(1.0) + 0.5)
+    }
+
+    /// Refuse a plan whose dwell cannot hold a capture (it would end in make-up passes).
+    pub fn check_dwell(&self, plan: &Plan, rate_hz: f64) -> Result<(), String> {
+        let need = self.min_dwell(rate_hz).as_secs_f64();
+        if plan.spec.dwell_s < need {
+            return Err(format!(
+                "dwell_s {} s is too short to capture: settling {} s and {} frames at {rate_hz} Hz need at least {need:.2} s; lengthen the dwell or lower capture.frames",
+                plan.spec.dwell_s,
+                self.settle.as_secs_f64(),
+                self.frames
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// One decoupled frame, as the live pipeline gives it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FrameSample {
@@ -129,6 +152,11 @@ pub struct RunMachine {
     nominal: Option<f64>,
     last_progress: Option<Instant>,
     actions: VecDeque<RunAction>,
+    /// The cycle's targets in order, and where the carriage is in it: past the last capture
+    /// taken. A rest is the next matching stop from here, so a missed stop does not shift
+    /// the run numbers of those after it.
+    cycle: Vec<TargetKey>,
+    cursor: usize,
 }
 
 impl RunMachine {
@@ -153,7 +181,10 @@ impl RunMachine {
             nominal: None,
             last_progress: None,
             actions: VecDeque::new(),
+            cycle: Vec::new(),
+            cursor: 0,
         };
+        m.cycle = m.plan.steps().iter().filter_map(|s| s.target).collect();
         if m.done.len() >= m.total {
             m.phase = Phase::Done;
             m.actions.push_back(RunAction::Finished);
@@ -220,14 +251,18 @@ impl RunMachine {
             })
     }
 
-    fn first_missing(&self, target_index: u32, dir: Direction) -> Option<TargetKey> {
-        (1..=self.plan.spec.runs)
-            .map(|run| TargetKey {
-                run,
-                target_index,
-                direction: dir,
-            })
-            .find(|k| !self.done.contains(k))
+    /// The capture a rest at `target_index` approached in `dir` is: the next such stop of
+    /// the cycle not yet taken, or (a make-up pass, a resumed run) the first one missing.
+    fn key_for(&self, target_index: u32, dir: Direction) -> Option<TargetKey> {
+        let matches =
+            |k: &TargetKey| k.target_index == target_index && k.direction == dir && !self.done.contains(k);
+        self.cycle
+            .iter()
+            .enumerate()
+            .skip(self.cursor)
+            .find(|(_, k)| matches(k))
+            .or_else(|| self.cycle.iter().enumerate().find(|(_, k)| matches(k)))
+            .map(|(_, k)| *k)
     }
 
     fn at_rest(&self, now: Instant) -> Option<f64> {
@@ -324,7 +359,7 @@ impl RunMachine {
                 let Some(dir) = self.approach(p) else {
                     return;
                 };
-                let Some(key) = self.first_missing(index, dir) else {
+                let Some(key) = self.key_for(index, dir) else {
                     // Every run of this target and direction is in: nothing to do here.
                     self.phase = Phase::Leaving { position: p };
                     return;
@@ -430,6 +465,9 @@ impl RunMachine {
             unix_us: a.first_us,
         };
         self.done.insert(key);
+        if let Some(i) = self.cycle.iter().position(|k| *k == key) {
+            self.cursor = i + 1;
+        }
         self.actions.push_back(RunAction::Captured(capture));
         if let Some(code) = code {
             self.actions.push_back(RunAction::Acknowledge { code });
@@ -614,6 +652,34 @@ mod tests {
             assert!((c.u.dy - (1e-6 / 150.0 + 1e-8f64).sqrt()).abs() < 2e-5);
             assert_eq!(c.material_c, Some(20.5));
         }
+    }
+
+    #[test]
+    fn a_missed_stop_does_not_shift_the_run_numbers_after_it() {
+        let p = plan();
+        let steps = cycle(&p);
+        let mut m = RunMachine::new(
+            p.clone(),
+            CaptureSettings::default(),
+            false,
+            BTreeSet::new(),
+        );
+        // The frames of the first run's second target are lost (the carriage still stops).
+        let missed = p
+            .steps()
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| s.target.is_some())
+            .nth(1)
+            .map(|(i, _)| i)
+            .expect("a second target");
+        let caps = feed().run(&mut m, &steps, Some((missed, missed + 1)));
+        let got: Vec<TargetKey> = caps.iter().map(TargetKey::of).collect();
+        let expected: Vec<TargetKey> = p.steps().iter().filter_map(|s| s.target).collect();
+        let lost = p.steps()[missed].target.expect("a target stop");
+        let want: Vec<TargetKey> = expected.into_iter().filter(|k| *k != lost).collect();
+        assert_eq!(got, want, "every later capture keeps its own run number");
+        assert_eq!(m.missing(), vec![lost]);
     }
 
     #[test]

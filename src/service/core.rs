@@ -74,6 +74,8 @@ pub(super) struct Core {
     cnc: CncMode,
     dialect: Dialect,
     capture: CaptureSettings,
+    /// The acquisition's frame rate (Hz; 0: as fast as the module answers).
+    rate_hz: f64,
     state_dir: PathBuf,
     /// Results of the core's own asynchronous work (talking to the CNC).
     events_tx: mpsc::UnboundedSender<CoreEvent>,
@@ -184,6 +186,7 @@ impl Core {
             cnc: s.cnc.mode.clone(),
             dialect: s.cnc.dialect,
             capture: s.capture,
+            rate_hz: s.io.acquire.rate_hz,
             state_dir: s.service.state_dir.clone(),
             events_tx,
             events_rx: Some(events_rx),
@@ -531,6 +534,9 @@ impl Core {
                 plan.spec.overrun_mm, self.capture.target_tolerance_mm
             ));
         }
+        // At 0 Hz the module is read as fast as it answers: assume no less than 200 frames/s.
+        let rate = if self.rate_hz > 0.0 { self.rate_hz } else { 200.0 };
+        self.capture.check_dwell(&plan, rate)?;
         let dialect = match dialect {
             Some(d) => Dialect::parse(&d).ok_or_else(|| {
                 format!("dialect \"{d}\": use iso, siemens, heidenhain or linuxcnc")
