@@ -254,8 +254,9 @@ impl RunMachine {
     /// The capture a rest at `target_index` approached in `dir` is: the next such stop of
     /// the cycle not yet taken, or (a make-up pass, a resumed run) the first one missing.
     fn key_for(&self, target_index: u32, dir: Direction) -> Option<TargetKey> {
-        let matches =
-            |k: &TargetKey| k.target_index == target_index && k.direction == dir && !self.done.contains(k);
+        let matches = |k: &TargetKey| {
+            k.target_index == target_index && k.direction == dir && !self.done.contains(k)
+        };
         self.cycle
             .iter()
             .enumerate()
@@ -365,6 +366,7 @@ impl RunMachine {
                     return;
                 };
                 // Frames must be decoupled at the target: restart the average from here.
+                tracing::debug!(at_mm = p, ?key, "at rest on a target: averaging");
                 self.set_nominal(Some(target));
                 self.acc = Acc::default();
                 self.phase = Phase::Averaging {
@@ -382,10 +384,23 @@ impl RunMachine {
                     && (s.position_mm - target).abs() > self.settings.target_tolerance_mm
                 {
                     // The carriage moved off before the average was complete: start over.
+                    tracing::debug!(
+                        ?key,
+                        at_mm = s.position_mm,
+                        frames = self.acc.n,
+                        "moved off the target while averaging"
+                    );
+                    self.set_nominal(None);
                     self.phase = Phase::Watch;
                     return;
                 }
                 if code.is_none() && self.at_rest(now).is_none() {
+                    tracing::debug!(
+                        ?key,
+                        frames = self.acc.n,
+                        "no longer at rest while averaging"
+                    );
+                    self.set_nominal(None);
                     self.phase = Phase::Watch;
                     return;
                 }
@@ -475,9 +490,11 @@ impl RunMachine {
         self.last_progress = Some(now);
         self.acc = Acc::default();
         self.rest.clear();
+        // Off the target, frames are decoupled at their measured travel again: with the
+        // target's nominal they would read as positions near it while the carriage moves on.
+        self.set_nominal(None);
         if self.done.len() >= self.total {
             self.phase = Phase::Done;
-            self.set_nominal(None);
             self.actions.push_back(RunAction::Finished);
         } else {
             self.phase = if code.is_some() {

@@ -535,7 +535,11 @@ impl Core {
             ));
         }
         // At 0 Hz the module is read as fast as it answers: assume no less than 200 frames/s.
-        let rate = if self.rate_hz > 0.0 { self.rate_hz } else { 200.0 };
+        let rate = if self.rate_hz > 0.0 {
+            self.rate_hz
+        } else {
+            200.0
+        };
         self.capture.check_dwell(&plan, rate)?;
         let dialect = match dialect {
             Some(d) => Dialect::parse(&d).ok_or_else(|| {

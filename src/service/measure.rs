@@ -90,6 +90,14 @@ impl Measure {
         self.nominal
     }
 
+    /// The measured carriage position (travel plus dy, mm) of the frame decoupled at `at`.
+    pub fn position_at(&self, at: Instant) -> Option<f64> {
+        self.samples
+            .back()
+            .filter(|s| s.at == at)
+            .map(|s| s.travel + s.errors[1])
+    }
+
     /// Drop the averaging window (the carriage moved, the stitch changed).
     pub fn restart(&mut self) {
         self.samples.clear();

@@ -255,6 +255,16 @@ pub fn free_port() -> u16 {
 
 // ---------- The service against the twin, in one process, over loopback ----------
 
+/// `AXISCOMP_TEST_LOG=axiscomp::track=debug` shows the service's logs in a failing test.
+pub fn init_test_log() {
+    if let Ok(filter) = tracing_subscriber::EnvFilter::try_from_env("AXISCOMP_TEST_LOG") {
+        let _ = tracing_subscriber::fmt()
+            .with_env_filter(filter)
+            .with_test_writer()
+            .try_init();
+    }
+}
+
 /// Options for a `ServiceRig`.
 pub struct RigOptions {
     /// Extra TOML appended to the service configuration (e.g. a `[tracking]` section).
@@ -295,13 +305,7 @@ impl ServiceRig {
     pub async fn start(opts: RigOptions) -> ServiceRig {
         use axiscomp::sim::drive::TwinDriveConfig;
         use axiscomp::sim::twin::{Twin, TwinCan, TwinSpec};
-        // AXISCOMP_TEST_LOG=axiscomp::track=debug shows the service's logs in a failing test.
-        if let Ok(filter) = tracing_subscriber::EnvFilter::try_from_env("AXISCOMP_TEST_LOG") {
-            let _ = tracing_subscriber::fmt()
-                .with_env_filter(filter)
-                .with_test_writer()
-                .try_init();
-        }
+        init_test_log();
         let dir = TempDir::new("service");
         let (svc_port, twin_port) = (unused_udp_port(), unused_udp_port());
         let twin = Twin::start(
