@@ -2773,4 +2773,35 @@ mod tests {
         r.ok(Command::MoveTo { target_mm: 0.5 });
         assert!((r.m.status().position_mm.unwrap() - 0.5).abs() < 1e-4);
     }
+
+    /// A drive that refuses mode 8 (as the python-canopen interop drive does): following ends
+    /// before it starts with the drive's abort, follow targets are refused until the next
+    /// command, and profile position goes on working.
+    #[test]
+    fn drive_refusing_csp() {
+        let mut r = csp_rig();
+        r.d.refuse_sdo(Some(SdoRefusal {
+            index: Some(0x6060),
+            code: AbortCode::INVALID_VALUE,
+        }));
+        r.m.follow(3.0, r.t, r.t).unwrap();
+        r.advance(Duration::from_millis(200));
+        let want = DriveError::Sdo(SdoError::Aborted {
+            dir: super::super::sdo::Direction::Download,
+            obj: ObjAddr::new(0x6060, 0),
+            code: AbortCode::INVALID_VALUE,
+        });
+        assert_eq!(following_events(&r), vec![Event::FollowingEnded(Err(want))]);
+        assert!(!r.m.status().following);
+        assert_eq!(r.m.follow(3.0, r.t, r.t), Err(DriveError::FollowDisarmed));
+        r.d.refuse_sdo(None);
+        r.ok(Command::MoveTo { target_mm: 3.0 });
+        assert_eq!(r.m.status().mode, Some(MODE_PROFILE_POSITION));
+        assert!((r.m.status().position_mm.unwrap() - 3.0).abs() < 1e-4);
+        // Out of the travel limits: refused at once.
+        assert!(matches!(
+            r.m.follow(30.0, r.t, r.t),
+            Err(DriveError::OutOfLimits { .. })
+        ));
+    }
 }

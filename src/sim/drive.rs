@@ -2270,19 +2270,11 @@ mod tests {
         assert_eq!(s.statusword, 0x1637);
     }
 
-    /// Mode 8 on the wire: RPDO1 mapped to controlword + target position (synchronous), the
-    /// drive enabled, 0x6060 = 8. Each RPDO at SYNC is a new demand, no handshake: the stage
-    /// follows a 15 mm/s ramp one SYNC behind, within 0x607F (20 mm/s) and 0x60C5
-    /// (200 mm/s²), reports a following error (bit 13) while the start of the ramp is beyond
-    /// its acceleration, bit 12 while it uses the target, bit 10 never (reserved), and stops
-    /// exactly on a held demand; a jump is run at the velocity limit.
-    #[test]
-    fn csp_follows_demands_within_its_limits() {
-        let t0 = Instant::now();
-        let ms = |n: u64| t0 + Duration::from_millis(n);
+    /// A drive with RPDO1 = controlword + target position (synchronous), 0x607F = 20 mm/s,
+    /// 0x60C5 = 200 mm/s², enabled in mode 8 and operational, its output drained.
+    fn csp_drive(t0: Instant) -> TwinDrive {
         let mut d = drive(t0);
         out(&mut d);
-        let cpm = Scaling::default().counts_per_mm();
         for req in [
             "601#2300140101020080",
             "601#2F00140201000000",
@@ -2312,6 +2304,78 @@ mod tests {
         assert_eq!(d.status().statusword, 0x1237);
         d.handle_frame(&parse("000#0100"), t0);
         out(&mut d);
+        d
+    }
+
+    /// RPDO1 with controlword 0x000F and `mm` as the target position, then SYNC, at `t`.
+    fn csp_demand(d: &mut TwinDrive, mm: f64, t: Instant) {
+        let c = (mm * Scaling::default().counts_per_mm()).round() as i32;
+        let b = c.to_le_bytes();
+        let rpdo = format!("201#0F00{:02X}{:02X}{:02X}{:02X}", b[0], b[1], b[2], b[3]);
+        d.handle_frame(&parse(&rpdo), t);
+        d.handle_frame(&parse("080#"), t);
+        out(d);
+    }
+
+    /// A demand 5 ms late while the motion is steady: the internal demand goes on at the same
+    /// velocity meanwhile (no stop and go). At the end of a move (the velocity changing by
+    /// more than a quarter) a late demand finds it holding: the stage stops on the last demand
+    /// without going past it by more than its servo's overshoot.
+    #[test]
+    fn csp_late_demand_while_steady_and_at_the_end() {
+        let t0 = Instant::now();
+        let ms = |n: u64| t0 + Duration::from_millis(n);
+        let mut d = csp_drive(t0);
+        // Positions as the drive has them, in whole increments.
+        let cpm = Scaling::default().counts_per_mm();
+        let q = |mm: f64| (mm * cpm).round() / cpm;
+        let at = |d: &TwinDrive| d.status().physical_mm;
+        // 10 mm/s: 0.1 mm per 10 ms SYNC.
+        for k in 0..30u64 {
+            csp_demand(&mut d, 0.1 * k as f64, ms(10 * k));
+            d.handle_timeout(ms(10 * k + 5));
+        }
+        // One cycle behind: at 295 ms the stage is at 2.85 mm (demand 2.9 reached at 300).
+        assert!((at(&d) - 2.85).abs() < 1e-4, "{:?}", d.status());
+        // The next demand comes at 305 instead of 300: at 303 the stage went on to 2.93.
+        d.handle_timeout(ms(303));
+        assert!((at(&d) - 2.93).abs() < 1e-4, "{:?}", d.status());
+        csp_demand(&mut d, 3.0, ms(305));
+        // Braking at 100 mm/s² (1 mm/s less each cycle) to rest at 3.45 mm; the demand after
+        // the last step comes 15 ms late.
+        let mut x = 3.0;
+        for k in 1..=9u64 {
+            x += 0.01 * (10 - k) as f64;
+            csp_demand(&mut d, x, ms(305 + 10 * k));
+        }
+        d.handle_timeout(ms(410));
+        let mut max = at(&d);
+        d.handle_timeout(ms(420));
+        max = max.max(at(&d));
+        assert_eq!(at(&d), q(3.45), "{:?}", d.status());
+        for k in 0..20u64 {
+            csp_demand(&mut d, 3.45, ms(410 + 10 * k));
+            d.handle_timeout(ms(415 + 10 * k));
+            max = max.max(at(&d));
+        }
+        // Past it only by the servo's own overshoot (a few µm), not by going on for the late
+        // cycle (1 mm/s × 15 ms = 15 µm).
+        assert!(max - q(3.45) < 0.005, "{max}");
+        assert!(at(&d) == q(3.45) && !d.status().moving, "{:?}", d.status());
+    }
+
+    /// Mode 8 on the wire: RPDO1 mapped to controlword + target position (synchronous), the
+    /// drive enabled, 0x6060 = 8. Each RPDO at SYNC is a new demand, no handshake: the stage
+    /// follows a 15 mm/s ramp one SYNC behind, within 0x607F (20 mm/s) and 0x60C5
+    /// (200 mm/s²), reports a following error (bit 13) while the start of the ramp is beyond
+    /// its acceleration, bit 12 while it uses the target, bit 10 never (reserved), and stops
+    /// exactly on a held demand; a jump is run at the velocity limit.
+    #[test]
+    fn csp_follows_demands_within_its_limits() {
+        let t0 = Instant::now();
+        let ms = |n: u64| t0 + Duration::from_millis(n);
+        let mut d = csp_drive(t0);
+        let cpm = Scaling::default().counts_per_mm();
         let mut samples: Vec<(f64, f64, u16)> = vec![];
         // RPDO + SYNC every 10 ms from `from` to `to` ms with the demand at each, sampling the
         // stage at every motion tick.
