@@ -112,6 +112,8 @@ pub struct DriveRig {
     pub twin: axiscomp::sim::TwinDriveHandle,
     pub plant: std::sync::Arc<axiscomp::sim::plant::Plant>,
     pub counts_per_mm: f64,
+    /// When the twin last set the plant's follower encoder, and to what.
+    encoder_set: std::sync::Arc<std::sync::Mutex<(std::time::Instant, f64)>>,
     tasks: Vec<tokio::task::JoinHandle<Result<(), axiscomp::can::CanError>>>,
 }
 
@@ -132,18 +134,31 @@ impl DriveRig {
             .expect("plant"),
         );
         let p = plant.clone();
+        let encoder_set =
+            std::sync::Arc::new(std::sync::Mutex::new((std::time::Instant::now(), f64::NAN)));
+        let set = encoder_set.clone();
         // The master listens before the twin boots, as on a real bus powered up together.
         let (master, mt) = axiscomp::canopen::spawn_drive(bus.port(), &cfg).expect("master");
-        let (twin, tt) =
-            axiscomp::sim::spawn_twin_drive(bus.port(), twin, move |mm| p.set_follower_encoder(mm))
-                .expect("twin drive");
+        let (twin, tt) = axiscomp::sim::spawn_twin_drive(bus.port(), twin, move |mm| {
+            p.set_follower_encoder(mm);
+            if let Ok(mut s) = set.lock() {
+                *s = (std::time::Instant::now(), mm);
+            }
+        })
+        .expect("twin drive");
         DriveRig {
             master,
             twin,
             plant,
             counts_per_mm: cfg.validate().expect("config").counts_per_mm(),
+            encoder_set,
             tasks: vec![mt, tt],
         }
+    }
+
+    /// When the twin last set the plant's follower encoder, and to what.
+    pub fn encoder_set(&self) -> (std::time::Instant, f64) {
+        *self.encoder_set.lock().expect("encoder log")
     }
 }
 
