@@ -81,12 +81,12 @@ pub struct FrameSample {
     pub position_mm: f64,
     /// The nominal the frame was decoupled with (mm), if any.
     pub nominal: Option<f64>,
-    /// The six errors (internal units).
+    /// The six errors (internal units), relative to the zero reference when one is set.
     pub errors: Errors6,
     /// Per-frame variance of each error from the PSD noise (internal units squared).
     pub var: Errors6,
-    /// Variance of each error from the stitching of PSD2's position (same for every frame
-    /// until the next handover).
+    /// Variance of each error from the stitching of PSD2's position and the zero reference
+    /// (the same for every frame until the next handover).
     pub stitch_var: Errors6,
     pub material_c: Option<f64>,
     pub air_c: Option<f64>,
@@ -312,6 +312,14 @@ impl RunMachine {
     }
 
     /// A frame estimate from the live pipeline.
+    /// The stitch changed under a capture (a handover was measured): frames from before it
+    /// are not averaged with those after.
+    pub fn restart_average(&mut self) {
+        if matches!(self.phase, Phase::Averaging { .. }) {
+            self.acc = Acc::default();
+        }
+    }
+
     pub fn handle_sample(&mut self, s: &FrameSample, now: Instant) {
         if self.phase == Phase::Done {
             return;
