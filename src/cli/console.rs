@@ -21,7 +21,11 @@ pub struct Args {
 pub fn run(a: Args) -> Result<()> {
     let socket = match a.socket {
         Some(s) => s,
-        None => super::service::settings(a.config.as_deref())?.service.socket,
+        None => {
+            super::service::settings(a.config.as_deref())?
+                .service
+                .socket
+        }
     };
     if !(a.jog_mm > 0.0 && a.jog_mm <= 10.0) {
         return Err(super::InputError(format!(

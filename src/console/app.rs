@@ -8,6 +8,7 @@
 use super::client::{ClientError, Identity, LinkEvent, PeerRole};
 use crate::run::{Plan, PlanSpec};
 use crate::service::control::{FollowerAction, Request};
+use crate::service::results::{RunResult, RunSummary};
 use crate::service::snapshot::Snapshot;
 use crossterm::event::{KeyCode, KeyEvent, KeyEventKind, KeyModifiers};
 use std::collections::{BTreeMap, VecDeque};
@@ -62,7 +63,10 @@ impl Screen {
 #[derive(Clone, Debug, PartialEq)]
 pub enum Action {
     /// Send a request; its reply comes back through `handle_reply` with the same id.
-    Send { id: u64, request: Request },
+    Send {
+        id: u64,
+        request: Request,
+    },
     Quit,
 }
 
@@ -230,7 +234,13 @@ impl Field {
     /// Left/Right: the next axis, or one step down/up.
     fn nudge(self, s: &mut PlanSpec, up: bool) {
         let sign = if up { 1.0 } else { -1.0 };
-        let step_count = |v: u32| if up { v.saturating_add(1) } else { v.saturating_sub(1) };
+        let step_count = |v: u32| {
+            if up {
+                v.saturating_add(1)
+            } else {
+                v.saturating_sub(1)
+            }
+        };
         match self {
             Field::Axis => {
                 let order = ["X", "Y", "Z"];
@@ -282,6 +292,9 @@ pub struct RunProgress {
     pub notes: Option<String>,
     /// The plan, when this console started the run (for the per-target view).
     pub plan: Option<Plan>,
+    /// The captures so far as the service evaluates them (`run_result` of this run), for the
+    /// live plot.
+    pub live: Option<RunResult>,
     first_seen: Instant,
     first_captures: usize,
     last_change: Instant,
@@ -299,6 +312,7 @@ impl RunProgress {
             program: None,
             notes: None,
             plan: None,
+            live: None,
             first_seen: now,
             first_captures: captures,
             last_change: now,
@@ -354,7 +368,57 @@ enum Pending {
     RunStart(Box<Plan>),
     RunStatus,
     RunAbort,
+    Runs,
+    RunResult(ResultFor),
     Other(String),
+}
+
+/// Where a `run_result` reply goes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ResultFor {
+    /// The Results screen's run ("after").
+    Shown,
+    /// The Results screen's comparison run ("before").
+    Before,
+    /// The live plot of the run under way (Measure).
+    Live,
+}
+
+impl Pending {
+    /// Polls and reads: their failures are not the operator's doing and do not make a viewer.
+    fn is_read(&self) -> bool {
+        matches!(
+            self,
+            Pending::RunStatus | Pending::Runs | Pending::RunResult(_)
+        )
+    }
+}
+
+/// The Results screen: the stored runs, the run shown and the one compared with.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ResultsView {
+    /// Newest first, as the service lists them.
+    pub runs: Vec<RunSummary>,
+    /// Whether a `runs` reply came (an empty list then means no runs).
+    pub listed: bool,
+    /// The highlighted run in the list.
+    pub selected: usize,
+    /// The run shown ("after" when comparing).
+    pub shown: Option<RunResult>,
+    /// The run compared with ("before").
+    pub before: Option<RunResult>,
+    /// The error the narrow layout charts, 0..6 in `Errors6` order (the wide one shows all six
+    /// and marks this one).
+    pub dof: usize,
+    /// Why the last `run_result` failed.
+    pub error: Option<String>,
+}
+
+impl ResultsView {
+    /// The highlighted run's id.
+    pub fn selected_id(&self) -> Option<i64> {
+        self.runs.get(self.selected).map(|r| r.id)
+    }
 }
 
 /// Console options the app needs.
@@ -389,6 +453,9 @@ pub struct App {
     pub plan: PlanForm,
     pub jog_step_mm: f64,
     pub run: Option<RunProgress>,
+    pub results: ResultsView,
+    /// The error the Measure screen's live plot shows (0..6, `Errors6` order).
+    pub live_dof: usize,
     pub log: VecDeque<LogLine>,
     pub now: Instant,
     next_id: u64,
@@ -422,6 +489,12 @@ impl App {
                 editing: None,
             },
             run: None,
+            // Positioning first: the ISO 230-2 result.
+            results: ResultsView {
+                dof: 1,
+                ..ResultsView::default()
+            },
+            live_dof: 1,
             log: VecDeque::new(),
             now,
             next_id: 1,
@@ -503,15 +576,51 @@ impl App {
         {
             self.message = None;
         }
+        if self.link != LinkState::Up {
+            return Vec::new();
+        }
+        let mut out = Vec::new();
         let due = self
             .last_run_status
             .is_none_or(|t| now.saturating_duration_since(t) >= RUN_STATUS_EVERY);
-        let waiting = self.pending.values().any(|p| *p == Pending::RunStatus);
-        if self.screen == Screen::Measure && self.link == LinkState::Up && due && !waiting {
+        if self.screen == Screen::Measure && due && !self.waiting(&Pending::RunStatus) {
             self.last_run_status = Some(now);
-            return vec![self.send(Request::RunStatus, Pending::RunStatus)];
+            out.push(self.send(Request::RunStatus, Pending::RunStatus));
+            // The live plot: the captures of the run under way (or just ended) so far.
+            if let Some(id) = self.run.as_ref().map(|r| r.run_id)
+                && !self.waiting(&Pending::RunResult(ResultFor::Live))
+            {
+                out.push(self.send(
+                    Request::RunResult { run_id: Some(id) },
+                    Pending::RunResult(ResultFor::Live),
+                ));
+            }
+        }
+        out.extend(self.results_need_list());
+        out
+    }
+
+    fn waiting(&self, p: &Pending) -> bool {
+        self.pending.values().any(|q| q == p)
+    }
+
+    /// On the Results screen, the run list once (until `r` asks again).
+    fn results_need_list(&mut self) -> Vec<Action> {
+        if self.screen == Screen::Results
+            && self.link == LinkState::Up
+            && !self.results.listed
+            && !self.waiting(&Pending::Runs)
+        {
+            return vec![self.send(Request::Runs { limit: None }, Pending::Runs)];
         }
         Vec::new()
+    }
+
+    fn load_result(&mut self, id: i64, to: ResultFor) -> Action {
+        self.send(
+            Request::RunResult { run_id: Some(id) },
+            Pending::RunResult(to),
+        )
     }
 
     /// Anything the client reports.
@@ -520,7 +629,7 @@ impl App {
             LinkEvent::Connected(id) => self.handle_connected(id, now),
             LinkEvent::Snapshot(s) => return self.handle_snapshot(*s, now),
             LinkEvent::Down { error, retry_in } => self.handle_down(&error, retry_in, now),
-            LinkEvent::Reply { id, result } => self.handle_reply(id, result, now),
+            LinkEvent::Reply { id, result } => return self.handle_reply(id, result, now),
         }
         Vec::new()
     }
@@ -578,7 +687,7 @@ impl App {
             None => {
                 // The run ended: ask how.
                 if self.run.as_ref().is_some_and(RunProgress::running)
-                    && !self.pending.values().any(|p| *p == Pending::RunStatus)
+                    && !self.waiting(&Pending::RunStatus)
                 {
                     self.last_run_status = Some(now);
                     out.push(self.send(Request::RunStatus, Pending::RunStatus));
@@ -589,16 +698,16 @@ impl App {
         out
     }
 
-    /// The reply to request `id`.
+    /// The reply to request `id`; it may ask for more (the result of a run that finished).
     pub fn handle_reply(
         &mut self,
         id: u64,
         result: Result<serde_json::Value, ClientError>,
         now: Instant,
-    ) {
+    ) -> Vec<Action> {
         self.now = now;
         let Some(pending) = self.pending.remove(&id) else {
-            return;
+            return Vec::new();
         };
         let v = match result {
             Ok(v) => v,
@@ -606,16 +715,24 @@ impl App {
                 if e.is_role_refusal() {
                     self.access = Access::Viewer;
                     self.say(Level::Warn, format!("read-only (viewer): {e}"));
-                } else if pending != Pending::RunStatus {
-                    self.say(Level::Error, e.to_string());
-                }
-                if pending != Pending::RunStatus || e.is_role_refusal() {
                     self.log(Level::Error, format!("✗ {e}"));
+                } else {
+                    match pending {
+                        Pending::RunStatus | Pending::RunResult(ResultFor::Live) => {}
+                        Pending::RunResult(_) => {
+                            self.results.error = Some(e.to_string());
+                            self.say(Level::Error, e.to_string());
+                        }
+                        _ => {
+                            self.say(Level::Error, e.to_string());
+                            self.log(Level::Error, format!("✗ {e}"));
+                        }
+                    }
                 }
-                return;
+                return Vec::new();
             }
         };
-        if self.access == Access::Unknown && !matches!(pending, Pending::RunStatus) {
+        if self.access == Access::Unknown && !pending.is_read() {
             // An operator request went through.
             self.access = Access::Operator;
         }
@@ -636,7 +753,9 @@ impl App {
                 self.log(Level::Info, format!("✓ {text}"));
                 self.say(Level::Info, text);
             }
-            Pending::RunStatus => self.apply_run_status(&v, now),
+            Pending::RunStatus => return self.apply_run_status(&v, now),
+            Pending::Runs => self.apply_runs(v),
+            Pending::RunResult(to) => self.apply_result(to, v),
             Pending::RunAbort => {
                 let text = match v["aborted"].as_i64() {
                     Some(id) => format!("run {id} aborted (its captures stay stored)"),
@@ -645,6 +764,7 @@ impl App {
                 if let Some(r) = self.run.as_mut() {
                     r.state = "aborted".into();
                 }
+                self.results.listed = false;
                 self.log(Level::Info, format!("✓ {text}"));
                 self.say(Level::Info, text);
             }
@@ -659,12 +779,69 @@ impl App {
                 self.say(Level::Info, text);
             }
         }
+        Vec::new()
     }
 
-    fn apply_run_status(&mut self, v: &serde_json::Value, now: Instant) {
-        let Some(run_id) = v["run_id"].as_i64() else {
-            return; // {"state":"none"}: no run yet
+    fn apply_runs(&mut self, v: serde_json::Value) {
+        match serde_json::from_value::<Vec<RunSummary>>(v["runs"].clone()) {
+            Ok(runs) => {
+                let keep = self.results.selected_id();
+                let r = &mut self.results;
+                r.runs = runs;
+                r.listed = true;
+                // Keep the highlighted run where it went; else the one shown; else the newest.
+                let want = keep.or(r.shown.as_ref().map(|s| s.run.id));
+                r.selected = want
+                    .and_then(|id| r.runs.iter().position(|x| x.id == id))
+                    .unwrap_or(0);
+            }
+            Err(e) => self.say(Level::Error, format!("bad run list from the service: {e}")),
+        }
+    }
+
+    fn apply_result(&mut self, to: ResultFor, v: serde_json::Value) {
+        let result = match serde_json::from_value::<RunResult>(v) {
+            Ok(r) => r,
+            Err(e) => {
+                self.say(
+                    Level::Error,
+                    format!("bad run result from the service: {e}"),
+                );
+                return;
+            }
         };
+        match to {
+            ResultFor::Live => {
+                if let Some(r) = self.run.as_mut().filter(|r| r.run_id == result.run.id) {
+                    r.live = Some(result);
+                }
+            }
+            ResultFor::Shown => {
+                self.results.error = None;
+                if let Some(i) = self.results.runs.iter().position(|x| x.id == result.run.id) {
+                    self.results.selected = i;
+                }
+                self.results.shown = Some(result);
+            }
+            ResultFor::Before => {
+                self.results.error = None;
+                self.say(
+                    Level::Info,
+                    format!("comparing with run {} (before)", result.run.id),
+                );
+                self.results.before = Some(result);
+            }
+        }
+    }
+
+    fn apply_run_status(&mut self, v: &serde_json::Value, now: Instant) -> Vec<Action> {
+        let Some(run_id) = v["run_id"].as_i64() else {
+            return Vec::new(); // {"state":"none"}: no run yet
+        };
+        let was_running = self
+            .run
+            .as_ref()
+            .is_some_and(|r| r.run_id == run_id && r.running());
         let captures = v["captures"].as_u64().unwrap_or(0) as usize;
         let r = match self.run.as_mut() {
             Some(r) if r.run_id == run_id => r,
@@ -684,6 +861,24 @@ impl App {
         if let Some(n) = v["notes"].as_str() {
             r.notes = Some(n.to_string());
         }
+        let state = r.state.clone();
+        if !was_running || state == "running" {
+            return Vec::new();
+        }
+        // The run this console watched has ended: its result for the Results screen and the
+        // live plot, and the run list again.
+        self.log(Level::Info, format!("run {run_id} {state}"));
+        self.results.listed = false;
+        let mut out = vec![self.load_result(run_id, ResultFor::Live)];
+        if state == "finished" {
+            self.say(
+                Level::Info,
+                format!("run {run_id} finished: its results are on screen 5"),
+            );
+            out.push(self.load_result(run_id, ResultFor::Shown));
+        }
+        out.extend(self.results_need_list());
+        out
     }
 
     /// A key press.
@@ -722,17 +917,10 @@ impl App {
                 return vec![Action::Quit];
             }
             (_, Some(c @ '1'..='7')) => {
-                self.screen = Screen::ALL[(c as u8 - b'1') as usize];
-                return Vec::new();
+                return self.show(Screen::ALL[(c as u8 - b'1') as usize]);
             }
-            (KeyCode::Tab, _) => {
-                self.screen = self.screen.step(1);
-                return Vec::new();
-            }
-            (KeyCode::BackTab, _) => {
-                self.screen = self.screen.step(-1);
-                return Vec::new();
-            }
+            (KeyCode::Tab, _) => return self.show(self.screen.step(1)),
+            (KeyCode::BackTab, _) => return self.show(self.screen.step(-1)),
             (KeyCode::Esc, _) => {
                 self.message = None;
                 return Vec::new();
@@ -742,8 +930,53 @@ impl App {
         match self.screen {
             Screen::Align => self.align_key(key),
             Screen::Measure => self.measure_key(key),
+            Screen::Results => self.results_key(key),
             _ => Vec::new(),
         }
+    }
+
+    /// Go to `screen` (and ask for what it shows, if it has nothing yet).
+    fn show(&mut self, screen: Screen) -> Vec<Action> {
+        self.screen = screen;
+        self.results_need_list()
+    }
+
+    fn results_key(&mut self, key: KeyEvent) -> Vec<Action> {
+        let n = self.results.runs.len();
+        match (key.code, key_char(&key)) {
+            (KeyCode::Up, _) if n > 0 => {
+                self.results.selected = (self.results.selected + n - 1) % n;
+            }
+            (KeyCode::Down, _) if n > 0 => {
+                self.results.selected = (self.results.selected + 1) % n;
+            }
+            (KeyCode::Left, _) => self.results.dof = (self.results.dof + 5) % 6,
+            (KeyCode::Right, _) => self.results.dof = (self.results.dof + 1) % 6,
+            (KeyCode::Enter, _) => match self.results.selected_id() {
+                Some(id) => return vec![self.load_result(id, ResultFor::Shown)],
+                None => self.say(Level::Info, "no stored runs to show"),
+            },
+            (_, Some('b')) => match self.results.selected_id() {
+                Some(id) if self.results.shown.as_ref().is_some_and(|s| s.run.id == id) => {
+                    self.say(
+                        Level::Warn,
+                        "pick another run to compare with (↑/↓, then b)",
+                    );
+                }
+                Some(id) => return vec![self.load_result(id, ResultFor::Before)],
+                None => self.say(Level::Info, "no stored runs to compare with"),
+            },
+            (_, Some('c')) if self.results.before.is_some() => {
+                self.results.before = None;
+                self.say(Level::Info, "comparison cleared");
+            }
+            (_, Some('r')) => {
+                self.results.listed = false;
+                return self.results_need_list();
+            }
+            _ => {}
+        }
+        Vec::new()
     }
 
     fn confirm_key(&mut self, c: Confirm, key: KeyEvent) -> Vec<Action> {
@@ -867,7 +1100,8 @@ impl App {
                 } else if self.may_operate("starting a run") {
                     match self.plan.checked() {
                         Ok(_) => {
-                            self.overlay = Overlay::Confirm(Confirm::StartRun(self.plan.spec.clone()))
+                            self.overlay =
+                                Overlay::Confirm(Confirm::StartRun(self.plan.spec.clone()))
                         }
                         Err(e) => self.say(Level::Error, e),
                     }
@@ -889,6 +1123,7 @@ impl App {
                 self.last_run_status = Some(self.now);
                 return vec![self.send(Request::RunStatus, Pending::RunStatus)];
             }
+            (_, Some('e')) => self.live_dof = (self.live_dof + 1) % 6,
             _ => {}
         }
         Vec::new()
@@ -944,8 +1179,17 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
             ("s", "start the run (asks first)"),
             ("a", "abort the run (asks first)"),
             ("r", "refresh the run status"),
+            ("e", "plot the next error"),
         ],
-        Screen::Calibrate | Screen::Results | Screen::Publish | Screen::Events => &[],
+        Screen::Results => &[
+            ("↑ / ↓", "select a stored run"),
+            ("Enter", "show its results"),
+            ("b", "compare with it (before)"),
+            ("c", "clear the comparison"),
+            ("← / →", "previous / next error"),
+            ("r", "reload the run list"),
+        ],
+        Screen::Calibrate | Screen::Publish | Screen::Events => &[],
     }
 }
 
@@ -1071,7 +1315,13 @@ mod tests {
         );
         assert!(a.read_only());
         assert!(a.handle_key(ch('h')).is_empty());
-        assert!(a.message.as_ref().unwrap().text.starts_with("read-only (viewer)"));
+        assert!(
+            a.message
+                .as_ref()
+                .unwrap()
+                .text
+                .starts_with("read-only (viewer)")
+        );
         a.handle_key(ch('4'));
         assert!(a.handle_key(ch('s')).is_empty());
         assert_eq!(a.overlay, Overlay::None);
@@ -1119,7 +1369,13 @@ mod tests {
         assert!(a.handle_key(ch('s')).is_empty());
         assert!(matches!(a.overlay, Overlay::Confirm(Confirm::StartRun(_))));
         let out = a.handle_key(ch('y'));
-        let [Action::Send { id, request: Request::RunStart { plan, .. } }] = &out[..] else {
+        let [
+            Action::Send {
+                id,
+                request: Request::RunStart { plan, .. },
+            },
+        ] = &out[..]
+        else {
             panic!("{out:?}")
         };
         assert_eq!(plan.end_mm, 20.0);
@@ -1151,7 +1407,13 @@ mod tests {
         assert_eq!(a.run.as_ref().unwrap().eta(), Some(Duration::from_secs(28)));
         // The run ends: the console asks how.
         let out = a.handle_snapshot(Snapshot::default(), t0 + Duration::from_secs(50));
-        let [Action::Send { id, request: Request::RunStatus }] = &out[..] else {
+        let [
+            Action::Send {
+                id,
+                request: Request::RunStatus,
+            },
+        ] = &out[..]
+        else {
             panic!("{out:?}")
         };
         a.handle_reply(

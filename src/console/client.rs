@@ -21,7 +21,9 @@ pub const REPLY_TIMEOUT: Duration = Duration::from_secs(70);
 /// Why a request or the stream failed. Cloneable: it travels to the app as text and kind.
 #[derive(Clone, Debug, Error, PartialEq)]
 pub enum ClientError {
-    #[error("cannot connect to {path}: {reason}; is the service running (systemctl status axiscomp)?")]
+    #[error(
+        "cannot connect to {path}: {reason}; is the service running (systemctl status axiscomp)?"
+    )]
     Connect { path: String, reason: String },
     #[error("control connection: {0}")]
     Io(String),
@@ -291,11 +293,7 @@ async fn stream_task(opts: ClientOptions, tx: mpsc::Sender<LinkEvent>) {
             Err(e) => e,
         };
         let retry_in = backoff.next_delay();
-        if tx
-            .send(LinkEvent::Down { error, retry_in })
-            .await
-            .is_err()
-        {
+        if tx.send(LinkEvent::Down { error, retry_in }).await.is_err() {
             return;
         }
         tokio::time::sleep(retry_in).await;
@@ -382,7 +380,10 @@ mod tests {
             }
         );
         // An older service says nothing: unknown until a refusal tells.
-        assert_eq!(identity_of(&serde_json::json!({"ok": true})), Identity::default());
+        assert_eq!(
+            identity_of(&serde_json::json!({"ok": true})),
+            Identity::default()
+        );
     }
 
     #[test]

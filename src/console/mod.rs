@@ -6,8 +6,9 @@
 //! - `ui`: one pure `render` per screen;
 //! - `term`: terminal set-up and restore (also on panic).
 //!
-//! Phase 1 has Live, Align, Measure and Events; Calibrate, Results and Publish are in the tab
-//! bar and say which control-API requests they wait for. Viewers get a read-only console;
+//! Live, Align, Measure (plan, start/abort, progress, live plot), Results (stored runs, six
+//! charts, ISO figures, before/after) and Events work; Calibrate and Publish are in the tab bar
+//! and say which control-API requests they wait for. Viewers get a read-only console;
 //! `NO_COLOR` turns colours off; 80×24 is the smallest layout.
 
 pub mod app;

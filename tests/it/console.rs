@@ -1,16 +1,25 @@
-//! The console (`axiscomp console`, phase 1).
+//! The console (`axiscomp console`, issue 6).
 //!
 //! Render tests: every screen at 80×24 and 160×48 into ratatui's `TestBackend`, the buffer's
-//! text under insta. The data is a real twin + service run, kept as a fixture
-//! (`fixtures/console_twin.json`, made by `capture_console_fixture` below) because a live
+//! text under insta. The data is a real twin + service session kept as a fixture
+//! (`fixtures/console_twin.json`, recorded by `capture_console_fixture` below), because a live
 //! snapshot's noise digits cannot be rounded away deterministically (a value near a rounding
-//! boundary flips between runs). What the fixture redacts: the timestamps are shifted so the
-//! first snapshot is at 2026-01-01 08:00:00 UTC (alarm times keep their spacing); nothing else
-//! is changed. The key-driven test then runs the real console loop against a live rig and
-//! checks every screen's content from live data.
+//! boundary flips between runs). The session: the follower homed, `nominal 0` and `zero` at
+//! rest, PSD3 blocked and unblocked (a cleared `beam-blocked` alarm); run 1 of the short plan
+//! to the end; run 2 of the same plan, recorded snapshot by snapshot, with the service's
+//! `run_result` half-way (the live plot) and at the end, the `runs` list and run 1's result
+//! (for the before/after comparison). What the fixture redacts: every timestamp is shifted by
+//! one offset so the rest snapshot is at 2026-01-01 08:00:00 UTC, and the program paths are
+//! moved out of the temporary directory; nothing else is changed.
+//!
+//! The app is fed the fixture exactly as the loop feeds it live data: the plan typed by keys,
+//! each request it sends answered with the service's recorded reply.
+//!
+//! The key-driven test then runs the real console loop against a live service and twin: plan →
+//! start → progress → results, and an abort.
 
 use crate::helpers::{RigOptions, ServiceRig, within_s};
-use axiscomp::console::app::{Access, Action, App, AppOptions, LinkState, Screen};
+use axiscomp::console::app::{Access, Action, App, AppOptions, Field, LinkState, Screen};
 use axiscomp::console::client::{Client, ClientError, ClientOptions, Identity, PeerRole};
 use axiscomp::console::{drive, ui};
 use axiscomp::run::PlanSpec;
@@ -22,45 +31,58 @@ use ratatui::Terminal;
 use ratatui::backend::TestBackend;
 use ratatui::buffer::Buffer;
 use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
 const FIXTURE: &str = "tests/it/fixtures/console_twin.json";
 
-/// Handovers quicker than the production defaults (as in the service tests), so a short run
-/// takes about 2.5 s per capture.
-const FAST_TRACKING: &str = "[tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n";
+/// Handovers and captures quicker than the production defaults (as in the service tests), so
+/// the short plan's run takes well under a minute on the twin.
+const FAST: &str = "[tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n\n\
+                    [capture]\nframes = 100\nsettle_ms = 200\n";
 
-/// The short plan both the fixture and the key-driven test run: 0–10 mm, 5 targets, 2 runs.
+/// The short plan the fixture and the key-driven test run: 0–8 mm, 5 targets, 2 runs.
 fn short_plan() -> PlanSpec {
     PlanSpec {
         axis: "X".into(),
         start_mm: 0.0,
-        end_mm: 10.0,
+        end_mm: 8.0,
         targets: 5,
         runs: 2,
         overrun_mm: 1.0,
-        dwell_s: 2.5,
+        dwell_s: 1.5,
         feed_mm_min: 3000.0,
         lead_mm: 0.0,
         reference_mm: None,
     }
 }
 
-/// A real twin + service session, recorded.
+/// A real twin + service session, recorded (see the module comment).
 #[derive(Debug, Serialize, Deserialize)]
 struct Fixture {
     about: String,
     /// The user the service named in its `status` reply.
     user: String,
-    /// At rest at 0 mm after `nominal 0` and `zero`, with PSD3 blocked and unblocked just
-    /// before (a cleared `beam-blocked` alarm).
+    /// At rest at 0 mm after `nominal 0` and `zero`.
     rest: Snapshot,
     plan: PlanSpec,
-    /// The service's reply to `run_start`.
+    /// The service's reply to run 2's `run_start`.
     start_reply: serde_json::Value,
-    /// Snapshots while the run went, with seconds since `run_start` was answered.
+    /// Snapshots while run 2 went (one per new capture, then one after it ended), with seconds
+    /// since `run_start` was answered.
     progress: Vec<(f64, Snapshot)>,
+    /// How many `progress` entries came before `live_result` was asked.
+    mid: usize,
+    /// `run_result` of run 2 half-way (the captures so far, no figures).
+    live_result: serde_json::Value,
+    /// `run_status` after run 2 ended.
+    finished_status: serde_json::Value,
+    /// `run_result` of run 2 and of run 1 after both ended.
+    result_2: serde_json::Value,
+    result_1: serde_json::Value,
+    /// `runs` after both ended.
+    runs: serde_json::Value,
 }
 
 fn load_fixture() -> Fixture {
@@ -83,17 +105,13 @@ fn text(buf: &Buffer) -> String {
                 continue;
             }
             let sym = cell.symbol();
-            skip = unicode_width(sym).saturating_sub(1);
+            skip = ratatui::text::Span::raw(sym).width().saturating_sub(1);
             line.push_str(sym);
         }
         out.push_str(line.trim_end());
         out.push('\n');
     }
     out
-}
-
-fn unicode_width(s: &str) -> usize {
-    ratatui::text::Span::raw(s).width()
 }
 
 fn render(app: &App, w: u16, h: u16) -> Buffer {
@@ -121,7 +139,6 @@ fn chars(s: &str) -> Vec<KeyEvent> {
 /// Keys that type `plan` into the Measure form from its first field, leaving the selection
 /// on the first field again.
 fn plan_keys(plan: &PlanSpec) -> Vec<KeyEvent> {
-    use axiscomp::console::app::Field;
     let mut keys = Vec::new();
     for f in Field::ALL {
         keys.push(key(KeyCode::Enter));
@@ -131,6 +148,54 @@ fn plan_keys(plan: &PlanSpec) -> Vec<KeyEvent> {
         keys.push(key(KeyCode::Down));
     }
     keys
+}
+
+/// Answer every request in `actions` (and those the answers lead to) with `reply`; returns
+/// the requests in the order they were sent.
+fn answer(
+    app: &mut App,
+    actions: Vec<Action>,
+    now: Instant,
+    reply: &dyn Fn(&Request) -> serde_json::Value,
+) -> Vec<Request> {
+    let mut queue: VecDeque<Action> = actions.into();
+    let mut sent = Vec::new();
+    while let Some(a) = queue.pop_front() {
+        if let Action::Send { id, request } = a {
+            let v = reply(&request);
+            sent.push(request);
+            queue.extend(app.handle_reply(id, Ok(v), now));
+        }
+    }
+    sent
+}
+
+/// The service's recorded replies.
+fn replies(fx: &Fixture, ended: bool) -> impl Fn(&Request) -> serde_json::Value + '_ {
+    move |r| match r {
+        Request::RunStatus if !ended => {
+            let (_, s) = &fx.progress[fx.mid - 1];
+            let r = s.run.as_ref().expect("a run in the mid snapshot");
+            serde_json::json!({"run_id": r.id, "state": "running", "captures": r.captures,
+                "expected": r.expected, "missing": 0, "program": r.program})
+        }
+        Request::RunStatus => fx.finished_status.clone(),
+        Request::RunResult { run_id: Some(id) } if !ended => {
+            assert_eq!(Some(*id), fx.start_reply["run_id"].as_i64());
+            fx.live_result.clone()
+        }
+        Request::RunResult { run_id: Some(id) }
+            if Some(*id) == fx.result_1["run"]["id"].as_i64() =>
+        {
+            fx.result_1.clone()
+        }
+        Request::RunResult { run_id: Some(id) } => {
+            assert_eq!(Some(*id), fx.result_2["run"]["id"].as_i64());
+            fx.result_2.clone()
+        }
+        Request::Runs { .. } => fx.runs.clone(),
+        other => panic!("the console sent {other:?} here"),
+    }
 }
 
 /// The app at rest: connected as an operator, the rest snapshot.
@@ -143,42 +208,79 @@ fn rest_app(fx: &Fixture, t0: Instant, color: bool) -> App {
         },
         t0,
     );
-    app.handle_snapshot(fx.rest.clone(), t0);
-    app.tick(t0);
+    assert!(app.handle_snapshot(fx.rest.clone(), t0).is_empty());
+    assert!(app.tick(t0).is_empty());
     app
 }
 
-/// The app during the run: the plan typed in, started by keys, the service's reply, then the
-/// recorded snapshots at their times.
-fn run_app(fx: &Fixture, t0: Instant, color: bool) -> App {
+/// The app half-way through run 2: the plan typed in, started by keys, the service's reply,
+/// the recorded snapshots up to `mid`, and the Measure screen's polls answered.
+fn mid_run_app(fx: &Fixture, t0: Instant, color: bool) -> (App, Instant) {
     let mut app = rest_app(fx, t0, color);
     for k in chars("4").into_iter().chain(plan_keys(&fx.plan)) {
         assert!(app.handle_key(k).is_empty());
     }
+    assert_eq!(app.plan.spec, fx.plan);
     assert!(app.handle_key(key(KeyCode::Char('s'))).is_empty());
-    let Action::Send { id, .. } = app.handle_key(key(KeyCode::Char('y'))).remove(0) else {
-        panic!("start sends a request")
+    let out = app.handle_key(key(KeyCode::Char('y')));
+    let [Action::Send { id, request }] = &out[..] else {
+        panic!("start sends one request: {out:?}")
     };
-    app.handle_reply(id, Ok(fx.start_reply.clone()), t0);
+    assert!(matches!(request, Request::RunStart { plan, .. } if *plan == fx.plan));
+    app.handle_reply(*id, Ok(fx.start_reply.clone()), t0);
     let mut last = t0;
-    for (t, s) in &fx.progress {
+    for (t, s) in &fx.progress[..fx.mid] {
         last = t0 + Duration::from_secs_f64(*t);
-        app.handle_snapshot(s.clone(), last);
+        assert!(app.handle_snapshot(s.clone(), last).is_empty());
     }
-    // The run_status polls the Measure screen makes are answered from the last snapshot.
     let now = last + Duration::from_millis(500);
-    for a in app.tick(now) {
-        if let Action::Send { id, request } = a {
-            assert_eq!(request, Request::RunStatus);
-            let r = fx.progress.last().and_then(|(_, s)| s.run.clone()).expect("run");
-            app.handle_reply(
-                id,
-                Ok(serde_json::json!({"run_id": r.id, "state": "running", "captures": r.captures,
-                    "expected": r.expected, "missing": r.expected - r.captures, "program": r.program})),
-                now,
+    let actions = app.tick(now);
+    let sent = answer(&mut app, actions, now, &replies(fx, false));
+    assert!(
+        matches!(
+            &sent[..],
+            [Request::RunStatus, Request::RunResult { run_id: Some(_) }]
+        ),
+        "{sent:?}"
+    );
+    (app, now)
+}
+
+/// The app after run 2 ended: the rest of the snapshots, the end noticed and its result
+/// fetched, then on the Results screen run 1 picked (↓) to compare with (b).
+fn results_app(fx: &Fixture, t0: Instant, color: bool) -> App {
+    let (mut app, _) = mid_run_app(fx, t0, color);
+    let reply = replies(fx, true);
+    let run2 = fx.start_reply["run_id"].as_i64();
+    let mut now = t0;
+    for (t, s) in &fx.progress[fx.mid..] {
+        now = t0 + Duration::from_secs_f64(*t);
+        let actions = app.handle_snapshot(s.clone(), now);
+        let sent = answer(&mut app, actions, now, &reply);
+        if s.run.is_none() {
+            // The run ended: the console asked how, then for its result.
+            assert_eq!(sent.first(), Some(&Request::RunStatus), "{sent:?}");
+            assert!(
+                sent.contains(&Request::RunResult { run_id: run2 }),
+                "{sent:?}"
             );
         }
     }
+    assert_eq!(app.run.as_ref().map(|r| r.state.as_str()), Some("finished"));
+    assert_eq!(app.results.shown.as_ref().map(|r| r.run.id), run2);
+    // The Results screen asks for the run list.
+    let actions = app.handle_key(key(KeyCode::Char('5')));
+    let sent = answer(&mut app, actions, now, &reply);
+    assert_eq!(sent, [Request::Runs { limit: None }]);
+    assert!(app.results.runs.len() >= 2, "{:?}", app.results.runs);
+    assert!(app.handle_key(key(KeyCode::Down)).is_empty());
+    let actions = app.handle_key(key(KeyCode::Char('b')));
+    let sent = answer(&mut app, actions, now, &reply);
+    assert_eq!(sent.len(), 1, "{sent:?}");
+    assert_eq!(
+        app.results.before.as_ref().map(|r| r.run.id),
+        fx.result_1["run"]["id"].as_i64()
+    );
     app
 }
 
@@ -200,11 +302,53 @@ fn every_screen_renders_from_a_twin_run_at_80x24_and_160x48() {
     let t0 = Instant::now();
     let mut rest = rest_app(&fx, t0, true);
     snapshot_screens(&mut rest, &[Screen::Live, Screen::Align, Screen::Calibrate]);
-    let mut run = run_app(&fx, t0, true);
-    snapshot_screens(
-        &mut run,
-        &[Screen::Measure, Screen::Results, Screen::Publish, Screen::Events],
-    );
+    let (mut mid, _) = mid_run_app(&fx, t0, true);
+    snapshot_screens(&mut mid, &[Screen::Measure, Screen::Events]);
+    let mut done = results_app(&fx, t0, true);
+    snapshot_screens(&mut done, &[Screen::Results, Screen::Publish]);
+}
+
+#[test]
+fn the_screens_show_the_twin_data_they_are_given() {
+    // Independent of the snapshots: the numbers on screen are the fixture's.
+    let fx = load_fixture();
+    let t0 = Instant::now();
+    let rest = rest_app(&fx, t0, false);
+    let live = text(&render(&rest, 160, 48));
+    let l = fx.rest.live.as_ref().expect("live errors at rest");
+    for (k, v) in l.errors.iter().enumerate() {
+        let dec = if k < 3 { 3 } else { 2 };
+        assert!(
+            live.contains(&format!("{v:+.dec$}")),
+            "error {k} = {v}:\n{live}"
+        );
+    }
+    let p = fx.rest.psd.as_ref().expect("a frame at rest");
+    for sum in p.sums_v {
+        assert!(live.contains(&format!("{sum:.2} V")), "SUM {sum}:\n{live}");
+    }
+    let mut done = results_app(&fx, t0, false);
+    done.screen = Screen::Results;
+    let res = text(&render(&done, 160, 48));
+    let r2: axiscomp::service::results::RunResult =
+        serde_json::from_value(fx.result_2.clone()).expect("result 2");
+    let dy = &r2.dofs[1];
+    assert_eq!(dy.name, "dy");
+    let repeat = dy
+        .figures
+        .iter()
+        .find(|f| f.name.starts_with("R "))
+        .expect("R in the figures");
+    assert!(res.contains(&format!("{:.2}", repeat.value)), "{res}");
+    assert!(res.contains("before: run"), "{res}");
+    // ← → walk the errors on the narrow layout.
+    assert_eq!(done.results.dof, 1, "positioning first");
+    for (k, name) in ["dz", "ex", "ey", "ez", "dx", "dy"].iter().enumerate() {
+        done.handle_key(key(KeyCode::Right));
+        assert_eq!(done.results.dof, (k + 2) % 6);
+        let t = text(&render(&done, 80, 24));
+        assert!(t.contains(&format!("{name} ")), "{name}:\n{t}");
+    }
 }
 
 #[test]
@@ -212,13 +356,25 @@ fn overlays_read_only_and_no_service_render() {
     let fx = load_fixture();
     let t0 = Instant::now();
     // Help on the Measure screen.
-    let mut app = run_app(&fx, t0, true);
+    let (mut app, now) = mid_run_app(&fx, t0, true);
     app.handle_key(key(KeyCode::Char('?')));
     insta::assert_snapshot!("help_measure_80x24", text(&render(&app, 80, 24)));
     // Confirming an abort.
     app.handle_key(key(KeyCode::Esc));
-    app.handle_key(key(KeyCode::Char('a')));
+    assert!(app.handle_key(key(KeyCode::Char('a'))).is_empty());
     insta::assert_snapshot!("confirm_abort_80x24", text(&render(&app, 80, 24)));
+    let out = app.handle_key(key(KeyCode::Char('y')));
+    assert!(
+        matches!(
+            &out[..],
+            [Action::Send {
+                request: Request::RunAbort,
+                ..
+            }]
+        ),
+        "{out:?}"
+    );
+    let _ = now;
     // A viewer: read-only, operator keys refused with a message.
     let mut viewer = App::new(opts(true), t0);
     viewer.handle_connected(
@@ -255,7 +411,7 @@ fn no_color_draws_without_colours() {
     let fx = load_fixture();
     let t0 = Instant::now();
     for color in [true, false] {
-        let mut app = run_app(&fx, t0, color);
+        let mut app = results_app(&fx, t0, color);
         let mut coloured = 0usize;
         for s in Screen::ALL {
             app.screen = s;
@@ -341,10 +497,37 @@ impl Console {
     }
 }
 
+/// Wait until the snapshots have shown the tracking referenced and at rest for a second.
+async fn settle(c: &mut Console) {
+    let at_rest = |a: &App| {
+        a.snapshot
+            .as_ref()
+            .is_some_and(|s| s.run.is_none() && s.tracking.valid && s.tracking.at_rest)
+    };
+    let end = Instant::now() + Duration::from_secs(30);
+    let mut since: Option<Instant> = None;
+    loop {
+        c.run(Vec::new(), Duration::from_millis(200)).await;
+        since = if at_rest(&c.app) {
+            since.or(Some(Instant::now()))
+        } else {
+            None
+        };
+        if since.is_some_and(|t| t.elapsed() >= Duration::from_secs(1)) {
+            return;
+        }
+        assert!(
+            Instant::now() < end,
+            "not at rest within 30 s:\n{}",
+            c.screen()
+        );
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn measure_workflow_by_keys_against_the_twin() {
     let rig = ServiceRig::start(RigOptions {
-        service_toml: FAST_TRACKING.into(),
+        service_toml: FAST.into(),
         twin_cnc: true,
         ..RigOptions::default()
     })
@@ -354,7 +537,12 @@ async fn measure_workflow_by_keys_against_the_twin() {
         a.link == LinkState::Up && a.snapshot.is_some()
     })
     .await;
-    assert_eq!(c.app.access, Access::Operator, "the status reply names the role");
+    assert_eq!(
+        c.app.access,
+        Access::Operator,
+        "the status reply names the role"
+    );
+    c.run(Vec::new(), Duration::from_millis(300)).await;
     assert!(c.screen().contains("Six errors"), "{}", c.screen());
     // Plan: typed into the form on the Measure screen.
     let plan = short_plan();
@@ -368,9 +556,12 @@ async fn measure_workflow_by_keys_against_the_twin() {
     assert!(c.screen().contains("Start the run?"), "{}", c.screen());
     c.keys(chars("y")).await;
     c.until(10, "the run started", |a| a.run.is_some()).await;
-    // Progress: captures come in, the ETA appears.
-    c.until(120, "three captures", |a| {
-        a.run.as_ref().is_some_and(|r| r.captures >= 3)
+    let run_id = c.app.run.as_ref().map(|r| r.run_id).expect("run id");
+    // Progress: captures come in, the ETA and the live plot appear.
+    c.until(90, "four captures and their live plot", |a| {
+        a.run.as_ref().is_some_and(|r| {
+            r.captures >= 4 && r.live.as_ref().is_some_and(|l| l.run.captures >= 4)
+        })
     })
     .await;
     c.run(Vec::new(), Duration::from_millis(300)).await;
@@ -378,26 +569,59 @@ async fn measure_workflow_by_keys_against_the_twin() {
     assert_eq!(r.expected, Some(20));
     assert!(r.eta().is_some(), "{r:?}");
     let s = c.screen();
-    assert!(s.contains(&format!("run {} running", r.run_id)), "{s}");
+    assert!(s.contains(&format!("run {run_id} running")), "{s}");
     assert!(s.contains("ETA"), "{s}");
-    assert!(s.contains("run 1  ↑ ■■■"), "{s}");
-    // Every screen renders from the live state, at both sizes.
-    let mut app = c.app.clone();
-    for screen in Screen::ALL {
-        app.screen = screen;
-        for (w, h) in SIZES {
-            let t = text(&render(&app, w, h));
-            let expect = match screen {
-                Screen::Live => "Six errors",
-                Screen::Align => "Beam and centring",
-                Screen::Calibrate | Screen::Results | Screen::Publish => "Waits for the control API",
-                Screen::Measure => "captures in cycle order",
-                Screen::Events => "This console's requests",
-            };
-            assert!(t.contains(expect), "{screen:?} at {w}×{h}:\n{t}");
-        }
+    assert!(s.contains("run 1  ↑ ■■■■"), "{s}");
+    assert!(s.contains("dy positioning (µm)"), "the live plot:\n{s}");
+    // Results: the run ends, the console fetches its evaluation by itself.
+    c.until(120, "the run finished", |a| {
+        a.run.as_ref().is_some_and(|r| r.state == "finished")
+    })
+    .await;
+    c.until(10, "its result", |a| {
+        a.results.shown.as_ref().is_some_and(|r| r.run.id == run_id)
+    })
+    .await;
+    c.keys(chars("5")).await;
+    c.until(10, "the run list", |a| a.results.listed).await;
+    c.run(Vec::new(), Duration::from_millis(300)).await;
+    let s = c.screen();
+    let shown = c.app.results.shown.clone().expect("result");
+    assert_eq!(shown.run.captures, 20);
+    assert_eq!(shown.incomplete, None, "a finished run has figures");
+    assert!(
+        s.contains(&format!("run {run_id} X finished, 20 captures")),
+        "{s}"
+    );
+    assert!(s.contains("dy positioning (µm)"), "{s}");
+    assert!(s.contains("A (accuracy)"), "{s}");
+    // The wide layout shows all six charts.
+    let mut wide = c.app.clone();
+    wide.screen = Screen::Results;
+    let t = text(&render(&wide, 160, 48));
+    for d in [
+        "dx horizontal",
+        "dy positioning",
+        "dz vertical",
+        "ex pitch",
+        "ey roll",
+        "ez yaw",
+    ] {
+        assert!(t.contains(d), "{d}:\n{t}");
     }
-    // Abort: asks, sends, and the run ends aborted.
+    // Abort: a second run, started and aborted by keys. Started, as an operator would, once
+    // the Live screen says the carriage and the follower are at rest: a run started during a
+    // handover moves the carriage away under it and fails ("PSD2 lost the spot").
+    settle(&mut c).await;
+    c.keys(chars("4")).await;
+    c.keys(chars("s")).await;
+    c.keys(chars("y")).await;
+    c.until(20, "the second run started", |a| {
+        a.run
+            .as_ref()
+            .is_some_and(|r| r.run_id > run_id && r.running())
+    })
+    .await;
     c.keys(chars("a")).await;
     assert!(c.screen().contains("Abort the run?"), "{}", c.screen());
     c.keys(chars("y")).await;
@@ -426,14 +650,14 @@ async fn measure_workflow_by_keys_against_the_twin() {
     rig.stop().await;
 }
 
-/// Record `fixtures/console_twin.json` from a real twin + service run:
+/// Record `fixtures/console_twin.json` from a real twin + service session:
 /// `cargo test --test it console::capture_console_fixture -- --ignored`, then review the
 /// snapshots that change (`INSTA_UPDATE=always` or `cargo insta review`).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "writes the fixture; run by hand when the snapshot or the screens change"]
 async fn capture_console_fixture() {
     let rig = ServiceRig::start(RigOptions {
-        service_toml: FAST_TRACKING.into(),
+        service_toml: FAST.into(),
         twin_cnc: true,
         ..RigOptions::default()
     })
@@ -444,7 +668,9 @@ async fn capture_console_fixture() {
     rig.request(Request::Zero).await.expect("zero");
     rig.twin.plant.set_blocked(2, true);
     rig.wait_for(10, "the beam-blocked alarm", |s| {
-        s.alarms.iter().any(|a| a.code == "beam-blocked" && a.active)
+        s.alarms
+            .iter()
+            .any(|a| a.code == "beam-blocked" && a.active)
     })
     .await;
     rig.twin.plant.set_blocked(2, false);
@@ -457,32 +683,86 @@ async fn capture_console_fixture() {
         .unwrap_or_else(|| "root".into());
     let rest = rig.snapshot().await;
     let plan = short_plan();
-    let start_reply = rig
-        .request(Request::RunStart {
-            plan: plan.clone(),
-            dialect: None,
-            notes: None,
-        })
-        .await
-        .expect("run_start");
+    let start = || Request::RunStart {
+        plan: plan.clone(),
+        dialect: None,
+        notes: None,
+    };
+    // Run 1, to the end: the "before" of the comparison.
+    let first = rig.request(start()).await.expect("run_start 1");
+    let t1 = Instant::now();
+    loop {
+        let status = rig.request(Request::RunStatus).await.expect("status");
+        match status["state"].as_str() {
+            Some("running") => {}
+            Some("finished") => break,
+            _ => panic!("run 1 ended so: {status}"),
+        }
+        assert!(t1.elapsed() < Duration::from_secs(180), "run 1 stalls");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    // The snapshot catches up (it shows no run), and the last handover is over: a run started
+    // during one fails ("PSD2 lost the spot").
+    rig.wait_for(5, "no run in the snapshot", |s| s.run.is_none())
+        .await;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    rig.wait_for(30, "at rest", |s| s.tracking.valid && s.tracking.at_rest)
+        .await;
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    rig.wait_for(30, "still at rest", |s| {
+        s.tracking.valid && s.tracking.at_rest
+    })
+    .await;
+    // Run 2, recorded.
+    let start_reply = rig.request(start()).await.expect("run_start 2");
     let t0 = Instant::now();
     let mut progress: Vec<(f64, Snapshot)> = Vec::new();
     let mut last = usize::MAX;
-    while progress.last().and_then(|(_, s)| s.run.as_ref()).is_none_or(|r| r.captures < 6) {
-        assert!(t0.elapsed() < Duration::from_secs(120), "the run stalls");
+    let mut live = None;
+    loop {
+        assert!(t0.elapsed() < Duration::from_secs(180), "run 2 stalls");
         let s = rig.snapshot().await;
-        if let Some(r) = &s.run
-            && r.captures != last
-        {
-            last = r.captures;
-            progress.push((t0.elapsed().as_secs_f64(), s));
+        let t = t0.elapsed().as_secs_f64();
+        match &s.run {
+            // Before the first snapshot of run 2 no run shows either.
+            None if progress.is_empty() => {}
+            None => {
+                progress.push((t, s));
+                break;
+            }
+            Some(r) if r.captures != last => {
+                last = r.captures;
+                progress.push((t, s.clone()));
+                if live.is_none() && r.captures >= r.expected / 2 {
+                    let v = rig
+                        .request(Request::RunResult { run_id: Some(r.id) })
+                        .await
+                        .expect("run_result half-way");
+                    live = Some((progress.len(), v));
+                }
+            }
+            Some(_) => {}
         }
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
-    // One more, mid-way to the next capture (the carriage moving or dwelling).
-    tokio::time::sleep(Duration::from_millis(1200)).await;
-    progress.push((t0.elapsed().as_secs_f64(), rig.snapshot().await));
-    rig.request(Request::RunAbort).await.expect("abort");
+    let (mid, live_result) = live.expect("a half-way result");
+    let finished_status = rig.request(Request::RunStatus).await.expect("status");
+    assert_eq!(finished_status["state"], "finished", "{finished_status}");
+    let result = |id: &serde_json::Value| Request::RunResult {
+        run_id: id.as_i64(),
+    };
+    let result_2 = rig
+        .request(result(&start_reply["run_id"]))
+        .await
+        .expect("result 2");
+    let result_1 = rig
+        .request(result(&first["run_id"]))
+        .await
+        .expect("result 1");
+    let runs = rig
+        .request(Request::Runs { limit: None })
+        .await
+        .expect("runs");
     // Redaction: shift every timestamp so the rest snapshot is at 2026-01-01 08:00:00 UTC.
     let shift = 1_767_254_400_000_000 - rest.unix_us;
     let redact = |mut s: Snapshot| {
@@ -490,23 +770,23 @@ async fn capture_console_fixture() {
         for a in &mut s.alarms {
             a.since_unix_us += shift;
         }
+        if let Some(r) = &mut s.run {
+            r.program = moved(&r.program);
+        }
         s
     };
-    let mut start_reply = start_reply;
-    // The program's path is in a temporary directory: keep its name only.
-    let file = |p: &str| {
-        Path::new(p)
-            .file_name()
-            .map(|f| format!("/var/lib/axiscomp/runs/1/{}", f.to_string_lossy()))
-            .unwrap_or_default()
+    let redact_value = |mut v: serde_json::Value| {
+        shift_json(&mut v, shift);
+        v
     };
+    let mut start_reply = start_reply;
     if let Some(p) = start_reply["program"].as_str() {
-        start_reply["program"] = serde_json::Value::String(file(p));
+        start_reply["program"] = serde_json::Value::String(moved(p));
     }
     let fx = Fixture {
         about: "twin + service on loopback (tests/it/console.rs capture_console_fixture): \
-                timestamps shifted to 2026-01-01 08:00:00 UTC, program paths moved to \
-                /var/lib/axiscomp; everything else as the service sent it"
+                timestamps shifted so the rest snapshot is at 2026-01-01 08:00:00 UTC, program \
+                paths moved to /var/lib/axiscomp; everything else as the service sent it"
             .into(),
         user,
         rest: redact(rest),
@@ -514,14 +794,14 @@ async fn capture_console_fixture() {
         start_reply,
         progress: progress
             .into_iter()
-            .map(|(t, s)| {
-                let mut s = redact(s);
-                if let Some(r) = &mut s.run {
-                    r.program = file(&r.program);
-                }
-                ((t * 1000.0).round() / 1000.0, s)
-            })
+            .map(|(t, s)| ((t * 1000.0).round() / 1000.0, redact(s)))
             .collect(),
+        mid,
+        live_result: redact_value(live_result),
+        finished_status: redact_value(finished_status),
+        result_2: redact_value(result_2),
+        result_1: redact_value(result_1),
+        runs: redact_value(runs),
     };
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(FIXTURE);
     std::fs::write(
@@ -531,4 +811,31 @@ async fn capture_console_fixture() {
     .expect("write the fixture");
     eprintln!("wrote {}", path.display());
     rig.stop().await;
+}
+
+/// A program path in the test's state directory, as if in the production one.
+fn moved(p: &str) -> String {
+    match p.split_once("/state/") {
+        Some((_, rest)) => format!("/var/lib/axiscomp/{rest}"),
+        None => p.to_string(),
+    }
+}
+
+/// Shift every `*_us` timestamp in a reply by `shift`.
+fn shift_json(v: &mut serde_json::Value, shift: i64) {
+    match v {
+        serde_json::Value::Object(m) => {
+            for (k, x) in m.iter_mut() {
+                if k.ends_with("_us")
+                    && let Some(t) = x.as_i64()
+                {
+                    *x = serde_json::Value::from(t + shift);
+                } else {
+                    shift_json(x, shift);
+                }
+            }
+        }
+        serde_json::Value::Array(a) => a.iter_mut().for_each(|x| shift_json(x, shift)),
+        _ => {}
+    }
 }

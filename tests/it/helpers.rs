@@ -341,9 +341,7 @@ impl ServiceRig {
                     start_mm: 2.0,
                     ..TwinDriveConfig::default()
                 },
-                control: opts
-                    .twin_cnc
-                    .then(|| "127.0.0.1:0".parse().expect("addr")),
+                control: opts.twin_cnc.then(|| "127.0.0.1:0".parse().expect("addr")),
             },
         )
         .await

@@ -25,8 +25,7 @@ pub fn render(frame: &mut Frame, area: Rect, app: &App) {
         Layout::vertical([Constraint::Min(6), Constraint::Length(bottom_h)]).areas(area);
     psd_row(frame, top, snap, theme);
     let [hints, follower] =
-        Layout::horizontal([Constraint::Percentage(55), Constraint::Percentage(45)])
-            .areas(bottom);
+        Layout::horizontal([Constraint::Percentage(55), Constraint::Percentage(45)]).areas(bottom);
     frame.render_widget(
         Paragraph::new(centring(snap, theme))
             .wrap(Wrap { trim: true })
@@ -92,10 +91,7 @@ pub fn centring(snap: Option<&Snapshot>, theme: Theme) -> Vec<Line<'static>> {
         lines.push(line);
     }
     lines.push(Line::styled(
-        format!(
-            "centred: within {:.0} % of the half-size",
-            CENTRED * 100.0
-        ),
+        format!("centred: within {:.0} % of the half-size", CENTRED * 100.0),
         theme.dim(),
     ));
     lines
@@ -106,7 +102,10 @@ fn follower_lines(app: &App, snap: Option<&Snapshot>, theme: Theme) -> Vec<Line<
     if let Some(s) = snap {
         let f = &s.follower;
         lines.push(Line::from(vec![
-            Span::raw(format!("{} ", if f.state.is_empty() { "?" } else { &f.state })),
+            Span::raw(format!(
+                "{} ",
+                if f.state.is_empty() { "?" } else { &f.state }
+            )),
             if f.homed {
                 Span::styled("homed", theme.ok())
             } else {
@@ -131,7 +130,10 @@ fn follower_lines(app: &App, snap: Option<&Snapshot>, theme: Theme) -> Vec<Line<
     }
     lines.push(Line::raw(format!("jog step {} mm", app.jog_step_mm)));
     lines.push(Line::styled("h home  j/k jog −/+  [ ] step", theme.dim()));
-    lines.push(Line::styled("z zero  c clear  x stop  r reset", theme.dim()));
+    lines.push(Line::styled(
+        "z zero  c clear  x stop  r reset",
+        theme.dim(),
+    ));
     if app.read_only() {
         lines.push(Line::styled(
             "read-only (viewer): these keys are disabled",

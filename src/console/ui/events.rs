@@ -14,15 +14,18 @@ pub fn render(frame: &mut Frame, area: Rect, app: &App) {
         color: app.opts.color,
     };
     let (wide, tall) = (area.width >= WIDE, area.height >= TALL);
-    let [alarms_area, rest] = Layout::vertical([Constraint::Percentage(50), Constraint::Min(4)])
-        .areas(area);
+    let [alarms_area, rest] =
+        Layout::vertical([Constraint::Percentage(50), Constraint::Min(4)]).areas(area);
     let (log_area, audit_area) = if wide {
         let [a, b] = Layout::horizontal([Constraint::Percentage(50), Constraint::Percentage(50)])
             .areas(rest);
         (a, b)
     } else {
-        let [a, b] = Layout::vertical([Constraint::Min(3), Constraint::Length(if tall { 5 } else { 4 })])
-            .areas(rest);
+        let [a, b] = Layout::vertical([
+            Constraint::Min(3),
+            Constraint::Length(if tall { 5 } else { 4 }),
+        ])
+        .areas(rest);
         (a, b)
     };
     alarms(frame, alarms_area, app, wide, theme);
@@ -69,7 +72,10 @@ fn alarms(frame: &mut Frame, area: Rect, app: &App, wide: bool, theme: Theme) {
 
 fn console_log(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
     let lines: Vec<Line> = if app.log.is_empty() {
-        vec![Line::styled("no requests from this console yet", theme.dim())]
+        vec![Line::styled(
+            "no requests from this console yet",
+            theme.dim(),
+        )]
     } else {
         app.log
             .iter()

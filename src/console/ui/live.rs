@@ -8,7 +8,7 @@ use crate::units::{DOF_MEANING, DOF_NAMES};
 use ratatui::Frame;
 use ratatui::layout::{Constraint, Layout, Rect};
 use ratatui::text::{Line, Span};
-use ratatui::widgets::Paragraph;
+use ratatui::widgets::{Paragraph, Wrap};
 
 pub fn render(frame: &mut Frame, area: Rect, app: &App) {
     let theme = Theme {
@@ -46,7 +46,13 @@ pub fn psd_row(frame: &mut Frame, area: Rect, snap: Option<&Snapshot>, theme: Th
     }
 }
 
-pub(super) fn errors(frame: &mut Frame, area: Rect, snap: Option<&Snapshot>, wide: bool, theme: Theme) {
+pub(super) fn errors(
+    frame: &mut Frame,
+    area: Rect,
+    snap: Option<&Snapshot>,
+    wide: bool,
+    theme: Theme,
+) {
     let live = snap.and_then(|s| s.live.as_ref());
     let mut lines = Vec::new();
     match live {
@@ -59,10 +65,7 @@ pub(super) fn errors(frame: &mut Frame, area: Rect, snap: Option<&Snapshot>, wid
                 let (unit, dec) = if k < 3 { ("µm", 3) } else { ("″", 2) };
                 let mut spans = vec![Span::styled(format!("{:<3}", DOF_NAMES[k]), theme.bold())];
                 if wide {
-                    spans.push(Span::styled(
-                        format!("{:<26}", DOF_MEANING[k]),
-                        theme.dim(),
-                    ));
+                    spans.push(Span::styled(format!("{:<26}", DOF_MEANING[k]), theme.dim()));
                 }
                 spans.push(Span::raw(format!(
                     "{:>10} ± {:.dec$} {unit}",
@@ -89,7 +92,12 @@ pub(super) fn errors(frame: &mut Frame, area: Rect, snap: Option<&Snapshot>, wid
             ]));
         }
     }
-    frame.render_widget(Paragraph::new(lines).block(panel("Six errors")), area);
+    frame.render_widget(
+        Paragraph::new(lines)
+            .wrap(Wrap { trim: true })
+            .block(panel("Six errors")),
+        area,
+    );
 }
 
 fn yes_no(b: bool, yes: &'static str, no: &'static str, theme: Theme) -> Span<'static> {

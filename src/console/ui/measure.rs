@@ -1,6 +1,6 @@
-//! Measure: the plan (edited in place), start and abort, the run's progress with ETA, and the
-//! captures per target in cycle order. The captured values themselves come with the control
-//! API's `run_result` (phase 2); until then the grid shows which targets are done.
+//! Measure: the plan (edited in place), start and abort, the run's progress with ETA, the
+//! captures per target in cycle order, and a live plot of the captured values so far (the
+//! service's `run_result` of the run under way; `e` picks the error).
 
 use super::{TALL, Theme, WIDE, bar, duration, panel};
 use crate::console::app::{App, Field, RunProgress};
@@ -98,7 +98,7 @@ fn plan(frame: &mut Frame, area: Rect, app: &App, wide: bool, theme: Theme) {
     } else if app.read_only() {
         "read-only (viewer): s, a disabled"
     } else {
-        "↑↓ select  Enter edit  s start"
+        "↑↓ select  Enter edit  s start  e plot"
     };
     lines.push(Line::styled(hint, theme.dim()));
     frame.render_widget(
@@ -134,7 +134,22 @@ fn progress(frame: &mut Frame, area: Rect, app: &App, wide: bool, theme: Theme) 
             theme.dim(),
         )],
     };
+    let grid_h = (lines.len() as u16).min(grid.height);
+    let [grid, plot] =
+        Layout::vertical([Constraint::Length(grid_h), Constraint::Min(0)]).areas(grid);
     frame.render_widget(Paragraph::new(lines).wrap(Wrap { trim: false }), grid);
+    if plot.height >= 5 {
+        match r.live.as_ref().and_then(|l| l.dofs.get(app.live_dof)) {
+            Some(d) => super::chart::render(frame, plot, d, None, false, theme),
+            None => frame.render_widget(
+                Paragraph::new(Line::styled(
+                    "live plot: waiting for the captures",
+                    theme.dim(),
+                )),
+                plot,
+            ),
+        }
+    }
 }
 
 fn head_lines(r: &RunProgress, width: u16, theme: Theme) -> Vec<Line<'static>> {
@@ -185,10 +200,7 @@ fn head_lines(r: &RunProgress, width: u16, theme: Theme) -> Vec<Line<'static>> {
 /// One row per run and direction, one cell per target, filled in cycle order up to
 /// `captures` (make-up passes may fill out of order; the count is exact, the cells are not).
 fn target_grid(p: &Plan, captures: usize, wide: bool, theme: Theme) -> Vec<Line<'static>> {
-    let mut lines = vec![Line::styled(
-        "captures in cycle order (values: with run_result)",
-        theme.dim(),
-    )];
+    let mut lines = vec![Line::styled("captures in cycle order", theme.dim())];
     if wide {
         let header: String = p.targets.iter().map(|t| format!("{t:>7.1}")).collect();
         lines.push(Line::styled(format!("{:<9}{header}", "mm"), theme.dim()));

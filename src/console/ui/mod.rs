@@ -3,11 +3,13 @@
 //! confirmation) go on top. Layouts work from 80×24 and use the room at 160×48 and above.
 
 mod align;
+mod chart;
 mod events;
 mod live;
 mod measure;
 mod pending;
 mod psd;
+mod results;
 
 use super::app::{Access, App, Confirm, GLOBAL_KEYS, Level, LinkState, Overlay, Screen};
 use ratatui::Frame;
@@ -100,7 +102,7 @@ pub fn render(frame: &mut Frame, app: &App) {
         Screen::Align => align::render(frame, body, app),
         Screen::Calibrate => pending::calibrate(frame, body, app),
         Screen::Measure => measure::render(frame, body, app),
-        Screen::Results => pending::results(frame, body, app),
+        Screen::Results => results::render(frame, body, app),
         Screen::Publish => pending::publish(frame, body, app),
         Screen::Events => events::render(frame, body, app),
     }
@@ -164,7 +166,14 @@ fn render_status(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
         (Access::Unknown, Some(u)) => Span::raw(u.clone()),
         (Access::Unknown, None) => Span::raw(""),
     };
-    let right = Line::from(vec![who, Span::raw("  "), link, Span::raw(" ")]);
+    // Two blanks keep a long message apart from who and the link.
+    let right = Line::from(vec![
+        Span::raw("  "),
+        who,
+        Span::raw("  "),
+        link,
+        Span::raw(" "),
+    ]);
     let rw = right.width() as u16;
     let [left_area, right_area] =
         Layout::horizontal([Constraint::Min(0), Constraint::Length(rw)]).areas(area);

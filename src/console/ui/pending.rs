@@ -1,4 +1,4 @@
-//! Calibrate, Results and Publish: in the tab bar already, saying plainly which control-API
+//! Calibrate and Publish: in the tab bar already, saying plainly which control-API
 //! requests they wait for and what to use until then. Their shapes are the service's to
 //! define; nothing here guesses them.
 
@@ -45,40 +45,19 @@ pub fn calibrate(frame: &mut Frame, area: Rect, app: &App) {
         "Calibrate",
         vec![
             Line::raw(""),
-            waits("calibration requests (none yet: the next set is runs, run_result, table_generate, table_publish, table_status and audit)"),
-            Line::raw("It will walk through the pose set, the fit (β, offsets, installation) and its validation."),
+            waits("calibration requests (none yet)"),
+            Line::raw(
+                "It will walk through the pose set, the fit (β, offsets, installation) and its validation.",
+            ),
             Line::raw(""),
             Line::styled("Until then, offline:", dim),
             Line::styled("  axiscomp calibrate simulate|fit …  (see --help)", dim),
-            Line::styled("  then set head.calibration in the configuration and restart the service", dim),
+            Line::styled(
+                "  then set head.calibration in the configuration and restart the service",
+                dim,
+            ),
         ],
     );
-}
-
-pub fn results(frame: &mut Frame, area: Rect, app: &App) {
-    let dim = Theme {
-        color: app.opts.color,
-    }
-    .dim();
-    let mut lines = vec![
-        Line::raw(""),
-        waits("`runs` (the stored runs) and `run_result` (one run's evaluation) requests"),
-        Line::raw("It will show the six charts per direction, the ISO 230-2 and 230-1 figures, and compare two runs (before/after)."),
-        Line::raw(""),
-    ];
-    match &app.run {
-        Some(r) => lines.push(Line::raw(format!(
-            "Last run seen by this console: run {} ({}, {} captures).",
-            r.run_id, r.state, r.captures
-        ))),
-        None => lines.push(Line::raw("No run seen by this console yet.")),
-    }
-    lines.push(Line::styled("Until then, from the store:", dim));
-    lines.push(Line::styled(
-        "  axiscomp report --run N --out DIR   (charts, figures, HTML and Markdown)",
-        dim,
-    ));
-    page(frame, area, app, "Results", lines);
 }
 
 pub fn publish(frame: &mut Frame, area: Rect, app: &App) {
@@ -94,7 +73,9 @@ pub fn publish(frame: &mut Frame, area: Rect, app: &App) {
         vec![
             Line::raw(""),
             waits("`table_generate`, `table_publish` and `table_status` requests"),
-            Line::raw("It will show the table, a diff against what the PLC holds, ask for the axis name to confirm, and follow the handshake."),
+            Line::raw(
+                "It will show the table, a diff against what the PLC holds, ask for the axis name to confirm, and follow the handshake.",
+            ),
             Line::raw(""),
             Line::styled("Until then, a controller file from the store:", dim),
             Line::styled("  axiscomp export --run N --format FORMAT --out FILE", dim),

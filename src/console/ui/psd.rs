@@ -30,8 +30,7 @@ pub fn render(frame: &mut Frame, area: Rect, k: usize, psd: Option<&PsdView>, th
     let block = panel(&title);
     let inner = block.inner(area);
     frame.render_widget(block, area);
-    let [plot, text] =
-        Layout::vertical([Constraint::Min(1), Constraint::Length(2)]).areas(inner);
+    let [plot, text] = Layout::vertical([Constraint::Min(1), Constraint::Length(2)]).areas(inner);
     let spot = psd.and_then(|p| p.spots_um[k]);
     let half = psd
         .map(|p| p.half_size_um[k])
