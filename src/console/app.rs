@@ -8,7 +8,7 @@
 use super::client::{ClientError, Identity, LinkEvent, PeerRole};
 use crate::run::{Plan, PlanSpec};
 use crate::service::control::{FollowerAction, Request};
-use crate::service::results::{RunResult, RunSummary};
+use crate::service::results::{AuditView, RunResult, RunSummary};
 use crate::service::snapshot::Snapshot;
 use crossterm::event::{KeyCode, KeyEvent, KeyEventKind, KeyModifiers};
 use std::collections::{BTreeMap, VecDeque};
@@ -370,6 +370,7 @@ enum Pending {
     RunAbort,
     Runs,
     RunResult(ResultFor),
+    Audit,
     Other(String),
 }
 
@@ -389,7 +390,7 @@ impl Pending {
     fn is_read(&self) -> bool {
         matches!(
             self,
-            Pending::RunStatus | Pending::Runs | Pending::RunResult(_)
+            Pending::RunStatus | Pending::Runs | Pending::RunResult(_) | Pending::Audit
         )
     }
 }
@@ -435,6 +436,12 @@ pub struct AppOptions {
 /// Polling interval of `run_status` while the Measure screen shows.
 pub const RUN_STATUS_EVERY: Duration = Duration::from_secs(2);
 
+/// Polling interval of `audit` while the Events screen shows.
+pub const AUDIT_EVERY: Duration = Duration::from_secs(2);
+
+/// Audit entries fetched.
+pub const AUDIT_LINES: u32 = 50;
+
 /// A snapshot older than this is shown as stale.
 pub const STALE_AFTER: Duration = Duration::from_secs(3);
 
@@ -456,6 +463,9 @@ pub struct App {
     pub results: ResultsView,
     /// The error the Measure screen's live plot shows (0..6, `Errors6` order).
     pub live_dof: usize,
+    /// The service's audit log, newest first, as last fetched (the Events screen).
+    pub audit: Option<Vec<AuditView>>,
+    last_audit: Option<Instant>,
     pub log: VecDeque<LogLine>,
     pub now: Instant,
     next_id: u64,
@@ -495,6 +505,8 @@ impl App {
                 ..ResultsView::default()
             },
             live_dof: 1,
+            audit: None,
+            last_audit: None,
             log: VecDeque::new(),
             now,
             next_id: 1,
@@ -597,7 +609,29 @@ impl App {
             }
         }
         out.extend(self.results_need_list());
+        out.extend(self.events_need_audit());
         out
+    }
+
+    /// On the Events screen, the audit log every `AUDIT_EVERY`.
+    fn events_need_audit(&mut self) -> Vec<Action> {
+        let due = self
+            .last_audit
+            .is_none_or(|t| self.now.saturating_duration_since(t) >= AUDIT_EVERY);
+        if self.screen == Screen::Events
+            && self.link == LinkState::Up
+            && due
+            && !self.waiting(&Pending::Audit)
+        {
+            self.last_audit = Some(self.now);
+            return vec![self.send(
+                Request::Audit {
+                    limit: Some(AUDIT_LINES),
+                },
+                Pending::Audit,
+            )];
+        }
+        Vec::new()
     }
 
     fn waiting(&self, p: &Pending) -> bool {
@@ -755,6 +789,14 @@ impl App {
             }
             Pending::RunStatus => return self.apply_run_status(&v, now),
             Pending::Runs => self.apply_runs(v),
+            Pending::Audit => {
+                match serde_json::from_value::<Vec<AuditView>>(v["entries"].clone()) {
+                    Ok(entries) => self.audit = Some(entries),
+                    Err(e) => {
+                        self.say(Level::Error, format!("bad audit log from the service: {e}"))
+                    }
+                }
+            }
             Pending::RunResult(to) => self.apply_result(to, v),
             Pending::RunAbort => {
                 let text = match v["aborted"].as_i64() {
@@ -938,7 +980,9 @@ impl App {
     /// Go to `screen` (and ask for what it shows, if it has nothing yet).
     fn show(&mut self, screen: Screen) -> Vec<Action> {
         self.screen = screen;
-        self.results_need_list()
+        let mut out = self.results_need_list();
+        out.extend(self.events_need_audit());
+        out
     }
 
     fn results_key(&mut self, key: KeyEvent) -> Vec<Action> {

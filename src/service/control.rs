@@ -2,9 +2,9 @@
 //! one response per line (`{"ok":true,...}` or `{"ok":false,"error":"..."}`); `subscribe` turns
 //! the connection into a stream of snapshots (`{"snapshot":{...}}` per line).
 //!
-//! Viewing (`status`, `subscribe`, `run_status`, `runs`, `run_result`) needs the viewer role;
-//! anything that changes state needs the operator role; the `status` reply names the peer's
-//! `user` and `role`. Roles come from the peer's credentials (`peer`). The socket itself is
+//! Viewing (`status`, `subscribe`, `run_status`, `runs`, `run_result`, `audit`) needs the
+//! viewer role; anything that changes state needs the operator role, and the service writes it
+//! to the audit log; the `status` reply names the peer's `user` and `role`. Roles come from the peer's credentials (`peer`). The socket itself is
 //! world-connectable: access is decided per request, so refusals can say why.
 
 use super::peer::{Peer, Role, RolePolicy};
@@ -85,6 +85,12 @@ pub enum Request {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         run_id: Option<i64>,
     },
+    /// The newest entries of the audit log (every operator request, who and when), newest
+    /// first (at most `limit`, default 50).
+    Audit {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        limit: Option<u32>,
+    },
 }
 
 impl Request {
@@ -95,7 +101,8 @@ impl Request {
             | Request::Subscribe { .. }
             | Request::RunStatus
             | Request::Runs { .. }
-            | Request::RunResult { .. } => Role::Viewer,
+            | Request::RunResult { .. }
+            | Request::Audit { .. } => Role::Viewer,
             _ => Role::Operator,
         }
     }
@@ -451,6 +458,9 @@ mod tests {
         assert_eq!(r.needs(), Role::Viewer);
         let r: Request = serde_json::from_str(r#"{"cmd":"run_result","run_id":3}"#).unwrap();
         assert_eq!(r, Request::RunResult { run_id: Some(3) });
+        assert_eq!(r.needs(), Role::Viewer);
+        let r: Request = serde_json::from_str(r#"{"cmd":"audit","limit":5}"#).unwrap();
+        assert_eq!(r, Request::Audit { limit: Some(5) });
         assert_eq!(r.needs(), Role::Viewer);
         let r: Request = serde_json::from_str(r#"{"cmd":"runs"}"#).unwrap();
         assert_eq!(r, Request::Runs { limit: None });

@@ -6,6 +6,7 @@
 use super::Prepared;
 use super::control::{Command, FollowerAction, Request};
 use super::notify;
+use super::peer::Role;
 use super::pipeline::{Output, Pipeline, now_us};
 use super::results;
 use super::shutdown::Shutdown;
@@ -19,7 +20,7 @@ use crate::modbus::{Link, LinkState};
 use crate::optics::layout::{Aperture, Kind};
 use crate::run::program::{CaptureMode, generate_steps, makeup_steps, remaining_steps};
 use crate::run::{CaptureSettings, Dialect, Plan, RunMachine, TargetKey};
-use crate::store::{NewRun, RunId, RunState, Store};
+use crate::store::{Actor, NewRun, RunId, RunState, Store};
 use crate::track::FollowerCommand;
 use std::collections::BTreeSet;
 use std::path::PathBuf;
@@ -661,8 +662,29 @@ impl Core {
         let _ = reply.send(r);
     }
 
+    /// Write an operator request to the audit log (who, when, what); a store that cannot take
+    /// it raises the store alarm, the request goes on.
+    fn audit(&mut self, c: &Command) {
+        if c.request.needs() != Role::Operator {
+            return;
+        }
+        let request = serde_json::to_value(&c.request).unwrap_or_default();
+        let who = Actor {
+            uid: Some(c.peer.uid),
+            user: Some(c.peer.user.clone()),
+            pid: c.peer.pid,
+        };
+        let entry = results::audit_entry(now_us(), who, "operator", &request);
+        if let Err(e) = self.store.audit(&entry) {
+            self.pipeline
+                .alarms
+                .raise("store", format!("audit entry not stored: {e}"));
+        }
+    }
+
     fn handle_command(&mut self, c: Command) {
         tracing::info!(user = %c.peer.user, uid = c.peer.uid, request = ?c.request, "control request");
+        self.audit(&c);
         match c.request {
             Request::Status | Request::Subscribe { .. } => Self::reply(
                 c.reply,
@@ -714,6 +736,11 @@ impl Core {
                 c.reply,
                 results::runs(&self.store, limit.unwrap_or(50))
                     .map(|v| serde_json::json!({ "runs": v })),
+            ),
+            Request::Audit { limit } => Self::reply(
+                c.reply,
+                results::audit(&self.store, limit.unwrap_or(50))
+                    .map(|v| serde_json::json!({ "entries": v })),
             ),
             Request::RunResult { run_id } => Self::reply(
                 c.reply,

@@ -1,5 +1,5 @@
-//! Stored runs and their results for the control API (`runs`, `run_result`): what the console's
-//! Results screen shows. The evaluation is the library's (`evaluate::evaluate_captures` and
+//! What the store holds, for the control API: the runs and their results (`runs`,
+//! `run_result`: the console's Results screen) and the audit log (`audit`: its Events screen). The evaluation is the library's (`evaluate::evaluate_captures` and
 //! `report::runs::run_report`, as `axiscomp report` does); this module only turns it into JSON
 //! in user units (µm, arcsec) — an edge, like the snapshot.
 
@@ -7,7 +7,7 @@ use crate::evaluate::{EvalOptions, evaluate_captures};
 use crate::report::runs::{run_report, series};
 use crate::report::{Dof, Figure, RunMeta, Series};
 use crate::run::Direction;
-use crate::store::{RunId, RunRecord, Store};
+use crate::store::{Actor, AuditEntry, RunId, RunRecord, Store};
 use serde::{Deserialize, Serialize};
 
 /// One stored run, as the `runs` list shows it.
@@ -158,4 +158,103 @@ pub fn run_result(store: &Store, id: Option<i64>) -> Result<RunResult, String> {
         dofs,
         incomplete,
     })
+}
+
+/// One audit-log entry as the `audit` request gives it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct AuditView {
+    pub id: i64,
+    /// µs since the Unix epoch.
+    pub unix_us: i64,
+    pub user: Option<String>,
+    pub uid: Option<u32>,
+    /// The role it acted in.
+    pub role: String,
+    /// The request (`run_start`, `zero`, …).
+    pub action: String,
+    /// The request's fields.
+    pub details: serde_json::Value,
+}
+
+/// The newest `limit` audit entries, newest first.
+pub fn audit(store: &Store, limit: u32) -> Result<Vec<AuditView>, String> {
+    let mut v: Vec<AuditView> = store
+        .audit_entries(limit)
+        .map_err(|e| e.to_string())?
+        .into_iter()
+        .map(|r| AuditView {
+            id: r.id,
+            unix_us: r.entry.unix_us,
+            user: r.entry.who.user,
+            uid: r.entry.who.uid,
+            role: r.entry.role,
+            action: r.entry.action,
+            details: r.entry.details,
+        })
+        .collect();
+    v.reverse();
+    Ok(v)
+}
+
+/// The audit entry of a request: its `cmd` as the action, its other fields as details.
+pub fn audit_entry(
+    unix_us: i64,
+    who: Actor,
+    role: &str,
+    request: &serde_json::Value,
+) -> AuditEntry {
+    let mut details = request.clone();
+    let action = details
+        .as_object_mut()
+        .and_then(|m| m.remove("cmd"))
+        .and_then(|c| c.as_str().map(str::to_string))
+        .unwrap_or_else(|| "request".into());
+    AuditEntry {
+        unix_us,
+        who,
+        role: role.to_string(),
+        action,
+        details,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn audit_entries_name_the_request_and_come_back_newest_first() {
+        let dir = std::env::temp_dir().join(format!("axiscomp-audit-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut store = Store::open(dir.join("store.sqlite")).unwrap();
+        let who = Actor {
+            uid: Some(1000),
+            user: Some("ana".into()),
+            pid: Some(42),
+        };
+        for (t, r) in [
+            (1, serde_json::json!({"cmd": "zero"})),
+            (
+                2,
+                serde_json::json!({"cmd": "follower", "action": "jog", "mm": 0.1}),
+            ),
+        ] {
+            store
+                .audit(&audit_entry(t, who.clone(), "operator", &r))
+                .unwrap();
+        }
+        let v = audit(&store, 10).unwrap();
+        assert_eq!(
+            v.iter().map(|a| a.action.as_str()).collect::<Vec<_>>(),
+            ["follower", "zero"]
+        );
+        assert_eq!(
+            v[0].details,
+            serde_json::json!({"action": "jog", "mm": 0.1})
+        );
+        assert_eq!((v[0].user.as_deref(), v[0].uid), (Some("ana"), Some(1000)));
+        assert_eq!(audit(&store, 1).unwrap().len(), 1);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -2,9 +2,10 @@
 # The console in a real terminal (issue 6, must-show 3): tmux runs `axiscomp console` at 80×24
 # against `axiscomp sim` + `axiscomp serve` (the twin's CNC runs the part programs), keys go in
 # with send-keys and every screen is checked with capture-pane: Live, help, Align, the plan
-# typed into Measure, start, progress, the finished run's results, quit (the terminal given
-# back, exit status 0), then NO_COLOR. Exits non-zero on the first screen that does not show
-# what it should, printing that screen. Needs tmux and python3 (.ci/run installs tmux).
+# typed into Measure, start, progress, the finished run's results, the audit log on Events,
+# quit (the terminal given back, exit status 0), then NO_COLOR. Exits non-zero on the first
+# screen that does not show what it should, printing that screen. Needs tmux and python3
+# (.ci/run installs tmux).
 #   bash tests/interop/console.sh            # from anywhere in the repository
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
@@ -164,6 +165,10 @@ keys 5
 expect 15 "X finished, 20 captures" "dy positioning (µm)" "Figures (←→ error)" "A (accuracy)" "R (repeatability)"
 keys Right
 expect 5 "dz vertical straightness (µm)" "straight LS"
+
+echo "console.sh: Events, the audit log"
+keys 7
+expect 10 "Alarms (UTC, newest first)" "This console's requests" "Audit log" "run_start X 0.0–8.0 mm, 5 targets, 2 runs"
 
 echo "console.sh: colours, then quit"
 "${tmx[@]}" capture-pane -e -p -t console | grep -qE $'\e\\[[0-9;]*(3[0-7]|38;)' \

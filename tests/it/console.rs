@@ -8,7 +8,7 @@
 //! rest, PSD3 blocked and unblocked (a cleared `beam-blocked` alarm); run 1 of the short plan
 //! to the end; run 2 of the same plan, recorded snapshot by snapshot, with the service's
 //! `run_result` half-way (the live plot) and at the end, the `runs` list and run 1's result
-//! (for the before/after comparison). What the fixture redacts: every timestamp is shifted by
+//! (for the before/after comparison), and the audit log. What the fixture redacts: every timestamp is shifted by
 //! one offset so the rest snapshot is at 2026-01-01 08:00:00 UTC, and the program paths are
 //! moved out of the temporary directory; nothing else is changed.
 //!
@@ -83,6 +83,8 @@ struct Fixture {
     result_1: serde_json::Value,
     /// `runs` after both ended.
     runs: serde_json::Value,
+    /// `audit` after both ended (every operator request of the session).
+    audit: serde_json::Value,
 }
 
 fn load_fixture() -> Fixture {
@@ -194,6 +196,7 @@ fn replies(fx: &Fixture, ended: bool) -> impl Fn(&Request) -> serde_json::Value 
             fx.result_2.clone()
         }
         Request::Runs { .. } => fx.runs.clone(),
+        Request::Audit { .. } => fx.audit.clone(),
         other => panic!("the console sent {other:?} here"),
     }
 }
@@ -303,9 +306,15 @@ fn every_screen_renders_from_a_twin_run_at_80x24_and_160x48() {
     let mut rest = rest_app(&fx, t0, true);
     snapshot_screens(&mut rest, &[Screen::Live, Screen::Align, Screen::Calibrate]);
     let (mut mid, _) = mid_run_app(&fx, t0, true);
-    snapshot_screens(&mut mid, &[Screen::Measure, Screen::Events]);
+    snapshot_screens(&mut mid, &[Screen::Measure]);
     let mut done = results_app(&fx, t0, true);
     snapshot_screens(&mut done, &[Screen::Results, Screen::Publish]);
+    // Events asks for the audit log when it shows.
+    let now = done.now;
+    let actions = done.handle_key(key(KeyCode::Char('7')));
+    let sent = answer(&mut done, actions, now, &replies(&fx, true));
+    assert_eq!(sent, [Request::Audit { limit: Some(50) }]);
+    snapshot_screens(&mut done, &[Screen::Events]);
 }
 
 #[test]
@@ -609,6 +618,20 @@ async fn measure_workflow_by_keys_against_the_twin() {
     ] {
         assert!(t.contains(d), "{d}:\n{t}");
     }
+    // Events: the audit log names the run's start, by whom.
+    c.keys(chars("7")).await;
+    c.until(10, "the audit log", |a| {
+        a.audit
+            .as_ref()
+            .is_some_and(|v| v.iter().any(|e| e.action == "run_start"))
+    })
+    .await;
+    c.run(Vec::new(), Duration::from_millis(300)).await;
+    let s = c.screen();
+    assert!(
+        s.contains("run_start X 0.0–8.0 mm, 5 targets, 2 runs"),
+        "{s}"
+    );
     // Abort: a second run, started and aborted by keys. Started, as an operator would, once
     // the Live screen says the carriage and the follower are at rest: a run started during a
     // handover moves the carriage away under it and fails ("PSD2 lost the spot").
@@ -763,6 +786,10 @@ async fn capture_console_fixture() {
         .request(Request::Runs { limit: None })
         .await
         .expect("runs");
+    let audit = rig
+        .request(Request::Audit { limit: None })
+        .await
+        .expect("audit");
     // Redaction: shift every timestamp so the rest snapshot is at 2026-01-01 08:00:00 UTC.
     let shift = 1_767_254_400_000_000 - rest.unix_us;
     let redact = |mut s: Snapshot| {
@@ -802,6 +829,7 @@ async fn capture_console_fixture() {
         result_2: redact_value(result_2),
         result_1: redact_value(result_1),
         runs: redact_value(runs),
+        audit: redact_value(audit),
     };
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(FIXTURE);
     std::fs::write(

@@ -1,6 +1,6 @@
 //! Events: the service's alarms (active and recently cleared, from the snapshot), this
-//! console's own requests and answers, and the place of the audit log, which waits for the
-//! control API's `audit` request.
+//! console's own requests and answers, and the service's audit log (every operator request:
+//! who, when, what; the control API's `audit`).
 
 use super::{TALL, Theme, WIDE, clock_utc, panel};
 use crate::console::app::App;
@@ -15,7 +15,7 @@ pub fn render(frame: &mut Frame, area: Rect, app: &App) {
     };
     let (wide, tall) = (area.width >= WIDE, area.height >= TALL);
     let [alarms_area, rest] =
-        Layout::vertical([Constraint::Percentage(50), Constraint::Min(4)]).areas(area);
+        Layout::vertical([Constraint::Percentage(40), Constraint::Min(4)]).areas(area);
     let (log_area, audit_area) = if wide {
         let [a, b] = Layout::horizontal([Constraint::Percentage(50), Constraint::Percentage(50)])
             .areas(rest);
@@ -23,14 +23,14 @@ pub fn render(frame: &mut Frame, area: Rect, app: &App) {
     } else {
         let [a, b] = Layout::vertical([
             Constraint::Min(3),
-            Constraint::Length(if tall { 5 } else { 4 }),
+            Constraint::Length(if tall { 10 } else { 7 }),
         ])
         .areas(rest);
         (a, b)
     };
     alarms(frame, alarms_area, app, wide, theme);
     console_log(frame, log_area, app, theme);
-    audit(frame, audit_area, theme);
+    audit(frame, audit_area, app, theme);
 }
 
 fn alarms(frame: &mut Frame, area: Rect, app: &App, wide: bool, theme: Theme) {
@@ -102,17 +102,85 @@ fn console_log(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
     );
 }
 
-/// The audit log's place: who changed what, from the store, once the API serves it.
-fn audit(frame: &mut Frame, area: Rect, theme: Theme) {
-    let lines = vec![
-        Line::raw("Waits for the control API's `audit` request (who started,"),
-        Line::raw("aborted, zeroed, published what, and when)."),
-        Line::styled("Until then: journalctl -u axiscomp", theme.dim()),
-    ];
+/// A request as one line: `run_start X 0–8 mm, 5 targets, 2 runs`, `follower jog 0.1 mm`.
+pub fn request_text(action: &str, d: &serde_json::Value) -> String {
+    let num = |k: &str| d[k].as_f64().map(|v| format!("{v}"));
+    match action {
+        "run_start" => {
+            let p = &d["plan"];
+            format!(
+                "run_start {} {}–{} mm, {} targets, {} runs",
+                p["axis"].as_str().unwrap_or("?"),
+                p["start_mm"],
+                p["end_mm"],
+                p["targets"],
+                p["runs"]
+            )
+        }
+        "follower" => {
+            let mut t = format!("follower {}", d["action"].as_str().unwrap_or("?"));
+            if let Some(mm) = num("mm") {
+                t.push_str(&format!(" {mm} mm"));
+            }
+            t
+        }
+        "nominal" => match num("mm") {
+            Some(mm) => format!("nominal {mm} mm"),
+            None => "nominal cleared".into(),
+        },
+        "strategy" => format!("strategy {}", d["strategy"].as_str().unwrap_or("?")),
+        other => other.to_string(),
+    }
+}
+
+/// The service's audit log, newest first.
+fn audit(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
+    let lines: Vec<Line> = match &app.audit {
+        None => vec![Line::styled("asking the service…", theme.dim())],
+        Some(v) if v.is_empty() => vec![Line::styled("no operator requests yet", theme.dim())],
+        Some(v) => v
+            .iter()
+            .map(|a| {
+                Line::from(vec![
+                    Span::styled(format!("{} ", clock_utc(a.unix_us)), theme.dim()),
+                    Span::styled(
+                        format!("{} ", a.user.as_deref().unwrap_or("?")),
+                        theme.bold(),
+                    ),
+                    Span::raw(request_text(&a.action, &a.details)),
+                ])
+            })
+            .collect(),
+    };
     frame.render_widget(
-        Paragraph::new(lines)
-            .wrap(Wrap { trim: true })
-            .block(panel("Audit log")),
+        Paragraph::new(lines).block(panel("Audit log (UTC, newest first)")),
         area,
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn requests_read_as_one_line() {
+        let plan = serde_json::json!({"plan": {"axis": "X", "start_mm": 0.0, "end_mm": 8.0,
+            "targets": 5, "runs": 2}});
+        assert_eq!(
+            request_text("run_start", &plan),
+            "run_start X 0.0–8.0 mm, 5 targets, 2 runs"
+        );
+        assert_eq!(
+            request_text(
+                "follower",
+                &serde_json::json!({"action": "jog", "mm": -0.1})
+            ),
+            "follower jog -0.1 mm"
+        );
+        assert_eq!(
+            request_text("nominal", &serde_json::json!({"mm": null})),
+            "nominal cleared"
+        );
+        assert_eq!(request_text("zero", &serde_json::json!({})), "zero");
+    }
 }
