@@ -133,6 +133,7 @@ impl Pipeline {
                 && st.homed
                 && st.busy != Some("home"),
             target_reached: st.target_reached,
+            at: st.position_at,
         })
     }
 

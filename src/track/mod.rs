@@ -106,6 +106,8 @@ pub struct FollowerState {
     pub ready: bool,
     /// The last commanded target is reached.
     pub target_reached: bool,
+    /// When the position was sampled, if the drive says (else when it arrived).
+    pub at: Option<Instant>,
 }
 
 /// A command for the follower.
@@ -413,7 +415,8 @@ impl Tracker {
         if !state.ready {
             self.follower_track = [None; 2];
         } else if self.follower_track[1].is_none_or(|(_, p)| p != state.position_mm) {
-            self.follower_track = [self.follower_track[1], Some((now, state.position_mm))];
+            let at = state.at.unwrap_or(now);
+            self.follower_track = [self.follower_track[1], Some((at, state.position_mm))];
         }
         self.follower = Some(state);
         if let Phase::Moving {
@@ -844,6 +847,7 @@ mod tests {
                     position_mm: self.enc,
                     ready: true,
                     target_reached: self.target.is_none(),
+                    at: None,
                 },
                 self.now,
             );

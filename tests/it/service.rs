@@ -210,7 +210,7 @@ async fn overlap_stitching_over_100_mm_matches_the_truth() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "continuous following in CSP oscillates: follower positions are stamped on arrival, not at their SYNC"]
+#[ignore = "continuous following in real time loses the spot when the SYNC stalls (40 ms gaps seen on a loaded 2-core machine); shown on a simulated clock by lab::encoder_following_over_100_mm_in_one_move_matches_the_truth"]
 async fn encoder_tracking_over_100_mm_matches_the_truth() {
     hundred_mm(Strategy::Encoder).await;
 }
