@@ -295,6 +295,25 @@ impl Tracker {
         self.settings.strategy = s;
     }
 
+    /// PSD2 has had no spot for `lost_after`.
+    pub fn is_lost(&self) -> bool {
+        self.lost
+    }
+
+    /// Re-reference after the stitch was broken in the middle of something (a service restart
+    /// in a run): PSD2 is where the encoder says, the encoder bridging the gap with its
+    /// uncertainty over the distance from its home.
+    pub fn reference_by_encoder(&mut self) -> bool {
+        let Some(f) = self.follower else {
+            return false;
+        };
+        if !self.reference() {
+            return false;
+        }
+        self.variance = self.encoder_var(f.position_mm);
+        true
+    }
+
     /// Take the current follower position as the reference: PSD2 is where the encoder says,
     /// with no vertical offset and no uncertainty. Called at the zero reference.
     pub fn reference(&mut self) -> bool {
