@@ -1,6 +1,10 @@
 //! CiA 402 (IEC 61800-7-201) drive profile: statusword decoding into the power states of the
 //! drive's finite state automaton (FSA), controlword commands, and the mode-specific bits of
-//! homing (mode 6) and profile position (mode 1).
+//! homing (mode 6), profile position (mode 1) and cyclic synchronous position (mode 8).
+//!
+//! Cyclic synchronous position uses no mode-specific controlword bits; in its statusword bit 10
+//! is reserved, bit 12 says whether the drive uses the target position (0x607A) as its position
+//! demand (1) or ignores it (0), and bit 13 is the following error.
 //!
 //! Pure functions and plain values, shared by the master (which decodes statuswords and picks
 //! controlwords) and the twin drive (which decodes controlwords and composes statuswords).
@@ -64,6 +68,9 @@ pub const SW_HOMING_ATTAINED: u16 = 1 << 12;
 pub const SW_FOLLOWING_ERROR: u16 = 1 << 13;
 /// Bit 13 in homing mode.
 pub const SW_HOMING_ERROR: u16 = 1 << 13;
+/// Bit 12 in cyclic synchronous position mode: 1 = the target position is used as the
+/// position demand, 0 = target position ignored (CiA 402 / IEC 61800-7-201, CSP).
+pub const SW_CSP_TARGET_USED: u16 = 1 << 12;
 
 // --- Modes of operation (0x6060 / 0x6061) -------------------------------------------------
 
@@ -71,6 +78,8 @@ pub const SW_HOMING_ERROR: u16 = 1 << 13;
 pub const MODE_PROFILE_POSITION: i8 = 1;
 /// Homing mode.
 pub const MODE_HOMING: i8 = 6;
+/// Cyclic synchronous position mode.
+pub const MODE_CSP: i8 = 8;
 
 /// A modes-of-operation value as text.
 pub fn mode_name(mode: i8) -> &'static str {
@@ -214,9 +223,13 @@ impl Statusword {
     pub fn setpoint_ack(self) -> bool {
         self.bit(SW_SETPOINT_ACK)
     }
-    /// Profile position: following error (bit 13).
+    /// Profile position and cyclic synchronous position: following error (bit 13).
     pub fn following_error(self) -> bool {
         self.bit(SW_FOLLOWING_ERROR)
+    }
+    /// Cyclic synchronous position: the drive uses the target position (bit 12).
+    pub fn csp_target_used(self) -> bool {
+        self.bit(SW_CSP_TARGET_USED)
     }
     /// Homing mode: bits 13, 12 and 10 decoded.
     pub fn homing(self) -> HomingStatus {
@@ -626,6 +639,8 @@ mod tests {
     fn mode_names() {
         assert_eq!(mode_name(MODE_PROFILE_POSITION), "profile position");
         assert_eq!(mode_name(MODE_HOMING), "homing");
+        assert_eq!(mode_name(MODE_CSP), "cyclic synchronous position");
+        assert!(Statusword(0x1237).csp_target_used() && !Statusword(0x0237).csp_target_used());
         assert_eq!(mode_name(-3), "manufacturer-specific mode");
     }
 }

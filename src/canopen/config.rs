@@ -205,6 +205,11 @@ pub struct DriveConfig {
     pub homing: HomingConfig,
     pub profile: ProfileConfig,
     pub limits: TravelLimits,
+    /// Following (cyclic synchronous position): the demand sent at a SYNC leads the follow
+    /// target by the target's velocity times this many SYNC periods, making up for the drive's
+    /// interpolation delay: 1 for a drive that reaches each demand at the next SYNC (as the
+    /// twin does), 0 for one that applies it at once. 0..=4.
+    pub csp_lead_periods: f64,
 }
 
 impl Default for DriveConfig {
@@ -224,6 +229,7 @@ impl Default for DriveConfig {
             homing: HomingConfig::default(),
             profile: ProfileConfig::default(),
             limits: TravelLimits::default(),
+            csp_lead_periods: 1.0,
         }
     }
 }
@@ -316,6 +322,13 @@ impl DriveConfig {
                     why: "too large for a 32-bit drive parameter at this scaling",
                 });
             }
+        }
+        if !(self.csp_lead_periods >= 0.0 && self.csp_lead_periods <= 4.0) {
+            return Err(ConfigError::Invalid {
+                key: "csp_lead_periods",
+                value: self.csp_lead_periods.to_string(),
+                why: "must be 0..=4 SYNC periods",
+            });
         }
         let l = &self.limits;
         if !(l.min_mm.is_finite() && l.max_mm.is_finite() && l.min_mm < l.max_mm) {
@@ -530,6 +543,20 @@ mod tests {
                     ..Default::default()
                 },
                 "canopen.limits.min_mm = -1000000",
+            ),
+            (
+                DriveConfig {
+                    csp_lead_periods: f64::NAN,
+                    ..Default::default()
+                },
+                "canopen.csp_lead_periods = NaN",
+            ),
+            (
+                DriveConfig {
+                    csp_lead_periods: 5.0,
+                    ..Default::default()
+                },
+                "canopen.csp_lead_periods = 5: must be 0..=4 SYNC periods",
             ),
         ];
         for (cfg, want) in bad {

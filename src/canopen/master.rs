@@ -14,14 +14,31 @@
 //!
 //! Power and motion commands need the PDOs running (configure, then start); configuration and
 //! raw SDO access work in pre-operational.
+//!
+//! Following (cyclic synchronous position, mode 8): [`Master::follow`] records the latest
+//! target without waiting. When not following yet, it queues a [`Command::Follow`] that waits
+//! for a profile move to end, holds the actual position as the demand, writes 0x6060 = 8 and
+//! reads 0x6061 until it shows 8. From then on every RPDO1 at SYNC carries the demand in
+//! 0x607A (no handshake), moved toward the latest target by a [`DemandRamp`] within the
+//! profile velocity and acceleration, leading a moving target by `csp_lead_periods` SYNC
+//! periods to make up for the drive's interpolation delay. [`Command::StopFollowing`] brings
+//! the demand to rest on the last target and returns to profile position; move, jog,
+//! set-target and home first bring the demand to rest where it can stop, then switch to their
+//! modes. In CSP the drive's bit 10 is reserved and bit 12 means "target position used", so
+//! the master works out "target reached" itself: |actual − demand| below the position window
+//! with the demand unchanged for a SYNC. A following error (bit 13), a fault or leaving
+//! operation enabled ends following ([`Event::FollowingEnded`] with the reason); after that,
+//! or after stop, quick stop or disable, follow targets are refused until the next other
+//! command.
 
 use super::cia402::{
     self, CW_CHANGE_IMMEDIATELY, CW_COMMAND_MASK, CW_FAULT_RESET, CW_HALT, CW_NEW_SETPOINT,
-    CW_RELATIVE, FsaCommand, HomingStatus, MODE_HOMING, MODE_PROFILE_POSITION, NextStep,
+    CW_RELATIVE, FsaCommand, HomingStatus, MODE_CSP, MODE_HOMING, MODE_PROFILE_POSITION, NextStep,
     PowerState, Statusword,
 };
 use super::cob;
 use super::config::{ConfigError, DriveConfig, DriveSettings};
+use super::csp::{DemandRamp, TargetTrack};
 use super::emcy::Emcy;
 use super::nmt::{HeartbeatConsumer, HeartbeatEvent, command_frame};
 use super::pdo::{self, SdoWrite, SyncProducer};
@@ -34,6 +51,9 @@ use thiserror::Error;
 
 /// Identifies a submitted command in its completion event.
 pub type OpId = u64;
+
+/// The name of [`Command::Follow`].
+const FOLLOW: &str = "follow";
 
 /// What the master can be asked to do.
 #[derive(Clone, Debug, PartialEq)]
@@ -59,6 +79,12 @@ pub enum Command {
     /// New absolute set-point with "change set immediately"; done at the acknowledge, for a
     /// tracker that updates the target at SYNC rate.
     SetTarget { target_mm: f64 },
+    /// Start following (cyclic synchronous position) toward `target_mm`; done when the demand
+    /// streams. [`Master::follow`] queues it by itself; later targets come by `follow`.
+    Follow { target_mm: f64 },
+    /// Bring the following demand to rest on the last target, then return to profile
+    /// position; done when the drive is there (at once when not following).
+    StopFollowing,
     /// Halt (controlword bit 8) and wait for standstill. Pre-empts.
     Stop,
     /// Quick stop command; done when the drive has stopped. Pre-empts.
@@ -83,6 +109,8 @@ impl Command {
             Command::MoveTo { .. } => "move",
             Command::Jog { .. } => "jog",
             Command::SetTarget { .. } => "set target",
+            Command::Follow { .. } => FOLLOW,
+            Command::StopFollowing => "stop following",
             Command::Stop => "stop",
             Command::QuickStop => "quick stop",
             Command::FaultReset => "fault reset",
@@ -149,6 +177,10 @@ pub enum DriveError {
     },
     #[error("no controlword leads from {from} to {to}")]
     NoPath { from: PowerState, to: PowerState },
+    #[error(
+        "follow targets are refused since following ended or the drive was stopped: send another command first (e.g. enable, stop following, a move)"
+    )]
+    FollowDisarmed,
     #[error("the drive link is closed")]
     Closed,
 }
@@ -172,6 +204,11 @@ pub enum Event {
         from: Option<PowerState>,
         to: PowerState,
     },
+    /// Following started: the demand streams at every SYNC.
+    FollowingStarted,
+    /// Following ended (or could not start): `Ok` after stop following or a command that took
+    /// over, `Err` with the reason otherwise.
+    FollowingEnded(Result<(), DriveError>),
     /// A command finished.
     Completed {
         id: OpId,
@@ -192,11 +229,15 @@ pub struct DriveStatus {
     pub mode: Option<i8>,
     pub position_counts: Option<i32>,
     pub position_mm: Option<f64>,
-    /// The last accepted set-point (mm).
+    /// The last accepted set-point (mm); while following, the demand sent at the last SYNC.
     pub commanded_mm: Option<f64>,
+    /// Statusword bit 10; in cyclic synchronous position worked out by the master:
+    /// |actual − demand| below the position window with the demand unchanged for a SYNC.
     pub target_reached: bool,
     pub setpoint_ack: bool,
     pub following_error: bool,
+    /// The master streams follow demands (cyclic synchronous position).
+    pub following: bool,
     pub homed: bool,
     /// The last EMCY with an error code other than 0x0000.
     pub last_emcy: Option<Emcy>,
@@ -226,6 +267,7 @@ impl DriveStatus {
             target_reached: false,
             setpoint_ack: false,
             following_error: false,
+            following: false,
             homed: false,
             last_emcy: None,
             emcy_active: false,
@@ -256,6 +298,8 @@ enum Cond {
     NotFault,
     Stopped,
     QuickStopped,
+    /// CSP: the demand at rest and reached.
+    CspSettled,
 }
 
 impl Cond {
@@ -269,6 +313,9 @@ impl Cond {
             Cond::NotFault => "leaving fault after fault reset",
             Cond::Stopped => "standstill after halt (statusword bit 10)",
             Cond::QuickStopped => "standstill after quick stop",
+            Cond::CspSettled => {
+                "following demand at rest and reached (within the position window, still)"
+            }
         }
     }
 }
@@ -309,6 +356,19 @@ enum Step {
     Plan(Motion),
     AwaitStatus(Cond, Duration),
     MarkHomed,
+    /// Start following toward this target (or go on following).
+    CspEnter(f64),
+    /// The actual position as the target (demand).
+    HoldActual,
+    /// Mode 8 confirmed: the ramp starts from the held demand.
+    CspStart,
+    /// End following: the demand comes to rest on the last target (`stop_following`) or
+    /// where it can stop, and the mode goes back to profile position (`stop_following`).
+    CspLeave {
+        stop_following: bool,
+    },
+    /// The demand is at rest: stop the ramp.
+    CspEnd,
 }
 
 #[derive(Debug)]
@@ -357,6 +417,23 @@ pub struct Master {
     tpdo_sync: u64,
     boot_count: u64,
     commanded: Option<i32>,
+    /// CSP: the demand generator, while the master streams demands.
+    ramp: Option<DemandRamp>,
+    /// Follow targets feed the ramp's goal.
+    following: bool,
+    /// The follow targets (time-stamped), the latest one first of all.
+    follow_track: TargetTrack,
+    /// The `Follow` command `follow` queued, while it runs.
+    follow_entry: Option<OpId>,
+    /// Follow targets are taken (cleared by stop, quick stop, disable or following ending
+    /// abnormally; set by any other command).
+    follow_armed: bool,
+    /// When the previous SYNC went out.
+    last_sync_at: Option<Instant>,
+    /// The SYNC that first carried the current target position.
+    demand_since: u64,
+    /// The position changed by at most the position window between the last two TPDOs.
+    standstill: bool,
     status: DriveStatus,
     tx: VecDeque<CanFrame>,
     events: VecDeque<Event>,
@@ -380,6 +457,14 @@ impl Master {
             tpdo_sync: 0,
             boot_count: 0,
             commanded: None,
+            ramp: None,
+            following: false,
+            follow_track: TargetTrack::default(),
+            follow_entry: None,
+            follow_armed: true,
+            last_sync_at: None,
+            demand_since: 0,
+            standstill: false,
             status: DriveStatus::new(),
             tx: VecDeque::new(),
             events: VecDeque::new(),
@@ -401,20 +486,132 @@ impl Master {
         self.next_id += 1;
         if cmd.preempts() {
             let by = cmd.name();
+            self.abort_following(DriveError::Interrupted { by });
+            self.follow_armed = false;
             if let Some(op) = self.op.take() {
                 self.cancel_sdo_of(&op);
                 self.finish(op, Err(DriveError::Interrupted { by }));
             }
-            for (qid, _) in std::mem::take(&mut self.queue) {
-                self.events.push_back(Event::Completed {
-                    id: qid,
-                    result: Err(DriveError::Interrupted { by }),
-                });
+            for (qid, qcmd) in std::mem::take(&mut self.queue) {
+                self.complete(qid, qcmd.name(), Err(DriveError::Interrupted { by }));
             }
+        } else {
+            self.follow_armed = true;
         }
         self.queue.push_back((id, cmd));
         self.run(now);
         id
+    }
+
+    /// The latest follow target (mm), where the follower should be at `at` (when the
+    /// tracker worked it out; `now` is the current time), taken without waiting. While
+    /// following, at each SYNC the ramp's goal is the latest target moved on to the SYNC's
+    /// time by the target's velocity while that is plausible (see [`TargetTrack`]). Otherwise a
+    /// [`Command::Follow`] is queued (one at a time) whose failure comes as
+    /// [`Event::FollowingEnded`]. Refused outside the travel limits, and after following
+    /// ended abnormally or a stop until the next other command.
+    pub fn follow(&mut self, target_mm: f64, at: Instant, now: Instant) -> Result<(), DriveError> {
+        self.check_limits(target_mm)?;
+        if !self.follow_armed {
+            return Err(DriveError::FollowDisarmed);
+        }
+        self.follow_track.push(target_mm, at);
+        if self.following {
+            // Taken at the next SYNC.
+        } else if self.follow_entry.is_none() {
+            let id = self.next_id;
+            self.next_id += 1;
+            self.follow_entry = Some(id);
+            self.queue.push_back((id, Command::Follow { target_mm }));
+            self.run(now);
+        }
+        Ok(())
+    }
+
+    fn check_limits(&self, target_mm: f64) -> Result<(), DriveError> {
+        let l = self.s.config().limits;
+        if target_mm >= l.min_mm
+            && target_mm <= l.max_mm
+            && self.s.mm_to_counts(target_mm).is_some()
+        {
+            Ok(())
+        } else {
+            Err(DriveError::OutOfLimits {
+                target_mm,
+                min_mm: l.min_mm,
+                max_mm: l.max_mm,
+            })
+        }
+    }
+
+    /// Report a command's end; a failed `Follow` ends following before it started.
+    fn complete(&mut self, id: OpId, name: &'static str, result: Result<Reply, DriveError>) {
+        if name == FOLLOW
+            && let Err(e) = &result
+        {
+            self.follow_track = TargetTrack::default();
+            if self.follow_entry == Some(id) {
+                tracing::warn!("the follower could not start following: {e}");
+                self.follow_armed = false;
+                self.events.push_back(Event::FollowingEnded(Err(e.clone())));
+            }
+        }
+        if self.follow_entry == Some(id) {
+            self.follow_entry = None;
+        }
+        self.events.push_back(Event::Completed { id, result });
+    }
+
+    /// Follow targets go on feeding the ramp (which must exist).
+    fn start_following(&mut self) {
+        if let (Some(r), Some(g)) = (self.ramp.as_mut(), self.follow_track.latest()) {
+            r.set_goal(g);
+        }
+        if !self.following {
+            self.following = true;
+            self.status.following = true;
+            tracing::info!("follower following (cyclic synchronous position)");
+            self.events.push_back(Event::FollowingStarted);
+        }
+    }
+
+    /// Following ends; the ramp, if any, is left as it is. An error refuses further follow
+    /// targets until the next command.
+    fn end_following(&mut self, result: Result<(), DriveError>) {
+        self.follow_track = TargetTrack::default();
+        if !self.following {
+            return;
+        }
+        self.following = false;
+        self.status.following = false;
+        match &result {
+            Ok(()) => tracing::info!("follower following ended"),
+            Err(e) => {
+                tracing::warn!("follower following ended: {e}");
+                self.follow_armed = false;
+            }
+        }
+        self.events.push_back(Event::FollowingEnded(result));
+    }
+
+    /// End following with the demand braking to where it can stop.
+    fn brake_following(&mut self, result: Result<(), DriveError>) {
+        let period = self.s.config().sync_period.as_secs_f64();
+        if let Some(r) = self.ramp.as_mut() {
+            let stop = r.stopping_point(period);
+            r.hold_at(stop);
+        }
+        self.end_following(result);
+    }
+
+    /// End following at once: no more ramp, the demand is the actual position.
+    fn abort_following(&mut self, e: DriveError) {
+        if self.ramp.take().is_some()
+            && let Some(p) = self.status.position_counts
+        {
+            self.set_demand(p, self.sync.count() + 1);
+        }
+        self.end_following(Err(e));
     }
 
     fn cancel_sdo_of(&mut self, op: &Op) {
@@ -473,13 +670,74 @@ impl Master {
         self.hb.handle_timeout(now);
         self.collect_heartbeat();
         if self.sync.handle_timeout(now) {
+            let dt = self.last_sync_at.map(|t| now.saturating_duration_since(t));
+            self.last_sync_at = Some(now);
             if self.pdo_active() {
+                self.csp_tick(dt, now);
                 self.tx
                     .push_back(pdo::rpdo1_frame(self.s.node(), self.cw, self.target));
             }
             self.tx.push_back(pdo::sync_frame());
         }
         self.run(now);
+    }
+
+    /// One SYNC of following: the ramp's next demand goes into this SYNC's RPDO. `dt` is the
+    /// time since the previous SYNC (the nominal period if unknown; bounded to ¼..4 periods).
+    fn csp_tick(&mut self, dt: Option<Duration>, now: Instant) {
+        if self.ramp.is_none() {
+            return;
+        }
+        let goal = if self.following {
+            self.follow_goal(now)
+        } else {
+            None
+        };
+        let Some(r) = self.ramp.as_mut() else {
+            return;
+        };
+        if let Some((g, v)) = goal {
+            r.set_goal_moving(g, v);
+        }
+        let period = self.s.config().sync_period.as_secs_f64();
+        let dt = dt.map_or(period, |d| d.as_secs_f64());
+        let mm = r.step(dt.clamp(period / 4.0, period * 4.0));
+        if let Some(c) = self.s.mm_to_counts(mm) {
+            self.set_demand(c, self.sync.count());
+            self.commanded = Some(c);
+            self.status.commanded_mm = Some(self.s.counts_to_mm(c));
+        }
+    }
+
+    /// The follow target at `now` and its velocity (see [`TargetTrack`]), within the limits.
+    fn follow_goal(&mut self, now: Instant) -> Option<(f64, f64)> {
+        let c = self.s.config();
+        let p = c.profile;
+        let (g, v) = self
+            .follow_track
+            .goal(now, c.sync_period, p.velocity_mm_s, p.accel_mm_s2)?;
+        Some((g.clamp(c.limits.min_mm, c.limits.max_mm), v))
+    }
+
+    /// The target position as a cyclic demand, first carried by SYNC number `sync` (no wait
+    /// on the drive depends on it, unlike `set_target`).
+    fn set_demand(&mut self, t: i32, sync: u64) {
+        if t != self.target {
+            self.target = t;
+            self.demand_since = sync;
+            self.csp_demand_moved();
+        }
+    }
+
+    /// A new demand: "target reached" in CSP waits for a TPDO answering a later SYNC.
+    fn csp_demand_moved(&mut self) {
+        if self.status.mode == Some(MODE_CSP) {
+            self.status.target_reached = false;
+        }
+    }
+
+    fn window_mm(&self) -> f64 {
+        self.s.config().profile.position_window_mm
     }
 
     fn collect_sdo(&mut self) {
@@ -503,6 +761,7 @@ impl Master {
                     self.events.push_back(Event::BootUp { expected });
                     if !expected {
                         tracing::warn!("follower drive rebooted unexpectedly");
+                        self.abort_following(DriveError::Rebooted);
                         self.forget_configuration();
                         if let Some(mut op) = self.op.take() {
                             self.cancel_sdo_of(&op);
@@ -530,6 +789,7 @@ impl Master {
                 HeartbeatEvent::Lost => {
                     tracing::error!("follower drive heartbeat lost");
                     self.events.push_back(Event::HeartbeatLost);
+                    self.brake_following(Err(DriveError::HeartbeatLost));
                     let resetting = matches!(
                         self.op.as_ref().and_then(|o| o.steps.front()),
                         Some(Step::AwaitBootUp | Step::Settle(_))
@@ -546,6 +806,7 @@ impl Master {
     }
 
     fn forget_configuration(&mut self) {
+        self.abort_following(DriveError::NotConfigured { what: "follow" });
         // Disable voltage until told otherwise: the safe controlword for a drive we lost.
         self.set_cw(0);
         self.status.configured = false;
@@ -557,8 +818,41 @@ impl Master {
     fn on_tpdo(&mut self, sw: u16, pos: i32) {
         self.tpdo_sync = self.sync.count();
         self.status.tpdo_count += 1;
+        let window = self.window_mm();
+        self.standstill = self
+            .status
+            .position_counts
+            .is_some_and(|p| (self.s.counts_to_mm(pos) - self.s.counts_to_mm(p)).abs() < window);
         self.set_statusword(sw);
         self.set_position(pos);
+        if self.status.mode == Some(MODE_CSP) {
+            self.csp_status(Statusword(sw), pos);
+        }
+    }
+
+    /// Cyclic synchronous position: what a TPDO means for following, and "target reached".
+    fn csp_status(&mut self, w: Statusword, pos: i32) {
+        let st = w.state();
+        let enabled = st == Some(PowerState::OperationEnabled);
+        if !enabled {
+            if self.ramp.is_some() {
+                let e = match st {
+                    Some(s) if s.is_fault() => self.fault(),
+                    _ => DriveError::NotEnabled {
+                        what: "follow",
+                        state: st.map_or("an unknown state".into(), |s| s.to_string()),
+                    },
+                };
+                self.abort_following(e);
+            }
+            // Enabling in CSP takes the target position at once: keep it where the stage is.
+            self.set_demand(pos, self.sync.count() + 1);
+        } else if w.following_error() && self.following {
+            self.brake_following(Err(DriveError::FollowingError));
+        }
+        let err = (self.s.counts_to_mm(pos) - self.s.counts_to_mm(self.target)).abs();
+        self.status.target_reached =
+            enabled && err < self.window_mm() && self.tpdo_sync > self.demand_since;
     }
 
     fn set_statusword(&mut self, sw: u16) {
@@ -577,8 +871,9 @@ impl Master {
         self.status.state = st;
         self.status.target_reached = w.target_reached();
         let pp = self.status.mode == Some(MODE_PROFILE_POSITION);
+        let csp = self.status.mode == Some(MODE_CSP);
         self.status.setpoint_ack = pp && w.setpoint_ack();
-        self.status.following_error = pp && w.following_error();
+        self.status.following_error = (pp || csp) && w.following_error();
     }
 
     fn set_position(&mut self, pos: i32) {
@@ -625,8 +920,7 @@ impl Master {
             }
         };
         self.status.busy = None;
-        self.events
-            .push_back(Event::Completed { id: op.id, result });
+        self.complete(op.id, op.name, result);
     }
 
     fn set_cw(&mut self, cw: u16) {
@@ -641,6 +935,8 @@ impl Master {
         if t != self.target {
             self.target = t;
             self.cw_applied_at = self.sync.count() + 1;
+            self.demand_since = self.sync.count() + 1;
+            self.csp_demand_moved();
         }
     }
 
@@ -789,6 +1085,9 @@ impl Master {
                 let h = c.homing;
                 v.push(Step::RequirePdo);
                 v.push(Step::RequireEnabled);
+                v.push(Step::CspLeave {
+                    stop_following: false,
+                });
                 v.push(Step::EnsureMode(MODE_HOMING));
                 // Bit 4 low first so that setting it is a rising edge.
                 v.push(Step::Cw {
@@ -811,6 +1110,15 @@ impl Master {
             Command::MoveTo { target_mm } => self.plan_move(&mut v, Motion::Absolute(*target_mm)),
             Command::Jog { delta_mm } => self.plan_move(&mut v, Motion::Relative(*delta_mm)),
             Command::SetTarget { target_mm } => self.plan_move(&mut v, Motion::Track(*target_mm)),
+            Command::Follow { target_mm } => {
+                v.push(Step::RequirePdo);
+                v.push(Step::RequireEnabled);
+                v.push(Step::RequireHomed);
+                v.push(Step::CspEnter(*target_mm));
+            }
+            Command::StopFollowing => v.push(Step::CspLeave {
+                stop_following: true,
+            }),
             Command::Stop => {
                 v.push(Step::RequirePdo);
                 v.push(Step::Cw {
@@ -890,6 +1198,9 @@ impl Master {
         v.push(Step::RequirePdo);
         v.push(Step::RequireEnabled);
         v.push(Step::RequireHomed);
+        v.push(Step::CspLeave {
+            stop_following: false,
+        });
         v.push(Step::EnsureMode(MODE_PROFILE_POSITION));
         v.push(Step::Plan(m));
     }
@@ -912,6 +1223,14 @@ impl Master {
             vp / a + vp / d
         };
         Duration::from_secs_f64(t.min(1e6))
+    }
+
+    /// A generous bound on the ramp coming to rest over `dist_mm` from `vel` (mm/s).
+    fn ramp_time(&self, dist_mm: f64, vel: f64) -> Duration {
+        let p = self.s.config().profile;
+        let (v, a) = (p.velocity_mm_s, p.accel_mm_s2);
+        let t = dist_mm.abs() / v + 2.0 * v / a + vel.abs() / a;
+        Duration::from_secs_f64((2.0 * t).min(1e6))
     }
 
     fn parameter_writes(&self) -> Vec<SdoWrite> {
@@ -987,6 +1306,9 @@ impl Master {
                 }
             }
             Step::Nmt(n) => {
+                if !matches!(n, NmtCommand::StartRemoteNode) {
+                    self.abort_following(DriveError::Interrupted { by: "NMT command" });
+                }
                 op.boot_mark = self.boot_count;
                 if matches!(n, NmtCommand::ResetNode | NmtCommand::ResetCommunication) {
                     self.forget_configuration();
@@ -1076,7 +1398,98 @@ impl Master {
                 }
                 Progress::Next
             }
+            Step::CspEnter(t) => self.csp_enter(*t, now),
+            Step::HoldActual => {
+                if let Some(p) = self.status.position_counts {
+                    self.set_target(p);
+                }
+                Progress::Next
+            }
+            Step::CspStart => {
+                let (p, l) = (c.profile, c.limits);
+                let start = self.s.counts_to_mm(self.target);
+                let lead = c.csp_lead_periods * c.sync_period.as_secs_f64();
+                let mut r =
+                    DemandRamp::new(start, p.velocity_mm_s, p.accel_mm_s2, l.min_mm, l.max_mm)
+                        .with_lead(lead);
+                if let Some(g) = self.follow_track.latest() {
+                    r.hold_at(g);
+                }
+                self.ramp = Some(r);
+                self.commanded = Some(self.target);
+                self.status.commanded_mm = Some(start);
+                self.start_following();
+                Progress::Next
+            }
+            Step::CspLeave { stop_following } => self.csp_leave(*stop_following),
+            Step::CspEnd => {
+                self.ramp = None;
+                self.commanded = Some(self.target);
+                self.status.commanded_mm = Some(self.s.counts_to_mm(self.target));
+                Progress::Next
+            }
         }
+    }
+
+    /// The steps into following: let a profile move end, hold the actual position as the
+    /// demand (so the switch asks for no motion), mode 8 confirmed in 0x6061, then stream.
+    fn csp_enter(&mut self, target_mm: f64, now: Instant) -> Progress {
+        if let Err(e) = self.check_limits(target_mm) {
+            return Progress::Fail(e);
+        }
+        if self.follow_track.latest().is_none() {
+            self.follow_track.push(target_mm, now);
+        }
+        if self.ramp.is_some() {
+            self.start_following();
+            return Progress::Next;
+        }
+        let c = *self.s.config();
+        let mut v = Vec::new();
+        if self.status.mode == Some(MODE_PROFILE_POSITION) && !self.status.target_reached {
+            let here = self.status.position_counts.unwrap_or(0);
+            let dist =
+                self.s.counts_to_mm(self.commanded.unwrap_or(here)) - self.s.counts_to_mm(here);
+            let t = c.state_timeout + self.move_time(dist) * 2 + c.profile.move_timeout_margin;
+            v.push(Step::AwaitStatus(Cond::TargetReached, t));
+        }
+        v.push(Step::Cw {
+            set: 0,
+            clear: CW_NEW_SETPOINT | CW_CHANGE_IMMEDIATELY | CW_RELATIVE | CW_HALT,
+        });
+        v.push(Step::HoldActual);
+        v.push(Step::AwaitStatus(Cond::Applied, c.state_timeout));
+        v.push(Step::EnsureMode(MODE_CSP));
+        v.push(Step::CspStart);
+        Progress::Replace(v)
+    }
+
+    /// The steps out of following: the demand to rest (on the last target for stop following,
+    /// else where it can stop), reached, then profile position for stop following.
+    fn csp_leave(&mut self, stop_following: bool) -> Progress {
+        let c = *self.s.config();
+        let period = c.sync_period.as_secs_f64();
+        let mut v = Vec::new();
+        let to_last = if stop_following && self.following {
+            self.follow_track.latest()
+        } else {
+            None
+        };
+        if let Some(r) = self.ramp.as_mut() {
+            let goal = to_last.unwrap_or_else(|| r.stopping_point(period));
+            r.hold_at(goal);
+            let (dist, vel) = (goal - r.pos(), r.vel());
+            v.push(Step::AwaitStatus(
+                Cond::CspSettled,
+                c.state_timeout + self.ramp_time(dist, vel),
+            ));
+            v.push(Step::CspEnd);
+        }
+        self.end_following(Ok(()));
+        if stop_following && (self.status.mode == Some(MODE_CSP) || self.ramp.is_some()) {
+            v.push(Step::EnsureMode(MODE_PROFILE_POSITION));
+        }
+        Progress::Replace(v)
     }
 
     /// Turn a move into its concrete steps, now that the current state is known.
@@ -1310,9 +1723,15 @@ impl Master {
         };
         match cond {
             Cond::Applied | Cond::NotFault => Progress::Next,
-            Cond::AckSet | Cond::AckClear | Cond::TargetReached if !enabled => {
+            Cond::AckSet | Cond::AckClear | Cond::TargetReached | Cond::CspSettled if !enabled => {
                 Progress::Fail(not_enabled())
             }
+            Cond::CspSettled if sw.following_error() => Progress::Fail(DriveError::FollowingError),
+            // Reached and still (not passing through the window), before a mode switch.
+            Cond::CspSettled => yes(self.ramp.is_none_or(|r| r.at_rest())
+                && self.status.target_reached
+                && self.standstill
+                && self.tpdo_sync > self.demand_since),
             Cond::AckSet if sw.following_error() => Progress::Fail(DriveError::FollowingError),
             Cond::AckSet => yes(sw.setpoint_ack()),
             Cond::AckClear => yes(!sw.setpoint_ack()),
@@ -1334,13 +1753,24 @@ impl Master {
                     h => Progress::Fail(DriveError::Homing(h)),
                 }
             }
-            Cond::Stopped => yes(sw.target_reached() || !enabled),
+            Cond::Stopped => yes(self.still(sw) || !enabled),
             Cond::QuickStopped => yes(st == Some(PowerState::SwitchOnDisabled)
-                || (st == Some(PowerState::QuickStopActive) && sw.target_reached())
+                || (st == Some(PowerState::QuickStopActive) && self.still(sw))
                 || !matches!(
                     st,
                     Some(PowerState::QuickStopActive | PowerState::OperationEnabled)
                 )),
+        }
+    }
+
+    /// At standstill: bit 10 (target reached, profile position and homing), or in cyclic
+    /// synchronous position (where bit 10 is reserved) a position that stayed within the
+    /// position window between the last two TPDOs.
+    fn still(&self, sw: Statusword) -> bool {
+        if self.status.mode == Some(MODE_CSP) {
+            self.standstill
+        } else {
+            sw.target_reached()
         }
     }
 }
@@ -2025,5 +2455,353 @@ mod tests {
         assert_eq!(r.m.status().nmt, Some(NmtState::PreOperational));
         r.ok(Command::Nmt(NmtCommand::ResetNode));
         assert!(!r.m.status().configured);
+    }
+
+    // --- cyclic synchronous position --------------------------------------------------------
+
+    /// A config for following: 60 mm/s, 600 mm/s² (6 mm/s and 0.06 mm per SYNC² at 10 ms).
+    fn csp_config() -> DriveConfig {
+        DriveConfig {
+            profile: crate::canopen::ProfileConfig {
+                velocity_mm_s: 60.0,
+                accel_mm_s2: 600.0,
+                decel_mm_s2: 600.0,
+                ..Default::default()
+            },
+            ..Default::default()
+        }
+    }
+
+    fn csp_rig() -> Rig {
+        let mut r = Rig::new(
+            csp_config(),
+            TwinDriveConfig {
+                start_mm: 2.0,
+                ..Default::default()
+            },
+        );
+        r.ready();
+        r
+    }
+
+    /// The target positions (0x607A) of the RPDO1 frames since `start`, with their
+    /// controlwords.
+    fn rpdos(r: &Rig, start: usize) -> Vec<(u16, i32)> {
+        r.frames_since(start, "201#")
+            .iter()
+            .map(|l| {
+                let b: Vec<u8> = (4..l.len())
+                    .step_by(2)
+                    .map(|i| u8::from_str_radix(&l[i..i + 2], 16).unwrap())
+                    .collect();
+                (
+                    u16::from_le_bytes([b[0], b[1]]),
+                    i32::from_le_bytes([b[2], b[3], b[4], b[5]]),
+                )
+            })
+            .collect()
+    }
+
+    fn following_events(r: &Rig) -> Vec<Event> {
+        r.events
+            .iter()
+            .filter(|(_, e)| matches!(e, Event::FollowingStarted | Event::FollowingEnded(_)))
+            .map(|(_, e)| e.clone())
+            .collect()
+    }
+
+    /// The whole CSP sequence on the wire: the demand held at the actual position, 0x6060 = 8
+    /// by SDO, 0x6061 read back until it shows 8, then at every SYNC an RPDO1 with
+    /// controlword 0x000F and the ramped demand (closed form a·T²·k(k+1)/2 while
+    /// accelerating), no handshake; at rest the master's "target reached"; a move switches
+    /// back to profile position (0x6060 = 1) and runs its set-point handshake.
+    #[test]
+    fn csp_sequence_on_the_wire() {
+        let mut r = csp_rig();
+        let cpm = r.m.settings().counts_per_mm();
+        assert_eq!(r.m.status().position_counts, Some(0));
+        let start = r.log.len();
+        r.m.follow(5.0, r.t, r.t).unwrap();
+        // Mode switch: write 0x6060 = 8 (0x2F: expedited, 1 byte), read 0x6061, the drive
+        // answers 8 (0x4F: expedited upload of 1 byte).
+        let write = "601#2F60600008000000";
+        let read = "601#4061600000000000";
+        let shows8 = "581#4F61600008000000";
+        while !r.log[start..].iter().any(|l| l == shows8) {
+            r.advance(Duration::from_millis(1));
+        }
+        let at = |l: &str| r.log[start..].iter().position(|x| x == l).unwrap() + start;
+        assert!(at(write) < at(read) && at(read) < at(shows8));
+        // Up to the confirmation every RPDO holds the actual position (0) with no set-point
+        // bits: 0x000F.
+        let held = rpdos(&r, start);
+        assert!(
+            held.iter().all(|&(cw, t)| cw == 0x000F && t == 0),
+            "{held:?}"
+        );
+        let from = at(shows8);
+        r.advance(Duration::from_millis(60));
+        let demands = rpdos(&r, from);
+        assert!(demands.len() >= 5);
+        let step = 600.0 * 0.01 * 0.01;
+        for (k, &(cw, t)) in demands.iter().take(5).enumerate() {
+            let k = (k + 1) as f64;
+            let mm = step * k * (k + 1.0) / 2.0;
+            assert_eq!(cw, 0x000F);
+            assert_eq!(t, (mm * cpm).round() as i32, "SYNC {k}");
+        }
+        // The RPDO bytes themselves: COB-ID 0x201, controlword 0F 00, 0x607A LE.
+        let first = r.frames_since(from, "201#")[0].clone();
+        assert_eq!(
+            first,
+            format!("201#0F00{}", hex_le((step * cpm).round() as i32))
+        );
+        // Each RPDO still goes out right before its SYNC.
+        let i = r.log.iter().rposition(|l| l.starts_with("201#")).unwrap();
+        assert_eq!(r.log[i + 1], "080#");
+        assert!(r.m.status().following && !r.m.status().target_reached);
+        r.advance(Duration::from_secs(1));
+        let st = r.m.status();
+        assert_eq!(st.mode, Some(MODE_CSP));
+        assert!(
+            st.following && st.target_reached && !st.following_error,
+            "{st:?}"
+        );
+        assert!((st.position_mm.unwrap() - 5.0).abs() < 1.0 / cpm, "{st:?}");
+        // The drive's TPDO: operation enabled 0x0237 + bit 12 "target position used", bit 10
+        // reserved (0) in CSP.
+        let tpdo = r.log.iter().rev().find(|l| l.starts_with("181#")).unwrap();
+        assert!(tpdo.starts_with("181#3712"), "{tpdo}");
+        assert_eq!(r.d.status().mode, MODE_CSP);
+        // A move leaves CSP: 0x6060 = 1, confirmed, then the set-point handshake.
+        let start = r.log.len();
+        r.ok(Command::MoveTo { target_mm: 2.0 });
+        let sdo = r.frames_since(start, "601#");
+        assert!(sdo.contains(&"601#2F60600001000000".to_string()), "{sdo:?}");
+        assert!(r.log[start..].contains(&"581#4F61600001000000".to_string()));
+        assert!(r.controlwords(start).ends_with(&[0x001F, 0x000F]));
+        let st = r.m.status();
+        assert_eq!(st.mode, Some(MODE_PROFILE_POSITION));
+        assert!(!st.following && st.target_reached);
+        assert!((st.position_mm.unwrap() - 2.0).abs() < 1.0 / cpm);
+        assert_eq!(
+            following_events(&r),
+            vec![Event::FollowingStarted, Event::FollowingEnded(Ok(()))]
+        );
+    }
+
+    /// Demands stay within the profile velocity and acceleration whatever the target does;
+    /// a moving target is followed closely; `StopFollowing` rests on the last target and
+    /// returns to profile position.
+    #[test]
+    fn csp_ramp_limits_and_tracking() {
+        let mut r = csp_rig();
+        let cpm = r.m.settings().counts_per_mm();
+        let start = r.log.len();
+        // A target at 40 mm/s for 0.5 s, updated every 2 ms, then a jump back to -20 mm.
+        let t0 = r.t;
+        let mut worst: f64 = 0.0;
+        while r.t - t0 < Duration::from_millis(500) {
+            let target = 40.0 * (r.t - t0).as_secs_f64();
+            r.m.follow(target, r.t, r.t)
+                .unwrap_or_else(|e| panic!("{e}: {:?}", following_events(&r)));
+            r.advance(Duration::from_millis(2));
+            if r.t - t0 > Duration::from_millis(250) {
+                // Caught up: the stage within half a millimetre of the moving target.
+                worst = worst.max((*r.plant.lock().unwrap() - target).abs());
+            }
+        }
+        assert!(worst < 0.5, "{worst} mm behind");
+        r.m.follow(-20.0, r.t, r.t).unwrap();
+        r.advance(Duration::from_secs(2));
+        let d: Vec<f64> = rpdos(&r, start)
+            .iter()
+            .map(|&(_, t)| t as f64 / cpm)
+            .collect();
+        let v: Vec<f64> = d.windows(2).map(|w| (w[1] - w[0]) / 0.01).collect();
+        let q = 1.0 / cpm / 0.01; // one increment per SYNC, in mm/s
+        assert!(v.iter().all(|x| x.abs() <= 60.0 + 2.0 * q), "{v:?}");
+        assert!(
+            v.windows(2)
+                .all(|w| ((w[1] - w[0]) / 0.01).abs() <= 600.0 + 4.0 * q / 0.01),
+            "acceleration"
+        );
+        assert!(v.iter().any(|x| x.abs() > 59.0), "cruised at the limit");
+        let st = r.m.status();
+        assert!(st.following && st.target_reached && !st.following_error);
+        assert_eq!(st.position_counts, Some((-20.0 * cpm).round() as i32));
+        // Stop following: back to profile position, at rest on the last target.
+        r.ok(Command::StopFollowing);
+        let st = r.m.status();
+        assert!(
+            !st.following && st.mode == Some(MODE_PROFILE_POSITION),
+            "{st:?}"
+        );
+        assert_eq!(st.commanded_mm, Some((-20.0 * cpm).round() / cpm));
+        assert_eq!(r.d.status().mode, MODE_PROFILE_POSITION);
+        // A second stop is a no-op; a relative jog works from the last demand.
+        r.ok(Command::StopFollowing);
+        r.ok(Command::Jog { delta_mm: 1.0 });
+        assert!((r.m.status().position_mm.unwrap() + 19.0).abs() < 1e-4);
+    }
+
+    /// Stop following while the target still moves: the demand is brought to rest on the
+    /// last target (overshooting within the limits), then profile position.
+    #[test]
+    fn stop_following_while_moving() {
+        let mut r = csp_rig();
+        let t0 = r.t;
+        let mut last = 0.0;
+        while r.t - t0 < Duration::from_millis(300) {
+            last = 30.0 * (r.t - t0).as_secs_f64();
+            r.m.follow(last, r.t, r.t).unwrap();
+            r.advance(Duration::from_millis(2));
+        }
+        r.ok(Command::StopFollowing);
+        let cpm = r.m.settings().counts_per_mm();
+        let st = r.m.status();
+        assert_eq!(st.position_counts, Some((last * cpm).round() as i32));
+        assert_eq!(st.mode, Some(MODE_PROFILE_POSITION));
+    }
+
+    /// The drive cannot keep up (its own maximum acceleration 0x60C5 lowered below the
+    /// profile's): it reports bit 13, the master surfaces it, ends following and refuses follow
+    /// targets until the next command.
+    #[test]
+    fn csp_following_error_ends_following() {
+        let mut r = csp_rig();
+        // 0x60C5 = 20 mm/s² on the drive (524 288 increments/s²).
+        r.ok(Command::SdoWrite(
+            ObjAddr::new(0x60C5, 0),
+            524_288u32.to_le_bytes().to_vec(),
+        ));
+        r.m.follow(10.0, r.t, r.t).unwrap();
+        let t0 = r.t;
+        while !r.m.status().following && r.t - t0 < Duration::from_secs(1) {
+            r.advance(Duration::from_millis(1));
+        }
+        while r.m.status().following && r.t - t0 < Duration::from_secs(2) {
+            r.advance(Duration::from_millis(1));
+        }
+        // Surfaced in the status with the TPDO that ended following.
+        let st = r.m.status();
+        assert!(st.following_error && !st.following, "{st:?}");
+        assert_eq!(st.statusword.map(|w| w & 0x3400), Some(0x3000));
+        assert!(
+            r.log.iter().any(|l| l.starts_with("181#37")
+                && u16::from_str_radix(&l[6..8], 16).unwrap() & 0x20 != 0),
+            "a TPDO with bit 13"
+        );
+        assert_eq!(
+            following_events(&r),
+            vec![
+                Event::FollowingStarted,
+                Event::FollowingEnded(Err(DriveError::FollowingError))
+            ]
+        );
+        assert_eq!(r.m.follow(3.0, r.t, r.t), Err(DriveError::FollowDisarmed));
+        // Limit back to 20 000 mm/s²; after another command following works again.
+        r.ok(Command::SdoWrite(
+            ObjAddr::new(0x60C5, 0),
+            524_288_000u32.to_le_bytes().to_vec(),
+        ));
+        r.advance(Duration::from_secs(2));
+        r.m.follow(3.0, r.t, r.t).unwrap();
+        r.advance(Duration::from_secs(1));
+        let st = r.m.status();
+        assert!(
+            st.following && st.target_reached && !st.following_error,
+            "{st:?}"
+        );
+        assert!((st.position_mm.unwrap() - 3.0).abs() < 1e-4);
+    }
+
+    /// Quick stop while following ends it (interrupted) and refuses follow targets until the
+    /// next command; re-enabled in mode 8 the drive holds where it stopped (the master keeps
+    /// the demand on the actual position while the drive is not enabled), and following
+    /// resumes. A drive fault ends following with the fault.
+    #[test]
+    fn csp_quick_stop_and_fault_end_following() {
+        let mut r = csp_rig();
+        r.m.follow(20.0, r.t, r.t).unwrap();
+        r.advance(Duration::from_millis(200));
+        assert!(r.m.status().following);
+        r.ok(Command::QuickStop);
+        assert_eq!(r.m.status().state, Some(PowerState::SwitchOnDisabled));
+        assert_eq!(
+            following_events(&r).last(),
+            Some(&Event::FollowingEnded(Err(DriveError::Interrupted {
+                by: "quick stop"
+            })))
+        );
+        assert_eq!(r.m.follow(1.0, r.t, r.t), Err(DriveError::FollowDisarmed));
+        let stopped = r.m.status().position_counts.unwrap();
+        let start = r.log.len();
+        r.ok(Command::Enable);
+        r.advance(Duration::from_millis(100));
+        // Every RPDO since carried the stopped position: enabling asked for no motion.
+        assert!(rpdos(&r, start).iter().all(|&(_, t)| t == stopped));
+        assert_eq!(r.m.status().position_counts, Some(stopped));
+        assert_eq!(r.m.status().mode, Some(MODE_CSP));
+        // Following again: no mode switch needed (already 8).
+        let start = r.log.len();
+        r.m.follow(1.0, r.t, r.t).unwrap();
+        r.advance(Duration::from_secs(2));
+        assert!(
+            !r.frames_since(start, "601#")
+                .iter()
+                .any(|l| l.starts_with("601#2F6060"))
+        );
+        let st = r.m.status();
+        assert!(st.following && st.target_reached);
+        assert!((st.position_mm.unwrap() - 1.0).abs() < 1e-4);
+        // A fault while following.
+        r.m.follow(15.0, r.t, r.t).unwrap();
+        r.advance(Duration::from_millis(100));
+        r.d.inject_fault(0x7500, [0; 5], r.t);
+        r.advance(Duration::from_millis(200));
+        assert!(matches!(
+            following_events(&r).last(),
+            Some(Event::FollowingEnded(Err(DriveError::Fault { emcy: Some(e) }))) if e.code == 0x7500
+        ));
+        assert!(!r.m.status().following);
+        r.ok(Command::FaultReset);
+        r.ok(Command::Enable);
+        // Home from CSP: the mode goes to 6 and back to 1 for the move.
+        r.ok(Command::Home);
+        assert_eq!(r.m.status().mode, Some(MODE_HOMING));
+        r.ok(Command::MoveTo { target_mm: 0.5 });
+        assert!((r.m.status().position_mm.unwrap() - 0.5).abs() < 1e-4);
+    }
+
+    /// A drive that refuses mode 8 (as the python-canopen interop drive does): following ends
+    /// before it starts with the drive's abort, follow targets are refused until the next
+    /// command, and profile position goes on working.
+    #[test]
+    fn drive_refusing_csp() {
+        let mut r = csp_rig();
+        r.d.refuse_sdo(Some(SdoRefusal {
+            index: Some(0x6060),
+            code: AbortCode::INVALID_VALUE,
+        }));
+        r.m.follow(3.0, r.t, r.t).unwrap();
+        r.advance(Duration::from_millis(200));
+        let want = DriveError::Sdo(SdoError::Aborted {
+            dir: super::super::sdo::Direction::Download,
+            obj: ObjAddr::new(0x6060, 0),
+            code: AbortCode::INVALID_VALUE,
+        });
+        assert_eq!(following_events(&r), vec![Event::FollowingEnded(Err(want))]);
+        assert!(!r.m.status().following);
+        assert_eq!(r.m.follow(3.0, r.t, r.t), Err(DriveError::FollowDisarmed));
+        r.d.refuse_sdo(None);
+        r.ok(Command::MoveTo { target_mm: 3.0 });
+        assert_eq!(r.m.status().mode, Some(MODE_PROFILE_POSITION));
+        assert!((r.m.status().position_mm.unwrap() - 3.0).abs() < 1e-4);
+        // Out of the travel limits: refused at once.
+        assert!(matches!(
+            r.m.follow(30.0, r.t, r.t),
+            Err(DriveError::OutOfLimits { .. })
+        ));
     }
 }

@@ -13,13 +13,16 @@
 //! - `nmt`: NMT commands and the heartbeat consumer (boot-up detection, loss, state).
 //! - `emcy`: EMCY decoding with CiA 301/402 error-code texts.
 //! - `pdo`: the PDO mapping sequence, RPDO1/TPDO1 codecs and the SYNC producer.
-//! - `cia402`: statusword/controlword, power states, homing and profile-position bits.
+//! - `cia402`: statusword/controlword, power states, homing, profile-position and cyclic
+//!   synchronous position bits.
+//! - `csp`: the demand ramp for following in cyclic synchronous position.
 //! - `config`: validated configuration (node id, timings, scaling, homing, profile, limits).
 //! - `master`: the drive master composing all of the above behind high-level commands.
 //! - `task`: the driver task with a cloneable [`DriveHandle`] and a watch of [`DriveStatus`].
 
 pub mod cia402;
 pub mod config;
+pub mod csp;
 pub mod emcy;
 pub mod master;
 pub mod nmt;

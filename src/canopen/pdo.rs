@@ -43,7 +43,8 @@ impl MapEntry {
     }
 }
 
-/// RPDO1 content: controlword, target position.
+/// RPDO1 content: controlword, target position (in cyclic synchronous position, the position
+/// demand of every SYNC).
 pub const RPDO1_MAP: [MapEntry; 2] = [MapEntry::new(0x6040, 0, 16), MapEntry::new(0x607A, 0, 32)];
 /// TPDO1 content: statusword, position actual value.
 pub const TPDO1_MAP: [MapEntry; 2] = [MapEntry::new(0x6041, 0, 16), MapEntry::new(0x6064, 0, 32)];

@@ -1,14 +1,16 @@
 //! The driver task: owns a `CanTransport`, runs the [`Master`] on the real clock, answers
 //! commands from cloneable [`DriveHandle`]s, publishes [`DriveStatus`] on a watch channel and
-//! the other [`Event`]s on a broadcast channel. It ends when every handle is dropped or the
-//! transport closes.
+//! the other [`Event`]s on a broadcast channel. Follow targets come on a watch channel of
+//! their own (only the latest counts; a command sent after a target is applied after it). It
+//! ends when every handle is dropped or the transport closes.
 
-use super::config::{ConfigError, DriveConfig};
+use super::config::{ConfigError, DriveConfig, TravelLimits};
 use super::master::{Command, DriveError, DriveStatus, Event, Master, OpId, Reply};
 use super::sdo::ObjAddr;
 use crate::can::{CanError, CanTransport};
 use canopen_rs::NmtCommand;
 use std::collections::HashMap;
+use std::sync::Arc;
 use std::time::Instant;
 use tokio::sync::{broadcast, mpsc, oneshot, watch};
 use tokio::task::JoinHandle;
@@ -24,28 +26,56 @@ pub fn spawn_drive<T: CanTransport>(
     let (cmd_tx, cmd_rx) = mpsc::channel(64);
     let (status_tx, status_rx) = watch::channel(master.status().clone());
     let (event_tx, _) = broadcast::channel(1024);
+    let (follow_tx, follow_rx) = watch::channel(None);
     let join = tokio::spawn(drive(
         master,
         transport,
-        cmd_rx,
+        Inputs {
+            commands: cmd_rx,
+            follow: follow_rx,
+        },
         status_tx,
         event_tx.clone(),
     ));
     let handle = DriveHandle {
         cmd: cmd_tx,
+        follow: Arc::new(follow_tx),
+        limits: config.limits,
         status: status_rx,
         events: event_tx,
     };
     Ok((handle, join))
 }
 
+/// What the handles send the task.
+struct Inputs {
+    commands: mpsc::Receiver<(Command, ReplyTx)>,
+    /// The latest follow target and when it holds (`None`: none sent yet).
+    follow: watch::Receiver<Option<(f64, Instant)>>,
+}
+
+/// Hand the latest follow target to the master (`changed()` has already marked it seen).
+fn apply_follow(m: &mut Master, follow: &mut watch::Receiver<Option<(f64, Instant)>>) {
+    let target = *follow.borrow_and_update();
+    if let Some((mm, at)) = target
+        && let Err(e) = m.follow(mm, at, Instant::now())
+    {
+        tracing::debug!("follow target {mm} mm not taken: {e}");
+    }
+}
+
 async fn drive<T: CanTransport>(
     mut m: Master,
     bus: T,
-    mut commands: mpsc::Receiver<(Command, ReplyTx)>,
+    inputs: Inputs,
     status: watch::Sender<DriveStatus>,
     events: broadcast::Sender<Event>,
 ) -> Result<(), CanError> {
+    let Inputs {
+        mut commands,
+        mut follow,
+    } = inputs;
+    let mut follow_open = true;
     let mut pending: HashMap<OpId, ReplyTx> = HashMap::new();
     loop {
         while let Some(f) = m.poll_transmit() {
@@ -56,6 +86,14 @@ async fn drive<T: CanTransport>(
                 Err(e) => tracing::warn!("CANopen master could not send {f:?}: {e}"),
             }
         }
+        // The status first: a caller woken by a completion sees the status that completed it.
+        status.send_if_modified(|s| {
+            let changed = s != m.status();
+            if changed {
+                *s = m.status().clone();
+            }
+            changed
+        });
         while let Some(ev) = m.poll_event() {
             match ev {
                 Event::Completed { id, result } => {
@@ -68,13 +106,6 @@ async fn drive<T: CanTransport>(
                 }
             }
         }
-        status.send_if_modified(|s| {
-            let changed = s != m.status();
-            if changed {
-                *s = m.status().clone();
-            }
-            changed
-        });
         let deadline = m.poll_timeout();
         tokio::select! {
             r = bus.recv() => match r {
@@ -84,8 +115,16 @@ async fn drive<T: CanTransport>(
                 }
                 Err(e) => return Err(e),
             },
+            r = follow.changed(), if follow_open => match r {
+                Ok(()) => apply_follow(&mut m, &mut follow),
+                Err(_) => follow_open = false,
+            },
             c = commands.recv() => match c {
                 Some((cmd, reply)) => {
+                    // A target sent before this command is applied before it.
+                    if follow.has_changed().unwrap_or(false) {
+                        apply_follow(&mut m, &mut follow);
+                    }
                     let id = m.submit(cmd, Instant::now());
                     pending.insert(id, reply);
                 }
@@ -107,6 +146,8 @@ async fn sleep_until(deadline: Option<Instant>) {
 #[derive(Clone, Debug)]
 pub struct DriveHandle {
     cmd: mpsc::Sender<(Command, ReplyTx)>,
+    follow: Arc<watch::Sender<Option<(f64, Instant)>>>,
+    limits: TravelLimits,
     status: watch::Receiver<DriveStatus>,
     events: broadcast::Sender<Event>,
 }
@@ -159,6 +200,36 @@ impl DriveHandle {
     /// New set-point, changed immediately; returns at the drive's acknowledge.
     pub async fn set_target(&self, target_mm: f64) -> Result<(), DriveError> {
         self.done(Command::SetTarget { target_mm }).await
+    }
+    /// Follow `target_mm` (cyclic synchronous position): the follower should be there now.
+    /// Records the latest target and returns at once; call it as often as the target changes.
+    /// The task switches the drive to mode 8 on the first target and from then on sends a
+    /// demand ramped toward the latest target at every SYNC (see [`Master::follow`]).
+    /// Problems come as [`Event::FollowingEnded`] and in [`DriveStatus::following`]. Refused
+    /// at once outside the travel limits or with the link closed.
+    pub fn follow(&self, target_mm: f64) -> Result<(), DriveError> {
+        self.follow_at(target_mm, Instant::now())
+    }
+    /// As [`follow`](Self::follow), for a target worked out for time `at` (e.g. from a
+    /// time-stamped measurement of the carriage).
+    pub fn follow_at(&self, target_mm: f64, at: Instant) -> Result<(), DriveError> {
+        let l = self.limits;
+        if !(target_mm >= l.min_mm && target_mm <= l.max_mm) {
+            return Err(DriveError::OutOfLimits {
+                target_mm,
+                min_mm: l.min_mm,
+                max_mm: l.max_mm,
+            });
+        }
+        self.follow
+            .send(Some((target_mm, at)))
+            .map_err(|_| DriveError::Closed)
+    }
+    /// Stop following: the demand comes to rest on the last target (one sent just before is
+    /// still taken) and the drive returns to profile position; returns when it is there (at
+    /// once when not following).
+    pub async fn stop_following(&self) -> Result<(), DriveError> {
+        self.done(Command::StopFollowing).await
     }
     pub async fn stop(&self) -> Result<(), DriveError> {
         self.done(Command::Stop).await

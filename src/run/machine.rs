@@ -49,6 +49,29 @@ impl Default for CaptureSettings {
     }
 }
 
+impl CaptureSettings {
+    /// The shortest dwell that leaves a capture time at `rate_hz` frames per second: the
+    /// settling time, the frames, and half a second for the follower to come to rest after
+    /// the carriage and for frames the link drops.
+    pub fn min_dwell(&self, rate_hz: f64) -> Duration {
+        self.settle + Duration::from_secs_f64(self.frames as f64 / rate_hz.max(1.0) + 0.5)
+    }
+
+    /// Refuse a plan whose dwell cannot hold a capture (it would end in make-up passes).
+    pub fn check_dwell(&self, plan: &Plan, rate_hz: f64) -> Result<(), String> {
+        let need = self.min_dwell(rate_hz).as_secs_f64();
+        if plan.spec.dwell_s < need {
+            return Err(format!(
+                "dwell_s {} s is too short to capture: settling {} s and {} frames at {rate_hz} Hz need at least {need:.2} s; lengthen the dwell or lower capture.frames",
+                plan.spec.dwell_s,
+                self.settle.as_secs_f64(),
+                self.frames
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// One decoupled frame, as the live pipeline gives it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FrameSample {
@@ -58,12 +81,12 @@ pub struct FrameSample {
     pub position_mm: f64,
     /// The nominal the frame was decoupled with (mm), if any.
     pub nominal: Option<f64>,
-    /// The six errors (internal units).
+    /// The six errors (internal units), relative to the zero reference when one is set.
     pub errors: Errors6,
     /// Per-frame variance of each error from the PSD noise (internal units squared).
     pub var: Errors6,
-    /// Variance of each error from the stitching of PSD2's position (same for every frame
-    /// until the next handover).
+    /// Variance of each error from the stitching of PSD2's position and the zero reference
+    /// (the same for every frame until the next handover).
     pub stitch_var: Errors6,
     pub material_c: Option<f64>,
     pub air_c: Option<f64>,
@@ -129,6 +152,11 @@ pub struct RunMachine {
     nominal: Option<f64>,
     last_progress: Option<Instant>,
     actions: VecDeque<RunAction>,
+    /// The cycle's targets in order, and where the carriage is in it: past the last capture
+    /// taken. A rest is the next matching stop from here, so a missed stop does not shift
+    /// the run numbers of those after it.
+    cycle: Vec<TargetKey>,
+    cursor: usize,
 }
 
 impl RunMachine {
@@ -153,7 +181,10 @@ impl RunMachine {
             nominal: None,
             last_progress: None,
             actions: VecDeque::new(),
+            cycle: Vec::new(),
+            cursor: 0,
         };
+        m.cycle = m.plan.steps().iter().filter_map(|s| s.target).collect();
         if m.done.len() >= m.total {
             m.phase = Phase::Done;
             m.actions.push_back(RunAction::Finished);
@@ -220,14 +251,19 @@ impl RunMachine {
             })
     }
 
-    fn first_missing(&self, target_index: u32, dir: Direction) -> Option<TargetKey> {
-        (1..=self.plan.spec.runs)
-            .map(|run| TargetKey {
-                run,
-                target_index,
-                direction: dir,
-            })
-            .find(|k| !self.done.contains(k))
+    /// The capture a rest at `target_index` approached in `dir` is: the next such stop of
+    /// the cycle not yet taken, or (a make-up pass, a resumed run) the first one missing.
+    fn key_for(&self, target_index: u32, dir: Direction) -> Option<TargetKey> {
+        let matches = |k: &TargetKey| {
+            k.target_index == target_index && k.direction == dir && !self.done.contains(k)
+        };
+        self.cycle
+            .iter()
+            .enumerate()
+            .skip(self.cursor)
+            .find(|(_, k)| matches(k))
+            .or_else(|| self.cycle.iter().enumerate().find(|(_, k)| matches(k)))
+            .map(|(_, k)| *k)
     }
 
     fn at_rest(&self, now: Instant) -> Option<f64> {
@@ -276,6 +312,14 @@ impl RunMachine {
     }
 
     /// A frame estimate from the live pipeline.
+    /// The stitch changed under a capture (a handover was measured): frames from before it
+    /// are not averaged with those after.
+    pub fn restart_average(&mut self) {
+        if matches!(self.phase, Phase::Averaging { .. }) {
+            self.acc = Acc::default();
+        }
+    }
+
     pub fn handle_sample(&mut self, s: &FrameSample, now: Instant) {
         if self.phase == Phase::Done {
             return;
@@ -324,12 +368,13 @@ impl RunMachine {
                 let Some(dir) = self.approach(p) else {
                     return;
                 };
-                let Some(key) = self.first_missing(index, dir) else {
+                let Some(key) = self.key_for(index, dir) else {
                     // Every run of this target and direction is in: nothing to do here.
                     self.phase = Phase::Leaving { position: p };
                     return;
                 };
                 // Frames must be decoupled at the target: restart the average from here.
+                tracing::debug!(at_mm = p, ?key, "at rest on a target: averaging");
                 self.set_nominal(Some(target));
                 self.acc = Acc::default();
                 self.phase = Phase::Averaging {
@@ -347,10 +392,23 @@ impl RunMachine {
                     && (s.position_mm - target).abs() > self.settings.target_tolerance_mm
                 {
                     // The carriage moved off before the average was complete: start over.
+                    tracing::debug!(
+                        ?key,
+                        at_mm = s.position_mm,
+                        frames = self.acc.n,
+                        "moved off the target while averaging"
+                    );
+                    self.set_nominal(None);
                     self.phase = Phase::Watch;
                     return;
                 }
                 if code.is_none() && self.at_rest(now).is_none() {
+                    tracing::debug!(
+                        ?key,
+                        frames = self.acc.n,
+                        "no longer at rest while averaging"
+                    );
+                    self.set_nominal(None);
                     self.phase = Phase::Watch;
                     return;
                 }
@@ -430,6 +488,9 @@ impl RunMachine {
             unix_us: a.first_us,
         };
         self.done.insert(key);
+        if let Some(i) = self.cycle.iter().position(|k| *k == key) {
+            self.cursor = i + 1;
+        }
         self.actions.push_back(RunAction::Captured(capture));
         if let Some(code) = code {
             self.actions.push_back(RunAction::Acknowledge { code });
@@ -437,9 +498,11 @@ impl RunMachine {
         self.last_progress = Some(now);
         self.acc = Acc::default();
         self.rest.clear();
+        // Off the target, frames are decoupled at their measured travel again: with the
+        // target's nominal they would read as positions near it while the carriage moves on.
+        self.set_nominal(None);
         if self.done.len() >= self.total {
             self.phase = Phase::Done;
-            self.set_nominal(None);
             self.actions.push_back(RunAction::Finished);
         } else {
             self.phase = if code.is_some() {
@@ -614,6 +677,34 @@ mod tests {
             assert!((c.u.dy - (1e-6 / 150.0 + 1e-8f64).sqrt()).abs() < 2e-5);
             assert_eq!(c.material_c, Some(20.5));
         }
+    }
+
+    #[test]
+    fn a_missed_stop_does_not_shift_the_run_numbers_after_it() {
+        let p = plan();
+        let steps = cycle(&p);
+        let mut m = RunMachine::new(
+            p.clone(),
+            CaptureSettings::default(),
+            false,
+            BTreeSet::new(),
+        );
+        // The frames of the first run's second target are lost (the carriage still stops).
+        let missed = p
+            .steps()
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| s.target.is_some())
+            .nth(1)
+            .map(|(i, _)| i)
+            .expect("a second target");
+        let caps = feed().run(&mut m, &steps, Some((missed, missed + 1)));
+        let got: Vec<TargetKey> = caps.iter().map(TargetKey::of).collect();
+        let expected: Vec<TargetKey> = p.steps().iter().filter_map(|s| s.target).collect();
+        let lost = p.steps()[missed].target.expect("a target stop");
+        let want: Vec<TargetKey> = expected.into_iter().filter(|k| *k != lost).collect();
+        assert_eq!(got, want, "every later capture keeps its own run number");
+        assert_eq!(m.missing(), vec![lost]);
     }
 
     #[test]

@@ -45,7 +45,8 @@ pub struct Capture {
     /// The target's nominal position (mm).
     pub target_mm: f64,
     pub direction: Direction,
-    /// Mean of the six errors over the capture window (internal units: mm, rad).
+    /// Mean of the six errors over the capture window (internal units: mm, rad), relative to
+    /// the zero reference when one was set.
     pub errors: Errors6,
     /// Standard deviation of single frames in the window (internal units).
     pub frame_sd: Errors6,

@@ -12,13 +12,14 @@ use super::snapshot::{
     FollowerView, LinkView, LinksView, LiveView, PsdView, RunView, Snapshot, TrackingView,
 };
 use crate::acquire::{Acquisition, Frame};
-use crate::canopen::{DriveHandle, DriveStatus, Event, PowerState};
+use crate::canopen::{DriveError, DriveHandle, DriveStatus, Event, PowerState};
 use crate::config::CncMode;
 use crate::modbus::{Link, LinkState};
 use crate::optics::layout::{Aperture, Kind};
 use crate::run::program::{CaptureMode, generate_steps, makeup_steps, remaining_steps};
 use crate::run::{CaptureSettings, Dialect, Plan, RunMachine, TargetKey};
 use crate::store::{NewRun, RunId, RunState, Store};
+use crate::track::FollowerCommand;
 use std::collections::BTreeSet;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -69,11 +70,15 @@ pub(super) struct Core {
     started: Instant,
     /// The follower target the tracker wants (the follower task sends the latest).
     follow: watch::Sender<Option<f64>>,
+    /// The drive refused mode 8: follow targets go as profile moves.
+    csp_refused: bool,
     store: Store,
     run: Option<ActiveRun>,
     cnc: CncMode,
     dialect: Dialect,
     capture: CaptureSettings,
+    /// The acquisition's frame rate (Hz; 0: as fast as the module answers).
+    rate_hz: f64,
     state_dir: PathBuf,
     /// Results of the core's own asynchronous work (talking to the CNC).
     events_tx: mpsc::UnboundedSender<CoreEvent>,
@@ -179,11 +184,13 @@ impl Core {
             ready_sent: false,
             started: Instant::now(),
             follow: watch::channel(None).0,
+            csp_refused: false,
             store,
             run: None,
             cnc: s.cnc.mode.clone(),
             dialect: s.cnc.dialect,
             capture: s.capture,
+            rate_hz: s.io.acquire.rate_hz,
             state_dir: s.service.state_dir.clone(),
             events_tx,
             events_rx: Some(events_rx),
@@ -239,6 +246,7 @@ impl Core {
                 }
                 e = events.recv() => match e {
                     Ok(e) => {
+                        self.note_following(&e);
                         self.pipeline.handle_drive_event(&e, &self.can_peer);
                         self.pump();
                     }
@@ -286,8 +294,23 @@ impl Core {
         while let Some(out) = self.pipeline.poll_output() {
             match out {
                 // Only the latest target matters: the follower task skips superseded ones.
-                Output::Follow(mm) => {
+                Output::Follower(FollowerCommand::MoveTo(mm)) => {
                     self.follow.send_replace(Some(mm));
+                }
+                Output::Follower(FollowerCommand::Follow { target_mm, at }) => {
+                    if self.csp_refused {
+                        self.follow.send_replace(Some(target_mm));
+                        continue;
+                    }
+                    match self.drive.follow_at(target_mm, at) {
+                        Ok(()) => {}
+                        // Following ended (a stop, a fault, a drive refusing mode 8): go on
+                        // in profile position; the move re-arms following.
+                        Err(DriveError::FollowDisarmed) => {
+                            self.follow.send_replace(Some(target_mm));
+                        }
+                        Err(e) => tracing::warn!("follower to {target_mm:.4} mm: {e}"),
+                    }
                 }
                 Output::QuickStop => {
                     let drive = self.drive.clone();
@@ -328,6 +351,24 @@ impl Core {
                 Output::RunFinished => self.end_run(RunState::Finished, "all captures taken"),
                 Output::RunFailed(why) => self.end_run(RunState::Failed, &why),
             }
+        }
+    }
+
+    /// A drive that refuses cyclic synchronous position (an SDO abort on entering it) is
+    /// followed in profile position until it reboots.
+    fn note_following(&mut self, e: &Event) {
+        match e {
+            Event::FollowingEnded(Err(DriveError::Sdo(err))) => {
+                if !self.csp_refused {
+                    tracing::warn!(
+                        "the follower drive refused cyclic synchronous position ({err}): \
+                         following in profile position, which lags a moving carriage"
+                    );
+                }
+                self.csp_refused = true;
+            }
+            Event::BootUp { .. } => self.csp_refused = false,
+            _ => {}
         }
     }
 
@@ -531,6 +572,13 @@ impl Core {
                 plan.spec.overrun_mm, self.capture.target_tolerance_mm
             ));
         }
+        // At 0 Hz the module is read as fast as it answers: assume no less than 200 frames/s.
+        let rate = if self.rate_hz > 0.0 {
+            self.rate_hz
+        } else {
+            200.0
+        };
+        self.capture.check_dwell(&plan, rate)?;
         let dialect = match dialect {
             Some(d) => Dialect::parse(&d).ok_or_else(|| {
                 format!("dialect \"{d}\": use iso, siemens, heidenhain or linuxcnc")

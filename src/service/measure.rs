@@ -90,6 +90,14 @@ impl Measure {
         self.nominal
     }
 
+    /// The measured carriage position (travel plus dy, mm) of the frame decoupled at `at`.
+    pub fn position_at(&self, at: Instant) -> Option<f64> {
+        self.samples
+            .back()
+            .filter(|s| s.at == at)
+            .map(|s| s.travel + s.errors[1])
+    }
+
     /// Drop the averaging window (the carriage moved, the stitch changed).
     pub fn restart(&mut self) {
         self.samples.clear();
@@ -147,14 +155,25 @@ impl Measure {
             follower,
             stitch_var: stitch.variance,
         });
+        // Relative to the zero reference, as the live errors: its uncertainty is as
+        // systematic as the stitching's.
+        let (errors, zero_var) = match &self.zero {
+            Some(z) => (
+                Errors6::from_vector(&(est.errors.to_vector() - z.errors)),
+                std::array::from_fn(|k| z.cov[(k, k)]),
+            ),
+            None => (est.errors, [0.0; 6]),
+        };
         Ok(Some(FrameSample {
             at: now,
             unix_us: frame.unix_us,
             position_mm: travel + est.errors.dy,
             nominal: self.nominal,
-            errors: est.errors,
+            errors,
             var: Errors6::from_array(std::array::from_fn(|k| est.cov[(k, k)])),
-            stitch_var: Errors6::from_array(std::array::from_fn(|k| stitch_cov[(k, k)])),
+            stitch_var: Errors6::from_array(std::array::from_fn(|k| {
+                stitch_cov[(k, k)] + zero_var[k]
+            })),
             material_c: None,
             air_c: None,
         }))

@@ -67,8 +67,8 @@ impl Alarms {
 /// What the pipeline asks of its driver.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Output {
-    /// Move the follower towards this position (the latest wins).
-    Follow(f64),
+    /// Command the follower (a move: the latest wins; a follow target: sent at once).
+    Follower(FollowerCommand),
     /// Stop the follower now (its drive is lost).
     QuickStop,
     /// Keep this handover record.
@@ -190,19 +190,24 @@ impl Pipeline {
 
     fn drain_tracker(&mut self) {
         while let Some(cmd) = self.tracker.poll_command() {
-            let FollowerCommand::MoveTo(mm) = cmd;
-            self.outputs.push_back(Output::Follow(mm));
+            self.outputs.push_back(Output::Follower(cmd));
         }
         while let Some(e) = self.tracker.poll_event() {
             match e {
                 TrackEvent::Handover(r) => {
                     tracing::debug!(?r.kind, delta_mm = r.delta[0], "handover");
                     self.measure.restart();
+                    if let Some(run) = &mut self.run {
+                        run.restart_average();
+                    }
                     self.outputs.push_back(Output::Handover(r));
                 }
                 TrackEvent::FollowedWhileMoving { from_mm, to_mm } => {
                     tracing::debug!(from_mm, to_mm, "followed by encoder while moving");
                     self.measure.restart();
+                    if let Some(run) = &mut self.run {
+                        run.restart_average();
+                    }
                 }
                 TrackEvent::SpotLost => {
                     self.alarms.raise(

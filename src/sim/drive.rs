@@ -19,6 +19,22 @@
 //!   relative targets, halt, software limits 0x607D) and homing (moves to the home switch at
 //!   the 0x6099 speeds and sets the position there to the home offset; methods 35 and 37 home
 //!   on the current position);
+//! - cyclic synchronous position (mode 8): each RPDO applied (at SYNC for the synchronous
+//!   types) takes 0x607A as the new position demand, clamped to 0x607D, with no handshake.
+//!   The internal demand (0x6062) moves linearly from where it was to the new demand over one
+//!   cycle (the usual one-cycle delay of a CSP drive; the cycle is the drive's running average
+//!   of the intervals between demands, as a drive locks onto the SYNC); a late demand finds it
+//!   going on at the same velocity for up to one more cycle, then holding. The
+//!   stage servoes onto it with velocity feed-forward within the drive's own limits, not the
+//!   profile ones (which the master's demand ramp keeps to, so these must be well above
+//!   them: the stage has to catch up with a demand one cycle ahead): 0x607F max profile
+//!   velocity (default 1000 mm/s) and 0x60C5 max acceleration (default 20 000 mm/s², also
+//!   used for braking). On entering mode 8, on enabling in mode 8 and on releasing halt the demand is
+//!   where the stage is. Statusword in mode 8: bit 10 reserved (always 0; the master works
+//!   out "target reached" itself), bit 12 = 1 while the drive uses the target position
+//!   (operation enabled, no halt) per CiA 402, bit 13 = following error while |internal
+//!   demand − actual| exceeds 0x6065. Halt (bit 8) brakes with 0x6084 and ignores the target
+//!   position until released;
 //! - a trapezoidal motion profile in real time: every update reports the stage position to
 //!   `on_position` (the plant's follower encoder). Its encoder is exact: the plant applies the
 //!   follower's own errors.
@@ -32,8 +48,9 @@
 use crate::can::{CanError, CanFrame, CanTransport};
 use crate::canopen::cia402::{
     self, CW_CHANGE_IMMEDIATELY, CW_HALT, CW_NEW_SETPOINT, CW_RELATIVE, FsaCommand, HomingStatus,
-    MODE_HOMING, MODE_PROFILE_POSITION, PowerState, SW_FOLLOWING_ERROR, SW_INTERNAL_LIMIT,
-    SW_REMOTE, SW_SETPOINT_ACK, SW_TARGET_REACHED, SW_VOLTAGE_ENABLED,
+    MODE_CSP, MODE_HOMING, MODE_PROFILE_POSITION, PowerState, SW_CSP_TARGET_USED,
+    SW_FOLLOWING_ERROR, SW_INTERNAL_LIMIT, SW_REMOTE, SW_SETPOINT_ACK, SW_TARGET_REACHED,
+    SW_VOLTAGE_ENABLED,
 };
 use crate::canopen::config::Scaling;
 use crate::canopen::emcy::Emcy;
@@ -259,8 +276,7 @@ fn communication_objects(od: &mut Od, node: u8, heartbeat_ms: u16) {
 
 /// The device name (0x1008): longer than 32 bytes, so reading it needs a segmented upload
 /// beyond canopen-rs's limit.
-pub const DEVICE_NAME: &str =
-    "axiscomp twin follower drive (CiA 402 servo: profile position, homing)";
+pub const DEVICE_NAME: &str = "axiscomp twin follower drive (CiA 402 servo: profile position, homing, cyclic synchronous position)";
 
 fn build_od(cfg: &TwinDriveConfig, cpm: f64) -> Od {
     let mut od = Od::default();
@@ -297,6 +313,7 @@ fn build_od(cfg: &TwinDriveConfig, cpm: f64) -> Od {
     od.add(0x605A, 0, 2i16.to_le_bytes().to_vec(), Access::Rw, Pdo::No);
     od.add(0x6060, 0, vec![0], Access::Rw, Pdo::Rx);
     od.add(0x6061, 0, vec![0], Access::Ro, Pdo::Tx);
+    od.add(0x6062, 0, vec![0; 4], Access::Ro, Pdo::Tx);
     od.add(0x6064, 0, vec![0; 4], Access::Ro, Pdo::Tx);
     od.add(0x6065, 0, c(0.5), Access::Rw, Pdo::No);
     od.add(0x6067, 0, c(0.001), Access::Rw, Pdo::No);
@@ -310,6 +327,9 @@ fn build_od(cfg: &TwinDriveConfig, cpm: f64) -> Od {
     od.add(0x6083, 0, c(100.0), Access::Rw, Pdo::No);
     od.add(0x6084, 0, c(100.0), Access::Rw, Pdo::No);
     od.add(0x6085, 0, c(500.0), Access::Rw, Pdo::No);
+    // CSP limits: max profile velocity, max acceleration.
+    od.add(0x607F, 0, c(1000.0), Access::Rw, Pdo::No);
+    od.add(0x60C5, 0, c(20_000.0), Access::Rw, Pdo::No);
     let s = cfg.scaling;
     od.add(0x608F, 0, vec![2], Access::Ro, Pdo::No);
     od.add(
@@ -348,11 +368,12 @@ fn build_od(cfg: &TwinDriveConfig, cpm: f64) -> Od {
     od.add(0x6099, 1, c(5.0), Access::Rw, Pdo::No);
     od.add(0x6099, 2, c(0.5), Access::Rw, Pdo::No);
     od.add(0x609A, 0, c(50.0), Access::Rw, Pdo::No);
-    // Supported drive modes: profile position (bit 0) and homing (bit 5).
+    // Supported drive modes: profile position (bit 0), homing (bit 5), cyclic synchronous
+    // position (bit 7).
     od.add(
         0x6502,
         0,
-        0x21u32.to_le_bytes().to_vec(),
+        0xA1u32.to_le_bytes().to_vec(),
         Access::Ro,
         Pdo::No,
     );
@@ -438,6 +459,37 @@ impl Mover {
         self.goal != Goal::Idle || self.vel != 0.0
     }
 
+    /// Servo for `dt` seconds onto a set-point that is at `s` (mm) at the end of the step and
+    /// moves at `sv` (mm/s), within `v` (mm/s) and `a` (mm/s², speeding up and braking):
+    /// velocity feed-forward plus the braking speed that closes the remaining gap. Lands on
+    /// the set-point when one step can, within both limits.
+    fn track(&mut self, s: f64, sv: f64, v: f64, a: f64, dt: f64) {
+        self.goal = Goal::Idle;
+        if dt <= 0.0 {
+            return;
+        }
+        let h = a * dt;
+        let land = (s - self.pos) / dt;
+        if land.abs() <= v && (land - self.vel).abs() <= h && (land - sv).abs() <= h {
+            self.pos = s;
+            self.vel = if sv == 0.0 && land.abs() < 1e-12 {
+                0.0
+            } else {
+                land
+            };
+            return;
+        }
+        let gap = s - self.pos - sv * dt;
+        let braking = if h > 0.0 {
+            h * ((0.25 + 2.0 * gap.abs() / (h * dt)).sqrt() - 0.5)
+        } else {
+            0.0
+        };
+        let want = (sv + gap.signum() * braking).clamp(-v, v);
+        self.vel += (want - self.vel).clamp(-h, h);
+        self.pos += self.vel * dt;
+    }
+
     /// Brake with `d` (at once idle when already at rest).
     fn brake(&mut self, d: f64) {
         self.goal = if self.vel == 0.0 {
@@ -445,6 +497,64 @@ impl Mover {
         } else {
             Goal::Stop { d }
         };
+    }
+}
+
+/// Cyclic synchronous position: the internal position demand (physical mm), moving linearly
+/// from `from` to the latest demand `to` over `span` from `start`; then, if the motion is
+/// steady (this segment's velocity within a quarter of the previous one's), on at that
+/// velocity for up to one more `span` (a late next demand), else holding.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Interp {
+    from: f64,
+    to: f64,
+    start: Instant,
+    span: Duration,
+    /// Go on past `to` while the next demand is late.
+    steady: bool,
+}
+
+impl Interp {
+    /// At rest at `pos`.
+    fn hold(pos: f64, now: Instant) -> Self {
+        Interp {
+            from: pos,
+            to: pos,
+            start: now,
+            span: Duration::ZERO,
+            steady: false,
+        }
+    }
+
+    /// The velocity of the segment (mm/s).
+    fn vel(&self) -> f64 {
+        let span = self.span.as_secs_f64();
+        if span > 0.0 {
+            (self.to - self.from) / span
+        } else {
+            0.0
+        }
+    }
+
+    /// The internal demand and its velocity at `t`.
+    fn at(&self, t: Instant) -> (f64, f64) {
+        let span = self.span.as_secs_f64();
+        let since = t.saturating_duration_since(self.start).as_secs_f64();
+        if span <= 0.0 {
+            return (self.to, 0.0);
+        }
+        let v = self.vel();
+        let go_on = if self.steady { 2.0 } else { 1.0 };
+        if since <= go_on * span {
+            (self.from + v * since, v)
+        } else {
+            (self.from + go_on * v * span, 0.0)
+        }
+    }
+
+    /// When the internal demand comes to rest.
+    fn end(&self) -> Instant {
+        self.start + self.span * if self.steady { 2 } else { 1 }
     }
 }
 
@@ -482,6 +592,9 @@ pub struct TwinStatus {
     /// Physical position (mm, home switch at 0).
     pub physical_mm: f64,
     pub moving: bool,
+    /// Cyclic synchronous position: the latest position demand taken (encoder frame, mm)
+    /// while the drive follows demands.
+    pub demand_mm: Option<f64>,
     pub homed: bool,
     pub heartbeat_ms: u16,
     pub heartbeat_on: bool,
@@ -524,6 +637,15 @@ pub struct TwinDrive {
     following_error: bool,
     fault_code: u16,
     mover: Mover,
+    /// Cyclic synchronous position: the internal demand while demands are followed (mode 8,
+    /// operation enabled, no halt).
+    csp: Option<Interp>,
+    /// When the last demand came in mode 8.
+    demand_at: Option<Instant>,
+    /// The cycle: the running average of the intervals between demands (up to 1 s).
+    cycle: Option<Duration>,
+    /// |internal demand − actual| at the last update (mm).
+    csp_error: f64,
     /// Physical position where the encoder reads 0.
     zero: f64,
     last_update: Instant,
@@ -601,6 +723,10 @@ impl TwinDrive {
                 vel: 0.0,
                 goal: Goal::Idle,
             },
+            csp: None,
+            demand_at: None,
+            cycle: None,
+            csp_error: 0.0,
             zero: cfg.start_mm,
             last_update: now,
             reported: None,
@@ -647,6 +773,10 @@ impl TwinDrive {
     fn reset_application(&mut self) {
         self.mover.vel = 0.0;
         self.mover.goal = Goal::Idle;
+        self.csp = None;
+        self.demand_at = None;
+        self.cycle = None;
+        self.csp_error = 0.0;
         self.fsa = PowerState::SwitchOnDisabled;
         self.last_cw = 0;
         self.ack = false;
@@ -882,7 +1012,12 @@ impl TwinDrive {
                     return Err(AbortCode::DEVICE_STATE);
                 }
             }
-            (0x6060, 0) if !matches!(data[0] as i8, 0 | MODE_PROFILE_POSITION | MODE_HOMING) => {
+            (0x6060, 0)
+                if !matches!(
+                    data[0] as i8,
+                    0 | MODE_PROFILE_POSITION | MODE_HOMING | MODE_CSP
+                ) =>
+            {
                 return Err(AbortCode::INVALID_VALUE);
             }
             _ => {}
@@ -973,7 +1108,8 @@ impl TwinDrive {
             touched.push(e.index);
             at += n;
         }
-        // Mode first, then the controlword (which may start a set-point with the new target).
+        // Mode first, then the controlword (which may start a set-point with the new target),
+        // then in CSP the target as the new demand.
         if touched.contains(&0x6060) {
             self.on_mode(now);
         }
@@ -981,6 +1117,64 @@ impl TwinDrive {
             let cw = self.od.u16(0x6040, 0);
             self.on_controlword(cw, now);
         }
+        if touched.contains(&0x607A) && self.mode() == MODE_CSP {
+            self.take_demand(now);
+        }
+    }
+
+    /// Cyclic synchronous position: 0x607A is the new demand (when the drive follows), reached
+    /// by the internal demand one cycle later.
+    fn take_demand(&mut self, now: Instant) {
+        self.update(now);
+        if let Some(prev) = self.demand_at.replace(now) {
+            let iv = now.saturating_duration_since(prev);
+            if iv <= Duration::from_secs(1) {
+                self.cycle = Some(match self.cycle {
+                    Some(c) => (c * 3 + iv) / 4,
+                    None => iv,
+                });
+            }
+        }
+        let Some(ip) = self.csp else {
+            return;
+        };
+        let mut t = self.od.i32(0x607A, 0);
+        let (lo, hi) = (self.od.i32(0x607D, 1), self.od.i32(0x607D, 2));
+        self.internal_limit = false;
+        if lo < hi && !(lo..=hi).contains(&t) {
+            t = t.clamp(lo, hi);
+            self.internal_limit = true;
+        }
+        self.last_target = t;
+        let mut next = Interp {
+            from: ip.at(now).0,
+            to: self.to_mm(t) + self.zero,
+            start: now,
+            span: self.cycle.unwrap_or(Duration::ZERO),
+            steady: false,
+        };
+        let (v, before) = (next.vel(), ip.vel());
+        next.steady = v != 0.0 && (v - before).abs() <= 0.25 * v.abs();
+        self.csp = Some(next);
+    }
+
+    /// Follow demands from where the stage is, if mode 8, operation enabled and no halt.
+    fn csp_hold_here(&mut self) {
+        let follows =
+            self.mode() == MODE_CSP && self.fsa == PowerState::OperationEnabled && !self.halted;
+        self.csp = follows.then(|| Interp::hold(self.mover.pos, self.last_update));
+        if follows {
+            self.mover.goal = Goal::Idle;
+        }
+    }
+
+    /// Whether CSP motion is still under way (the internal demand moving or not yet reached).
+    fn csp_busy(&self) -> bool {
+        self.csp.is_some_and(|ip| {
+            (ip.from != ip.to && self.last_update < ip.end())
+                || self.mover.pos != ip.at(ip.end()).0
+                || self.mover.vel != 0.0
+        })
     }
 
     fn tpdo_data(&mut self) -> Vec<u8> {
@@ -1062,6 +1256,21 @@ impl TwinDrive {
             self.interrupt_homing();
         }
         self.ack = false;
+        let was_csp = self.csp.is_some();
+        if self.mode() == MODE_CSP {
+            if !was_csp {
+                self.pending = None;
+                self.csp_hold_here();
+            }
+        } else if was_csp {
+            // Out of CSP: brake what motion is left; the last demand is the base of relative
+            // moves.
+            self.csp = None;
+            if self.mover.vel != 0.0 {
+                let d = self.speed(0x6084, 0).max(1e-6);
+                self.mover.brake(d);
+            }
+        }
     }
 
     fn to_mm(&self, counts: i32) -> f64 {
@@ -1077,6 +1286,7 @@ impl TwinDrive {
         self.fsa = to;
         match to {
             PowerState::QuickStopActive => {
+                self.csp = None;
                 let d = self.speed(0x6085, 0).max(1e-6);
                 self.mover.brake(d);
                 self.pending = None;
@@ -1084,9 +1294,13 @@ impl TwinDrive {
                     self.interrupt_homing();
                 }
             }
+            PowerState::OperationEnabled if from != PowerState::OperationEnabled => {
+                self.csp_hold_here();
+            }
             PowerState::OperationEnabled => {}
             _ if from == PowerState::OperationEnabled || from == PowerState::QuickStopActive => {
                 // Power removed: the stage stops where it is (the brake holds it).
+                self.csp = None;
                 self.mover.vel = 0.0;
                 self.mover.goal = Goal::Idle;
                 self.pending = None;
@@ -1127,6 +1341,7 @@ impl TwinDrive {
         if cw & CW_HALT != 0 {
             if !self.halted {
                 self.halted = true;
+                self.csp = None;
                 let d = self.speed(0x6084, 0).max(1e-6);
                 self.mover.brake(d);
                 self.pending = None;
@@ -1134,8 +1349,11 @@ impl TwinDrive {
                     self.interrupt_homing();
                 }
             }
-        } else {
+        } else if self.halted {
             self.halted = false;
+            if self.mode() == MODE_CSP {
+                self.csp_hold_here();
+            }
         }
         match self.mode() {
             MODE_PROFILE_POSITION if !self.halted && rising(CW_NEW_SETPOINT) && !self.ack => {
@@ -1294,14 +1512,21 @@ impl TwinDrive {
     fn update(&mut self, now: Instant) {
         let mut t = self.last_update;
         const STEP: Duration = Duration::from_millis(1);
+        let (v, a) = (self.speed(0x607F, 0), self.speed(0x60C5, 0));
         while t < now {
             let dt = (now - t).min(STEP);
             t += dt;
-            if self.mover.step(dt.as_secs_f64()) {
+            if let Some(ip) = self.csp {
+                let (s, sv) = ip.at(t);
+                self.mover.track(s, sv, v, a, dt.as_secs_f64());
+            } else if self.mover.step(dt.as_secs_f64()) {
                 self.arrived();
             }
         }
         self.last_update = self.last_update.max(now);
+        self.csp_error = self
+            .csp
+            .map_or(0.0, |ip| (ip.at(self.last_update).0 - self.mover.pos).abs());
         if !self.mover.moving() {
             self.standstill();
         }
@@ -1317,7 +1542,12 @@ impl TwinDrive {
     }
 
     fn encoder_counts(&self) -> i32 {
-        let c = ((self.mover.pos - self.zero) * self.cpm).round();
+        self.counts(self.mover.pos)
+    }
+
+    /// A physical position in encoder increments.
+    fn counts(&self, phys: f64) -> i32 {
+        let c = ((phys - self.zero) * self.cpm).round();
         c.clamp(i32::MIN as f64, i32::MAX as f64) as i32
     }
 
@@ -1336,6 +1566,15 @@ impl TwinDrive {
                     sw |= SW_SETPOINT_ACK;
                 }
                 if self.following_error {
+                    sw |= SW_FOLLOWING_ERROR;
+                }
+            }
+            MODE_CSP => {
+                // Bit 10 is reserved in CSP.
+                if self.csp.is_some() {
+                    sw |= SW_CSP_TARGET_USED;
+                }
+                if self.following_error || self.csp_error > self.speed(0x6065, 0) {
                     sw |= SW_FOLLOWING_ERROR;
                 }
             }
@@ -1367,6 +1606,11 @@ impl TwinDrive {
         self.od.set(0x6041, 0, &sw.to_le_bytes());
         let pos = self.encoder_counts();
         self.od.set(0x6064, 0, &pos.to_le_bytes());
+        let demand = match self.csp {
+            Some(ip) => self.counts(ip.at(self.last_update).0),
+            None => pos,
+        };
+        self.od.set(0x6062, 0, &demand.to_le_bytes());
         let vel = (self.mover.vel * self.cpm).round() as i32;
         self.od.set(0x606C, 0, &vel.to_le_bytes());
         let mode = self.mode();
@@ -1399,6 +1643,7 @@ impl TwinDrive {
             self.homing_status = HomingStatus::ErrorStopped;
         }
         self.fsa = PowerState::FaultReactionActive;
+        self.csp = None;
         let d = self.speed(0x6085, 0).max(1e-6);
         self.mover.brake(d);
         self.emcy(code, manufacturer);
@@ -1466,10 +1711,8 @@ impl TwinDrive {
     }
 
     pub fn poll_timeout(&self) -> Option<Instant> {
-        let motion = self
-            .mover
-            .moving()
-            .then(|| self.last_update + self.cfg.tick);
+        let motion =
+            (self.mover.moving() || self.csp_busy()).then(|| self.last_update + self.cfg.tick);
         [
             self.next_heartbeat,
             self.delayed.front().map(|(d, _)| *d),
@@ -1492,7 +1735,8 @@ impl TwinDrive {
             mode: self.mode(),
             position_mm: self.to_mm(self.encoder_counts()),
             physical_mm: self.mover.pos,
-            moving: self.mover.moving(),
+            moving: self.mover.moving() || self.csp_busy(),
+            demand_mm: self.csp.map(|ip| ip.to - self.zero),
             homed: self.homed,
             heartbeat_ms: self.od.u16(0x1017, 0),
             heartbeat_on: self.heartbeat_on,
@@ -1766,7 +2010,7 @@ mod tests {
             ask(&mut d, "601#1030313233343536", t0),
             "581#8000200000000305"
         );
-        // Modes other than 0, 1, 6 are refused.
+        // Modes other than 0, 1, 6, 8 are refused.
         assert_eq!(
             ask(&mut d, "601#2F60600003000000", t0),
             "581#8060600030000906"
@@ -2024,5 +2268,182 @@ mod tests {
         assert_eq!(s.position_mm, 0.0);
         // Homing attained + target reached in homing mode: 0x1637.
         assert_eq!(s.statusword, 0x1637);
+    }
+
+    /// A drive with RPDO1 = controlword + target position (synchronous), 0x607F = 20 mm/s,
+    /// 0x60C5 = 200 mm/s², enabled in mode 8 and operational, its output drained.
+    fn csp_drive(t0: Instant) -> TwinDrive {
+        let mut d = drive(t0);
+        out(&mut d);
+        for req in [
+            "601#2300140101020080",
+            "601#2F00140201000000",
+            "601#2F00160000000000",
+            "601#2300160110004060",
+            "601#2300160220007A60",
+            "601#2F00160002000000",
+            "601#2300140101020000",
+            // 0x607F = 20 mm/s = 524 288 inc/s; 0x60C5 = 200 mm/s² = 5 242 880 inc/s².
+            "601#237F600000000800",
+            "601#23C5600000005000",
+        ] {
+            assert!(ask(&mut d, req, t0).starts_with("581#60"), "{req}");
+        }
+        for cw in ["06", "07", "0F"] {
+            ask(&mut d, &format!("601#2B406000{cw}000000"), t0);
+        }
+        assert_eq!(
+            ask(&mut d, "601#2F60600008000000", t0),
+            "581#6060600000000000"
+        );
+        assert_eq!(
+            ask(&mut d, "601#4061600000000000", t0),
+            "581#4F61600008000000"
+        );
+        // Operation enabled 0x0237 with bit 12 (target used), not bit 10.
+        assert_eq!(d.status().statusword, 0x1237);
+        d.handle_frame(&parse("000#0100"), t0);
+        out(&mut d);
+        d
+    }
+
+    /// RPDO1 with controlword 0x000F and `mm` as the target position, then SYNC, at `t`.
+    fn csp_demand(d: &mut TwinDrive, mm: f64, t: Instant) {
+        let c = (mm * Scaling::default().counts_per_mm()).round() as i32;
+        let b = c.to_le_bytes();
+        let rpdo = format!("201#0F00{:02X}{:02X}{:02X}{:02X}", b[0], b[1], b[2], b[3]);
+        d.handle_frame(&parse(&rpdo), t);
+        d.handle_frame(&parse("080#"), t);
+        out(d);
+    }
+
+    /// A demand 5 ms late while the motion is steady: the internal demand goes on at the same
+    /// velocity meanwhile (no stop and go). At the end of a move (the velocity changing by
+    /// more than a quarter) a late demand finds it holding: the stage stops on the last demand
+    /// without going past it by more than its servo's overshoot.
+    #[test]
+    fn csp_late_demand_while_steady_and_at_the_end() {
+        let t0 = Instant::now();
+        let ms = |n: u64| t0 + Duration::from_millis(n);
+        let mut d = csp_drive(t0);
+        // Positions as the drive has them, in whole increments.
+        let cpm = Scaling::default().counts_per_mm();
+        let q = |mm: f64| (mm * cpm).round() / cpm;
+        let at = |d: &TwinDrive| d.status().physical_mm;
+        // 10 mm/s: 0.1 mm per 10 ms SYNC.
+        for k in 0..30u64 {
+            csp_demand(&mut d, 0.1 * k as f64, ms(10 * k));
+            d.handle_timeout(ms(10 * k + 5));
+        }
+        // One cycle behind: at 295 ms the stage is at 2.85 mm (demand 2.9 reached at 300).
+        assert!((at(&d) - 2.85).abs() < 1e-4, "{:?}", d.status());
+        // The next demand comes at 305 instead of 300: at 303 the stage went on to 2.93.
+        d.handle_timeout(ms(303));
+        assert!((at(&d) - 2.93).abs() < 1e-4, "{:?}", d.status());
+        csp_demand(&mut d, 3.0, ms(305));
+        // Braking at 100 mm/s² (1 mm/s less each cycle) to rest at 3.45 mm; the demand after
+        // the last step comes 15 ms late.
+        let mut x = 3.0;
+        for k in 1..=9u64 {
+            x += 0.01 * (10 - k) as f64;
+            csp_demand(&mut d, x, ms(305 + 10 * k));
+        }
+        d.handle_timeout(ms(410));
+        let mut max = at(&d);
+        d.handle_timeout(ms(420));
+        max = max.max(at(&d));
+        assert_eq!(at(&d), q(3.45), "{:?}", d.status());
+        for k in 0..20u64 {
+            csp_demand(&mut d, 3.45, ms(410 + 10 * k));
+            d.handle_timeout(ms(415 + 10 * k));
+            max = max.max(at(&d));
+        }
+        // Past it only by the servo's own overshoot (a few µm), not by going on for the late
+        // cycle (1 mm/s × 15 ms = 15 µm).
+        assert!(max - q(3.45) < 0.005, "{max}");
+        assert!(at(&d) == q(3.45) && !d.status().moving, "{:?}", d.status());
+    }
+
+    /// Mode 8 on the wire: RPDO1 mapped to controlword + target position (synchronous), the
+    /// drive enabled, 0x6060 = 8. Each RPDO at SYNC is a new demand, no handshake: the stage
+    /// follows a 15 mm/s ramp one SYNC behind, within 0x607F (20 mm/s) and 0x60C5
+    /// (200 mm/s²), reports a following error (bit 13) while the start of the ramp is beyond
+    /// its acceleration, bit 12 while it uses the target, bit 10 never (reserved), and stops
+    /// exactly on a held demand; a jump is run at the velocity limit.
+    #[test]
+    fn csp_follows_demands_within_its_limits() {
+        let t0 = Instant::now();
+        let ms = |n: u64| t0 + Duration::from_millis(n);
+        let mut d = csp_drive(t0);
+        let cpm = Scaling::default().counts_per_mm();
+        let mut samples: Vec<(f64, f64, u16)> = vec![];
+        // RPDO + SYNC every 10 ms from `from` to `to` ms with the demand at each, sampling the
+        // stage at every motion tick.
+        let run = |d: &mut TwinDrive,
+                   samples: &mut Vec<(f64, f64, u16)>,
+                   from: u64,
+                   to: u64,
+                   demand: &dyn Fn(u64) -> f64| {
+            for k in (from..to).step_by(10) {
+                let c = (demand(k) * cpm).round() as i32;
+                let b = c.to_le_bytes();
+                let rpdo = format!("201#0F00{:02X}{:02X}{:02X}{:02X}", b[0], b[1], b[2], b[3]);
+                d.handle_frame(&parse(&rpdo), ms(k));
+                d.handle_frame(&parse("080#"), ms(k));
+                out(d);
+                let end = ms(k + 10);
+                while let Some(n) = d.poll_timeout().filter(|n| *n < end) {
+                    d.handle_timeout(n);
+                    let s = d.status();
+                    samples.push(((n - t0).as_secs_f64(), s.physical_mm, s.statusword));
+                }
+                d.handle_timeout(end);
+                let s = d.status();
+                samples.push(((end - t0).as_secs_f64(), s.physical_mm, s.statusword));
+            }
+        };
+        let ramp = |k: u64| 15.0 * k as f64 / 1000.0;
+        run(&mut d, &mut samples, 0, 500, &ramp);
+        // Caught up: one SYNC behind the ramp (the demand taken at k is reached at k + 10 ms).
+        for &(t, x, sw) in samples.iter().filter(|s| s.0 >= 0.3) {
+            assert!((x - 15.0 * (t - 0.01)).abs() < 1e-3, "{t}: {x}");
+            assert_eq!(sw, 0x1237, "{t}");
+        }
+        let lagging = samples.iter().filter(|s| s.2 & 0x2000 != 0).count();
+        assert!(lagging > 0, "following error while accelerating");
+        assert!(samples.iter().all(|s| s.2 & 0x0400 == 0), "bit 10 reserved");
+        // Hold at 7.5 mm (the last demand of the ramp is 7.35), then a 5 mm jump.
+        run(&mut d, &mut samples, 500, 900, &|_| 7.5);
+        assert_eq!(d.status().physical_mm, 7.5);
+        assert_eq!(d.status().statusword, 0x1237);
+        assert_eq!(d.status().demand_mm, Some(7.5));
+        run(&mut d, &mut samples, 900, 1500, &|_| 12.5);
+        assert_eq!(d.status().physical_mm, 12.5);
+        assert_eq!(d.status().statusword, 0x1237);
+        assert!(!d.status().moving);
+        // The limits, from the sampled positions (2 ms apart or less).
+        let v: Vec<(f64, f64)> = samples
+            .windows(2)
+            .filter(|w| w[1].0 > w[0].0)
+            .map(|w| (w[1].0, (w[1].1 - w[0].1) / (w[1].0 - w[0].0)))
+            .collect();
+        let vmax = v.iter().map(|x| x.1.abs()).fold(0.0, f64::max);
+        assert!(vmax <= 20.0 + 1e-6 && vmax > 19.9, "{vmax}");
+        for w in v.windows(2) {
+            let a = (w[1].1 - w[0].1) / (w[1].0 - w[0].0);
+            assert!(
+                a.abs() <= 200.0 * (1.0 + 1e-6) + 1e-6,
+                "{a} mm/s² at {}",
+                w[1].0
+            );
+        }
+        // Halt: the target is ignored (bit 12 clear) and the stage stays.
+        d.handle_frame(&parse("201#0F01000000FF"), ms(1500));
+        d.handle_frame(&parse("080#"), ms(1500));
+        d.handle_timeout(ms(1700));
+        let s = d.status();
+        assert_eq!(s.physical_mm, 12.5);
+        assert_eq!(s.statusword & 0x1000, 0);
+        assert_eq!(s.demand_mm, None);
     }
 }

@@ -16,6 +16,7 @@ pub mod drive;
 pub mod head;
 pub mod hexapod;
 pub mod iomodule;
+pub mod lab;
 pub mod plant;
 pub mod plc;
 pub mod rng;

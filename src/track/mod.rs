@@ -53,9 +53,10 @@ pub struct TrackSettings {
     pub average_frames: usize,
     /// Wait after the follower reports its target reached.
     pub settle: Duration,
-    /// Following: re-centre when the spot is this far out (mm), at most every
-    /// `follow_interval`, aiming `lead` ahead of the carriage's estimated motion (a position
-    /// drive stops at each target: without feed-forward it falls behind a moving carriage).
+    /// Following: re-centre when the spot is this far out (mm) or the carriage moves, at most
+    /// every `follow_interval`, on the carriage's position at the frame's time plus its
+    /// estimated motion over `lead` (extra feed-forward: the drive's cyclic synchronous mode
+    /// already carries each time-stamped target on to its SYNC).
     pub follow_band_mm: f64,
     pub follow_interval: Duration,
     pub lead: Duration,
@@ -85,7 +86,7 @@ impl Default for TrackSettings {
             settle: Duration::from_millis(100),
             follow_band_mm: 0.3,
             follow_interval: Duration::from_millis(20),
-            lead: Duration::from_millis(50),
+            lead: Duration::ZERO,
             lost_after: Duration::from_millis(500),
             encoder_sd_mm: 1e-3,
             encoder_sd_per_mm: 5e-6,
@@ -110,8 +111,11 @@ pub struct FollowerState {
 /// A command for the follower.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum FollowerCommand {
-    /// Move to an absolute encoder position (mm).
+    /// Move to an absolute encoder position (mm) and stop there (a handover step).
     MoveTo(f64),
+    /// Continuous following: the carriage, in encoder coordinates, was at `target_mm` at `at`
+    /// (the drive's cyclic synchronous position mode extrapolates it to each SYNC).
+    Follow { target_mm: f64, at: Instant },
 }
 
 /// How a handover's displacement was measured.
@@ -320,6 +324,21 @@ impl Tracker {
                 0.0,
                 self.encoder_var(f.position_mm - self.reference_encoder),
             ),
+            (Strategy::Overlap, Some(f)) => match self.in_flight_from() {
+                // Mid-handover the follower has left the stitched position: until the
+                // handover is measured, PSD2 is where its encoder says (a stale stitch would
+                // read a moving carriage as standing where the handover began).
+                Some(from) => {
+                    let moved = f.position_mm - from;
+                    let e = self.encoder_var(moved);
+                    (
+                        self.follower_mm + moved,
+                        self.vertical_mm,
+                        [self.variance[0] + e[0], self.variance[1] + e[1]],
+                    )
+                }
+                None => (self.follower_mm, self.vertical_mm, self.variance),
+            },
             _ => (self.follower_mm, self.vertical_mm, self.variance),
         };
         Stitch {
@@ -329,6 +348,16 @@ impl Tracker {
             handovers: self.handovers,
             strategy: self.settings.strategy,
             valid: self.valid && !self.lost,
+        }
+    }
+
+    /// Overlap: the encoder position the follower left the stitched position from, while a
+    /// handover is under way (moving, settling, or following a carriage that does not stop).
+    fn in_flight_from(&self) -> Option<f64> {
+        match self.phase {
+            Phase::Moving { .. } | Phase::After { .. } => Some(self.encoder_before),
+            Phase::Following { encoder_start } => Some(encoder_start),
+            _ => None,
         }
     }
 
@@ -514,7 +543,10 @@ impl Tracker {
                 target,
                 "follow"
             );
-            self.commands.push_back(FollowerCommand::MoveTo(target));
+            self.commands.push_back(FollowerCommand::Follow {
+                target_mm: target,
+                at: now,
+            });
             self.last_follow_cmd = Some(now);
             if self.settings.strategy == Strategy::Encoder {
                 // In this strategy a "handover" is one follow step.
@@ -801,8 +833,11 @@ mod tests {
             }
             let f = self.frame();
             tr.handle_frame(&f, self.now);
-            while let Some(FollowerCommand::MoveTo(t)) = tr.poll_command() {
-                self.target = Some(t);
+            while let Some(c) = tr.poll_command() {
+                self.target = Some(match c {
+                    FollowerCommand::MoveTo(t) => t,
+                    FollowerCommand::Follow { target_mm, .. } => target_mm,
+                });
             }
             tr.handle_follower(
                 FollowerState {

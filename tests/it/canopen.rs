@@ -261,6 +261,185 @@ async fn quick_stop_interrupts_a_move() {
     assert!(!r.twin.status().moving);
 }
 
+/// Following in cyclic synchronous position, as the tracker would drive it: a tokio task
+/// streams a target moving at 50 mm/s for 2 s through `follow` at 500 Hz. After the first
+/// 100 ms (mode switch and catching up from rest) the plant's follower encoder stays within
+/// 1 mm of the streamed target, sampled every 3 ms: the follower never stops between targets
+/// as it did with one profile-position set-point per handshake. `stop_following` then rests
+/// on the last target within the position window, and profile position works again.
+///
+/// Each sample is the encoder value with the moment the twin set it, compared with the
+/// target at that moment: the stage's tracking error, not how long this process happened to
+/// leave the twin's task unscheduled on a busy machine. That the encoder keeps being set
+/// (the stage keeps moving; a halt between targets would stop it) is checked separately,
+/// with a bound of 25 ms. Samples in the 100 ms after this process was starved of CPU (the
+/// sampler, the streamer or the master's SYNC stopped for a while) are left out and counted;
+/// most samples must remain. Two worker threads, so that the twin's motion updates do not wait behind the
+/// sampler.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn follows_a_moving_target_in_csp() {
+    use axiscomp::canopen::{ProfileConfig, TravelLimits};
+    use std::time::Instant;
+    const SPEED: f64 = 50.0;
+    const STREAM: Duration = Duration::from_secs(2);
+    let cfg = DriveConfig {
+        profile: ProfileConfig {
+            velocity_mm_s: 100.0,
+            accel_mm_s2: 2000.0,
+            decel_mm_s2: 2000.0,
+            ..Default::default()
+        },
+        limits: TravelLimits {
+            min_mm: -10.0,
+            max_mm: 110.0,
+            write_to_drive: true,
+        },
+        ..Default::default()
+    };
+    let window = cfg.profile.position_window_mm;
+    let r = DriveRig::start(cfg, twin());
+    ready(&r).await;
+    let m = &r.master;
+    let mut events = m.events();
+    assert_eq!(r.plant.follower_encoder(), 0.0);
+    let start = Instant::now();
+    let target_at = move |t: Instant| SPEED * t.duration_since(start).as_secs_f64();
+    // When the streamer last sent a target (µs since the start).
+    let sent = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let streamer = {
+        let m = m.clone();
+        let sent = sent.clone();
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval(Duration::from_millis(2));
+            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+            loop {
+                tick.tick().await;
+                let now = Instant::now();
+                if now.duration_since(start) >= STREAM {
+                    break;
+                }
+                m.follow(target_at(now)).expect("follow");
+                let us = now.duration_since(start).as_micros() as u64;
+                sent.store(us, std::sync::atomic::Ordering::Relaxed);
+            }
+            // The last target, where the carriage stopped.
+            let last = SPEED * STREAM.as_secs_f64();
+            m.follow(last).expect("follow");
+            last
+        })
+    };
+    let mut samples = 0;
+    let mut skipped = 0;
+    let mut worst = (0.0f64, 0.0f64);
+    let mut stalest = Duration::ZERO;
+    // This process starved of CPU (a busy machine): the sampler's own wake-ups, the
+    // streamer's targets or the master's TPDOs (every SYNC) stop for a while. The 100 ms after such a stall are left out:
+    // they measure the machine, not the follower.
+    let mut disturbed_until = start;
+    let mut last_wake = start;
+    let mut tpdos = (m.status().tpdo_count, start);
+    let mut tick = tokio::time::interval(Duration::from_millis(3));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    within_s(20, "streaming", async {
+        loop {
+            tick.tick().await;
+            let woke = Instant::now();
+            if woke.duration_since(start) >= STREAM {
+                break;
+            }
+            let count = m.status().tpdo_count;
+            if count != tpdos.0 {
+                if woke.duration_since(tpdos.1) > Duration::from_millis(30) {
+                    disturbed_until = woke + Duration::from_millis(100);
+                }
+                tpdos = (count, woke);
+            }
+            let streamed =
+                start + Duration::from_micros(sent.load(std::sync::atomic::Ordering::Relaxed));
+            if woke.duration_since(last_wake) > Duration::from_millis(12)
+                || woke.saturating_duration_since(streamed) > Duration::from_millis(12)
+            {
+                disturbed_until = woke + Duration::from_millis(100);
+            }
+            last_wake = woke;
+            // Let due timers (the twin's motion update) run before reading the encoder.
+            tokio::task::yield_now().await;
+            let now = Instant::now();
+            let (at, mm) = r.encoder_set();
+            let t = at.saturating_duration_since(start);
+            if t < Duration::from_millis(100) {
+                continue;
+            }
+            if now < disturbed_until {
+                skipped += 1;
+                continue;
+            }
+            let err = (mm - target_at(at)).abs();
+            samples += 1;
+            stalest = stalest.max(now.saturating_duration_since(at));
+            if err > worst.0 {
+                worst = (err, t.as_secs_f64());
+            }
+        }
+    })
+    .await;
+    let last = within_s(5, "streamer", streamer).await.expect("streamer");
+    let mut seen = vec![];
+    while let Ok(e) = events.try_recv() {
+        if matches!(e, Event::FollowingStarted | Event::FollowingEnded(_)) {
+            seen.push(e);
+        }
+    }
+    let st = m.status();
+    assert!(st.following && !st.following_error, "{st:?}, {seen:?}");
+    assert!(
+        samples > 300,
+        "{samples} samples, {skipped} left out after stalls: the machine is too busy"
+    );
+    assert!(
+        worst.0 < 1.0,
+        "the follower was {:.3} mm from the target at {:.3} s; {seen:?}",
+        worst.0,
+        worst.1
+    );
+    assert!(
+        stalest < Duration::from_millis(25),
+        "the follower stood still for {stalest:?} while the target moved"
+    );
+    within_s(10, "stop following", m.stop_following())
+        .await
+        .expect("stop following");
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let st = m.status();
+    assert!(!st.following, "{st:?}");
+    assert_eq!(st.mode, Some(1));
+    let enc = r.plant.follower_encoder();
+    assert!(
+        (enc - last).abs() <= window,
+        "{enc} mm at rest, target {last} mm"
+    );
+    assert!((st.position_mm.unwrap() - last).abs() <= window);
+    // Following started once and ended without error.
+    while let Ok(e) = events.try_recv() {
+        if matches!(e, Event::FollowingStarted | Event::FollowingEnded(_)) {
+            seen.push(e);
+        }
+    }
+    assert_eq!(
+        seen,
+        vec![Event::FollowingStarted, Event::FollowingEnded(Ok(()))]
+    );
+    // Profile position again.
+    within_s(10, "move", m.move_to(50.0)).await.expect("move");
+    let st = m.status();
+    assert!(st.target_reached && (st.position_mm.unwrap() - 50.0).abs() <= window);
+    assert!((r.plant.follower_encoder() - 50.0).abs() <= window);
+    eprintln!(
+        "CSP following: worst {:.3} mm at {:.3} s over {samples} samples ({skipped} left out after stalls), encoder at most {stalest:?} old",
+        worst.0, worst.1
+    );
+}
+
 /// python-canopen's `LocalNode` scripted as a CiA 402 drive (tests/interop/canopen_drive.py),
 /// an independent implementation, on python-can's udp_multicast bus: our master configures its
 /// PDOs by SDO, starts it, enables it, homes it and moves it, over our python-can transport.

@@ -112,6 +112,8 @@ pub struct DriveRig {
     pub twin: axiscomp::sim::TwinDriveHandle,
     pub plant: std::sync::Arc<axiscomp::sim::plant::Plant>,
     pub counts_per_mm: f64,
+    /// When the twin last set the plant's follower encoder, and to what.
+    encoder_set: std::sync::Arc<std::sync::Mutex<(std::time::Instant, f64)>>,
     tasks: Vec<tokio::task::JoinHandle<Result<(), axiscomp::can::CanError>>>,
 }
 
@@ -132,18 +134,31 @@ impl DriveRig {
             .expect("plant"),
         );
         let p = plant.clone();
+        let encoder_set =
+            std::sync::Arc::new(std::sync::Mutex::new((std::time::Instant::now(), f64::NAN)));
+        let set = encoder_set.clone();
         // The master listens before the twin boots, as on a real bus powered up together.
         let (master, mt) = axiscomp::canopen::spawn_drive(bus.port(), &cfg).expect("master");
-        let (twin, tt) =
-            axiscomp::sim::spawn_twin_drive(bus.port(), twin, move |mm| p.set_follower_encoder(mm))
-                .expect("twin drive");
+        let (twin, tt) = axiscomp::sim::spawn_twin_drive(bus.port(), twin, move |mm| {
+            p.set_follower_encoder(mm);
+            if let Ok(mut s) = set.lock() {
+                *s = (std::time::Instant::now(), mm);
+            }
+        })
+        .expect("twin drive");
         DriveRig {
             master,
             twin,
             plant,
             counts_per_mm: cfg.validate().expect("config").counts_per_mm(),
+            encoder_set,
             tasks: vec![mt, tt],
         }
+    }
+
+    /// When the twin last set the plant's follower encoder, and to what.
+    pub fn encoder_set(&self) -> (std::time::Instant, f64) {
+        *self.encoder_set.lock().expect("encoder log")
     }
 }
 
@@ -255,6 +270,16 @@ pub fn free_port() -> u16 {
 
 // ---------- The service against the twin, in one process, over loopback ----------
 
+/// `AXISCOMP_TEST_LOG=axiscomp::track=debug` shows the service's logs in a failing test.
+pub fn init_test_log() {
+    if let Ok(filter) = tracing_subscriber::EnvFilter::try_from_env("AXISCOMP_TEST_LOG") {
+        let _ = tracing_subscriber::fmt()
+            .with_env_filter(filter)
+            .with_test_writer()
+            .try_init();
+    }
+}
+
 /// Options for a `ServiceRig`.
 pub struct RigOptions {
     /// Extra TOML appended to the service configuration (e.g. a `[tracking]` section).
@@ -295,13 +320,7 @@ impl ServiceRig {
     pub async fn start(opts: RigOptions) -> ServiceRig {
         use axiscomp::sim::drive::TwinDriveConfig;
         use axiscomp::sim::twin::{Twin, TwinCan, TwinSpec};
-        // AXISCOMP_TEST_LOG=axiscomp::track=debug shows the service's logs in a failing test.
-        if let Ok(filter) = tracing_subscriber::EnvFilter::try_from_env("AXISCOMP_TEST_LOG") {
-            let _ = tracing_subscriber::fmt()
-                .with_env_filter(filter)
-                .with_test_writer()
-                .try_init();
-        }
+        init_test_log();
         let dir = TempDir::new("service");
         let (svc_port, twin_port) = (unused_udp_port(), unused_udp_port());
         let twin = Twin::start(

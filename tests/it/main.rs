@@ -1,6 +1,7 @@
 //! The integration tests: one binary, modules by capability, shared helpers.
 
 mod helpers;
+mod lab;
 
 mod acquire;
 mod calibration;

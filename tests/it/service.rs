@@ -210,7 +210,7 @@ async fn overlap_stitching_over_100_mm_matches_the_truth() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "continuous following needs cyclic synchronous position (CSP); profile position stalls on its set-point handshake"]
+#[ignore = "continuous following in CSP oscillates: follower positions are stamped on arrival, not at their SYNC"]
 async fn encoder_tracking_over_100_mm_matches_the_truth() {
     hundred_mm(Strategy::Encoder).await;
 }

@@ -1,0 +1,669 @@
+//! The virtual-time lab: the whole measurement chain on a simulated clock. The plant; the I/O
+//! module's registers, encoded and decoded through the I/O map; the follower's CiA 402 drive
+//! and the service's CANopen master exchanging real CAN frames; the service's pipeline
+//! (tracking, stitching, decoupling, the run machine); the twin's CNC running the part program
+//! text the service generates, with the PLC handshake when asked for.
+//!
+//! Only the transports are left out (they are tested on their own, in real time, over
+//! loopback and the kernel's CAN stack): every part here is the production state machine, and
+//! time is an argument to all of them. So a five-run ISO 230-2 cycle over a metre, a quarter of
+//! an hour on the machine, takes seconds — for the acceptance tests, the demo and the closed
+//! loop.
+
+use super::SimError;
+use super::cnc::{Cnc, parse};
+use super::drive::{TwinDrive, TwinDriveConfig};
+use super::plant::{Plant, PlantSpec, Truth};
+use crate::acquire::IoMap;
+use crate::acquire::decode::{Reading, encode, frame};
+use crate::canopen::{Command, DriveConfig, DriveError, DriveStatus, Event, Master, OpId};
+use crate::config::Settings;
+use crate::decouple::Decoupler;
+use crate::optics::Layout;
+use crate::run::program::{CaptureMode, generate};
+use crate::run::{Capture, CaptureSettings, Dialect, Plan, RunMachine};
+use crate::service::pipeline::{Output, Pipeline, now_us};
+use crate::track::{FollowerCommand, HandoverRecord, TrackSettings};
+use std::collections::BTreeSet;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use thiserror::Error;
+
+/// Why the lab stopped.
+#[derive(Debug, Error)]
+pub enum LabError {
+    #[error("lab set-up: {0}")]
+    Setup(#[from] SimError),
+    #[error("follower drive settings: {0}")]
+    Drive(#[from] crate::canopen::ConfigError),
+    #[error("the follower's {what} failed: {why}")]
+    BringUp { what: &'static str, why: String },
+    #[error("{what} did not happen within {within:?} of simulated time")]
+    Timeout { what: String, within: Duration },
+    #[error("part program: {0}")]
+    Program(String),
+    #[error("the run failed: {0}")]
+    RunFailed(String),
+    #[error("the program ended with {missing} captures missing (first: {first})")]
+    Missing { missing: usize, first: String },
+    #[error("I/O map: {0}")]
+    Io(String),
+    #[error("the lab's clock stalled at {0:?}: a state machine keeps asking for the same instant")]
+    Stalled(Duration),
+}
+
+/// What the lab is built from.
+#[derive(Clone, Debug)]
+pub struct LabSpec {
+    /// The head's nominal layout (the plant draws its true one from it).
+    pub layout: Layout,
+    pub plant: PlantSpec,
+    pub twin_drive: TwinDriveConfig,
+    pub map: IoMap,
+    /// The service side: the master's drive settings, tracking and capture settings.
+    pub drive: DriveConfig,
+    pub tracking: TrackSettings,
+    pub capture: CaptureSettings,
+    pub live_window: Duration,
+    pub decoupler: Decoupler,
+    /// The I/O module's sampling period (the service polls it at this rate).
+    pub frame_period: Duration,
+}
+
+impl LabSpec {
+    /// The lab for a twin (`axiscomp sim` config) and a service (`serve` settings, with the
+    /// head's decoupler).
+    pub fn new(
+        layout: &Layout,
+        twin: &super::twin::TwinSpec,
+        settings: &Settings,
+        decoupler: Decoupler,
+    ) -> LabSpec {
+        LabSpec::with_parts(
+            layout,
+            twin.plant.clone(),
+            twin.drive,
+            twin.io_map.clone(),
+            settings,
+            decoupler,
+        )
+    }
+
+    fn with_parts(
+        layout: &Layout,
+        plant: PlantSpec,
+        twin_drive: TwinDriveConfig,
+        map: IoMap,
+        settings: &Settings,
+        decoupler: Decoupler,
+    ) -> LabSpec {
+        LabSpec {
+            layout: layout.clone(),
+            plant,
+            twin_drive,
+            map,
+            drive: settings.follower.drive,
+            tracking: settings.tracking,
+            capture: settings.capture,
+            live_window: settings.head.live_window,
+            decoupler,
+            // At 0 Hz the module is read as fast as it answers: 2 ms here.
+            frame_period: if settings.io.acquire.rate_hz > 0.0 {
+                Duration::from_secs_f64(1.0 / settings.io.acquire.rate_hz)
+            } else {
+                Duration::from_millis(2)
+            },
+        }
+    }
+}
+
+impl LabSpec {
+    /// The reference head on `plant`, the service's built-in settings and I/O map, the
+    /// follower starting 2 mm from its home switch; decoupling with `decoupler`, or with the
+    /// nominal layout when `None` (right for a head without installation errors).
+    pub fn standard(plant: PlantSpec, decoupler: Option<Decoupler>) -> Result<LabSpec, LabError> {
+        let input = |e: String| LabError::Setup(SimError::Input(e));
+        let settings = crate::config::load(&crate::config::Layers::default())
+            .map_err(|e| input(format!("built-in settings: {e}")))?;
+        let layout = Layout::reference();
+        let decoupler = decoupler.unwrap_or_else(|| Decoupler {
+            source: crate::decouple::Source::Simulated(layout.clone()),
+            method: crate::decouple::Method::Nonlinear,
+            sigma_mm: [plant.noise_mm.max(1e-6); 6],
+            options: crate::decouple::SolveOptions::default(),
+        });
+        let map = IoMap::generic().map_err(|e| input(format!("generic I/O map: {e}")))?;
+        let drive = TwinDriveConfig {
+            start_mm: 2.0,
+            ..TwinDriveConfig::default()
+        };
+        Ok(LabSpec::with_parts(
+            &layout, plant, drive, map, &settings, decoupler,
+        ))
+    }
+}
+
+/// One capture with the twin's truth when it was taken.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrueCapture {
+    pub capture: Capture,
+    pub truth: Truth,
+}
+
+/// A measured run.
+#[derive(Clone, Debug)]
+pub struct LabRun {
+    pub captures: Vec<TrueCapture>,
+    pub handovers: Vec<HandoverRecord>,
+    /// The part program the CNC ran.
+    pub program: String,
+    /// Simulated time from the program's start to the last capture.
+    pub duration: Duration,
+}
+
+/// Progress of a run, for whoever shows it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Progress {
+    pub captures: usize,
+    pub expected: usize,
+    /// Simulated seconds since the program started.
+    pub elapsed_s: f64,
+    pub position_mm: f64,
+}
+
+/// One frame as the lab saw it (`Lab::trace`), for finding out why a run went wrong.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TraceRow {
+    /// Simulated seconds.
+    pub t_s: f64,
+    pub truth: Truth,
+    /// PSD2's spot as read (mm).
+    pub psd2: Option<(f64, f64)>,
+    /// The stitch's follower position (mm), when valid.
+    pub stitch_mm: Option<f64>,
+    /// The measured carriage position of the frame (mm), when it was decoupled.
+    pub position_mm: Option<f64>,
+}
+
+/// Counters.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct LabStats {
+    pub frames: u64,
+    pub can_frames: u64,
+    pub follow_targets: u64,
+    pub follow_refused: u64,
+}
+
+/// Where the handshake stands between the CNC and the service (the PLC's part).
+#[derive(Clone, Copy, Debug, Default)]
+struct Plc {
+    at_target_seen: bool,
+    acknowledged: Option<u32>,
+}
+
+/// The lab.
+pub struct Lab {
+    t0: Instant,
+    unix0_us: i64,
+    now: Instant,
+    pub plant: Arc<Plant>,
+    drive: TwinDrive,
+    master: Master,
+    pub pipeline: Pipeline,
+    map: IoMap,
+    capture: CaptureSettings,
+    frame_period: Duration,
+    next_frame: Instant,
+    seq: u64,
+    cnc: Option<Cnc>,
+    plc: Plc,
+    status: DriveStatus,
+    completed: Vec<(OpId, Result<(), String>)>,
+    captures: Vec<TrueCapture>,
+    handovers: Vec<HandoverRecord>,
+    run_end: Option<Result<(), String>>,
+    /// A follower target waiting for the set-point in progress.
+    pending_follow: Option<f64>,
+    pub stats: LabStats,
+    /// Every frame, when set to `Some` (off by default: it grows by a row per frame).
+    pub trace: Option<Vec<TraceRow>>,
+}
+
+impl std::fmt::Debug for Lab {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Lab")
+            .field("elapsed", &self.elapsed())
+            .field("stats", &self.stats)
+            .finish_non_exhaustive()
+    }
+}
+
+/// How long the lab may sit at one instant before it calls the clock stalled.
+const STALL_LIMIT: usize = 10_000;
+
+impl Lab {
+    /// Build the lab; its clock starts now (an arbitrary origin: nothing waits on it).
+    pub fn new(spec: &LabSpec) -> Result<Lab, LabError> {
+        let t0 = Instant::now();
+        let plant = Arc::new(Plant::new(&spec.layout, &spec.plant, t0)?);
+        let p = plant.clone();
+        let drive = TwinDrive::new(
+            spec.twin_drive,
+            Box::new(move |mm| p.set_follower_encoder(mm)),
+            t0,
+        )?;
+        let master = Master::new(&spec.drive)?;
+        if spec.frame_period.is_zero() {
+            return Err(LabError::Setup(SimError::Input(
+                "the lab's frame period must be positive".into(),
+            )));
+        }
+        Ok(Lab {
+            t0,
+            unix0_us: now_us(),
+            now: t0,
+            plant,
+            drive,
+            status: master.status().clone(),
+            master,
+            pipeline: Pipeline::new(spec.tracking, spec.decoupler.clone(), spec.live_window),
+            map: spec.map.clone(),
+            capture: spec.capture,
+            frame_period: spec.frame_period,
+            next_frame: t0,
+            seq: 0,
+            cnc: None,
+            plc: Plc::default(),
+            completed: Vec::new(),
+            captures: Vec::new(),
+            handovers: Vec::new(),
+            run_end: None,
+            pending_follow: None,
+            stats: LabStats::default(),
+            trace: None,
+        })
+    }
+
+    /// Simulated time since the lab was built.
+    pub fn elapsed(&self) -> Duration {
+        self.now - self.t0
+    }
+
+    /// The lab's clock.
+    pub fn now(&self) -> Instant {
+        self.now
+    }
+
+    /// The twin's truth now.
+    pub fn truth(&self) -> Truth {
+        self.plant.truth(self.now)
+    }
+
+    /// The follower drive as the master sees it.
+    pub fn drive_status(&self) -> &DriveStatus {
+        &self.status
+    }
+
+    /// Run the clock for `d`.
+    pub fn advance(&mut self, d: Duration) -> Result<(), LabError> {
+        let until = self.now + d;
+        let mut same = 0usize;
+        loop {
+            self.step();
+            let next = [
+                Some(self.next_frame),
+                self.drive.poll_timeout(),
+                self.master.poll_timeout(),
+                self.cnc.as_ref().and_then(Cnc::next_wake),
+            ]
+            .into_iter()
+            .flatten()
+            .min()
+            .unwrap_or(until)
+            .min(until);
+            if next <= self.now {
+                if self.now >= until {
+                    return Ok(());
+                }
+                same += 1;
+                if same > STALL_LIMIT {
+                    return Err(LabError::Stalled(self.elapsed()));
+                }
+                continue;
+            }
+            same = 0;
+            self.now = next;
+        }
+    }
+
+    /// Run the clock until `done` holds (checked after every step), for at most `within`.
+    pub fn advance_until(
+        &mut self,
+        what: &str,
+        within: Duration,
+        mut done: impl FnMut(&Lab) -> bool,
+    ) -> Result<(), LabError> {
+        let until = self.now + within;
+        let slice = self.frame_period;
+        while !done(self) {
+            if self.now >= until {
+                return Err(LabError::Timeout {
+                    what: what.to_string(),
+                    within,
+                });
+            }
+            self.advance(slice.min(until - self.now))?;
+        }
+        Ok(())
+    }
+
+    /// Everything due at the current instant.
+    fn step(&mut self) {
+        let now = self.now;
+        if self.drive.poll_timeout().is_some_and(|t| t <= now) {
+            self.drive.handle_timeout(now);
+        }
+        if self.master.poll_timeout().is_some_and(|t| t <= now) {
+            self.master.handle_timeout(now);
+        }
+        self.exchange();
+        if let Some(cnc) = self.cnc.as_mut() {
+            let captured = self.plc.acknowledged == Some(cnc.handshake.code);
+            cnc.step(now, &self.plant, captured);
+            let hs = cnc.handshake;
+            if hs.at_target && !self.plc.at_target_seen {
+                self.pipeline.handle_at_target(hs.code, now);
+            }
+            self.plc.at_target_seen = hs.at_target;
+        }
+        if self.next_frame <= now {
+            self.sample(now);
+            self.next_frame += self.frame_period;
+            if self.next_frame <= now {
+                self.next_frame = now + self.frame_period;
+            }
+        }
+        self.pump();
+        self.exchange();
+    }
+
+    /// The I/O module: the plant sampled, digitised per the map, read back as a frame.
+    fn sample(&mut self, now: Instant) {
+        let s = self.plant.sample(now);
+        let reading = Reading {
+            spots: s.spots,
+            sums: s.sums,
+        };
+        let unix_us = self.unix0_us + (now - self.t0).as_micros() as i64;
+        let f = encode(&self.map, &reading)
+            .and_then(|block| frame(&self.map, &block, self.seq, now, unix_us));
+        self.seq += 1;
+        match f {
+            Ok(f) => {
+                self.stats.frames += 1;
+                self.pipeline.handle_frame(&f, false);
+                if let Some(rows) = self.trace.as_mut() {
+                    let st = self.pipeline.tracker.stitch();
+                    rows.push(TraceRow {
+                        t_s: (now - self.t0).as_secs_f64(),
+                        truth: self.plant.truth(now),
+                        psd2: f.spots[1].map(|s| (s.x, s.y)),
+                        stitch_mm: st.valid.then_some(st.follower_mm),
+                        position_mm: self.pipeline.measure.position_at(now),
+                    });
+                }
+            }
+            Err(e) => self
+                .pipeline
+                .alarms
+                .raise("io-decode", format!("a block could not be decoded: {e}")),
+        }
+    }
+
+    /// CAN frames both ways until the bus is quiet; then the master's news to the pipeline.
+    fn exchange(&mut self) {
+        let now = self.now;
+        loop {
+            let mut any = false;
+            while let Some(f) = self.master.poll_transmit() {
+                self.drive.handle_frame(&f, now);
+                self.stats.can_frames += 1;
+                any = true;
+            }
+            while let Some(f) = self.drive.poll_transmit() {
+                self.master.handle_frame(&f, now);
+                self.stats.can_frames += 1;
+                any = true;
+            }
+            if !any {
+                break;
+            }
+        }
+        while let Some(e) = self.master.poll_event() {
+            if let Event::Completed { id, result } = &e {
+                self.completed
+                    .push((*id, result.clone().map(|_| ()).map_err(|e| e.to_string())));
+            }
+            self.pipeline.handle_drive_event(&e, "lab bus");
+        }
+        if *self.master.status() != self.status {
+            self.status = self.master.status().clone();
+            self.pipeline.handle_drive_status(&self.status, now);
+        }
+        if self.status.busy.is_none()
+            && let Some(mm) = self.pending_follow.take()
+        {
+            self.master
+                .submit(Command::SetTarget { target_mm: mm }, now);
+        }
+    }
+
+    /// Carry out what the pipeline asks.
+    fn pump(&mut self) {
+        let now = self.now;
+        while let Some(out) = self.pipeline.poll_output() {
+            match out {
+                // A handover step: the latest set-point wins (as the service's follower task).
+                Output::Follower(FollowerCommand::MoveTo(mm)) => self.pending_follow = Some(mm),
+                Output::Follower(FollowerCommand::Follow { target_mm, at }) => {
+                    self.stats.follow_targets += 1;
+                    match self.master.follow(target_mm, at, now) {
+                        Ok(()) => {}
+                        // Following ended (a stop, a fault): a move re-arms it, as in the
+                        // service.
+                        Err(DriveError::FollowDisarmed) => self.pending_follow = Some(target_mm),
+                        Err(e) => tracing::warn!("lab: follow {target_mm:.4} mm: {e}"),
+                    }
+                }
+                Output::QuickStop => {
+                    self.master.submit(Command::QuickStop, now);
+                }
+                Output::Handover(r) => self.handovers.push(r),
+                Output::Captured(c) => self.captures.push(TrueCapture {
+                    capture: c,
+                    truth: self.plant.truth(now),
+                }),
+                Output::Acknowledge(code) => self.plc.acknowledged = Some(code),
+                Output::RunFinished => self.run_end = Some(Ok(())),
+                Output::RunFailed(why) => self.run_end = Some(Err(why)),
+            }
+        }
+    }
+
+    /// Submit a drive command and run the clock until it completes.
+    fn command(&mut self, cmd: Command, within: Duration) -> Result<(), LabError> {
+        let what = cmd.name();
+        let id = self.master.submit(cmd, self.now);
+        self.exchange();
+        self.advance_until(what, within, |lab| {
+            lab.completed.iter().any(|(i, _)| *i == id)
+        })?;
+        let pos = self.completed.iter().position(|(i, _)| *i == id);
+        match pos.map(|p| self.completed.remove(p)) {
+            Some((_, Ok(()))) => Ok(()),
+            Some((_, Err(why))) => Err(LabError::BringUp { what, why }),
+            None => Err(LabError::BringUp {
+                what,
+                why: "no completion".into(),
+            }),
+        }
+    }
+
+    /// Bring the follower up as the service does: configure, start, enable, home; then wait
+    /// until the tracker has taken its reference (the spot on PSD2, the follower at rest).
+    pub fn bring_up(&mut self) -> Result<(), LabError> {
+        let t = Duration::from_secs(30);
+        for cmd in [
+            Command::Configure,
+            Command::Start,
+            Command::Enable,
+            Command::Home,
+        ] {
+            self.command(cmd, t)?;
+        }
+        self.advance_until("the stitch's first reference", t, |lab| {
+            lab.pipeline.tracker.stitch().valid
+        })
+    }
+
+    /// Move the carriage to `mm` (as a jog would) and wait until it and the follower are at
+    /// rest.
+    pub fn move_carriage(&mut self, mm: f64) -> Result<(), LabError> {
+        self.plant.move_carriage(mm, self.now);
+        let end = self.plant.carriage_move_end();
+        let within = (end - self.now) + Duration::from_secs(10);
+        self.advance_until("the carriage and follower at rest", within, |lab| {
+            lab.now >= end && lab.pipeline.tracker.at_rest(lab.now)
+        })
+    }
+
+    /// Take the zero reference as an operator does with the carriage at rest at `at_mm`: set
+    /// the nominal (without it the positioning error reads as travel), re-reference the
+    /// stitch, take the live mean as the errors' zero, clear the nominal.
+    pub fn zero(
+        &mut self,
+        at_mm: f64,
+        window: Duration,
+    ) -> Result<crate::units::Errors6, LabError> {
+        self.pipeline.measure.set_nominal(Some(at_mm));
+        let r = self.take_zero(window);
+        self.pipeline.measure.set_nominal(None);
+        r
+    }
+
+    fn take_zero(&mut self, window: Duration) -> Result<crate::units::Errors6, LabError> {
+        if !self.pipeline.begin_zero(self.now, window) {
+            return Err(LabError::BringUp {
+                what: "zero",
+                why: "the follower's position is not known".into(),
+            });
+        }
+        // The pipeline takes it once the averaging window has refilled.
+        self.advance(window + Duration::from_millis(60))?;
+        match self.pipeline.zero_ready(self.now) {
+            Some(Some(z)) => Ok(z),
+            Some(None) => Err(LabError::BringUp {
+                what: "zero",
+                why: "no valid frames in the window".into(),
+            }),
+            None => Err(LabError::BringUp {
+                what: "zero",
+                why: "the reference was not due".into(),
+            }),
+        }
+    }
+
+    /// Measure `plan`: the CNC runs the program the service generates for it (`dialect`,
+    /// stability or handshake capture), the pipeline captures. `progress` is called about
+    /// once per simulated second.
+    pub fn measure(
+        &mut self,
+        plan: &Plan,
+        dialect: Dialect,
+        mode: CaptureMode,
+        mut progress: impl FnMut(Progress),
+    ) -> Result<LabRun, LabError> {
+        let text = generate(plan, dialect, mode).map_err(|e| LabError::Program(e.to_string()))?;
+        let ops =
+            parse(&text, dialect, &plan.spec.axis).map_err(|e| LabError::Program(e.to_string()))?;
+        let handshake = matches!(mode, CaptureMode::Handshake(_));
+        self.captures.clear();
+        self.handovers.clear();
+        self.run_end = None;
+        self.plc = Plc::default();
+        let started = self.now;
+        self.cnc = Some(Cnc::new(ops));
+        self.pipeline.start_run(RunMachine::new(
+            plan.clone(),
+            self.capture,
+            handshake,
+            BTreeSet::new(),
+        ));
+        self.pump();
+        // Generous: the whole motion and dwell time twice over, plus the capture timeout.
+        let limit = Duration::from_secs_f64(2.0 * plan.motion_time_s(self.plant.spec.accel))
+            + self.capture.timeout;
+        let expected = plan.capture_count();
+        let result = loop {
+            if let Some(end) = self.run_end.take() {
+                break end.map_err(LabError::RunFailed);
+            }
+            if self.now - started > limit {
+                break Err(LabError::Timeout {
+                    what: format!("the run's {expected} captures"),
+                    within: limit,
+                });
+            }
+            if self.cnc.as_ref().is_some_and(Cnc::is_done)
+                && self.now
+                    > self
+                        .cnc
+                        .as_ref()
+                        .and_then(|c| c.finished)
+                        .unwrap_or(self.now)
+                        + self.capture.settle * 4
+                        + self.live_window_bound()
+            {
+                let missing = self.pipeline.run_missing().unwrap_or_default();
+                self.pipeline.abort_run();
+                break Err(LabError::Missing {
+                    missing: missing.len(),
+                    first: missing
+                        .first()
+                        .map(|k| format!("{k:?}"))
+                        .unwrap_or_default(),
+                });
+            }
+            if let Err(e) = self.advance(Duration::from_secs(1)) {
+                self.pipeline.abort_run();
+                break Err(e);
+            }
+            progress(Progress {
+                captures: self.captures.len(),
+                expected,
+                elapsed_s: (self.now - started).as_secs_f64(),
+                position_mm: self.plant.carriage(self.now).0,
+            });
+        };
+        self.cnc = None;
+        result?;
+        let last = self
+            .captures
+            .iter()
+            .map(|c| c.capture.unix_us)
+            .max()
+            .unwrap_or(0);
+        let start_us = self.unix0_us + (started - self.t0).as_micros() as i64;
+        Ok(LabRun {
+            captures: std::mem::take(&mut self.captures),
+            handovers: std::mem::take(&mut self.handovers),
+            program: text,
+            duration: Duration::from_micros((last - start_us).max(0) as u64),
+        })
+    }
+
+    /// How long averaging a capture can take after the carriage stops.
+    fn live_window_bound(&self) -> Duration {
+        self.frame_period * (self.capture.frames as u32 + 10)
+    }
+}
