@@ -16,10 +16,11 @@
 //!   ([`PullServer::acks`]).
 //! - Reads are validated by the scaffolding (quantity 1..=125, range inside the address
 //!   space); reads outside the served span get "illegal data address".
-//! - Writes outside the acknowledgement range get "illegal data address"; writes from a peer
-//!   not in `writers` get "illegal function" (that peer may read, not write); the connection
-//!   is kept either way. Peers not in `allow` are refused on accept, before any Modbus
-//!   traffic (the scaffolding's allow-list).
+//! - Writes outside the acknowledgement range get "illegal data address" (those registers are
+//!   read-only for everyone); writes into it from a peer not in `writers` get "illegal
+//!   function" (that peer may read, not write); the connection is kept either way and nothing
+//!   changes. Peers not in `allow` are refused on accept, before any Modbus traffic (the
+//!   scaffolding's allow-list).
 //! - Unit ids other than the map's and 0xFF get "gateway target device failed to respond".
 
 use super::map::{CncMap, Field, Writer};
@@ -169,15 +170,17 @@ impl RegisterBank for Bank {
         peer: SocketAddr,
     ) -> Result<(), Exception> {
         self.unit_ok(unit)?;
+        // Registers outside the range are read-only for everyone; inside it, only writers
+        // may write.
+        let (s, e) = self.ack;
+        if r.start() < s || r.end() > e {
+            return Err(Exception::IllegalDataAddress);
+        }
         if let Some(w) = &self.writers
             && !w.contains(&peer.ip())
         {
             tracing::warn!(%peer, "pull server: write from a peer not allowed to write");
             return Err(Exception::IllegalFunction);
-        }
-        let (s, e) = self.ack;
-        if r.start() < s || r.end() > e {
-            return Err(Exception::IllegalDataAddress);
         }
         let mut acks = self.acks();
         let from = (r.start() - s) as usize;
