@@ -12,6 +12,7 @@ mod comp;
 mod decoupling;
 mod evaluate;
 mod modbus;
+mod plc;
 mod service;
 mod socketcan;
 mod store;
