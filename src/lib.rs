@@ -12,9 +12,10 @@
 //! 6. `comp`: compensation tables and controller exports;
 //! 7. `plc`: tables into the CNC's PLC over Modbus TCP (push with handshake, pull server).
 //!
-//! Around them: `service` (the live service: tasks, snapshot, control API), `store` (SQLite),
-//! `report` (plots and run reports), `config`, `sim` (the digital twin everything is tested
-//! against), `units` (the conventions) and `util`.
+//! Around them: `service` (the live service: tasks, snapshot, control API), `console` (the
+//! terminal UI over the control API), `store` (SQLite), `report` (plots and run reports),
+//! `config`, `sim` (the digital twin everything is tested against), `units` (the conventions)
+//! and `util`.
 
 pub mod acquire;
 pub mod calibrate;
@@ -22,6 +23,7 @@ pub mod can;
 pub mod canopen;
 pub mod comp;
 pub mod config;
+pub mod console;
 pub mod decouple;
 pub mod evaluate;
 pub mod modbus;

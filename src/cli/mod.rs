@@ -2,6 +2,7 @@
 //! measurement logic lives in the library.
 
 mod calibrate;
+mod console;
 mod decouple;
 mod demo;
 mod evaluate;
@@ -47,6 +48,8 @@ enum Command {
     Serve(service::ServeArgs),
     /// Print the running service's live snapshot.
     Status(service::StatusArgs),
+    /// The terminal UI over the running service (commissioning and maintenance).
+    Console(console::Args),
     /// Check the configuration and every file it names, offline.
     Check(service::ServeArgs),
     /// Run the digital twin (I/O module, follower drive, axis) for the service to measure.
@@ -70,6 +73,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Evaluate(a) => evaluate::run(a),
         Command::Serve(a) => service::serve(a),
         Command::Status(a) => service::status(a),
+        Command::Console(a) => console::run(a),
         Command::Check(a) => service::check(a),
         Command::Sim(a) => service::sim(a),
         Command::Run(c) => run::run(c),

@@ -2,8 +2,9 @@
 //! one response per line (`{"ok":true,...}` or `{"ok":false,"error":"..."}`); `subscribe` turns
 //! the connection into a stream of snapshots (`{"snapshot":{...}}` per line).
 //!
-//! Viewing (`status`, `subscribe`) needs the viewer role; anything that changes state needs the
-//! operator role. Roles come from the peer's credentials (`peer`). The socket itself is
+//! Viewing (`status`, `subscribe`, `run_status`, `runs`, `run_result`) needs the viewer role;
+//! anything that changes state needs the operator role; the `status` reply names the peer's
+//! `user` and `role`. Roles come from the peer's credentials (`peer`). The socket itself is
 //! world-connectable: access is decided per request, so refusals can say why.
 
 use super::peer::{Peer, Role, RolePolicy};
@@ -73,13 +74,28 @@ pub enum Request {
     RunStatus,
     /// Stop the active run (its captures stay stored).
     RunAbort,
+    /// The stored runs, newest first (at most `limit`, default 50).
+    Runs {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        limit: Option<usize>,
+    },
+    /// A stored run's evaluation: the six errors per direction and the ISO figures
+    /// (`run_id`, or the newest finished run).
+    RunResult {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        run_id: Option<i64>,
+    },
 }
 
 impl Request {
     /// The role the request needs.
     pub fn needs(&self) -> Role {
         match self {
-            Request::Status | Request::Subscribe { .. } | Request::RunStatus => Role::Viewer,
+            Request::Status
+            | Request::Subscribe { .. }
+            | Request::RunStatus
+            | Request::Runs { .. }
+            | Request::RunResult { .. } => Role::Viewer,
             _ => Role::Operator,
         }
     }
@@ -251,8 +267,12 @@ impl Connection {
             }
             let out = match request {
                 Request::Status => {
+                    // Who asked and with which role, so a client (the console) can show a
+                    // read-only mode before anything is refused.
                     let snap = self.snapshots.borrow().clone();
-                    reply_line(&serde_json::json!({"ok": true, "snapshot": snap}))
+                    reply_line(
+                        &serde_json::json!({"ok": true, "snapshot": snap, "user": peer.user, "role": peer.role}),
+                    )
                 }
                 Request::Subscribe { hz } => {
                     let period = hz
@@ -428,6 +448,12 @@ mod tests {
         );
         assert_eq!(r.needs(), Role::Operator);
         let r: Request = serde_json::from_str(r#"{"cmd":"status"}"#).unwrap();
+        assert_eq!(r.needs(), Role::Viewer);
+        let r: Request = serde_json::from_str(r#"{"cmd":"run_result","run_id":3}"#).unwrap();
+        assert_eq!(r, Request::RunResult { run_id: Some(3) });
+        assert_eq!(r.needs(), Role::Viewer);
+        let r: Request = serde_json::from_str(r#"{"cmd":"runs"}"#).unwrap();
+        assert_eq!(r, Request::Runs { limit: None });
         assert_eq!(r.needs(), Role::Viewer);
         let r: Request = serde_json::from_str(r#"{"cmd":"nominal","mm":null}"#).unwrap();
         assert_eq!(r, Request::Nominal { mm: None });

@@ -7,6 +7,7 @@ use super::Prepared;
 use super::control::{Command, FollowerAction, Request};
 use super::notify;
 use super::pipeline::{Output, Pipeline, now_us};
+use super::results;
 use super::shutdown::Shutdown;
 use super::snapshot::{
     FollowerView, LinkView, LinksView, LiveView, PsdView, RunView, Snapshot, TrackingView,
@@ -758,6 +759,16 @@ impl Core {
                 Self::reply(c.reply, r);
             }
             Request::RunStatus => Self::reply(c.reply, Ok(self.run_status())),
+            Request::Runs { limit } => Self::reply(
+                c.reply,
+                results::runs(&self.store, limit.unwrap_or(50))
+                    .map(|v| serde_json::json!({ "runs": v })),
+            ),
+            Request::RunResult { run_id } => Self::reply(
+                c.reply,
+                results::run_result(&self.store, run_id)
+                    .and_then(|r| serde_json::to_value(r).map_err(|e| format!("run result: {e}"))),
+            ),
             Request::RunAbort => {
                 if self.pipeline.abort_run() {
                     let id = self.run.as_ref().map(|r| r.id.0);

@@ -9,6 +9,7 @@ pub mod measure;
 pub mod notify;
 pub mod peer;
 pub mod pipeline;
+pub mod results;
 pub mod shutdown;
 pub mod snapshot;
 

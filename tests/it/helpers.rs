@@ -285,6 +285,9 @@ pub struct RigOptions {
     /// Extra TOML appended to the service configuration (e.g. a `[tracking]` section).
     pub service_toml: String,
     pub plant: PlantSpec,
+    /// Give the twin a control socket and let the service send it part programs
+    /// (`[cnc] mode = "twin"`), so runs execute on the twin's CNC.
+    pub twin_cnc: bool,
 }
 
 impl Default for RigOptions {
@@ -300,6 +303,7 @@ impl Default for RigOptions {
                 },
                 ..PlantSpec::default()
             },
+            twin_cnc: false,
         }
     }
 }
@@ -337,18 +341,22 @@ impl ServiceRig {
                     start_mm: 2.0,
                     ..TwinDriveConfig::default()
                 },
-                control: None,
+                control: opts.twin_cnc.then(|| "127.0.0.1:0".parse().expect("addr")),
             },
         )
         .await
         .expect("twin");
+        let cnc = match twin.control_addr() {
+            Some(a) => format!("[cnc]\nmode = \"twin\"\ntwin = \"{a}\"\n\n"),
+            None => String::new(),
+        };
         let socket = dir.path("control.sock");
         let config = dir.write(
             "axiscomp.toml",
             &format!(
                 "[service]\nsocket = \"{}\"\nstate_dir = \"{}\"\nsnapshot_hz = 20.0\n\n\
                  [io]\naddress = \"{}\"\nrate_hz = 500.0\n\n\
-                 [can]\ntransport = \"cannelloni\"\nlocal = \"127.0.0.1:{svc_port}\"\nremote = \"127.0.0.1:{twin_port}\"\n\n{}",
+                 [can]\ntransport = \"cannelloni\"\nlocal = \"127.0.0.1:{svc_port}\"\nremote = \"127.0.0.1:{twin_port}\"\n\n{cnc}{}",
                 socket.display(),
                 dir.path("state").display(),
                 twin.io.local_addr(),

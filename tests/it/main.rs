@@ -9,6 +9,7 @@ mod can;
 mod canopen;
 mod cli;
 mod comp;
+mod console;
 mod decoupling;
 mod evaluate;
 mod modbus;

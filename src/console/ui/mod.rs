@@ -1,0 +1,354 @@
+//! Drawing: pure functions of the [`App`] into a ratatui `Frame`, one file per screen. The
+//! frame is a tab bar, the screen, and a status bar (message, link, role); overlays (help,
+//! confirmation) go on top. Layouts work from 80×24 and use the room at 160×48 and above.
+
+mod align;
+mod chart;
+mod events;
+mod live;
+mod measure;
+mod pending;
+mod psd;
+mod results;
+
+use super::app::{Access, App, Confirm, GLOBAL_KEYS, Level, LinkState, Overlay, Screen};
+use ratatui::Frame;
+use ratatui::layout::{Constraint, Layout, Rect};
+use ratatui::style::{Color, Modifier, Style};
+use ratatui::text::{Line, Span};
+use ratatui::widgets::{Block, Clear, Paragraph, Wrap};
+
+/// Styles, with or without colour (`NO_COLOR`): without, only modifiers mark things.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Theme {
+    pub color: bool,
+}
+
+impl Theme {
+    fn fg(&self, c: Color) -> Style {
+        if self.color {
+            Style::new().fg(c)
+        } else {
+            Style::new()
+        }
+    }
+    /// Normal, healthy state.
+    pub fn ok(&self) -> Style {
+        self.fg(Color::Green)
+    }
+    pub fn warn(&self) -> Style {
+        if self.color {
+            Style::new().fg(Color::Yellow)
+        } else {
+            Style::new().add_modifier(Modifier::BOLD)
+        }
+    }
+    pub fn bad(&self) -> Style {
+        if self.color {
+            Style::new().fg(Color::Red).add_modifier(Modifier::BOLD)
+        } else {
+            Style::new().add_modifier(Modifier::BOLD | Modifier::REVERSED)
+        }
+    }
+    pub fn accent(&self) -> Style {
+        self.fg(Color::Cyan).add_modifier(Modifier::BOLD)
+    }
+    pub fn dim(&self) -> Style {
+        if self.color {
+            Style::new().fg(Color::DarkGray)
+        } else {
+            Style::new().add_modifier(Modifier::DIM)
+        }
+    }
+    pub fn selected(&self) -> Style {
+        Style::new().add_modifier(Modifier::REVERSED)
+    }
+    pub fn bold(&self) -> Style {
+        Style::new().add_modifier(Modifier::BOLD)
+    }
+    /// Colour for canvas shapes.
+    pub fn shape(&self, c: Color) -> Color {
+        if self.color { c } else { Color::Reset }
+    }
+    pub fn level(&self, l: Level) -> Style {
+        match l {
+            Level::Info => Style::new(),
+            Level::Warn => self.warn(),
+            Level::Error => self.bad(),
+        }
+    }
+}
+
+/// Wide layouts from this many columns.
+pub const WIDE: u16 = 120;
+/// Tall layouts from this many rows.
+pub const TALL: u16 = 36;
+
+/// Draw the whole console.
+pub fn render(frame: &mut Frame, app: &App) {
+    let theme = Theme {
+        color: app.opts.color,
+    };
+    let [tabs, body, status] = Layout::vertical([
+        Constraint::Length(1),
+        Constraint::Min(1),
+        Constraint::Length(1),
+    ])
+    .areas(frame.area());
+    render_tabs(frame, tabs, app, theme);
+    let body = banner(frame, body, app, theme);
+    match app.screen {
+        Screen::Live => live::render(frame, body, app),
+        Screen::Align => align::render(frame, body, app),
+        Screen::Calibrate => pending::calibrate(frame, body, app),
+        Screen::Measure => measure::render(frame, body, app),
+        Screen::Results => results::render(frame, body, app),
+        Screen::Publish => pending::publish(frame, body, app),
+        Screen::Events => events::render(frame, body, app),
+    }
+    render_status(frame, status, app, theme);
+    match &app.overlay {
+        Overlay::None => {}
+        Overlay::Help => render_help(frame, app, theme),
+        Overlay::Confirm(c) => render_confirm(frame, c, app, theme),
+    }
+}
+
+fn render_tabs(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
+    let mut spans = Vec::new();
+    for s in Screen::ALL {
+        let label = format!(" {} {} ", s.index() + 1, s.title());
+        spans.push(if s == app.screen {
+            Span::styled(label, theme.selected().add_modifier(Modifier::BOLD))
+        } else {
+            Span::raw(label)
+        });
+    }
+    let used: usize = spans.iter().map(|s| s.width()).sum();
+    let name = " axiscomp console";
+    if (area.width as usize) >= used + name.len() {
+        spans.push(Span::styled(
+            format!("{name:>w$}", w = area.width as usize - used),
+            theme.accent(),
+        ));
+    }
+    frame.render_widget(Line::from(spans), area);
+}
+
+/// A one-line warning above the screen when the link is down or the data stale; returns the
+/// rest of the area.
+fn banner(frame: &mut Frame, area: Rect, app: &App, theme: Theme) -> Rect {
+    let text = match (&app.link, app.snapshot.is_some()) {
+        (LinkState::Up, true) if !app.stale() => return area,
+        (LinkState::Up, _) => "waiting for snapshots from the service".to_string(),
+        (LinkState::Connecting, _) => format!("connecting to {}", app.opts.socket),
+        (LinkState::Down { error, retry_in }, has) => format!(
+            "{}no service: {error}; retrying in {:.1} s",
+            if has { "last known values; " } else { "" },
+            retry_in.as_secs_f64()
+        ),
+    };
+    let [top, rest] = Layout::vertical([Constraint::Length(1), Constraint::Min(0)]).areas(area);
+    frame.render_widget(Paragraph::new(Span::styled(text, theme.bad())), top);
+    rest
+}
+
+fn render_status(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
+    let link = match &app.link {
+        LinkState::Up => Span::styled("● connected", theme.ok()),
+        LinkState::Connecting => Span::styled("○ connecting", theme.warn()),
+        LinkState::Down { .. } => Span::styled("○ no service", theme.bad()),
+    };
+    let who = match (app.access, &app.user) {
+        (Access::Viewer, _) => Span::styled("read-only (viewer)", theme.warn()),
+        (Access::Operator, Some(u)) => Span::raw(format!("operator {u}")),
+        (Access::Operator, None) => Span::raw("operator"),
+        (Access::Unknown, Some(u)) => Span::raw(u.clone()),
+        (Access::Unknown, None) => Span::raw(""),
+    };
+    // Two blanks keep a long message apart from who and the link.
+    let right = Line::from(vec![
+        Span::raw("  "),
+        who,
+        Span::raw("  "),
+        link,
+        Span::raw(" "),
+    ]);
+    let rw = right.width() as u16;
+    let [left_area, right_area] =
+        Layout::horizontal([Constraint::Min(0), Constraint::Length(rw)]).areas(area);
+    let left = match &app.message {
+        Some(m) => Line::from(Span::styled(format!(" {}", m.text), theme.level(m.level))),
+        None => Line::from(Span::styled(
+            " ? help  q quit  1–7/Tab screens",
+            theme.dim(),
+        )),
+    };
+    frame.render_widget(left, left_area);
+    frame.render_widget(right, right_area);
+}
+
+/// A centred rectangle of at most `w`×`h` inside `area`.
+fn centred(area: Rect, w: u16, h: u16) -> Rect {
+    area.centered(
+        Constraint::Length(w.min(area.width)),
+        Constraint::Length(h.min(area.height)),
+    )
+}
+
+fn key_lines<'a>(keys: &[(&'a str, &'a str)], theme: Theme) -> Vec<Line<'a>> {
+    keys.iter()
+        .map(|(k, what)| {
+            Line::from(vec![
+                Span::styled(format!("  {k:<12}"), theme.bold()),
+                Span::raw(*what),
+            ])
+        })
+        .collect()
+}
+
+fn render_help(frame: &mut Frame, app: &App, theme: Theme) {
+    let keys = super::app::screen_keys(app.screen);
+    let mut lines = vec![Line::styled(
+        format!("{} screen", app.screen.title()),
+        theme.accent(),
+    )];
+    if keys.is_empty() {
+        lines.push(Line::styled("  (no keys of its own)", theme.dim()));
+    } else {
+        lines.extend(key_lines(keys, theme));
+    }
+    if app.read_only() && !keys.is_empty() {
+        lines.push(Line::styled(
+            "  read-only (viewer): keys that change anything are disabled",
+            theme.warn(),
+        ));
+    }
+    lines.push(Line::styled("Every screen", theme.accent()));
+    lines.extend(key_lines(GLOBAL_KEYS, theme));
+    lines.push(Line::styled("any key closes this help", theme.dim()));
+    let h = lines.len() as u16 + 2;
+    let area = centred(frame.area(), 64, h);
+    frame.render_widget(Clear, area);
+    frame.render_widget(
+        Paragraph::new(lines).block(Block::bordered().title(" Help ")),
+        area,
+    );
+}
+
+fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
+    let (title, mut lines) = match c {
+        Confirm::Quit => (
+            " Quit? ",
+            vec![
+                Line::raw("A run is under way. It goes on in the service;"),
+                Line::raw("the console can be started again to follow it."),
+            ],
+        ),
+        Confirm::StartRun(spec) => {
+            let captures = app
+                .plan
+                .checked()
+                .map(|p| p.capture_count().to_string())
+                .unwrap_or_else(|_| "?".into());
+            (
+                " Start the run? ",
+                vec![
+                    Line::raw(format!(
+                        "Axis {}, {} to {} mm, {} targets, {} bidirectional runs",
+                        spec.axis, spec.start_mm, spec.end_mm, spec.targets, spec.runs
+                    )),
+                    Line::raw(format!(
+                        "{captures} captures; overrun {} mm, dwell {} s, feed {} mm/min.",
+                        spec.overrun_mm, spec.dwell_s, spec.feed_mm_min
+                    )),
+                    Line::raw("The service writes the part program; the CNC moves the axis."),
+                ],
+            )
+        }
+        Confirm::AbortRun(id) => (
+            " Abort the run? ",
+            vec![Line::raw(format!(
+                "Stop run {}; its captures stay stored.",
+                id.map(|i| i.to_string()).unwrap_or_else(|| "?".into())
+            ))],
+        ),
+    };
+    lines.push(Line::raw(""));
+    lines.push(Line::from(vec![
+        Span::styled(" y ", theme.selected()),
+        Span::raw(" yes    "),
+        Span::styled(" n ", theme.selected()),
+        Span::raw(" no"),
+    ]));
+    let h = lines.len() as u16 + 2;
+    let area = centred(frame.area(), 70, h);
+    frame.render_widget(Clear, area);
+    frame.render_widget(
+        Paragraph::new(lines)
+            .wrap(Wrap { trim: false })
+            .block(Block::bordered().title(title).border_style(theme.warn())),
+        area,
+    );
+}
+
+// ---------- formatting shared by the screens ----------
+
+/// A signed value with fixed decimals, or "—".
+pub fn signed(v: Option<f64>, decimals: usize) -> String {
+    match v {
+        Some(v) if v.is_finite() => format!("{v:+.decimals$}"),
+        _ => "—".into(),
+    }
+}
+
+/// A bar of `width` cells filled to `frac` (0..=1).
+pub fn bar(frac: f64, width: usize) -> String {
+    let f = if frac.is_finite() {
+        frac.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let full = (f * width as f64).round() as usize;
+    format!("{}{}", "█".repeat(full), "░".repeat(width - full))
+}
+
+/// `1 h 02 min`, `3 min 05 s`, `42 s`.
+pub fn duration(d: std::time::Duration) -> String {
+    let s = d.as_secs();
+    if s >= 3600 {
+        format!("{} h {:02} min", s / 3600, (s % 3600) / 60)
+    } else if s >= 60 {
+        format!("{} min {:02} s", s / 60, s % 60)
+    } else {
+        format!("{s} s")
+    }
+}
+
+/// `HH:MM:SS` UTC of µs since the epoch.
+pub fn clock_utc(unix_us: i64) -> String {
+    let s = unix_us.div_euclid(1_000_000).rem_euclid(86_400);
+    format!("{:02}:{:02}:{:02}", s / 3600, (s % 3600) / 60, s % 60)
+}
+
+/// A titled, bordered block.
+pub fn panel(title: &str) -> Block<'_> {
+    Block::bordered().title(format!(" {title} "))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn formats() {
+        assert_eq!(signed(Some(1.234), 2), "+1.23");
+        assert_eq!(signed(Some(-0.5), 1), "-0.5");
+        assert_eq!(signed(None, 1), "—");
+        assert_eq!(bar(0.5, 4), "██░░");
+        assert_eq!(bar(f64::NAN, 2), "░░");
+        assert_eq!(duration(std::time::Duration::from_secs(3725)), "1 h 02 min");
+        assert_eq!(duration(std::time::Duration::from_secs(185)), "3 min 05 s");
+        assert_eq!(clock_utc(1_700_000_000_000_000), "22:13:20");
+    }
+}

@@ -1,0 +1,189 @@
+#!/usr/bin/env bash
+# The console in a real terminal (issue 6, must-show 3): tmux runs `axiscomp console` at 80×24
+# against `axiscomp sim` + `axiscomp serve` (the twin's CNC runs the part programs), keys go in
+# with send-keys and every screen is checked with capture-pane: Live, help, Align, the plan
+# typed into Measure, start, progress, the finished run's results, quit (the terminal given
+# back, exit status 0), then NO_COLOR. Exits non-zero on the first screen that does not show
+# what it should, printing that screen. Needs tmux and python3 (.ci/run installs tmux).
+#   bash tests/interop/console.sh            # from anywhere in the repository
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/../.."
+command -v tmux >/dev/null || { echo "console.sh: tmux not found" >&2; exit 1; }
+command -v python3 >/dev/null || { echo "console.sh: python3 not found" >&2; exit 1; }
+
+cargo build --locked -q
+bin="${CARGO_TARGET_DIR:-target}/debug/axiscomp"
+[ -x "$bin" ] || { echo "console.sh: no binary at $bin" >&2; exit 1; }
+
+work=$(mktemp -d)
+tmx=(tmux -L "axiscomp-console-$$" -f /dev/null)
+sim=""
+svc=""
+cleanup() {
+  "${tmx[@]}" kill-server 2>/dev/null || true
+  [ -n "$svc" ] && kill "$svc" 2>/dev/null
+  [ -n "$sim" ] && kill "$sim" 2>/dev/null
+  wait 2>/dev/null || true
+  rm -rf "$work"
+}
+trap cleanup EXIT
+
+fail() {
+  echo "console.sh: FAIL: $*" >&2
+  echo "---- the screen ----" >&2
+  "${tmx[@]}" capture-pane -p -t console >&2 2>/dev/null || true
+  echo "---- service log (tail) ----" >&2
+  tail -n 20 "$work/serve.log" >&2 || true
+  exit 1
+}
+
+# Free loopback ports for the twin's I/O module, its control socket and the CAN gateway pair.
+read -r io ctl can_svc can_twin < <(python3 - <<'EOF'
+import socket
+tcp = [socket.socket() for _ in range(2)]
+udp = [socket.socket(type=socket.SOCK_DGRAM) for _ in range(2)]
+for s in tcp + udp:
+    s.bind(("127.0.0.1", 0))
+print(*(s.getsockname()[1] for s in tcp + udp))
+EOF
+)
+
+sed -e "s#127.0.0.1:5020#127.0.0.1:$io#" \
+    -e "s#127.0.0.1:5099#127.0.0.1:$ctl#" \
+    -e "s#^local = \"127.0.0.1:20001\"#local = \"127.0.0.1:$can_twin\"#" \
+    -e "s#^remote = \"127.0.0.1:20000\"#remote = \"127.0.0.1:$can_svc\"#" \
+    configs/sim.toml > "$work/sim.toml"
+sed -e "s#\./run/#$work/#" \
+    -e "s#127.0.0.1:5020#127.0.0.1:$io#" \
+    -e "s#^local = \"127.0.0.1:20000\"#local = \"127.0.0.1:$can_svc\"#" \
+    -e "s#^remote = \"127.0.0.1:20001\"#remote = \"127.0.0.1:$can_twin\"#" \
+    configs/twin-service.toml > "$work/service.toml"
+# The twin's CNC runs the programs; handovers and captures quicker than in production so the
+# short plan takes well under a minute.
+cat >> "$work/service.toml" <<EOF
+
+[cnc]
+mode = "twin"
+twin = "127.0.0.1:$ctl"
+
+[tracking]
+rest_ms = 200
+average_frames = 100
+settle_ms = 100
+
+[capture]
+frames = 100
+settle_ms = 200
+EOF
+
+"$bin" sim --config "$work/sim.toml" >"$work/sim.log" 2>&1 & sim=$!
+sleep 1
+RUST_LOG=warn "$bin" serve --config "$work/service.toml" >"$work/serve.log" 2>&1 & svc=$!
+
+# The service is up with the follower homed and the stitch referenced.
+ready=""
+for _ in $(seq 1 120); do
+  if "$bin" status --socket "$work/control.sock" --json 2>/dev/null | python3 -c '
+import json, sys
+s = json.load(sys.stdin)
+sys.exit(0 if s["follower"]["homed"] and s["tracking"]["valid"] and s["tracking"]["at_rest"] else 1)
+' 2>/dev/null; then ready=1; break; fi
+  sleep 0.5
+done
+[ -n "$ready" ] || { tail -n 20 "$work/serve.log" >&2; echo "console.sh: the service did not come up" >&2; exit 1; }
+
+screen() { "${tmx[@]}" capture-pane -p -t console; }
+# expect SECONDS TEXT...: wait until the screen shows every TEXT.
+expect() {
+  local secs=$1; shift
+  local end=$((SECONDS + secs)) text missing
+  while :; do
+    text=$(screen)
+    missing=""
+    for want in "$@"; do
+      grep -qF -- "$want" <<<"$text" || { missing=$want; break; }
+    done
+    [ -z "$missing" ] && return 0
+    [ "$SECONDS" -ge "$end" ] && fail "within ${secs} s the screen did not show \"$missing\""
+    sleep 0.3
+  done
+}
+keys() { "${tmx[@]}" send-keys -t console "$@"; sleep 0.2; }
+# field VALUE: type VALUE into the selected plan field, then select the next one.
+field() {
+  keys Enter
+  for _ in $(seq 1 12); do keys BSpace; done
+  keys -l "$1"
+  keys Enter Down
+}
+
+"${tmx[@]}" new-session -d -s console -x 80 -y 24 \
+  "$bin console --socket $work/control.sock"
+"${tmx[@]}" set-option -t console remain-on-exit on >/dev/null
+
+echo "console.sh: Live"
+expect 20 "1 Live" "Six errors" "● connected" "operator" "homed" "PSD1 pitch/yaw" "SUM"
+expect 10 "dy "
+
+echo "console.sh: help"
+keys '?'
+expect 5 "Help" "Live screen" "Every screen" "any key closes this help"
+keys x
+expect 5 "Six errors"
+
+echo "console.sh: Align"
+keys 2
+expect 5 "Beam and centring" "PSD1 beam on" "Follower and zero" "jog step 0.1 mm"
+
+echo "console.sh: Measure, the plan typed in"
+keys 4
+expect 5 "Plan (ISO 230-2)" "No run seen yet"
+keys Down Down        # start, end
+field 8
+field 5               # targets
+field 2               # runs
+field 1               # overrun
+field 1.5             # dwell
+field 3000            # feed
+field 0               # screw lead
+expect 5 "✓ 20 captures" "targets (mm): 0.0 2.0 4.0 6.0 8.0"
+
+echo "console.sh: start"
+keys s
+expect 5 "Start the run?" "Axis X, 0 to 8 mm, 5 targets, 2 bidirectional runs"
+keys y
+expect 15 "running" "/20" "captures in cycle order"
+
+echo "console.sh: progress"
+expect 60 "ETA" "run 1  ↑ ■■"
+expect 30 "dy positioning (µm)"
+
+echo "console.sh: the run ends, its results"
+expect 150 "finished: its results are on screen 5"
+keys 5
+expect 15 "X finished, 20 captures" "dy positioning (µm)" "Figures (←→ error)" "A (accuracy)" "R (repeatability)"
+keys Right
+expect 5 "dz vertical straightness (µm)" "straight LS"
+
+echo "console.sh: colours, then quit"
+"${tmx[@]}" capture-pane -e -p -t console | grep -qE $'\e\\[[0-9;]*(3[0-7]|38;)' \
+  || fail "no colour escapes with colours on"
+keys q
+for _ in $(seq 1 50); do
+  [ "$("${tmx[@]}" display-message -p -t console '#{pane_dead}')" = 1 ] && break
+  sleep 0.2
+done
+dead=$("${tmx[@]}" display-message -p -t console '#{pane_dead} #{pane_dead_status}')
+[ "$dead" = "1 0" ] || fail "q did not end the console with status 0 (pane dead, status: $dead)"
+"${tmx[@]}" kill-session -t console
+
+echo "console.sh: NO_COLOR"
+"${tmx[@]}" new-session -d -s console -x 80 -y 24 \
+  "NO_COLOR=1 $bin console --socket $work/control.sock"
+expect 20 "Six errors" "● connected"
+if "${tmx[@]}" capture-pane -e -p -t console | grep -qE $'\e\\[[0-9;]*(3[0-7]|38;|4[0-7]|48;)'; then
+  fail "NO_COLOR=1 still draws colours"
+fi
+keys q
+
+echo "console.sh: all screens as expected"

@@ -1,0 +1,841 @@
+//! The console (`axiscomp console`, issue 6).
+//!
+//! Render tests: every screen at 80×24 and 160×48 into ratatui's `TestBackend`, the buffer's
+//! text under insta. The data is a real twin + service session kept as a fixture
+//! (`fixtures/console_twin.json`, recorded by `capture_console_fixture` below), because a live
+//! snapshot's noise digits cannot be rounded away deterministically (a value near a rounding
+//! boundary flips between runs). The session: the follower homed, `nominal 0` and `zero` at
+//! rest, PSD3 blocked and unblocked (a cleared `beam-blocked` alarm); run 1 of the short plan
+//! to the end; run 2 of the same plan, recorded snapshot by snapshot, with the service's
+//! `run_result` half-way (the live plot) and at the end, the `runs` list and run 1's result
+//! (for the before/after comparison). What the fixture redacts: every timestamp is shifted by
+//! one offset so the rest snapshot is at 2026-01-01 08:00:00 UTC, and the program paths are
+//! moved out of the temporary directory; nothing else is changed.
+//!
+//! The app is fed the fixture exactly as the loop feeds it live data: the plan typed by keys,
+//! each request it sends answered with the service's recorded reply.
+//!
+//! The key-driven test then runs the real console loop against a live service and twin: plan →
+//! start → progress → results, and an abort.
+
+use crate::helpers::{RigOptions, ServiceRig, within_s};
+use axiscomp::console::app::{Access, Action, App, AppOptions, Field, LinkState, Screen};
+use axiscomp::console::client::{Client, ClientError, ClientOptions, Identity, PeerRole};
+use axiscomp::console::{drive, ui};
+use axiscomp::run::PlanSpec;
+use axiscomp::service::control::Request;
+use axiscomp::service::snapshot::Snapshot;
+use crossterm::event::{Event, KeyCode, KeyEvent, KeyModifiers};
+use futures_util::StreamExt;
+use ratatui::Terminal;
+use ratatui::backend::TestBackend;
+use ratatui::buffer::Buffer;
+use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+const FIXTURE: &str = "tests/it/fixtures/console_twin.json";
+
+/// Handovers and captures quicker than the production defaults (as in the service tests), so
+/// the short plan's run takes well under a minute on the twin.
+const FAST: &str = "[tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n\n\
+                    [capture]\nframes = 100\nsettle_ms = 200\n";
+
+/// The short plan the fixture and the key-driven test run: 0–8 mm, 5 targets, 2 runs.
+fn short_plan() -> PlanSpec {
+    PlanSpec {
+        axis: "X".into(),
+        start_mm: 0.0,
+        end_mm: 8.0,
+        targets: 5,
+        runs: 2,
+        overrun_mm: 1.0,
+        dwell_s: 1.5,
+        feed_mm_min: 3000.0,
+        lead_mm: 0.0,
+        reference_mm: None,
+    }
+}
+
+/// A real twin + service session, recorded (see the module comment).
+#[derive(Debug, Serialize, Deserialize)]
+struct Fixture {
+    about: String,
+    /// The user the service named in its `status` reply.
+    user: String,
+    /// At rest at 0 mm after `nominal 0` and `zero`.
+    rest: Snapshot,
+    plan: PlanSpec,
+    /// The service's reply to run 2's `run_start`.
+    start_reply: serde_json::Value,
+    /// Snapshots while run 2 went (one per new capture, then one after it ended), with seconds
+    /// since `run_start` was answered.
+    progress: Vec<(f64, Snapshot)>,
+    /// How many `progress` entries came before `live_result` was asked.
+    mid: usize,
+    /// `run_result` of run 2 half-way (the captures so far, no figures).
+    live_result: serde_json::Value,
+    /// `run_status` after run 2 ended.
+    finished_status: serde_json::Value,
+    /// `run_result` of run 2 and of run 1 after both ended.
+    result_2: serde_json::Value,
+    result_1: serde_json::Value,
+    /// `runs` after both ended.
+    runs: serde_json::Value,
+}
+
+fn load_fixture() -> Fixture {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(FIXTURE);
+    let text = std::fs::read_to_string(&path).expect("read the console fixture");
+    serde_json::from_str(&text).expect("parse the console fixture")
+}
+
+/// The buffer's text, one line per row, trailing blanks dropped.
+fn text(buf: &Buffer) -> String {
+    let w = buf.area.width as usize;
+    let mut out = String::new();
+    for row in buf.content.chunks(w) {
+        let mut line = String::new();
+        let mut skip = 0usize;
+        for cell in row {
+            // A wide glyph covers the next cell, which holds nothing to print.
+            if skip > 0 {
+                skip -= 1;
+                continue;
+            }
+            let sym = cell.symbol();
+            skip = ratatui::text::Span::raw(sym).width().saturating_sub(1);
+            line.push_str(sym);
+        }
+        out.push_str(line.trim_end());
+        out.push('\n');
+    }
+    out
+}
+
+fn render(app: &App, w: u16, h: u16) -> Buffer {
+    let mut t = Terminal::new(TestBackend::new(w, h)).expect("test terminal");
+    t.draw(|f| ui::render(f, app)).expect("draw");
+    t.backend().buffer().clone()
+}
+
+fn opts(color: bool) -> AppOptions {
+    AppOptions {
+        socket: "/run/axiscomp/control.sock".into(),
+        jog_step_mm: 0.1,
+        color,
+    }
+}
+
+fn key(c: KeyCode) -> KeyEvent {
+    KeyEvent::new(c, KeyModifiers::NONE)
+}
+
+fn chars(s: &str) -> Vec<KeyEvent> {
+    s.chars().map(|c| key(KeyCode::Char(c))).collect()
+}
+
+/// Keys that type `plan` into the Measure form from its first field, leaving the selection
+/// on the first field again.
+fn plan_keys(plan: &PlanSpec) -> Vec<KeyEvent> {
+    let mut keys = Vec::new();
+    for f in Field::ALL {
+        keys.push(key(KeyCode::Enter));
+        keys.extend(std::iter::repeat_n(key(KeyCode::Backspace), 16));
+        keys.extend(chars(&f.get(plan)));
+        keys.push(key(KeyCode::Enter));
+        keys.push(key(KeyCode::Down));
+    }
+    keys
+}
+
+/// Answer every request in `actions` (and those the answers lead to) with `reply`; returns
+/// the requests in the order they were sent.
+fn answer(
+    app: &mut App,
+    actions: Vec<Action>,
+    now: Instant,
+    reply: &dyn Fn(&Request) -> serde_json::Value,
+) -> Vec<Request> {
+    let mut queue: VecDeque<Action> = actions.into();
+    let mut sent = Vec::new();
+    while let Some(a) = queue.pop_front() {
+        if let Action::Send { id, request } = a {
+            let v = reply(&request);
+            sent.push(request);
+            queue.extend(app.handle_reply(id, Ok(v), now));
+        }
+    }
+    sent
+}
+
+/// The service's recorded replies.
+fn replies(fx: &Fixture, ended: bool) -> impl Fn(&Request) -> serde_json::Value + '_ {
+    move |r| match r {
+        Request::RunStatus if !ended => {
+            let (_, s) = &fx.progress[fx.mid - 1];
+            let r = s.run.as_ref().expect("a run in the mid snapshot");
+            serde_json::json!({"run_id": r.id, "state": "running", "captures": r.captures,
+                "expected": r.expected, "missing": 0, "program": r.program})
+        }
+        Request::RunStatus => fx.finished_status.clone(),
+        Request::RunResult { run_id: Some(id) } if !ended => {
+            assert_eq!(Some(*id), fx.start_reply["run_id"].as_i64());
+            fx.live_result.clone()
+        }
+        Request::RunResult { run_id: Some(id) }
+            if Some(*id) == fx.result_1["run"]["id"].as_i64() =>
+        {
+            fx.result_1.clone()
+        }
+        Request::RunResult { run_id: Some(id) } => {
+            assert_eq!(Some(*id), fx.result_2["run"]["id"].as_i64());
+            fx.result_2.clone()
+        }
+        Request::Runs { .. } => fx.runs.clone(),
+        other => panic!("the console sent {other:?} here"),
+    }
+}
+
+/// The app at rest: connected as an operator, the rest snapshot.
+fn rest_app(fx: &Fixture, t0: Instant, color: bool) -> App {
+    let mut app = App::new(opts(color), t0);
+    app.handle_connected(
+        Identity {
+            user: Some(fx.user.clone()),
+            role: Some(PeerRole::Operator),
+        },
+        t0,
+    );
+    assert!(app.handle_snapshot(fx.rest.clone(), t0).is_empty());
+    assert!(app.tick(t0).is_empty());
+    app
+}
+
+/// The app half-way through run 2: the plan typed in, started by keys, the service's reply,
+/// the recorded snapshots up to `mid`, and the Measure screen's polls answered.
+fn mid_run_app(fx: &Fixture, t0: Instant, color: bool) -> (App, Instant) {
+    let mut app = rest_app(fx, t0, color);
+    for k in chars("4").into_iter().chain(plan_keys(&fx.plan)) {
+        assert!(app.handle_key(k).is_empty());
+    }
+    assert_eq!(app.plan.spec, fx.plan);
+    assert!(app.handle_key(key(KeyCode::Char('s'))).is_empty());
+    let out = app.handle_key(key(KeyCode::Char('y')));
+    let [Action::Send { id, request }] = &out[..] else {
+        panic!("start sends one request: {out:?}")
+    };
+    assert!(matches!(request, Request::RunStart { plan, .. } if *plan == fx.plan));
+    app.handle_reply(*id, Ok(fx.start_reply.clone()), t0);
+    let mut last = t0;
+    for (t, s) in &fx.progress[..fx.mid] {
+        last = t0 + Duration::from_secs_f64(*t);
+        assert!(app.handle_snapshot(s.clone(), last).is_empty());
+    }
+    let now = last + Duration::from_millis(500);
+    let actions = app.tick(now);
+    let sent = answer(&mut app, actions, now, &replies(fx, false));
+    assert!(
+        matches!(
+            &sent[..],
+            [Request::RunStatus, Request::RunResult { run_id: Some(_) }]
+        ),
+        "{sent:?}"
+    );
+    (app, now)
+}
+
+/// The app after run 2 ended: the rest of the snapshots, the end noticed and its result
+/// fetched, then on the Results screen run 1 picked (↓) to compare with (b).
+fn results_app(fx: &Fixture, t0: Instant, color: bool) -> App {
+    let (mut app, _) = mid_run_app(fx, t0, color);
+    let reply = replies(fx, true);
+    let run2 = fx.start_reply["run_id"].as_i64();
+    let mut now = t0;
+    for (t, s) in &fx.progress[fx.mid..] {
+        now = t0 + Duration::from_secs_f64(*t);
+        let actions = app.handle_snapshot(s.clone(), now);
+        let sent = answer(&mut app, actions, now, &reply);
+        if s.run.is_none() {
+            // The run ended: the console asked how, then for its result.
+            assert_eq!(sent.first(), Some(&Request::RunStatus), "{sent:?}");
+            assert!(
+                sent.contains(&Request::RunResult { run_id: run2 }),
+                "{sent:?}"
+            );
+        }
+    }
+    assert_eq!(app.run.as_ref().map(|r| r.state.as_str()), Some("finished"));
+    assert_eq!(app.results.shown.as_ref().map(|r| r.run.id), run2);
+    // The Results screen asks for the run list.
+    let actions = app.handle_key(key(KeyCode::Char('5')));
+    let sent = answer(&mut app, actions, now, &reply);
+    assert_eq!(sent, [Request::Runs { limit: None }]);
+    assert!(app.results.runs.len() >= 2, "{:?}", app.results.runs);
+    assert!(app.handle_key(key(KeyCode::Down)).is_empty());
+    let actions = app.handle_key(key(KeyCode::Char('b')));
+    let sent = answer(&mut app, actions, now, &reply);
+    assert_eq!(sent.len(), 1, "{sent:?}");
+    assert_eq!(
+        app.results.before.as_ref().map(|r| r.run.id),
+        fx.result_1["run"]["id"].as_i64()
+    );
+    app
+}
+
+const SIZES: [(u16, u16); 2] = [(80, 24), (160, 48)];
+
+fn snapshot_screens(app: &mut App, screens: &[Screen]) {
+    for &s in screens {
+        app.screen = s;
+        for (w, h) in SIZES {
+            let name = format!("{}_{w}x{h}", s.title().to_lowercase());
+            insta::assert_snapshot!(name, text(&render(app, w, h)));
+        }
+    }
+}
+
+#[test]
+fn every_screen_renders_from_a_twin_run_at_80x24_and_160x48() {
+    let fx = load_fixture();
+    let t0 = Instant::now();
+    let mut rest = rest_app(&fx, t0, true);
+    snapshot_screens(&mut rest, &[Screen::Live, Screen::Align, Screen::Calibrate]);
+    let (mut mid, _) = mid_run_app(&fx, t0, true);
+    snapshot_screens(&mut mid, &[Screen::Measure, Screen::Events]);
+    let mut done = results_app(&fx, t0, true);
+    snapshot_screens(&mut done, &[Screen::Results, Screen::Publish]);
+}
+
+#[test]
+fn the_screens_show_the_twin_data_they_are_given() {
+    // Independent of the snapshots: the numbers on screen are the fixture's.
+    let fx = load_fixture();
+    let t0 = Instant::now();
+    let rest = rest_app(&fx, t0, false);
+    let live = text(&render(&rest, 160, 48));
+    let l = fx.rest.live.as_ref().expect("live errors at rest");
+    for (k, v) in l.errors.iter().enumerate() {
+        let dec = if k < 3 { 3 } else { 2 };
+        assert!(
+            live.contains(&format!("{v:+.dec$}")),
+            "error {k} = {v}:\n{live}"
+        );
+    }
+    let p = fx.rest.psd.as_ref().expect("a frame at rest");
+    for sum in p.sums_v {
+        assert!(live.contains(&format!("{sum:.2} V")), "SUM {sum}:\n{live}");
+    }
+    let mut done = results_app(&fx, t0, false);
+    done.screen = Screen::Results;
+    let res = text(&render(&done, 160, 48));
+    let r2: axiscomp::service::results::RunResult =
+        serde_json::from_value(fx.result_2.clone()).expect("result 2");
+    let dy = &r2.dofs[1];
+    assert_eq!(dy.name, "dy");
+    let repeat = dy
+        .figures
+        .iter()
+        .find(|f| f.name.starts_with("R "))
+        .expect("R in the figures");
+    assert!(res.contains(&format!("{:.2}", repeat.value)), "{res}");
+    assert!(res.contains("before: run"), "{res}");
+    // ← → walk the errors on the narrow layout.
+    assert_eq!(done.results.dof, 1, "positioning first");
+    for (k, name) in ["dz", "ex", "ey", "ez", "dx", "dy"].iter().enumerate() {
+        done.handle_key(key(KeyCode::Right));
+        assert_eq!(done.results.dof, (k + 2) % 6);
+        let t = text(&render(&done, 80, 24));
+        assert!(t.contains(&format!("{name} ")), "{name}:\n{t}");
+    }
+}
+
+#[test]
+fn overlays_read_only_and_no_service_render() {
+    let fx = load_fixture();
+    let t0 = Instant::now();
+    // Help on the Measure screen.
+    let (mut app, now) = mid_run_app(&fx, t0, true);
+    app.handle_key(key(KeyCode::Char('?')));
+    insta::assert_snapshot!("help_measure_80x24", text(&render(&app, 80, 24)));
+    // Confirming an abort.
+    app.handle_key(key(KeyCode::Esc));
+    assert!(app.handle_key(key(KeyCode::Char('a'))).is_empty());
+    insta::assert_snapshot!("confirm_abort_80x24", text(&render(&app, 80, 24)));
+    let out = app.handle_key(key(KeyCode::Char('y')));
+    assert!(
+        matches!(
+            &out[..],
+            [Action::Send {
+                request: Request::RunAbort,
+                ..
+            }]
+        ),
+        "{out:?}"
+    );
+    let _ = now;
+    // A viewer: read-only, operator keys refused with a message.
+    let mut viewer = App::new(opts(true), t0);
+    viewer.handle_connected(
+        Identity {
+            user: Some("nobody".into()),
+            role: Some(PeerRole::Viewer),
+        },
+        t0,
+    );
+    viewer.handle_snapshot(fx.rest.clone(), t0);
+    viewer.handle_key(key(KeyCode::Char('2')));
+    assert!(viewer.handle_key(key(KeyCode::Char('z'))).is_empty());
+    insta::assert_snapshot!("align_viewer_80x24", text(&render(&viewer, 80, 24)));
+    // The service went away: last known values, marked.
+    let mut gone = rest_app(&fx, t0, true);
+    gone.handle_down(
+        &ClientError::Connect {
+            path: "/run/axiscomp/control.sock".into(),
+            reason: "Connection refused (os error 111)".into(),
+        },
+        Duration::from_millis(800),
+        t0 + Duration::from_secs(5),
+    );
+    gone.tick(t0 + Duration::from_secs(5));
+    insta::assert_snapshot!("live_no_service_80x24", text(&render(&gone, 80, 24)));
+    // Never connected.
+    let never = App::new(opts(true), t0);
+    insta::assert_snapshot!("live_connecting_80x24", text(&render(&never, 80, 24)));
+}
+
+#[test]
+fn no_color_draws_without_colours() {
+    use ratatui::style::Color;
+    let fx = load_fixture();
+    let t0 = Instant::now();
+    for color in [true, false] {
+        let mut app = results_app(&fx, t0, color);
+        let mut coloured = 0usize;
+        for s in Screen::ALL {
+            app.screen = s;
+            let buf = render(&app, 160, 48);
+            coloured += buf
+                .content
+                .iter()
+                .filter(|c| c.fg != Color::Reset || c.bg != Color::Reset)
+                .count();
+        }
+        if color {
+            assert!(coloured > 100, "colours drawn: {coloured}");
+        } else {
+            assert_eq!(coloured, 0, "NO_COLOR: no cell has a colour");
+        }
+    }
+}
+
+// ---------- against a live service and twin ----------
+
+/// The real console loop on a `TestBackend`, driven in slices so the test can look between
+/// them.
+struct Console {
+    term: Terminal<TestBackend>,
+    app: App,
+    client: Client,
+}
+
+impl Console {
+    fn start(socket: &Path, w: u16, h: u16) -> Console {
+        Console {
+            term: Terminal::new(TestBackend::new(w, h)).expect("terminal"),
+            app: App::new(
+                AppOptions {
+                    socket: socket.display().to_string(),
+                    jog_step_mm: 0.1,
+                    color: true,
+                },
+                Instant::now(),
+            ),
+            client: Client::spawn(ClientOptions::new(socket.to_path_buf())),
+        }
+    }
+
+    /// Run the loop with `keys` (then no more keys) for `slice`.
+    async fn run(&mut self, keys: Vec<KeyEvent>, slice: Duration) {
+        let keys = futures_util::stream::iter(keys.into_iter().map(|k| Ok(Event::Key(k))))
+            .chain(futures_util::stream::pending());
+        let r = tokio::time::timeout(
+            slice,
+            drive(
+                &mut self.term,
+                &mut self.app,
+                keys,
+                &mut self.client,
+                Duration::from_millis(100),
+            ),
+        )
+        .await;
+        if let Ok(r) = r {
+            r.expect("the console loop");
+        }
+    }
+
+    async fn keys(&mut self, keys: Vec<KeyEvent>) {
+        self.run(keys, Duration::from_millis(400)).await;
+    }
+
+    fn screen(&self) -> String {
+        text(self.term.backend().buffer())
+    }
+
+    async fn until(&mut self, secs: u64, what: &str, pred: impl Fn(&App) -> bool) {
+        let end = Instant::now() + Duration::from_secs(secs);
+        while !pred(&self.app) {
+            assert!(
+                Instant::now() < end,
+                "{what}: not within {secs} s; the screen:\n{}",
+                self.screen()
+            );
+            self.run(Vec::new(), Duration::from_millis(200)).await;
+        }
+    }
+}
+
+/// Wait until the snapshots have shown the tracking referenced and at rest for a second.
+async fn settle(c: &mut Console) {
+    let at_rest = |a: &App| {
+        a.snapshot
+            .as_ref()
+            .is_some_and(|s| s.run.is_none() && s.tracking.valid && s.tracking.at_rest)
+    };
+    let end = Instant::now() + Duration::from_secs(30);
+    let mut since: Option<Instant> = None;
+    loop {
+        c.run(Vec::new(), Duration::from_millis(200)).await;
+        since = if at_rest(&c.app) {
+            since.or(Some(Instant::now()))
+        } else {
+            None
+        };
+        if since.is_some_and(|t| t.elapsed() >= Duration::from_secs(1)) {
+            return;
+        }
+        assert!(
+            Instant::now() < end,
+            "not at rest within 30 s:\n{}",
+            c.screen()
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn measure_workflow_by_keys_against_the_twin() {
+    let rig = ServiceRig::start(RigOptions {
+        service_toml: FAST.into(),
+        twin_cnc: true,
+        ..RigOptions::default()
+    })
+    .await;
+    let mut c = Console::start(&rig.socket, 80, 24);
+    c.until(10, "connected with a snapshot", |a| {
+        a.link == LinkState::Up && a.snapshot.is_some()
+    })
+    .await;
+    assert_eq!(
+        c.app.access,
+        Access::Operator,
+        "the status reply names the role"
+    );
+    c.run(Vec::new(), Duration::from_millis(300)).await;
+    assert!(c.screen().contains("Six errors"), "{}", c.screen());
+    // Plan: typed into the form on the Measure screen.
+    let plan = short_plan();
+    let mut keys = chars("4");
+    keys.extend(plan_keys(&plan));
+    c.keys(keys).await;
+    assert_eq!(c.app.plan.spec, plan);
+    assert!(c.screen().contains("✓ 20 captures"), "{}", c.screen());
+    // Start: asks first, then sends the plan.
+    c.keys(chars("s")).await;
+    assert!(c.screen().contains("Start the run?"), "{}", c.screen());
+    c.keys(chars("y")).await;
+    c.until(10, "the run started", |a| a.run.is_some()).await;
+    let run_id = c.app.run.as_ref().map(|r| r.run_id).expect("run id");
+    // Progress: captures come in, the ETA and the live plot appear.
+    c.until(90, "four captures and their live plot", |a| {
+        a.run.as_ref().is_some_and(|r| {
+            r.captures >= 4 && r.live.as_ref().is_some_and(|l| l.run.captures >= 4)
+        })
+    })
+    .await;
+    c.run(Vec::new(), Duration::from_millis(300)).await;
+    let r = c.app.run.clone().expect("run");
+    assert_eq!(r.expected, Some(20));
+    assert!(r.eta().is_some(), "{r:?}");
+    let s = c.screen();
+    assert!(s.contains(&format!("run {run_id} running")), "{s}");
+    assert!(s.contains("ETA"), "{s}");
+    assert!(s.contains("run 1  ↑ ■■■■"), "{s}");
+    assert!(s.contains("dy positioning (µm)"), "the live plot:\n{s}");
+    // Results: the run ends, the console fetches its evaluation by itself.
+    c.until(120, "the run finished", |a| {
+        a.run.as_ref().is_some_and(|r| r.state == "finished")
+    })
+    .await;
+    c.until(10, "its result", |a| {
+        a.results.shown.as_ref().is_some_and(|r| r.run.id == run_id)
+    })
+    .await;
+    c.keys(chars("5")).await;
+    c.until(10, "the run list", |a| a.results.listed).await;
+    c.run(Vec::new(), Duration::from_millis(300)).await;
+    let s = c.screen();
+    let shown = c.app.results.shown.clone().expect("result");
+    assert_eq!(shown.run.captures, 20);
+    assert_eq!(shown.incomplete, None, "a finished run has figures");
+    assert!(
+        s.contains(&format!("run {run_id} X finished, 20 captures")),
+        "{s}"
+    );
+    assert!(s.contains("dy positioning (µm)"), "{s}");
+    assert!(s.contains("A (accuracy)"), "{s}");
+    // The wide layout shows all six charts.
+    let mut wide = c.app.clone();
+    wide.screen = Screen::Results;
+    let t = text(&render(&wide, 160, 48));
+    for d in [
+        "dx horizontal",
+        "dy positioning",
+        "dz vertical",
+        "ex pitch",
+        "ey roll",
+        "ez yaw",
+    ] {
+        assert!(t.contains(d), "{d}:\n{t}");
+    }
+    // Abort: a second run, started and aborted by keys. Started, as an operator would, once
+    // the Live screen says the carriage and the follower are at rest: a run started during a
+    // handover moves the carriage away under it and fails ("PSD2 lost the spot").
+    settle(&mut c).await;
+    c.keys(chars("4")).await;
+    c.keys(chars("s")).await;
+    c.keys(chars("y")).await;
+    c.until(20, "the second run started", |a| {
+        a.run
+            .as_ref()
+            .is_some_and(|r| r.run_id > run_id && r.running())
+    })
+    .await;
+    c.keys(chars("a")).await;
+    assert!(c.screen().contains("Abort the run?"), "{}", c.screen());
+    c.keys(chars("y")).await;
+    c.until(20, "the run aborted", |a| {
+        a.run.as_ref().is_some_and(|r| r.state == "aborted") && !a.run_active()
+    })
+    .await;
+    // q quits at once when no run is active.
+    let mut quit = false;
+    within_s(5, "quit", async {
+        let keys = futures_util::stream::iter([Ok(Event::Key(key(KeyCode::Char('q'))))])
+            .chain(futures_util::stream::pending());
+        drive(
+            &mut c.term,
+            &mut c.app,
+            keys,
+            &mut c.client,
+            Duration::from_millis(100),
+        )
+        .await
+        .expect("loop");
+        quit = true;
+    })
+    .await;
+    assert!(quit);
+    rig.stop().await;
+}
+
+/// Record `fixtures/console_twin.json` from a real twin + service session:
+/// `cargo test --test it console::capture_console_fixture -- --ignored`, then review the
+/// snapshots that change (`INSTA_UPDATE=always` or `cargo insta review`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "writes the fixture; run by hand when the snapshot or the screens change"]
+async fn capture_console_fixture() {
+    let rig = ServiceRig::start(RigOptions {
+        service_toml: FAST.into(),
+        twin_cnc: true,
+        ..RigOptions::default()
+    })
+    .await;
+    rig.request(Request::Nominal { mm: Some(0.0) })
+        .await
+        .expect("nominal");
+    rig.request(Request::Zero).await.expect("zero");
+    rig.twin.plant.set_blocked(2, true);
+    rig.wait_for(10, "the beam-blocked alarm", |s| {
+        s.alarms
+            .iter()
+            .any(|a| a.code == "beam-blocked" && a.active)
+    })
+    .await;
+    rig.twin.plant.set_blocked(2, false);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    rig.wait_for(10, "a full live window again", |s| {
+        s.live.as_ref().is_some_and(|l| l.frames >= 100) && s.tracking.at_rest
+    })
+    .await;
+    let user = axiscomp::service::peer::user_name(unsafe { libc::geteuid() })
+        .unwrap_or_else(|| "root".into());
+    let rest = rig.snapshot().await;
+    let plan = short_plan();
+    let start = || Request::RunStart {
+        plan: plan.clone(),
+        dialect: None,
+        notes: None,
+    };
+    // Run 1, to the end: the "before" of the comparison.
+    let first = rig.request(start()).await.expect("run_start 1");
+    let t1 = Instant::now();
+    loop {
+        let status = rig.request(Request::RunStatus).await.expect("status");
+        match status["state"].as_str() {
+            Some("running") => {}
+            Some("finished") => break,
+            _ => panic!("run 1 ended so: {status}"),
+        }
+        assert!(t1.elapsed() < Duration::from_secs(180), "run 1 stalls");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    // The snapshot catches up (it shows no run), and the last handover is over: a run started
+    // during one fails ("PSD2 lost the spot").
+    rig.wait_for(5, "no run in the snapshot", |s| s.run.is_none())
+        .await;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    rig.wait_for(30, "at rest", |s| s.tracking.valid && s.tracking.at_rest)
+        .await;
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    rig.wait_for(30, "still at rest", |s| {
+        s.tracking.valid && s.tracking.at_rest
+    })
+    .await;
+    // Run 2, recorded.
+    let start_reply = rig.request(start()).await.expect("run_start 2");
+    let t0 = Instant::now();
+    let mut progress: Vec<(f64, Snapshot)> = Vec::new();
+    let mut last = usize::MAX;
+    let mut live = None;
+    loop {
+        assert!(t0.elapsed() < Duration::from_secs(180), "run 2 stalls");
+        let s = rig.snapshot().await;
+        let t = t0.elapsed().as_secs_f64();
+        match &s.run {
+            // Before the first snapshot of run 2 no run shows either.
+            None if progress.is_empty() => {}
+            None => {
+                progress.push((t, s));
+                break;
+            }
+            Some(r) if r.captures != last => {
+                last = r.captures;
+                progress.push((t, s.clone()));
+                if live.is_none() && r.captures >= r.expected / 2 {
+                    let v = rig
+                        .request(Request::RunResult { run_id: Some(r.id) })
+                        .await
+                        .expect("run_result half-way");
+                    live = Some((progress.len(), v));
+                }
+            }
+            Some(_) => {}
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let (mid, live_result) = live.expect("a half-way result");
+    let finished_status = rig.request(Request::RunStatus).await.expect("status");
+    assert_eq!(finished_status["state"], "finished", "{finished_status}");
+    let result = |id: &serde_json::Value| Request::RunResult {
+        run_id: id.as_i64(),
+    };
+    let result_2 = rig
+        .request(result(&start_reply["run_id"]))
+        .await
+        .expect("result 2");
+    let result_1 = rig
+        .request(result(&first["run_id"]))
+        .await
+        .expect("result 1");
+    let runs = rig
+        .request(Request::Runs { limit: None })
+        .await
+        .expect("runs");
+    // Redaction: shift every timestamp so the rest snapshot is at 2026-01-01 08:00:00 UTC.
+    let shift = 1_767_254_400_000_000 - rest.unix_us;
+    let redact = |mut s: Snapshot| {
+        s.unix_us += shift;
+        for a in &mut s.alarms {
+            a.since_unix_us += shift;
+        }
+        if let Some(r) = &mut s.run {
+            r.program = moved(&r.program);
+        }
+        s
+    };
+    let redact_value = |mut v: serde_json::Value| {
+        shift_json(&mut v, shift);
+        v
+    };
+    let mut start_reply = start_reply;
+    if let Some(p) = start_reply["program"].as_str() {
+        start_reply["program"] = serde_json::Value::String(moved(p));
+    }
+    let fx = Fixture {
+        about: "twin + service on loopback (tests/it/console.rs capture_console_fixture): \
+                timestamps shifted so the rest snapshot is at 2026-01-01 08:00:00 UTC, program \
+                paths moved to /var/lib/axiscomp; everything else as the service sent it"
+            .into(),
+        user,
+        rest: redact(rest),
+        plan,
+        start_reply,
+        progress: progress
+            .into_iter()
+            .map(|(t, s)| ((t * 1000.0).round() / 1000.0, redact(s)))
+            .collect(),
+        mid,
+        live_result: redact_value(live_result),
+        finished_status: redact_value(finished_status),
+        result_2: redact_value(result_2),
+        result_1: redact_value(result_1),
+        runs: redact_value(runs),
+    };
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(FIXTURE);
+    std::fs::write(
+        &path,
+        serde_json::to_string_pretty(&fx).expect("serialise") + "\n",
+    )
+    .expect("write the fixture");
+    eprintln!("wrote {}", path.display());
+    rig.stop().await;
+}
+
+/// A program path in the test's state directory, as if in the production one.
+fn moved(p: &str) -> String {
+    match p.split_once("/state/") {
+        Some((_, rest)) => format!("/var/lib/axiscomp/{rest}"),
+        None => p.to_string(),
+    }
+}
+
+/// Shift every `*_us` timestamp in a reply by `shift`.
+fn shift_json(v: &mut serde_json::Value, shift: i64) {
+    match v {
+        serde_json::Value::Object(m) => {
+            for (k, x) in m.iter_mut() {
+                if k.ends_with("_us")
+                    && let Some(t) = x.as_i64()
+                {
+                    *x = serde_json::Value::from(t + shift);
+                } else {
+                    shift_json(x, shift);
+                }
+            }
+        }
+        serde_json::Value::Array(a) => a.iter_mut().for_each(|x| shift_json(x, shift)),
+        _ => {}
+    }
+}
