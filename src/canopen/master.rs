@@ -229,6 +229,10 @@ pub struct DriveStatus {
     pub mode: Option<i8>,
     pub position_counts: Option<i32>,
     pub position_mm: Option<f64>,
+    /// When the position was sampled: the SYNC before the TPDO that brought it (a drive
+    /// samples its synchronous TPDO at the SYNC), not when it arrived. Set when the position
+    /// changes; `None` for a position read otherwise.
+    pub position_at: Option<Instant>,
     /// The last accepted set-point (mm); while following, the demand sent at the last SYNC.
     pub commanded_mm: Option<f64>,
     /// Statusword bit 10; in cyclic synchronous position worked out by the master:
@@ -263,6 +267,7 @@ impl DriveStatus {
             mode: None,
             position_counts: None,
             position_mm: None,
+            position_at: None,
             commanded_mm: None,
             target_reached: false,
             setpoint_ack: false,
@@ -824,6 +829,9 @@ impl Master {
             .position_counts
             .is_some_and(|p| (self.s.counts_to_mm(pos) - self.s.counts_to_mm(p)).abs() < window);
         self.set_statusword(sw);
+        if self.status.position_counts != Some(pos) {
+            self.status.position_at = self.last_sync_at;
+        }
         self.set_position(pos);
         if self.status.mode == Some(MODE_CSP) {
             self.csp_status(Statusword(sw), pos);
@@ -1646,6 +1654,7 @@ impl Master {
             ReadUse::Position => match value::i32(&data) {
                 Some(p) => {
                     self.set_position(p);
+                    self.status.position_at = None;
                     self.set_target(p);
                     self.commanded = None;
                     self.status.commanded_mm = None;

@@ -11,7 +11,10 @@
 //!   connection is what devices with an "accessible IP" list do; answering exceptions instead
 //!   would keep unknown peers connected and spending our time. Refusals are counted and logged.
 //! - Fault injection for tests: stop listening (closing every connection) and start again on
-//!   the same address, delay replies, answer every request with an exception.
+//!   the same address, delay replies, answer every request with an exception; and a bank may
+//!   go silent ([`RegisterBank::responsive`]): the request it was handling, and every later
+//!   one, gets no reply, as from a device that died mid-request (the twin's PLC uses it to
+//!   drop out after N writes, then stops and restarts the server).
 //!
 //! Limits that come from tokio-modbus and that we cannot answer with an exception: a frame its
 //! decoder rejects (bad MBAP header, function codes ≥ 0x80, a write whose byte count does not
@@ -47,6 +50,12 @@ pub trait RegisterBank: Send + Sync + 'static {
         _peer: SocketAddr,
     ) -> Result<(), Exception> {
         Err(Exception::IllegalFunction)
+    }
+
+    /// Whether the device answers at all (checked after each request is handled); `false`
+    /// leaves that request and later ones unanswered. Always `true` by default.
+    fn responsive(&self) -> bool {
+        true
     }
 }
 
@@ -432,6 +441,11 @@ impl tokio_modbus::server::Service for Service {
             inner.exceptions.fetch_add(1, Ordering::Relaxed);
         }
         let reply = result.map_err(tokio_modbus::ExceptionCode::from);
+        if !inner.bank.responsive() {
+            // A silent device: no reply; the client times out, or sees the connection close
+            // when the server is stopped.
+            return Either::Right(Box::pin(future::pending()));
+        }
         if faults.delay.is_zero() {
             Either::Left(future::ready(reply))
         } else {

@@ -74,6 +74,10 @@ pub(super) struct Core {
     follow: watch::Sender<Option<f64>>,
     /// The drive refused mode 8: follow targets go as profile moves.
     csp_refused: bool,
+    /// Following ended on an error: re-arm it with a profile move.
+    follow_rearm: bool,
+    /// A run to resume once the follower is ready (its id, plan, captures stored).
+    pending_resume: Option<(RunId, Plan, BTreeSet<TargetKey>)>,
     store: Store,
     run: Option<ActiveRun>,
     cnc: CncMode,
@@ -187,6 +191,8 @@ impl Core {
             started: Instant::now(),
             follow: watch::channel(None).0,
             csp_refused: false,
+            follow_rearm: false,
+            pending_resume: None,
             store,
             run: None,
             cnc: s.cnc.mode.clone(),
@@ -243,6 +249,7 @@ impl Core {
                     if r.is_err() { break; }
                     let st = status.borrow_and_update().clone();
                     self.pipeline.handle_drive_status(&st, Instant::now());
+                    self.try_resume();
                     self.drive_status = st;
                     self.pump();
                 }
@@ -300,7 +307,7 @@ impl Core {
                     self.follow.send_replace(Some(mm));
                 }
                 Output::Follower(FollowerCommand::Follow { target_mm, at }) => {
-                    if self.csp_refused {
+                    if self.csp_refused || std::mem::take(&mut self.follow_rearm) {
                         self.follow.send_replace(Some(target_mm));
                         continue;
                     }
@@ -369,6 +376,9 @@ impl Core {
                 }
                 self.csp_refused = true;
             }
+            // Following ended on an error (a following error, a stop): the next target
+            // goes as a profile move, which re-arms following.
+            Event::FollowingEnded(Err(_)) => self.follow_rearm = true,
             Event::BootUp { .. } => self.csp_refused = false,
             _ => {}
         }
@@ -414,9 +424,12 @@ impl Core {
         let done = self.store.completed_keys(rec.id);
         match (plan, done) {
             (Ok(plan), Ok(done)) => {
-                tracing::info!(run = rec.id.0, captured = done.len(), "resuming run");
-                let dialect = self.dialect;
-                self.begin_run(rec.id, plan, dialect, done, "resumed");
+                tracing::info!(
+                    run = rec.id.0,
+                    captured = done.len(),
+                    "resuming run once the follower is ready"
+                );
+                self.pending_resume = Some((rec.id, plan, done));
             }
             (Err(e), _) => self.end_run_record(rec.id, &format!("its plan does not load: {e}")),
             (_, Err(e)) => self.end_run_record(rec.id, &format!("its captures do not load: {e}")),
@@ -431,6 +444,50 @@ impl Core {
             .raise("run-failed", format!("run {} cannot resume: {why}", id.0));
     }
 
+    /// Resume the pending run once the follower is ready: the CNC first brings the carriage
+    /// back to the follower (which held its position while the service was down), where
+    /// PSD2 finds the spot again, then goes on with the rest of the cycle.
+    fn try_resume(&mut self) {
+        let Some(fs) = self.pipeline.follower_state() else {
+            return;
+        };
+        if !fs.ready || self.pending_resume.is_none() {
+            return;
+        }
+        let Some((id, plan, done)) = self.pending_resume.take() else {
+            return;
+        };
+        let mut steps = remaining_steps(&plan, &done).unwrap_or_default();
+        if steps.is_empty() {
+            self.end_run_record(id, "nothing left to capture, yet the run was not finished");
+            return;
+        }
+        steps.insert(
+            0,
+            crate::run::Step {
+                position_mm: fs.position_mm,
+                target: None,
+            },
+        );
+        let machine = RunMachine::new(plan.clone(), self.capture, false, done);
+        self.start_active(id, plan, self.dialect);
+        self.pipeline.resume_run(machine);
+        self.pump();
+        self.deliver(&steps, "resumed");
+    }
+
+    fn start_active(&mut self, id: RunId, plan: Plan, dialect: Dialect) {
+        self.run = Some(ActiveRun {
+            id,
+            plan,
+            dialect,
+            program: String::new(),
+            programs_sent: 0,
+            twin_programs_at_send: None,
+            makeup_for: BTreeSet::new(),
+        });
+    }
+
     /// Start measuring `id` with `done` captures already stored, and send the CNC what is
     /// left of the cycle.
     fn begin_run(
@@ -443,15 +500,7 @@ impl Core {
     ) {
         let steps = remaining_steps(&plan, &done).unwrap_or_default();
         let machine = RunMachine::new(plan.clone(), self.capture, false, done);
-        self.run = Some(ActiveRun {
-            id,
-            plan,
-            dialect,
-            program: String::new(),
-            programs_sent: 0,
-            twin_programs_at_send: None,
-            makeup_for: BTreeSet::new(),
-        });
+        self.start_active(id, plan, dialect);
         self.pipeline.start_run(machine);
         self.pump();
         if !steps.is_empty() {

@@ -91,6 +91,8 @@ pub struct Pipeline {
     pub alarms: Alarms,
     drive: Option<DriveStatus>,
     referenced_once: bool,
+    /// A resumed run waits for the spot: re-reference by the encoder when PSD2 finds it.
+    rereference_on_spot: bool,
     run: Option<RunMachine>,
     outputs: VecDeque<Output>,
     pub last_frame: Option<Frame>,
@@ -108,6 +110,7 @@ impl Pipeline {
             alarms: Alarms::default(),
             drive: None,
             referenced_once: false,
+            rereference_on_spot: false,
             run: None,
             outputs: VecDeque::new(),
             last_frame: None,
@@ -123,7 +126,7 @@ impl Pipeline {
 
     /// The follower as the tracker needs it: ready only when homed and not homing (before
     /// that its encoder is not the stage's position, and following would fight the homing).
-    fn follower_state(&self) -> Option<FollowerState> {
+    pub fn follower_state(&self) -> Option<FollowerState> {
         let st = self.drive.as_ref()?;
         Some(FollowerState {
             position_mm: st.position_mm?,
@@ -133,6 +136,7 @@ impl Pipeline {
                 && st.homed
                 && st.busy != Some("home"),
             target_reached: st.target_reached,
+            at: st.position_at,
         })
     }
 
@@ -209,6 +213,9 @@ impl Pipeline {
                         run.restart_average();
                     }
                 }
+                TrackEvent::SpotLost if self.rereference_on_spot => {
+                    tracing::info!("PSD2 has no spot yet: waiting for the carriage");
+                }
                 TrackEvent::SpotLost => {
                     self.alarms.raise(
                         "stitch-broken",
@@ -216,6 +223,14 @@ impl Pipeline {
                     );
                     if self.run.is_some() {
                         self.fail_run("PSD2 lost the spot during the run".into());
+                    }
+                }
+                TrackEvent::SpotFound if self.rereference_on_spot => {
+                    if self.tracker.reference_by_encoder() {
+                        self.rereference_on_spot = false;
+                        self.measure.restart();
+                        self.alarms.clear("stitch-broken");
+                        tracing::info!("PSD2 found the spot: stitch re-referenced by the encoder");
                     }
                 }
                 TrackEvent::SpotFound => tracing::info!("PSD2 sees the spot again"),
@@ -324,6 +339,19 @@ impl Pipeline {
         }
         self.zero_due = None;
         Some(self.measure.set_zero())
+    }
+
+    /// Start measuring a resumed run: the carriage may be away from PSD2 (it went on while
+    /// the service was down), so the spot is awaited, not failed on, and the stitch is
+    /// re-referenced by the encoder when it comes (at once when PSD2 sees it already).
+    pub fn resume_run(&mut self, machine: RunMachine) {
+        self.rereference_on_spot = true;
+        if !self.tracker.stitch().valid || self.tracker.is_lost() {
+            self.tracker.invalidate();
+        } else if self.tracker.reference_by_encoder() {
+            self.rereference_on_spot = false;
+        }
+        self.start_run(machine);
     }
 
     /// Start measuring a run.

@@ -6,7 +6,8 @@
 //! (`head`), a hexapod that applies calibration poses (`hexapod`), the plant's shared physical
 //! state (`plant`: the measured axis, the follower, the beam), the I/O module that serves the
 //! PSDs as raw counts over Modbus TCP following an I/O-module map, with fault injection
-//! (`iomodule`), and the follower's CiA 402 drive on a CAN transport (`drive`).
+//! (`iomodule`), the follower's CiA 402 drive on a CAN transport (`drive`), and the PLC that
+//! takes compensation tables and applies them to the axis (`plc`).
 
 pub mod axis;
 pub mod cnc;
@@ -17,6 +18,7 @@ pub mod hexapod;
 pub mod iomodule;
 pub mod lab;
 pub mod plant;
+pub mod plc;
 pub mod rng;
 pub mod study;
 pub mod twin;

@@ -106,6 +106,8 @@ pub struct FollowerState {
     pub ready: bool,
     /// The last commanded target is reached.
     pub target_reached: bool,
+    /// When the position was sampled, if the drive says (else when it arrived).
+    pub at: Option<Instant>,
 }
 
 /// A command for the follower.
@@ -293,6 +295,25 @@ impl Tracker {
         self.settings.strategy = s;
     }
 
+    /// PSD2 has had no spot for `lost_after`.
+    pub fn is_lost(&self) -> bool {
+        self.lost
+    }
+
+    /// Re-reference after the stitch was broken in the middle of something (a service restart
+    /// in a run): PSD2 is where the encoder says, the encoder bridging the gap with its
+    /// uncertainty over the distance from its home.
+    pub fn reference_by_encoder(&mut self) -> bool {
+        let Some(f) = self.follower else {
+            return false;
+        };
+        if !self.reference() {
+            return false;
+        }
+        self.variance = self.encoder_var(f.position_mm);
+        true
+    }
+
     /// Take the current follower position as the reference: PSD2 is where the encoder says,
     /// with no vertical offset and no uncertainty. Called at the zero reference.
     pub fn reference(&mut self) -> bool {
@@ -413,7 +434,8 @@ impl Tracker {
         if !state.ready {
             self.follower_track = [None; 2];
         } else if self.follower_track[1].is_none_or(|(_, p)| p != state.position_mm) {
-            self.follower_track = [self.follower_track[1], Some((now, state.position_mm))];
+            let at = state.at.unwrap_or(now);
+            self.follower_track = [self.follower_track[1], Some((at, state.position_mm))];
         }
         self.follower = Some(state);
         if let Phase::Moving {
@@ -844,6 +866,7 @@ mod tests {
                     position_mm: self.enc,
                     ready: true,
                     target_reached: self.target.is_none(),
+                    at: None,
                 },
                 self.now,
             );

@@ -454,3 +454,62 @@ impl Drop for ServiceRig {
         }
     }
 }
+
+// ---------- PLC helpers ----------
+
+/// A CNC map from `plc-maps/cnc/`.
+pub fn cnc_map(file: &str) -> axiscomp::plc::CncMap {
+    axiscomp::plc::CncMap::load(
+        &Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("plc-maps/cnc")
+            .join(file),
+    )
+    .expect("shipped CNC map")
+}
+
+/// Every shipped CNC map's file name.
+pub fn cnc_map_files() -> Vec<String> {
+    let mut v: Vec<String> =
+        std::fs::read_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join("plc-maps/cnc"))
+            .expect("plc-maps/cnc")
+            .filter_map(|e| e.ok())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".toml"))
+            .collect();
+    v.sort();
+    v
+}
+
+/// The twin's PLC serving `map` for a fresh default plant, on a loopback port.
+pub async fn twin_plc(map: axiscomp::plc::CncMap) -> (axiscomp::sim::plc::TwinPlc, Arc<Plant>) {
+    let p = plant();
+    let t = axiscomp::sim::plc::TwinPlc::start(p.clone(), map, Default::default())
+        .await
+        .expect("start the twin PLC");
+    (t, p)
+}
+
+/// Publish timeouts for tests: short, but generous against a loaded machine.
+pub fn plc_timeouts() -> axiscomp::plc::Timeouts {
+    axiscomp::plc::Timeouts {
+        ready: Duration::from_secs(5),
+        heartbeat: Duration::from_secs(2),
+        poll: Duration::from_millis(10),
+        echo: Duration::from_secs(2),
+    }
+}
+
+/// A positioning table for machine axis Y from `values_um` (e, µm), `interval_mm` apart from 0.
+pub fn plc_table(values_um: &[f64], interval_mm: f64) -> axiscomp::plc::PlcTable {
+    use axiscomp::comp::{MachineAxis, TableKind};
+    axiscomp::plc::PlcTable {
+        kind: TableKind::Positioning,
+        axis: MachineAxis::Y,
+        base_axis: MachineAxis::Y,
+        direction: axiscomp::plc::TableDirection::Both,
+        start_mm: 0.0,
+        interval_mm,
+        values_mm: values_um.iter().map(|v| v * 1e-3).collect(),
+        down_mm: None,
+    }
+}

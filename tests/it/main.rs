@@ -13,6 +13,7 @@ mod console;
 mod decoupling;
 mod evaluate;
 mod modbus;
+mod plc;
 mod service;
 mod socketcan;
 mod store;

@@ -83,7 +83,7 @@ async fn assert_matches_truth(rig: &ServiceRig, nominal: f64, at_zero: &Truth, l
     panic!("{label}: live errors not within 3 sd of the truth (worst {worst_seen:.2} sd)");
 }
 
-/// Step (overlap) or drive (encoder) the carriage from 0 to 100 mm and compare the live six
+/// Step the carriage from 0 to 100 mm (30 steps for overlap, 10 for encoder following) and compare the live six
 /// errors and the stitched positioning with the twin's truth.
 async fn hundred_mm(strategy: Strategy) {
     let name = format!("{strategy:?}").to_lowercase();
@@ -140,15 +140,19 @@ async fn hundred_mm(strategy: Strategy) {
             }
         }
         Strategy::Encoder => {
-            rig.twin.move_and_wait(100.0).await;
-            rig.wait_for(20, "the follower centred and at rest", |s| {
-                s.tracking.at_rest
-                    && s.psd
-                        .as_ref()
-                        .and_then(|p| p.spots_um[1])
-                        .is_some_and(|[x, _]| x.abs() < 300.0)
-            })
-            .await;
+            // 10 steps of 10 mm: the follower follows each move as it runs (cyclic
+            // synchronous position) and re-centres the spot at rest.
+            for k in 1..=10 {
+                rig.twin.move_and_wait(10.0 * k as f64).await;
+                rig.wait_for(20, "the follower centred and at rest", |s| {
+                    s.tracking.at_rest
+                        && s.psd
+                            .as_ref()
+                            .and_then(|p| p.spots_um[1])
+                            .is_some_and(|[x, _]| x.abs() < 300.0)
+                })
+                .await;
+            }
         }
     }
     watching.store(false, std::sync::atomic::Ordering::Relaxed);
@@ -210,7 +214,7 @@ async fn overlap_stitching_over_100_mm_matches_the_truth() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "continuous following in CSP oscillates: follower positions are stamped on arrival, not at their SYNC"]
+#[ignore = "open: following in real time loses the spot within ~5 s (the follow target oscillates when SYNC and status arrive late on a loaded 2-core machine); on a simulated clock see lab::encoder_following_over_100_mm_in_one_move_matches_the_truth"]
 async fn encoder_tracking_over_100_mm_matches_the_truth() {
     hundred_mm(Strategy::Encoder).await;
 }

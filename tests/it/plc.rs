@@ -1,0 +1,755 @@
+//! Tables into the PLC over loopback: our publisher against the twin's PLC for every shipped
+//! map (the plant then carries the table's corrections), its faults (a link drop mid-publish,
+//! a corrupted payload, a rejection, no echo), the pull server read and written by a client,
+//! and the twin's PLC pulling from it. Ignored (run by tests/interop/plc.sh): independent peers
+//! — a pymodbus PLC taking our pushed table, mbpoll and a pymodbus client reading the pull
+//! server.
+
+use crate::helpers::*;
+use axiscomp::comp::{MachineAxis, TableKind};
+use axiscomp::modbus::{Exception, Link, LinkConfig, LinkError, ReadRange};
+use axiscomp::plc::serve::{PullConfig, PullServer};
+use axiscomp::plc::table::{self, RejectCode};
+use axiscomp::plc::{PlcTable, PublishError, PublishOutcome, TableDirection, publish};
+use axiscomp::sim::axis::Direction;
+use axiscomp::sim::plant::Plant;
+use axiscomp::sim::plc::{CommitResult, PullClientConfig, spawn_pull_client};
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+/// A smooth table of `n` points 4 mm apart, peak about ±40 µm.
+fn smooth(n: usize, phase: f64) -> PlcTable {
+    let v: Vec<f64> = (0..n)
+        .map(|k| 40.0 * (k as f64 * 0.05 + phase).sin())
+        .collect();
+    plc_table(&v, 4.0)
+}
+
+/// The plant's correction at `x` (mm) equals `−e(x)` of `t` within the payload's rounding.
+fn assert_applied(plant: &Plant, t: &PlcTable, what: &str) {
+    let c = plant.compensation();
+    let dy =
+        c.dy.as_ref()
+            .unwrap_or_else(|| panic!("{what}: no dy compensation"));
+    assert_eq!(dy.positions_mm, t.positions(), "{what}");
+    for (k, (c, e)) in dy.up_mm.iter().zip(&t.values_mm).enumerate() {
+        // 0.1 µm counts: rounding within 0.05 µm.
+        assert!(
+            (c + e).abs() <= 0.5e-4 + 1e-12,
+            "{what}: point {k}: {c} vs −{e}"
+        );
+    }
+}
+
+async fn link(addr: std::net::SocketAddr) -> Link {
+    let l = axiscomp_link(addr);
+    assert!(l.wait_up(Duration::from_secs(5)).await, "link up");
+    l
+}
+
+fn axiscomp_link(addr: std::net::SocketAddr) -> Link {
+    Link::spawn(LinkConfig {
+        timeout: Duration::from_millis(500),
+        backoff_min: Duration::from_millis(20),
+        backoff_max: Duration::from_millis(200),
+        ..LinkConfig::new(addr)
+    })
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn publish_to_the_twin_plc_for_every_map() {
+    for file in cnc_map_files() {
+        let map = cnc_map(&file);
+        let (twin, plant) = twin_plc(map.clone()).await;
+        let l = link(twin.local_addr()).await;
+        let t = smooth(256, 0.3);
+        let r = within_s(20, &file, publish(&l, &map, &t, 1, plc_timeouts())).await;
+        assert_eq!(
+            r,
+            Ok(PublishOutcome::Accepted {
+                sequence: 1,
+                active_sequence: 1
+            }),
+            "{file}"
+        );
+        assert_applied(&plant, &t, &file);
+        // The PLC's staging area holds exactly the encoding.
+        let want = table::encode(&t, &map, 1).unwrap();
+        let holding = twin.holding();
+        for (a, v) in want.registers() {
+            assert_eq!(holding[a as usize], v, "{file}: register {a}");
+        }
+        let st = twin.status();
+        assert_eq!((st.active_sequence, st.status_sequence), (1, 1), "{file}");
+        // The read-back helper decodes what the PLC holds.
+        let rb = axiscomp::plc::read_table(&l, &map).await.unwrap();
+        assert_eq!(rb.header.sequence, 1);
+        assert_eq!(rb.counts, want.counts, "{file}");
+        assert!(rb.table.is_ok(), "{file}: {:?}", rb.table);
+    }
+}
+
+/// The protocol end to end: a bidirectional table of the plant's own positioning error,
+/// published, leaves (almost) no error at the grid points in either direction.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_published_table_of_the_true_error_cancels_it() {
+    let map = cnc_map("generic.toml");
+    let (twin, plant) = twin_plc(map.clone()).await;
+    let l = link(twin.local_addr()).await;
+    let x: Vec<f64> = (0..=250).map(|k| 4.0 * k as f64).collect();
+    let e = |dir| -> Vec<f64> {
+        x.iter()
+            .map(|&p| plant.axis.errors(p, dir, 0.0).dy)
+            .collect()
+    };
+    let t = PlcTable {
+        kind: TableKind::Positioning,
+        axis: MachineAxis::Y,
+        base_axis: MachineAxis::Y,
+        direction: TableDirection::Bidirectional,
+        start_mm: 0.0,
+        interval_mm: 4.0,
+        values_mm: e(Direction::Up),
+        down_mm: Some(e(Direction::Down)),
+    };
+    let r = publish(&l, &map, &t, 3, plc_timeouts()).await;
+    assert!(
+        matches!(r, Ok(PublishOutcome::Accepted { sequence: 3, .. })),
+        "{r:?}"
+    );
+    // Moves on the plant's own clock: each starts where the last ended.
+    let mut now = Instant::now();
+    let mut largest: f64 = 0.0;
+    for (target, dir) in [
+        (600.0, Direction::Up),
+        (200.0, Direction::Down),
+        (900.0, Direction::Up),
+        (100.0, Direction::Down),
+    ] {
+        plant.move_carriage(target, now);
+        now = plant.carriage_move_end() + Duration::from_millis(1);
+        let truth = plant.truth(now);
+        assert!(!truth.moving);
+        let before = plant.axis.errors(target, dir, 0.0).dy;
+        largest = largest.max(before.abs());
+        assert!(
+            truth.errors.dy.abs() <= 0.5e-4 + 1e-9,
+            "{dir:?} at {target}: residual {} mm (was {before})",
+            truth.errors.dy
+        );
+    }
+    assert!(
+        largest > 2e-3,
+        "the axis had errors to cancel ({largest} mm)"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn straightness_tables_act_across_the_travel() {
+    let map = cnc_map("generic.toml");
+    let (twin, plant) = twin_plc(map.clone()).await;
+    let l = link(twin.local_addr()).await;
+    // Y axis, standard mapping: head x = +X, head z = +Z.
+    let mut tx = smooth(50, 0.0);
+    tx.kind = TableKind::Straightness;
+    tx.axis = MachineAxis::X;
+    let mut tz = smooth(50, 1.0);
+    tz.kind = TableKind::Straightness;
+    tz.axis = MachineAxis::Z;
+    for (k, t) in [&tx, &tz].into_iter().enumerate() {
+        let r = publish(&l, &map, t, 10 + k as u32, plc_timeouts()).await;
+        assert!(matches!(r, Ok(PublishOutcome::Accepted { .. })), "{r:?}");
+    }
+    let c = plant.compensation();
+    assert!(c.dy.is_none());
+    for (p, t) in [(c.dx.unwrap(), &tx), (c.dz.unwrap(), &tz)] {
+        for (a, e) in p.up_mm.iter().zip(&t.values_mm) {
+            assert!((a + e).abs() <= 0.5e-4 + 1e-12);
+        }
+    }
+    let active = twin.active_tables();
+    assert_eq!(active[0].as_ref().map(|a| a.0), Some(10));
+    assert_eq!(active[2].as_ref().map(|a| a.0), Some(11));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_link_drop_mid_publish_commits_nothing_and_a_retry_succeeds() {
+    let map = cnc_map("generic.toml");
+    let (twin, plant) = twin_plc(map.clone()).await;
+    let l = link(twin.local_addr()).await;
+    let a = smooth(256, 0.0);
+    let r = publish(&l, &map, &a, 1, plc_timeouts()).await;
+    assert!(matches!(r, Ok(PublishOutcome::Accepted { .. })), "{r:?}");
+    let before = plant.compensation();
+    let writes = twin.writes();
+
+    // The PLC drops out after 3 more writes (header + 2 payload chunks) and is back 300 ms
+    // later.
+    twin.go_silent_after_writes(3, Duration::from_millis(300));
+    let b = smooth(256, 2.0);
+    let r = within_s(
+        20,
+        "publish into a dropping PLC",
+        publish(&l, &map, &b, 2, plc_timeouts()),
+    )
+    .await;
+    let e = r.unwrap_err();
+    let PublishError::Link {
+        commit_sent, step, ..
+    } = &e
+    else {
+        panic!("{e}")
+    };
+    assert!(!commit_sent, "{e}");
+    assert!(step.starts_with("writing registers 272..392"), "{step}");
+    // Reported (and stored) as failed, not as a PLC answer.
+    assert!(
+        matches!(
+            axiscomp::plc::publication_outcome(&Err(e.clone())),
+            axiscomp::store::PublicationOutcome::Failed { .. }
+        ),
+        "{e}"
+    );
+    assert_eq!(
+        twin.writes(),
+        writes + 3,
+        "three writes served, the fourth dropped"
+    );
+    assert_eq!(twin.commits().len(), 1, "no commit after the drop");
+    assert_eq!(twin.status().active_sequence, 1);
+    assert_eq!(
+        plant.compensation(),
+        before,
+        "the active table is unchanged"
+    );
+
+    // A retry (new sequence) once the PLC is back goes through.
+    let r = within_s(20, "retry", publish(&l, &map, &b, 3, plc_timeouts())).await;
+    assert_eq!(
+        r,
+        Ok(PublishOutcome::Accepted {
+            sequence: 3,
+            active_sequence: 3
+        })
+    );
+    assert_applied(&plant, &b, "retry");
+    assert!(l.stats().reconnects >= 1);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_corrupted_payload_is_rejected_with_the_crc_code() {
+    let map = cnc_map("generic.toml");
+    let (twin, plant) = twin_plc(map.clone()).await;
+    let l = link(twin.local_addr()).await;
+    let a = smooth(100, 0.0);
+    assert!(publish(&l, &map, &a, 1, plc_timeouts()).await.is_ok());
+    let before = plant.compensation();
+    // One payload register flipped in the PLC after the read-back, before validation.
+    twin.corrupt_next_commit(17);
+    let r = publish(&l, &map, &smooth(100, 1.0), 2, plc_timeouts()).await;
+    assert_eq!(
+        r,
+        Ok(PublishOutcome::Rejected {
+            sequence: 2,
+            code: RejectCode::Crc,
+            active_sequence: 1
+        })
+    );
+    let last = twin.commits().pop().unwrap();
+    assert!(
+        matches!(&last.result, CommitResult::Rejected(r) if r.code == RejectCode::Crc),
+        "{last:?}"
+    );
+    assert_eq!(plant.compensation(), before);
+    let st = twin.status();
+    assert_eq!(
+        (st.error_code, st.status_sequence, st.active_sequence),
+        (1, 2, 1)
+    );
+    // The store's record of it.
+    assert_eq!(
+        axiscomp::plc::publication_outcome(&r),
+        axiscomp::store::PublicationOutcome::Rejected {
+            code: Some(1),
+            text: "CRC mismatch".into()
+        }
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refusal_and_a_missing_echo_are_reported() {
+    let map = cnc_map("generic.toml");
+    let (twin, plant) = twin_plc(map.clone()).await;
+    let l = link(twin.local_addr()).await;
+    twin.reject_next(256);
+    let r = publish(&l, &map, &smooth(20, 0.0), 1, plc_timeouts()).await;
+    assert_eq!(
+        r,
+        Ok(PublishOutcome::Rejected {
+            sequence: 1,
+            code: RejectCode::Other(256),
+            active_sequence: 0
+        })
+    );
+    assert_eq!(plant.compensation(), Default::default());
+
+    twin.ignore_next_commit();
+    let to = axiscomp::plc::Timeouts {
+        echo: Duration::from_millis(300),
+        ..plc_timeouts()
+    };
+    let r = publish(&l, &map, &smooth(20, 0.0), 2, to).await;
+    let e = r.unwrap_err();
+    assert!(matches!(e, PublishError::NoEcho { sequence: 2, .. }), "{e}");
+    assert!(e.commit_sent());
+    let writes = twin.writes();
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    assert_eq!(
+        twin.writes(),
+        writes,
+        "nothing is written after the timeout"
+    );
+    assert_eq!(twin.status().active_sequence, 0);
+    assert!(matches!(
+        axiscomp::plc::publication_outcome(&Err(e)),
+        axiscomp::store::PublicationOutcome::Failed { code: None, .. }
+    ));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_plc_not_ready_or_not_alive_gets_nothing() {
+    let map = cnc_map("generic.toml");
+    let (twin, _) = twin_plc(map.clone()).await;
+    let l = link(twin.local_addr()).await;
+    let to = axiscomp::plc::Timeouts {
+        ready: Duration::from_millis(400),
+        heartbeat: Duration::from_millis(300),
+        ..plc_timeouts()
+    };
+    twin.set_ready(false);
+    let e = publish(&l, &map, &smooth(20, 0.0), 1, to)
+        .await
+        .unwrap_err();
+    assert!(matches!(e, PublishError::NotReady { .. }), "{e}");
+    twin.set_ready(true);
+    twin.freeze_heartbeat(true);
+    let e = publish(&l, &map, &smooth(20, 0.0), 1, to)
+        .await
+        .unwrap_err();
+    assert!(matches!(e, PublishError::NotAlive { .. }), "{e}");
+    assert_eq!(twin.writes(), 0);
+    twin.freeze_heartbeat(false);
+    assert!(publish(&l, &map, &smooth(20, 0.0), 1, to).await.is_ok());
+}
+
+// ---------- the pull server ----------
+
+fn r(start: u16, count: u16) -> ReadRange {
+    ReadRange::new(start, count).unwrap()
+}
+
+/// Read the table block as a PLC would (≤ 120 registers per read) and decode it.
+async fn pull_read(
+    l: &Link,
+    map: &axiscomp::plc::CncMap,
+) -> (u32, Result<PlcTable, axiscomp::plc::Reject>) {
+    let published = l.read_holding_registers(1, r(8, 2)).await.unwrap();
+    let published = (published[0] as u32) << 16 | published[1] as u32;
+    let mut regs = vec![0u16; 4128];
+    regs[16..30].copy_from_slice(&l.read_holding_registers(1, r(16, 14)).await.unwrap());
+    let h = table::decode_header(map, &|a| regs[a as usize]);
+    let n = table::payload_len(map, &h);
+    let mut a = 32u16;
+    while (a as usize) < 32 + 2 * n {
+        let c = (32 + 2 * n - a as usize).min(120) as u16;
+        let v = l.read_holding_registers(1, r(a, c)).await.unwrap();
+        regs[a as usize..a as usize + c as usize].copy_from_slice(&v);
+        a += c;
+    }
+    let counts = table::decode_payload(map, n, &|a| regs[a as usize]);
+    (
+        published,
+        table::validate(map, &h, &counts, Some(published)),
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_pull_server_serves_the_table_and_guards_the_ack_range() {
+    let map = cnc_map("generic.toml");
+    // Writers: only 127.0.0.2; this test connects from 127.0.0.1.
+    let srv = PullServer::start(
+        map.clone(),
+        PullConfig {
+            writers: Some(vec!["127.0.0.2".parse().unwrap()]),
+            ..PullConfig::new("127.0.0.1:0".parse().unwrap())
+        },
+    )
+    .await
+    .unwrap();
+    let t = smooth(256, 0.7);
+    let enc = srv.set_table(&t, 5).unwrap();
+    let l = link(srv.local_addr()).await;
+    let (published, got) = pull_read(&l, &map).await;
+    assert_eq!(published, 5);
+    let got = got.expect("the CRC matches and the table validates");
+    assert_eq!(got.values_mm.len(), 256);
+    for (g, w) in got.values_mm.iter().zip(&t.values_mm) {
+        assert!((g - w).abs() <= 0.5e-4 + 1e-12);
+    }
+    let crc = l.read_holding_registers(1, r(28, 2)).await.unwrap();
+    assert_eq!((crc[0] as u32) << 16 | crc[1] as u32, enc.crc);
+
+    let before = l.read_holding_registers(1, r(0, 120)).await.unwrap();
+    // Outside the ack range: the header, the published sequence, a run over the boundary.
+    for (start, values) in [(16u16, vec![9u16]), (8, vec![0, 6]), (6, vec![0, 0, 0])] {
+        assert_eq!(
+            l.write_multiple_registers(1, start, &values).await,
+            Err(LinkError::Exception(Exception::IllegalDataAddress)),
+            "write at {start}"
+        );
+    }
+    // Inside it, but from a peer that may not write.
+    assert_eq!(
+        l.write_single_register(1, 2, 2).await,
+        Err(LinkError::Exception(Exception::IllegalFunction))
+    );
+    // Quantities are validated: 126 registers is an illegal data value.
+    let mut s = tokio::net::TcpStream::connect(srv.local_addr())
+        .await
+        .unwrap();
+    let pdu = raw_request(&mut s, 1, 1, &[0x03, 0x00, 0x00, 0x00, 126]).await;
+    assert_eq!(pdu, [0x83, 0x03]);
+    // Nothing changed, and the connection was kept throughout.
+    assert_eq!(
+        l.read_holding_registers(1, r(0, 120)).await.unwrap(),
+        before
+    );
+    assert_eq!(srv.acks().borrow().writes, 0);
+    assert_eq!(l.stats().reconnects, 0);
+    assert_eq!(srv.published(), 5);
+
+    // A server whose writer is this peer takes the acknowledgement.
+    let srv2 = PullServer::start(
+        map.clone(),
+        PullConfig {
+            writers: Some(vec!["127.0.0.1".parse().unwrap()]),
+            ..PullConfig::new("127.0.0.1:0".parse().unwrap())
+        },
+    )
+    .await
+    .unwrap();
+    srv2.set_table(&t, 6).unwrap();
+    let l2 = link(srv2.local_addr()).await;
+    l2.write_multiple_registers(1, 0, &[1, 77, 2, 0, 0, 6, 0, 6])
+        .await
+        .unwrap();
+    let ack = srv2.wait_ack(6, Duration::from_secs(2)).await.expect("ack");
+    assert_eq!(ack.status.heartbeat, 77);
+    assert_eq!(ack.status.active_sequence, 6);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_twin_plc_pulls_from_the_pull_server() {
+    let map = cnc_map("generic.toml");
+    let srv = PullServer::start(map.clone(), PullConfig::new("127.0.0.1:0".parse().unwrap()))
+        .await
+        .unwrap();
+    let plant = plant();
+    let client = spawn_pull_client(
+        axiscomp_link(srv.local_addr()),
+        map.clone(),
+        plant.clone(),
+        PullClientConfig::default(),
+    );
+    let t = smooth(256, 0.2);
+    srv.set_table(&t, 1).unwrap();
+    let ack = srv
+        .wait_ack(1, Duration::from_secs(10))
+        .await
+        .expect("ack 1");
+    assert_eq!(ack.status.status, axiscomp::plc::StatusCode::Accepted);
+    assert_applied(&plant, &t, "pulled");
+    // A newer table replaces it; the heartbeat keeps counting.
+    let t2 = smooth(128, 1.5);
+    srv.set_table(&t2, 2).unwrap();
+    let ack2 = srv
+        .wait_ack(2, Duration::from_secs(10))
+        .await
+        .expect("ack 2");
+    assert!(ack2.status.heartbeat != ack.status.heartbeat);
+    assert_eq!(ack2.status.active_sequence, 2);
+    assert_applied(&plant, &t2, "pulled again");
+    // The client records its commit just after writing the acknowledgement.
+    let commits = within_s(5, "the client's record", async {
+        loop {
+            let c = client.state().commits;
+            if c.len() >= 2 {
+                return c;
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    })
+    .await;
+    let seqs: Vec<u32> = commits.iter().map(|c| c.sequence).collect();
+    assert_eq!(seqs, [1, 2]);
+    assert!(commits.iter().all(|c| c.result == CommitResult::Accepted));
+}
+
+// ---------- independent peers (run by tests/interop/plc.sh) ----------
+
+/// Kill the child we started when the test ends, pass or fail.
+struct Reap(std::process::Child);
+impl Drop for Reap {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn root() -> &'static Path {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// Start `tests/interop/plc_peer.py` with `args` and return it with its first stdout line.
+async fn peer(args: &[&str]) -> (Reap, String) {
+    use std::io::BufRead;
+    use std::process::{Command, Stdio};
+    let mut child = Reap(
+        Command::new("python3")
+            .arg(root().join("tests/interop/plc_peer.py"))
+            .args(args)
+            .current_dir(root())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("run python3 tests/interop/plc_peer.py"),
+    );
+    let stdout = child.0.stdout.take().expect("stdout");
+    let line = tokio::task::spawn_blocking(move || {
+        let mut line = String::new();
+        std::io::BufReader::new(stdout)
+            .read_line(&mut line)
+            .map(|_| line)
+    })
+    .await
+    .unwrap()
+    .expect("the script's first line");
+    (child, line)
+}
+
+/// The values of the interop table, e in µm with 9 decimals, and their text: the script gets
+/// the numbers, never our encoding.
+fn interop_values() -> (Vec<f64>, String) {
+    let text: Vec<String> = (0..300)
+        .map(|k| {
+            let k = k as f64;
+            format!(
+                "{:.9}",
+                (k * 0.173).sin() * 63.25 + (k * 0.021).cos() * 11.5 - 11.5
+            )
+        })
+        .collect();
+    let values = text.iter().map(|t| t.parse().expect("number")).collect();
+    (values, text.join(","))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs pymodbus/mbpoll: run by .ci/run"]
+async fn interop_pymodbus_plc_takes_pushed_tables_in_every_word_order() {
+    let (values, values_arg) = interop_values();
+    let mut t = plc_table(&values, 2.5);
+    t.start_mm = -12.5;
+    t.kind = TableKind::Straightness;
+    t.axis = MachineAxis::Z;
+    std::fs::create_dir_all(env!("CARGO_TARGET_TMPDIR")).unwrap();
+    let values_file = Path::new(env!("CARGO_TARGET_TMPDIR")).join("plc-interop-values.txt");
+    std::fs::write(&values_file, &values_arg).unwrap();
+    // Each shipped map as it is (ABCD and CDAB, holding and input PLC fields), and the
+    // generic map (ABCD) in the other three word orders: every order on one layout.
+    let mut cases: Vec<(String, Option<&str>)> =
+        cnc_map_files().into_iter().map(|f| (f, None)).collect();
+    for o in ["CDAB", "BADC", "DCBA"] {
+        cases.push(("generic.toml".into(), Some(o)));
+    }
+    for (seq, (file, order)) in cases.into_iter().enumerate() {
+        let seq = seq as u32 + 1;
+        let port = free_port().to_string();
+        let map_path = root().join("plc-maps/cnc").join(&file);
+        let mut args = vec![
+            "plc".to_string(),
+            "--port".into(),
+            port.clone(),
+            "--map".into(),
+            map_path.display().to_string(),
+            "--values-file".into(),
+            values_file.display().to_string(),
+            "--start-mm".into(),
+            "-12.5".into(),
+            "--interval-mm".into(),
+            "2.5".into(),
+            "--kind".into(),
+            "2".into(),
+            "--axis".into(),
+            "3".into(),
+            "--base-axis".into(),
+            "2".into(),
+            "--sequence".into(),
+            seq.to_string(),
+        ];
+        let mut map = cnc_map(&file);
+        if let Some(o) = order {
+            args.push("--word-order".into());
+            args.push(o.into());
+            let o: axiscomp::modbus::WordOrder = o.parse().unwrap();
+            for f in [
+                &mut map.handshake.plc_ready,
+                &mut map.handshake.plc_heartbeat,
+                &mut map.handshake.status,
+                &mut map.handshake.error_code,
+                &mut map.handshake.status_sequence,
+                &mut map.handshake.active_sequence,
+                &mut map.handshake.commit,
+                &mut map.header.kind,
+                &mut map.header.axis,
+                &mut map.header.base_axis,
+                &mut map.header.direction,
+                &mut map.header.points,
+                &mut map.header.unit,
+                &mut map.header.start,
+                &mut map.header.interval,
+                &mut map.header.sequence,
+                &mut map.header.crc,
+            ] {
+                f.order = o;
+            }
+            map.payload.order = o;
+        }
+        let arg_refs: Vec<&str> = args.iter().map(String::as_str).collect();
+        let (_child, line) = peer(&arg_refs).await;
+        assert!(line.starts_with("listening"), "{file}: {line}");
+        let l = Link::spawn(LinkConfig {
+            backoff_max: Duration::from_millis(200),
+            ..LinkConfig::new(format!("127.0.0.1:{port}").parse().unwrap())
+        });
+        assert!(l.wait_up(Duration::from_secs(10)).await, "pymodbus up");
+        let r = within_s(30, &file, publish(&l, &map, &t, seq, plc_timeouts())).await;
+        // The script accepts only if every register it received equals its own encoding of
+        // the values (and the CRC it computed matches); otherwise it rejects with code 1000
+        // + the first differing register's offset.
+        assert_eq!(
+            r,
+            Ok(PublishOutcome::Accepted {
+                sequence: seq,
+                active_sequence: seq
+            }),
+            "{file} {order:?}"
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs pymodbus/mbpoll: run by .ci/run"]
+async fn interop_mbpoll_and_pymodbus_read_the_pull_server() {
+    let map = cnc_map("generic.toml");
+    let srv = PullServer::start(
+        map.clone(),
+        PullConfig {
+            // Only 127.0.0.2 may write; the peers connect from 127.0.0.1.
+            writers: Some(vec!["127.0.0.2".parse().unwrap()]),
+            ..PullConfig::new("127.0.0.1:0".parse().unwrap())
+        },
+    )
+    .await
+    .unwrap();
+    let (values, _) = interop_values();
+    let t = plc_table(&values, 2.5);
+    let enc = srv.set_table(&t, 77).unwrap();
+    let port = srv.local_addr().port().to_string();
+
+    // mbpoll: the header (16..30), unsigned 16-bit, PDU addressing.
+    let p = port.clone();
+    let out = tokio::task::spawn_blocking(move || {
+        std::process::Command::new("mbpoll")
+            .args([
+                "-m", "tcp", "-a", "1", "-0", "-r", "16", "-c", "14", "-t", "4", "-1",
+            ])
+            .args(["-p", &p, "127.0.0.1"])
+            .output()
+    })
+    .await
+    .unwrap()
+    .expect("run mbpoll");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "mbpoll failed: {text}");
+    let mut header = vec![None; 14];
+    for line in text.lines() {
+        if let Some((k, v)) = line
+            .trim()
+            .strip_prefix('[')
+            .and_then(|l| l.split_once("]:"))
+        {
+            let k: usize = k.parse().unwrap();
+            let v: u16 = v.split_whitespace().next().unwrap().parse().unwrap();
+            header[k - 16] = Some(v);
+        }
+    }
+    let header: Vec<u16> = header
+        .into_iter()
+        .map(|r| r.expect("14 registers"))
+        .collect();
+    let regs = enc.registers();
+    let want: Vec<u16> = (16..30).map(|a| regs[&a]).collect();
+    assert_eq!(header, want, "{text}");
+    // mbpoll's write to the header: an exception, nothing changed.
+    let p = port.clone();
+    let out = tokio::task::spawn_blocking(move || {
+        std::process::Command::new("mbpoll")
+            .args(["-m", "tcp", "-a", "1", "-0", "-r", "16", "-t", "4", "-1"])
+            .args(["-p", &p, "127.0.0.1", "9"])
+            .output()
+    })
+    .await
+    .unwrap()
+    .expect("run mbpoll");
+    let text =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    // libmodbus names the exception: 02, illegal data address (the header is read-only).
+    assert!(
+        !out.status.success() && text.to_lowercase().contains("illegal data address"),
+        "{text}"
+    );
+
+    // pymodbus: reads the block, checks the CRC itself, tries writes outside the ack range and
+    // from a non-writer, and reports.
+    let (_child, line) = peer(&[
+        "pull",
+        "--port",
+        &port,
+        "--map",
+        "plc-maps/cnc/generic.toml",
+    ])
+    .await;
+    let report: serde_json::Value = serde_json::from_str(&line).expect("JSON from plc_peer.py");
+    assert_eq!(report["published"], 77, "{report}");
+    assert_eq!(report["crc_ok"], true, "{report}");
+    assert_eq!(report["points"], 300, "{report}");
+    let got: Vec<f64> = serde_json::from_value(report["values_um"].clone()).unwrap();
+    for (g, w) in got.iter().zip(&values) {
+        assert!((g - w).abs() <= 0.05 + 1e-9, "{g} vs {w}");
+    }
+    // Illegal data address (2) outside the ack range, illegal function (1) from a non-writer.
+    for (k, code) in [
+        ("write_header", 2),
+        ("write_published", 2),
+        ("write_ack_not_writer", 1),
+    ] {
+        assert_eq!(report[k], code, "{k}: {report}");
+    }
+    assert_eq!(srv.published(), 77);
+    assert_eq!(srv.acks().borrow().writes, 0, "nothing written");
+    let regs_now: Vec<u16> = {
+        let l = link(srv.local_addr()).await;
+        l.read_holding_registers(1, r(16, 14)).await.unwrap()
+    };
+    assert_eq!(regs_now, want);
+}
