@@ -6,13 +6,11 @@
 //! Requests are never re-sent after a lost connection (a start or a jog must not happen twice):
 //! the reply says the link failed, and the operator decides.
 
-use crate::service::control::Request;
+use crate::service::control::{self, Request};
 use crate::service::snapshot::Snapshot;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use thiserror::Error;
-use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
-use tokio::net::UnixStream;
 use tokio::sync::mpsc;
 
 /// Longest wait for one reply; the service answers within 60 s or says it did not.
@@ -50,9 +48,19 @@ impl ClientError {
     }
 }
 
-impl From<std::io::Error> for ClientError {
-    fn from(e: std::io::Error) -> Self {
-        ClientError::Io(e.to_string())
+impl From<control::ClientError> for ClientError {
+    fn from(e: control::ClientError) -> Self {
+        use control::ClientError as C;
+        match e {
+            C::Connect { path, source } => ClientError::Connect {
+                path,
+                reason: source.to_string(),
+            },
+            C::Io(e) => ClientError::Io(e.to_string()),
+            C::Closed => ClientError::Closed,
+            C::Reply(r) => ClientError::Reply(r),
+            C::Refused(r) => ClientError::Refused(r),
+        }
     }
 }
 
@@ -88,39 +96,10 @@ pub enum LinkEvent {
     },
 }
 
-/// Exponential backoff between reconnection attempts (sans-I/O).
-#[derive(Clone, Debug)]
-pub struct Backoff {
-    pub min: Duration,
-    pub max: Duration,
-    next: Duration,
-}
+pub use crate::util::backoff::Backoff;
 
-impl Backoff {
-    pub fn new(min: Duration, max: Duration) -> Self {
-        Backoff {
-            min,
-            max,
-            next: min,
-        }
-    }
-    /// The wait before the next attempt; doubles up to `max`.
-    pub fn next_delay(&mut self) -> Duration {
-        let d = self.next;
-        self.next = (self.next * 2).min(self.max);
-        d
-    }
-    /// After a successful connection.
-    pub fn reset(&mut self) {
-        self.next = self.min;
-    }
-}
-
-/// One connection to the control socket.
-pub struct Conn {
-    lines: tokio::io::Lines<BufReader<tokio::net::unix::OwnedReadHalf>>,
-    wr: tokio::net::unix::OwnedWriteHalf,
-}
+/// One connection to the control socket (the service's own client underneath).
+pub struct Conn(control::Client);
 
 fn identity_of(reply: &serde_json::Value) -> Identity {
     Identity {
@@ -142,29 +121,15 @@ fn snapshot_of(v: serde_json::Value) -> Result<Snapshot, ClientError> {
 
 impl Conn {
     pub async fn connect(path: &Path) -> Result<Conn, ClientError> {
-        let s = UnixStream::connect(path)
-            .await
-            .map_err(|e| ClientError::Connect {
-                path: path.display().to_string(),
-                reason: e.to_string(),
-            })?;
-        let (rd, wr) = s.into_split();
-        Ok(Conn {
-            lines: BufReader::new(rd).lines(),
-            wr,
-        })
+        Ok(Conn(control::Client::connect(path).await?))
     }
 
     async fn send(&mut self, r: &Request) -> Result<(), ClientError> {
-        let mut s = serde_json::to_string(r).map_err(|e| ClientError::Reply(e.to_string()))?;
-        s.push('\n');
-        self.wr.write_all(s.as_bytes()).await?;
-        Ok(())
+        Ok(self.0.send(r).await?)
     }
 
     async fn next_value(&mut self) -> Result<serde_json::Value, ClientError> {
-        let line = self.lines.next_line().await?.ok_or(ClientError::Closed)?;
-        serde_json::from_str(&line).map_err(|e| ClientError::Reply(format!("{e}: {line}")))
+        Ok(self.0.next_value().await?)
     }
 
     /// Send `r` and wait for its reply line: the whole reply when `ok`, else `Refused`.
@@ -359,15 +324,6 @@ async fn request_task(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn backoff_doubles_to_its_cap_and_resets() {
-        let mut b = Backoff::new(Duration::from_millis(100), Duration::from_millis(500));
-        let seq: Vec<u64> = (0..5).map(|_| b.next_delay().as_millis() as u64).collect();
-        assert_eq!(seq, [100, 200, 400, 500, 500]);
-        b.reset();
-        assert_eq!(b.next_delay(), Duration::from_millis(100));
-    }
 
     #[test]
     fn identity_from_the_status_reply() {

@@ -382,14 +382,16 @@ impl Client {
         })
     }
 
-    async fn send(&mut self, r: &Request) -> Result<(), ClientError> {
+    /// Send one request line (its reply is read with [`next_value`](Self::next_value)).
+    pub async fn send(&mut self, r: &Request) -> Result<(), ClientError> {
         let mut s = serde_json::to_string(r).map_err(|e| ClientError::Reply(e.to_string()))?;
         s.push('\n');
         self.wr.write_all(s.as_bytes()).await?;
         Ok(())
     }
 
-    async fn next_value(&mut self) -> Result<serde_json::Value, ClientError> {
+    /// The next line from the service, as JSON.
+    pub async fn next_value(&mut self) -> Result<serde_json::Value, ClientError> {
         let line = self.lines.next_line().await?.ok_or(ClientError::Closed)?;
         serde_json::from_str(&line).map_err(|e| ClientError::Reply(format!("{e}: {line}")))
     }

@@ -448,12 +448,12 @@ impl Core {
     /// back to the follower (which held its position while the service was down), where
     /// PSD2 finds the spot again, then goes on with the rest of the cycle.
     fn try_resume(&mut self) {
-        let Some(fs) = self.pipeline.follower_state() else {
-            return;
-        };
-        if !fs.ready || self.pending_resume.is_none() {
+        if self.pending_resume.is_none() {
             return;
         }
+        let Some(fs) = self.pipeline.follower_state().filter(|f| f.ready) else {
+            return;
+        };
         let Some((id, plan, done)) = self.pending_resume.take() else {
             return;
         };

@@ -1,5 +1,6 @@
 //! Small shared pieces: numeric CSV, progress display, UTC timestamps.
 
+pub mod backoff;
 pub mod csv;
 pub mod progress;
 pub mod time;
