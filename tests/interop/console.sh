@@ -174,12 +174,14 @@ echo "console.sh: colours, then quit"
 "${tmx[@]}" capture-pane -e -p -t console | grep -qE $'\e\\[[0-9;]*(3[0-7]|38;)' \
   || fail "no colour escapes with colours on"
 keys q
+# The pane turns dead when its pty closes, which can come before tmux has
+# reaped the process: wait for the exit status (or signal) itself.
 for _ in $(seq 1 50); do
-  [ "$("${tmx[@]}" display-message -p -t console '#{pane_dead}')" = 1 ] && break
+  [ -n "$("${tmx[@]}" display-message -p -t console '#{pane_dead_status}#{pane_dead_signal}')" ] && break
   sleep 0.2
 done
-dead=$("${tmx[@]}" display-message -p -t console '#{pane_dead} #{pane_dead_status}')
-[ "$dead" = "1 0" ] || fail "q did not end the console with status 0 (pane dead, status: $dead)"
+dead=$("${tmx[@]}" display-message -p -t console '#{pane_dead} #{pane_dead_status} #{pane_dead_signal}')
+[ "$dead" = "1 0 " ] || fail "q did not end the console with status 0 (pane dead, status, signal: $dead)"
 "${tmx[@]}" kill-session -t console
 
 echo "console.sh: NO_COLOR"
