@@ -18,13 +18,15 @@ RUST_LOG=warn $bin serve --config "$work/service.toml" >"$work/serve.log" 2>&1 &
 sleep 8
 tck=$(getconf CLK_TCK)
 ticks() { awk '{print $14+$15}' "/proc/$1/stat"; }
-t0=$(ticks $svc); s0=$(date +%s.%N)
+split() { awk '{print $14, $15}' "/proc/$1/stat"; }
+t0=$(ticks $svc); u0=$(split $svc); s0=$(date +%s.%N)
 sleep "$secs"
-t1=$(ticks $svc); s1=$(date +%s.%N)
+t1=$(ticks $svc); u1=$(split $svc); s1=$(date +%s.%N)
 rss=$(awk '/VmRSS/ {print $2}' /proc/$svc/status)
 hwm=$(awk '/VmHWM/ {print $2}' /proc/$svc/status)
 rate=$($bin status --socket "$work/control.sock" --json | python3 -c 'import json,sys; print(round(json.load(sys.stdin)["psd"]["rate_hz"],1))')
-awk -v t0="$t0" -v t1="$t1" -v s0="$s0" -v s1="$s1" -v tck="$tck" -v rss="$rss" -v hwm="$hwm" -v rate="$rate" 'BEGIN {
+read -r ut0 st0 <<<"$u0"; read -r ut1 st1 <<<"$u1"
+awk -v ut="$((ut1 - ut0))" -v st="$((st1 - st0))" -v t0="$t0" -v t1="$t1" -v s0="$s0" -v s1="$s1" -v tck="$tck" -v rss="$rss" -v hwm="$hwm" -v rate="$rate" 'BEGIN {
   cpu = (t1 - t0) / tck / (s1 - s0) * 100
-  printf "service at %s frames/s over %.0f s: CPU %.2f %% of one core, RSS %.1f MB (peak %.1f MB)\n", rate, s1 - s0, cpu, rss / 1024, hwm / 1024
+  printf "service at %s frames/s over %.0f s: CPU %.2f %% of one core (user %.2f, system %.2f), RSS %.1f MB (peak %.1f MB)\n", rate, s1 - s0, cpu, ut / tck / (s1 - s0) * 100, st / tck / (s1 - s0) * 100, rss / 1024, hwm / 1024
 }'

@@ -13,6 +13,7 @@ use super::decode::{self, DecodeError};
 use super::map::IoMap;
 use crate::modbus::Link;
 use crate::modbus::link::{LinkError, LinkState, Window};
+use crate::util::pace::Pacer;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tokio::sync::{broadcast, watch};
@@ -174,11 +175,8 @@ async fn run(
     latest: watch::Sender<Option<Frame>>,
     counters: Arc<Mutex<Counters>>,
 ) {
-    let mut ticker = (config.rate_hz > 0.0 && config.rate_hz.is_finite()).then(|| {
-        let mut t = tokio::time::interval(Duration::from_secs_f64(1.0 / config.rate_hz));
-        t.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-        t
-    });
+    let mut ticker = (config.rate_hz > 0.0 && config.rate_hz.is_finite())
+        .then(|| Pacer::new(Duration::from_secs_f64(1.0 / config.rate_hz)));
     let mut state = link.state();
     let mut seq = 0u64;
     loop {

@@ -55,6 +55,8 @@ pub enum ServiceError {
     },
     #[error("internal: {0}")]
     Internal(&'static str),
+    #[error("the service's core task ended abnormally: {0}")]
+    CoreTask(String),
 }
 
 impl ServiceError {
@@ -182,7 +184,12 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
         shutdown.clone(),
     ));
     let core = core::Core::new(&p, link, acquisition, drive, can_peer, snap_tx, store);
-    let result = core.run(cmd_rx, shutdown).await;
+    // A task of its own rather than the runtime's root future: waking the root future from a
+    // task (every frame) costs the current-thread runtime an eventfd write and an extra poll.
+    let result = match tokio::spawn(core.run(cmd_rx, shutdown)).await {
+        Ok(r) => r,
+        Err(e) => Err(ServiceError::CoreTask(e.to_string())),
+    };
     notify::stopping();
     drive_task.abort();
     let _ = control.await;

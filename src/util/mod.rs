@@ -1,7 +1,9 @@
-//! Small shared pieces: numeric CSV, progress display, UTC timestamps.
+//! Small shared pieces: numeric CSV, progress display, UTC timestamps, reconnect backoff,
+//! fixed-rate pacing.
 
 pub mod backoff;
 pub mod csv;
+pub mod pace;
 pub mod progress;
 pub mod time;
 
