@@ -10,6 +10,7 @@
 //! takes compensation tables and applies them to the axis (`plc`).
 
 pub mod axis;
+pub mod closed_loop;
 pub mod cnc;
 pub mod config;
 pub mod drive;
