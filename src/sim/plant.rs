@@ -149,7 +149,7 @@ impl Plant {
     /// Build the plant from `spec`, at rest at D = 0 with the follower at 0.
     pub fn new(nominal: &Layout, spec: &PlantSpec, now: Instant) -> Result<Self, SimError> {
         let root = Rng::new(spec.seed);
-        let head = TwinHead::random(nominal, &spec.install, spec.noise_mm, &mut root.fork(11))?;
+        let head = Plant::draw_head(nominal, spec)?;
         let axis = AxisProfile::random(&spec.axis, &mut root.fork(12));
         let mut r = root.fork(13);
         let follower_shape = [
@@ -187,6 +187,12 @@ impl Plant {
             laser,
             t0: now,
         })
+    }
+
+    /// The head a plant built from `spec` carries (to calibrate it before the plant exists).
+    pub fn draw_head(nominal: &Layout, spec: &PlantSpec) -> Result<TwinHead, SimError> {
+        let root = Rng::new(spec.seed);
+        TwinHead::random(nominal, &spec.install, spec.noise_mm, &mut root.fork(11))
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, State> {

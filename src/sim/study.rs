@@ -83,10 +83,23 @@ fn rms(acc: &[f64; 6], n: usize) -> Errors6 {
     Errors6::from_array(acc.map(|x| (x / n.max(1) as f64).sqrt()))
 }
 
-/// Run the study. `show` turns progress bars on.
+/// Run the study on a head drawn from `spec` (its seed, installation errors and noise).
+/// `show` turns progress bars on.
 pub fn run_study(layout: &Layout, spec: &StudySpec, show: bool) -> Result<StudyResult, StudyError> {
     let root = Rng::new(spec.seed);
     let head = TwinHead::random(layout, &spec.install, spec.noise_mm, &mut root.fork(1))?;
+    study_head(head, layout, spec, show)
+}
+
+/// Run the study on `head` (e.g. the one a plant carries); `spec`'s seed draws the poses and
+/// noise, its installation and noise settings are not used.
+pub fn study_head(
+    head: TwinHead,
+    layout: &Layout,
+    spec: &StudySpec,
+    show: bool,
+) -> Result<StudyResult, StudyError> {
+    let root = Rng::new(spec.seed);
     let poses = spec.window.draw(spec.poses, &mut root.fork(2));
     let mut p = bar(show, "hexapod calibration poses", poses.len());
     let (samples, skipped) = Hexapod::default().acquire(&head, &poses, &mut root.fork(3), &mut p);
