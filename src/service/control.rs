@@ -91,6 +91,15 @@ pub enum Request {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         limit: Option<u32>,
     },
+    /// The calibration in use, the one waiting for a decision, whether a fit runs.
+    Calibration,
+    /// Fit the pose set at `poses` (a CSV on the service's host, `calibrate fit`'s input
+    /// format); the result waits for accept or reject.
+    CalibrationFit { poses: String },
+    /// Store the waiting calibration and decouple with it from now on (the zero is cleared).
+    CalibrationAccept,
+    /// Drop the waiting calibration.
+    CalibrationReject,
 }
 
 impl Request {
@@ -102,7 +111,8 @@ impl Request {
             | Request::RunStatus
             | Request::Runs { .. }
             | Request::RunResult { .. }
-            | Request::Audit { .. } => Role::Viewer,
+            | Request::Audit { .. }
+            | Request::Calibration => Role::Viewer,
             _ => Role::Operator,
         }
     }

@@ -90,6 +90,7 @@ pub(super) struct Core {
     events_tx: mpsc::UnboundedSender<CoreEvent>,
     events_rx: Option<mpsc::UnboundedReceiver<CoreEvent>>,
     last_cnc_poll: Instant,
+    calibrations: super::calibration::Calibrations,
 }
 
 /// A run being measured.
@@ -115,6 +116,11 @@ enum CoreEvent {
     Delivered(Result<u32, String>),
     /// The twin CNC's state.
     Cnc(serde_json::Value),
+    /// A calibration fit ended; the reply owed to its request.
+    Fitted(
+        oneshot::Sender<Result<serde_json::Value, String>>,
+        Box<Result<super::calibration::Pending, super::calibration::CalibrationError>>,
+    ),
 }
 
 /// Send one JSON request to the twin's control socket and read its reply.
@@ -203,6 +209,15 @@ impl Core {
             events_tx,
             events_rx: Some(events_rx),
             last_cnc_poll: Instant::now(),
+            calibrations: super::calibration::Calibrations::new(
+                p.layout.clone(),
+                p.calibration.as_ref(),
+                &s.head
+                    .calibration
+                    .as_ref()
+                    .map(|f| f.display().to_string())
+                    .unwrap_or_default(),
+            ),
         }
     }
 
@@ -564,6 +579,7 @@ impl Core {
                 self.pipeline.alarms.clear("cnc");
             }
             CoreEvent::Delivered(Err(e)) => self.pipeline.alarms.raise("cnc", e),
+            CoreEvent::Fitted(reply, r) => Self::reply(reply, self.calibrations.fitted(*r)),
             CoreEvent::Cnc(v) => {
                 let done = v["cnc"]["done"].as_bool().unwrap_or(false);
                 let programs = v["cnc"]["programs"].as_u64().unwrap_or(0) as u32;
@@ -647,7 +663,7 @@ impl Core {
                 axis: plan.spec.axis.clone(),
                 plan: serde_json::to_value(&plan).map_err(|e| e.to_string())?,
                 config: serde_json::json!({"capture": format!("{:?}", self.capture), "dialect": format!("{dialect:?}")}),
-                calibration: None,
+                calibration: self.calibrations.active_id(),
                 notes: notes.unwrap_or_else(|| format!("started by {who}")),
             })
             .map_err(|e| e.to_string())?;
@@ -731,6 +747,54 @@ impl Core {
         }
     }
 
+    /// Fit a pose set off the event loop; the reply goes out when the fit ends.
+    fn calibration_fit(
+        &mut self,
+        poses: String,
+        reply: oneshot::Sender<Result<serde_json::Value, String>>,
+    ) {
+        if self.run.is_some() {
+            return Self::reply(
+                reply,
+                Err("a run is under way: calibrate between runs".into()),
+            );
+        }
+        if let Err(e) = self.calibrations.begin_fit() {
+            return Self::reply(reply, Err(e));
+        }
+        let layout = self.calibrations.layout().clone();
+        let tx = self.events_tx.clone();
+        tokio::spawn(async move {
+            let r = super::calibration::fit_async(PathBuf::from(poses), layout).await;
+            let _ = tx.send(CoreEvent::Fitted(reply, Box::new(r)));
+        });
+    }
+
+    /// Store the waiting calibration and decouple with it.
+    fn calibration_accept(&mut self) -> Result<serde_json::Value, String> {
+        if self.run.is_some() {
+            return Err("a run is under way: its captures must keep one decoupling".into());
+        }
+        let text = {
+            let p = self.calibrations.pending()?;
+            super::calibration::file_text(&p.calibration, self.calibrations.layout())
+        };
+        let id = self
+            .store
+            .insert_calibration(&text)
+            .map_err(|e| format!("the calibration was not stored (it still waits): {e}"))?;
+        let p = self.calibrations.take_pending()?;
+        self.pipeline.measure.set_decoupler(p.decoupler.clone());
+        let decoupling = p.summary.decoupling;
+        self.calibrations.accepted(id, p);
+        tracing::info!(calibration = id.0, decoupling, "calibration accepted");
+        Ok(serde_json::json!({
+            "calibration_id": id.0,
+            "decoupling": decoupling,
+            "zero": "cleared: take the zero reference again",
+        }))
+    }
+
     fn handle_command(&mut self, c: Command) {
         tracing::info!(user = %c.peer.user, uid = c.peer.uid, request = ?c.request, "control request");
         self.audit(&c);
@@ -796,6 +860,13 @@ impl Core {
                 results::run_result(&self.store, run_id)
                     .and_then(|r| serde_json::to_value(r).map_err(|e| format!("run result: {e}"))),
             ),
+            Request::Calibration => Self::reply(c.reply, Ok(self.calibrations.status())),
+            Request::CalibrationFit { poses } => self.calibration_fit(poses, c.reply),
+            Request::CalibrationAccept => {
+                let r = self.calibration_accept();
+                Self::reply(c.reply, r);
+            }
+            Request::CalibrationReject => Self::reply(c.reply, self.calibrations.reject()),
             Request::RunAbort => {
                 if self.pipeline.abort_run() {
                     let id = self.run.as_ref().map(|r| r.id.0);

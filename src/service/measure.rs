@@ -118,6 +118,15 @@ impl Measure {
         self.zero = None;
     }
 
+    /// Decouple with `decoupler` from now on (an accepted calibration). The averaging window
+    /// restarts and the zero reference is forgotten: both were in the old decoupling's terms.
+    pub fn set_decoupler(&mut self, decoupler: Decoupler) {
+        self.decoupler = decoupler;
+        self.beta = BetaCache::default();
+        self.samples.clear();
+        self.zero = None;
+    }
+
     /// Feed one frame with PSD2's stitched position. Invalid frames (a PSD without its spot)
     /// and frames without a valid stitch are skipped: never averaged in. Returns the frame's
     /// estimate when it was used.

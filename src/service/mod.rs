@@ -3,6 +3,7 @@
 //! notification — wired around a `Snapshot` on a watch channel. `run(settings, shutdown)` is the
 //! whole service; `prepare` loads and checks everything it reads (also `axiscomp check`).
 
+pub mod calibration;
 pub mod control;
 mod core;
 pub mod measure;
