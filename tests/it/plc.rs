@@ -1012,3 +1012,57 @@ async fn the_service_generates_publishes_and_reads_back_tables() {
     );
     rig.stop().await;
 }
+
+/// Pull only (`[plc] pull = true`, push off): `table_publish` serves the table on the pull
+/// server, the twin's PLC pulls it, applies it and acknowledges; the reply and the status come
+/// from that acknowledgement.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_service_serves_a_published_table_for_pull() {
+    use axiscomp::service::control::Request;
+    use axiscomp::service::tables::{PublishView, StatusView, TableView};
+    let port = free_port();
+    let rig = ServiceRig::start(RigOptions {
+        service_toml: format!(
+            "[plc]\npull = true\npull_bind = \"127.0.0.1:{port}\"\nstraightness = false\n"
+        ),
+        ..RigOptions::default()
+    })
+    .await;
+    let run_id = store_synthetic_run(&rig.store, &rig.twin.plant);
+    let v = rig
+        .request(Request::TableGenerate { run_id })
+        .await
+        .expect("generate");
+    let tables: Vec<TableView> = serde_json::from_value(v["tables"].clone()).expect("tables");
+    assert_eq!(tables.len(), 1, "{v:#}");
+    let client = spawn_pull_client(
+        axiscomp_link(format!("127.0.0.1:{port}").parse().expect("addr")),
+        axiscomp::plc::CncMap::generic().expect("map"),
+        rig.twin.plant.clone(),
+        PullClientConfig::default(),
+    );
+    let p: PublishView = serde_json::from_value(
+        rig.request(Request::TablePublish {
+            table_id: tables[0].id,
+            confirm: true,
+        })
+        .await
+        .expect("publish"),
+    )
+    .expect("publish view");
+    assert_eq!((p.result.as_str(), p.sequence), ("committed", 1), "{p:?}");
+    assert!(p.target.contains("pulled from"), "{}", p.target);
+    assert!(rig.twin.plant.compensation().dy.is_some());
+    assert_eq!(client.state().commits.len(), 1);
+    let st: StatusView =
+        serde_json::from_value(rig.request(Request::TableStatus).await.expect("status"))
+            .expect("status view");
+    assert_eq!(
+        (st.verdict.as_str(), st.table_id),
+        ("matches", Some(tables[0].id)),
+        "{}",
+        st.message
+    );
+    drop(client);
+    rig.stop().await;
+}
