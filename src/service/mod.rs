@@ -1,7 +1,8 @@
 //! The live service (DESIGN §5, §8): the I/O-module link and acquisition, the follower drive,
-//! the core task (tracking, stitching, live decoupling, alarms), the control socket, systemd
-//! notification — wired around a `Snapshot` on a watch channel. `run(settings, shutdown)` is the
-//! whole service; `prepare` loads and checks everything it reads (also `axiscomp check`).
+//! the core task (tracking, stitching, live decoupling, alarms), the tables task (compensation
+//! tables to the CNC's PLC, `tables`), the control socket, systemd notification — wired around
+//! a `Snapshot` on a watch channel. `run(settings, shutdown)` is the whole service; `prepare`
+//! loads and checks everything it reads (also `axiscomp check`).
 
 pub mod control;
 mod core;
