@@ -821,10 +821,11 @@ impl Tables {
                 (target, sequence, r, active)
             } else if let (Some(pull), Some(target)) = (&self.pull, self.pull_target()) {
                 let sequence = next_sequence(store_max.max(pull.published()), None, &self.map);
-                let previous = pull.published();
                 let r = serve_for_pull(pull, &t, sequence, self.settings.timeouts.echo).await;
-                if !matches!(r, Ok(PublishOutcome::Accepted { .. })) && previous != 0 {
-                    // Serve the previous table again, so the PLC does not pull a refused one.
+                if !matches!(r, Ok(PublishOutcome::Accepted { .. })) {
+                    // Withdraw it and serve the last accepted table again (or none), so the
+                    // PLC does not pull a table that was refused or never acknowledged.
+                    pull.clear();
                     self.restore_pull();
                 }
                 let active = pull.acks().borrow().status.active_sequence;
