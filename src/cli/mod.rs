@@ -9,6 +9,7 @@ mod evaluate;
 mod optics;
 mod run;
 mod service;
+mod table;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -61,6 +62,10 @@ enum Command {
     Report(run::ReportArgs),
     /// Export a run's compensation table for a controller.
     Export(run::ExportArgs),
+    /// Compensation tables for the CNC's PLC on the running service: list, generate,
+    /// publish, status.
+    #[command(subcommand)]
+    Table(table::Command),
 }
 
 /// Run a parsed command line.
@@ -79,6 +84,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Run(c) => run::run(c),
         Command::Report(a) => run::report(a),
         Command::Export(a) => run::export(a),
+        Command::Table(c) => table::run(c),
     }
 }
 

@@ -163,6 +163,39 @@ pub fn check(a: ServeArgs) -> Result<()> {
         "CAN: {:?}, follower node {}",
         settings.can, settings.follower.drive.node_id
     );
+    let m = &p.cnc_map;
+    let pl = &settings.plc;
+    println!(
+        "CNC map: {} ({}, {}, unit {}, up to {} points, |value| ≤ {} µm, step ≤ {} µm)",
+        resource(&pl.map),
+        m.name,
+        m.file,
+        m.unit_id,
+        m.limits.max_points,
+        m.limits.max_abs_mm * 1e3,
+        m.limits.max_step_mm * 1e3
+    );
+    match &pl.push {
+        Some(push) => println!(
+            "PLC push: {} unit {}",
+            push.link.addr,
+            if push.unit == 0 { m.unit_id } else { push.unit }
+        ),
+        None => println!("PLC push: off"),
+    }
+    match &pl.pull {
+        Some(pull) => println!(
+            "PLC pull server: {} (allow {}, writers {})",
+            pull.bind,
+            pull.allow
+                .as_ref()
+                .map_or("everyone".into(), |a| format!("{a:?}")),
+            pull.writers
+                .as_ref()
+                .map_or("every connected peer".into(), |a| format!("{a:?}"))
+        ),
+        None => println!("PLC pull server: off"),
+    }
     println!("control socket: {}", settings.service.socket.display());
     println!("ok");
     Ok(())
@@ -264,19 +297,39 @@ pub fn status(a: StatusArgs) -> Result<()> {
 
 pub fn sim(a: SimArgs) -> Result<()> {
     init_logs();
-    let (layout, spec) = axiscomp::sim::config::load(&a.config)?;
+    let (layout, spec, plc) = axiscomp::sim::config::load_all(&a.config)?;
     runtime()?.block_on(async move {
         let twin = axiscomp::sim::twin::Twin::start(&layout, spec).await?;
+        // The twin's PLC applies accepted tables to the same plant.
+        let plc = match plc {
+            Some(p) => Some(
+                axiscomp::sim::plc::TwinPlc::start(
+                    twin.plant.clone(),
+                    p.map,
+                    axiscomp::sim::plc::TwinPlcConfig {
+                        bind: p.bind,
+                        ..Default::default()
+                    },
+                )
+                .await
+                .with_context(|| format!("the twin's PLC on {}", p.bind))?,
+            ),
+            None => None,
+        };
         println!(
-            "twin up: I/O module on {}, control on {}",
+            "twin up: I/O module on {}, control on {}{}",
             twin.io.local_addr(),
             twin.control_addr()
                 .map(|a| a.to_string())
+                .unwrap_or_default(),
+            plc.as_ref()
+                .map(|p| format!(", PLC on {} ({})", p.local_addr(), p.map().name))
                 .unwrap_or_default()
         );
         let (trigger, mut listener) = shutdown::channel();
         on_signals(trigger)?;
         listener.recv().await;
+        drop(plc);
         drop(twin);
         Ok(())
     })

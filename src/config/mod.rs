@@ -158,6 +158,30 @@ pub struct RawCapture {
     pub timeout_s: u64,
 }
 
+/// `[plc]`
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct RawPlc {
+    pub map: String,
+    pub push: bool,
+    pub address: String,
+    pub unit: i64,
+    pub timeout_ms: u64,
+    pub reconnect_min_ms: u64,
+    pub reconnect_max_ms: u64,
+    pub ready_timeout_ms: u64,
+    pub heartbeat_timeout_ms: u64,
+    pub poll_ms: u64,
+    pub echo_timeout_ms: u64,
+    pub pull: bool,
+    pub pull_bind: String,
+    pub pull_allow: Vec<String>,
+    pub pull_writers: Vec<String>,
+    pub positioning: String,
+    pub straightness: bool,
+    pub step_mm: f64,
+}
+
 /// What the layers say (first stage).
 #[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
@@ -170,6 +194,7 @@ pub struct RawConfig {
     pub tracking: RawTracking,
     pub cnc: RawCnc,
     pub capture: RawCapture,
+    pub plc: RawPlc,
 }
 
 /// Where a file, map or layout comes from: a path, or the copy built into the binary.
@@ -252,6 +277,41 @@ pub struct CncSettings {
     pub dialect: Dialect,
 }
 
+/// `[plc]` push: the PLC's Modbus TCP server the service writes tables into (and reads back
+/// for `table status`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlcPush {
+    pub link: LinkConfig,
+    /// The unit id overriding the map's; 0 keeps the map's.
+    pub unit: u8,
+}
+
+/// Which compensation tables `table generate` builds from a run.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TableBuild {
+    /// Positioning: one profile with backlash (published as two profiles) or one per
+    /// direction.
+    pub positioning: crate::comp::PositioningMode,
+    /// Also the two straightness (cross-axis) tables.
+    pub straightness: bool,
+    /// Grid spacing of the published tables (mm); `None`: the measured targets' mean spacing.
+    pub step_mm: Option<f64>,
+}
+
+/// `[plc]`, validated (DESIGN §6): the CNC map, push and/or pull, publish timeouts.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlcSettings {
+    /// The CNC map (`plc-maps/cnc/`), or the built-in generic one.
+    pub map: Resource,
+    /// Push tables into the PLC (`None`: push off).
+    pub push: Option<PlcPush>,
+    /// Serve the last published table for the PLC to pull (`None`: no pull server).
+    pub pull: Option<crate::plc::PullConfig>,
+    /// Publish handshake timeouts (push), and the acknowledgement wait (pull: `echo`).
+    pub timeouts: crate::plc::Timeouts,
+    pub tables: TableBuild,
+}
+
 /// The validated configuration.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Settings {
@@ -263,6 +323,7 @@ pub struct Settings {
     pub tracking: TrackSettings,
     pub cnc: CncSettings,
     pub capture: CaptureSettings,
+    pub plc: PlcSettings,
     /// The files that were read, in layer order (for `check` and the logs).
     pub sources: Vec<String>,
 }
@@ -739,6 +800,7 @@ fn validate(
         frames: k.frames as usize,
         timeout: Duration::from_secs(k.timeout_s.max(1)),
     };
+    let plc = plc_settings(&v, &raw.plc)?;
     Ok(Settings {
         service,
         head,
@@ -748,7 +810,104 @@ fn validate(
         tracking,
         cnc,
         capture,
+        plc,
         sources,
+    })
+}
+
+fn plc_settings(v: &V, p: &RawPlc) -> Result<PlcSettings, ConfigError> {
+    let map = v.resource("plc.map", &p.map, &["generic"])?;
+    let push = if p.push {
+        let unit = u8::try_from(p.unit).map_err(|_| {
+            v.err(
+                "plc.unit",
+                format!("{} is not a Modbus unit id (0..=255)", p.unit),
+            )
+        })?;
+        let (rmin, rmax) = (
+            v.ms("plc.reconnect_min_ms", p.reconnect_min_ms, 1)?,
+            v.ms("plc.reconnect_max_ms", p.reconnect_max_ms, 1)?,
+        );
+        if rmax < rmin {
+            return Err(v.err(
+                "plc.reconnect_max_ms",
+                format!(
+                    "{} ms is below plc.reconnect_min_ms ({} ms)",
+                    p.reconnect_max_ms, p.reconnect_min_ms
+                ),
+            ));
+        }
+        let mut link = LinkConfig::new(v.addr("plc.address", &p.address)?);
+        link.timeout = v.ms("plc.timeout_ms", p.timeout_ms, 1)?;
+        link.backoff_min = rmin;
+        link.backoff_max = rmax;
+        Some(PlcPush { link, unit })
+    } else {
+        None
+    };
+    let ips = |key: &str, list: &[String]| -> Result<Option<Vec<std::net::IpAddr>>, ConfigError> {
+        if list.is_empty() {
+            return Ok(None);
+        }
+        list.iter()
+            .map(|s| {
+                s.parse().map_err(|_| {
+                    v.err(
+                        key,
+                        format!(
+                            "\"{s}\" is not an IP address: list addresses like \"192.168.10.5\""
+                        ),
+                    )
+                })
+            })
+            .collect::<Result<Vec<_>, _>>()
+            .map(Some)
+    };
+    let pull = if p.pull {
+        Some(crate::plc::PullConfig {
+            bind: v.addr("plc.pull_bind", &p.pull_bind)?,
+            allow: ips("plc.pull_allow", &p.pull_allow)?,
+            writers: ips("plc.pull_writers", &p.pull_writers)?,
+        })
+    } else {
+        None
+    };
+    let timeouts = crate::plc::Timeouts {
+        ready: v.ms("plc.ready_timeout_ms", p.ready_timeout_ms, 1)?,
+        heartbeat: v.ms("plc.heartbeat_timeout_ms", p.heartbeat_timeout_ms, 1)?,
+        poll: v.ms("plc.poll_ms", p.poll_ms, 1)?,
+        echo: v.ms("plc.echo_timeout_ms", p.echo_timeout_ms, 1)?,
+    };
+    if timeouts.heartbeat > timeouts.ready {
+        return Err(v.err(
+            "plc.heartbeat_timeout_ms",
+            format!(
+                "{} ms exceeds plc.ready_timeout_ms ({} ms): the heartbeat must be seen to change before the ready wait ends",
+                p.heartbeat_timeout_ms, p.ready_timeout_ms
+            ),
+        ));
+    }
+    let positioning = match p.positioning.as_str() {
+        "unidirectional" => crate::comp::PositioningMode::Unidirectional,
+        "bidirectional" => crate::comp::PositioningMode::Bidirectional,
+        other => {
+            return Err(v.err(
+                "plc.positioning",
+                format!("\"{other}\" is unknown: use unidirectional or bidirectional"),
+            ));
+        }
+    };
+    let step_mm = Some(v.non_negative("plc.step_mm", p.step_mm)?).filter(|s| *s > 0.0);
+    Ok(PlcSettings {
+        map,
+        push,
+        pull,
+        timeouts,
+        tables: TableBuild {
+            positioning,
+            straightness: p.straightness,
+            step_mm,
+        },
     })
 }
 
@@ -811,6 +970,51 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn plc_section_is_validated_with_its_keys() {
+        let s = load(&Layers::default()).unwrap();
+        assert_eq!(s.plc.map, Resource::Builtin("generic".into()));
+        assert!(s.plc.push.is_none() && s.plc.pull.is_none());
+        assert_eq!(s.plc.timeouts, crate::plc::Timeouts::default());
+        let s = load_text(
+            "[plc]\npush = true\naddress = \"10.0.0.9:502\"\nunit = 3\npull = true\n\
+             pull_bind = \"0.0.0.0:1502\"\npull_allow = [\"10.0.0.9\", \"10.0.0.10\"]\n\
+             step_mm = 5.0\npositioning = \"bidirectional\"\nmap = \"plc-maps/cnc/codesys.toml\"\n",
+            &[],
+        )
+        .unwrap();
+        let push = s.plc.push.unwrap();
+        assert_eq!((push.link.addr.port(), push.unit), (502, 3));
+        let pull = s.plc.pull.unwrap();
+        assert_eq!(pull.allow.unwrap().len(), 2);
+        assert_eq!(pull.writers, None);
+        assert_eq!(s.plc.tables.step_mm, Some(5.0));
+        assert_eq!(
+            s.plc.map,
+            Resource::File("plc-maps/cnc/codesys.toml".into())
+        );
+        for (text, key) in [
+            ("push = true\naddress = \"plc\"", "plc.address"),
+            ("push = true\nunit = 300", "plc.unit"),
+            (
+                "pull = true\npull_allow = [\"plc.local\"]",
+                "plc.pull_allow",
+            ),
+            ("positioning = \"both\"", "plc.positioning"),
+            ("heartbeat_timeout_ms = 9000", "plc.heartbeat_timeout_ms"),
+            ("step_mm = -1.0", "plc.step_mm"),
+            ("map = \"builtin:siemens\"", "plc.map"),
+        ] {
+            let e = load_text(&format!("[plc]\n{text}\n"), &[]).unwrap_err();
+            assert_eq!(e.key, key, "{e}");
+            assert!(e.origin.ends_with(".toml"), "{e}");
+        }
+        // A push address is only needed when pushing.
+        assert!(load_text("[plc]\naddress = \"plc\"\n", &[]).is_ok());
+        let e = load_text("[plc]\npush_to = true\n", &[]).unwrap_err();
+        assert!(e.to_string().contains("push_to"), "{e}");
     }
 
     #[test]

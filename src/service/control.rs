@@ -2,8 +2,8 @@
 //! one response per line (`{"ok":true,...}` or `{"ok":false,"error":"..."}`); `subscribe` turns
 //! the connection into a stream of snapshots (`{"snapshot":{...}}` per line).
 //!
-//! Viewing (`status`, `subscribe`, `run_status`, `runs`, `run_result`, `audit`) needs the
-//! viewer role; anything that changes state needs the operator role, and the service writes it
+//! Viewing (`status`, `subscribe`, `run_status`, `runs`, `run_result`, `audit`,
+//! `table_list`, `table_status`) needs the viewer role; anything that changes state needs the operator role, and the service writes it
 //! to the audit log; the `status` reply names the peer's `user` and `role`. Roles come from the peer's credentials (`peer`). The socket itself is
 //! world-connectable: access is decided per request, so refusals can say why.
 
@@ -100,6 +100,25 @@ pub enum Request {
     CalibrationAccept,
     /// Drop the waiting calibration.
     CalibrationReject,
+    /// The stored compensation tables, newest first (at most `limit`, default 50), each with
+    /// its latest publication.
+    TableList {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        limit: Option<usize>,
+    },
+    /// Evaluate stored run `run_id`, build its compensation tables for the configured CNC map
+    /// and store them: their ids and a summary.
+    TableGenerate { run_id: i64 },
+    /// Publish stored table `table_id` to the PLC (push, or serve it for pull); refused unless
+    /// `confirm` is true. The reply says committed (with the sequence), rejected (with the
+    /// PLC's code) or failed (with the reason).
+    TablePublish {
+        table_id: i64,
+        #[serde(default)]
+        confirm: bool,
+    },
+    /// What the PLC holds now, read back and compared with the store.
+    TableStatus,
 }
 
 impl Request {
@@ -112,9 +131,22 @@ impl Request {
             | Request::Runs { .. }
             | Request::RunResult { .. }
             | Request::Audit { .. }
-            | Request::Calibration => Role::Viewer,
+            | Request::Calibration
+            | Request::TableList { .. }
+            | Request::TableStatus => Role::Viewer,
             _ => Role::Operator,
         }
+    }
+
+    /// Whether the tables task answers it (`service::tables`), not the core.
+    pub fn is_table(&self) -> bool {
+        matches!(
+            self,
+            Request::TableList { .. }
+                | Request::TableGenerate { .. }
+                | Request::TablePublish { .. }
+                | Request::TableStatus
+        )
     }
 }
 
@@ -477,6 +509,25 @@ mod tests {
         let r: Request = serde_json::from_str(r#"{"cmd":"runs"}"#).unwrap();
         assert_eq!(r, Request::Runs { limit: None });
         assert_eq!(r.needs(), Role::Viewer);
+        let r: Request =
+            serde_json::from_str(r#"{"cmd":"table_publish","table_id":4,"confirm":true}"#).unwrap();
+        assert_eq!(
+            r,
+            Request::TablePublish {
+                table_id: 4,
+                confirm: true
+            }
+        );
+        assert_eq!((r.needs(), r.is_table()), (Role::Operator, true));
+        let r: Request = serde_json::from_str(r#"{"cmd":"table_publish","table_id":4}"#).unwrap();
+        assert!(matches!(r, Request::TablePublish { confirm: false, .. }));
+        let r: Request = serde_json::from_str(r#"{"cmd":"table_generate","run_id":2}"#).unwrap();
+        assert_eq!(r.needs(), Role::Operator);
+        for text in [r#"{"cmd":"table_status"}"#, r#"{"cmd":"table_list"}"#] {
+            let r: Request = serde_json::from_str(text).unwrap();
+            assert_eq!((r.needs(), r.is_table()), (Role::Viewer, true), "{text}");
+        }
+        assert!(!Request::Zero.is_table());
         let r: Request = serde_json::from_str(r#"{"cmd":"nominal","mm":null}"#).unwrap();
         assert_eq!(r, Request::Nominal { mm: None });
         let r: Request =

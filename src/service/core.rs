@@ -803,6 +803,13 @@ impl Core {
                 c.reply,
                 Err("status and subscribe are answered by the socket".into()),
             ),
+            Request::TableList { .. }
+            | Request::TableGenerate { .. }
+            | Request::TablePublish { .. }
+            | Request::TableStatus => Self::reply(
+                c.reply,
+                Err("internal: table requests are answered by the tables task".into()),
+            ),
             Request::Nominal { mm } => {
                 if mm.is_some_and(|x| !x.is_finite()) {
                     return Self::reply(

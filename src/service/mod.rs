@@ -1,7 +1,8 @@
 //! The live service (DESIGN §5, §8): the I/O-module link and acquisition, the follower drive,
-//! the core task (tracking, stitching, live decoupling, alarms), the control socket, systemd
-//! notification — wired around a `Snapshot` on a watch channel. `run(settings, shutdown)` is the
-//! whole service; `prepare` loads and checks everything it reads (also `axiscomp check`).
+//! the core task (tracking, stitching, live decoupling, alarms), the tables task (compensation
+//! tables to the CNC's PLC, `tables`), the control socket, systemd notification — wired around
+//! a `Snapshot` on a watch channel. `run(settings, shutdown)` is the whole service; `prepare`
+//! loads and checks everything it reads (also `axiscomp check`).
 
 pub mod calibration;
 pub mod control;
@@ -13,6 +14,7 @@ pub mod pipeline;
 pub mod results;
 pub mod shutdown;
 pub mod snapshot;
+pub mod tables;
 
 use crate::acquire::{Acquisition, IoMap, MapError};
 use crate::calibrate::{CalError, Calibration, CalibrationFile};
@@ -49,6 +51,12 @@ pub enum ServiceError {
     Decouple(#[from] crate::decouple::DecoupleError),
     #[error(transparent)]
     Store(#[from] crate::store::StoreError),
+    #[error(transparent)]
+    CncMap(#[from] crate::plc::MapError),
+    #[error("[plc] pull = true: {0}")]
+    PullLayout(crate::plc::PullError),
+    #[error(transparent)]
+    Tables(#[from] tables::TablesError),
     #[error("state directory {path}: {source}; create it or set service.state_dir")]
     StateDir {
         path: String,
@@ -67,6 +75,8 @@ impl ServiceError {
             self,
             ServiceError::Layout(_)
                 | ServiceError::Map(_)
+                | ServiceError::CncMap(_)
+                | ServiceError::PullLayout(_)
                 | ServiceError::Drive(_)
                 | ServiceError::Calibration(
                     CalError::File { .. } | CalError::Input(_) | CalError::Csv(_)
@@ -83,9 +93,11 @@ pub struct Prepared {
     pub calibration: Option<Calibration>,
     pub map: IoMap,
     pub decoupler: Decoupler,
+    /// The CNC map of `[plc]` (`plc-maps/cnc/`).
+    pub cnc_map: crate::plc::CncMap,
 }
 
-/// Load and check the layout, the calibration, the I/O map and the drive settings.
+/// Load and check the layout, the calibration, the I/O map, the CNC map and the drive settings.
 pub fn prepare(settings: &Settings) -> Result<Prepared, ServiceError> {
     let layout = match &settings.head.layout {
         Resource::Builtin(_) => Layout::reference(),
@@ -96,6 +108,13 @@ pub fn prepare(settings: &Settings) -> Result<Prepared, ServiceError> {
         Resource::File(p) => IoMap::load(p)?,
     };
     settings.follower.drive.validate()?;
+    let cnc_map = match &settings.plc.map {
+        Resource::Builtin(_) => crate::plc::CncMap::generic()?,
+        Resource::File(p) => crate::plc::CncMap::load(p)?,
+    };
+    if settings.plc.pull.is_some() {
+        crate::plc::serve::ack_range(&cnc_map).map_err(ServiceError::PullLayout)?;
+    }
     let calibration = match &settings.head.calibration {
         Some(p) => Some(CalibrationFile::load(p, &layout)?),
         None => None,
@@ -115,6 +134,7 @@ pub fn prepare(settings: &Settings) -> Result<Prepared, ServiceError> {
         calibration,
         map,
         decoupler,
+        cnc_map,
     })
 }
 
@@ -171,10 +191,29 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
         path: s.service.state_dir.display().to_string(),
         source,
     })?;
-    let store = crate::store::Store::open(s.service.state_dir.join("axiscomp.db"))?;
+    let store_path = s.service.state_dir.join("axiscomp.db");
+    let store = crate::store::Store::open(&store_path)?;
+    // Opened after the core's store, which created and migrated the file.
+    let tables = tables::Tables::start(p.cnc_map.clone(), &s.plc, &store_path).await?;
     let (drive, drive_task, can_peer) = start_drive(&p).await?;
     let (snap_tx, snap_rx) = watch::channel(Snapshot::default());
-    let (cmd_tx, cmd_rx) = mpsc::channel(32);
+    let (cmd_tx, mut cmd_rx) = mpsc::channel::<control::Command>(32);
+    // Table requests go to the tables task (a publish waits on the PLC), the rest to the core.
+    let (core_tx, core_rx) = mpsc::channel(32);
+    let (tables_tx, tables_rx) = mpsc::channel(8);
+    let router = tokio::spawn(async move {
+        while let Some(c) = cmd_rx.recv().await {
+            let to = if c.request.is_table() {
+                tables_tx.send(c).await
+            } else {
+                core_tx.send(c).await
+            };
+            if to.is_err() {
+                break;
+            }
+        }
+    });
+    let tables_task = tokio::spawn(tables.run(tables_rx, shutdown.clone()));
     let policy = peer::RolePolicy::from_names(&s.service.operator_group, &s.service.viewer_group);
     let control = tokio::spawn(control::serve(
         listener,
@@ -187,13 +226,21 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
     let core = core::Core::new(&p, link, acquisition, drive, can_peer, snap_tx, store);
     // A task of its own rather than the runtime's root future: waking the root future from a
     // task (every frame) costs the current-thread runtime an eventfd write and an extra poll.
-    let result = match tokio::spawn(core.run(cmd_rx, shutdown)).await {
+    let result = match tokio::spawn(core.run(core_rx, shutdown)).await {
         Ok(r) => r,
         Err(e) => Err(ServiceError::CoreTask(e.to_string())),
     };
     notify::stopping();
     drive_task.abort();
     let _ = control.await;
+    router.abort();
+    // A publish in progress ends within its own timeouts.
+    if tokio::time::timeout(std::time::Duration::from_secs(30), tables_task)
+        .await
+        .is_err()
+    {
+        tracing::warn!("the tables task did not stop within 30 s");
+    }
     let _ = std::fs::remove_file(&s.service.socket);
     tracing::info!("axiscomp service stopped");
     result

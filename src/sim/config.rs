@@ -23,6 +23,22 @@ struct RawSimConfig {
     can: RawCan,
     drive: RawDrive,
     control: RawControl,
+    #[serde(default)]
+    plc: Option<RawPlc>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPlc {
+    listen: String,
+    map: String,
+}
+
+/// The twin's PLC (`[plc]`): where it listens and the CNC map it serves.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TwinPlcSpec {
+    pub bind: SocketAddr,
+    pub map: crate::plc::CncMap,
 }
 
 #[derive(Debug, Deserialize)]
@@ -118,14 +134,27 @@ struct RawControl {
 
 /// The twin's layout and spec from a file.
 pub fn load(path: &Path) -> Result<(Layout, TwinSpec), SimError> {
+    load_all(path).map(|(l, s, _)| (l, s))
+}
+
+/// The twin's layout, spec and PLC (when the file has `[plc]`) from a file.
+pub fn load_all(path: &Path) -> Result<(Layout, TwinSpec, Option<TwinPlcSpec>), SimError> {
     let label = path.display().to_string();
     let text = std::fs::read_to_string(path)
         .map_err(|e| SimError::Input(format!("twin config {label}: cannot read it: {e}")))?;
-    parse(&text, &label)
+    parse_all(&text, &label)
 }
 
 /// Parse twin configuration text; `label` names it in errors.
 pub fn parse(text: &str, label: &str) -> Result<(Layout, TwinSpec), SimError> {
+    parse_all(text, label).map(|(l, s, _)| (l, s))
+}
+
+/// [`parse`], with the twin's PLC.
+pub fn parse_all(
+    text: &str,
+    label: &str,
+) -> Result<(Layout, TwinSpec, Option<TwinPlcSpec>), SimError> {
     let raw: RawSimConfig = toml::from_str(text).map_err(|e| {
         SimError::Input(format!(
             "twin config {label}: {}; see configs/sim.toml for every key",
@@ -242,6 +271,17 @@ pub fn parse(text: &str, label: &str) -> Result<(Layout, TwinSpec), SimError> {
             format!("{} is not a CANopen node id (1..=127)", drive.node_id),
         ));
     }
+    let plc = match &raw.plc {
+        Some(p) => Some(TwinPlcSpec {
+            bind: addr("plc.listen", &p.listen)?,
+            map: match p.map.as_str() {
+                "builtin" | "builtin:generic" => crate::plc::CncMap::generic(),
+                f => crate::plc::CncMap::load(Path::new(f)),
+            }
+            .map_err(|e| bad("plc.map", e.to_string()))?,
+        }),
+        None => None,
+    };
     Ok((
         layout,
         TwinSpec {
@@ -252,6 +292,7 @@ pub fn parse(text: &str, label: &str) -> Result<(Layout, TwinSpec), SimError> {
             drive,
             control: Some(addr("control.listen", &raw.control.listen)?),
         },
+        plc,
     ))
 }
 
@@ -262,8 +303,11 @@ mod tests {
     #[test]
     fn shipped_sim_config_is_valid() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/sim.toml");
-        let (_, spec) = load(&path).unwrap();
+        let (_, spec, plc) = load_all(&path).unwrap();
         assert_eq!(spec.plant.axis.length_mm, 1000.0);
+        let plc = plc.expect("[plc]");
+        assert_eq!(plc.bind, "127.0.0.1:5502".parse().unwrap());
+        assert_eq!(plc.map, crate::plc::CncMap::generic().unwrap());
         assert!(matches!(spec.can, TwinCan::Cannelloni { .. }));
     }
 
@@ -293,5 +337,17 @@ mod tests {
         )
         .unwrap_err();
         assert!(e.to_string().contains("can.transport"), "{e}");
+        let e = parse(
+            &text.replace(
+                "listen = \"127.0.0.1:5502\"\nmap = \"builtin:generic\"",
+                "listen = \"127.0.0.1:5502\"\nmap = \"no-such.toml\"",
+            ),
+            "sim.toml",
+        )
+        .unwrap_err();
+        assert!(
+            e.to_string().contains("sim.toml: plc.map") && e.to_string().contains("no-such.toml"),
+            "{e}"
+        );
     }
 }

@@ -447,3 +447,73 @@ fn bad_numbers_on_the_command_line() {
     );
     assert_input_error(&o, &["could be aligned", "use smaller errors"]);
 }
+
+/// `axiscomp table …` without a service, or with bad arguments: one clear line, the exit code.
+#[test]
+fn table_commands_name_a_missing_service_and_bad_arguments() {
+    let dir = TempDir::new("table-cli");
+    let sock = dir.path("control.sock");
+    let sock = sock.to_str().unwrap();
+    for args in [
+        vec!["table", "status", "--socket", sock],
+        vec!["table", "list", "--socket", sock],
+        vec!["table", "generate", "--run", "1", "--socket", sock],
+        vec![
+            "table",
+            "publish",
+            "--table",
+            "1",
+            "--confirm",
+            "--socket",
+            sock,
+        ],
+    ] {
+        let o = run(&args, "");
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
+        let last = err.lines().last().unwrap_or_default();
+        assert!(
+            last.contains("cannot connect to")
+                && last.contains(sock)
+                && last.contains("is the service running"),
+            "{args:?}: {last}"
+        );
+    }
+    // Without --confirm nothing is sent: an input error before connecting.
+    let o = run(&["table", "publish", "--table", "3", "--socket", sock], "");
+    assert_input_error(&o, &["--confirm", "table 3"]);
+    // Missing or malformed arguments: clap's usage error, exit 2.
+    for args in [
+        vec!["table", "generate", "--socket", sock],
+        vec!["table", "publish", "--table", "x", "--confirm"],
+    ] {
+        let o = run(&args, "");
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {}", stderr(&o));
+    }
+}
+
+/// `axiscomp check` loads the CNC map `[plc]` names: a bad map, or a map that cannot serve
+/// pull, is an input error naming the file and the key.
+#[test]
+fn check_validates_the_cnc_map() {
+    let dir = TempDir::new("check-plc");
+    let cfg = dir.write(
+        "bad-map.toml",
+        "[plc]\nmap = \"tests/fixtures/cnc-maps/overlap.toml\"\n",
+    );
+    let o = run(&["check", "--config", cfg.to_str().unwrap()], "");
+    assert_input_error(&o, &["overlap.toml", "`header.points.address`"]);
+    let cfg = dir.write(
+        "pull-codesys.toml",
+        "[plc]\nmap = \"plc-maps/cnc/codesys.toml\"\npull = true\n",
+    );
+    let o = run(&["check", "--config", cfg.to_str().unwrap()], "");
+    assert_input_error(&o, &["codesys.toml", "handshake.plc_ready.address", "pull"]);
+    let o = run(&["check", "--config", "configs/twin-service.toml"], "");
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("PLC push: 127.0.0.1:5502 unit 1"),
+        "{}",
+        stdout(&o)
+    );
+}

@@ -288,6 +288,9 @@ pub struct RigOptions {
     /// Give the twin a control socket and let the service send it part programs
     /// (`[cnc] mode = "twin"`), so runs execute on the twin's CNC.
     pub twin_cnc: bool,
+    /// Start the twin's PLC (generic map) on the twin's plant and let the service push tables
+    /// to it (`[plc] push = true`; then `service_toml` must not have a `[plc]` section).
+    pub twin_plc: bool,
 }
 
 impl Default for RigOptions {
@@ -304,6 +307,7 @@ impl Default for RigOptions {
                 ..PlantSpec::default()
             },
             twin_cnc: false,
+            twin_plc: false,
         }
     }
 }
@@ -312,7 +316,11 @@ impl Default for RigOptions {
 /// cannelloni UDP pair, the control API on a Unix socket in a temporary directory.
 pub struct ServiceRig {
     pub twin: axiscomp::sim::twin::Twin,
+    /// The twin's PLC (`RigOptions::twin_plc`).
+    pub plc: Option<axiscomp::sim::plc::TwinPlc>,
     pub socket: std::path::PathBuf,
+    /// The service's store (the file the service opened; WAL, so a test may open it too).
+    pub store: std::path::PathBuf,
     trigger: Option<axiscomp::service::shutdown::Trigger>,
     service: Option<tokio::task::JoinHandle<Result<(), axiscomp::service::ServiceError>>>,
     _dir: TempDir,
@@ -350,13 +358,33 @@ impl ServiceRig {
             Some(a) => format!("[cnc]\nmode = \"twin\"\ntwin = \"{a}\"\n\n"),
             None => String::new(),
         };
+        let plc = if opts.twin_plc {
+            Some(
+                axiscomp::sim::plc::TwinPlc::start(
+                    twin.plant.clone(),
+                    axiscomp::plc::CncMap::generic().expect("generic CNC map"),
+                    Default::default(),
+                )
+                .await
+                .expect("the twin's PLC"),
+            )
+        } else {
+            None
+        };
+        let plc_toml = match &plc {
+            Some(p) => format!(
+                "[plc]\npush = true\naddress = \"{}\"\ntimeout_ms = 300\npoll_ms = 10\n\n",
+                p.local_addr()
+            ),
+            None => String::new(),
+        };
         let socket = dir.path("control.sock");
         let config = dir.write(
             "axiscomp.toml",
             &format!(
                 "[service]\nsocket = \"{}\"\nstate_dir = \"{}\"\nsnapshot_hz = 20.0\n\n\
                  [io]\naddress = \"{}\"\nrate_hz = 500.0\n\n\
-                 [can]\ntransport = \"cannelloni\"\nlocal = \"127.0.0.1:{svc_port}\"\nremote = \"127.0.0.1:{twin_port}\"\n\n{cnc}{}",
+                 [can]\ntransport = \"cannelloni\"\nlocal = \"127.0.0.1:{svc_port}\"\nremote = \"127.0.0.1:{twin_port}\"\n\n{cnc}{plc_toml}{}",
                 socket.display(),
                 dir.path("state").display(),
                 twin.io.local_addr(),
@@ -374,6 +402,8 @@ impl ServiceRig {
         let service = tokio::spawn(axiscomp::service::run(prepared, shutdown));
         let rig = ServiceRig {
             twin,
+            plc,
+            store: dir.path("state").join("axiscomp.db"),
             socket,
             trigger: Some(trigger),
             service: Some(service),

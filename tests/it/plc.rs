@@ -753,3 +753,316 @@ async fn interop_mbpoll_and_pymodbus_read_the_pull_server() {
     };
     assert_eq!(regs_now, want);
 }
+
+// ---------- the service: tables from a stored run, published through the control API ----------
+
+/// A finished run of synthetic captures: the twin's true errors (no noise) at 11 targets over
+/// 0..1000 mm, 3 bidirectional runs. Inserted straight into the service's store (a real run on
+/// the twin takes minutes; `sim::lab` measures one on a virtual clock) — what is tested here
+/// is everything after the captures: evaluation, tables, publishing, read-back.
+fn store_synthetic_run(store: &std::path::Path, plant: &Plant) -> i64 {
+    use axiscomp::Errors6;
+    use axiscomp::run::{Capture, Direction as RunDirection};
+    use axiscomp::store::{NewRun, RunState, Store};
+    let mut s = Store::open(store).expect("open the service's store");
+    let id = s
+        .create_run(&NewRun {
+            axis: "Y".into(),
+            plan: serde_json::json!({"reference_mm": 0.0}),
+            config: serde_json::json!({"synthetic": true}),
+            calibration: None,
+            notes: "synthetic captures of the twin's true errors".into(),
+        })
+        .expect("create run");
+    s.set_run_state(id, RunState::Running).expect("running");
+    let small = Errors6 {
+        dx: 1e-4,
+        dy: 1e-4,
+        dz: 1e-4,
+        ex: 1e-6,
+        ey: 1e-6,
+        ez: 1e-6,
+    };
+    for run in 1..=3u32 {
+        for (dir, rdir) in [
+            (Direction::Up, RunDirection::Up),
+            (Direction::Down, RunDirection::Down),
+        ] {
+            for k in 0..=10u32 {
+                let x = 100.0 * k as f64;
+                let c = Capture {
+                    run,
+                    target_index: k,
+                    target_mm: x,
+                    direction: rdir,
+                    errors: plant.axis.errors(x, dir, 0.0),
+                    frame_sd: small,
+                    u: small,
+                    frames: 100,
+                    material_c: None,
+                    air_c: None,
+                    unix_us: 0,
+                };
+                s.insert_capture(id, &c).expect("capture");
+            }
+        }
+    }
+    s.set_run_state(id, RunState::Finished).expect("finished");
+    id.0
+}
+
+/// The service with the twin's I/O module, drive and PLC on loopback: generate the tables of a
+/// stored run, publish without and with confirmation, read the PLC's table back, and a PLC
+/// that rejects (issue 5: control API and CLI).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_service_generates_publishes_and_reads_back_tables() {
+    use axiscomp::service::control::Request;
+    use axiscomp::service::tables::{PublishView, StatusView, StoredTable, TableView};
+    use axiscomp::store::{PublicationOutcome, Store, TableId};
+    let rig = ServiceRig::start(RigOptions {
+        twin_plc: true,
+        ..RigOptions::default()
+    })
+    .await;
+    let plc = rig.plc.as_ref().expect("twin PLC");
+    let map = plc.map().clone();
+    let run_id = store_synthetic_run(&rig.store, &rig.twin.plant);
+
+    // Nothing published yet.
+    let st: StatusView =
+        serde_json::from_value(rig.request(Request::TableStatus).await.expect("status"))
+            .expect("status view");
+    assert_eq!(st.verdict, "empty", "{}", st.message);
+
+    // Generate: positioning and both straightnesses, stored with their run.
+    let v = rig
+        .request(Request::TableGenerate { run_id })
+        .await
+        .expect("generate");
+    let tables: Vec<TableView> = serde_json::from_value(v["tables"].clone()).expect("tables");
+    let names: Vec<&str> = tables.iter().map(|t| t.name.as_str()).collect();
+    assert_eq!(names, ["EYY", "EXY", "EZY"], "{v:#}");
+    assert!(tables.iter().all(|t| t.source_run == Some(run_id)));
+    let pos = &tables[0];
+    assert_eq!(
+        (pos.kind.as_str(), pos.direction.as_str()),
+        ("positioning", "bidirectional")
+    );
+    // The true positioning error peaks at ±30 µm (plus the periodic term).
+    assert!(pos.max_um - pos.min_um > 20.0, "{pos:?}");
+
+    // Without confirmation: refused, nothing written to the PLC.
+    let writes = plc.writes();
+    let e = rig
+        .request(Request::TablePublish {
+            table_id: pos.id,
+            confirm: false,
+        })
+        .await
+        .expect_err("publish without confirm");
+    assert!(e.to_string().contains("\"confirm\": true"), "{e}");
+    assert_eq!(plc.writes(), writes);
+
+    // Publish the positioning table and both straightnesses.
+    let mut sequences = Vec::new();
+    for t in &tables {
+        let p: PublishView = serde_json::from_value(
+            rig.request(Request::TablePublish {
+                table_id: t.id,
+                confirm: true,
+            })
+            .await
+            .expect("publish"),
+        )
+        .expect("publish view");
+        assert_eq!(p.result, "committed", "{p:?}");
+        assert_eq!(p.active_sequence, Some(p.sequence));
+        sequences.push(p.sequence);
+    }
+    assert_eq!(sequences, [1, 2, 3]);
+
+    // The twin's PLC holds exactly the encoded tables, and the plant carries them.
+    let store = Store::open_read_only(&rig.store).expect("store");
+    let stored: Vec<axiscomp::plc::PlcTable> = tables
+        .iter()
+        .map(|t| {
+            let rec = store.table(TableId(t.id)).expect("stored table");
+            StoredTable::from_record(&rec)
+                .and_then(|s| s.plc_table())
+                .expect("plc table")
+        })
+        .collect();
+    let active = plc.active_tables();
+    for (slot, (k, seq)) in [(1usize, (0usize, 1u32)), (0, (1, 2)), (2, (2, 3))] {
+        let (s, t) = active[slot].clone().expect("active table");
+        assert_eq!(s, seq, "head axis {slot}");
+        let enc = table::encode(&stored[k], &map, seq).expect("encode");
+        let back = table::encode(&t, &map, seq).expect("encode the active table");
+        assert_eq!(back.registers(), enc.registers(), "head axis {slot}");
+    }
+    // The last publish is what the staging area holds: register for register.
+    let enc = table::encode(&stored[2], &map, 3).expect("encode");
+    let holding = plc.holding();
+    for (a, r) in enc.registers() {
+        assert_eq!(holding[a as usize], r, "register {a}");
+    }
+    let c = rig.twin.plant.compensation();
+    let dy = c.dy.as_ref().expect("dy compensation");
+    assert_eq!(dy.positions_mm, stored[0].positions());
+    for (k, (c, e)) in dy.up_mm.iter().zip(&stored[0].values_mm).enumerate() {
+        assert!((c + e).abs() <= 0.5e-4 + 1e-12, "point {k}: {c} vs −{e}");
+    }
+    assert!(c.dx.is_some() && c.dz.is_some());
+
+    // The status reads the PLC back and compares its CRC with the store's.
+    let st: StatusView =
+        serde_json::from_value(rig.request(Request::TableStatus).await.expect("status"))
+            .expect("status view");
+    assert_eq!(
+        (st.verdict.as_str(), st.table_id),
+        ("matches", Some(tables[2].id)),
+        "{}",
+        st.message
+    );
+    assert!(st.message.contains("CRC"), "{}", st.message);
+
+    // A PLC that rejects: recorded as rejected, its active table and the status unchanged.
+    plc.reject_next(9);
+    let p: PublishView = serde_json::from_value(
+        rig.request(Request::TablePublish {
+            table_id: pos.id,
+            confirm: true,
+        })
+        .await
+        .expect("publish"),
+    )
+    .expect("publish view");
+    assert_eq!(
+        (p.result.as_str(), p.code, p.sequence),
+        ("rejected", Some(9), 4),
+        "{p:?}"
+    );
+    assert!(
+        p.message.contains("cannot take a table now"),
+        "{}",
+        p.message
+    );
+    assert_eq!(plc.active_tables()[1].as_ref().map(|a| a.0), Some(1));
+    assert_eq!(plc.status().active_sequence, 3);
+    let last = store.publications(None).expect("publications");
+    assert_eq!(last.len(), 4);
+    assert_eq!(
+        last[3].publication.outcome,
+        PublicationOutcome::Rejected {
+            code: Some(9),
+            text: "the PLC cannot take a table now".into()
+        }
+    );
+    let st: StatusView =
+        serde_json::from_value(rig.request(Request::TableStatus).await.expect("status"))
+            .expect("status view");
+    assert_eq!(
+        (st.verdict.as_str(), st.table_id),
+        ("matches", Some(tables[2].id)),
+        "{}",
+        st.message
+    );
+
+    // The list shows each table's latest publication; the audit log who published.
+    let v = rig
+        .request(Request::TableList { limit: None })
+        .await
+        .expect("list");
+    let listed: Vec<TableView> = serde_json::from_value(v["tables"].clone()).expect("list");
+    let pos_listed = listed.iter().find(|t| t.id == pos.id).expect("listed");
+    let lp = pos_listed.last_publication.as_ref().expect("publication");
+    assert_eq!((lp.result.as_str(), lp.sequence), ("rejected", 4));
+    let audit = store.audit_entries(50).expect("audit");
+    let publishes = audit
+        .iter()
+        .filter(|a| a.entry.action == "table_publish")
+        .count();
+    assert_eq!(publishes, 5, "{audit:?}");
+    assert!(audit.iter().any(|a| a.entry.action == "table_generate"));
+
+    // The CLI against the running service: the status, and a refused request (exit 2).
+    let socket = rig.socket.display().to_string();
+    let o = tokio::task::spawn_blocking(move || {
+        (
+            run(&["table", "status", "--socket", &socket], ""),
+            run(
+                &["table", "generate", "--run", "999", "--socket", &socket],
+                "",
+            ),
+        )
+    })
+    .await
+    .expect("cli");
+    assert_eq!(o.0.status.code(), Some(0), "{}", stderr(&o.0));
+    assert!(
+        stdout(&o.0).contains(&format!("matches table {}", tables[2].id)),
+        "{}",
+        stdout(&o.0)
+    );
+    assert_eq!(o.1.status.code(), Some(2), "{}", stderr(&o.1));
+    assert!(
+        stderr(&o.1).contains("run 999 is not in the store"),
+        "{}",
+        stderr(&o.1)
+    );
+    rig.stop().await;
+}
+
+/// Pull only (`[plc] pull = true`, push off): `table_publish` serves the table on the pull
+/// server, the twin's PLC pulls it, applies it and acknowledges; the reply and the status come
+/// from that acknowledgement.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_service_serves_a_published_table_for_pull() {
+    use axiscomp::service::control::Request;
+    use axiscomp::service::tables::{PublishView, StatusView, TableView};
+    let port = free_port();
+    let rig = ServiceRig::start(RigOptions {
+        service_toml: format!(
+            "[plc]\npull = true\npull_bind = \"127.0.0.1:{port}\"\nstraightness = false\n"
+        ),
+        ..RigOptions::default()
+    })
+    .await;
+    let run_id = store_synthetic_run(&rig.store, &rig.twin.plant);
+    let v = rig
+        .request(Request::TableGenerate { run_id })
+        .await
+        .expect("generate");
+    let tables: Vec<TableView> = serde_json::from_value(v["tables"].clone()).expect("tables");
+    assert_eq!(tables.len(), 1, "{v:#}");
+    let client = spawn_pull_client(
+        axiscomp_link(format!("127.0.0.1:{port}").parse().expect("addr")),
+        axiscomp::plc::CncMap::generic().expect("map"),
+        rig.twin.plant.clone(),
+        PullClientConfig::default(),
+    );
+    let p: PublishView = serde_json::from_value(
+        rig.request(Request::TablePublish {
+            table_id: tables[0].id,
+            confirm: true,
+        })
+        .await
+        .expect("publish"),
+    )
+    .expect("publish view");
+    assert_eq!((p.result.as_str(), p.sequence), ("committed", 1), "{p:?}");
+    assert!(p.target.contains("pulled from"), "{}", p.target);
+    assert!(rig.twin.plant.compensation().dy.is_some());
+    assert_eq!(client.state().commits.len(), 1);
+    let st: StatusView =
+        serde_json::from_value(rig.request(Request::TableStatus).await.expect("status"))
+            .expect("status view");
+    assert_eq!(
+        (st.verdict.as_str(), st.table_id),
+        ("matches", Some(tables[0].id)),
+        "{}",
+        st.message
+    );
+    drop(client);
+    rig.stop().await;
+}

@@ -1,0 +1,1100 @@
+//! The PLC tables task (DESIGN §6–§8): compensation tables generated from stored runs,
+//! published into the CNC's PLC (push: the `plc::publish` handshake over this task's own
+//! `modbus::Link`) and/or served for the PLC to pull (`plc::PullServer`), and what the PLC
+//! holds read back and compared with the store. It answers the control API's `table_list`,
+//! `table_generate`, `table_publish` and `table_status`, so the core never waits on a PLC.
+//!
+//! - Every publish attempt is recorded in the store (table, target, sequence, result, time);
+//!   operator requests are written to the audit log before they are handled, as the core does.
+//! - A stored table is the table as published: the run's `comp` table fitted to the CNC map's
+//!   grid (`PlcTable::from_comp`), with its payload CRC-32 in the `crc` column and the
+//!   measured table beside it ([`StoredTable`]). Publishing re-encodes it and refuses when the
+//!   CRC differs (the configured map changed since it was generated).
+//! - The pull server, when configured, serves the last table the PLC accepted (restored from
+//!   the store at start).
+//!
+//! The decisions (stored format, the next sequence, the status verdict) are plain functions
+//! with unit tests; the task only does the I/O. The protocol is `plc-maps/README.md`.
+
+use super::control::{Command, Request};
+use super::peer::Role;
+use super::results;
+use super::shutdown::Shutdown;
+use crate::comp::{self, AxisMapping, CompTable, MachineAxis, TableKind, TableSpec};
+use crate::config::{PlcSettings, TableBuild};
+use crate::evaluate::{EvalOptions, ReferenceLine, evaluate_captures};
+use crate::modbus::Link;
+use crate::plc::table::{self as ptable, RawHeader, Reject, TableDirection};
+use crate::plc::{self, CncMap, PlcStatus, PlcTable, PublishOutcome, PullServer, StatusCode};
+use crate::run::Direction;
+use crate::store::{
+    Actor, Publication, PublicationOutcome, PublicationRecord, RunId, RunState, Store, StoreError,
+    TableEntry, TableId, TableRecord, now_us,
+};
+use serde::{Deserialize, Serialize};
+use std::net::SocketAddr;
+use std::path::Path;
+use thiserror::Error;
+use tokio::sync::mpsc;
+
+/// The `format` of a stored table's values.
+pub const FORMAT: &str = "axiscomp-plc-table/1";
+
+/// Why the tables task could not start.
+#[derive(Debug, Error)]
+pub enum TablesError {
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error("PLC pull server: {0}")]
+    Pull(#[from] plc::PullError),
+}
+
+/// A table's `values_json` in the store: the table as published, and as measured.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StoredTable {
+    /// [`FORMAT`].
+    pub format: String,
+    /// ISO 230-1 name ("EYY", "EXY").
+    pub name: String,
+    /// The CNC map it was fitted to (its `name`).
+    pub map: String,
+    /// "positioning", "straightness" or "abbe".
+    pub kind: String,
+    /// The axis the values act on, and the one whose position indexes them.
+    pub axis: MachineAxis,
+    pub base_axis: MachineAxis,
+    /// "both", "+", "-" or "bidirectional" (+ profile in `values_mm`, − in `down_mm`).
+    pub direction: String,
+    pub start_mm: f64,
+    pub interval_mm: f64,
+    /// e = measured − nominal (mm) per point.
+    pub values_mm: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub down_mm: Option<Vec<f64>>,
+    /// Where the values are zero (mm).
+    pub reference_mm: f64,
+    /// The table as measured (`comp::CompTable`), before fitting to the PLC's grid.
+    #[serde(default)]
+    pub measured: serde_json::Value,
+}
+
+fn direction_name(d: TableDirection) -> &'static str {
+    match d {
+        TableDirection::Both => "both",
+        TableDirection::Positive => "+",
+        TableDirection::Negative => "-",
+        TableDirection::Bidirectional => "bidirectional",
+    }
+}
+
+fn direction_from_name(s: &str) -> Option<TableDirection> {
+    Some(match s {
+        "both" => TableDirection::Both,
+        "+" => TableDirection::Positive,
+        "-" => TableDirection::Negative,
+        "bidirectional" => TableDirection::Bidirectional,
+        _ => return None,
+    })
+}
+
+fn kind_from_name(s: &str) -> Option<TableKind> {
+    Some(match s {
+        "positioning" => TableKind::Positioning,
+        "straightness" => TableKind::Straightness,
+        "abbe" => TableKind::Abbe,
+        _ => return None,
+    })
+}
+
+impl StoredTable {
+    pub fn new(map: &CncMap, t: &PlcTable, measured: &CompTable) -> StoredTable {
+        StoredTable {
+            format: FORMAT.into(),
+            name: measured.name.clone(),
+            map: map.name.clone(),
+            kind: t.kind.name().into(),
+            axis: t.axis,
+            base_axis: t.base_axis,
+            direction: direction_name(t.direction).into(),
+            start_mm: t.start_mm,
+            interval_mm: t.interval_mm,
+            values_mm: t.values_mm.clone(),
+            down_mm: t.down_mm.clone(),
+            reference_mm: measured.reference_mm,
+            measured: serde_json::to_value(measured).unwrap_or_default(),
+        }
+    }
+
+    /// From a stored table's values.
+    pub fn from_record(r: &TableRecord) -> Result<StoredTable, String> {
+        let not_ours = |why: String| {
+            format!(
+                "table {} was not generated for a PLC ({why}); generate one with table_generate",
+                r.id
+            )
+        };
+        let s: StoredTable =
+            serde_json::from_value(r.entry.values.clone()).map_err(|e| not_ours(e.to_string()))?;
+        if s.format != FORMAT {
+            return Err(not_ours(format!("format {:?}", s.format)));
+        }
+        Ok(s)
+    }
+
+    /// The table as the PLC protocol carries it.
+    pub fn plc_table(&self) -> Result<PlcTable, String> {
+        Ok(PlcTable {
+            kind: kind_from_name(&self.kind).ok_or_else(|| format!("kind {:?}", self.kind))?,
+            axis: self.axis,
+            base_axis: self.base_axis,
+            direction: direction_from_name(&self.direction)
+                .ok_or_else(|| format!("direction {:?}", self.direction))?,
+            start_mm: self.start_mm,
+            interval_mm: self.interval_mm,
+            values_mm: self.values_mm.clone(),
+            down_mm: self.down_mm.clone(),
+        })
+    }
+
+    /// Smallest and largest value over both profiles (µm).
+    pub fn range_um(&self) -> (f64, f64) {
+        self.values_mm
+            .iter()
+            .chain(self.down_mm.iter().flatten())
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+                (lo.min(v * 1e3), hi.max(v * 1e3))
+            })
+    }
+}
+
+// ---------- replies ----------
+
+/// A publication, as replies show it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PublicationView {
+    pub table_id: i64,
+    pub target: String,
+    pub sequence: u32,
+    /// "accepted", "rejected" or "failed".
+    pub result: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub code: Option<i64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub text: Option<String>,
+    pub unix_us: i64,
+}
+
+impl From<&PublicationRecord> for PublicationView {
+    fn from(r: &PublicationRecord) -> Self {
+        let p = &r.publication;
+        let (result, code, text) = match &p.outcome {
+            PublicationOutcome::Accepted => ("accepted", None, None),
+            PublicationOutcome::Rejected { code, text } => ("rejected", *code, Some(text.clone())),
+            PublicationOutcome::Failed { code, text } => ("failed", *code, Some(text.clone())),
+        };
+        PublicationView {
+            table_id: p.table.0,
+            target: p.target.clone(),
+            sequence: p.sequence,
+            result: result.into(),
+            code,
+            text,
+            unix_us: p.unix_us,
+        }
+    }
+}
+
+/// A stored table, as `table_list` and `table_generate` show it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TableView {
+    pub id: i64,
+    /// ISO 230-1 name.
+    pub name: String,
+    pub kind: String,
+    pub axis: String,
+    pub base_axis: String,
+    pub direction: String,
+    pub points: usize,
+    pub start_mm: f64,
+    pub interval_mm: f64,
+    /// Smallest and largest e = measured − nominal (µm).
+    pub min_um: f64,
+    pub max_um: f64,
+    /// CRC-32 of the payload, "0x…".
+    pub crc: String,
+    /// The CNC map it was fitted to.
+    pub map: String,
+    pub source_run: Option<i64>,
+    pub generated_us: i64,
+    /// Its latest publication.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub last_publication: Option<PublicationView>,
+}
+
+fn table_view(r: &TableRecord, pubs: &[PublicationRecord]) -> TableView {
+    let s = StoredTable::from_record(r).ok();
+    let (min_um, max_um) = s.as_ref().map_or((0.0, 0.0), StoredTable::range_um);
+    TableView {
+        id: r.id.0,
+        name: s.as_ref().map(|s| s.name.clone()).unwrap_or_default(),
+        kind: r.entry.kind.clone(),
+        axis: r.entry.axis.clone(),
+        base_axis: s
+            .as_ref()
+            .map(|s| s.base_axis.to_string())
+            .unwrap_or_default(),
+        direction: s
+            .as_ref()
+            .map(|s| s.direction.clone())
+            .unwrap_or_else(|| r.entry.direction.map_or("both", |d| d.sign()).into()),
+        points: s.as_ref().map_or(0, |s| s.values_mm.len()),
+        start_mm: s.as_ref().map_or(0.0, |s| s.start_mm),
+        interval_mm: s.as_ref().map_or(0.0, |s| s.interval_mm),
+        min_um,
+        max_um,
+        crc: format!("0x{:08X}", r.entry.crc),
+        map: s.as_ref().map(|s| s.map.clone()).unwrap_or_default(),
+        source_run: r.entry.source_run.map(|x| x.0),
+        generated_us: r.entry.generated_us,
+        last_publication: pubs
+            .iter()
+            .rev()
+            .find(|p| p.publication.table == r.id)
+            .map(PublicationView::from),
+    }
+}
+
+/// The `table_publish` reply.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PublishView {
+    pub table_id: i64,
+    pub target: String,
+    pub sequence: u32,
+    /// "committed" (the PLC accepted and applies it), "rejected" (the PLC refused it, with
+    /// `code`) or "failed" (no answer; `message` says how far it got).
+    pub result: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub code: Option<u16>,
+    /// The code's meaning, or the reason of the failure.
+    pub message: String,
+    /// The PLC's active sequence afterwards, when it said.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub active_sequence: Option<u32>,
+    /// Whether the commit word went out (a failure after it: the PLC may have applied it).
+    pub commit_sent: bool,
+    /// Set when the publication could not be recorded in the store.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub not_recorded: Option<String>,
+}
+
+/// The PLC's own fields.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PlcStatusView {
+    pub ready: u16,
+    pub heartbeat: u16,
+    /// "idle", "busy", "accepted", "rejected" or the code.
+    pub status: String,
+    pub error_code: u16,
+    pub status_sequence: u32,
+    pub active_sequence: u32,
+}
+
+impl From<&PlcStatus> for PlcStatusView {
+    fn from(s: &PlcStatus) -> Self {
+        PlcStatusView {
+            ready: s.ready,
+            heartbeat: s.heartbeat,
+            status: match s.status {
+                StatusCode::Idle => "idle".into(),
+                StatusCode::Busy => "busy".into(),
+                StatusCode::Accepted => "accepted".into(),
+                StatusCode::Rejected => "rejected".into(),
+                StatusCode::Other(c) => c.to_string(),
+            },
+            error_code: s.error_code,
+            status_sequence: s.status_sequence,
+            active_sequence: s.active_sequence,
+        }
+    }
+}
+
+/// The PLC's staging area (header and payload), read back.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StagedView {
+    pub sequence: u32,
+    pub crc: String,
+    pub points: u16,
+    pub kind: u16,
+    pub axis: u16,
+    pub direction: u16,
+    /// Why the PLC would refuse it (its CRC or limits), when it would.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub invalid: Option<String>,
+}
+
+/// The `table_status` reply.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StatusView {
+    /// Where the answer comes from: the PLC read back (push) or its acknowledgement (pull).
+    pub source: String,
+    pub plc: PlcStatusView,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub staged: Option<StagedView>,
+    /// "matches", "differs" or "empty".
+    pub verdict: String,
+    /// The stored table the PLC holds, when it matches one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub table_id: Option<i64>,
+    /// "matches table N" and how that was established, what differs, or "PLC empty".
+    pub message: String,
+}
+
+// ---------- decisions ----------
+
+/// The sequence of the next publish: after every sequence the store has published and the
+/// PLC's own (status and active), wrapping to 1 past the sequence field's largest value.
+pub fn next_sequence(store_max: u32, plc: Option<&PlcStatus>, map: &CncMap) -> u32 {
+    let (_, max) = map.header.sequence.ty.range();
+    let max = max as u64;
+    let known = plc.map_or(0, |s| s.status_sequence.max(s.active_sequence));
+    let mut s = store_max.max(known) as u64 + 1;
+    if s > max {
+        s = 1;
+    }
+    // After a wrap, step past a sequence the PLC still reports.
+    while plc.is_some_and(|p| p.status_sequence as u64 == s || p.active_sequence as u64 == s) {
+        s = if s >= max { 1 } else { s + 1 };
+    }
+    s as u32
+}
+
+/// What the PLC holds against the store: (verdict, table, message). `staged` is the staging
+/// area read back (its header, and whether the PLC's own check passes), `None` when it
+/// cannot be read (pull). The staging area is the active table when its sequence is the
+/// active one; then the CRC decides. Otherwise (a later publish was rejected or not
+/// committed) only the active sequence can be matched against the store's publications.
+pub fn verdict(
+    status: &PlcStatus,
+    staged: Option<(&RawHeader, Option<&Reject>)>,
+    tables: &[TableRecord],
+    pubs: &[PublicationRecord],
+    target: &str,
+) -> (&'static str, Option<TableId>, String) {
+    let active = status.active_sequence;
+    if active == 0 {
+        return (
+            "empty",
+            None,
+            "PLC empty: it applies no table (active sequence 0)".into(),
+        );
+    }
+    let published = pubs
+        .iter()
+        .rev()
+        .find(|p| {
+            p.publication.target == target
+                && p.publication.sequence == active
+                && p.publication.outcome == PublicationOutcome::Accepted
+        })
+        .map(|p| p.publication.table);
+    let crc_of = |id: TableId| tables.iter().find(|t| t.id == id).map(|t| t.entry.crc);
+    match staged {
+        Some((h, None)) if h.sequence == active => {
+            if let Some(id) = published
+                && crc_of(id) == Some(h.crc)
+            {
+                return (
+                    "matches",
+                    Some(id),
+                    format!(
+                        "matches table {id}: sequence {active}, CRC 0x{:08X} read back",
+                        h.crc
+                    ),
+                );
+            }
+            if let Some(id) = published {
+                return (
+                    "differs",
+                    Some(id),
+                    format!(
+                        "differs: the PLC's table (sequence {active}, CRC 0x{:08X}) is not table {id} published as sequence {active} (CRC 0x{:08X})",
+                        h.crc,
+                        crc_of(id).unwrap_or(0)
+                    ),
+                );
+            }
+            match tables.iter().rev().find(|t| t.entry.crc == h.crc) {
+                Some(t) => (
+                    "matches",
+                    Some(t.id),
+                    format!(
+                        "matches table {} by its CRC 0x{:08X} (sequence {active} is not recorded as its publication to {target})",
+                        t.id, h.crc
+                    ),
+                ),
+                None => (
+                    "differs",
+                    None,
+                    format!(
+                        "differs: the PLC's table (sequence {active}, CRC 0x{:08X}) is none of the stored tables",
+                        h.crc
+                    ),
+                ),
+            }
+        }
+        Some((h, Some(r))) if h.sequence == active => (
+            "differs",
+            published,
+            format!(
+                "differs: the PLC's staging area for its active sequence {active} fails its check ({r})"
+            ),
+        ),
+        _ => {
+            let staged_note = match staged {
+                Some((h, _)) => format!(
+                    "; its staging area holds sequence {}, not applied, so the active table cannot be read back",
+                    h.sequence
+                ),
+                None => String::new(),
+            };
+            match published {
+                Some(id) => (
+                    "matches",
+                    Some(id),
+                    format!(
+                        "matches table {id} by its sequence {active} (accepted by the PLC){staged_note}"
+                    ),
+                ),
+                None => (
+                    "differs",
+                    None,
+                    format!(
+                        "differs: the PLC applies sequence {active}, which the store has not recorded as accepted by {target}{staged_note}"
+                    ),
+                ),
+            }
+        }
+    }
+}
+
+/// Build the tables of run `run_id` for `map` (nothing stored): evaluate its captures,
+/// build positioning (and the straightnesses, when `build` says so) with the standard
+/// mapping of the run's axis, fit each to the map's grid and check it encodes within the
+/// map's limits. All or nothing: the first table that does not fit is the error.
+pub fn generate(
+    store: &Store,
+    run_id: i64,
+    map: &CncMap,
+    build: &TableBuild,
+) -> Result<Vec<(TableEntry, StoredTable)>, String> {
+    let rec = store.run(RunId(run_id)).map_err(|e| e.to_string())?;
+    if rec.state != RunState::Finished {
+        return Err(format!(
+            "run {run_id} is {}: tables come from finished runs only",
+            rec.state
+        ));
+    }
+    let captures = store.captures(rec.id).map_err(|e| e.to_string())?;
+    let eval = evaluate_captures(&captures, &EvalOptions::default())
+        .map_err(|e| format!("run {run_id} cannot be evaluated: {e}"))?;
+    let axis = match rec.axis.trim().to_ascii_uppercase().as_str() {
+        "X" => MachineAxis::X,
+        "Y" => MachineAxis::Y,
+        "Z" => MachineAxis::Z,
+        other => {
+            return Err(format!("run {run_id}: axis {other:?} is not X, Y or Z"));
+        }
+    };
+    let reference_mm = rec
+        .plan
+        .get("reference_mm")
+        .and_then(serde_json::Value::as_f64)
+        .or_else(|| eval.positions_mm.first().copied())
+        .unwrap_or(0.0);
+    let spec = TableSpec {
+        mapping: AxisMapping::standard(axis),
+        reference_mm,
+        positioning: build.positioning,
+        straightness_line: ReferenceLine::LeastSquares,
+        functional_point_mm: None,
+    };
+    let set = comp::build_tables(&eval, &spec).map_err(|e| format!("run {run_id}: {e}"))?;
+    let mut chosen = vec![set.positioning];
+    if build.straightness {
+        chosen.extend(set.straightness);
+    }
+    let generated_us = now_us();
+    chosen
+        .iter()
+        .map(|c| {
+            let fail = |e: String| {
+                format!(
+                    "run {run_id}: table {} does not fit the CNC map {}: {e}; nothing was stored",
+                    c.name, map.file
+                )
+            };
+            let t = PlcTable::from_comp(c, map, build.step_mm).map_err(|e| fail(e.to_string()))?;
+            let enc = ptable::encode(&t, map, 1).map_err(|e| fail(e.to_string()))?;
+            let stored = StoredTable::new(map, &t, c);
+            let entry = TableEntry {
+                kind: t.kind.name().into(),
+                axis: t.axis.letter().into(),
+                direction: match t.direction {
+                    TableDirection::Positive => Some(Direction::Up),
+                    TableDirection::Negative => Some(Direction::Down),
+                    _ => None,
+                },
+                generated_us,
+                source_run: Some(rec.id),
+                values: serde_json::to_value(&stored).map_err(|e| fail(e.to_string()))?,
+                crc: enc.crc,
+            };
+            Ok((entry, stored))
+        })
+        .collect()
+}
+
+/// Pull only: serve `t` as `sequence` and wait for the PLC's acknowledgement.
+async fn serve_for_pull(
+    pull: &PullServer,
+    t: &PlcTable,
+    sequence: u32,
+    wait: std::time::Duration,
+) -> Result<PublishOutcome, plc::PublishError> {
+    pull.set_table(t, sequence)?;
+    match pull.wait_ack(sequence, wait).await {
+        Some(a) if a.status.status == StatusCode::Accepted => Ok(PublishOutcome::Accepted {
+            sequence,
+            active_sequence: a.status.active_sequence,
+        }),
+        Some(a) => Ok(PublishOutcome::Rejected {
+            sequence,
+            code: ptable::RejectCode::from_code(a.status.error_code),
+            active_sequence: a.status.active_sequence,
+        }),
+        None => Err(plc::PublishError::NoEcho {
+            sequence,
+            waited: wait,
+            last: Some(pull.acks().borrow().status),
+            link_error: None,
+        }),
+    }
+}
+
+// ---------- the task ----------
+
+/// The tables task's state: the CNC map, the store connection, the PLC link, the pull server.
+pub struct Tables {
+    map: CncMap,
+    settings: PlcSettings,
+    store: Store,
+    link: Option<Link>,
+    pull: Option<PullServer>,
+}
+
+impl std::fmt::Debug for Tables {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Tables")
+            .field("map", &self.map.name)
+            .field("push", &self.link.as_ref().map(Link::addr))
+            .field("pull", &self.pull_addr())
+            .finish()
+    }
+}
+
+impl Tables {
+    /// Open a store connection of its own, start the link (push) and the pull server, and
+    /// serve the last accepted table for pull.
+    pub async fn start(
+        map: CncMap,
+        settings: &PlcSettings,
+        store_path: &Path,
+    ) -> Result<Tables, TablesError> {
+        let store = Store::open(store_path)?;
+        let mut map = map;
+        if let Some(p) = &settings.push
+            && p.unit != 0
+        {
+            map.unit_id = p.unit;
+        }
+        let link = settings.push.as_ref().map(|p| Link::spawn(p.link.clone()));
+        let pull = match &settings.pull {
+            Some(cfg) => Some(PullServer::start(map.clone(), cfg.clone()).await?),
+            None => None,
+        };
+        let t = Tables {
+            map,
+            settings: settings.clone(),
+            store,
+            link,
+            pull,
+        };
+        t.restore_pull();
+        Ok(t)
+    }
+
+    /// Where the pull server listens.
+    pub fn pull_addr(&self) -> Option<SocketAddr> {
+        self.pull.as_ref().map(PullServer::local_addr)
+    }
+
+    /// Serve the table the PLC last accepted (any target) on the pull server.
+    fn restore_pull(&self) {
+        let Some(pull) = &self.pull else { return };
+        let last = match self.store.publications(None) {
+            Ok(p) => p
+                .into_iter()
+                .rev()
+                .find(|p| p.publication.outcome == PublicationOutcome::Accepted),
+            Err(e) => {
+                tracing::warn!("pull server: cannot read publications: {e}");
+                return;
+            }
+        };
+        let Some(p) = last else { return };
+        let r = self
+            .store
+            .table(p.publication.table)
+            .map_err(|e| e.to_string())
+            .and_then(|r| StoredTable::from_record(&r))
+            .and_then(|s| s.plc_table())
+            .and_then(|t| {
+                pull.set_table(&t, p.publication.sequence)
+                    .map_err(|e| e.to_string())
+            });
+        match r {
+            Ok(_) => tracing::info!(
+                table = p.publication.table.0,
+                sequence = p.publication.sequence,
+                "pull server: serving the last accepted table"
+            ),
+            Err(e) => tracing::warn!("pull server: last accepted table not served: {e}"),
+        }
+    }
+
+    fn push_target(&self) -> Option<String> {
+        self.link
+            .as_ref()
+            .map(|l| format!("{} at {}", self.map.name, l.addr()))
+    }
+
+    fn pull_target(&self) -> Option<String> {
+        self.pull_addr()
+            .map(|a| format!("{} pulled from {a}", self.map.name))
+    }
+
+    /// Serve requests until shutdown; a publish in progress is finished first.
+    pub async fn run(mut self, mut commands: mpsc::Receiver<Command>, mut shutdown: Shutdown) {
+        loop {
+            tokio::select! {
+                _ = shutdown.recv() => break,
+                c = commands.recv() => match c {
+                    Some(c) => self.handle(c).await,
+                    None => break,
+                },
+            }
+        }
+    }
+
+    fn audit(&mut self, c: &Command) {
+        if c.request.needs() != Role::Operator {
+            return;
+        }
+        let request = serde_json::to_value(&c.request).unwrap_or_default();
+        let who = Actor {
+            uid: Some(c.peer.uid),
+            user: Some(c.peer.user.clone()),
+            pid: c.peer.pid,
+        };
+        let entry = results::audit_entry(now_us(), who, "operator", &request);
+        if let Err(e) = self.store.audit(&entry) {
+            tracing::error!("audit entry not stored: {e}");
+        }
+    }
+
+    async fn handle(&mut self, c: Command) {
+        tracing::info!(user = %c.peer.user, uid = c.peer.uid, request = ?c.request, "control request");
+        self.audit(&c);
+        let r = match &c.request {
+            Request::TableList { limit } => self.list(limit.unwrap_or(50)),
+            Request::TableGenerate { run_id } => self.generate(*run_id),
+            Request::TablePublish { table_id, confirm } => {
+                self.publish(*table_id, *confirm, &c.peer.user).await
+            }
+            Request::TableStatus => self.status().await,
+            _ => Err("internal: not a table request".into()),
+        };
+        let _ = c.reply.send(r);
+    }
+
+    fn list(&self, limit: usize) -> Result<serde_json::Value, String> {
+        let tables = self.store.tables().map_err(|e| e.to_string())?;
+        let pubs = self.store.publications(None).map_err(|e| e.to_string())?;
+        let v: Vec<TableView> = tables
+            .iter()
+            .rev()
+            .take(limit)
+            .map(|t| table_view(t, &pubs))
+            .collect();
+        Ok(serde_json::json!({ "tables": v, "map": self.map.name }))
+    }
+
+    fn generate(&mut self, run_id: i64) -> Result<serde_json::Value, String> {
+        let built = generate(&self.store, run_id, &self.map, &self.settings.tables)?;
+        let mut views = Vec::new();
+        for (entry, _) in &built {
+            let id = self.store.insert_table(entry).map_err(|e| e.to_string())?;
+            let rec = self.store.table(id).map_err(|e| e.to_string())?;
+            views.push(table_view(&rec, &[]));
+        }
+        tracing::info!(run = run_id, tables = ?views.iter().map(|v| v.id).collect::<Vec<_>>(), "tables generated");
+        Ok(serde_json::json!({ "run_id": run_id, "map": self.map.name, "tables": views }))
+    }
+
+    async fn publish(
+        &mut self,
+        table_id: i64,
+        confirm: bool,
+        who: &str,
+    ) -> Result<serde_json::Value, String> {
+        if !confirm {
+            return Err(format!(
+                "table_publish changes the compensation the machine applies: check table {table_id} (table_list) and send it again with \"confirm\": true (axiscomp table publish --table {table_id} --confirm)"
+            ));
+        }
+        if self.link.is_none() && self.pull.is_none() {
+            return Err(
+                "no PLC is configured: set [plc] push = true and address, or pull = true, in the configuration"
+                    .into(),
+            );
+        }
+        let rec = self
+            .store
+            .table(TableId(table_id))
+            .map_err(|e| e.to_string())?;
+        let stored = StoredTable::from_record(&rec)?;
+        let t = stored
+            .plc_table()
+            .map_err(|e| format!("table {table_id}: unreadable values ({e})"))?;
+        let enc = ptable::encode(&t, &self.map, 1).map_err(|e| {
+            format!(
+                "table {table_id} cannot be encoded for the CNC map {}: {e}",
+                self.map.file
+            )
+        })?;
+        if enc.crc != rec.entry.crc {
+            return Err(format!(
+                "table {table_id} was fitted to the CNC map \"{}\" (CRC 0x{:08X}); the configured map {} gives CRC 0x{:08X}: generate it again (table_generate)",
+                stored.map, rec.entry.crc, self.map.file, enc.crc
+            ));
+        }
+        let store_max = self
+            .store
+            .publications(None)
+            .map_err(|e| e.to_string())?
+            .iter()
+            .map(|p| p.publication.sequence)
+            .max()
+            .unwrap_or(0);
+        tracing::info!(table = table_id, by = who, "publishing");
+        let (target, sequence, result, active) =
+            if let (Some(link), Some(target)) = (self.link.clone(), self.push_target()) {
+                // The PLC's sequences too, so a store that was reset never reuses one.
+                let plc_now = plc::read_status(&link, &self.map).await.ok();
+                let sequence = next_sequence(store_max, plc_now.as_ref(), &self.map);
+                let r = plc::publish(&link, &self.map, &t, sequence, self.settings.timeouts).await;
+                let active = match &r {
+                    Ok(PublishOutcome::Accepted {
+                        active_sequence, ..
+                    })
+                    | Ok(PublishOutcome::Rejected {
+                        active_sequence, ..
+                    }) => Some(*active_sequence),
+                    Err(_) => None,
+                };
+                if matches!(r, Ok(PublishOutcome::Accepted { .. }))
+                    && let Some(pull) = &self.pull
+                    && let Err(e) = pull.set_table(&t, sequence)
+                {
+                    tracing::warn!("pull server: the published table not served: {e}");
+                }
+                (target, sequence, r, active)
+            } else if let (Some(pull), Some(target)) = (&self.pull, self.pull_target()) {
+                let sequence = next_sequence(store_max.max(pull.published()), None, &self.map);
+                let r = serve_for_pull(pull, &t, sequence, self.settings.timeouts.echo).await;
+                if !matches!(r, Ok(PublishOutcome::Accepted { .. })) {
+                    // Withdraw it and serve the last accepted table again (or none), so the
+                    // PLC does not pull a table that was refused or never acknowledged.
+                    pull.clear();
+                    self.restore_pull();
+                }
+                let active = pull.acks().borrow().status.active_sequence;
+                (target, sequence, r, Some(active))
+            } else {
+                return Err("internal: no PLC".into());
+            };
+        let outcome = plc::publication_outcome(&result);
+        let not_recorded = self
+            .store
+            .insert_publication(&Publication {
+                table: rec.id,
+                target: target.clone(),
+                sequence,
+                outcome,
+                unix_us: now_us(),
+            })
+            .err()
+            .map(|e| {
+                tracing::error!("publication not recorded: {e}");
+                e.to_string()
+            });
+        let (res, code, message, commit_sent) = match &result {
+            Ok(PublishOutcome::Accepted { .. }) => (
+                "committed",
+                None,
+                format!("the PLC accepted sequence {sequence} and applies table {table_id}"),
+                true,
+            ),
+            Ok(PublishOutcome::Rejected { code, .. }) => (
+                "rejected",
+                Some(code.code()),
+                format!(
+                    "the PLC rejected sequence {sequence}: {code}; it keeps its previous table"
+                ),
+                true,
+            ),
+            Err(e) => ("failed", None, e.to_string(), e.commit_sent()),
+        };
+        tracing::info!(table = table_id, sequence, result = res, %message, "publish done");
+        let v = PublishView {
+            table_id,
+            target,
+            sequence,
+            result: res.into(),
+            code,
+            message,
+            active_sequence: active,
+            commit_sent,
+            not_recorded,
+        };
+        serde_json::to_value(v).map_err(|e| e.to_string())
+    }
+
+    async fn status(&mut self) -> Result<serde_json::Value, String> {
+        let tables = self.store.tables().map_err(|e| e.to_string())?;
+        let pubs = self.store.publications(None).map_err(|e| e.to_string())?;
+        let view = if let (Some(link), Some(target)) = (&self.link, self.push_target()) {
+            let rb = plc::read_table(link, &self.map)
+                .await
+                .map_err(|e| format!("cannot read the PLC at {}: {e}", link.addr()))?;
+            let reject = rb.table.as_ref().err();
+            let (verdict, id, message) = verdict(
+                &rb.status,
+                Some((&rb.header, reject)),
+                &tables,
+                &pubs,
+                &target,
+            );
+            StatusView {
+                source: format!("read back from {target}"),
+                plc: PlcStatusView::from(&rb.status),
+                staged: Some(StagedView {
+                    sequence: rb.header.sequence,
+                    crc: format!("0x{:08X}", rb.header.crc),
+                    points: rb.header.points,
+                    kind: rb.header.kind,
+                    axis: rb.header.axis,
+                    direction: rb.header.direction,
+                    invalid: reject.map(ToString::to_string),
+                }),
+                verdict: verdict.into(),
+                table_id: id.map(|t| t.0),
+                message,
+            }
+        } else if let (Some(pull), Some(target)) = (&self.pull, self.pull_target()) {
+            let st = pull.acks().borrow().status;
+            let (verdict, id, message) = verdict(&st, None, &tables, &pubs, &target);
+            StatusView {
+                source: format!(
+                    "the PLC's acknowledgement on {target} (published sequence {})",
+                    pull.published()
+                ),
+                plc: PlcStatusView::from(&st),
+                staged: None,
+                verdict: verdict.into(),
+                table_id: id.map(|t| t.0),
+                message,
+            }
+        } else {
+            return Err(
+                "no PLC is configured: set [plc] push = true and address, or pull = true".into(),
+            );
+        };
+        serde_json::to_value(view).map_err(|e| e.to_string())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plc::table::RejectCode;
+
+    fn status(active: u32, status_sequence: u32) -> PlcStatus {
+        PlcStatus {
+            ready: 1,
+            heartbeat: 7,
+            status: StatusCode::Accepted,
+            error_code: 0,
+            status_sequence,
+            active_sequence: active,
+        }
+    }
+
+    #[test]
+    fn sequences_follow_the_store_and_the_plc_and_wrap() {
+        let m = CncMap::generic().unwrap();
+        assert_eq!(next_sequence(0, None, &m), 1);
+        assert_eq!(next_sequence(4, None, &m), 5);
+        assert_eq!(next_sequence(4, Some(&status(9, 11)), &m), 12);
+        assert_eq!(next_sequence(u32::MAX, None, &m), 1);
+        assert_eq!(next_sequence(u32::MAX, Some(&status(1, 2)), &m), 3);
+        let mut m16 = m.clone();
+        for f in [
+            &mut m16.header.sequence,
+            &mut m16.handshake.commit,
+            &mut m16.handshake.status_sequence,
+            &mut m16.handshake.active_sequence,
+        ] {
+            f.ty = crate::modbus::codec::ValueType::U16;
+        }
+        assert_eq!(next_sequence(65_535, None, &m16), 1);
+    }
+
+    fn table(id: i64, crc: u32) -> TableRecord {
+        TableRecord {
+            id: TableId(id),
+            entry: TableEntry {
+                kind: "positioning".into(),
+                axis: "Y".into(),
+                direction: None,
+                generated_us: 0,
+                source_run: None,
+                values: serde_json::json!({}),
+                crc,
+            },
+        }
+    }
+
+    fn publication(table: i64, sequence: u32, outcome: PublicationOutcome) -> PublicationRecord {
+        PublicationRecord {
+            id: sequence as i64,
+            publication: Publication {
+                table: TableId(table),
+                target: "plc".into(),
+                sequence,
+                outcome,
+                unix_us: 0,
+            },
+        }
+    }
+
+    fn header(sequence: u32, crc: u32) -> RawHeader {
+        RawHeader {
+            kind: 1,
+            axis: 2,
+            base_axis: 2,
+            direction: 3,
+            points: 11,
+            unit: 100,
+            start_mm: 0.0,
+            interval_mm: 10.0,
+            sequence,
+            crc,
+        }
+    }
+
+    #[test]
+    fn the_verdict_compares_the_crc_or_falls_back_to_the_sequence() {
+        let tables = [table(1, 0xAAAA), table(2, 0xBBBB)];
+        let pubs = [
+            publication(1, 1, PublicationOutcome::Accepted),
+            publication(
+                2,
+                2,
+                PublicationOutcome::Rejected {
+                    code: Some(1),
+                    text: "CRC mismatch".into(),
+                },
+            ),
+        ];
+        let v = |st: &PlcStatus, h: Option<(&RawHeader, Option<&Reject>)>| {
+            verdict(st, h, &tables, &pubs, "plc")
+        };
+        assert_eq!(v(&status(0, 0), None).0, "empty");
+        // The active table read back: CRC compared.
+        let (verdict, id, msg) = v(&status(1, 1), Some((&header(1, 0xAAAA), None)));
+        assert_eq!((verdict, id), ("matches", Some(TableId(1))), "{msg}");
+        assert!(
+            msg.contains("matches table 1") && msg.contains("CRC"),
+            "{msg}"
+        );
+        let (verdict, _, msg) = v(&status(1, 1), Some((&header(1, 0xCCCC), None)));
+        assert_eq!(verdict, "differs", "{msg}");
+        // Sequence 2 was rejected: the staging holds it, the PLC still applies 1.
+        let (verdict, id, msg) = v(&status(1, 2), Some((&header(2, 0xBBBB), None)));
+        assert_eq!((verdict, id), ("matches", Some(TableId(1))), "{msg}");
+        assert!(msg.contains("by its sequence 1"), "{msg}");
+        // A staging area that fails its own check for the active sequence.
+        let r = Reject {
+            code: RejectCode::Crc,
+            detail: "x".into(),
+        };
+        assert_eq!(
+            v(&status(1, 1), Some((&header(1, 0xAAAA), Some(&r)))).0,
+            "differs"
+        );
+        // Unknown active sequence, but a stored table's CRC.
+        let (verdict, id, _) = v(&status(7, 7), Some((&header(7, 0xBBBB), None)));
+        assert_eq!((verdict, id), ("matches", Some(TableId(2))));
+        // Pull: the acknowledgement only.
+        assert_eq!(v(&status(1, 1), None).0, "matches");
+        assert_eq!(v(&status(2, 2), None).0, "differs");
+    }
+
+    #[test]
+    fn stored_tables_round_trip() {
+        let m = CncMap::generic().unwrap();
+        let comp = CompTable {
+            kind: TableKind::Positioning,
+            name: "EYY".into(),
+            base_axis: MachineAxis::Y,
+            comp_axis: MachineAxis::Y,
+            reference_mm: 0.0,
+            positions_mm: vec![0.0, 10.0, 20.0],
+            values: comp::TableValues::Single {
+                values: vec![0.0, 0.002, -0.001],
+                backlash_mm: Some(0.003),
+            },
+        };
+        let t = PlcTable::from_comp(&comp, &m, None).unwrap();
+        let s = StoredTable::new(&m, &t, &comp);
+        let rec = TableRecord {
+            id: TableId(3),
+            entry: TableEntry {
+                values: serde_json::to_value(&s).unwrap(),
+                ..table(3, 0).entry
+            },
+        };
+        let back = StoredTable::from_record(&rec).unwrap();
+        assert_eq!(back, s);
+        assert_eq!(back.plc_table().unwrap(), t);
+        assert_eq!(back.direction, "bidirectional");
+        let (lo, hi) = back.range_um();
+        assert!(
+            (lo + 1.0).abs() < 1e-9 && (hi - 5.0).abs() < 1e-9,
+            "{lo} {hi}"
+        );
+        let e = StoredTable::from_record(&table(4, 0)).unwrap_err();
+        assert!(e.contains("table 4 was not generated for a PLC"), "{e}");
+    }
+}
