@@ -114,7 +114,7 @@ async fn the_service_fits_accepts_and_uses_a_calibration() {
     let layout = Layout::reference();
     let head = Plant::draw_head(&layout, &plant).expect("the twin's head");
     let rng = Rng::new(77);
-    let poses = PoseWindow::default().draw(120, &mut rng.fork(1));
+    let poses = PoseWindow::default().draw(80, &mut rng.fork(1));
     let (samples, _) =
         Hexapod::default().acquire(&head, &poses, &mut rng.fork(2), &mut Progress::hidden());
     let dir = std::env::temp_dir().join(format!("axiscomp-svc-cal-{}", std::process::id()));
@@ -144,7 +144,7 @@ async fn the_service_fits_accepts_and_uses_a_calibration() {
     assert!(e.to_string().contains("missing.csv"), "{e}");
 
     let fitted = crate::helpers::within_s(
-        120,
+        300,
         "the fit",
         rig.request(Request::CalibrationFit {
             poses: csv.display().to_string(),
@@ -202,10 +202,12 @@ async fn live_deviation(rig: &crate::helpers::ServiceRig) -> ([f64; 6], [f64; 6]
         .expect("nominal");
     tokio::time::sleep(Duration::from_millis(300)).await;
     let s = rig
-        .wait_for(15, "a full live window", |s| {
+        .wait_for(30, "a live window", |s| {
+            // Frames late on a loaded machine are left out of the window: half of it will do
+            // (the stated sd grows accordingly).
             s.live
                 .as_ref()
-                .is_some_and(|l| l.nominal_mm == Some(0.0) && l.frames >= 100)
+                .is_some_and(|l| l.nominal_mm == Some(0.0) && l.frames >= 50)
         })
         .await;
     let truth = rig.twin.plant.truth(Instant::now()).errors.to_user();
