@@ -230,8 +230,9 @@ pub struct DriveStatus {
     pub position_counts: Option<i32>,
     pub position_mm: Option<f64>,
     /// When the position was sampled: the SYNC before the TPDO that brought it (a drive
-    /// samples its synchronous TPDO at the SYNC), not when it arrived. Set when the position
-    /// changes; `None` for a position read otherwise.
+    /// samples its synchronous TPDO at the SYNC), not when it arrived. Set at every TPDO (a
+    /// position unchanged since the last says the drive still stands there); `None` for a
+    /// position read otherwise.
     pub position_at: Option<Instant>,
     /// The last accepted set-point (mm); while following, the demand sent at the last SYNC.
     pub commanded_mm: Option<f64>,
@@ -516,11 +517,27 @@ impl Master {
     /// [`Event::FollowingEnded`]. Refused outside the travel limits, and after following
     /// ended abnormally or a stop until the next other command.
     pub fn follow(&mut self, target_mm: f64, at: Instant, now: Instant) -> Result<(), DriveError> {
+        self.follow_moving(target_mm, None, at, now)
+    }
+
+    /// As [`follow`](Self::follow), with the target's velocity (mm/s) when the caller knows
+    /// it: each SYNC then moves the target on by it to the SYNC's time, however late (see
+    /// [`TargetTrack`]).
+    pub fn follow_moving(
+        &mut self,
+        target_mm: f64,
+        velocity_mm_s: Option<f64>,
+        at: Instant,
+        now: Instant,
+    ) -> Result<(), DriveError> {
         self.check_limits(target_mm)?;
         if !self.follow_armed {
             return Err(DriveError::FollowDisarmed);
         }
-        self.follow_track.push(target_mm, at);
+        match velocity_mm_s {
+            Some(v) => self.follow_track.push_moving(target_mm, v, at),
+            None => self.follow_track.push(target_mm, at),
+        }
         if self.following {
             // Taken at the next SYNC.
         } else if self.follow_entry.is_none() {
@@ -829,9 +846,7 @@ impl Master {
             .position_counts
             .is_some_and(|p| (self.s.counts_to_mm(pos) - self.s.counts_to_mm(p)).abs() < window);
         self.set_statusword(sw);
-        if self.status.position_counts != Some(pos) {
-            self.status.position_at = self.last_sync_at;
-        }
+        self.status.position_at = self.last_sync_at;
         self.set_position(pos);
         if self.status.mode == Some(MODE_CSP) {
             self.csp_status(Statusword(sw), pos);
