@@ -216,6 +216,9 @@ pub enum Event {
     },
 }
 
+/// TPDO positions kept in [`DriveStatus::recent_positions`].
+pub const RECENT_POSITIONS: usize = 8;
+
 /// The drive as the master sees it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DriveStatus {
@@ -234,6 +237,10 @@ pub struct DriveStatus {
     /// position unchanged since the last says the drive still stands there); `None` for a
     /// position read otherwise.
     pub position_at: Option<Instant>,
+    /// The positions (mm) of the last TPDOs with their sample times, oldest first: a reader
+    /// slower than the SYNC (a watch keeps only the latest status) still gets every sample
+    /// of the last few periods.
+    pub recent_positions: [Option<(Instant, f64)>; RECENT_POSITIONS],
     /// The last accepted set-point (mm); while following, the demand sent at the last SYNC.
     pub commanded_mm: Option<f64>,
     /// Statusword bit 10; in cyclic synchronous position worked out by the master:
@@ -269,6 +276,7 @@ impl DriveStatus {
             position_counts: None,
             position_mm: None,
             position_at: None,
+            recent_positions: [None; RECENT_POSITIONS],
             commanded_mm: None,
             target_reached: false,
             setpoint_ack: false,
@@ -848,6 +856,11 @@ impl Master {
         self.set_statusword(sw);
         self.status.position_at = self.last_sync_at;
         self.set_position(pos);
+        if let Some(at) = self.last_sync_at {
+            let h = &mut self.status.recent_positions;
+            h.rotate_left(1);
+            h[RECENT_POSITIONS - 1] = Some((at, self.s.counts_to_mm(pos)));
+        }
         if self.status.mode == Some(MODE_CSP) {
             self.csp_status(Statusword(sw), pos);
         }

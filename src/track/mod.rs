@@ -410,6 +410,15 @@ impl Tracker {
         [along * along, vertical * vertical]
     }
 
+    /// A follower position sampled at `at` (mm) that came with a later status: a reader slower
+    /// than the SYNC gets several at once, and every one places frames (the follower's path
+    /// between samples far apart is not a straight line).
+    pub fn follower_sample(&mut self, at: Instant, mm: f64) {
+        if self.follower.is_some_and(|f| f.ready) {
+            self.carriage.handle_follower(at, mm, false);
+        }
+    }
+
     /// A follower status update.
     pub fn handle_follower(&mut self, state: FollowerState, now: Instant) {
         if !state.ready {
