@@ -26,15 +26,26 @@ use std::time::{Duration, Instant};
 /// jump, not a velocity), and the tracker is still sending (the latest target is at most two
 /// SYNC periods old: a late target is moved on, one that stopped coming is not). Otherwise the
 /// target is taken as standing where it was last put.
+///
+/// A target pushed with its velocity (`push_moving`: the caller measured it, e.g. the carriage
+/// the follower follows) needs no estimate: it is moved on by that velocity to the SYNC's
+/// time, however late the SYNC or the target (a loaded machine delays both by tens of
+/// milliseconds; taking a late moving target as standing would pull the demand back), for at
+/// most [`EXTRAPOLATE_PERIODS`] SYNC periods; it then stands where that took it.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct TargetTrack {
     latest: Option<(f64, Instant)>,
+    /// The latest target's velocity (mm/s) as the caller gave it.
+    given_vel: Option<f64>,
     /// The target the velocity was last estimated from.
     reference: Option<(f64, Instant)>,
     vel: f64,
     /// The velocity is believed.
     plausible: bool,
 }
+
+/// A target pushed with its velocity is moved on by it for at most this many SYNC periods.
+pub const EXTRAPOLATE_PERIODS: u32 = 10;
 
 impl TargetTrack {
     /// A target for time `at` (a target older than the latest is ignored).
@@ -43,6 +54,16 @@ impl TargetTrack {
             return;
         }
         self.latest = Some((mm, at));
+        self.given_vel = None;
+    }
+
+    /// A target for time `at` moving at `vel` (mm/s; a non-finite velocity is none).
+    pub fn push_moving(&mut self, mm: f64, vel: f64, at: Instant) {
+        if self.latest.is_some_and(|(_, prev)| at < prev) {
+            return;
+        }
+        self.latest = Some((mm, at));
+        self.given_vel = vel.is_finite().then_some(vel);
     }
 
     /// The latest target.
@@ -60,6 +81,19 @@ impl TargetTrack {
         amax: f64,
     ) -> Option<(f64, f64)> {
         let (mm, at) = self.latest?;
+        if let Some(v) = self.given_vel {
+            let v = v.clamp(-vmax, vmax);
+            self.reference = Some((mm, at));
+            self.vel = v;
+            self.plausible = true;
+            let age = now.saturating_duration_since(at);
+            let horizon = period * EXTRAPOLATE_PERIODS;
+            return Some(if age > horizon {
+                (mm + v * horizon.as_secs_f64(), 0.0)
+            } else {
+                (mm + v * age.as_secs_f64(), v)
+            });
+        }
         match self.reference {
             Some((pmm, pat)) if at > pat => {
                 let dt = (at - pat).as_secs_f64();
@@ -407,6 +441,33 @@ mod tests {
         // Older targets than the latest are ignored.
         tr.push(0.0, ms(50));
         assert_eq!(tr.latest(), Some(last));
+    }
+
+    /// A target with its velocity: moved on by it to each SYNC however late (a SYNC 40 ms
+    /// after the target still finds it moving), up to the horizon, where it stands; jumps
+    /// need no plausibility; a target without velocity goes back to the estimate.
+    #[test]
+    fn target_track_with_given_velocity() {
+        let t0 = Instant::now();
+        let ms = |n: u64| t0 + Duration::from_millis(n);
+        let period = Duration::from_millis(10);
+        let mut tr = TargetTrack::default();
+        tr.push_moving(2.0, 50.0, ms(0));
+        let (g, v) = tr.goal(ms(40), period, 100.0, 1000.0).unwrap();
+        assert!((g - 4.0).abs() < 1e-9 && v == 50.0, "{g} {v}");
+        let (g, v) = tr.goal(ms(300), period, 100.0, 1000.0).unwrap();
+        assert!((g - 7.0).abs() < 1e-9 && v == 0.0, "{g} {v}");
+        // Clamped to vmax; an older target is ignored.
+        tr.push_moving(10.0, 500.0, ms(400));
+        tr.push_moving(0.0, 0.0, ms(390));
+        let (g, v) = tr.goal(ms(410), period, 100.0, 1000.0).unwrap();
+        assert!((g - 11.0).abs() < 1e-9 && v == 100.0, "{g} {v}");
+        tr.push_moving(10.0, f64::NAN, ms(420));
+        tr.push(10.0, ms(430));
+        assert_eq!(
+            tr.goal(ms(431), period, 100.0, 1000.0).map(|x| x.1),
+            Some(0.0)
+        );
     }
 
     /// Braking to the stopping point from speed needs no more than the limit.

@@ -216,6 +216,9 @@ pub enum Event {
     },
 }
 
+/// TPDO positions kept in [`DriveStatus::recent_positions`].
+pub const RECENT_POSITIONS: usize = 8;
+
 /// The drive as the master sees it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DriveStatus {
@@ -230,9 +233,14 @@ pub struct DriveStatus {
     pub position_counts: Option<i32>,
     pub position_mm: Option<f64>,
     /// When the position was sampled: the SYNC before the TPDO that brought it (a drive
-    /// samples its synchronous TPDO at the SYNC), not when it arrived. Set when the position
-    /// changes; `None` for a position read otherwise.
+    /// samples its synchronous TPDO at the SYNC), not when it arrived. Set at every TPDO (a
+    /// position unchanged since the last says the drive still stands there); `None` for a
+    /// position read otherwise.
     pub position_at: Option<Instant>,
+    /// The positions (mm) of the last TPDOs with their sample times, oldest first: a reader
+    /// slower than the SYNC (a watch keeps only the latest status) still gets every sample
+    /// of the last few periods.
+    pub recent_positions: [Option<(Instant, f64)>; RECENT_POSITIONS],
     /// The last accepted set-point (mm); while following, the demand sent at the last SYNC.
     pub commanded_mm: Option<f64>,
     /// Statusword bit 10; in cyclic synchronous position worked out by the master:
@@ -268,6 +276,7 @@ impl DriveStatus {
             position_counts: None,
             position_mm: None,
             position_at: None,
+            recent_positions: [None; RECENT_POSITIONS],
             commanded_mm: None,
             target_reached: false,
             setpoint_ack: false,
@@ -516,11 +525,27 @@ impl Master {
     /// [`Event::FollowingEnded`]. Refused outside the travel limits, and after following
     /// ended abnormally or a stop until the next other command.
     pub fn follow(&mut self, target_mm: f64, at: Instant, now: Instant) -> Result<(), DriveError> {
+        self.follow_moving(target_mm, None, at, now)
+    }
+
+    /// As [`follow`](Self::follow), with the target's velocity (mm/s) when the caller knows
+    /// it: each SYNC then moves the target on by it to the SYNC's time, however late (see
+    /// [`TargetTrack`]).
+    pub fn follow_moving(
+        &mut self,
+        target_mm: f64,
+        velocity_mm_s: Option<f64>,
+        at: Instant,
+        now: Instant,
+    ) -> Result<(), DriveError> {
         self.check_limits(target_mm)?;
         if !self.follow_armed {
             return Err(DriveError::FollowDisarmed);
         }
-        self.follow_track.push(target_mm, at);
+        match velocity_mm_s {
+            Some(v) => self.follow_track.push_moving(target_mm, v, at),
+            None => self.follow_track.push(target_mm, at),
+        }
         if self.following {
             // Taken at the next SYNC.
         } else if self.follow_entry.is_none() {
@@ -829,10 +854,13 @@ impl Master {
             .position_counts
             .is_some_and(|p| (self.s.counts_to_mm(pos) - self.s.counts_to_mm(p)).abs() < window);
         self.set_statusword(sw);
-        if self.status.position_counts != Some(pos) {
-            self.status.position_at = self.last_sync_at;
-        }
+        self.status.position_at = self.last_sync_at;
         self.set_position(pos);
+        if let Some(at) = self.last_sync_at {
+            let h = &mut self.status.recent_positions;
+            h.rotate_left(1);
+            h[RECENT_POSITIONS - 1] = Some((at, self.s.counts_to_mm(pos)));
+        }
         if self.status.mode == Some(MODE_CSP) {
             self.csp_status(Statusword(sw), pos);
         }

@@ -47,18 +47,21 @@ pub fn spawn_drive<T: CanTransport>(
     Ok((handle, join))
 }
 
+/// A follow target: where (mm), when, and how fast it moves (mm/s) if the sender knows.
+type FollowTarget = (f64, Instant, Option<f64>);
+
 /// What the handles send the task.
 struct Inputs {
     commands: mpsc::Receiver<(Command, ReplyTx)>,
-    /// The latest follow target and when it holds (`None`: none sent yet).
-    follow: watch::Receiver<Option<(f64, Instant)>>,
+    /// The latest follow target (`None`: none sent yet).
+    follow: watch::Receiver<Option<FollowTarget>>,
 }
 
-/// Hand the latest follow target to the master (`changed()` has already marked it seen).
-fn apply_follow(m: &mut Master, follow: &mut watch::Receiver<Option<(f64, Instant)>>) {
+/// Hand the latest follow target to the master (marks it seen).
+fn apply_follow(m: &mut Master, follow: &mut watch::Receiver<Option<FollowTarget>>) {
     let target = *follow.borrow_and_update();
-    if let Some((mm, at)) = target
-        && let Err(e) = m.follow(mm, at, Instant::now())
+    if let Some((mm, at, vel)) = target
+        && let Err(e) = m.follow_moving(mm, vel, at, Instant::now())
     {
         tracing::debug!("follow target {mm} mm not taken: {e}");
     }
@@ -107,7 +110,12 @@ async fn drive<T: CanTransport>(
             }
         }
         let deadline = m.poll_timeout();
+        // In order of age when several are ready (this task held up on a loaded machine):
+        // frames already received first (a TPDO that came before the SYNC now due answers the
+        // previous one, and is stamped with its time), then the latest follow target, then
+        // commands, then the clock.
         tokio::select! {
+            biased;
             r = bus.recv() => match r {
                 Ok(f) => m.handle_frame(&f, Instant::now()),
                 Err(e @ (CanError::Lagged(_) | CanError::Malformed(_))) => {
@@ -146,7 +154,7 @@ async fn sleep_until(deadline: Option<Instant>) {
 #[derive(Clone, Debug)]
 pub struct DriveHandle {
     cmd: mpsc::Sender<(Command, ReplyTx)>,
-    follow: Arc<watch::Sender<Option<(f64, Instant)>>>,
+    follow: Arc<watch::Sender<Option<FollowTarget>>>,
     limits: TravelLimits,
     status: watch::Receiver<DriveStatus>,
     events: broadcast::Sender<Event>,
@@ -213,6 +221,21 @@ impl DriveHandle {
     /// As [`follow`](Self::follow), for a target worked out for time `at` (e.g. from a
     /// time-stamped measurement of the carriage).
     pub fn follow_at(&self, target_mm: f64, at: Instant) -> Result<(), DriveError> {
+        self.send_follow((target_mm, at, None))
+    }
+    /// As [`follow_at`](Self::follow_at), for a target moving at `velocity_mm_s`: the task
+    /// moves it on by that velocity to each SYNC, however late (see
+    /// [`TargetTrack`](super::csp::TargetTrack)).
+    pub fn follow_moving(
+        &self,
+        target_mm: f64,
+        velocity_mm_s: f64,
+        at: Instant,
+    ) -> Result<(), DriveError> {
+        self.send_follow((target_mm, at, Some(velocity_mm_s)))
+    }
+    fn send_follow(&self, target: FollowTarget) -> Result<(), DriveError> {
+        let target_mm = target.0;
         let l = self.limits;
         if !(target_mm >= l.min_mm && target_mm <= l.max_mm) {
             return Err(DriveError::OutOfLimits {
@@ -222,7 +245,7 @@ impl DriveHandle {
             });
         }
         self.follow
-            .send(Some((target_mm, at)))
+            .send(Some(target))
             .map_err(|_| DriveError::Closed)
     }
     /// Stop following: the demand comes to rest on the last target (one sent just before is

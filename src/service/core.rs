@@ -249,12 +249,24 @@ impl Core {
             .take()
             .ok_or(super::ServiceError::Internal("core events"))?;
         self.resume_run();
+        // Behind the acquisition: give the other tasks a turn after each frame. Working off a
+        // backlog must not hold up the tasks that share the core's worker thread (the CANopen
+        // task's SYNC above all), which tokio's cooperative budget alone lets it do for 128
+        // frames.
+        let mut behind = false;
         loop {
+            if std::mem::take(&mut behind) {
+                tokio::task::yield_now().await;
+            }
             tokio::select! {
                 _ = shutdown.recv() => break,
                 Some(e) = core_events.recv() => self.handle_core_event(e),
                 f = frames.recv() => match f {
-                    Ok(f) => self.handle_frame(&f),
+                    Ok(f) => {
+                        let waiting = frames.len();
+                        behind = waiting > 0;
+                        self.handle_frame(&f, waiting);
+                    }
                     Err(broadcast::error::RecvError::Lagged(n)) => {
                         tracing::warn!("core fell behind the acquisition by {n} frames");
                     }
@@ -305,10 +317,13 @@ impl Core {
         Ok(())
     }
 
-    fn handle_frame(&mut self, f: &Frame) {
+    /// A frame, with `behind` newer frames already waiting.
+    fn handle_frame(&mut self, f: &Frame, behind: usize) {
         // The pipeline judges a frame at its own time (when the module answered); a frame the
-        // core reaches late is tracked but not decoupled, so the core catches up.
-        let late = Instant::now().saturating_duration_since(f.at) > LATE;
+        // core reaches late, or with newer ones waiting, is tracked but not decoupled, so the
+        // core catches up at once (tracking is cheap, decoupling is not: β is recomputed as
+        // the carriage moves).
+        let late = behind > 0 || Instant::now().saturating_duration_since(f.at) > LATE;
         self.pipeline.handle_frame(f, late);
         self.pump();
     }
@@ -321,12 +336,16 @@ impl Core {
                 Output::Follower(FollowerCommand::MoveTo(mm)) => {
                     self.follow.send_replace(Some(mm));
                 }
-                Output::Follower(FollowerCommand::Follow { target_mm, at }) => {
+                Output::Follower(FollowerCommand::Follow {
+                    target_mm,
+                    velocity_mm_s,
+                    at,
+                }) => {
                     if self.csp_refused || std::mem::take(&mut self.follow_rearm) {
                         self.follow.send_replace(Some(target_mm));
                         continue;
                     }
-                    match self.drive.follow_at(target_mm, at) {
+                    match self.drive.follow_moving(target_mm, velocity_mm_s, at) {
                         Ok(()) => {}
                         // Following ended (a stop, a fault, a drive refusing mode 8): go on
                         // in profile position; the move re-arms following.

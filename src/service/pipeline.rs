@@ -272,6 +272,11 @@ impl Pipeline {
     pub fn handle_drive_status(&mut self, st: &DriveStatus, now: Instant) {
         self.drive = Some(st.clone());
         if let Some(fs) = self.follower_state() {
+            if fs.ready {
+                for &(at, mm) in st.recent_positions.iter().flatten() {
+                    self.tracker.follower_sample(at, mm);
+                }
+            }
             self.tracker.handle_follower(fs, now);
             self.drain_tracker();
         }

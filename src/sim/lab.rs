@@ -465,9 +465,16 @@ impl Lab {
             match out {
                 // A handover step: the latest set-point wins (as the service's follower task).
                 Output::Follower(FollowerCommand::MoveTo(mm)) => self.pending_follow = Some(mm),
-                Output::Follower(FollowerCommand::Follow { target_mm, at }) => {
+                Output::Follower(FollowerCommand::Follow {
+                    target_mm,
+                    velocity_mm_s,
+                    at,
+                }) => {
                     self.stats.follow_targets += 1;
-                    match self.master.follow(target_mm, at, now) {
+                    match self
+                        .master
+                        .follow_moving(target_mm, Some(velocity_mm_s), at, now)
+                    {
                         Ok(()) => {}
                         // Following ended (a stop, a fault): a move re-arms it, as in the
                         // service.

@@ -21,14 +21,13 @@
 //! (`handle_follower`) with the time, take follower commands (`poll_command`) and events
 //! (`poll_event`); `stitch()` gives the current PSD2 position estimate for the decoupling.
 
+pub mod carriage;
+
 use crate::acquire::Frame;
+use carriage::CarriageEstimator;
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
-
-/// The carriage's velocity is estimated over this much history: short, so the lead stops
-/// pushing soon after the carriage stops.
-const VELOCITY_WINDOW: Duration = Duration::from_millis(50);
 
 /// How the follower's position is known.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -116,8 +115,13 @@ pub enum FollowerCommand {
     /// Move to an absolute encoder position (mm) and stop there (a handover step).
     MoveTo(f64),
     /// Continuous following: the carriage, in encoder coordinates, was at `target_mm` at `at`
-    /// (the drive's cyclic synchronous position mode extrapolates it to each SYNC).
-    Follow { target_mm: f64, at: Instant },
+    /// moving at `velocity_mm_s` (the drive's cyclic synchronous position mode moves it on to
+    /// each SYNC).
+    Follow {
+        target_mm: f64,
+        velocity_mm_s: f64,
+        at: Instant,
+    },
 }
 
 /// How a handover's displacement was measured.
@@ -231,13 +235,10 @@ pub struct Tracker {
     settings: TrackSettings,
     phase: Phase,
     follower: Option<FollowerState>,
-    /// The last two follower positions with their arrival times, to place the follower at a
-    /// frame's time (positions arrive every SYNC; frames more often).
-    follower_track: [Option<(Instant, f64)>; 2],
     /// Recent PSD2 spots (time, x, y) for the rest test.
     recent: VecDeque<(Instant, [f64; 2])>,
-    /// Recent carriage position estimates (encoder + spot), for its velocity.
-    carriage: VecDeque<(Instant, f64)>,
+    /// The carriage in encoder coordinates (frames placed by the follower's samples).
+    carriage: CarriageEstimator,
     last_valid: Option<Instant>,
     lost: bool,
     last_follow_cmd: Option<Instant>,
@@ -264,9 +265,8 @@ impl Tracker {
             settings,
             phase: Phase::Watch,
             follower: None,
-            follower_track: [None; 2],
             recent: VecDeque::new(),
-            carriage: VecDeque::new(),
+            carriage: CarriageEstimator::default(),
             last_valid: None,
             lost: false,
             last_follow_cmd: None,
@@ -410,32 +410,23 @@ impl Tracker {
         [along * along, vertical * vertical]
     }
 
-    /// Where the follower was at `t`: its last reported position, moved on by its velocity
-    /// between the last two reports — unless it reports its target reached, or no report came
-    /// for longer than the last interval (then it has stopped, or its reports are late).
-    fn follower_at(&self, t: Instant) -> Option<f64> {
-        let (t1, p1) = self.follower_track[1]?;
-        let Some((t0, p0)) = self.follower_track[0] else {
-            return Some(p1);
-        };
-        if self.follower.is_some_and(|f| f.target_reached) {
-            return Some(p1);
+    /// A follower position sampled at `at` (mm) that came with a later status: a reader slower
+    /// than the SYNC gets several at once, and every one places frames (the follower's path
+    /// between samples far apart is not a straight line).
+    pub fn follower_sample(&mut self, at: Instant, mm: f64) {
+        if self.follower.is_some_and(|f| f.ready) {
+            self.carriage.handle_follower(at, mm, false);
         }
-        let dt = t1.saturating_duration_since(t0).as_secs_f64();
-        let ahead = t.saturating_duration_since(t1).as_secs_f64();
-        if dt <= 0.0 || dt > 0.1 || ahead > dt {
-            return Some(p1);
-        }
-        Some(p1 + (p1 - p0) / dt * ahead)
     }
 
     /// A follower status update.
     pub fn handle_follower(&mut self, state: FollowerState, now: Instant) {
         if !state.ready {
-            self.follower_track = [None; 2];
-        } else if self.follower_track[1].is_none_or(|(_, p)| p != state.position_mm) {
+            self.carriage.clear();
+        } else {
             let at = state.at.unwrap_or(now);
-            self.follower_track = [self.follower_track[1], Some((at, state.position_mm))];
+            self.carriage
+                .handle_follower(at, state.position_mm, state.target_reached);
         }
         self.follower = Some(state);
         if let Phase::Moving {
@@ -512,41 +503,30 @@ impl Tracker {
             // A follower that is not ready may be homing: its coordinates jump. Keep no
             // history across that.
             self.carriage.clear();
-            self.follower_track = [None; 2];
             return;
         }
-        let follower_now = self.follower_at(now).unwrap_or(f.position_mm);
-        self.carriage.push_back((now, follower_now + p[0]));
-        while self
-            .carriage
-            .front()
-            .is_some_and(|(t, _)| now.saturating_duration_since(*t) > VELOCITY_WINDOW)
-        {
-            self.carriage.pop_front();
-        }
+        self.carriage.handle_frame(now, p[0]);
         match self.settings.strategy {
             Strategy::Encoder => self.follow_step(p, f, now),
             Strategy::Overlap => self.track_overlap(p, f, now),
         }
     }
 
-    /// The carriage's velocity (mm/s) over the last `VELOCITY_WINDOW`, from encoder plus spot.
-    fn carriage_velocity(&self) -> f64 {
-        match (self.carriage.front(), self.carriage.back()) {
-            (Some((t0, c0)), Some((t1, c1))) => {
-                let dt = t1.saturating_duration_since(*t0).as_secs_f64();
-                if dt >= 0.02 { (c1 - c0) / dt } else { 0.0 }
-            }
-            _ => 0.0,
-        }
-    }
-
-    /// One step of continuous following: aim at the carriage plus its motion over the lead.
+    /// One step of continuous following: aim at the carriage (placed by the follower's own
+    /// samples, so the follower's motion does not feed back into its target), moved on by its
+    /// velocity over the lead; the drive moves it on to each SYNC by the same velocity.
     fn follow_step(&mut self, p: [f64; 2], f: FollowerState, now: Instant) {
         if !f.ready {
             return;
         }
-        let v = self.carriage_velocity();
+        // Before the follower has placed a frame (it has just started to report), the
+        // carriage is where the latest report and the spot say, standing.
+        let (carriage, v) = self
+            .carriage
+            .estimate(now)
+            .map_or((f.position_mm + p[0], 0.0), |c| {
+                (c.position_mm, c.velocity_mm_s)
+            });
         if p[0].abs() <= self.settings.follow_band_mm && v.abs() < 2.0 {
             return;
         }
@@ -554,19 +534,18 @@ impl Tracker {
             .last_follow_cmd
             .is_none_or(|t| now.saturating_duration_since(t) >= self.settings.follow_interval);
         if due {
-            // The spot moves +1 mm on PSD2 per mm the carriage leads the follower.
-            let here = self.follower_at(now).unwrap_or(f.position_mm);
-            let target = here + p[0] + v * self.settings.lead.as_secs_f64();
+            let target = carriage + v * self.settings.lead.as_secs_f64();
             tracing::trace!(
                 reported = f.position_mm,
-                here,
                 x2 = p[0],
+                carriage,
                 v,
                 target,
                 "follow"
             );
             self.commands.push_back(FollowerCommand::Follow {
                 target_mm: target,
+                velocity_mm_s: v,
                 at: now,
             });
             self.last_follow_cmd = Some(now);
@@ -983,6 +962,84 @@ mod tests {
             (sd_v - (0.2e-3 + 3e-6 * b.enc.abs())).abs() < 1e-12,
             "{sd_v}"
         );
+    }
+
+    /// The follow target is the carriage, whatever the follower does and however late its
+    /// reports come: the follower swinging ±0.5 mm at 5 Hz (a loop gone wrong), sampled at
+    /// 10 ms SYNCs that come up to 30 ms late, reported up to 40 ms after that; the carriage at
+    /// 50 mm/s. Every target after the first 100 ms is within 0.15 mm of the carriage at its
+    /// time (what is left is the follower's curve between its samples, up to 40 ms apart),
+    /// with the carriage's velocity.
+    #[test]
+    fn follow_targets_are_the_carriage_whatever_the_follower_does() {
+        let t0 = Instant::now();
+        let mut rng = Rng::new(11);
+        let mut tr = Tracker::new(TrackSettings {
+            strategy: Strategy::Encoder,
+            ..TrackSettings::default()
+        });
+        let carriage = |t: f64| 5.0 + 50.0 * t;
+        let follower = |t: f64| 5.0 + 50.0 * t + 0.5 * (2.0 * std::f64::consts::PI * 5.0 * t).sin();
+        let at = |t: f64| t0 + Duration::from_secs_f64(t);
+        // SYNC times (some late), each with the time its report arrives.
+        let mut reports = Vec::new();
+        let mut sync = 0.0;
+        while sync < 1.0 {
+            sync += 0.010
+                + if rng.uniform(0.0, 1.0) < 0.1 {
+                    rng.uniform(0.0, 0.03)
+                } else {
+                    0.0
+                };
+            reports.push((sync, sync + rng.uniform(0.0, 0.04)));
+        }
+        reports.sort_by(|a, b| a.1.total_cmp(&b.1));
+        let (mut next, mut targets) = (0, Vec::new());
+        for k in 1..500 {
+            let t = k as f64 * 0.002;
+            while next < reports.len() && reports[next].1 <= t {
+                let (s, _) = reports[next];
+                tr.handle_follower(
+                    FollowerState {
+                        position_mm: follower(s),
+                        ready: true,
+                        target_reached: false,
+                        at: Some(at(s)),
+                    },
+                    at(t),
+                );
+                next += 1;
+            }
+            let x = carriage(t) - follower(t) + rng.gauss(1e-3);
+            let spot = Some(crate::optics::Spot { x, y: 0.0 });
+            let f = Frame {
+                seq: k,
+                at: at(t),
+                unix_us: 0,
+                spots: [spot, spot, spot],
+                sums: [5.0; 3],
+            };
+            tr.handle_frame(&f, at(t));
+            while let Some(c) = tr.poll_command() {
+                if let FollowerCommand::Follow {
+                    target_mm,
+                    velocity_mm_s,
+                    at,
+                } = c
+                {
+                    targets.push(((at - t0).as_secs_f64(), target_mm, velocity_mm_s));
+                }
+            }
+        }
+        assert!(targets.len() > 40, "{} targets", targets.len());
+        for &(t, target, v) in targets.iter().filter(|x| x.0 > 0.1) {
+            assert!(
+                (target - carriage(t)).abs() < 0.15,
+                "at {t:.3} s: target {target:.4}, carriage {:.4}",
+                carriage(t)
+            );
+            assert!((v - 50.0).abs() < 2.0, "at {t:.3} s: {v} mm/s");
+        }
     }
 
     #[test]
