@@ -80,6 +80,12 @@ async fn drive<T: CanTransport>(
     } = inputs;
     let mut follow_open = true;
     let mut pending: HashMap<OpId, ReplyTx> = HashMap::new();
+    // One timer for the task's life, moved only when the master's deadline changes: a fresh
+    // Sleep per turn of the loop (a frame, a follow target) re-registers with tokio's timer,
+    // which wakes its driver when the deadline is earlier than the one it sleeps to.
+    let timer = tokio::time::sleep_until(tokio::time::Instant::now());
+    tokio::pin!(timer);
+    let mut armed: Option<Instant> = None;
     loop {
         while let Some(f) = m.poll_transmit() {
             match bus.send(&f).await {
@@ -110,6 +116,12 @@ async fn drive<T: CanTransport>(
             }
         }
         let deadline = m.poll_timeout();
+        if deadline != armed
+            && let Some(d) = deadline
+        {
+            timer.as_mut().reset(tokio::time::Instant::from_std(d));
+        }
+        armed = deadline;
         // In order of age when several are ready (this task held up on a loaded machine):
         // frames already received first (a TPDO that came before the SYNC now due answers the
         // previous one, and is stamped with its time), then the latest follow target, then
@@ -138,15 +150,11 @@ async fn drive<T: CanTransport>(
                 }
                 None => return Ok(()),
             },
-            _ = sleep_until(deadline) => m.handle_timeout(Instant::now()),
+            () = &mut timer, if armed.is_some() => {
+                armed = None;
+                m.handle_timeout(Instant::now());
+            }
         }
-    }
-}
-
-async fn sleep_until(deadline: Option<Instant>) {
-    match deadline {
-        Some(d) => tokio::time::sleep_until(tokio::time::Instant::from_std(d)).await,
-        None => std::future::pending().await,
     }
 }
 

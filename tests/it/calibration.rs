@@ -114,7 +114,7 @@ async fn the_service_fits_accepts_and_uses_a_calibration() {
     let layout = Layout::reference();
     let head = Plant::draw_head(&layout, &plant).expect("the twin's head");
     let rng = Rng::new(77);
-    let poses = PoseWindow::default().draw(80, &mut rng.fork(1));
+    let poses = PoseWindow::default().draw(50, &mut rng.fork(1));
     let (samples, _) =
         Hexapod::default().acquire(&head, &poses, &mut rng.fork(2), &mut Progress::hidden());
     let dir = std::env::temp_dir().join(format!("axiscomp-svc-cal-{}", std::process::id()));

@@ -314,6 +314,21 @@ impl Default for RigOptions {
 
 /// The twin and the service on loopback: Modbus TCP on an ephemeral port, CANopen over a
 /// cannelloni UDP pair, the control API on a Unix socket in a temporary directory.
+static MACHINE: std::sync::RwLock<()> = std::sync::RwLock::new(());
+
+/// A live service against the twin runs in real time (SYNC, frames, handovers): it takes the
+/// machine to itself, so on a 2-core machine no other live rig and no CPU-heavy lab run
+/// shares it. Light tests still run alongside.
+pub fn exclusive() -> std::sync::RwLockWriteGuard<'static, ()> {
+    // A test that panicked while holding it leaves nothing to repair.
+    MACHINE.write().unwrap_or_else(|p| p.into_inner())
+}
+
+/// A CPU-heavy test on a simulated clock: many may run together, never beside a live rig.
+pub fn heavy() -> std::sync::RwLockReadGuard<'static, ()> {
+    MACHINE.read().unwrap_or_else(|p| p.into_inner())
+}
+
 pub struct ServiceRig {
     pub twin: axiscomp::sim::twin::Twin,
     /// The twin's PLC (`RigOptions::twin_plc`).
@@ -324,6 +339,8 @@ pub struct ServiceRig {
     trigger: Option<axiscomp::service::shutdown::Trigger>,
     service: Option<tokio::task::JoinHandle<Result<(), axiscomp::service::ServiceError>>>,
     _dir: TempDir,
+    /// Dropped last: the machine is this rig's until it is gone.
+    _exclusive: std::sync::RwLockWriteGuard<'static, ()>,
 }
 
 impl ServiceRig {
@@ -333,6 +350,7 @@ impl ServiceRig {
         use axiscomp::sim::drive::TwinDriveConfig;
         use axiscomp::sim::twin::{Twin, TwinCan, TwinSpec};
         init_test_log();
+        let exclusive = exclusive();
         let dir = TempDir::new("service");
         let (svc_port, twin_port) = (unused_udp_port(), unused_udp_port());
         let twin = Twin::start(
@@ -408,6 +426,7 @@ impl ServiceRig {
             trigger: Some(trigger),
             service: Some(service),
             _dir: dir,
+            _exclusive: exclusive,
         };
         rig.wait_for(
             60,

@@ -48,6 +48,7 @@ fn plan(end_mm: f64, targets: usize, runs: u32, feed_mm_min: f64) -> Plan {
 #[test]
 fn a_short_run_captures_every_stop_at_the_truth() {
     crate::helpers::init_test_log();
+    let _machine = crate::helpers::heavy();
     let spec = LabSpec::standard(perfect_head(3), None).expect("spec");
     let mut lab = Lab::new(&spec).expect("lab");
     lab.bring_up().expect("bring-up");
@@ -108,6 +109,7 @@ fn a_short_run_captures_every_stop_at_the_truth() {
 #[ignore = "a whole 1000 mm run: run optimised by .ci/run"]
 fn a_1000_mm_axis_11_targets_5_runs_matches_the_truth_within_u() {
     crate::helpers::init_test_log();
+    let _machine = crate::helpers::heavy();
     let spec = LabSpec::standard(perfect_head(11), None).expect("spec");
     let mut lab = Lab::new(&spec).expect("lab");
     lab.bring_up().expect("bring-up");
@@ -173,6 +175,7 @@ fn a_1000_mm_axis_11_targets_5_runs_matches_the_truth_within_u() {
 /// follower's encoder).
 #[test]
 fn encoder_following_over_100_mm_in_one_move_matches_the_truth() {
+    let _machine = crate::helpers::heavy();
     let mut spec = LabSpec::standard(perfect_head(5), None).expect("spec");
     spec.tracking.strategy = axiscomp::track::Strategy::Encoder;
     let mut lab = Lab::new(&spec).expect("lab");
@@ -236,6 +239,7 @@ fn closed_loop_case(length_mm: f64, targets: usize, runs: u32, step_mm: f64) {
     use axiscomp::sim::axis::AxisSpec;
     use axiscomp::sim::closed_loop::{self, Figures, LoopSpec};
     crate::helpers::init_test_log();
+    let _machine = crate::helpers::heavy();
     let mut plant = perfect_head(5);
     plant.axis = AxisSpec {
         length_mm,
