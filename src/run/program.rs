@@ -134,14 +134,24 @@ pub fn remaining_steps(
     Some(rest)
 }
 
-/// A make-up pass over `missing` captures: each target approached from its direction's side,
-/// starting `approach_mm` before it.
+/// A make-up pass over `missing` captures, as one sweep: the upward ones by increasing
+/// position, then the downward ones by decreasing position, each approached from its
+/// direction's side from `approach_mm` before it. In the cycle's order the carriage would
+/// cross the travel between most of them, and every crossing is a follower step whose
+/// settling eats the dwell the capture needs.
 pub fn makeup_steps(plan: &Plan, missing: &[super::TargetKey], approach_mm: f64) -> Vec<Step> {
-    let mut out = Vec::with_capacity(2 * missing.len());
-    for k in missing {
-        let Some(&t) = plan.targets.get(k.target_index as usize) else {
-            continue;
-        };
+    let mut keys: Vec<(f64, super::TargetKey)> = missing
+        .iter()
+        .filter_map(|k| Some((*plan.targets.get(k.target_index as usize)?, *k)))
+        .collect();
+    keys.sort_by(|(a, ka), (b, kb)| match (ka.direction, kb.direction) {
+        (Direction::Up, Direction::Down) => std::cmp::Ordering::Less,
+        (Direction::Down, Direction::Up) => std::cmp::Ordering::Greater,
+        (Direction::Up, Direction::Up) => a.total_cmp(b).then(ka.run.cmp(&kb.run)),
+        (Direction::Down, Direction::Down) => b.total_cmp(a).then(ka.run.cmp(&kb.run)),
+    });
+    let mut out = Vec::with_capacity(2 * keys.len());
+    for (t, k) in keys {
         let from = match k.direction {
             Direction::Up => t - approach_mm,
             Direction::Down => t + approach_mm,
@@ -152,7 +162,7 @@ pub fn makeup_steps(plan: &Plan, missing: &[super::TargetKey], approach_mm: f64)
         });
         out.push(Step {
             position_mm: t,
-            target: Some(*k),
+            target: Some(k),
         });
     }
     out
@@ -402,6 +412,32 @@ mod tests {
         let m = makeup_steps(&p, &[down], 2.0);
         assert_eq!(m.len(), 2);
         assert!(m[0].position_mm > m[1].position_mm, "approached from above");
+        // Several: one sweep up, then one down, each stop approached from its side.
+        let missing = [all[12], all[1], all[8], all[3], all[16], all[0]];
+        let m = makeup_steps(&p, &missing, 2.0);
+        let order: Vec<_> = m.iter().filter_map(|s| s.target).collect();
+        let (ups, downs): (Vec<_>, Vec<_>) =
+            order.iter().partition(|k| k.direction == Direction::Up);
+        assert_eq!(order.len(), missing.len());
+        assert_eq!(&order[..ups.len()], &ups[..], "the upward ones first");
+        assert!(
+            ups.windows(2)
+                .all(|w| w[0].target_index <= w[1].target_index)
+        );
+        assert!(
+            downs
+                .windows(2)
+                .all(|w| w[0].target_index >= w[1].target_index)
+        );
+        for pair in m.chunks(2) {
+            let k = pair[1].target.unwrap();
+            assert_eq!(pair[0].target, None);
+            assert_eq!(
+                pair[0].position_mm < pair[1].position_mm,
+                k.direction == Direction::Up,
+                "{k:?} approached from its side"
+            );
+        }
         let text =
             generate_steps(&p, &m, "make-up", Dialect::LinuxCnc, CaptureMode::Stability).unwrap();
         assert!(text.starts_with(
