@@ -24,9 +24,10 @@ use std::collections::{BTreeSet, VecDeque};
 use std::time::{Duration, Instant};
 
 /// Positions (one per 20 ms of history) in the median that tells where the carriage came
-/// from: spikes of up to two positions do not count, an approach of three or more does (a 1 mm
-/// overrun at 500 mm/s² is four).
-const APPROACH_MEDIAN: usize = 5;
+/// from: a spike of one position does not count, an excursion of two or more does (the
+/// reversal of a 1 mm overrun at 500 mm/s² is four beyond a 0.5 mm tolerance, and no more than
+/// two of those may be lost).
+const APPROACH_MEDIAN: usize = 3;
 
 /// How captures are taken.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -242,12 +243,12 @@ impl RunMachine {
 
     /// The side the carriage came from to rest at `p`: the last remembered position farther
     /// than the target tolerance, judged on the median of `APPROACH_MEDIAN` consecutive
-    /// positions. A single position is not trusted: while the follower still hunts after a
-    /// step, PSD2's stitch (the follower's last reported encoder position against a frame of
-    /// another instant) reads the resting carriage up to a millimetre off for a frame or two,
-    /// and one such spike on the far side must not turn an approach from above into one from
-    /// below.
-    fn approach(&self, p: f64) -> Option<Direction> {
+    /// positions; with it, that position. A single position is not trusted: while the
+    /// follower still hunts after a step, PSD2's stitch (the follower's last reported encoder
+    /// position against a frame of another instant) reads the resting carriage up to a
+    /// millimetre off for a sample, and one such spike on the far side must not turn an
+    /// approach from above into one from below.
+    fn approach(&self, p: f64) -> Option<(Direction, f64)> {
         let tol = self.settings.target_tolerance_mm;
         let xs: Vec<f64> = self.history.iter().map(|(_, x)| *x).collect();
         let n = APPROACH_MEDIAN.min(xs.len());
@@ -263,11 +264,12 @@ impl RunMachine {
             })
             .find(|x| (x - p).abs() > tol)
             .map(|x| {
-                if x < p {
+                let dir = if x < p {
                     Direction::Up
                 } else {
                     Direction::Down
-                }
+                };
+                (dir, x)
             })
     }
 
@@ -385,7 +387,7 @@ impl RunMachine {
                 let Some((index, target)) = self.target_at(p) else {
                     return;
                 };
-                let Some(dir) = self.approach(p) else {
+                let Some((dir, from)) = self.approach(p) else {
                     return;
                 };
                 let Some(key) = self.key_for(index, dir) else {
@@ -394,7 +396,12 @@ impl RunMachine {
                     return;
                 };
                 // Frames must be decoupled at the target: restart the average from here.
-                tracing::debug!(at_mm = p, ?key, "at rest on a target: averaging");
+                tracing::debug!(
+                    at_mm = p,
+                    from_mm = from,
+                    ?key,
+                    "at rest on a target: averaging"
+                );
                 self.set_nominal(Some(target));
                 self.acc = Acc::default();
                 self.phase = Phase::Averaging {
