@@ -176,6 +176,22 @@ pub fn generate_steps(
     dialect: Dialect,
     mode: CaptureMode,
 ) -> Result<String, ProgramError> {
+    generate_settled(plan, steps, note, dialect, mode, 0.0)
+}
+
+/// Generate the program text for `steps` of `plan`, holding each approach point (a stop that
+/// is no capture) for `approach_dwell_s` seconds. A resumed or make-up program reaches its
+/// approach points from anywhere on the axis: after a long move the follower is still
+/// settling, PSD2 may not see the spot at the approach point at all, and the capture that
+/// follows could not tell which side the carriage came from. Held there, it can.
+pub fn generate_settled(
+    plan: &Plan,
+    steps: &[Step],
+    note: &str,
+    dialect: Dialect,
+    mode: CaptureMode,
+    approach_dwell_s: f64,
+) -> Result<String, ProgramError> {
     if matches!(mode, CaptureMode::Handshake(_))
         && matches!(dialect, Dialect::Siemens | Dialect::Heidenhain)
     {
@@ -212,6 +228,9 @@ pub fn generate_steps(
             w.comment(&format!("run {}", k.run));
         }
         w.move_to(ax, step, s.feed_mm_min);
+        if step.target.is_none() && approach_dwell_s > 0.0 {
+            w.dwell(approach_dwell_s);
+        }
         if let Some(k) = step.target {
             match mode {
                 CaptureMode::Stability => w.dwell(s.dwell_s),
@@ -440,6 +459,20 @@ mod tests {
         }
         let text =
             generate_steps(&p, &m, "make-up", Dialect::LinuxCnc, CaptureMode::Stability).unwrap();
+        // Held at the approach points on request only.
+        let dwells = |t: &str| t.lines().filter(|l| l.starts_with("G4 P")).count();
+        assert_eq!(dwells(&text), 6);
+        let held = generate_settled(
+            &p,
+            &m,
+            "make-up",
+            Dialect::LinuxCnc,
+            CaptureMode::Stability,
+            0.5,
+        )
+        .unwrap();
+        assert_eq!(dwells(&held), 12);
+        assert_eq!(held.matches("G4 P0.500").count(), 6);
         assert!(text.starts_with(
             "(axiscomp ISO 230-2 X 0.000 to 100.000 mm, 5 targets, 2 runs, dwell 1.5 s, make-up)"
         ));

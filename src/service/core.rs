@@ -18,7 +18,7 @@ use crate::canopen::{DriveError, DriveHandle, DriveStatus, Event, PowerState};
 use crate::config::CncMode;
 use crate::modbus::{Link, LinkState};
 use crate::optics::layout::{Aperture, Kind};
-use crate::run::program::{CaptureMode, generate_steps, makeup_steps, remaining_steps};
+use crate::run::program::{CaptureMode, generate_settled, makeup_steps, remaining_steps};
 use crate::run::{CaptureSettings, Dialect, Plan, RunMachine, TargetKey};
 use crate::store::{Actor, NewRun, RunId, RunState, Store};
 use crate::track::FollowerCommand;
@@ -510,7 +510,10 @@ impl Core {
         }
         self.pipeline.resume_run(machine);
         self.pump();
-        self.deliver(&steps, "resumed");
+        // The carriage comes back from wherever the CNC left it: hold the approach points
+        // (see `generate_settled`).
+        let hold = self.run.as_ref().map(|r| r.plan.spec.dwell_s);
+        self.deliver_with(&steps, "resumed", None, hold);
     }
 
     fn start_active(&mut self, id: RunId, plan: Plan, dialect: Dialect) {
@@ -567,12 +570,18 @@ impl Core {
 
     /// Write or send a program for `steps` of the active run.
     fn deliver(&mut self, steps: &[crate::run::Step], note: &str) {
-        self.deliver_with(steps, note, None);
+        self.deliver_with(steps, note, None, None);
     }
 
     /// Write or send a program for `steps` of the active run, dwelling `dwell_s` at each
-    /// target (None: the plan's dwell).
-    fn deliver_with(&mut self, steps: &[crate::run::Step], note: &str, dwell_s: Option<f64>) {
+    /// target (None: the plan's dwell) and `hold_s` at each approach point (None: not).
+    fn deliver_with(
+        &mut self,
+        steps: &[crate::run::Step],
+        note: &str,
+        dwell_s: Option<f64>,
+        hold_s: Option<f64>,
+    ) {
         let Some(run) = self.run.as_mut() else {
             return;
         };
@@ -580,7 +589,14 @@ impl Core {
         if let Some(d) = dwell_s {
             plan.spec.dwell_s = d;
         }
-        let text = match generate_steps(&plan, steps, note, run.dialect, CaptureMode::Stability) {
+        let text = match generate_settled(
+            &plan,
+            steps,
+            note,
+            run.dialect,
+            CaptureMode::Stability,
+            hold_s.unwrap_or(0.0),
+        ) {
             Ok(t) => t,
             Err(e) => {
                 self.pipeline
@@ -660,7 +676,7 @@ impl Core {
                 // dwelling twice as long as the cycle: what missed the capture the first time
                 // was a dwell too short for the follower to settle.
                 let steps = makeup_steps(&run.plan, &missing, run.plan.spec.overrun_mm);
-                let dwell = 2.0 * run.plan.spec.dwell_s;
+                let (dwell, hold) = (2.0 * run.plan.spec.dwell_s, run.plan.spec.dwell_s);
                 if let Some(run) = self.run.as_mut() {
                     for k in &missing {
                         *run.makeup_for.entry(*k).or_insert(0) += 1;
@@ -672,7 +688,7 @@ impl Core {
                     pass,
                     "the program ended with captures missing: make-up pass"
                 );
-                self.deliver_with(&steps, &format!("make-up {pass}"), Some(dwell));
+                self.deliver_with(&steps, &format!("make-up {pass}"), Some(dwell), Some(hold));
             }
         }
     }
