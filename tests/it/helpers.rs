@@ -308,6 +308,55 @@ impl Default for RigOptions {
     }
 }
 
+/// Start the twin for `opts` and write the service's configuration against it into `dir`:
+/// the twin, the configuration file and the control socket's path.
+pub async fn twin_and_config(
+    opts: RigOptions,
+    dir: &TempDir,
+) -> (axiscomp::sim::twin::Twin, PathBuf, PathBuf) {
+    use axiscomp::sim::drive::TwinDriveConfig;
+    use axiscomp::sim::twin::{Twin, TwinCan, TwinSpec};
+    init_test_log();
+    let (svc_port, twin_port) = (unused_udp_port(), unused_udp_port());
+    let twin = Twin::start(
+        &Layout::reference(),
+        TwinSpec {
+            plant: opts.plant,
+            io_bind: "127.0.0.1:0".parse().expect("addr"),
+            io_map: axiscomp::acquire::IoMap::generic().expect("generic map"),
+            can: TwinCan::Cannelloni {
+                local: format!("127.0.0.1:{twin_port}").parse().expect("addr"),
+                remote: format!("127.0.0.1:{svc_port}").parse().expect("addr"),
+            },
+            drive: TwinDriveConfig {
+                start_mm: 2.0,
+                ..TwinDriveConfig::default()
+            },
+            control: opts.twin_cnc.then(|| "127.0.0.1:0".parse().expect("addr")),
+        },
+    )
+    .await
+    .expect("twin");
+    let cnc = match twin.control_addr() {
+        Some(a) => format!("[cnc]\nmode = \"twin\"\ntwin = \"{a}\"\n\n"),
+        None => String::new(),
+    };
+    let socket = dir.path("control.sock");
+    let config = dir.write(
+        "axiscomp.toml",
+        &format!(
+            "[service]\nsocket = \"{}\"\nstate_dir = \"{}\"\nsnapshot_hz = 20.0\n\n\
+             [io]\naddress = \"{}\"\nrate_hz = 500.0\n\n\
+             [can]\ntransport = \"cannelloni\"\nlocal = \"127.0.0.1:{svc_port}\"\nremote = \"127.0.0.1:{twin_port}\"\n\n{cnc}{}",
+            socket.display(),
+            dir.path("state").display(),
+            twin.io.local_addr(),
+            opts.service_toml
+        ),
+    );
+    (twin, config, socket)
+}
+
 /// The twin and the service on loopback: Modbus TCP on an ephemeral port, CANopen over a
 /// cannelloni UDP pair, the control API on a Unix socket in a temporary directory.
 pub struct ServiceRig {
@@ -322,47 +371,8 @@ impl ServiceRig {
     /// Start the twin and the service, and wait until the follower is homed and the stitch
     /// referenced.
     pub async fn start(opts: RigOptions) -> ServiceRig {
-        use axiscomp::sim::drive::TwinDriveConfig;
-        use axiscomp::sim::twin::{Twin, TwinCan, TwinSpec};
-        init_test_log();
         let dir = TempDir::new("service");
-        let (svc_port, twin_port) = (unused_udp_port(), unused_udp_port());
-        let twin = Twin::start(
-            &Layout::reference(),
-            TwinSpec {
-                plant: opts.plant,
-                io_bind: "127.0.0.1:0".parse().expect("addr"),
-                io_map: axiscomp::acquire::IoMap::generic().expect("generic map"),
-                can: TwinCan::Cannelloni {
-                    local: format!("127.0.0.1:{twin_port}").parse().expect("addr"),
-                    remote: format!("127.0.0.1:{svc_port}").parse().expect("addr"),
-                },
-                drive: TwinDriveConfig {
-                    start_mm: 2.0,
-                    ..TwinDriveConfig::default()
-                },
-                control: opts.twin_cnc.then(|| "127.0.0.1:0".parse().expect("addr")),
-            },
-        )
-        .await
-        .expect("twin");
-        let cnc = match twin.control_addr() {
-            Some(a) => format!("[cnc]\nmode = \"twin\"\ntwin = \"{a}\"\n\n"),
-            None => String::new(),
-        };
-        let socket = dir.path("control.sock");
-        let config = dir.write(
-            "axiscomp.toml",
-            &format!(
-                "[service]\nsocket = \"{}\"\nstate_dir = \"{}\"\nsnapshot_hz = 20.0\n\n\
-                 [io]\naddress = \"{}\"\nrate_hz = 500.0\n\n\
-                 [can]\ntransport = \"cannelloni\"\nlocal = \"127.0.0.1:{svc_port}\"\nremote = \"127.0.0.1:{twin_port}\"\n\n{cnc}{}",
-                socket.display(),
-                dir.path("state").display(),
-                twin.io.local_addr(),
-                opts.service_toml
-            ),
-        );
+        let (twin, config, socket) = twin_and_config(opts, &dir).await;
         let settings = axiscomp::config::load(&axiscomp::config::Layers {
             etc: None,
             file: Some(config.clone()),
