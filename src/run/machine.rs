@@ -23,6 +23,12 @@ use crate::units::Errors6;
 use std::collections::{BTreeSet, VecDeque};
 use std::time::{Duration, Instant};
 
+/// Positions (one per 20 ms of history) in the median that tells where the carriage came
+/// from: a spike of one position does not count, an excursion of two or more does (the
+/// reversal of a 1 mm overrun at 500 mm/s² is four beyond a 0.5 mm tolerance, and no more than
+/// two of those may be lost).
+const APPROACH_MEDIAN: usize = 3;
+
 /// How captures are taken.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CaptureSettings {
@@ -236,18 +242,34 @@ impl RunMachine {
     }
 
     /// The side the carriage came from to rest at `p`: the last remembered position farther
-    /// than the target tolerance.
-    fn approach(&self, p: f64) -> Option<Direction> {
-        self.history
-            .iter()
+    /// than the target tolerance, judged on the median of `APPROACH_MEDIAN` consecutive
+    /// positions; with it, that position. A single position is not trusted: while the
+    /// follower still hunts after a step, PSD2's stitch (the follower's last reported encoder
+    /// position against a frame of another instant) reads the resting carriage up to a
+    /// millimetre off for a sample, and one such spike on the far side must not turn an
+    /// approach from above into one from below.
+    fn approach(&self, p: f64) -> Option<(Direction, f64)> {
+        let tol = self.settings.target_tolerance_mm;
+        let xs: Vec<f64> = self.history.iter().map(|(_, x)| *x).collect();
+        let n = APPROACH_MEDIAN.min(xs.len());
+        if n == 0 {
+            return None;
+        }
+        (n..=xs.len())
             .rev()
-            .find(|(_, x)| (x - p).abs() > self.settings.target_tolerance_mm)
-            .map(|(_, x)| {
-                if *x < p {
+            .map(|end| {
+                let mut w = xs[end - n..end].to_vec();
+                w.sort_by(f64::total_cmp);
+                w[n / 2]
+            })
+            .find(|x| (x - p).abs() > tol)
+            .map(|x| {
+                let dir = if x < p {
                     Direction::Up
                 } else {
                     Direction::Down
-                }
+                };
+                (dir, x)
             })
     }
 
@@ -365,7 +387,7 @@ impl RunMachine {
                 let Some((index, target)) = self.target_at(p) else {
                     return;
                 };
-                let Some(dir) = self.approach(p) else {
+                let Some((dir, from)) = self.approach(p) else {
                     return;
                 };
                 let Some(key) = self.key_for(index, dir) else {
@@ -374,7 +396,12 @@ impl RunMachine {
                     return;
                 };
                 // Frames must be decoupled at the target: restart the average from here.
-                tracing::debug!(at_mm = p, ?key, "at rest on a target: averaging");
+                tracing::debug!(
+                    at_mm = p,
+                    from_mm = from,
+                    ?key,
+                    "at rest on a target: averaging"
+                );
                 self.set_nominal(Some(target));
                 self.acc = Acc::default();
                 self.phase = Phase::Averaging {
@@ -705,6 +732,55 @@ mod tests {
         let want: Vec<TargetKey> = expected.into_iter().filter(|k| *k != lost).collect();
         assert_eq!(got, want, "every later capture keeps its own run number");
         assert_eq!(m.missing(), vec![lost]);
+    }
+
+    #[test]
+    fn spikes_at_the_target_do_not_turn_the_approach() {
+        // The carriage comes down onto a target; while the follower hunts, the stitched
+        // position jumps 0.8 mm below the target for one history sample at a time, the last
+        // one well after the carriage stopped. The capture is still the downward one.
+        let p = plan();
+        let mut m = RunMachine::new(
+            p.clone(),
+            CaptureSettings::default(),
+            false,
+            BTreeSet::new(),
+        );
+        let mut f = feed();
+        let (t3, beyond) = (p.targets[3], p.spec.end_mm + p.spec.overrun_mm);
+        let mut out = Vec::new();
+        let mut pos = beyond;
+        for _ in 0..100 {
+            f.step(&mut m, pos, false, &mut out);
+        }
+        while pos > t3 {
+            pos = (pos - 0.1).max(t3);
+            f.step(&mut m, pos, false, &mut out);
+        }
+        for k in 0..700 {
+            // Three spikes of 10 frames (one history sample each), 100 ms apart, within the
+            // first 300 ms of the rest.
+            let spike = k < 150 && k % 50 < 10;
+            let s = f.sample(if spike { t3 - 0.8 } else { t3 });
+            f.now += Duration::from_millis(2);
+            m.handle_sample(&s, f.now);
+            while let Some(a) = m.poll_action() {
+                match a {
+                    RunAction::SetNominal(n) => f.nominal = n,
+                    RunAction::Captured(c) => out.push(c),
+                    _ => {}
+                }
+            }
+        }
+        let keys: Vec<TargetKey> = out.iter().map(TargetKey::of).collect();
+        assert_eq!(
+            keys,
+            vec![TargetKey {
+                run: 1,
+                target_index: 3,
+                direction: Direction::Down
+            }]
+        );
     }
 
     #[test]

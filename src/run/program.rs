@@ -134,14 +134,24 @@ pub fn remaining_steps(
     Some(rest)
 }
 
-/// A make-up pass over `missing` captures: each target approached from its direction's side,
-/// starting `approach_mm` before it.
+/// A make-up pass over `missing` captures, as one sweep: the upward ones by increasing
+/// position, then the downward ones by decreasing position, each approached from its
+/// direction's side from `approach_mm` before it. In the cycle's order the carriage would
+/// cross the travel between most of them, and every crossing is a follower step whose
+/// settling eats the dwell the capture needs.
 pub fn makeup_steps(plan: &Plan, missing: &[super::TargetKey], approach_mm: f64) -> Vec<Step> {
-    let mut out = Vec::with_capacity(2 * missing.len());
-    for k in missing {
-        let Some(&t) = plan.targets.get(k.target_index as usize) else {
-            continue;
-        };
+    let mut keys: Vec<(f64, super::TargetKey)> = missing
+        .iter()
+        .filter_map(|k| Some((*plan.targets.get(k.target_index as usize)?, *k)))
+        .collect();
+    keys.sort_by(|(a, ka), (b, kb)| match (ka.direction, kb.direction) {
+        (Direction::Up, Direction::Down) => std::cmp::Ordering::Less,
+        (Direction::Down, Direction::Up) => std::cmp::Ordering::Greater,
+        (Direction::Up, Direction::Up) => a.total_cmp(b).then(ka.run.cmp(&kb.run)),
+        (Direction::Down, Direction::Down) => b.total_cmp(a).then(ka.run.cmp(&kb.run)),
+    });
+    let mut out = Vec::with_capacity(2 * keys.len());
+    for (t, k) in keys {
         let from = match k.direction {
             Direction::Up => t - approach_mm,
             Direction::Down => t + approach_mm,
@@ -152,7 +162,7 @@ pub fn makeup_steps(plan: &Plan, missing: &[super::TargetKey], approach_mm: f64)
         });
         out.push(Step {
             position_mm: t,
-            target: Some(*k),
+            target: Some(k),
         });
     }
     out
@@ -165,6 +175,22 @@ pub fn generate_steps(
     note: &str,
     dialect: Dialect,
     mode: CaptureMode,
+) -> Result<String, ProgramError> {
+    generate_settled(plan, steps, note, dialect, mode, 0.0)
+}
+
+/// Generate the program text for `steps` of `plan`, holding each approach point (a stop that
+/// is no capture) for `approach_dwell_s` seconds. A resumed or make-up program reaches its
+/// approach points from anywhere on the axis: after a long move the follower is still
+/// settling, PSD2 may not see the spot at the approach point at all, and the capture that
+/// follows could not tell which side the carriage came from. Held there, it can.
+pub fn generate_settled(
+    plan: &Plan,
+    steps: &[Step],
+    note: &str,
+    dialect: Dialect,
+    mode: CaptureMode,
+    approach_dwell_s: f64,
 ) -> Result<String, ProgramError> {
     if matches!(mode, CaptureMode::Handshake(_))
         && matches!(dialect, Dialect::Siemens | Dialect::Heidenhain)
@@ -202,6 +228,9 @@ pub fn generate_steps(
             w.comment(&format!("run {}", k.run));
         }
         w.move_to(ax, step, s.feed_mm_min);
+        if step.target.is_none() && approach_dwell_s > 0.0 {
+            w.dwell(approach_dwell_s);
+        }
         if let Some(k) = step.target {
             match mode {
                 CaptureMode::Stability => w.dwell(s.dwell_s),
@@ -402,8 +431,48 @@ mod tests {
         let m = makeup_steps(&p, &[down], 2.0);
         assert_eq!(m.len(), 2);
         assert!(m[0].position_mm > m[1].position_mm, "approached from above");
+        // Several: one sweep up, then one down, each stop approached from its side.
+        let missing = [all[12], all[1], all[8], all[3], all[16], all[0]];
+        let m = makeup_steps(&p, &missing, 2.0);
+        let order: Vec<_> = m.iter().filter_map(|s| s.target).collect();
+        let (ups, downs): (Vec<_>, Vec<_>) =
+            order.iter().partition(|k| k.direction == Direction::Up);
+        assert_eq!(order.len(), missing.len());
+        assert_eq!(&order[..ups.len()], &ups[..], "the upward ones first");
+        assert!(
+            ups.windows(2)
+                .all(|w| w[0].target_index <= w[1].target_index)
+        );
+        assert!(
+            downs
+                .windows(2)
+                .all(|w| w[0].target_index >= w[1].target_index)
+        );
+        for pair in m.chunks(2) {
+            let k = pair[1].target.unwrap();
+            assert_eq!(pair[0].target, None);
+            assert_eq!(
+                pair[0].position_mm < pair[1].position_mm,
+                k.direction == Direction::Up,
+                "{k:?} approached from its side"
+            );
+        }
         let text =
             generate_steps(&p, &m, "make-up", Dialect::LinuxCnc, CaptureMode::Stability).unwrap();
+        // Held at the approach points on request only.
+        let dwells = |t: &str| t.lines().filter(|l| l.starts_with("G4 P")).count();
+        assert_eq!(dwells(&text), 6);
+        let held = generate_settled(
+            &p,
+            &m,
+            "make-up",
+            Dialect::LinuxCnc,
+            CaptureMode::Stability,
+            0.5,
+        )
+        .unwrap();
+        assert_eq!(dwells(&held), 12);
+        assert_eq!(held.matches("G4 P0.500").count(), 6);
         assert!(text.starts_with(
             "(axiscomp ISO 230-2 X 0.000 to 100.000 mm, 5 targets, 2 runs, dwell 1.5 s, make-up)"
         ));

@@ -18,7 +18,7 @@ use crate::canopen::{DriveError, DriveHandle, DriveStatus, Event, PowerState};
 use crate::config::CncMode;
 use crate::modbus::{Link, LinkState};
 use crate::optics::layout::{Aperture, Kind};
-use crate::run::program::{CaptureMode, generate_steps, makeup_steps, remaining_steps};
+use crate::run::program::{CaptureMode, generate_settled, makeup_steps, remaining_steps};
 use crate::run::{CaptureSettings, Dialect, Plan, RunMachine, TargetKey};
 use crate::store::{Actor, NewRun, RunId, RunState, Store};
 use crate::track::FollowerCommand;
@@ -76,8 +76,8 @@ pub(super) struct Core {
     csp_refused: bool,
     /// Following ended on an error: re-arm it with a profile move.
     follow_rearm: bool,
-    /// A run to resume once the follower is ready (its id, plan, captures stored).
-    pending_resume: Option<(RunId, Plan, BTreeSet<TargetKey>)>,
+    /// A run to resume once the follower is ready.
+    pending_resume: Option<PendingResume>,
     store: Store,
     run: Option<ActiveRun>,
     cnc: CncMode,
@@ -93,6 +93,20 @@ pub(super) struct Core {
     calibrations: super::calibration::Calibrations,
 }
 
+/// A make-up pass is sent for a missing capture at most this many times before the run fails.
+const MAKEUP_TRIES: u32 = 3;
+
+/// A run found unfinished in the store, resumed once the follower is ready.
+#[derive(Debug)]
+struct PendingResume {
+    id: RunId,
+    plan: Plan,
+    /// The dialect the run was started with (its programs go on in it).
+    dialect: Dialect,
+    /// The captures stored.
+    done: BTreeSet<TargetKey>,
+}
+
 /// A run being measured.
 #[derive(Debug)]
 struct ActiveRun {
@@ -105,8 +119,8 @@ struct ActiveRun {
     programs_sent: u32,
     /// The twin's program count when this run's latest program was sent.
     twin_programs_at_send: Option<u32>,
-    /// Captures a make-up program was already sent for.
-    makeup_for: BTreeSet<TargetKey>,
+    /// Make-up programs sent so far for each capture.
+    makeup_for: std::collections::BTreeMap<TargetKey, u32>,
 }
 
 /// The outcome of asynchronous work the core started.
@@ -456,14 +470,26 @@ impl Core {
         let plan: Result<Plan, String> =
             serde_json::from_value(rec.plan.clone()).map_err(|e| e.to_string());
         let done = self.store.completed_keys(rec.id);
+        // The run's programs go on in the dialect it was started with (the configuration
+        // snapshot names it), not in the configured default.
+        let dialect = rec.config["dialect"]
+            .as_str()
+            .and_then(Dialect::parse)
+            .unwrap_or(self.dialect);
         match (plan, done) {
             (Ok(plan), Ok(done)) => {
                 tracing::info!(
                     run = rec.id.0,
                     captured = done.len(),
+                    ?dialect,
                     "resuming run once the follower is ready"
                 );
-                self.pending_resume = Some((rec.id, plan, done));
+                self.pending_resume = Some(PendingResume {
+                    id: rec.id,
+                    plan,
+                    dialect,
+                    done,
+                });
             }
             (Err(e), _) => self.end_run_record(rec.id, &format!("its plan does not load: {e}")),
             (_, Err(e)) => self.end_run_record(rec.id, &format!("its captures do not load: {e}")),
@@ -488,7 +514,13 @@ impl Core {
         let Some(fs) = self.pipeline.follower_state().filter(|f| f.ready) else {
             return;
         };
-        let Some((id, plan, done)) = self.pending_resume.take() else {
+        let Some(PendingResume {
+            id,
+            plan,
+            dialect,
+            done,
+        }) = self.pending_resume.take()
+        else {
             return;
         };
         let mut steps = remaining_steps(&plan, &done).unwrap_or_default();
@@ -504,10 +536,18 @@ impl Core {
             },
         );
         let machine = RunMachine::new(plan.clone(), self.capture, false, done);
-        self.start_active(id, plan, self.dialect);
+        self.start_active(id, plan, dialect);
+        // Number the programs on from those the run already has: none is overwritten.
+        let written = self.programs_written(id);
+        if let Some(run) = self.run.as_mut() {
+            run.programs_sent = written;
+        }
         self.pipeline.resume_run(machine);
         self.pump();
-        self.deliver(&steps, "resumed");
+        // The carriage comes back from wherever the CNC left it: hold the approach points
+        // (see `generate_settled`).
+        let hold = self.run.as_ref().map(|r| r.plan.spec.dwell_s);
+        self.deliver_with(&steps, "resumed", None, hold);
     }
 
     fn start_active(&mut self, id: RunId, plan: Plan, dialect: Dialect) {
@@ -518,8 +558,28 @@ impl Core {
             program: String::new(),
             programs_sent: 0,
             twin_programs_at_send: None,
-            makeup_for: BTreeSet::new(),
+            makeup_for: Default::default(),
         });
+    }
+
+    /// The highest program number written for run `id` (0: none).
+    fn programs_written(&self, id: RunId) -> u32 {
+        let dir = self.state_dir.join("runs").join(id.0.to_string());
+        std::fs::read_dir(dir)
+            .map(|entries| {
+                entries
+                    .filter_map(|e| {
+                        let name = e.ok()?.file_name().into_string().ok()?;
+                        name.strip_prefix("program-")?
+                            .split('.')
+                            .next()?
+                            .parse::<u32>()
+                            .ok()
+                    })
+                    .max()
+                    .unwrap_or(0)
+            })
+            .unwrap_or(0)
     }
 
     /// Start measuring `id` with `done` captures already stored, and send the CNC what is
@@ -544,11 +604,33 @@ impl Core {
 
     /// Write or send a program for `steps` of the active run.
     fn deliver(&mut self, steps: &[crate::run::Step], note: &str) {
+        self.deliver_with(steps, note, None, None);
+    }
+
+    /// Write or send a program for `steps` of the active run, dwelling `dwell_s` at each
+    /// target (None: the plan's dwell) and `hold_s` at each approach point (None: not).
+    fn deliver_with(
+        &mut self,
+        steps: &[crate::run::Step],
+        note: &str,
+        dwell_s: Option<f64>,
+        hold_s: Option<f64>,
+    ) {
         let Some(run) = self.run.as_mut() else {
             return;
         };
-        let text = match generate_steps(&run.plan, steps, note, run.dialect, CaptureMode::Stability)
-        {
+        let mut plan = run.plan.clone();
+        if let Some(d) = dwell_s {
+            plan.spec.dwell_s = d;
+        }
+        let text = match generate_settled(
+            &plan,
+            steps,
+            note,
+            run.dialect,
+            CaptureMode::Stability,
+            hold_s.unwrap_or(0.0),
+        ) {
             Ok(t) => t,
             Err(e) => {
                 self.pipeline
@@ -613,29 +695,35 @@ impl Core {
                 if missing.is_empty() {
                     return;
                 }
-                if missing.iter().all(|k| run.makeup_for.contains(k)) {
+                let tries = |k: &TargetKey| run.makeup_for.get(k).copied().unwrap_or(0);
+                if missing.iter().all(|k| tries(k) >= MAKEUP_TRIES) {
                     let why = format!(
-                        "{} captures still missing after a make-up pass",
+                        "{} captures still missing after {MAKEUP_TRIES} make-up passes",
                         missing.len()
                     );
                     self.pipeline.abort_run();
                     self.end_run(RunState::Failed, &why);
                     return;
                 }
-                let steps = makeup_steps(
-                    &run.plan,
-                    &missing,
-                    2.0 * self.capture.target_tolerance_mm.max(1.0),
-                );
+                let pass = missing.iter().map(tries).min().unwrap_or(0) + 1;
+                // Each target approached from the plan's overrun (within the travel the plan
+                // already asks of the machine; more than the target tolerance by its check),
+                // dwelling twice as long as the cycle: what missed the capture the first time
+                // was a dwell too short for the follower to settle.
+                let steps = makeup_steps(&run.plan, &missing, run.plan.spec.overrun_mm);
+                let (dwell, hold) = (2.0 * run.plan.spec.dwell_s, run.plan.spec.dwell_s);
                 if let Some(run) = self.run.as_mut() {
-                    run.makeup_for.extend(missing.iter().copied());
+                    for k in &missing {
+                        *run.makeup_for.entry(*k).or_insert(0) += 1;
+                    }
                     run.twin_programs_at_send = None;
                 }
                 tracing::info!(
                     missing = missing.len(),
+                    pass,
                     "the program ended with captures missing: make-up pass"
                 );
-                self.deliver(&steps, "make-up");
+                self.deliver_with(&steps, &format!("make-up {pass}"), Some(dwell), Some(hold));
             }
         }
     }

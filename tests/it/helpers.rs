@@ -312,21 +312,95 @@ impl Default for RigOptions {
     }
 }
 
+/// Start the twin for `opts` and write the service's configuration against it into `dir`:
+/// the twin, the configuration file and the control socket's path.
+pub async fn twin_and_config(
+    opts: RigOptions,
+    dir: &TempDir,
+) -> (
+    axiscomp::sim::twin::Twin,
+    Option<axiscomp::sim::plc::TwinPlc>,
+    PathBuf,
+    PathBuf,
+) {
+    use axiscomp::sim::drive::TwinDriveConfig;
+    use axiscomp::sim::twin::{Twin, TwinCan, TwinSpec};
+    init_test_log();
+    let (svc_port, twin_port) = (unused_udp_port(), unused_udp_port());
+    let twin = Twin::start(
+        &Layout::reference(),
+        TwinSpec {
+            plant: opts.plant,
+            io_bind: "127.0.0.1:0".parse().expect("addr"),
+            io_map: axiscomp::acquire::IoMap::generic().expect("generic map"),
+            can: TwinCan::Cannelloni {
+                local: format!("127.0.0.1:{twin_port}").parse().expect("addr"),
+                remote: format!("127.0.0.1:{svc_port}").parse().expect("addr"),
+            },
+            drive: TwinDriveConfig {
+                start_mm: 2.0,
+                ..TwinDriveConfig::default()
+            },
+            control: opts.twin_cnc.then(|| "127.0.0.1:0".parse().expect("addr")),
+        },
+    )
+    .await
+    .expect("twin");
+    let cnc = match twin.control_addr() {
+        Some(a) => format!("[cnc]\nmode = \"twin\"\ntwin = \"{a}\"\n\n"),
+        None => String::new(),
+    };
+    let plc = if opts.twin_plc {
+        Some(
+            axiscomp::sim::plc::TwinPlc::start(
+                twin.plant.clone(),
+                axiscomp::plc::CncMap::generic().expect("generic CNC map"),
+                Default::default(),
+            )
+            .await
+            .expect("the twin's PLC"),
+        )
+    } else {
+        None
+    };
+    let plc_toml = match &plc {
+        Some(p) => format!(
+            "[plc]\npush = true\naddress = \"{}\"\ntimeout_ms = 300\npoll_ms = 10\n\n",
+            p.local_addr()
+        ),
+        None => String::new(),
+    };
+    let socket = dir.path("control.sock");
+    let config = dir.write(
+        "axiscomp.toml",
+        &format!(
+            "[service]\nsocket = \"{}\"\nstate_dir = \"{}\"\nsnapshot_hz = 20.0\n\n\
+             [io]\naddress = \"{}\"\nrate_hz = 500.0\n\n\
+             [can]\ntransport = \"cannelloni\"\nlocal = \"127.0.0.1:{svc_port}\"\nremote = \"127.0.0.1:{twin_port}\"\n\n{cnc}{plc_toml}{}",
+            socket.display(),
+            dir.path("state").display(),
+            twin.io.local_addr(),
+            opts.service_toml
+        ),
+    );
+    (twin, plc, config, socket)
+}
+
 /// The twin and the service on loopback: Modbus TCP on an ephemeral port, CANopen over a
 /// cannelloni UDP pair, the control API on a Unix socket in a temporary directory.
-static MACHINE: std::sync::RwLock<()> = std::sync::RwLock::new(());
+static MACHINE: tokio::sync::RwLock<()> = tokio::sync::RwLock::const_new(());
 
 /// A live service against the twin runs in real time (SYNC, frames, handovers): it takes the
 /// machine to itself, so on a 2-core machine no other live rig and no CPU-heavy lab run
 /// shares it. Light tests still run alongside.
-pub fn exclusive() -> std::sync::RwLockWriteGuard<'static, ()> {
-    // A test that panicked while holding it leaves nothing to repair.
-    MACHINE.write().unwrap_or_else(|p| p.into_inner())
+pub async fn exclusive() -> tokio::sync::RwLockWriteGuard<'static, ()> {
+    MACHINE.write().await
 }
 
-/// A CPU-heavy test on a simulated clock: many may run together, never beside a live rig.
-pub fn heavy() -> std::sync::RwLockReadGuard<'static, ()> {
-    MACHINE.read().unwrap_or_else(|p| p.into_inner())
+/// A CPU-heavy test on a simulated clock (not inside a runtime): many may run together, never
+/// beside a live rig.
+pub fn heavy() -> tokio::sync::RwLockReadGuard<'static, ()> {
+    MACHINE.blocking_read()
 }
 
 pub struct ServiceRig {
@@ -340,75 +414,17 @@ pub struct ServiceRig {
     service: Option<tokio::task::JoinHandle<Result<(), axiscomp::service::ServiceError>>>,
     _dir: TempDir,
     /// Dropped last: the machine is this rig's until it is gone.
-    _exclusive: std::sync::RwLockWriteGuard<'static, ()>,
+    _exclusive: tokio::sync::RwLockWriteGuard<'static, ()>,
 }
 
 impl ServiceRig {
     /// Start the twin and the service, and wait until the follower is homed and the stitch
     /// referenced.
     pub async fn start(opts: RigOptions) -> ServiceRig {
-        use axiscomp::sim::drive::TwinDriveConfig;
-        use axiscomp::sim::twin::{Twin, TwinCan, TwinSpec};
         init_test_log();
-        let exclusive = exclusive();
+        let exclusive = exclusive().await;
         let dir = TempDir::new("service");
-        let (svc_port, twin_port) = (unused_udp_port(), unused_udp_port());
-        let twin = Twin::start(
-            &Layout::reference(),
-            TwinSpec {
-                plant: opts.plant,
-                io_bind: "127.0.0.1:0".parse().expect("addr"),
-                io_map: axiscomp::acquire::IoMap::generic().expect("generic map"),
-                can: TwinCan::Cannelloni {
-                    local: format!("127.0.0.1:{twin_port}").parse().expect("addr"),
-                    remote: format!("127.0.0.1:{svc_port}").parse().expect("addr"),
-                },
-                drive: TwinDriveConfig {
-                    start_mm: 2.0,
-                    ..TwinDriveConfig::default()
-                },
-                control: opts.twin_cnc.then(|| "127.0.0.1:0".parse().expect("addr")),
-            },
-        )
-        .await
-        .expect("twin");
-        let cnc = match twin.control_addr() {
-            Some(a) => format!("[cnc]\nmode = \"twin\"\ntwin = \"{a}\"\n\n"),
-            None => String::new(),
-        };
-        let plc = if opts.twin_plc {
-            Some(
-                axiscomp::sim::plc::TwinPlc::start(
-                    twin.plant.clone(),
-                    axiscomp::plc::CncMap::generic().expect("generic CNC map"),
-                    Default::default(),
-                )
-                .await
-                .expect("the twin's PLC"),
-            )
-        } else {
-            None
-        };
-        let plc_toml = match &plc {
-            Some(p) => format!(
-                "[plc]\npush = true\naddress = \"{}\"\ntimeout_ms = 300\npoll_ms = 10\n\n",
-                p.local_addr()
-            ),
-            None => String::new(),
-        };
-        let socket = dir.path("control.sock");
-        let config = dir.write(
-            "axiscomp.toml",
-            &format!(
-                "[service]\nsocket = \"{}\"\nstate_dir = \"{}\"\nsnapshot_hz = 20.0\n\n\
-                 [io]\naddress = \"{}\"\nrate_hz = 500.0\n\n\
-                 [can]\ntransport = \"cannelloni\"\nlocal = \"127.0.0.1:{svc_port}\"\nremote = \"127.0.0.1:{twin_port}\"\n\n{cnc}{plc_toml}{}",
-                socket.display(),
-                dir.path("state").display(),
-                twin.io.local_addr(),
-                opts.service_toml
-            ),
-        );
+        let (twin, plc, config, socket) = twin_and_config(opts, &dir).await;
         let settings = axiscomp::config::load(&axiscomp::config::Layers {
             etc: None,
             file: Some(config.clone()),

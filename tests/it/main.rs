@@ -14,6 +14,7 @@ mod decoupling;
 mod evaluate;
 mod modbus;
 mod plc;
+mod resume;
 mod service;
 mod socketcan;
 mod store;

@@ -1,0 +1,247 @@
+//! Crash and resume (issue 4, must-show 4) with the service as a real process: the twin runs
+//! in the test (its CNC executes the part programs the service sends), `axiscomp serve` is the
+//! built binary; a run is started, the service is killed with SIGKILL mid-run and started again
+//! on the same store, and the run must finish with every (run, target, direction) capture stored
+//! exactly once, each under the direction the carriage came from.
+
+use crate::helpers::{RigOptions, TempDir, bin, twin_and_config};
+use axiscomp::run::{Direction, PlanSpec, TargetKey};
+use axiscomp::service::control::{Client, Request};
+use axiscomp::store::{RunId, RunState, Store};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Stdio};
+use std::time::{Duration, Instant};
+
+/// Handovers and captures quicker than the production defaults (as the console test), so
+/// the 20 captures take about half a minute.
+const FAST: &str = "[tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n\n\
+                    [capture]\nframes = 100\nsettle_ms = 200\n";
+
+/// Kill the service once this many captures are stored.
+const KILL_AFTER: u64 = 7;
+
+fn plan() -> PlanSpec {
+    PlanSpec {
+        axis: "X".into(),
+        start_mm: 0.0,
+        end_mm: 8.0,
+        targets: 5,
+        runs: 2,
+        overrun_mm: 1.0,
+        dwell_s: 1.5,
+        feed_mm_min: 3000.0,
+        lead_mm: 0.0,
+        reference_mm: None,
+    }
+}
+
+/// `axiscomp serve` as a child process, its output in `log`.
+fn serve(config: &Path, log: &Path) -> Child {
+    let out = std::fs::File::create(log).expect("service log");
+    let err = out.try_clone().expect("service log");
+    bin()
+        .args(["serve", "--config"])
+        .arg(config)
+        .env("RUST_LOG", "info")
+        .stdin(Stdio::null())
+        .stdout(out)
+        .stderr(err)
+        .spawn()
+        .expect("spawn axiscomp serve")
+}
+
+/// The tail of each service log, for a failure message.
+fn logs(logs: &[PathBuf]) -> String {
+    logs.iter()
+        .map(|p| {
+            let text = std::fs::read_to_string(p).unwrap_or_default();
+            let lines: Vec<&str> = text
+                .lines()
+                .filter(|l| !l.contains("request=RunStatus"))
+                .collect();
+            let tail = lines[lines.len().saturating_sub(30)..].join("\n");
+            format!("---- {} ----\n{tail}", p.display())
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// Fail the test with `what` and the tails of the service logs.
+fn fail(log: &[PathBuf], what: String) -> ! {
+    panic!("{what}\n{}", logs(log))
+}
+
+/// The service's answer to `req`, or None while it does not answer (not up yet, or killed).
+async fn ask(socket: &Path, req: &Request) -> Option<serde_json::Value> {
+    let mut c = Client::connect(socket).await.ok()?;
+    tokio::time::timeout(Duration::from_secs(5), c.request(req))
+        .await
+        .ok()?
+        .ok()
+}
+
+/// Wait up to `secs` for the service's snapshot to satisfy `pred`.
+async fn wait_snapshot(
+    socket: &Path,
+    secs: u64,
+    pred: impl Fn(&axiscomp::service::snapshot::Snapshot) -> bool,
+) -> bool {
+    let end = Instant::now() + Duration::from_secs(secs);
+    while Instant::now() < end {
+        if let Ok(mut c) = Client::connect(socket).await
+            && let Ok(s) = c.status().await
+            && pred(&s)
+        {
+            return true;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    false
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {
+    let _machine = crate::helpers::exclusive().await;
+    let dir = TempDir::new("resume");
+    let (twin, _, config, socket) = twin_and_config(
+        RigOptions {
+            service_toml: FAST.into(),
+            twin_cnc: true,
+            ..RigOptions::default()
+        },
+        &dir,
+    )
+    .await;
+    let log = [dir.path("serve-1.log"), dir.path("serve-2.log")];
+    let mut child = serve(&config, &log[0]);
+
+    let ready = |s: &axiscomp::service::snapshot::Snapshot| {
+        s.follower.homed && s.tracking.valid && s.tracking.at_rest
+    };
+    if !wait_snapshot(&socket, 60, ready).await {
+        let _ = child.kill();
+        fail(
+            &log,
+            "the service did not come up with the stitch referenced within 60 s".into(),
+        );
+    }
+    let started = ask(
+        &socket,
+        &Request::RunStart {
+            plan: plan(),
+            dialect: Some("linuxcnc".into()),
+            notes: None,
+        },
+    )
+    .await
+    .unwrap_or_else(|| fail(&log, "run_start was not answered".into()));
+    let run = RunId(started["run_id"].as_i64().unwrap_or(0));
+    let expected = started["captures_expected"].as_u64().unwrap_or(0);
+    assert_eq!(expected, 20, "{started}");
+
+    // Wait for the captures, then SIGKILL (std's Child::kill on Unix) the service mid-run.
+    let end = Instant::now() + Duration::from_secs(60);
+    let at_kill = loop {
+        let st = ask(&socket, &Request::RunStatus).await;
+        let n = st
+            .as_ref()
+            .and_then(|s| s["captures"].as_u64())
+            .unwrap_or(0);
+        if n >= KILL_AFTER {
+            break n;
+        }
+        if Instant::now() > end {
+            let _ = child.kill();
+            fail(
+                &log,
+                format!("no {KILL_AFTER} captures within 60 s: {st:?}"),
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    child.kill().expect("SIGKILL the service");
+    let status = child.wait().expect("reap the service");
+    assert!(!status.success(), "killed, not exited: {status:?}");
+    let store_path = dir.path("state").join("axiscomp.db");
+    let stored_at_kill = Store::open_read_only(&store_path)
+        .and_then(|s| s.captures(run))
+        .map(|c| c.len())
+        .unwrap_or(0);
+    // The twin's CNC goes on with the program while the service is down.
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let mut child = serve(&config, &log[1]);
+
+    let end = Instant::now() + Duration::from_secs(150);
+    let state = loop {
+        let st = ask(&socket, &Request::RunStatus).await;
+        if let Some(s) = st.as_ref().and_then(|s| s["state"].as_str())
+            && s != "running"
+        {
+            break s.to_string();
+        }
+        if Instant::now() > end {
+            let _ = child.kill();
+            fail(
+                &log,
+                format!("the resumed run did not end within 150 s: {st:?}"),
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    let _ = child.kill();
+    let _ = child.wait();
+    drop(twin);
+
+    let store = Store::open_read_only(&store_path).expect("store");
+    let rec = store.run(run).expect("the run");
+    let captures = store.captures(run).expect("captures");
+    let mut count: BTreeMap<TargetKey, usize> = BTreeMap::new();
+    for c in &captures {
+        *count.entry(TargetKey::of(c)).or_default() += 1;
+    }
+    let p = axiscomp::run::Plan::new(plan()).expect("plan");
+    let want: Vec<TargetKey> = p.steps().iter().filter_map(|s| s.target).collect();
+    let missing: Vec<_> = want.iter().filter(|k| !count.contains_key(k)).collect();
+    let twice: Vec<_> = count.iter().filter(|(_, n)| **n != 1).collect();
+    eprintln!(
+        "resume: killed at {at_kill} captures ({stored_at_kill} stored), run {state}: {} captures stored of {expected}, missing {missing:?}, more than once {twice:?}",
+        captures.len()
+    );
+    if state != "finished" || rec.state != RunState::Finished {
+        fail(
+            &log,
+            format!("the run ended {state} ({:?}): {}", rec.state, rec.notes),
+        );
+    }
+    if !missing.is_empty() || !twice.is_empty() || captures.len() != want.len() {
+        fail(
+            &log,
+            format!(
+                "not every capture exactly once: missing {missing:?}, more than once {twice:?}"
+            ),
+        );
+    }
+    // Each capture under the direction the carriage came from: the twin's 5 µm backlash puts
+    // every downward capture of a target above every upward one.
+    for (i, _) in p.targets.iter().enumerate() {
+        let dy = |d: Direction| -> Vec<f64> {
+            captures
+                .iter()
+                .filter(|c| c.target_index as usize == i && c.direction == d)
+                .map(|c| c.errors.dy * 1e3)
+                .collect()
+        };
+        let (up, down) = (dy(Direction::Up), dy(Direction::Down));
+        let top_up = up.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let low_down = down.iter().copied().fold(f64::INFINITY, f64::min);
+        if top_up >= low_down {
+            fail(
+                &log,
+                format!(
+                    "target {i}: an upward capture reads above a downward one (dy µm up {up:?}, down {down:?}): a direction was mislabelled"
+                ),
+            );
+        }
+    }
+}
