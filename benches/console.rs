@@ -49,6 +49,9 @@ fn answer(app: &mut App, actions: Vec<Action>, now: Instant, fx: &Value, ended: 
             }
             Request::RunResult { .. } => fx["result_2"].clone(),
             Request::Runs { .. } => fx["runs"].clone(),
+            Request::TableList { .. } => fx["tables"].clone(),
+            Request::TableStatus => fx["table_status"].clone(),
+            Request::Calibration => fx["calibration"].clone(),
             other => panic!("unexpected request {other:?}"),
         };
         queue.extend(app.handle_reply(id, Ok(v), now));
@@ -125,6 +128,21 @@ fn bench(c: &mut Criterion) {
     let text = std::fs::read_to_string(FIXTURE).expect("the console fixture");
     let fx: Value = serde_json::from_str(&text).expect("fixture JSON");
     let (rest, measure, results) = apps(&fx);
+    // Calibrate and Publish with what they ask for when they show.
+    let mut cal = rest.clone();
+    let asks = cal.handle_key(key(KeyCode::Char('3')));
+    let now = cal.now;
+    answer(&mut cal, asks, now, &fx, true);
+    assert!(cal.calibrate.pending.is_some());
+    let mut publ = results.clone();
+    let asks = publ.handle_key(key(KeyCode::Char('6')));
+    let now = publ.now;
+    answer(&mut publ, asks, now, &fx, true);
+    assert!(!publ.publish.tables.is_empty());
+    // The published (positioning) table, set against the PLC's.
+    while publ.publish.selected_table().map(|t| t.kind.as_str()) != Some("positioning") {
+        publ.handle_key(key(KeyCode::Down));
+    }
     let mut g = c.benchmark_group("console_160x48");
     g.measurement_time(Duration::from_secs(3));
     g.warm_up_time(Duration::from_secs(1));
@@ -134,6 +152,8 @@ fn bench(c: &mut Criterion) {
         (Screen::Measure, &measure),
         (Screen::Results, &results),
         (Screen::Events, &results),
+        (Screen::Calibrate, &cal),
+        (Screen::Publish, &publ),
     ] {
         let mut app = state.clone();
         app.screen = screen;

@@ -10,7 +10,9 @@ use crate::run::{Plan, PlanSpec};
 use crate::service::control::{FollowerAction, Request};
 use crate::service::results::{AuditView, RunResult, RunSummary};
 use crate::service::snapshot::Snapshot;
+use crate::service::tables::{PublishView, StatusView, TableView};
 use crossterm::event::{KeyCode, KeyEvent, KeyEventKind, KeyModifiers};
+use serde::Deserialize;
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
@@ -68,6 +70,11 @@ pub enum Action {
         request: Request,
     },
     Quit,
+    /// Write `text` to `path` (on this host); the outcome comes back through `handle_saved`.
+    Save {
+        path: String,
+        text: String,
+    },
 }
 
 /// The snapshot stream's state.
@@ -93,13 +100,39 @@ pub enum Confirm {
     Quit,
     StartRun(PlanSpec),
     AbortRun(Option<i64>),
+    /// Fit the pose set at this path on the service's host.
+    Fit(String),
+    /// Accept the pending calibration.
+    Accept,
 }
+
+/// What a line typed into the input box is for.
+#[derive(Clone, Debug, PartialEq)]
+pub enum InputFor {
+    /// The table's axis name, typed to confirm its publication.
+    PublishAxis { table_id: i64, axis: String },
+    /// The path of a pose-set CSV on the service's host.
+    PosePath,
+    /// Where to save the part program of the plan (on this host).
+    ProgramPath,
+}
+
+/// A line being typed (Enter takes it, Esc drops it).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Input {
+    pub purpose: InputFor,
+    pub text: String,
+}
+
+/// Longest line the input box takes.
+pub const INPUT_MAX: usize = 200;
 
 #[derive(Clone, Debug, PartialEq)]
 pub enum Overlay {
     None,
     Help,
     Confirm(Confirm),
+    Input(Input),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
@@ -362,9 +395,95 @@ impl RunProgress {
     }
 }
 
+/// The Publish screen: the stored tables, what the PLC holds, generation and publication.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PublishState {
+    /// Newest first, as `table_list` gives them.
+    pub tables: Vec<TableView>,
+    /// The CNC map the service fits tables to.
+    pub map: Option<String>,
+    /// Whether a `table_list` reply came.
+    pub listed: bool,
+    pub selected: usize,
+    /// The last `table_status`, or why it failed.
+    pub status: Option<Result<StatusView, String>>,
+    /// Picking the run to generate tables from: the index into [`PublishState::runs`].
+    pub picking: Option<usize>,
+    /// Tables being generated from this run.
+    pub generating: Option<i64>,
+    /// The table being published (until the reply).
+    pub publishing: Option<i64>,
+    /// The last publication's outcome (the service's reply), or why it failed.
+    pub outcome: Option<Result<PublishView, String>>,
+}
+
+impl PublishState {
+    pub fn selected_table(&self) -> Option<&TableView> {
+        self.tables.get(self.selected)
+    }
+    /// The finished runs tables can be generated from.
+    pub fn runs(results: &ResultsView) -> Vec<&RunSummary> {
+        results
+            .runs
+            .iter()
+            .filter(|r| r.state == "finished")
+            .collect()
+    }
+}
+
+/// A calibration as the service summarises it (`calibration`, `calibration_fit`): readings in
+/// µm, DOFs in µm / arcsec.
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
+#[serde(default)]
+pub struct CalSummary {
+    pub source: String,
+    pub created: String,
+    pub poses: usize,
+    pub fit_poses: usize,
+    pub holdout_poses: usize,
+    pub travel_mm: (f64, f64),
+    pub noise_um: [f64; 6],
+    pub linear_residual_um: [f64; 6],
+    pub model_residual_um: Option<[f64; 6]>,
+    pub rank: usize,
+    pub condition_number: f64,
+    pub linear_holdout: Option<[f64; 6]>,
+    pub model_holdout: Option<[f64; 6]>,
+    pub model_iterations: Option<u32>,
+    pub model_converged: Option<bool>,
+    pub model_params: Option<(usize, usize)>,
+    /// "model" or "linear".
+    pub decoupling: String,
+}
+
+/// The Calibrate screen: the calibration in use, the one waiting, a fit under way.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CalibrateState {
+    /// Whether a `calibration` reply came.
+    pub loaded: bool,
+    /// In use: `None` is the nominal layout.
+    pub active: Option<CalSummary>,
+    pub active_id: Option<i64>,
+    pub pending: Option<CalSummary>,
+    /// A fit runs (this console's, or the service says so).
+    pub fitting: bool,
+    /// The pose set this console asked to fit.
+    pub fit_path: Option<String>,
+    /// Why the last fit, accept or reject failed.
+    pub error: Option<String>,
+}
+
 /// What a sent request was, to handle its reply.
 #[derive(Clone, Debug, PartialEq)]
 enum Pending {
+    Tables,
+    TableStatus,
+    Generate(i64),
+    Publish(i64),
+    Calibration,
+    Fit,
+    CalAccept,
+    CalReject,
     RunStart(Box<Plan>),
     RunStatus,
     RunAbort,
@@ -390,7 +509,13 @@ impl Pending {
     fn is_read(&self) -> bool {
         matches!(
             self,
-            Pending::RunStatus | Pending::Runs | Pending::RunResult(_) | Pending::Audit
+            Pending::RunStatus
+                | Pending::Runs
+                | Pending::RunResult(_)
+                | Pending::Audit
+                | Pending::Tables
+                | Pending::TableStatus
+                | Pending::Calibration
         )
     }
 }
@@ -466,6 +591,10 @@ pub struct App {
     /// The service's audit log, newest first, as last fetched (the Events screen).
     pub audit: Option<Vec<AuditView>>,
     last_audit: Option<Instant>,
+    pub publish: PublishState,
+    pub calibrate: CalibrateState,
+    /// Where the part program was last saved, or why not.
+    pub saved: Option<Result<String, String>>,
     pub log: VecDeque<LogLine>,
     pub now: Instant,
     next_id: u64,
@@ -507,6 +636,9 @@ impl App {
             live_dof: 1,
             audit: None,
             last_audit: None,
+            publish: PublishState::default(),
+            calibrate: CalibrateState::default(),
+            saved: None,
             log: VecDeque::new(),
             now,
             next_id: 1,
@@ -610,7 +742,39 @@ impl App {
         }
         out.extend(self.results_need_list());
         out.extend(self.events_need_audit());
+        out.extend(self.screens_need());
         out
+    }
+
+    /// Publish and Calibrate: what they show, once (until `r` asks again or a change
+    /// makes it old).
+    fn screens_need(&mut self) -> Vec<Action> {
+        let mut out = Vec::new();
+        if self.link != LinkState::Up {
+            return out;
+        }
+        match self.screen {
+            Screen::Publish => {
+                if !self.publish.listed && !self.waiting(&Pending::Tables) {
+                    out.push(self.send(Request::TableList { limit: None }, Pending::Tables));
+                }
+                if self.publish.status.is_none() && !self.waiting(&Pending::TableStatus) {
+                    out.push(self.send(Request::TableStatus, Pending::TableStatus));
+                }
+            }
+            Screen::Calibrate if !self.calibrate.loaded && !self.waiting(&Pending::Calibration) => {
+                out.push(self.send(Request::Calibration, Pending::Calibration));
+            }
+            _ => {}
+        }
+        out
+    }
+
+    /// The tables and what the PLC holds, again.
+    fn reload_publish(&mut self) -> Vec<Action> {
+        self.publish.listed = false;
+        self.publish.status = None;
+        self.screens_need()
     }
 
     /// On the Events screen, the audit log every `AUDIT_EVERY`.
@@ -747,6 +911,12 @@ impl App {
             Ok(v) => v,
             Err(e) => {
                 if e.is_role_refusal() {
+                    match pending {
+                        Pending::Publish(_) => self.publish.publishing = None,
+                        Pending::Generate(_) => self.publish.generating = None,
+                        Pending::Fit => self.calibrate.fitting = false,
+                        _ => {}
+                    }
                     self.access = Access::Viewer;
                     self.say(Level::Warn, format!("read-only (viewer): {e}"));
                     self.log(Level::Error, format!("✗ {e}"));
@@ -755,6 +925,35 @@ impl App {
                         Pending::RunStatus | Pending::RunResult(ResultFor::Live) => {}
                         Pending::RunResult(_) => {
                             self.results.error = Some(e.to_string());
+                            self.say(Level::Error, e.to_string());
+                        }
+                        Pending::Tables => {
+                            self.publish.listed = true;
+                            self.say(Level::Error, format!("table list: {e}"));
+                        }
+                        Pending::TableStatus => self.publish.status = Some(Err(e.to_string())),
+                        Pending::Publish(table_id) => {
+                            self.publish.publishing = None;
+                            self.publish.outcome = Some(Err(e.to_string()));
+                            self.log(Level::Error, format!("✗ publish table {table_id}: {e}"));
+                            self.say(Level::Error, format!("publish failed: {e}"));
+                            return self.reload_publish();
+                        }
+                        Pending::Generate(run) => {
+                            self.publish.generating = None;
+                            self.log(Level::Error, format!("✗ generate from run {run}: {e}"));
+                            self.say(Level::Error, e.to_string());
+                        }
+                        Pending::Calibration => {
+                            self.calibrate.loaded = true;
+                            self.calibrate.error = Some(e.to_string());
+                        }
+                        Pending::Fit | Pending::CalAccept | Pending::CalReject => {
+                            if pending == Pending::Fit {
+                                self.calibrate.fitting = false;
+                            }
+                            self.calibrate.error = Some(e.to_string());
+                            self.log(Level::Error, format!("✗ {e}"));
                             self.say(Level::Error, e.to_string());
                         }
                         _ => {
@@ -771,6 +970,108 @@ impl App {
             self.access = Access::Operator;
         }
         match pending {
+            Pending::Tables => {
+                match serde_json::from_value::<Vec<TableView>>(v["tables"].clone()) {
+                    Ok(tables) => {
+                        let keep = self.publish.selected_table().map(|t| t.id);
+                        let p = &mut self.publish;
+                        p.tables = tables;
+                        p.map = v["map"].as_str().map(str::to_string);
+                        p.selected = keep
+                            .and_then(|id| p.tables.iter().position(|t| t.id == id))
+                            .unwrap_or(0);
+                    }
+                    Err(e) => self.say(Level::Error, format!("bad table list: {e}")),
+                }
+                self.publish.listed = true;
+            }
+            Pending::TableStatus => {
+                self.publish.status = Some(
+                    serde_json::from_value::<StatusView>(v)
+                        .map_err(|e| format!("bad table status from the service: {e}")),
+                );
+            }
+            Pending::Generate(run) => {
+                self.publish.generating = None;
+                let ids: Vec<String> = v["tables"]
+                    .as_array()
+                    .map(|a| {
+                        a.iter()
+                            .map(|t| {
+                                format!(
+                                    "{} {}",
+                                    t["id"].as_i64().unwrap_or(0),
+                                    t["name"].as_str().unwrap_or("?")
+                                )
+                            })
+                            .collect()
+                    })
+                    .unwrap_or_default();
+                let text = format!("run {run}: tables {} generated", ids.join(", "));
+                self.log(Level::Info, format!("✓ {text}"));
+                self.say(Level::Info, text);
+                // The newest first: select the first generated.
+                self.publish.selected = 0;
+                return self.reload_publish();
+            }
+            Pending::Publish(table_id) => {
+                self.publish.publishing = None;
+                let outcome = serde_json::from_value::<PublishView>(v)
+                    .map_err(|e| format!("bad publish reply from the service: {e}"));
+                let (level, text) = match &outcome {
+                    Ok(p) if p.result == "committed" => (
+                        Level::Info,
+                        format!("table {table_id} committed as sequence {}", p.sequence),
+                    ),
+                    Ok(p) => (
+                        Level::Error,
+                        format!("table {table_id} {}: {}", p.result, p.message),
+                    ),
+                    Err(e) => (Level::Error, e.clone()),
+                };
+                self.log(
+                    level,
+                    format!("{} {text}", if level == Level::Info { "✓" } else { "✗" }),
+                );
+                self.say(level, text);
+                self.publish.outcome = Some(outcome);
+                return self.reload_publish();
+            }
+            Pending::Calibration => self.apply_calibration(&v),
+            Pending::Fit => {
+                self.calibrate.fitting = false;
+                self.calibrate.error = None;
+                match serde_json::from_value::<CalSummary>(v["pending"].clone()) {
+                    Ok(c) => {
+                        let text = format!(
+                            "fitted {} poses ({}): judge it, then a accepts or x rejects",
+                            c.poses, c.decoupling
+                        );
+                        self.log(Level::Info, format!("✓ {text}"));
+                        self.say(Level::Info, text);
+                        self.calibrate.pending = Some(c);
+                    }
+                    Err(e) => self.say(Level::Error, format!("bad fit reply: {e}")),
+                }
+            }
+            Pending::CalAccept => {
+                let text = format!(
+                    "calibration {} in use ({}); the zero was cleared: take it again (screen 2, z)",
+                    v["calibration_id"].as_i64().unwrap_or(0),
+                    v["decoupling"].as_str().unwrap_or("?")
+                );
+                self.log(Level::Info, format!("✓ {text}"));
+                self.say(Level::Info, text);
+                self.calibrate.loaded = false;
+                return self.screens_need();
+            }
+            Pending::CalReject => {
+                self.calibrate.pending = None;
+                self.log(Level::Info, "✓ calibration rejected");
+                self.say(Level::Info, "calibration rejected");
+                self.calibrate.loaded = false;
+                return self.screens_need();
+            }
             Pending::RunStart(plan) => {
                 let run_id = v["run_id"].as_i64().unwrap_or(0);
                 let expected = v["captures_expected"].as_u64().map(|n| n as usize);
@@ -822,6 +1123,46 @@ impl App {
             }
         }
         Vec::new()
+    }
+
+    fn apply_calibration(&mut self, v: &serde_json::Value) {
+        let summary = |x: &serde_json::Value| -> Result<Option<CalSummary>, String> {
+            if x.is_null() {
+                return Ok(None);
+            }
+            serde_json::from_value(x.clone())
+                .map(Some)
+                .map_err(|e| format!("bad calibration from the service: {e}"))
+        };
+        let c = &mut self.calibrate;
+        c.loaded = true;
+        match (summary(&v["active"]), summary(&v["pending"])) {
+            (Ok(active), Ok(pending)) => {
+                c.active = active;
+                c.pending = pending;
+                c.active_id = v["active_id"].as_i64();
+                // This console's fit is still under way until its reply comes.
+                c.fitting = c.fitting || v["fitting"].as_bool().unwrap_or(false);
+            }
+            (Err(e), _) | (_, Err(e)) => c.error = Some(e),
+        }
+    }
+
+    /// The outcome of an [`Action::Save`].
+    pub fn handle_saved(&mut self, path: &str, result: Result<(), String>) {
+        match result {
+            Ok(()) => {
+                self.log(Level::Info, format!("✓ part program saved to {path}"));
+                self.say(Level::Info, format!("part program saved to {path}"));
+                self.saved = Some(Ok(path.to_string()));
+            }
+            Err(e) => {
+                let text = format!("part program not saved to {path}: {e}");
+                self.log(Level::Error, format!("✗ {text}"));
+                self.say(Level::Error, text.clone());
+                self.saved = Some(Err(text));
+            }
+        }
     }
 
     fn apply_runs(&mut self, v: serde_json::Value) {
@@ -940,6 +1281,7 @@ impl App {
                 self.overlay = Overlay::None;
                 return Vec::new();
             }
+            Overlay::Input(_) => return self.input_key(key),
             Overlay::None => {}
         }
         if self.screen == Screen::Measure && self.plan.editing.is_some() {
@@ -973,8 +1315,204 @@ impl App {
             Screen::Align => self.align_key(key),
             Screen::Measure => self.measure_key(key),
             Screen::Results => self.results_key(key),
+            Screen::Publish => self.publish_key(key),
+            Screen::Calibrate => self.calibrate_key(key),
             _ => Vec::new(),
         }
+    }
+
+    fn input_key(&mut self, key: KeyEvent) -> Vec<Action> {
+        let Overlay::Input(input) = &mut self.overlay else {
+            return Vec::new();
+        };
+        match (key.code, key_char(&key)) {
+            (KeyCode::Esc, _) => {
+                self.overlay = Overlay::None;
+                self.say(Level::Info, "cancelled");
+            }
+            (KeyCode::Backspace, _) => {
+                input.text.pop();
+            }
+            (KeyCode::Enter, _) => {
+                let input = input.clone();
+                return self.input_done(input);
+            }
+            (_, Some(c)) if !c.is_control() && input.text.chars().count() < INPUT_MAX => {
+                input.text.push(c);
+            }
+            _ => {}
+        }
+        Vec::new()
+    }
+
+    fn input_done(&mut self, input: Input) -> Vec<Action> {
+        let text = input.text.trim().to_string();
+        match input.purpose {
+            InputFor::PublishAxis { table_id, axis } => {
+                if !text.eq_ignore_ascii_case(&axis) {
+                    self.say(
+                        Level::Warn,
+                        format!("type the axis name \"{axis}\" to publish (Esc cancels)"),
+                    );
+                    return Vec::new();
+                }
+                self.overlay = Overlay::None;
+                self.publish.publishing = Some(table_id);
+                self.publish.outcome = None;
+                self.log(
+                    Level::Info,
+                    format!("→ publish table {table_id} (axis {axis})"),
+                );
+                vec![self.send(
+                    Request::TablePublish {
+                        table_id,
+                        confirm: true,
+                    },
+                    Pending::Publish(table_id),
+                )]
+            }
+            InputFor::PosePath => {
+                if text.is_empty() {
+                    self.say(
+                        Level::Warn,
+                        "type the path of a pose-set CSV on the service's host",
+                    );
+                    return Vec::new();
+                }
+                self.overlay = Overlay::Confirm(Confirm::Fit(text));
+                Vec::new()
+            }
+            InputFor::ProgramPath => {
+                if text.is_empty() {
+                    self.say(Level::Warn, "type a file name for the part program");
+                    return Vec::new();
+                }
+                self.overlay = Overlay::None;
+                match self.program_text() {
+                    Ok(program) => vec![Action::Save {
+                        path: text,
+                        text: program,
+                    }],
+                    Err(e) => {
+                        self.say(Level::Error, e);
+                        Vec::new()
+                    }
+                }
+            }
+        }
+    }
+
+    /// The part program of the plan in the form: generated here by the library's
+    /// `run::program::generate` (pure presentation of the plan), ISO dialect, dwell captures —
+    /// what the service sends with its default `[cnc]` settings.
+    pub fn program_text(&self) -> Result<String, String> {
+        use crate::run::program::{CaptureMode, Dialect, generate};
+        let plan = self.plan.checked()?;
+        generate(&plan, Dialect::Iso, CaptureMode::Stability).map_err(|e| e.to_string())
+    }
+
+    fn publish_key(&mut self, key: KeyEvent) -> Vec<Action> {
+        if let Some(i) = self.publish.picking {
+            let runs: Vec<i64> = PublishState::runs(&self.results)
+                .iter()
+                .map(|r| r.id)
+                .collect();
+            let n = runs.len();
+            match key.code {
+                KeyCode::Up if n > 0 => self.publish.picking = Some((i + n - 1) % n),
+                KeyCode::Down if n > 0 => self.publish.picking = Some((i + 1) % n),
+                KeyCode::Esc => self.publish.picking = None,
+                KeyCode::Enter => {
+                    let Some(&run) = runs.get(i) else {
+                        self.say(Level::Info, "no finished run to generate tables from");
+                        return Vec::new();
+                    };
+                    self.publish.picking = None;
+                    if !self.may_operate("generating tables") {
+                        return Vec::new();
+                    }
+                    self.publish.generating = Some(run);
+                    self.log(Level::Info, format!("→ generate tables from run {run}"));
+                    return vec![self.send(
+                        Request::TableGenerate { run_id: run },
+                        Pending::Generate(run),
+                    )];
+                }
+                _ => {}
+            }
+            return Vec::new();
+        }
+        let n = self.publish.tables.len();
+        match (key.code, key_char(&key)) {
+            (KeyCode::Up, _) if n > 0 => {
+                self.publish.selected = (self.publish.selected + n - 1) % n
+            }
+            (KeyCode::Down, _) if n > 0 => self.publish.selected = (self.publish.selected + 1) % n,
+            (_, Some('r')) => return self.reload_publish(),
+            (_, Some('g')) if self.may_operate("generating tables") => {
+                self.publish.picking = Some(0);
+                self.results.listed = false;
+                if !self.waiting(&Pending::Runs) {
+                    return vec![self.send(Request::Runs { limit: None }, Pending::Runs)];
+                }
+            }
+            (_, Some('p')) => {
+                if self.publish.publishing.is_some() {
+                    self.say(
+                        Level::Warn,
+                        "a publication is under way: wait for its outcome",
+                    );
+                } else if let Some(t) = self.publish.selected_table() {
+                    let (table_id, axis) = (t.id, t.axis.clone());
+                    if self.may_operate("publishing a table") {
+                        self.overlay = Overlay::Input(Input {
+                            purpose: InputFor::PublishAxis { table_id, axis },
+                            text: String::new(),
+                        });
+                    }
+                } else {
+                    self.say(Level::Info, "no stored table: generate one from a run (g)");
+                }
+            }
+            _ => {}
+        }
+        Vec::new()
+    }
+
+    fn calibrate_key(&mut self, key: KeyEvent) -> Vec<Action> {
+        match key_char(&key) {
+            Some('f') => {
+                if self.calibrate.fitting {
+                    self.say(Level::Warn, "a fit is under way: wait for its result");
+                } else if self.may_operate("fitting a calibration") {
+                    self.overlay = Overlay::Input(Input {
+                        purpose: InputFor::PosePath,
+                        text: self.calibrate.fit_path.clone().unwrap_or_default(),
+                    });
+                }
+            }
+            Some('a') => {
+                if self.calibrate.pending.is_none() {
+                    self.say(Level::Info, "no calibration is waiting: fit a pose set (f)");
+                } else if self.may_operate("accepting a calibration") {
+                    self.overlay = Overlay::Confirm(Confirm::Accept);
+                }
+            }
+            Some('x') => {
+                if self.calibrate.pending.is_none() {
+                    self.say(Level::Info, "no calibration is waiting");
+                } else if self.may_operate("rejecting a calibration") {
+                    self.log(Level::Info, "→ reject the calibration");
+                    return vec![self.send(Request::CalibrationReject, Pending::CalReject)];
+                }
+            }
+            Some('r') => {
+                self.calibrate.loaded = false;
+                return self.screens_need();
+            }
+            _ => {}
+        }
+        Vec::new()
     }
 
     /// Go to `screen` (and ask for what it shows, if it has nothing yet).
@@ -982,6 +1520,7 @@ impl App {
         self.screen = screen;
         let mut out = self.results_need_list();
         out.extend(self.events_need_audit());
+        out.extend(self.screens_need());
         out
     }
 
@@ -1062,6 +1601,17 @@ impl App {
                     Vec::new()
                 }
             },
+            Confirm::Fit(path) => {
+                self.calibrate.fitting = true;
+                self.calibrate.error = None;
+                self.calibrate.fit_path = Some(path.clone());
+                self.log(Level::Info, format!("→ fit the pose set {path}"));
+                vec![self.send(Request::CalibrationFit { poses: path }, Pending::Fit)]
+            }
+            Confirm::Accept => {
+                self.log(Level::Info, "→ accept the calibration");
+                vec![self.send(Request::CalibrationAccept, Pending::CalAccept)]
+            }
             Confirm::AbortRun(id) => {
                 self.log(
                     Level::Info,
@@ -1168,6 +1718,19 @@ impl App {
                 return vec![self.send(Request::RunStatus, Pending::RunStatus)];
             }
             (_, Some('e')) => self.live_dof = (self.live_dof + 1) % 6,
+            (_, Some('w')) => match self.plan.checked() {
+                Ok(p) => {
+                    let text = match &self.saved {
+                        Some(Ok(path)) => path.clone(),
+                        _ => format!("axiscomp-{}.nc", p.spec.axis.to_ascii_lowercase()),
+                    };
+                    self.overlay = Overlay::Input(Input {
+                        purpose: InputFor::ProgramPath,
+                        text,
+                    });
+                }
+                Err(e) => self.say(Level::Error, e),
+            },
             _ => {}
         }
         Vec::new()
@@ -1224,6 +1787,7 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
             ("a", "abort the run (asks first)"),
             ("r", "refresh the run status"),
             ("e", "plot the next error"),
+            ("w", "write the plan's part program to a file"),
         ],
         Screen::Results => &[
             ("↑ / ↓", "select a stored run"),
@@ -1233,7 +1797,19 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
             ("← / →", "previous / next error"),
             ("r", "reload the run list"),
         ],
-        Screen::Calibrate | Screen::Publish | Screen::Events => &[],
+        Screen::Calibrate => &[
+            ("f", "fit a pose-set CSV on the service's host (asks)"),
+            ("a", "accept the pending calibration (asks)"),
+            ("x", "reject the pending calibration"),
+            ("r", "reload"),
+        ],
+        Screen::Publish => &[
+            ("↑ / ↓", "select a stored table"),
+            ("g", "generate tables from a finished run"),
+            ("p", "publish it to the PLC (type the axis name)"),
+            ("r", "reload the tables and the PLC's status"),
+        ],
+        Screen::Events => &[],
     }
 }
 
@@ -1468,6 +2044,152 @@ mod tests {
         let r = a.run.as_ref().unwrap();
         assert_eq!((r.state.as_str(), r.captures), ("complete", 20));
         assert!(!a.run_active());
+    }
+
+    #[test]
+    fn publish_sends_confirm_only_after_the_axis_name_is_typed() {
+        let (mut a, t0) = app();
+        let out = a.handle_key(ch('6'));
+        assert_eq!(out.len(), 2, "{out:?}");
+        let Action::Send { id, .. } = &out[0] else {
+            panic!()
+        };
+        a.handle_reply(
+            *id,
+            Ok(serde_json::json!({"map": "m", "tables": [{"id": 7, "name": "EXX", "kind": "positioning",
+                "axis": "X", "base_axis": "X", "direction": "both", "points": 2, "start_mm": 0.0,
+                "interval_mm": 10.0, "min_um": 0.0, "max_um": 1.0, "crc": "0x1", "map": "m",
+                "source_run": 2, "generated_us": 0, "values_um": [0.0, 1.0]}]})),
+            t0,
+        );
+        assert!(a.handle_key(ch('p')).is_empty());
+        // A wrong name is refused; typing goes to the box, not to the tabs.
+        for c in ['Y', '1'] {
+            assert!(a.handle_key(ch(c)).is_empty());
+        }
+        assert!(a.handle_key(key(KeyCode::Enter)).is_empty());
+        assert_eq!(a.screen, Screen::Publish);
+        assert!(a.message.as_ref().unwrap().text.contains("\"X\""));
+        a.handle_key(key(KeyCode::Backspace));
+        a.handle_key(key(KeyCode::Backspace));
+        a.handle_key(ch('x'));
+        let out = a.handle_key(key(KeyCode::Enter));
+        let [Action::Send { id, request }] = &out[..] else {
+            panic!("{out:?}")
+        };
+        assert_eq!(
+            request,
+            &Request::TablePublish {
+                table_id: 7,
+                confirm: true
+            }
+        );
+        assert_eq!(a.publish.publishing, Some(7));
+        let out = a.handle_reply(
+            *id,
+            Ok(serde_json::json!({"table_id": 7, "target": "plc", "sequence": 4, "result": "rejected",
+                "code": 3, "message": "the PLC rejected sequence 4: limits", "commit_sent": true})),
+            t0,
+        );
+        assert_eq!(a.publish.publishing, None);
+        assert!(matches!(&a.publish.outcome, Some(Ok(p)) if p.code == Some(3)));
+        // The list again (the status once its outstanding request is answered).
+        assert!(
+            matches!(
+                &out[..],
+                [Action::Send {
+                    request: Request::TableList { .. },
+                    ..
+                }]
+            ),
+            "{out:?}"
+        );
+    }
+
+    #[test]
+    fn calibrate_fit_asks_then_accept_asks_and_a_viewer_cannot() {
+        let (mut a, t0) = app();
+        let out = a.handle_key(ch('3'));
+        assert!(matches!(
+            &out[..],
+            [Action::Send {
+                request: Request::Calibration,
+                ..
+            }]
+        ));
+        a.handle_key(ch('f'));
+        for c in "/tmp/p.csv".chars() {
+            a.handle_key(ch(c));
+        }
+        assert!(a.handle_key(key(KeyCode::Enter)).is_empty());
+        assert_eq!(
+            a.overlay,
+            Overlay::Confirm(Confirm::Fit("/tmp/p.csv".into()))
+        );
+        let out = a.handle_key(ch('y'));
+        let [Action::Send { id, request }] = &out[..] else {
+            panic!("{out:?}")
+        };
+        assert_eq!(
+            request,
+            &Request::CalibrationFit {
+                poses: "/tmp/p.csv".into()
+            }
+        );
+        assert!(a.calibrate.fitting);
+        a.handle_reply(
+            *id,
+            Ok(
+                serde_json::json!({"pending": {"source": "/tmp/p.csv", "poses": 60, "rank": 7,
+                "condition_number": 5.0, "decoupling": "model"}}),
+            ),
+            t0,
+        );
+        assert!(!a.calibrate.fitting);
+        assert_eq!(a.calibrate.pending.as_ref().map(|p| p.poses), Some(60));
+        assert!(a.handle_key(ch('a')).is_empty());
+        let out = a.handle_key(ch('y'));
+        assert!(matches!(
+            &out[..],
+            [Action::Send {
+                request: Request::CalibrationAccept,
+                ..
+            }]
+        ));
+        a.access = Access::Viewer;
+        assert!(a.handle_key(ch('f')).is_empty());
+        assert_eq!(a.overlay, Overlay::None);
+    }
+
+    #[test]
+    fn w_saves_the_plans_program_to_the_typed_path() {
+        let (mut a, _) = app();
+        a.handle_key(ch('4'));
+        a.plan.spec.end_mm = 20.0;
+        a.plan.spec.targets = 5;
+        a.plan.spec.runs = 2;
+        assert!(a.handle_key(ch('w')).is_empty());
+        for _ in 0..20 {
+            a.handle_key(key(KeyCode::Backspace));
+        }
+        for c in "/tmp/x.nc".chars() {
+            a.handle_key(ch(c));
+        }
+        let out = a.handle_key(key(KeyCode::Enter));
+        let [Action::Save { path, text }] = &out[..] else {
+            panic!("{out:?}")
+        };
+        assert_eq!(path, "/tmp/x.nc");
+        assert_eq!(text, &a.program_text().unwrap());
+        assert!(text.contains("20"), "{text}");
+        a.handle_saved(path, Err("Permission denied".into()));
+        assert!(
+            a.message
+                .as_ref()
+                .unwrap()
+                .text
+                .contains("Permission denied")
+        );
     }
 
     #[test]

@@ -6,9 +6,10 @@
 //! - `ui`: one pure `render` per screen;
 //! - `term`: terminal set-up and restore (also on panic).
 //!
-//! Live, Align, Measure (plan, start/abort, progress, live plot), Results (stored runs, six
-//! charts, ISO figures, before/after) and Events work; Calibrate and Publish are in the tab bar
-//! and say which control-API requests they wait for. Viewers get a read-only console;
+//! Live, Align, Calibrate (fit a pose set, judge, accept or reject), Measure (plan, part
+//! program, start/abort, progress, live plot), Results (stored runs, six charts, ISO figures,
+//! before/after), Publish (tables, the PLC's against them, generate, publish with the axis
+//! name typed) and Events. Viewers get a read-only console;
 //! `NO_COLOR` turns colours off; 80×24 is the smallest layout.
 
 pub mod app;
@@ -147,6 +148,12 @@ where
                     if let Err(e) = client.send(id, request).await {
                         app.handle_reply(id, Err(e), Instant::now());
                     }
+                }
+                Action::Save { path, text } => {
+                    let r = tokio::fs::write(&path, text)
+                        .await
+                        .map_err(|e| e.to_string());
+                    app.handle_saved(&path, r);
                 }
             }
         }

@@ -229,6 +229,12 @@ pub struct TableView {
     /// Its latest publication.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub last_publication: Option<PublicationView>,
+    /// e per point (µm): the values as published (the + profile when bidirectional), and the
+    /// − profile of a bidirectional table.
+    #[serde(default)]
+    pub values_um: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub down_um: Option<Vec<f64>>,
 }
 
 fn table_view(r: &TableRecord, pubs: &[PublicationRecord]) -> TableView {
@@ -261,7 +267,13 @@ fn table_view(r: &TableRecord, pubs: &[PublicationRecord]) -> TableView {
             .rev()
             .find(|p| p.publication.table == r.id)
             .map(PublicationView::from),
+        values_um: s.as_ref().map_or_else(Vec::new, |s| um(&s.values_mm)),
+        down_um: s.as_ref().and_then(|s| s.down_mm.as_deref().map(um)),
     }
+}
+
+fn um(mm: &[f64]) -> Vec<f64> {
+    mm.iter().map(|v| v * 1e3).collect()
 }
 
 /// The `table_publish` reply.
@@ -330,6 +342,12 @@ pub struct StagedView {
     /// Why the PLC would refuse it (its CRC or limits), when it would.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub invalid: Option<String>,
+    /// The values it holds (µm, decoded from the payload read back; the + profile when
+    /// bidirectional), for a per-point diff; empty when it does not decode.
+    #[serde(default)]
+    pub values_um: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub down_um: Option<Vec<f64>>,
 }
 
 /// The `table_status` reply.
@@ -906,6 +924,15 @@ impl Tables {
                     axis: rb.header.axis,
                     direction: rb.header.direction,
                     invalid: reject.map(ToString::to_string),
+                    values_um: rb
+                        .table
+                        .as_ref()
+                        .map_or_else(|_| Vec::new(), |t| um(&t.values_mm)),
+                    down_um: rb
+                        .table
+                        .as_ref()
+                        .ok()
+                        .and_then(|t| t.down_mm.as_deref().map(um)),
                 }),
                 verdict: verdict.into(),
                 table_id: id.map(|t| t.0),

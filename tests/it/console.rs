@@ -85,6 +85,16 @@ struct Fixture {
     runs: serde_json::Value,
     /// `audit` after both ended (every operator request of the session).
     audit: serde_json::Value,
+    /// The twin PLC: `table_generate` of run 2, `table_publish` of its first table, then
+    /// `table_list` and `table_status`.
+    generate_reply: serde_json::Value,
+    publish_reply: serde_json::Value,
+    tables: serde_json::Value,
+    table_status: serde_json::Value,
+    /// The twin's head: a pose set fitted and accepted, a second one fitted (`calibration_fit`'s
+    /// reply) and left pending, then `calibration`.
+    fit_reply: serde_json::Value,
+    calibration: serde_json::Value,
 }
 
 fn load_fixture() -> Fixture {
@@ -197,6 +207,10 @@ fn replies(fx: &Fixture, ended: bool) -> impl Fn(&Request) -> serde_json::Value 
         }
         Request::Runs { .. } => fx.runs.clone(),
         Request::Audit { .. } => fx.audit.clone(),
+        Request::TableList { .. } => fx.tables.clone(),
+        Request::TableStatus => fx.table_status.clone(),
+        Request::TablePublish { confirm: true, .. } => fx.publish_reply.clone(),
+        Request::Calibration => fx.calibration.clone(),
         other => panic!("the console sent {other:?} here"),
     }
 }
@@ -304,17 +318,105 @@ fn every_screen_renders_from_a_twin_run_at_80x24_and_160x48() {
     let fx = load_fixture();
     let t0 = Instant::now();
     let mut rest = rest_app(&fx, t0, true);
-    snapshot_screens(&mut rest, &[Screen::Live, Screen::Align, Screen::Calibrate]);
+    snapshot_screens(&mut rest, &[Screen::Live, Screen::Align]);
     let (mut mid, _) = mid_run_app(&fx, t0, true);
     snapshot_screens(&mut mid, &[Screen::Measure]);
     let mut done = results_app(&fx, t0, true);
-    snapshot_screens(&mut done, &[Screen::Results, Screen::Publish]);
+    snapshot_screens(&mut done, &[Screen::Results]);
     // Events asks for the audit log when it shows.
     let now = done.now;
     let actions = done.handle_key(key(KeyCode::Char('7')));
     let sent = answer(&mut done, actions, now, &replies(&fx, true));
     assert_eq!(sent, [Request::Audit { limit: Some(50) }]);
     snapshot_screens(&mut done, &[Screen::Events]);
+}
+
+/// The Calibrate screen as it shows itself: the service's `calibration` (one in use, one
+/// pending from the twin's head).
+fn calibrate_app(fx: &Fixture, t0: Instant, color: bool) -> App {
+    let mut app = rest_app(fx, t0, color);
+    let actions = app.handle_key(key(KeyCode::Char('3')));
+    let sent = answer(&mut app, actions, t0, &replies(fx, true));
+    assert_eq!(sent, [Request::Calibration]);
+    app
+}
+
+/// The Publish screen after run 2: the tables and the PLC's status asked for as it shows,
+/// then the first table published by keys (p, the axis typed, Enter) with the recorded reply.
+fn publish_app(fx: &Fixture, t0: Instant, color: bool) -> App {
+    let mut app = results_app(fx, t0, color);
+    let now = app.now;
+    let reply = replies(fx, true);
+    let actions = app.handle_key(key(KeyCode::Char('6')));
+    let sent = answer(&mut app, actions, now, &reply);
+    assert_eq!(
+        sent,
+        [Request::TableList { limit: None }, Request::TableStatus]
+    );
+    let first = fx.publish_reply["table_id"]
+        .as_i64()
+        .expect("published table");
+    while app.publish.selected_table().map(|t| t.id) != Some(first) {
+        app.handle_key(key(KeyCode::Down));
+    }
+    assert!(app.handle_key(key(KeyCode::Char('p'))).is_empty());
+    let axis = app
+        .publish
+        .selected_table()
+        .map(|t| t.axis.clone())
+        .expect("table");
+    for k in chars(&axis) {
+        assert!(app.handle_key(k).is_empty());
+    }
+    let actions = app.handle_key(key(KeyCode::Enter));
+    let sent = answer(&mut app, actions, now, &reply);
+    assert_eq!(
+        sent,
+        [
+            Request::TablePublish {
+                table_id: first,
+                confirm: true
+            },
+            Request::TableList { limit: None },
+            Request::TableStatus
+        ]
+    );
+    app
+}
+
+#[test]
+fn calibrate_and_publish_render_from_the_twin_session() {
+    let fx = load_fixture();
+    let t0 = Instant::now();
+    let mut cal = calibrate_app(&fx, t0, true);
+    snapshot_screens(&mut cal, &[Screen::Calibrate]);
+    let mut publ = publish_app(&fx, t0, true);
+    snapshot_screens(&mut publ, &[Screen::Publish]);
+    // The numbers are the service's.
+    let mut plain = calibrate_app(&fx, t0, false);
+    plain.screen = Screen::Calibrate;
+    let t = text(&render(&plain, 160, 48));
+    let pending = &fx.calibration["pending"];
+    let cond = pending["condition_number"]
+        .as_f64()
+        .expect("condition number");
+    assert!(t.contains(&format!("{cond:.3e}")), "{t}");
+    for k in 0..6 {
+        let m = pending["model_residual_um"][k]
+            .as_f64()
+            .expect("model residual");
+        assert!(
+            t.contains(&format!("{m:.2}")),
+            "model residual {k} = {m}:\n{t}"
+        );
+    }
+    assert!(t.contains("stored calibration"), "{t}");
+    let publ = publish_app(&fx, t0, false);
+    let t = text(&render(&publ, 160, 48));
+    let seq = fx.publish_reply["sequence"].as_u64().expect("sequence");
+    assert!(t.contains(&format!("committed as sequence {seq}")), "{t}");
+    assert!(t.contains("matches table"), "{t}");
+    assert!(t.contains("equals table"), "the per-point diff:\n{t}");
 }
 
 #[test]
@@ -682,6 +784,7 @@ async fn capture_console_fixture() {
     let rig = ServiceRig::start(RigOptions {
         service_toml: FAST.into(),
         twin_cnc: true,
+        twin_plc: true,
         ..RigOptions::default()
     })
     .await;
@@ -786,6 +889,55 @@ async fn capture_console_fixture() {
         .request(Request::Runs { limit: None })
         .await
         .expect("runs");
+    // Tables from run 2, the first published into the twin PLC.
+    let generate_reply = rig
+        .request(Request::TableGenerate {
+            run_id: start_reply["run_id"].as_i64().expect("run 2"),
+        })
+        .await
+        .expect("table_generate");
+    let publish_reply = rig
+        .request(Request::TablePublish {
+            table_id: generate_reply["tables"][0]["id"].as_i64().expect("a table"),
+            confirm: true,
+        })
+        .await
+        .expect("table_publish");
+    assert_eq!(publish_reply["result"], "committed", "{publish_reply}");
+    let tables = rig
+        .request(Request::TableList { limit: None })
+        .await
+        .expect("table_list");
+    let table_status = rig.request(Request::TableStatus).await.expect("status");
+    // The twin's head: one pose set fitted and accepted, a second fitted and left pending.
+    let poses_dir =
+        std::env::temp_dir().join(format!("axiscomp-console-fx-{}", std::process::id()));
+    let mut fit_reply = serde_json::Value::Null;
+    for (k, seed) in [(1, 77u64), (2, 78)] {
+        let path = twin_pose_set(&RigOptions::default().plant, &poses_dir, k, seed);
+        fit_reply = rig
+            .request(Request::CalibrationFit {
+                poses: path.display().to_string(),
+            })
+            .await
+            .expect("calibration_fit");
+        if k == 1 {
+            rig.request(Request::CalibrationAccept)
+                .await
+                .expect("calibration_accept");
+        }
+    }
+    let calibration = rig
+        .request(Request::Calibration)
+        .await
+        .expect("calibration");
+    let moved_poses = |v: serde_json::Value| -> serde_json::Value {
+        let t = v
+            .to_string()
+            .replace(&poses_dir.display().to_string(), "/var/lib/axiscomp/poses");
+        serde_json::from_str(&t).expect("json")
+    };
+    let _ = std::fs::remove_dir_all(&poses_dir);
     let audit = rig
         .request(Request::Audit { limit: None })
         .await
@@ -829,7 +981,13 @@ async fn capture_console_fixture() {
         result_2: redact_value(result_2),
         result_1: redact_value(result_1),
         runs: redact_value(runs),
-        audit: redact_value(audit),
+        audit: moved_poses(redact_value(audit)),
+        generate_reply: redact_value(generate_reply),
+        publish_reply: redact_value(publish_reply),
+        tables: redact_value(tables),
+        table_status: redact_value(table_status),
+        fit_reply: moved_poses(redact_value(fit_reply)),
+        calibration: moved_poses(redact_value(calibration)),
     };
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(FIXTURE);
     std::fs::write(
@@ -839,6 +997,30 @@ async fn capture_console_fixture() {
     .expect("write the fixture");
     eprintln!("wrote {}", path.display());
     rig.stop().await;
+}
+
+/// A pose set of the rig's twin head (as a hexapod would record it), written to `dir`.
+fn twin_pose_set(
+    plant: &axiscomp::sim::plant::PlantSpec,
+    dir: &Path,
+    k: usize,
+    seed: u64,
+) -> std::path::PathBuf {
+    use axiscomp::calibrate::write_pose_csv;
+    use axiscomp::optics::Layout;
+    use axiscomp::sim::plant::Plant;
+    use axiscomp::sim::{Hexapod, PoseWindow, Rng};
+    use axiscomp::util::progress::Progress;
+    let layout = Layout::reference();
+    let head = Plant::draw_head(&layout, plant).expect("the twin's head");
+    let rng = Rng::new(seed);
+    let poses = PoseWindow::default().draw(120, &mut rng.fork(1));
+    let (samples, _) =
+        Hexapod::default().acquire(&head, &poses, &mut rng.fork(2), &mut Progress::hidden());
+    std::fs::create_dir_all(dir).expect("pose dir");
+    let path = dir.join(format!("poses-{k}.csv"));
+    std::fs::write(&path, write_pose_csv(&samples, &[])).expect("pose file");
+    path
 }
 
 /// A program path in the test's state directory, as if in the production one.

@@ -925,6 +925,22 @@ async fn the_service_generates_publishes_and_reads_back_tables() {
         st.message
     );
     assert!(st.message.contains("CRC"), "{}", st.message);
+    // It carries the values read back, and the list the stored ones, for a per-point diff.
+    let staged = st.staged.as_ref().expect("staging area read back");
+    assert_eq!(staged.values_um.len(), tables[2].points);
+    assert_eq!(tables[2].values_um.len(), tables[2].points);
+    for (k, (plc_um, e)) in staged
+        .values_um
+        .iter()
+        .zip(&stored[2].values_mm)
+        .enumerate()
+    {
+        assert!(
+            (plc_um - e * 1e3).abs() <= 0.05 + 1e-9,
+            "point {k}: {plc_um} vs {e} mm"
+        );
+        assert!((tables[2].values_um[k] - e * 1e3).abs() < 1e-9, "point {k}");
+    }
 
     // A PLC that rejects: recorded as rejected, its active table and the status unchanged.
     plc.reject_next(9);

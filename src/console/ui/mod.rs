@@ -3,15 +3,18 @@
 //! confirmation) go on top. Layouts work from 80×24 and use the room at 160×48 and above.
 
 mod align;
+mod calibrate;
 mod chart;
 mod events;
 mod live;
 mod measure;
-mod pending;
 mod psd;
+mod publish;
 mod results;
 
-use super::app::{Access, App, Confirm, GLOBAL_KEYS, Level, LinkState, Overlay, Screen};
+use super::app::{
+    Access, App, Confirm, GLOBAL_KEYS, Input, InputFor, Level, LinkState, Overlay, Screen,
+};
 use ratatui::Frame;
 use ratatui::layout::{Constraint, Layout, Rect};
 use ratatui::style::{Color, Modifier, Style};
@@ -100,10 +103,10 @@ pub fn render(frame: &mut Frame, app: &App) {
     match app.screen {
         Screen::Live => live::render(frame, body, app),
         Screen::Align => align::render(frame, body, app),
-        Screen::Calibrate => pending::calibrate(frame, body, app),
+        Screen::Calibrate => calibrate::render(frame, body, app),
         Screen::Measure => measure::render(frame, body, app),
         Screen::Results => results::render(frame, body, app),
-        Screen::Publish => pending::publish(frame, body, app),
+        Screen::Publish => publish::render(frame, body, app),
         Screen::Events => events::render(frame, body, app),
     }
     render_status(frame, status, app, theme);
@@ -111,7 +114,57 @@ pub fn render(frame: &mut Frame, app: &App) {
         Overlay::None => {}
         Overlay::Help => render_help(frame, app, theme),
         Overlay::Confirm(c) => render_confirm(frame, c, app, theme),
+        Overlay::Input(i) => render_input(frame, i, theme),
     }
+}
+
+fn render_input(frame: &mut Frame, input: &Input, theme: Theme) {
+    let (title, about) = match &input.purpose {
+        InputFor::PublishAxis { table_id, axis } => (
+            " Publish? ".to_string(),
+            vec![
+                Line::raw(format!(
+                    "Table {table_id} changes the compensation axis {axis} applies."
+                )),
+                Line::raw(format!(
+                    "Type the axis name \"{axis}\" and Enter to publish."
+                )),
+            ],
+        ),
+        InputFor::PosePath => (
+            " Fit a pose set ".to_string(),
+            vec![Line::raw(
+                "Path of the pose-set CSV on the service's host (axiscomp calibrate simulate writes one):",
+            )],
+        ),
+        InputFor::ProgramPath => (
+            " Save the part program ".to_string(),
+            vec![Line::raw(
+                "File to write the plan's program to (on this host):",
+            )],
+        ),
+    };
+    let mut lines = about;
+    lines.push(Line::raw(""));
+    // The end of a long line stays in view.
+    let w = 64usize;
+    let chars: Vec<char> = input.text.chars().collect();
+    let shown: String = chars[chars.len().saturating_sub(w)..].iter().collect();
+    lines.push(Line::from(vec![
+        Span::styled("> ", theme.accent()),
+        Span::raw(shown),
+        Span::styled("█", theme.dim()),
+    ]));
+    lines.push(Line::styled("Enter takes it, Esc cancels", theme.dim()));
+    let h = lines.len() as u16 + 4;
+    let area = centred(frame.area(), 72, h);
+    frame.render_widget(Clear, area);
+    frame.render_widget(
+        Paragraph::new(lines)
+            .wrap(Wrap { trim: false })
+            .block(Block::bordered().title(title).border_style(theme.warn())),
+        area,
+    );
 }
 
 fn render_tabs(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
@@ -263,6 +316,35 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
                         spec.overrun_mm, spec.dwell_s, spec.feed_mm_min
                     )),
                     Line::raw("The service writes the part program; the CNC moves the axis."),
+                ],
+            )
+        }
+        Confirm::Fit(path) => (
+            " Fit the calibration? ",
+            vec![
+                Line::raw(format!("Fit the pose set {path} on the service's host.")),
+                Line::raw(
+                    "The result waits for you to accept or reject it; nothing changes until then.",
+                ),
+            ],
+        ),
+        Confirm::Accept => {
+            let what = app
+                .calibrate
+                .pending
+                .as_ref()
+                .map(|p| {
+                    format!(
+                        "{} ({} decoupling, {} poses)",
+                        p.source, p.decoupling, p.poses
+                    )
+                })
+                .unwrap_or_else(|| "the pending calibration".into());
+            (
+                " Accept the calibration? ",
+                vec![
+                    Line::raw(format!("Store {what} and decouple with it from now on.")),
+                    Line::raw("The zero reference is cleared: take it again on screen 2."),
                 ],
             )
         }
