@@ -316,7 +316,7 @@ fn rows(r: &LoopResult, truth: &Figures) -> Vec<(String, &'static str, f64, f64,
             opt(b.r) * um,
             opt(a.r) * um,
             opt(t.r) * um,
-            false,
+            true,
         ),
         (
             "dy reversal B".into(),
