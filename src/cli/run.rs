@@ -228,12 +228,8 @@ pub fn export(a: ExportArgs) -> Result<()> {
     let captures = store.captures(id)?;
     let eval = evaluate_captures(&captures, &EvalOptions::default())?;
     let axis_name = a.axis.clone().unwrap_or(rec.axis.clone());
-    let axis = match axis_name.to_ascii_uppercase().as_str() {
-        "X" => MachineAxis::X,
-        "Y" => MachineAxis::Y,
-        "Z" => MachineAxis::Z,
-        other => return Err(InputError(format!("--axis {other}: use X, Y or Z")).into()),
-    };
+    let axis = MachineAxis::from_letter(&axis_name)
+        .ok_or_else(|| InputError(format!("--axis {axis_name}: use X, Y or Z")))?;
     let plan: Option<axiscomp::run::Plan> = serde_json::from_value(rec.plan.clone()).ok();
     let spec = TableSpec {
         mapping: AxisMapping::standard(axis),

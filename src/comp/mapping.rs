@@ -31,6 +31,14 @@ impl MachineAxis {
         ["X", "Y", "Z"][self.index()]
     }
 
+    /// The axis a letter names (either case, surrounding blanks ignored).
+    pub fn from_letter(s: &str) -> Option<MachineAxis> {
+        let s = s.trim();
+        MachineAxis::ALL
+            .into_iter()
+            .find(|a| a.letter().eq_ignore_ascii_case(s))
+    }
+
     /// The ISO 230-1 letter of a rotation about this axis: "A", "B" or "C".
     pub fn rotation_letter(self) -> &'static str {
         ["A", "B", "C"][self.index()]
@@ -96,16 +104,11 @@ impl FromStr for SignedAxis {
             Some(b'+') => (false, &t[1..]),
             _ => (false, t),
         };
-        let axis = match rest.to_ascii_uppercase().as_str() {
-            "X" => MachineAxis::X,
-            "Y" => MachineAxis::Y,
-            "Z" => MachineAxis::Z,
-            _ => {
-                return Err(CompError::Mapping(format!(
-                    "\"{s}\" is not a machine axis: give +X, -X, +Y, -Y, +Z or -Z"
-                )));
-            }
-        };
+        let axis = MachineAxis::from_letter(rest).ok_or_else(|| {
+            CompError::Mapping(format!(
+                "\"{s}\" is not a machine axis: give +X, -X, +Y, -Y, +Z or -Z"
+            ))
+        })?;
         Ok(SignedAxis { axis, negative })
     }
 }

@@ -12,7 +12,6 @@ use crate::service::results::{AuditView, RunResult, RunSummary};
 use crate::service::snapshot::Snapshot;
 use crate::service::tables::{PublishView, StatusView, TableView};
 use crossterm::event::{KeyCode, KeyEvent, KeyEventKind, KeyModifiers};
-use serde::Deserialize;
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
@@ -431,30 +430,8 @@ impl PublishState {
     }
 }
 
-/// A calibration as the service summarises it (`calibration`, `calibration_fit`): readings in
-/// µm, DOFs in µm / arcsec.
-#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
-#[serde(default)]
-pub struct CalSummary {
-    pub source: String,
-    pub created: String,
-    pub poses: usize,
-    pub fit_poses: usize,
-    pub holdout_poses: usize,
-    pub travel_mm: (f64, f64),
-    pub noise_um: [f64; 6],
-    pub linear_residual_um: [f64; 6],
-    pub model_residual_um: Option<[f64; 6]>,
-    pub rank: usize,
-    pub condition_number: f64,
-    pub linear_holdout: Option<[f64; 6]>,
-    pub model_holdout: Option<[f64; 6]>,
-    pub model_iterations: Option<u32>,
-    pub model_converged: Option<bool>,
-    pub model_params: Option<(usize, usize)>,
-    /// "model" or "linear".
-    pub decoupling: String,
-}
+/// A calibration as the service summarises it (`calibration`, `calibration_fit`).
+pub use crate::service::calibration::Summary as CalSummary;
 
 /// The Calibrate screen: the calibration in use, the one waiting, a fit under way.
 #[derive(Clone, Debug, Default, PartialEq)]

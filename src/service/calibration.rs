@@ -13,7 +13,7 @@ use crate::decouple::Decoupler;
 use crate::optics::Layout;
 use crate::store::CalibrationId;
 use crate::units::DOF_TO_USER;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
 
@@ -46,8 +46,10 @@ pub struct Pending {
     pub summary: Summary,
 }
 
-/// What the operator judges a calibration by (readings in µm, DOFs in µm / arcsec).
-#[derive(Clone, Debug, PartialEq, Serialize)]
+/// What the operator judges a calibration by (readings in µm, DOFs in µm / arcsec); the
+/// `calibration` and `calibration_fit` replies, which the console reads back.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct Summary {
     pub source: String,
     pub created: String,
@@ -71,7 +73,7 @@ pub struct Summary {
     pub model_converged: Option<bool>,
     pub model_params: Option<(usize, usize)>,
     /// The decoupling accepting it gives: "model" or "linear".
-    pub decoupling: &'static str,
+    pub decoupling: String,
 }
 
 impl Summary {
@@ -97,7 +99,7 @@ impl Summary {
             model_iterations: m.map(|m| m.iterations),
             model_converged: m.map(|m| m.converged),
             model_params: m.map(|m| (m.fitted_params, m.well_determined)),
-            decoupling: if m.is_some() { "model" } else { "linear" },
+            decoupling: if m.is_some() { "model" } else { "linear" }.into(),
         }
     }
 }

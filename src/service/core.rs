@@ -892,9 +892,9 @@ impl Core {
             .map_err(|e| format!("the calibration was not stored (it still waits): {e}"))?;
         let p = self.calibrations.take_pending()?;
         self.pipeline.measure.set_decoupler(p.decoupler.clone());
-        let decoupling = p.summary.decoupling;
+        let decoupling = p.summary.decoupling.clone();
         self.calibrations.accepted(id, p);
-        tracing::info!(calibration = id.0, decoupling, "calibration accepted");
+        tracing::info!(calibration = id.0, %decoupling, "calibration accepted");
         Ok(serde_json::json!({
             "calibration_id": id.0,
             "decoupling": decoupling,

@@ -515,14 +515,8 @@ pub fn generate(
     let captures = store.captures(rec.id).map_err(|e| e.to_string())?;
     let eval = evaluate_captures(&captures, &EvalOptions::default())
         .map_err(|e| format!("run {run_id} cannot be evaluated: {e}"))?;
-    let axis = match rec.axis.trim().to_ascii_uppercase().as_str() {
-        "X" => MachineAxis::X,
-        "Y" => MachineAxis::Y,
-        "Z" => MachineAxis::Z,
-        other => {
-            return Err(format!("run {run_id}: axis {other:?} is not X, Y or Z"));
-        }
-    };
+    let axis = MachineAxis::from_letter(&rec.axis)
+        .ok_or_else(|| format!("run {run_id}: axis {:?} is not X, Y or Z", rec.axis))?;
     let reference_mm = rec
         .plan
         .get("reference_mm")

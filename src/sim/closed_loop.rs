@@ -186,19 +186,12 @@ impl Figures {
     }
 }
 
-/// The machine axis a plan names.
-pub fn machine_axis(name: &str) -> Result<MachineAxis, LoopError> {
-    match name.to_ascii_uppercase().as_str() {
-        "X" => Ok(MachineAxis::X),
-        "Y" => Ok(MachineAxis::Y),
-        "Z" => Ok(MachineAxis::Z),
-        _ => Err(LoopError::Axis(name.to_string())),
-    }
-}
-
 /// Run the loop. `step` hears of each stage as it happens.
 pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, LoopError> {
-    let mapping = AxisMapping::standard(machine_axis(&spec.plan.spec.axis)?);
+    let axis = &spec.plan.spec.axis;
+    let mapping = AxisMapping::standard(
+        MachineAxis::from_letter(axis).ok_or_else(|| LoopError::Axis(axis.clone()))?,
+    );
     let mut lab = Lab::new(&spec.lab).map_err(|source| LoopError::Lab {
         pass: Pass::Before,
         source,
@@ -286,11 +279,10 @@ fn publish_all(
     rt.block_on(async move {
         let plc = TwinPlc::start(plant, map.clone(), TwinPlcConfig::default()).await?;
         let link = Link::spawn(LinkConfig::new(plc.local_addr()));
+        // The production timeouts; polled often, the twin answers at once.
         let timeouts = Timeouts {
-            ready: Duration::from_secs(5),
-            heartbeat: Duration::from_secs(2),
             poll: Duration::from_millis(5),
-            echo: Duration::from_secs(2),
+            ..Timeouts::default()
         };
         let mut out = Vec::new();
         for (k, (name, table)) in tables.into_iter().enumerate() {

@@ -36,11 +36,6 @@ impl Pacer {
         }
     }
 
-    /// The period.
-    pub fn period(&self) -> Duration {
-        self.period
-    }
-
     /// Wait for the next tick; returns its scheduled time.
     pub async fn tick(&mut self) -> Instant {
         self.timers[self.next].as_mut().await;

@@ -39,33 +39,9 @@ fail() {
   exit 1
 }
 
-# Free loopback ports for the twin's I/O module, its control socket and the CAN gateway pair.
-read -r io ctl can_svc can_twin < <(python3 - <<'EOF'
-import socket
-tcp = [socket.socket() for _ in range(2)]
-udp = [socket.socket(type=socket.SOCK_DGRAM) for _ in range(2)]
-for s in tcp + udp:
-    s.bind(("127.0.0.1", 0))
-print(*(s.getsockname()[1] for s in tcp + udp))
-EOF
-)
-
-sed -e "s#127.0.0.1:5020#127.0.0.1:$io#" \
-    -e "s#127.0.0.1:5099#127.0.0.1:$ctl#" \
-    -e "s#^local = \"127.0.0.1:20001\"#local = \"127.0.0.1:$can_twin\"#" \
-    -e "s#^remote = \"127.0.0.1:20000\"#remote = \"127.0.0.1:$can_svc\"#" \
-    configs/sim.toml > "$work/sim.toml"
-sed -e "s#\./run/#$work/#" \
-    -e "s#127.0.0.1:5020#127.0.0.1:$io#" \
-    -e "s#^local = \"127.0.0.1:20000\"#local = \"127.0.0.1:$can_svc\"#" \
-    -e "s#^remote = \"127.0.0.1:20001\"#remote = \"127.0.0.1:$can_twin\"#" \
-    configs/twin-service.toml > "$work/service.toml"
-cat >> "$work/service.toml" <<EOF
-
-[cnc]
-mode = "twin"
-twin = "127.0.0.1:$ctl"
-EOF
+# The twin and the service on free loopback ports, the twin's CNC running the programs.
+source tests/interop/twin-configs.sh
+twin_configs "$work"
 sock="$work/control.sock"
 db="$work/state/axiscomp.db"
 

@@ -1,0 +1,35 @@
+# Sourced by the interop scripts that run `axiscomp sim` + `axiscomp serve` as processes.
+# twin_configs DIR: free loopback ports for the twin's I/O module, its CNC control socket, its
+# PLC and the CAN gateway pair; writes DIR/sim.toml (configs/sim.toml on those ports) and
+# DIR/service.toml (configs/twin-service.toml on those ports, state under DIR, the twin's CNC
+# running the part programs). Append what else a script needs to DIR/service.toml.
+twin_configs() {
+  local dir=$1 io ctl plc can_svc can_twin
+  read -r io ctl plc can_svc can_twin < <(python3 - <<'EOF'
+import socket
+tcp = [socket.socket() for _ in range(3)]
+udp = [socket.socket(type=socket.SOCK_DGRAM) for _ in range(2)]
+for s in tcp + udp:
+    s.bind(("127.0.0.1", 0))
+print(*(s.getsockname()[1] for s in tcp + udp))
+EOF
+)
+  sed -e "s#127.0.0.1:5020#127.0.0.1:$io#" \
+      -e "s#127.0.0.1:5099#127.0.0.1:$ctl#" \
+      -e "s#127.0.0.1:5502#127.0.0.1:$plc#" \
+      -e "s#^local = \"127.0.0.1:20001\"#local = \"127.0.0.1:$can_twin\"#" \
+      -e "s#^remote = \"127.0.0.1:20000\"#remote = \"127.0.0.1:$can_svc\"#" \
+      configs/sim.toml > "$dir/sim.toml"
+  sed -e "s#\./run/#$dir/#" \
+      -e "s#127.0.0.1:5020#127.0.0.1:$io#" \
+      -e "s#127.0.0.1:5502#127.0.0.1:$plc#" \
+      -e "s#^local = \"127.0.0.1:20000\"#local = \"127.0.0.1:$can_svc\"#" \
+      -e "s#^remote = \"127.0.0.1:20001\"#remote = \"127.0.0.1:$can_twin\"#" \
+      configs/twin-service.toml > "$dir/service.toml"
+  cat >> "$dir/service.toml" <<EOF
+
+[cnc]
+mode = "twin"
+twin = "127.0.0.1:$ctl"
+EOF
+}
