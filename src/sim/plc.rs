@@ -693,14 +693,19 @@ pub fn spawn_pull_client(
         };
         let mut done: u32 = 0;
         loop {
-            let r = pull_once(&link, &map, &mut axis, &mut status, &mut done).await;
+            // A commit is recorded before its acknowledgement goes out, so whoever sees the
+            // acknowledgement also sees the record.
+            let record = |rec: CommitRecord, status: PlcStatus| {
+                let mut s = st2.lock().unwrap_or_else(|p| p.into_inner());
+                s.status = Some(status);
+                s.commits.push(rec);
+            };
+            let r = pull_once(&link, &map, &mut axis, &mut status, &mut done, record).await;
             {
                 let mut s = st2.lock().unwrap_or_else(|p| p.into_inner());
                 s.status = Some(status);
-                match r {
-                    Ok(Some(rec)) => s.commits.push(rec),
-                    Ok(None) => {}
-                    Err(e) => s.last_error = Some(e),
+                if let Err(e) = r {
+                    s.last_error = Some(e);
                 }
             }
             tokio::time::sleep(config.period).await;
@@ -715,13 +720,13 @@ async fn pull_once(
     axis: &mut Axis,
     status: &mut PlcStatus,
     done: &mut u32,
-) -> Result<Option<CommitRecord>, LinkError> {
+    record: impl FnOnce(CommitRecord, PlcStatus),
+) -> Result<(), LinkError> {
     status.heartbeat = status.heartbeat.wrapping_add(1);
     let c = &map.handshake.commit;
     let mut img = Image::default();
     read_span(link, map, &mut img, c.address as u32, c.end()).await?;
     let published = table::read_field(c, &|a| img.get(RegisterKind::Holding, a)) as u32;
-    let mut record = None;
     if published != 0 && published != *done {
         let h = &map.header;
         let lo = h
@@ -748,7 +753,7 @@ async fn pull_once(
         let counts = table::decode_payload(map, n, &get);
         let result = match table::validate(map, &header, &counts, Some(published)) {
             // The table changed between reads: read it again next time.
-            Err(r) if r.code == RejectCode::Sequence => return Ok(None),
+            Err(r) if r.code == RejectCode::Sequence => return Ok(()),
             Ok(t) => axis.apply(published, t),
             Err(r) => Err(r),
         };
@@ -765,14 +770,17 @@ async fn pull_once(
                 status.error_code = r.code.code();
             }
         }
-        record = Some(CommitRecord {
-            sequence: published,
-            result: match result {
-                Ok(()) => CommitResult::Accepted,
-                Err(r) => CommitResult::Rejected(r),
+        record(
+            CommitRecord {
+                sequence: published,
+                result: match result {
+                    Ok(()) => CommitResult::Accepted,
+                    Err(r) => CommitResult::Rejected(r),
+                },
+                at: Instant::now(),
             },
-            at: Instant::now(),
-        });
+            *status,
+        );
     }
     // The acknowledgement and heartbeat, as runs of contiguous fields.
     let mut runs: Vec<(u16, Vec<u16>)> = Vec::new();
@@ -787,7 +795,7 @@ async fn pull_once(
     for (a, v) in runs {
         link.write_multiple_registers(map.unit_id, a, &v).await?;
     }
-    Ok(record)
+    Ok(())
 }
 
 #[cfg(test)]
