@@ -4,6 +4,9 @@
 //!
 //! At `rate_hz > 0` reads start on a fixed schedule (missed ticks are skipped, never
 //! bunched); at `rate_hz = 0` the next read starts as soon as the previous reply is in.
+//! [`Acquisition::spawn_paced`] reads at a fixed rate through a [`PacedReader`] instead of a
+//! [`Link`]: one wake-up per frame instead of two, each frame published one period after its
+//! reply arrived (and stamped with that arrival).
 //! While the link is down the loop waits for it instead of spinning. Frames with a PSD below
 //! its SUM threshold are published marked invalid (that spot `None`) and counted; consumers
 //! must not average them in.
@@ -11,8 +14,8 @@
 use super::Frame;
 use super::decode::{self, DecodeError};
 use super::map::IoMap;
-use crate::modbus::Link;
-use crate::modbus::link::{LinkError, LinkState, Window};
+use crate::modbus::link::{LinkConfig, LinkError, LinkState, Window};
+use crate::modbus::{Link, Monitor, PacedReader};
 use crate::util::pace::Pacer;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -84,7 +87,7 @@ pub struct Acquisition {
     frames: broadcast::Sender<Frame>,
     latest: watch::Receiver<Option<Frame>>,
     counters: Arc<Mutex<Counters>>,
-    link: Link,
+    link: Monitor,
     task: JoinHandle<()>,
 }
 
@@ -108,6 +111,26 @@ fn unix_us(now: SystemTime) -> i64 {
 impl Acquisition {
     /// Start reading `map`'s block through `link` (on the current Tokio runtime).
     pub fn spawn(link: Link, map: Arc<IoMap>, config: AcquireConfig) -> Acquisition {
+        let monitor = link.monitor();
+        Self::start(monitor, config, |out| {
+            tokio::spawn(run(link, map, config, out))
+        })
+    }
+
+    /// Start reading `map`'s block from the device in `link` at `config.rate_hz` (which must
+    /// be above zero) through a [`PacedReader`] of its own.
+    pub fn spawn_paced(link: LinkConfig, map: Arc<IoMap>, config: AcquireConfig) -> Acquisition {
+        let (reader, monitor) = PacedReader::new(link, map.kind, map.unit_id, map.block);
+        Self::start(monitor, config, |out| {
+            tokio::spawn(run_paced(reader, map, config, out))
+        })
+    }
+
+    fn start(
+        link: Monitor,
+        config: AcquireConfig,
+        spawn: impl FnOnce(Outputs) -> JoinHandle<()>,
+    ) -> Acquisition {
         let (frames, _) = broadcast::channel(config.capacity.max(1));
         let (latest_tx, latest) = watch::channel(None);
         let counters = Arc::new(Mutex::new(Counters {
@@ -118,14 +141,12 @@ impl Acquisition {
             last_error: None,
             window: Window::new(config.window),
         }));
-        let task = tokio::spawn(run(
-            link.clone(),
-            map,
-            config,
-            frames.clone(),
-            latest_tx,
-            counters.clone(),
-        ));
+        let task = spawn(Outputs {
+            frames: frames.clone(),
+            latest: latest_tx,
+            counters: counters.clone(),
+            seq: 0,
+        });
         Acquisition {
             frames,
             latest,
@@ -133,6 +154,11 @@ impl Acquisition {
             link,
             task,
         }
+    }
+
+    /// The link's address, state and statistics.
+    pub fn link(&self) -> &Monitor {
+        &self.link
     }
 
     /// Every frame from now on.
@@ -167,55 +193,68 @@ impl Acquisition {
     }
 }
 
-async fn run(
-    link: Link,
-    map: Arc<IoMap>,
-    config: AcquireConfig,
+/// Where frames and counts go.
+struct Outputs {
     frames: broadcast::Sender<Frame>,
     latest: watch::Sender<Option<Frame>>,
     counters: Arc<Mutex<Counters>>,
-) {
+    seq: u64,
+}
+
+impl Outputs {
+    /// Decode and publish one reply (sent at `sent`, arrived at `at`); the error if it does
+    /// not decode.
+    fn publish(
+        &mut self,
+        map: &IoMap,
+        block: &[u16],
+        sent: Instant,
+        at: Instant,
+    ) -> Result<(), AcquireError> {
+        let wall = SystemTime::now() - Instant::now().saturating_duration_since(at);
+        let frame = decode::frame(map, block, self.seq, at, unix_us(wall))?;
+        self.seq += 1;
+        {
+            let mut c = lock(&self.counters);
+            c.frames += 1;
+            if !frame.is_valid() {
+                c.invalid += 1;
+            }
+            c.window.push(at, at.saturating_duration_since(sent));
+        }
+        self.latest.send_replace(Some(frame));
+        // No subscriber is not an error: the watch still has the frame.
+        let _ = self.frames.send(frame);
+        Ok(())
+    }
+
+    fn count(&self, error: AcquireError) {
+        let mut c = lock(&self.counters);
+        match error {
+            AcquireError::Link(_) => c.read_errors += 1,
+            AcquireError::Decode(_) => c.decode_errors += 1,
+        }
+        c.last_error = Some(error);
+    }
+}
+
+async fn run(link: Link, map: Arc<IoMap>, config: AcquireConfig, mut out: Outputs) {
     let mut ticker = (config.rate_hz > 0.0 && config.rate_hz.is_finite())
         .then(|| Pacer::new(Duration::from_secs_f64(1.0 / config.rate_hz)));
     let mut state = link.state();
-    let mut seq = 0u64;
     loop {
         if let Some(t) = ticker.as_mut() {
             t.tick().await;
         }
         let sent = Instant::now();
-        let result = link.read(map.kind, map.unit_id, map.block).await;
-        let at = Instant::now();
-        let wall = SystemTime::now();
-        let error = match result {
-            Ok(block) => match decode::frame(&map, &block, seq, at, unix_us(wall)) {
-                Ok(frame) => {
-                    seq += 1;
-                    {
-                        let mut c = lock(&counters);
-                        c.frames += 1;
-                        if !frame.is_valid() {
-                            c.invalid += 1;
-                        }
-                        c.window.push(at, at.saturating_duration_since(sent));
-                    }
-                    latest.send_replace(Some(frame));
-                    // No subscriber is not an error: the watch still has the frame.
-                    let _ = frames.send(frame);
-                    continue;
-                }
-                Err(e) => AcquireError::Decode(e),
+        let error = match link.read(map.kind, map.unit_id, map.block).await {
+            Ok(block) => match out.publish(&map, &block, sent, Instant::now()) {
+                Ok(()) => continue,
+                Err(e) => e,
             },
             Err(e) => AcquireError::Link(e),
         };
-        {
-            let mut c = lock(&counters);
-            match error {
-                AcquireError::Link(_) => c.read_errors += 1,
-                AcquireError::Decode(_) => c.decode_errors += 1,
-            }
-            c.last_error = Some(error);
-        }
+        out.count(error);
         match error {
             AcquireError::Link(LinkError::Closed) => return,
             AcquireError::Link(e) if !e.drops_connection() && !link_down(&e) => {
@@ -239,6 +278,34 @@ async fn run(
                 }
             }
         }
+    }
+}
+
+/// The paced loop: the reader's own backoff paces reconnects, exceptions and undecodable
+/// blocks are retried at the next tick.
+async fn run_paced(
+    mut reader: PacedReader,
+    map: Arc<IoMap>,
+    config: AcquireConfig,
+    mut out: Outputs,
+) {
+    let rate = if config.rate_hz > 0.0 && config.rate_hz.is_finite() {
+        config.rate_hz
+    } else {
+        AcquireConfig::default().rate_hz
+    };
+    let mut ticker = Pacer::new(Duration::from_secs_f64(1.0 / rate));
+    loop {
+        ticker.tick().await;
+        let error = match reader.tick().await {
+            None => continue,
+            Some(Ok(reply)) => match out.publish(&map, &reply.registers, reply.sent, reply.at) {
+                Ok(()) => continue,
+                Err(e) => e,
+            },
+            Some(Err(e)) => AcquireError::Link(e),
+        };
+        out.count(error);
     }
 }
 

@@ -486,6 +486,12 @@ impl Master {
         })
     }
 
+    /// Produce SYNC on the grid `origin + n·sync_period` (see
+    /// [`SyncProducer::align_to`]): the driver task aligns it to the acquisition's pacer.
+    pub fn align_sync(&mut self, origin: Instant) {
+        self.sync.align_to(origin);
+    }
+
     pub fn settings(&self) -> &DriveSettings {
         &self.s
     }

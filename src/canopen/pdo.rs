@@ -169,6 +169,8 @@ pub struct SyncProducer {
     period: Duration,
     next: Option<Instant>,
     count: u64,
+    /// SYNCs fall on `grid + n·period` when set (see [`align_to`](Self::align_to)).
+    grid: Option<Instant>,
 }
 
 impl SyncProducer {
@@ -177,13 +179,24 @@ impl SyncProducer {
             period,
             next: None,
             count: 0,
+            grid: None,
         }
     }
 
-    /// Start producing: the first SYNC is due at `now`.
+    /// Put the SYNCs on the grid `origin + n·period`, from the next start on. A loop that
+    /// wakes on the same grid (the acquisition's pacer) then shares its wake-ups with the SYNC.
+    pub fn align_to(&mut self, origin: Instant) {
+        self.grid = Some(origin);
+    }
+
+    /// Start producing: the first SYNC is due at `now`, or at the first grid point from
+    /// `now` on when aligned.
     pub fn start(&mut self, now: Instant) {
         if self.next.is_none() {
-            self.next = Some(now);
+            self.next = Some(match self.grid {
+                Some(origin) => crate::util::pace::grid_point_at_or_after(origin, now, self.period),
+                None => now,
+            });
         }
     }
 
@@ -308,5 +321,30 @@ mod tests {
         assert_eq!(s.count(), 3);
         s.stop();
         assert_eq!(s.poll_timeout(), None);
+    }
+
+    #[test]
+    fn an_aligned_sync_producer_starts_on_the_shared_grid() {
+        let origin = Instant::now();
+        let us = |n: u64| origin + Duration::from_micros(n);
+        let mut s = SyncProducer::new(Duration::from_millis(10));
+        s.align_to(origin);
+        // Started 3.2 ms past a grid point: the first SYNC waits for the next one.
+        s.start(us(23_200));
+        assert_eq!(s.poll_timeout(), Some(us(30_000)));
+        assert!(s.handle_timeout(us(30_050)));
+        assert_eq!(s.poll_timeout(), Some(us(40_000)));
+        // On a grid point: at once. Restarted after a stop: back on the grid.
+        s.stop();
+        s.start(us(60_000));
+        assert_eq!(s.poll_timeout(), Some(us(60_000)));
+        s.stop();
+        s.start(us(60_001));
+        assert_eq!(s.poll_timeout(), Some(us(70_000)));
+        // Every SYNC is then a tick of a 2 ms pacer on the same origin.
+        assert_eq!(
+            crate::util::pace::grid_point_at_or_after(origin, us(60_001), Duration::from_millis(2)),
+            us(62_000)
+        );
     }
 }

@@ -22,7 +22,9 @@ pub fn spawn_drive<T: CanTransport>(
     transport: T,
     config: &DriveConfig,
 ) -> Result<(DriveHandle, JoinHandle<Result<(), CanError>>), ConfigError> {
-    let master = Master::new(config)?;
+    let mut master = Master::new(config)?;
+    // SYNC wakes the runtime together with the acquisition's ticks (util::pace).
+    master.align_sync(crate::util::pace::origin());
     let (cmd_tx, cmd_rx) = mpsc::channel(64);
     let (status_tx, status_rx) = watch::channel(master.status().clone());
     let (event_tx, _) = broadcast::channel(1024);

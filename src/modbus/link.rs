@@ -226,7 +226,7 @@ pub struct LinkStats {
     pub latency_p99: Option<Duration>,
 }
 
-struct Counters {
+pub(super) struct Counters {
     requests: u64,
     ok: u64,
     errors: u64,
@@ -275,16 +275,16 @@ struct Call {
     reply: oneshot::Sender<Result<Reply, LinkError>>,
 }
 
-/// A handle to the link task. Cheap to clone; the task ends when the last handle is dropped.
+/// The read side of a link: its address, state and statistics (for the snapshot and the
+/// console). Shared by the [`Link`] task and the acquisition's [`PacedReader`](super::PacedReader).
 #[derive(Clone)]
-pub struct Link {
-    tx: mpsc::Sender<Call>,
+pub struct Monitor {
     state: watch::Receiver<LinkState>,
     counters: Arc<Mutex<Counters>>,
     addr: SocketAddr,
 }
 
-impl fmt::Debug for Link {
+impl fmt::Debug for Monitor {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("Link")
             .field("addr", &self.addr)
@@ -293,12 +293,15 @@ impl fmt::Debug for Link {
     }
 }
 
-impl Link {
-    /// Start the link task on the current Tokio runtime (panics outside one, like
-    /// `tokio::spawn`). It connects at once and keeps reconnecting until every handle is gone.
-    pub fn spawn(config: LinkConfig) -> Link {
-        let (tx, rx) = mpsc::channel(config.queue.max(1));
-        let (state_tx, state) = watch::channel(LinkState::Connecting { attempt: 1 });
+/// The writer's side of a [`Monitor`].
+pub(super) struct Reporter {
+    pub(super) state: watch::Sender<LinkState>,
+    pub(super) counters: Arc<Mutex<Counters>>,
+}
+
+impl Reporter {
+    pub(super) fn new(addr: SocketAddr, window: usize) -> (Reporter, Monitor) {
+        let (state, rx) = watch::channel(LinkState::Connecting { attempt: 1 });
         let counters = Arc::new(Mutex::new(Counters {
             requests: 0,
             ok: 0,
@@ -306,18 +309,26 @@ impl Link {
             timeouts: 0,
             exceptions: 0,
             reconnects: 0,
-            window: Window::new(config.window),
+            window: Window::new(window),
         }));
-        let addr = config.addr;
-        tokio::spawn(run(config, rx, state_tx, counters.clone()));
-        Link {
-            tx,
-            state,
-            counters,
+        let monitor = Monitor {
+            state: rx,
+            counters: counters.clone(),
             addr,
-        }
+        };
+        (Reporter { state, counters }, monitor)
     }
 
+    pub(super) fn record<T>(&self, outcome: &Result<T, LinkError>, started: Instant, now: Instant) {
+        lock(&self.counters).record(outcome, started, now);
+    }
+
+    pub(super) fn reconnected(&self) {
+        lock(&self.counters).reconnects += 1;
+    }
+}
+
+impl Monitor {
     /// The device address.
     pub fn addr(&self) -> SocketAddr {
         self.addr
@@ -356,6 +367,55 @@ impl Link {
             latency_p50: c.window.quantile(0.5),
             latency_p99: c.window.quantile(0.99),
         }
+    }
+}
+
+/// A handle to the link task. Cheap to clone; the task ends when the last handle is dropped.
+#[derive(Clone)]
+pub struct Link {
+    tx: mpsc::Sender<Call>,
+    monitor: Monitor,
+}
+
+impl fmt::Debug for Link {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        self.monitor.fmt(f)
+    }
+}
+
+impl Link {
+    /// Start the link task on the current Tokio runtime (panics outside one, like
+    /// `tokio::spawn`). It connects at once and keeps reconnecting until every handle is gone.
+    pub fn spawn(config: LinkConfig) -> Link {
+        let (tx, rx) = mpsc::channel(config.queue.max(1));
+        let (reporter, monitor) = Reporter::new(config.addr, config.window);
+        tokio::spawn(run(config, rx, reporter));
+        Link { tx, monitor }
+    }
+
+    /// The read side: address, state and statistics.
+    pub fn monitor(&self) -> Monitor {
+        self.monitor.clone()
+    }
+
+    /// The device address.
+    pub fn addr(&self) -> SocketAddr {
+        self.monitor.addr()
+    }
+
+    /// The link state, to watch.
+    pub fn state(&self) -> watch::Receiver<LinkState> {
+        self.monitor.state()
+    }
+
+    /// Wait until the link is up, at most `timeout`; whether it is.
+    pub async fn wait_up(&self, timeout: Duration) -> bool {
+        self.monitor.wait_up(timeout).await
+    }
+
+    /// A statistics snapshot.
+    pub fn stats(&self) -> LinkStats {
+        self.monitor.stats()
     }
 
     async fn call(&self, unit: u8, op: Op) -> Result<Reply, LinkError> {
@@ -450,12 +510,8 @@ enum Served {
 }
 
 /// The task: connect, serve calls until an error drops the connection, back off, repeat.
-async fn run(
-    cfg: LinkConfig,
-    mut rx: mpsc::Receiver<Call>,
-    state: watch::Sender<LinkState>,
-    counters: Arc<Mutex<Counters>>,
-) {
+async fn run(cfg: LinkConfig, mut rx: mpsc::Receiver<Call>, reporter: Reporter) {
+    let Reporter { state, counters } = &reporter;
     let mut backoff = Backoff::new(cfg.backoff_min, cfg.backoff_max);
     let mut attempt = 0u32;
     let mut connected_before = false;
@@ -466,14 +522,14 @@ async fn run(
             Ok(ctx) => {
                 attempt = 0;
                 if connected_before {
-                    lock(&counters).reconnects += 1;
+                    lock(counters).reconnects += 1;
                 }
                 connected_before = true;
                 state.send_replace(LinkState::Up {
                     since: Instant::now(),
                 });
                 tracing::info!(addr = %cfg.addr, "modbus link up");
-                match serve(&cfg, ctx, &mut rx, &counters, &mut backoff).await {
+                match serve(&cfg, ctx, &mut rx, counters, &mut backoff).await {
                     Served::Closed => break,
                     Served::Failed(e) => e,
                 }
@@ -496,7 +552,7 @@ async fn run(
                     Some(call) => {
                         let now = Instant::now();
                         let outcome: Result<Reply, LinkError> = Err(LinkError::Disconnected);
-                        lock(&counters).record(&outcome, now, now);
+                        lock(counters).record(&outcome, now, now);
                         let _ = call.reply.send(outcome);
                     }
                 },

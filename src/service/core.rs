@@ -16,7 +16,7 @@ use super::snapshot::{
 use crate::acquire::{Acquisition, Frame};
 use crate::canopen::{DriveError, DriveHandle, DriveStatus, Event, PowerState};
 use crate::config::CncMode;
-use crate::modbus::{Link, LinkState};
+use crate::modbus::{LinkState, Monitor};
 use crate::optics::layout::{Aperture, Kind};
 use crate::run::program::{CaptureMode, generate_settled, makeup_steps, remaining_steps};
 use crate::run::{CaptureSettings, Dialect, Plan, RunMachine, TargetKey};
@@ -54,7 +54,7 @@ fn power_name(s: Option<PowerState>) -> String {
 
 pub(super) struct Core {
     pipeline: Pipeline,
-    link: Link,
+    link: Monitor,
     acquisition: Acquisition,
     drive: DriveHandle,
     drive_status: DriveStatus,
@@ -174,7 +174,7 @@ async fn twin_request(
 impl Core {
     pub(super) fn new(
         p: &Prepared,
-        link: Link,
+        link: Monitor,
         acquisition: Acquisition,
         drive: DriveHandle,
         can_peer: String,

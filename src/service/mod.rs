@@ -181,12 +181,19 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
     let s = &p.settings;
     tracing::info!(sources = ?s.sources, "axiscomp service starting");
     let listener = control::bind(&s.service.socket)?;
-    let link = Link::spawn(s.io.link.clone());
     let mut map = p.map.clone();
     if s.io.unit != 0 {
         map.unit_id = s.io.unit;
     }
-    let acquisition = Acquisition::spawn(link.clone(), std::sync::Arc::new(map), s.io.acquire);
+    let map = std::sync::Arc::new(map);
+    // Paced reads cost one wake-up per frame (modbus::paced); unthrottled ones go through the
+    // link task.
+    let acquisition = if s.io.acquire.rate_hz > 0.0 {
+        Acquisition::spawn_paced(s.io.link.clone(), map, s.io.acquire)
+    } else {
+        Acquisition::spawn(Link::spawn(s.io.link.clone()), map, s.io.acquire)
+    };
+    let link = acquisition.link().clone();
     std::fs::create_dir_all(&s.service.state_dir).map_err(|source| ServiceError::StateDir {
         path: s.service.state_dir.display().to_string(),
         source,

@@ -6,10 +6,40 @@
 //! The pacer keeps the following deadline armed one period ahead on a second timer, so
 //! re-arming a fired timer never moves the driver's next wake-up earlier. Missed ticks are
 //! skipped, never bunched, as with `MissedTickBehavior::Skip`.
+//!
+//! Every pacer ticks on the process-wide grid `origin() + n·period`, and the CANopen SYNC
+//! producer is aligned to the same origin: when one period is a multiple of the other (2 ms
+//! acquisition, 10 ms SYNC), their deadlines coincide and the runtime wakes once for both.
 
 use std::pin::Pin;
+use std::sync::OnceLock;
 use std::time::Duration;
 use tokio::time::{Instant, Sleep, sleep_until};
+
+/// The process-wide origin of the pacing grids (the first call's time).
+pub fn origin() -> std::time::Instant {
+    static ORIGIN: OnceLock<std::time::Instant> = OnceLock::new();
+    *ORIGIN.get_or_init(std::time::Instant::now)
+}
+
+/// The first point of the grid `origin + n·period` at or after `now` (`now` itself when it
+/// is before `origin`).
+pub fn grid_point_at_or_after(
+    origin: std::time::Instant,
+    now: std::time::Instant,
+    period: Duration,
+) -> std::time::Instant {
+    let Some(since) = now.checked_duration_since(origin) else {
+        return now;
+    };
+    let p = period.as_nanos().max(1);
+    let n = since.as_nanos().div_ceil(p);
+    match u32::try_from(n) {
+        Ok(n) => origin + period * n,
+        // Beyond u32 periods since the origin: stay off the grid rather than overflow.
+        Err(_) => now,
+    }
+}
 
 /// Ticks at `start`, `start + period`, … on two alternating timers.
 pub struct Pacer {
@@ -21,10 +51,15 @@ pub struct Pacer {
 }
 
 impl Pacer {
-    /// A pacer whose first tick is due at once. `period` must be non-zero.
+    /// A pacer whose first tick is the first point of its grid from now on (within a
+    /// period). `period` must be non-zero.
     pub fn new(period: Duration) -> Pacer {
         let period = period.max(Duration::from_micros(1));
-        let now = Instant::now();
+        let now = Instant::from_std(grid_point_at_or_after(
+            origin(),
+            Instant::now().into_std(),
+            period,
+        ));
         Pacer {
             period,
             timers: [
@@ -99,6 +134,23 @@ mod tests {
         assert_eq!(next_due(t0, t0 + ms(5), p), Next::Realign(t0 + ms(6)));
     }
 
+    #[test]
+    fn grid_points_are_multiples_of_the_period_from_the_origin() {
+        let o = std::time::Instant::now();
+        let ms = Duration::from_millis;
+        assert_eq!(grid_point_at_or_after(o, o, ms(2)), o);
+        assert_eq!(grid_point_at_or_after(o, o + ms(3), ms(2)), o + ms(4));
+        assert_eq!(grid_point_at_or_after(o, o + ms(4), ms(2)), o + ms(4));
+        assert_eq!(
+            grid_point_at_or_after(o, o + Duration::from_nanos(10_000_001), ms(10)),
+            o + ms(20)
+        );
+        // Before the origin: no grid yet.
+        let before = std::time::Instant::now();
+        let later = before + ms(5);
+        assert_eq!(grid_point_at_or_after(later, before, ms(2)), before);
+    }
+
     #[tokio::test]
     async fn ticks_on_the_grid() {
         let p = Duration::from_millis(3);
@@ -107,8 +159,13 @@ mod tests {
         for k in 1..4u32 {
             let at = pacer.tick().await;
             // Scheduled times are exact multiples unless the test thread was late by a
-            // whole period (then the grid still holds).
+            // whole period (then the grid still holds), on the process-wide grid.
             assert_eq!((at - t0).as_nanos() % p.as_nanos(), 0, "tick {k}");
+            assert_eq!(
+                (at.into_std() - origin()).as_nanos() % p.as_nanos(),
+                0,
+                "tick {k}"
+            );
             assert!(Instant::now() >= at);
         }
     }

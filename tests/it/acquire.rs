@@ -2,7 +2,7 @@
 //! blocked beams, server exceptions; and (ignored, run by tests/interop/modbus.sh) against
 //! independent peers: a pymodbus server and the mbpoll client.
 
-use crate::helpers::{free_port, link, plant, raw_request, twin};
+use crate::helpers::{free_port, link, link_config, plant, raw_request, twin};
 use axiscomp::acquire::map::IoMap;
 use axiscomp::acquire::{AcquireConfig, Acquisition, Frame};
 use axiscomp::modbus::{Link, LinkConfig};
@@ -103,18 +103,75 @@ async fn frames_equal_the_plant_sample_within_quantisation() {
     assert!(ls.latency_p50.is_some() && ls.rate_hz > 0.0);
 }
 
+/// Paced at 500 Hz through the paced reader: every frame is the module's sample for its
+/// request, stamped when the reply arrived (the kernel's receive time), in order.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn paced_frames_equal_the_plant_sample_and_carry_the_reply_time() {
+    let module = twin(plant()).await;
+    let acq = Acquisition::spawn_paced(
+        link_config(module.local_addr()),
+        Arc::new(IoMap::generic().unwrap()),
+        AcquireConfig {
+            rate_hz: 500.0,
+            ..AcquireConfig::default()
+        },
+    );
+    let mut rx = acq.subscribe();
+    let mut frames = Vec::new();
+    while frames.len() < 200 {
+        let f = next(&mut rx).await;
+        assert!(f.at <= Instant::now(), "published after its reply arrived");
+        frames.push(f);
+    }
+    let served = module.served();
+    for w in frames.windows(2) {
+        assert_eq!(w[1].seq, w[0].seq + 1);
+        assert!(w[1].at > w[0].at && w[1].unix_us >= w[0].unix_us);
+    }
+    for f in &frames {
+        let s = served
+            .iter()
+            .find(|s| s.index == f.seq)
+            .expect("served read recorded");
+        assert!(
+            s.at <= f.at,
+            "frame {} stamped before the module sampled",
+            f.seq
+        );
+        assert_frame_matches(f, s, HALF_COUNT_MM);
+    }
+    let ls = acq.link().stats();
+    assert_eq!((ls.errors, ls.reconnects), (0, 0));
+    assert!(ls.latency_p50.is_some());
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn module_outage_reconnects_and_frames_resume_within_2_s() {
+    outage_reconnects_within_2_s(|addr, map, config| Acquisition::spawn(link(addr), map, config))
+        .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn module_outage_reconnects_and_paced_frames_resume_within_2_s() {
+    outage_reconnects_within_2_s(|addr, map, config| {
+        Acquisition::spawn_paced(link_config(addr), map, config)
+    })
+    .await;
+}
+
+async fn outage_reconnects_within_2_s(
+    spawn: impl FnOnce(std::net::SocketAddr, Arc<IoMap>, AcquireConfig) -> Acquisition,
+) {
     let module = twin(plant()).await;
-    let link = link(module.local_addr());
-    let acq = Acquisition::spawn(
-        link.clone(),
+    let acq = spawn(
+        module.local_addr(),
         Arc::new(IoMap::generic().unwrap()),
         AcquireConfig {
             rate_hz: 200.0,
             ..AcquireConfig::default()
         },
     );
+    let link = acq.link().clone();
     let mut rx = acq.subscribe();
     for _ in 0..20 {
         next(&mut rx).await;
@@ -319,25 +376,42 @@ async fn interop_pymodbus_io_frames() {
         .await
         .expect("raw block");
     assert_eq!(raw, want.registers, "registers as pymodbus holds them");
-    let acq = Acquisition::spawn(link, map, AcquireConfig::default());
-    let mut rx = acq.subscribe();
-    for _ in 0..20 {
-        let f = next(&mut rx).await;
-        for k in 0..3 {
-            match (f.spots[k], want.spots[k]) {
-                (Some(Spot { x, y }), Some([wx, wy])) => {
-                    assert!(
-                        (x - wx).abs() < 1e-9 && (y - wy).abs() < 1e-9,
-                        "PSD{}",
-                        k + 1
-                    );
+    // Through the link task, then (the service's path at a fixed rate) the paced reader.
+    let acquisitions = [
+        Acquisition::spawn(link, map.clone(), AcquireConfig::default()),
+        Acquisition::spawn_paced(
+            LinkConfig {
+                backoff_max: Duration::from_millis(200),
+                ..LinkConfig::new(addr)
+            },
+            map,
+            AcquireConfig {
+                rate_hz: 500.0,
+                ..AcquireConfig::default()
+            },
+        ),
+    ];
+    for acq in acquisitions {
+        let mut rx = acq.subscribe();
+        for _ in 0..20 {
+            let f = next(&mut rx).await;
+            for k in 0..3 {
+                match (f.spots[k], want.spots[k]) {
+                    (Some(Spot { x, y }), Some([wx, wy])) => {
+                        assert!(
+                            (x - wx).abs() < 1e-9 && (y - wy).abs() < 1e-9,
+                            "PSD{}",
+                            k + 1
+                        );
+                    }
+                    (None, None) => {}
+                    (a, b) => panic!("PSD{}: {a:?} vs pymodbus {b:?}", k + 1),
                 }
-                (None, None) => {}
-                (a, b) => panic!("PSD{}: {a:?} vs pymodbus {b:?}", k + 1),
+                assert!((f.sums[k] - want.sums[k]).abs() < 1e-9);
             }
-            assert!((f.sums[k] - want.sums[k]).abs() < 1e-9);
+            assert!(!f.is_valid(), "PSD3 is blocked in the script's registers");
         }
-        assert!(!f.is_valid(), "PSD3 is blocked in the script's registers");
+        assert_eq!(acq.link().stats().errors, 0);
     }
 }
 

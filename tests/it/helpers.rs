@@ -224,13 +224,18 @@ pub async fn twin(plant: Arc<Plant>) -> IoModule {
         .expect("start the twin's I/O module")
 }
 
-/// A link with test-friendly timings (300 ms call timeout, backoff 50..400 ms).
-pub fn link(addr: SocketAddr) -> Link {
-    Link::spawn(LinkConfig {
+/// Link settings with test-friendly timings (300 ms call timeout, backoff 50..400 ms).
+pub fn link_config(addr: SocketAddr) -> LinkConfig {
+    LinkConfig {
         timeout: Duration::from_millis(300),
         backoff_max: Duration::from_millis(400),
         ..LinkConfig::new(addr)
-    })
+    }
+}
+
+/// A link with [`link_config`]'s timings.
+pub fn link(addr: SocketAddr) -> Link {
+    Link::spawn(link_config(addr))
 }
 
 /// Send one raw Modbus TCP request (`pdu` after the MBAP header) and return the reply's PDU;

@@ -186,3 +186,183 @@ async fn link_state_follows_the_device_and_ends_with_the_handles() {
     .is_ok();
     assert!(closed, "the task ends when the handles are gone");
 }
+
+// ---------- the paced reader (modbus::paced) ----------
+
+use axiscomp::modbus::paced::Reply;
+use axiscomp::modbus::{PacedReader, RegisterKind};
+
+fn paced(addr: SocketAddr, timeout_ms: u64, range: ReadRange) -> PacedReader {
+    let cfg = LinkConfig {
+        timeout: Duration::from_millis(timeout_ms),
+        backoff_min: Duration::from_millis(20),
+        backoff_max: Duration::from_millis(200),
+        ..LinkConfig::new(addr)
+    };
+    PacedReader::new(cfg, RegisterKind::Input, 1, range).0
+}
+
+/// Tick `reader` every 5 ms until it reports, at most `within`.
+async fn next_outcome(reader: &mut PacedReader, within: Duration) -> Result<Reply, LinkError> {
+    let t0 = std::time::Instant::now();
+    loop {
+        if let Some(r) = reader.tick().await {
+            return r;
+        }
+        assert!(t0.elapsed() < within, "no outcome within {within:?}");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
+
+/// The first outcome matching `want` after the device changed its behaviour, within 2 s. A
+/// request is always in flight and the device may answer it (and, while a stop takes effect,
+/// one more) the old way.
+async fn after_change(
+    reader: &mut PacedReader,
+    want: impl Fn(&Result<Reply, LinkError>) -> bool,
+) -> Result<Reply, LinkError> {
+    let t0 = std::time::Instant::now();
+    let mut seen = Vec::new();
+    loop {
+        let r = next_outcome(reader, Duration::from_secs(2)).await;
+        if want(&r) {
+            return r;
+        }
+        seen.push(r);
+        assert!(
+            t0.elapsed() < Duration::from_secs(2) && seen.len() <= 3,
+            "{seen:?}"
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_paced_reader_collects_each_reply_at_the_next_tick() {
+    let (srv, bank) = server(None).await;
+    let (mut reader, monitor) = PacedReader::new(
+        LinkConfig::new(srv.local_addr()),
+        RegisterKind::Input,
+        1,
+        r(10, 4),
+    );
+    // The first tick connects and sends; nothing to collect yet.
+    assert_eq!(reader.tick().await, None);
+    assert!(monitor.state().borrow().is_up());
+    // A reply holds the registers as they were at some time between its request's send and
+    // its collection: the values when it was sent, or the ones set after (when the device
+    // served it late). Never older ones.
+    let mut at_send = vec![10, 11, 12, 13];
+    let mut last_at = None;
+    for k in 0..20u16 {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        let now = vec![k, k + 1, 100, 100 + k];
+        bank.set_input(10, &now);
+        tokio::time::sleep(Duration::from_millis(5)).await;
+        // Collects the reply to the request sent at the previous tick, sends the next one.
+        let reply = next_outcome(&mut reader, Duration::from_secs(2))
+            .await
+            .expect("a good reply");
+        assert!(
+            reply.registers == at_send || reply.registers == now,
+            "reply {k}: {:?}, sent with {at_send:?} in the registers, then {now:?}",
+            reply.registers
+        );
+        at_send = now;
+        // Stamped with the kernel's receive time: after the send, before we looked.
+        assert!(
+            reply.sent < reply.at && reply.at <= std::time::Instant::now(),
+            "{reply:?}"
+        );
+        if let Some(l) = last_at {
+            assert!(reply.at > l);
+        }
+        last_at = Some(reply.at);
+    }
+    let st = monitor.stats();
+    assert_eq!((st.ok, st.errors, st.reconnects), (20, 0, 0));
+    assert!(
+        st.latency_p50
+            .is_some_and(|l| l < Duration::from_millis(20))
+    );
+    // One connection; 20 requests answered and the 21st in flight (served or not yet).
+    let ss = srv.stats();
+    assert!(ss.accepted == 1 && (20..=21).contains(&ss.requests), "{ss:?}");
+    drop(reader);
+    assert_eq!(*monitor.state().borrow(), LinkState::Closed);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_late_paced_reply_times_out_and_never_becomes_the_next_frame() {
+    let (srv, bank) = server(None).await;
+    let (mut reader, monitor) = {
+        let cfg = LinkConfig {
+            timeout: Duration::from_millis(100),
+            backoff_min: Duration::from_millis(20),
+            backoff_max: Duration::from_millis(200),
+            ..LinkConfig::new(srv.local_addr())
+        };
+        PacedReader::new(cfg, RegisterKind::Input, 1, r(0, 2))
+    };
+    assert_eq!(
+        next_outcome(&mut reader, Duration::from_secs(2))
+            .await
+            .map(|r| r.registers),
+        Ok(vec![0, 1])
+    );
+    srv.set_delay(Duration::from_millis(300));
+    assert_eq!(
+        after_change(&mut reader, Result::is_err).await,
+        Err(LinkError::Timeout(Duration::from_millis(100)))
+    );
+    assert!(!monitor.state().borrow().is_up());
+    srv.set_delay(Duration::ZERO);
+    bank.set_input(0, &[7, 8]);
+    // The late [0, 1] (or [7, 8] sampled late) went down with the dropped connection: the
+    // next outcome is a fresh reply on a new connection.
+    let fresh = next_outcome(&mut reader, Duration::from_secs(2)).await;
+    assert_eq!(fresh.map(|r| r.registers), Ok(vec![7, 8]));
+    let st = monitor.stats();
+    assert_eq!((st.timeouts, st.reconnects), (1, 1));
+    assert_eq!(srv.stats().accepted, 2);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_paced_exception_keeps_the_connection_and_a_lost_device_reconnects() {
+    let (srv, _) = server(None).await;
+    let mut reader = paced(srv.local_addr(), 500, r(0, 1));
+    let first = next_outcome(&mut reader, Duration::from_secs(2)).await;
+    assert!(first.is_ok(), "{first:?}");
+    srv.set_exception(Some(Exception::ServerDeviceBusy));
+    assert_eq!(
+        after_change(&mut reader, Result::is_err).await,
+        Err(LinkError::Exception(Exception::ServerDeviceBusy))
+    );
+    srv.set_exception(None);
+    let back = after_change(&mut reader, Result::is_ok).await;
+    assert!(back.is_ok(), "{back:?}");
+    assert_eq!(srv.stats().accepted, 1, "kept across the exception");
+    // The device goes away: the outstanding request fails (connection closed), then the
+    // reader backs off and reconnects once the device listens again.
+    srv.stop().await;
+    let e = after_change(&mut reader, Result::is_err)
+        .await
+        .expect_err("the device is off");
+    assert!(
+        e.drops_connection() || matches!(e, LinkError::Connect(_)),
+        "{e}"
+    );
+    srv.restart().await.expect("listen again");
+    let t0 = std::time::Instant::now();
+    loop {
+        if next_outcome(&mut reader, Duration::from_secs(2))
+            .await
+            .is_ok()
+        {
+            break;
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(2),
+            "reconnected within 2 s"
+        );
+    }
+}
