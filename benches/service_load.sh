@@ -19,14 +19,15 @@ sleep 8
 tck=$(getconf CLK_TCK)
 ticks() { awk '{print $14+$15}' "/proc/$1/stat"; }
 split() { awk '{print $14, $15}' "/proc/$1/stat"; }
-t0=$(ticks $svc); u0=$(split $svc); s0=$(date +%s.%N)
+ctxt() { awk '/^voluntary_ctxt/ {v=$2} /^nonvoluntary_ctxt/ {n=$2} END {print v + n}' "/proc/$1/status"; }
+t0=$(ticks $svc); u0=$(split $svc); c0=$(ctxt $svc); s0=$(date +%s.%N)
 sleep "$secs"
-t1=$(ticks $svc); u1=$(split $svc); s1=$(date +%s.%N)
+t1=$(ticks $svc); u1=$(split $svc); c1=$(ctxt $svc); s1=$(date +%s.%N)
 rss=$(awk '/VmRSS/ {print $2}' /proc/$svc/status)
 hwm=$(awk '/VmHWM/ {print $2}' /proc/$svc/status)
 rate=$($bin status --socket "$work/control.sock" --json | python3 -c 'import json,sys; print(round(json.load(sys.stdin)["psd"]["rate_hz"],1))')
 read -r ut0 st0 <<<"$u0"; read -r ut1 st1 <<<"$u1"
-awk -v ut="$((ut1 - ut0))" -v st="$((st1 - st0))" -v t0="$t0" -v t1="$t1" -v s0="$s0" -v s1="$s1" -v tck="$tck" -v rss="$rss" -v hwm="$hwm" -v rate="$rate" 'BEGIN {
+awk -v ut="$((ut1 - ut0))" -v st="$((st1 - st0))" -v t0="$t0" -v t1="$t1" -v s0="$s0" -v s1="$s1" -v tck="$tck" -v rss="$rss" -v hwm="$hwm" -v rate="$rate" -v cs="$((c1 - c0))" 'BEGIN {
   cpu = (t1 - t0) / tck / (s1 - s0) * 100
-  printf "service at %s frames/s over %.0f s: CPU %.2f %% of one core (user %.2f, system %.2f), RSS %.1f MB (peak %.1f MB)\n", rate, s1 - s0, cpu, ut / tck / (s1 - s0) * 100, st / tck / (s1 - s0) * 100, rss / 1024, hwm / 1024
+  printf "service at %s frames/s over %.0f s: CPU %.2f %% of one core (user %.2f, system %.2f), RSS %.1f MB (peak %.1f MB), %.0f context switches/s\n", rate, s1 - s0, cpu, ut / tck / (s1 - s0) * 100, st / tck / (s1 - s0) * 100, rss / 1024, hwm / 1024, cs / (s1 - s0)
 }'
