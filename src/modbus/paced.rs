@@ -1,9 +1,9 @@
 //! The paced reader: the acquisition's block read at a fixed rate, one wake-up per frame.
 //!
 //! Through the [`Link`](super::Link) task a paced frame costs two wake-ups of the runtime: the
-//! tick, then the reply. On the industrial PCs we target (virtualised or not) a wake-up is the
-//! dominant cost of a 500 Hz loop (about 40 µs each on our 2-core test VM, measured with an
-//! empty sleep loop), so the paced reader sends the request at one tick and collects the reply
+//! tick, then the reply, and at 500 Hz the wake-ups dominate the service's CPU (on our 2-core
+//! test VM a bare sleep loop costs about 40 µs per wake-up; halving the service's wake-ups cut
+//! its CPU by about a fifth). So the paced reader sends the request at one tick and collects the reply
 //! at the next, from a socket that is not registered with the runtime's reactor: the reply's
 //! arrival wakes nobody. The reply is stamped with the kernel's receive time (`SO_TIMESTAMPNS`),
 //! so a frame keeps the meaning it has through the link (the time its reply arrived) and the

@@ -286,7 +286,10 @@ async fn the_paced_reader_collects_each_reply_at_the_next_tick() {
     );
     // One connection; 20 requests answered and the 21st in flight (served or not yet).
     let ss = srv.stats();
-    assert!(ss.accepted == 1 && (20..=21).contains(&ss.requests), "{ss:?}");
+    assert!(
+        ss.accepted == 1 && (20..=21).contains(&ss.requests),
+        "{ss:?}"
+    );
     drop(reader);
     assert_eq!(*monitor.state().borrow(), LinkState::Closed);
 }
