@@ -107,16 +107,19 @@ impl PacedReader {
         }
         let mut out = None;
         if let Some(sent) = self.pending.as_ref().map(|p| p.sent) {
+            let collected = self.collect();
             let now = Instant::now();
-            let outcome = match self.collect() {
+            let outcome = match collected {
                 Ok(None) if now.saturating_duration_since(sent) < self.cfg.timeout => {
                     return None;
                 }
                 Ok(None) => Err(LinkError::Timeout(self.cfg.timeout)),
+                // A wall-clock step between the kernel's stamp and now could move the stamp:
+                // a reply arrives after its request and before it is read.
                 Ok(Some((registers, at))) => Ok(Reply {
                     registers,
                     sent,
-                    at: at.unwrap_or(now),
+                    at: at.map_or(now, |a| a.clamp(sent, now)),
                 }),
                 Err(e) => Err(e),
             };
