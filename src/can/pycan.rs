@@ -310,32 +310,7 @@ impl CanTransport for PyCanMulticast {
 /// `IP_MULTICAST_IF`, `IP_MULTICAST_ALL`), with `libc`.
 mod sock {
     use super::*;
-
-    fn check(rc: libc::c_int) -> io::Result<()> {
-        if rc < 0 {
-            Err(io::Error::last_os_error())
-        } else {
-            Ok(())
-        }
-    }
-
-    fn set_int(
-        fd: &OwnedFd,
-        level: libc::c_int,
-        name: libc::c_int,
-        v: libc::c_int,
-    ) -> io::Result<()> {
-        // SAFETY: `fd` is an open socket; the option value is a live c_int of the size given.
-        check(unsafe {
-            libc::setsockopt(
-                fd.as_raw_fd(),
-                level,
-                name,
-                (&v as *const libc::c_int).cast(),
-                std::mem::size_of::<libc::c_int>() as libc::socklen_t,
-            )
-        })
-    }
+    use crate::util::sock::{check, set_int};
 
     fn in_addr(a: Ipv4Addr) -> libc::in_addr {
         libc::in_addr {

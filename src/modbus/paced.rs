@@ -262,7 +262,8 @@ async fn open(cfg: &LinkConfig) -> Result<TcpStream, LinkError> {
     // Off the reactor: the reply's arrival must not wake the runtime. It stays non-blocking.
     let sock = stream.into_std().map_err(connect)?;
     sock.set_nonblocking(true).map_err(connect)?;
-    enable_rx_timestamps(&sock).map_err(connect)?;
+    crate::util::sock::set_int(&sock, libc::SOL_SOCKET, libc::SO_TIMESTAMPNS, 1)
+        .map_err(connect)?;
     Ok(sock)
 }
 
@@ -338,25 +339,6 @@ pub fn decode_read(
             ))
         }
         _ => bad(ReplyFault::Function),
-    }
-}
-
-fn enable_rx_timestamps(sock: &TcpStream) -> io::Result<()> {
-    let on: libc::c_int = 1;
-    // SAFETY: a valid socket descriptor and a c_int option value of the stated length.
-    let rc = unsafe {
-        libc::setsockopt(
-            sock.as_raw_fd(),
-            libc::SOL_SOCKET,
-            libc::SO_TIMESTAMPNS,
-            (&on as *const libc::c_int).cast(),
-            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
-        )
-    };
-    if rc == 0 {
-        Ok(())
-    } else {
-        Err(io::Error::last_os_error())
     }
 }
 

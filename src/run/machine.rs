@@ -665,6 +665,16 @@ mod tests {
             .collect()
     }
 
+    /// A machine for `p` with the default capture settings and nothing captured yet.
+    fn fresh(p: &Plan) -> RunMachine {
+        RunMachine::new(
+            p.clone(),
+            CaptureSettings::default(),
+            false,
+            BTreeSet::new(),
+        )
+    }
+
     fn feed() -> Feed {
         let t0 = Instant::now();
         Feed {
@@ -678,23 +688,11 @@ mod tests {
     #[test]
     fn stability_capture_takes_every_target_once_in_order() {
         let p = plan();
-        let mut m = RunMachine::new(
-            p.clone(),
-            CaptureSettings::default(),
-            false,
-            BTreeSet::new(),
-        );
+        let mut m = fresh(&p);
         let caps = feed().run(&mut m, &cycle(&p), None);
         assert!(m.is_finished());
         assert_eq!(caps.len(), p.capture_count());
-        let keys: Vec<TargetKey> = caps
-            .iter()
-            .map(|c| TargetKey {
-                run: c.run,
-                target_index: c.target_index,
-                direction: c.direction,
-            })
-            .collect();
+        let keys: Vec<TargetKey> = caps.iter().map(TargetKey::of).collect();
         let expected: Vec<TargetKey> = p.steps().iter().filter_map(|s| s.target).collect();
         assert_eq!(keys, expected);
         for c in &caps {
@@ -710,12 +708,7 @@ mod tests {
     fn a_missed_stop_does_not_shift_the_run_numbers_after_it() {
         let p = plan();
         let steps = cycle(&p);
-        let mut m = RunMachine::new(
-            p.clone(),
-            CaptureSettings::default(),
-            false,
-            BTreeSet::new(),
-        );
+        let mut m = fresh(&p);
         // The frames of the first run's second target are lost (the carriage still stops).
         let missed = p
             .steps()
@@ -740,12 +733,7 @@ mod tests {
         // position jumps 0.8 mm below the target for one history sample at a time, the last
         // one well after the carriage stopped. The capture is still the downward one.
         let p = plan();
-        let mut m = RunMachine::new(
-            p.clone(),
-            CaptureSettings::default(),
-            false,
-            BTreeSet::new(),
-        );
+        let mut m = fresh(&p);
         let mut f = feed();
         let (t3, beyond) = (p.targets[3], p.spec.end_mm + p.spec.overrun_mm);
         let mut out = Vec::new();
@@ -788,12 +776,7 @@ mod tests {
         let p = plan();
         let steps = cycle(&p);
         // First service: sees the first 8 stops only.
-        let mut m = RunMachine::new(
-            p.clone(),
-            CaptureSettings::default(),
-            false,
-            BTreeSet::new(),
-        );
+        let mut m = fresh(&p);
         let mut f = feed();
         let first = f.run(&mut m, &steps[..8], None);
         let done: BTreeSet<TargetKey> = first

@@ -158,6 +158,27 @@ pub struct Command {
     pub reply: oneshot::Sender<Result<serde_json::Value, String>>,
 }
 
+impl Command {
+    /// The audit-log entry for an operator request (who, when, what); `None` for a viewer's.
+    pub fn audit_entry(&self) -> Option<crate::store::AuditEntry> {
+        if self.request.needs() != Role::Operator {
+            return None;
+        }
+        let request = serde_json::to_value(&self.request).unwrap_or_default();
+        let who = crate::store::Actor {
+            uid: Some(self.peer.uid),
+            user: Some(self.peer.user.clone()),
+            pid: self.peer.pid,
+        };
+        Some(super::results::audit_entry(
+            crate::store::now_us(),
+            who,
+            "operator",
+            &request,
+        ))
+    }
+}
+
 /// Why the control socket could not be served.
 #[derive(Debug, Error)]
 pub enum ControlError {

@@ -6,7 +6,6 @@
 use super::Prepared;
 use super::control::{Command, FollowerAction, Request};
 use super::notify;
-use super::peer::Role;
 use super::pipeline::{Output, Pipeline, now_us};
 use super::results;
 use super::shutdown::Shutdown;
@@ -16,11 +15,11 @@ use super::snapshot::{
 use crate::acquire::{Acquisition, Frame};
 use crate::canopen::{DriveError, DriveHandle, DriveStatus, Event, PowerState};
 use crate::config::CncMode;
-use crate::modbus::{LinkState, Monitor};
+use crate::modbus::LinkState;
 use crate::optics::layout::{Aperture, Kind};
 use crate::run::program::{CaptureMode, generate_settled, makeup_steps, remaining_steps};
 use crate::run::{CaptureSettings, Dialect, Plan, RunMachine, TargetKey};
-use crate::store::{Actor, NewRun, RunId, RunState, Store};
+use crate::store::{NewRun, RunId, RunState, Store};
 use crate::track::FollowerCommand;
 use std::collections::BTreeSet;
 use std::path::PathBuf;
@@ -54,7 +53,6 @@ fn power_name(s: Option<PowerState>) -> String {
 
 pub(super) struct Core {
     pipeline: Pipeline,
-    link: Monitor,
     acquisition: Acquisition,
     drive: DriveHandle,
     drive_status: DriveStatus,
@@ -174,7 +172,6 @@ async fn twin_request(
 impl Core {
     pub(super) fn new(
         p: &Prepared,
-        link: Monitor,
         acquisition: Acquisition,
         drive: DriveHandle,
         can_peer: String,
@@ -194,7 +191,6 @@ impl Core {
         }
         Core {
             pipeline: Pipeline::new(s.tracking, p.decoupler.clone(), s.head.live_window),
-            link,
             acquisition,
             drive_status: drive.status(),
             drive,
@@ -243,7 +239,7 @@ impl Core {
         let mut frames = self.acquisition.subscribe();
         let mut status = self.drive.watch_status();
         let mut events = self.drive.events();
-        let mut io_state = self.link.state();
+        let mut io_state = self.acquisition.link().state();
         let bring_up = tokio::spawn(bring_up(
             self.drive.clone(),
             self.home_on_start,
@@ -820,7 +816,7 @@ impl Core {
                 "io-link-down",
                 format!(
                     "PSD I/O module {} unreachable: {error}; reconnecting",
-                    self.link.addr()
+                    self.acquisition.link().addr()
                 ),
             ),
             _ => {}
@@ -837,16 +833,9 @@ impl Core {
     /// Write an operator request to the audit log (who, when, what); a store that cannot take
     /// it raises the store alarm, the request goes on.
     fn audit(&mut self, c: &Command) {
-        if c.request.needs() != Role::Operator {
+        let Some(entry) = c.audit_entry() else {
             return;
-        }
-        let request = serde_json::to_value(&c.request).unwrap_or_default();
-        let who = Actor {
-            uid: Some(c.peer.uid),
-            user: Some(c.peer.user.clone()),
-            pid: c.peer.pid,
         };
-        let entry = results::audit_entry(now_us(), who, "operator", &request);
         if let Err(e) = self.store.audit(&entry) {
             self.pipeline
                 .alarms
@@ -1039,7 +1028,7 @@ impl Core {
             let _ = reply.send(r);
         }
         if !self.ready_sent {
-            let io_up = self.link.state().borrow().is_up();
+            let io_up = self.acquisition.link().state().borrow().is_up();
             let drive_up = self.drive_status.state == Some(PowerState::OperationEnabled);
             if (io_up && drive_up) || self.started.elapsed() > Duration::from_secs(30) {
                 let status = format!(
@@ -1093,8 +1082,11 @@ impl Core {
         });
         let st = &self.drive_status;
         let stitch = p.tracker.stitch();
-        let link_stats = self.link.stats();
-        let mut io = link_view(&self.link.state().borrow(), self.link.addr().to_string());
+        let link_stats = self.acquisition.link().stats();
+        let mut io = link_view(
+            &self.acquisition.link().state().borrow(),
+            self.acquisition.link().addr().to_string(),
+        );
         io.rate_hz = stats.frames_per_s;
         io.latency_p50_us = link_stats
             .latency_p50

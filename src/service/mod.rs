@@ -193,7 +193,6 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
     } else {
         Acquisition::spawn(Link::spawn(s.io.link.clone()), map, s.io.acquire)
     };
-    let link = acquisition.link().clone();
     std::fs::create_dir_all(&s.service.state_dir).map_err(|source| ServiceError::StateDir {
         path: s.service.state_dir.display().to_string(),
         source,
@@ -230,7 +229,7 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
         s.service.snapshot_period,
         shutdown.clone(),
     ));
-    let core = core::Core::new(&p, link, acquisition, drive, can_peer, snap_tx, store);
+    let core = core::Core::new(&p, acquisition, drive, can_peer, snap_tx, store);
     // A task of its own rather than the runtime's root future: waking the root future from a
     // task (every frame) costs the current-thread runtime an eventfd write and an extra poll.
     let result = match tokio::spawn(core.run(core_rx, shutdown)).await {

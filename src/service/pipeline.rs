@@ -14,15 +14,9 @@ use crate::track::{
 };
 use crate::units::Errors6;
 use std::collections::VecDeque;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
-/// Now as µs since the Unix epoch.
-pub fn now_us() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_micros() as i64)
-        .unwrap_or(0)
-}
+pub use crate::store::now_us;
 
 /// Active and recently cleared alarms, newest first.
 #[derive(Debug, Default)]

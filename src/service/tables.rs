@@ -17,8 +17,6 @@
 //! with unit tests; the task only does the I/O. The protocol is `plc-maps/README.md`.
 
 use super::control::{Command, Request};
-use super::peer::Role;
-use super::results;
 use super::shutdown::Shutdown;
 use crate::comp::{self, AxisMapping, CompTable, MachineAxis, TableKind, TableSpec};
 use crate::config::{PlcSettings, TableBuild};
@@ -28,7 +26,7 @@ use crate::plc::table::{self as ptable, RawHeader, Reject, TableDirection};
 use crate::plc::{self, CncMap, PlcStatus, PlcTable, PublishOutcome, PullServer, StatusCode};
 use crate::run::Direction;
 use crate::store::{
-    Actor, Publication, PublicationOutcome, PublicationRecord, RunId, RunState, Store, StoreError,
+    Publication, PublicationOutcome, PublicationRecord, RunId, RunState, Store, StoreError,
     TableEntry, TableId, TableRecord, now_us,
 };
 use serde::{Deserialize, Serialize};
@@ -709,16 +707,9 @@ impl Tables {
     }
 
     fn audit(&mut self, c: &Command) {
-        if c.request.needs() != Role::Operator {
+        let Some(entry) = c.audit_entry() else {
             return;
-        }
-        let request = serde_json::to_value(&c.request).unwrap_or_default();
-        let who = Actor {
-            uid: Some(c.peer.uid),
-            user: Some(c.peer.user.clone()),
-            pid: c.peer.pid,
         };
-        let entry = results::audit_entry(now_us(), who, "operator", &request);
         if let Err(e) = self.store.audit(&entry) {
             tracing::error!("audit entry not stored: {e}");
         }

@@ -1,10 +1,11 @@
 //! Small shared pieces: numeric CSV, progress display, UTC timestamps, reconnect backoff,
-//! fixed-rate pacing.
+//! fixed-rate pacing, socket options.
 
 pub mod backoff;
 pub mod csv;
 pub mod pace;
 pub mod progress;
+pub mod sock;
 pub mod time;
 
 /// A TOML error on one line, with its line number in front.

@@ -18,7 +18,7 @@
 //! The key-driven test then runs the real console loop against a live service and twin: plan →
 //! start → progress → results, and an abort.
 
-use crate::helpers::{RigOptions, ServiceRig, within_s};
+use crate::helpers::{RigOptions, ServiceRig, short_plan, within_s};
 use axiscomp::console::app::{Access, Action, App, AppOptions, Field, LinkState, Screen};
 use axiscomp::console::client::{Client, ClientError, ClientOptions, Identity, PeerRole};
 use axiscomp::console::{drive, ui};
@@ -41,22 +41,6 @@ const FIXTURE: &str = "tests/it/fixtures/console_twin.json";
 /// the short plan's run takes well under a minute on the twin.
 const FAST: &str = "[tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n\n\
                     [capture]\nframes = 100\nsettle_ms = 200\n";
-
-/// The short plan the fixture and the key-driven test run: 0–8 mm, 5 targets, 2 runs.
-fn short_plan() -> PlanSpec {
-    PlanSpec {
-        axis: "X".into(),
-        start_mm: 0.0,
-        end_mm: 8.0,
-        targets: 5,
-        runs: 2,
-        overrun_mm: 1.0,
-        dwell_s: 1.5,
-        feed_mm_min: 3000.0,
-        lead_mm: 0.0,
-        reference_mm: None,
-    }
-}
 
 /// A real twin + service session, recorded (see the module comment).
 #[derive(Debug, Serialize, Deserialize)]

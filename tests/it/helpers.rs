@@ -583,3 +583,20 @@ pub fn plc_table(values_um: &[f64], interval_mm: f64) -> axiscomp::plc::PlcTable
         down_mm: None,
     }
 }
+
+/// The short plan the console fixture, the key-driven test and the crash test run: X 0–8 mm,
+/// 5 targets, 2 runs, dwell 1.5 s, 3000 mm/min.
+pub fn short_plan() -> axiscomp::run::PlanSpec {
+    axiscomp::run::PlanSpec {
+        axis: "X".into(),
+        start_mm: 0.0,
+        end_mm: 8.0,
+        targets: 5,
+        runs: 2,
+        overrun_mm: 1.0,
+        dwell_s: 1.5,
+        feed_mm_min: 3000.0,
+        lead_mm: 0.0,
+        reference_mm: None,
+    }
+}

@@ -866,15 +866,7 @@ async fn the_service_generates_publishes_and_reads_back_tables() {
     // Publish the positioning table and both straightnesses.
     let mut sequences = Vec::new();
     for t in &tables {
-        let p: PublishView = serde_json::from_value(
-            rig.request(Request::TablePublish {
-                table_id: t.id,
-                confirm: true,
-            })
-            .await
-            .expect("publish"),
-        )
-        .expect("publish view");
+        let p: PublishView = publish_by_api(&rig, t.id).await;
         assert_eq!(p.result, "committed", "{p:?}");
         assert_eq!(p.active_sequence, Some(p.sequence));
         sequences.push(p.sequence);
@@ -944,15 +936,7 @@ async fn the_service_generates_publishes_and_reads_back_tables() {
 
     // A PLC that rejects: recorded as rejected, its active table and the status unchanged.
     plc.reject_next(9);
-    let p: PublishView = serde_json::from_value(
-        rig.request(Request::TablePublish {
-            table_id: pos.id,
-            confirm: true,
-        })
-        .await
-        .expect("publish"),
-    )
-    .expect("publish view");
+    let p: PublishView = publish_by_api(&rig, pos.id).await;
     assert_eq!(
         (p.result.as_str(), p.code, p.sequence),
         ("rejected", Some(9), 4),
@@ -1057,15 +1041,7 @@ async fn the_service_serves_a_published_table_for_pull() {
         rig.twin.plant.clone(),
         PullClientConfig::default(),
     );
-    let p: PublishView = serde_json::from_value(
-        rig.request(Request::TablePublish {
-            table_id: tables[0].id,
-            confirm: true,
-        })
-        .await
-        .expect("publish"),
-    )
-    .expect("publish view");
+    let p: PublishView = publish_by_api(&rig, tables[0].id).await;
     assert_eq!((p.result.as_str(), p.sequence), ("committed", 1), "{p:?}");
     assert!(p.target.contains("pulled from"), "{}", p.target);
     assert!(rig.twin.plant.compensation().dy.is_some());
@@ -1081,4 +1057,21 @@ async fn the_service_serves_a_published_table_for_pull() {
     );
     drop(client);
     rig.stop().await;
+}
+
+/// `table_publish` with confirm through the control API, its reply decoded.
+async fn publish_by_api(
+    rig: &crate::helpers::ServiceRig,
+    table_id: i64,
+) -> axiscomp::service::tables::PublishView {
+    use axiscomp::service::control::Request;
+    serde_json::from_value(
+        rig.request(Request::TablePublish {
+            table_id,
+            confirm: true,
+        })
+        .await
+        .expect("publish"),
+    )
+    .expect("publish view")
 }

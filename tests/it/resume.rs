@@ -4,8 +4,8 @@
 //! on the same store, and the run must finish with every (run, target, direction) capture stored
 //! exactly once, each under the direction the carriage came from.
 
-use crate::helpers::{RigOptions, TempDir, bin, twin_and_config};
-use axiscomp::run::{Direction, PlanSpec, TargetKey};
+use crate::helpers::{RigOptions, TempDir, bin, short_plan, twin_and_config};
+use axiscomp::run::{Direction, TargetKey};
 use axiscomp::service::control::{Client, Request};
 use axiscomp::store::{RunId, RunState, Store};
 use std::collections::BTreeMap;
@@ -20,21 +20,6 @@ const FAST: &str = "[tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms =
 
 /// Kill the service once this many captures are stored.
 const KILL_AFTER: u64 = 7;
-
-fn plan() -> PlanSpec {
-    PlanSpec {
-        axis: "X".into(),
-        start_mm: 0.0,
-        end_mm: 8.0,
-        targets: 5,
-        runs: 2,
-        overrun_mm: 1.0,
-        dwell_s: 1.5,
-        feed_mm_min: 3000.0,
-        lead_mm: 0.0,
-        reference_mm: None,
-    }
-}
 
 /// `axiscomp serve` as a child process, its output in `log`.
 fn serve(config: &Path, log: &Path) -> Child {
@@ -129,7 +114,7 @@ async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {
     let started = ask(
         &socket,
         &Request::RunStart {
-            plan: plan(),
+            plan: short_plan(),
             dialect: Some("linuxcnc".into()),
             notes: None,
         },
@@ -200,7 +185,7 @@ async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {
     for c in &captures {
         *count.entry(TargetKey::of(c)).or_default() += 1;
     }
-    let p = axiscomp::run::Plan::new(plan()).expect("plan");
+    let p = axiscomp::run::Plan::new(short_plan()).expect("plan");
     let want: Vec<TargetKey> = p.steps().iter().filter_map(|s| s.target).collect();
     let missing: Vec<_> = want.iter().filter(|k| !count.contains_key(k)).collect();
     let twice: Vec<_> = count.iter().filter(|(_, n)| **n != 1).collect();

@@ -156,8 +156,21 @@ fn render_input(frame: &mut Frame, input: &Input, theme: Theme) {
         Span::styled("█", theme.dim()),
     ]));
     lines.push(Line::styled("Enter takes it, Esc cancels", theme.dim()));
+    // Room for the wrapped explanation.
     let h = lines.len() as u16 + 4;
-    let area = centred(frame.area(), 72, h);
+    warning_popup(frame, title, lines, 72, h, theme);
+}
+
+/// A centred, bordered popup in the warning colour over whatever is below it.
+fn warning_popup<'a>(
+    frame: &mut Frame,
+    title: impl Into<Line<'a>>,
+    lines: Vec<Line<'a>>,
+    width: u16,
+    height: u16,
+    theme: Theme,
+) {
+    let area = centred(frame.area(), width, height);
     frame.render_widget(Clear, area);
     frame.render_widget(
         Paragraph::new(lines)
@@ -364,14 +377,7 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
         Span::raw(" no"),
     ]));
     let h = lines.len() as u16 + 2;
-    let area = centred(frame.area(), 70, h);
-    frame.render_widget(Clear, area);
-    frame.render_widget(
-        Paragraph::new(lines)
-            .wrap(Wrap { trim: false })
-            .block(Block::bordered().title(title).border_style(theme.warn())),
-        area,
-    );
+    warning_popup(frame, title, lines, 70, h, theme);
 }
 
 // ---------- formatting shared by the screens ----------
