@@ -188,6 +188,11 @@ pub struct DriveConfig {
     pub sdo_timeout: Duration,
     /// SYNC period (RPDO1 goes out just before each SYNC, TPDO1 answers it).
     pub sync_period: Duration,
+    /// SYNC period while the follower is quiet: in profile position, no command under way or
+    /// queued, not following, its status unchanged for [`QUIET_AFTER`](super::master::QUIET_AFTER).
+    /// A whole multiple of `sync_period`; equal to it to keep one rate. Any command or follow
+    /// target, and any change the drive reports, brings back `sync_period` at once.
+    pub quiet_sync_period: Duration,
     /// Wait at most this long for an NMT state, a power-state transition or a set-point
     /// acknowledge.
     pub state_timeout: Duration,
@@ -220,6 +225,7 @@ impl Default for DriveConfig {
             heartbeat_timeout: Duration::from_millis(350),
             sdo_timeout: Duration::from_millis(500),
             sync_period: Duration::from_millis(10),
+            quiet_sync_period: Duration::from_millis(100),
             state_timeout: Duration::from_secs(1),
             boot_timeout: Duration::from_secs(5),
             boot_settle: Duration::from_millis(100),
@@ -286,6 +292,14 @@ impl DriveConfig {
                 key: "heartbeat_timeout",
                 value: format!("{:?}", self.heartbeat_timeout),
                 why: "must be longer than heartbeat_period (CiA 301: consumer time > producer time)",
+            });
+        }
+        let (sync, quiet) = (self.sync_period, self.quiet_sync_period);
+        if quiet < sync || !quiet.as_nanos().is_multiple_of(sync.as_nanos()) {
+            return Err(ConfigError::Invalid {
+                key: "quiet_sync_period",
+                value: format!("{quiet:?}"),
+                why: "must be a whole multiple of the SYNC period (equal to it: one rate)",
             });
         }
         let counts_per_mm = self.scaling.validate()?;

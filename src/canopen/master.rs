@@ -11,6 +11,9 @@
 //! master sends RPDO1 (controlword + target position) and then SYNC; the drive answers with
 //! TPDO1 (statusword + position actual). A controlword change goes out with the next SYNC, so
 //! every wait on the statusword only looks at TPDOs answering a SYNC sent after the change.
+//! After [`QUIET_AFTER`] with nothing under way and nothing changed, the SYNC slows to the
+//! configured quiet period; a command, a follow target, an EMCY or a TPDO showing a new state
+//! or movement brings the full rate back at once (the first SYNC one period after the last).
 //!
 //! Power and motion commands need the PDOs running (configure, then start); configuration and
 //! raw SDO access work in pre-operational.
@@ -219,6 +222,11 @@ pub enum Event {
 /// TPDO positions kept in [`DriveStatus::recent_positions`].
 pub const RECENT_POSITIONS: usize = 8;
 
+/// How long the follower must be quiet (nothing under way, nothing changed) before SYNC
+/// slows to `DriveConfig::quiet_sync_period`. At rest in profile position the status only
+/// confirms itself; a slower SYNC saves the service a wake-up per period.
+pub const QUIET_AFTER: Duration = Duration::from_secs(1);
+
 /// The drive as the master sees it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DriveStatus {
@@ -226,6 +234,8 @@ pub struct DriveStatus {
     pub heartbeat_ok: bool,
     pub configured: bool,
     pub sync_running: bool,
+    /// SYNC at the quiet period (see `DriveConfig::quiet_sync_period`).
+    pub sync_quiet: bool,
     pub statusword: Option<u16>,
     pub state: Option<PowerState>,
     /// Modes of operation display (0x6061), as last read or set.
@@ -270,6 +280,7 @@ impl DriveStatus {
             heartbeat_ok: false,
             configured: false,
             sync_running: false,
+            sync_quiet: false,
             statusword: None,
             state: None,
             mode: None,
@@ -448,6 +459,8 @@ pub struct Master {
     demand_since: u64,
     /// The position changed by at most the position window between the last two TPDOs.
     standstill: bool,
+    /// The last time something was under way or changed (see [`QUIET_AFTER`]).
+    active_at: Option<Instant>,
     status: DriveStatus,
     tx: VecDeque<CanFrame>,
     events: VecDeque<Event>,
@@ -461,7 +474,7 @@ impl Master {
             sdo: SdoClient::new(s.node(), config.sdo_timeout),
             sdo_result: None,
             hb: HeartbeatConsumer::new(s.node(), config.heartbeat_timeout),
-            sync: SyncProducer::new(config.sync_period),
+            sync: SyncProducer::with_quiet_period(config.sync_period, config.quiet_sync_period),
             queue: VecDeque::new(),
             op: None,
             next_id: 1,
@@ -479,6 +492,7 @@ impl Master {
             last_sync_at: None,
             demand_since: 0,
             standstill: false,
+            active_at: None,
             status: DriveStatus::new(),
             tx: VecDeque::new(),
             events: VecDeque::new(),
@@ -552,6 +566,7 @@ impl Master {
             Some(v) => self.follow_track.push_moving(target_mm, v, at),
             None => self.follow_track.push(target_mm, at),
         }
+        self.active_at = Some(now);
         if self.following {
             // Taken at the next SYNC.
         } else if self.follow_entry.is_none() {
@@ -678,6 +693,7 @@ impl Master {
         } else if !f.is_extended() && !f.is_remote() && f.id() == (cob::EMCY + node) as u32 {
             match Emcy::decode(f.data()) {
                 Ok(e) => {
+                    self.active_at = Some(now);
                     if e.is_reset() {
                         self.status.emcy_active = false;
                     } else {
@@ -691,7 +707,7 @@ impl Master {
             }
         } else if !f.is_extended() && !f.is_remote() && f.id() == (cob::TPDO1 + node) as u32 {
             if let Some((sw, pos)) = pdo::decode_tpdo1(f.data()) {
-                self.on_tpdo(sw, pos);
+                self.on_tpdo(sw, pos, now);
             }
         } else {
             return;
@@ -851,7 +867,7 @@ impl Master {
         self.status.sync_running = false;
     }
 
-    fn on_tpdo(&mut self, sw: u16, pos: i32) {
+    fn on_tpdo(&mut self, sw: u16, pos: i32, now: Instant) {
         self.tpdo_sync = self.sync.count();
         self.status.tpdo_count += 1;
         let window = self.window_mm();
@@ -859,6 +875,10 @@ impl Master {
             .status
             .position_counts
             .is_some_and(|p| (self.s.counts_to_mm(pos) - self.s.counts_to_mm(p)).abs() < window);
+        if !self.standstill || self.status.statusword != Some(sw) {
+            // Moving, or a new state: the full SYNC rate until it settles.
+            self.active_at = Some(now);
+        }
         self.set_statusword(sw);
         self.status.position_at = self.last_sync_at;
         self.set_position(pos);
@@ -983,6 +1003,9 @@ impl Master {
     }
 
     fn run(&mut self, now: Instant) {
+        if self.op.is_some() || !self.queue.is_empty() {
+            self.active_at = Some(now);
+        }
         loop {
             if self.op.is_none() {
                 let Some((id, cmd)) = self.queue.pop_front() else {
@@ -1041,7 +1064,28 @@ impl Master {
                 Progress::Fail(e) => self.finish(op, Err(e)),
             }
         }
+        self.pace_sync(now);
         self.status.sync_running = self.sync.is_running();
+    }
+
+    /// SYNC at the quiet period once nothing has been under way or changed for
+    /// [`QUIET_AFTER`]: in profile position (or not enabled), no command running or queued,
+    /// not following. Anything else, and the first change the drive reports, brings back the
+    /// full rate at once.
+    fn pace_sync(&mut self, now: Instant) {
+        let busy = self.op.is_some()
+            || !self.queue.is_empty()
+            || self.following
+            || self.ramp.is_some()
+            || self.status.mode == Some(MODE_CSP);
+        if busy {
+            self.active_at = Some(now);
+        }
+        let quiet = self
+            .active_at
+            .is_none_or(|t| now.saturating_duration_since(t) >= QUIET_AFTER);
+        self.sync.set_quiet(quiet, now);
+        self.status.sync_quiet = self.sync.is_quiet();
     }
 
     fn timeout_error(&self, step: &Step) -> DriveError {
@@ -2513,6 +2557,49 @@ mod tests {
             },
             ..Default::default()
         }
+    }
+
+    /// At rest in profile position SYNC slows to the quiet period after `QUIET_AFTER`; a
+    /// command brings the full rate back before its first step needs it, and so does a
+    /// change the drive reports (here a fault).
+    #[test]
+    fn sync_slows_at_rest_and_any_command_or_drive_change_speeds_it_up() {
+        let mut r = Rig::default();
+        r.ready();
+        let syncs_in = |r: &mut Rig, d: Duration| {
+            let c0 = r.m.sync.count();
+            r.advance(d);
+            r.m.sync.count() - c0
+        };
+        // Homing just ended: the full rate for QUIET_AFTER, then 100 ms.
+        assert!(!r.m.status().sync_quiet);
+        assert_eq!(syncs_in(&mut r, Duration::from_millis(500)), 50);
+        r.advance(QUIET_AFTER);
+        assert!(r.m.status().sync_quiet);
+        assert_eq!(syncs_in(&mut r, Duration::from_secs(1)), 10);
+        let tpdos = r.m.status().tpdo_count;
+        r.advance(Duration::from_millis(300));
+        assert_eq!(r.m.status().tpdo_count - tpdos, 3, "the status still comes");
+        // A jog: its first SYNC within one full period; 100 SYNC/s while it runs.
+        let t = r.t;
+        let id = r.m.submit(Command::Jog { delta_mm: 2.0 }, r.t);
+        assert!(!r.m.status().sync_quiet);
+        assert!(r.m.sync.poll_timeout().unwrap() <= t + Duration::from_millis(10));
+        let c0 = r.m.sync.count();
+        while r.completion(id).is_none() {
+            r.advance(Duration::from_millis(5));
+        }
+        assert!(matches!(r.completion(id), Some(Ok(_))));
+        let rate = (r.m.sync.count() - c0) as f64 / (r.t - t).as_secs_f64();
+        assert!((rate - 100.0).abs() < 10.0, "{rate} SYNC/s during the jog");
+        r.advance(QUIET_AFTER + Duration::from_millis(200));
+        assert!(r.m.status().sync_quiet);
+        // A fault: the EMCY ends the quiet, and its statusword comes at the full rate.
+        r.d.inject_fault(0x7500, [0; 5], r.t);
+        r.advance(Duration::from_millis(2));
+        assert!(!r.m.status().sync_quiet);
+        r.advance(Duration::from_millis(20));
+        assert!(r.m.status().state.is_some_and(|s| s.is_fault()));
     }
 
     fn csp_rig() -> Rig {

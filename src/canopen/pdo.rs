@@ -164,10 +164,18 @@ pub fn decode_tpdo1(data: &[u8]) -> Option<(u16, i32)> {
 
 /// The SYNC producer: due every `period` from its start; missed periods are skipped, not
 /// bunched (a late wake-up sends one SYNC and schedules the next from the grid).
+///
+/// While the master says the bus is quiet ([`set_quiet`](Self::set_quiet)) the SYNCs come
+/// every `quiet_period` instead (a multiple of `period`, on the same grid); the first one
+/// after the quiet ends is due one `period` after the last at the soonest.
 #[derive(Debug)]
 pub struct SyncProducer {
     period: Duration,
+    quiet_period: Duration,
+    quiet: bool,
     next: Option<Instant>,
+    /// When the last SYNC was due.
+    last: Option<Instant>,
     count: u64,
     /// SYNCs fall on `grid + n·period` when set (see [`align_to`](Self::align_to)).
     grid: Option<Instant>,
@@ -175,9 +183,17 @@ pub struct SyncProducer {
 
 impl SyncProducer {
     pub fn new(period: Duration) -> Self {
+        Self::with_quiet_period(period, period)
+    }
+
+    /// A producer that slows to `quiet_period` while quiet (`period` when shorter).
+    pub fn with_quiet_period(period: Duration, quiet_period: Duration) -> Self {
         SyncProducer {
             period,
+            quiet_period: quiet_period.max(period),
+            quiet: false,
             next: None,
+            last: None,
             count: 0,
             grid: None,
         }
@@ -189,14 +205,19 @@ impl SyncProducer {
         self.grid = Some(origin);
     }
 
+    /// The first point at or after `t` of the grid of `period` (or `t` when not aligned).
+    fn place(&self, t: Instant, period: Duration) -> Instant {
+        match self.grid {
+            Some(origin) => crate::util::pace::grid_point_at_or_after(origin, t, period),
+            None => t,
+        }
+    }
+
     /// Start producing: the first SYNC is due at `now`, or at the first grid point from
     /// `now` on when aligned.
     pub fn start(&mut self, now: Instant) {
         if self.next.is_none() {
-            self.next = Some(match self.grid {
-                Some(origin) => crate::util::pace::grid_point_at_or_after(origin, now, self.period),
-                None => now,
-            });
+            self.next = Some(self.place(now, self.period));
         }
     }
 
@@ -206,6 +227,28 @@ impl SyncProducer {
 
     pub fn is_running(&self) -> bool {
         self.next.is_some()
+    }
+
+    /// Whether the SYNCs come at the quiet period now.
+    pub fn is_quiet(&self) -> bool {
+        self.quiet && self.quiet_period > self.period
+    }
+
+    /// The bus is quiet (nothing under way that needs the drive's status at every period) or
+    /// no longer. Ending the quiet brings the next SYNC forward to one `period` after the last
+    /// (on the grid when aligned), or to `now` if that has passed.
+    pub fn set_quiet(&mut self, quiet: bool, now: Instant) {
+        if quiet == self.quiet {
+            return;
+        }
+        self.quiet = quiet;
+        if !quiet && let Some(next) = self.next {
+            let soonest = self.last.map_or(now, |l| (l + self.period).max(now));
+            let at = self.place(soonest, self.period);
+            if at < next {
+                self.next = Some(at);
+            }
+        }
     }
 
     /// SYNC frames sent so far.
@@ -226,12 +269,28 @@ impl SyncProducer {
         if now < due {
             return false;
         }
-        let mut next = due + self.period;
-        if next <= now {
-            let behind = now.duration_since(due).as_nanos() / self.period.as_nanos().max(1);
-            next = due + self.period * (behind as u32 + 1);
-        }
+        let period = if self.is_quiet() {
+            self.quiet_period
+        } else {
+            self.period
+        };
+        let next = match self.grid {
+            // On the grid of the period in force, at least one period from now on.
+            Some(_) => self.place(
+                (due + self.period).max(now + Duration::from_nanos(1)),
+                period,
+            ),
+            None => {
+                let mut next = due + period;
+                if next <= now {
+                    let behind = now.duration_since(due).as_nanos() / period.as_nanos().max(1);
+                    next = due + period * (behind as u32 + 1);
+                }
+                next
+            }
+        };
         self.next = Some(next);
+        self.last = Some(due);
         self.count += 1;
         true
     }
@@ -321,6 +380,49 @@ mod tests {
         assert_eq!(s.count(), 3);
         s.stop();
         assert_eq!(s.poll_timeout(), None);
+    }
+
+    #[test]
+    fn a_quiet_sync_producer_slows_on_its_grid_and_speeds_up_at_once() {
+        let origin = Instant::now();
+        let ms = |n: u64| origin + Duration::from_millis(n);
+        let mut s =
+            SyncProducer::with_quiet_period(Duration::from_millis(10), Duration::from_millis(100));
+        s.align_to(origin);
+        s.start(ms(0));
+        assert!(s.handle_timeout(ms(0)));
+        assert_eq!(s.poll_timeout(), Some(ms(10)));
+        // Quiet: after the SYNC due now, the next one on the 100 ms grid.
+        s.set_quiet(true, ms(5));
+        assert!(s.is_quiet());
+        assert!(s.handle_timeout(ms(10)));
+        assert_eq!(s.poll_timeout(), Some(ms(100)));
+        assert!(s.handle_timeout(ms(100)));
+        assert_eq!(s.poll_timeout(), Some(ms(200)));
+        // A command at 123 ms: the next SYNC on the 10 ms grid, not at 200 ms.
+        s.set_quiet(false, ms(123));
+        assert!(!s.is_quiet());
+        assert_eq!(s.poll_timeout(), Some(ms(130)));
+        // Ending the quiet right after a SYNC keeps a full period from it.
+        s.set_quiet(true, ms(130));
+        assert!(s.handle_timeout(ms(130)));
+        assert_eq!(s.poll_timeout(), Some(ms(200)));
+        s.set_quiet(false, ms(131));
+        assert_eq!(s.poll_timeout(), Some(ms(140)));
+        assert_eq!(s.count(), 4);
+        // Not aligned: the quiet period counted from the SYNC.
+        let mut u =
+            SyncProducer::with_quiet_period(Duration::from_millis(10), Duration::from_millis(50));
+        u.start(ms(3));
+        u.set_quiet(true, ms(3));
+        assert!(u.handle_timeout(ms(3)));
+        assert_eq!(u.poll_timeout(), Some(ms(53)));
+        u.set_quiet(false, ms(20));
+        assert_eq!(u.poll_timeout(), Some(ms(20)));
+        // One rate when the quiet period is not longer.
+        let mut one = SyncProducer::new(Duration::from_millis(10));
+        one.set_quiet(true, ms(0));
+        assert!(!one.is_quiet());
     }
 
     #[test]

@@ -94,6 +94,7 @@ pub struct RawFollower {
     pub heartbeat_timeout_ms: u64,
     pub sdo_timeout_ms: u64,
     pub sync_ms: u64,
+    pub quiet_sync_ms: u64,
     pub feed_mm: f64,
     pub shaft_revolutions: u32,
     pub encoder_increments: u32,
@@ -444,6 +445,7 @@ fn follower_key(e: &crate::canopen::ConfigError) -> String {
         "heartbeat_timeout" => "heartbeat_timeout_ms".to_string(),
         "sdo_timeout" => "sdo_timeout_ms".to_string(),
         "sync_period" => "sync_ms".to_string(),
+        "quiet_sync_period" => "quiet_sync_ms".to_string(),
         "homing.timeout" => "homing_timeout_ms".to_string(),
         "profile.position_window_mm" => "position_window_um".to_string(),
         "limits" | "limits.min_mm" => "min_mm".to_string(),
@@ -679,6 +681,7 @@ fn validate(
         heartbeat_timeout: Duration::from_millis(f.heartbeat_timeout_ms),
         sdo_timeout: Duration::from_millis(f.sdo_timeout_ms),
         sync_period: Duration::from_millis(f.sync_ms),
+        quiet_sync_period: Duration::from_millis(f.quiet_sync_ms),
         scaling: Scaling {
             feed_mm: f.feed_mm,
             shaft_revolutions: f.shaft_revolutions,
@@ -1067,6 +1070,9 @@ mod tests {
         assert_eq!(e.key, "follower.feed_mm", "{e}");
         let e = load_text("[follower]\nheartbeat_timeout_ms = 50\n", &[]).unwrap_err();
         assert_eq!(e.key, "follower.heartbeat_timeout_ms", "{e}");
+        let e = load_text("[follower]\nquiet_sync_ms = 25\n", &[]).unwrap_err();
+        assert_eq!(e.key, "follower.quiet_sync_ms", "{e}");
+        assert!(e.to_string().contains("multiple of the SYNC period"), "{e}");
 
         let e = load_text("[io]\naddress = \"plc\"\n", &[]).unwrap_err();
         assert!(

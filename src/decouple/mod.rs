@@ -148,7 +148,28 @@ pub fn solve_nonlinear(
     opts: &SolveOptions,
 ) -> Result<Estimate, DecoupleError> {
     let j = jacobian(layout, &Pose::new(Errors6::ZERO, travel, follower))?;
-    solve_nonlinear_from(layout, r, travel, follower, sigma_mm, opts, j)
+    solve_nonlinear_from(layout, r, travel, follower, opts, &Start::new(j, sigma_mm)?)
+}
+
+type Lu6 = nalgebra::LU<f64, nalgebra::Const<6>, nalgebra::Const<6>>;
+
+/// Where Gauss–Newton starts: a β with its factorisation and the covariance it gives for the
+/// reading noise (what a converged solution reports while β is still its Jacobian).
+#[derive(Clone, Debug)]
+pub struct Start {
+    lu: Lu6,
+    cov: Matrix6<f64>,
+    sigma_mm: [f64; 6],
+}
+
+impl Start {
+    pub fn new(beta: Matrix6<f64>, sigma_mm: &[f64; 6]) -> Result<Start, DecoupleError> {
+        Ok(Start {
+            lu: beta.lu(),
+            cov: covariance(&beta, sigma_mm).ok_or(DecoupleError::Singular)?,
+            sigma_mm: *sigma_mm,
+        })
+    }
 }
 
 /// `solve_nonlinear` starting from a given β (the Jacobian at zero error near this travel and
@@ -159,26 +180,29 @@ pub fn solve_nonlinear_from(
     r: &Vector6<f64>,
     travel: f64,
     follower: f64,
-    sigma_mm: &[f64; 6],
     opts: &SolveOptions,
-    beta: Matrix6<f64>,
+    start: &Start,
 ) -> Result<Estimate, DecoupleError> {
     let pose0 = Pose::new(Errors6::ZERO, travel, follower);
-    let mut j = beta;
-    let mut lu = j.lu();
+    // The Jacobian re-evaluated at the estimate when convergence slows (`None`: β itself).
+    let mut moved: Option<(Matrix6<f64>, Lu6)> = None;
     let f0 = model_readings(layout, &pose0)?;
-    let mut e = lu.solve(&(r - f0)).ok_or(DecoupleError::Singular)?;
+    let mut e = start.lu.solve(&(r - f0)).ok_or(DecoupleError::Singular)?;
     let mut prev = f64::INFINITY;
     for it in 1..=opts.max_iter {
         let pose = Pose::new(Errors6::from_vector(&e), travel, follower);
         let f = model_readings(layout, &pose)?;
+        let lu = moved.as_ref().map_or(&start.lu, |(_, lu)| lu);
         let de = lu.solve(&(r - f)).ok_or(DecoupleError::Singular)?;
         e += de;
         let step = (0..6)
             .map(|k| de[k].abs() / if k < 3 { opts.tol_mm } else { opts.tol_rad })
             .fold(0.0, f64::max);
         if step <= 1.0 {
-            let cov = covariance(&j, sigma_mm).ok_or(DecoupleError::Singular)?;
+            let cov = match &moved {
+                None => start.cov,
+                Some((j, _)) => covariance(j, &start.sigma_mm).ok_or(DecoupleError::Singular)?,
+            };
             return Ok(Estimate {
                 errors: Errors6::from_vector(&e),
                 cov,
@@ -186,11 +210,11 @@ pub fn solve_nonlinear_from(
             });
         }
         if step > 0.25 * prev {
-            j = jacobian(
+            let j = jacobian(
                 layout,
                 &Pose::new(Errors6::from_vector(&e), travel, follower),
             )?;
-            lu = j.lu();
+            moved = Some((j, j.lu()));
         }
         prev = step;
         if it == opts.max_iter {
@@ -212,8 +236,8 @@ pub fn solve_nonlinear_from(
 #[derive(Clone, Debug, Default)]
 pub struct BetaCache {
     at: Option<(f64, f64)>,
-    beta: Matrix6<f64>,
     inverse: Matrix6<f64>,
+    start: Option<Start>,
 }
 
 /// How far travel or follower may move before β(D) is recomputed (mm).
@@ -225,17 +249,20 @@ impl BetaCache {
         dec: &Decoupler,
         travel: f64,
         follower: f64,
-    ) -> Result<(Matrix6<f64>, Matrix6<f64>), DecoupleError> {
+    ) -> Result<(&Start, Matrix6<f64>), DecoupleError> {
         let fresh = self.at.is_some_and(|(t, f)| {
             (t - travel).abs() < BETA_REUSE_MM && (f - follower).abs() < BETA_REUSE_MM
         });
-        if !fresh {
-            let beta = dec.beta(travel, follower)?;
-            self.inverse = beta.try_inverse().ok_or(DecoupleError::Singular)?;
-            self.beta = beta;
-            self.at = Some((travel, follower));
-        }
-        Ok((self.beta, self.inverse))
+        let start = match self.start.take() {
+            Some(s) if fresh => s,
+            _ => {
+                let beta = dec.beta(travel, follower)?;
+                self.inverse = beta.try_inverse().ok_or(DecoupleError::Singular)?;
+                self.at = Some((travel, follower));
+                Start::new(beta, &dec.sigma_mm)?
+            }
+        };
+        Ok((self.start.insert(start), self.inverse))
     }
 }
 
@@ -310,10 +337,10 @@ impl Decoupler {
         extra_var: &[f64; 6],
         cache: &mut BetaCache,
     ) -> Result<(Estimate, Matrix6<f64>), DecoupleError> {
-        let (beta, inv) = cache.get(self, travel, follower)?;
+        let (start, inv) = cache.get(self, travel, follower)?;
         let est = match (&self.source, self.method) {
             (Source::Simulated(l) | Source::Model(l), Method::Nonlinear) => {
-                solve_nonlinear_from(l, r, travel, follower, &self.sigma_mm, &self.options, beta)?
+                solve_nonlinear_from(l, r, travel, follower, &self.options, start)?
             }
             _ => self.decouple(r, travel, follower)?,
         };

@@ -241,6 +241,8 @@ struct Inner {
     refused: AtomicU64,
     requests: AtomicU64,
     exceptions: AtomicU64,
+    /// Connections whose service still exists.
+    open: AtomicU64,
 }
 
 /// The accept loop's task, held by the handles only: the last handle dropped aborts it, which
@@ -306,6 +308,7 @@ impl ServerHandle {
             refused: AtomicU64::new(0),
             requests: AtomicU64::new(0),
             exceptions: AtomicU64::new(0),
+            open: AtomicU64::new(0),
         });
         let handle = ServerHandle {
             inner,
@@ -340,7 +343,7 @@ impl ServerHandle {
                     if let Err(e) = stream.set_nodelay(true) {
                         tracing::debug!(%peer, error = %e, "TCP_NODELAY not set");
                     }
-                    Ok(Some((Service { inner, peer }, stream)))
+                    Ok(Some((Service::new(inner, peer), stream)))
                 }
             };
             let on_error = |e: io::Error| tracing::debug!(error = %e, "modbus connection ended");
@@ -365,8 +368,14 @@ impl ServerHandle {
         if let Some(task) = task {
             task.abort();
             // Aborting drops tokio-modbus' accept loop, whose drop guard cancels every
-            // connection task; wait until the listener is really closed.
+            // connection task; wait until the listener is really closed, and (briefly) until
+            // the cancelled connections are gone, so no request is answered after this returns.
             let _ = task.await;
+            let until = tokio::time::Instant::now() + Duration::from_secs(1);
+            while self.inner.open.load(Ordering::Relaxed) > 0 && tokio::time::Instant::now() < until
+            {
+                tokio::time::sleep(Duration::from_millis(1)).await;
+            }
         }
     }
 
@@ -414,10 +423,23 @@ impl ServerHandle {
     }
 }
 
-/// One connection's service.
+/// One connection's service (counted in `Inner::open` while it exists).
 struct Service {
     inner: Arc<Inner>,
     peer: SocketAddr,
+}
+
+impl Service {
+    fn new(inner: Arc<Inner>, peer: SocketAddr) -> Service {
+        inner.open.fetch_add(1, Ordering::Relaxed);
+        Service { inner, peer }
+    }
+}
+
+impl Drop for Service {
+    fn drop(&mut self) {
+        self.inner.open.fetch_sub(1, Ordering::Relaxed);
+    }
 }
 
 type Reply = Result<Response, tokio_modbus::ExceptionCode>;

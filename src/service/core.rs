@@ -25,6 +25,7 @@ use std::collections::BTreeSet;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use tokio::sync::{broadcast, mpsc, oneshot, watch};
+use tokio::task::JoinHandle;
 
 /// A frame older than this when the core gets to it is not decoupled (it is still tracked).
 const LATE: Duration = Duration::from_millis(100);
@@ -124,6 +125,18 @@ struct ActiveRun {
 /// The outcome of asynchronous work the core started.
 #[derive(Debug)]
 enum CoreEvent {
+    /// The drive's status changed.
+    DriveStatus(Box<DriveStatus>),
+    /// An event of the drive.
+    Drive(Event),
+    /// The I/O module link's state changed.
+    IoState(LinkState),
+    /// An operator's request from the control API.
+    Command(Command),
+    /// Time for a snapshot (and the watchdog).
+    Tick,
+    /// An input the core cannot go on without has ended.
+    Closed(&'static str),
     /// A program was (or was not) delivered to the twin; the twin's program count after it.
     Delivered(Result<u32, String>),
     /// The twin CNC's state.
@@ -233,13 +246,10 @@ impl Core {
 
     pub(super) async fn run(
         mut self,
-        mut commands: mpsc::Receiver<Command>,
+        commands: mpsc::Receiver<Command>,
         mut shutdown: Shutdown,
     ) -> Result<(), super::ServiceError> {
         let mut frames = self.acquisition.subscribe();
-        let mut status = self.drive.watch_status();
-        let mut events = self.drive.events();
-        let mut io_state = self.acquisition.link().state();
         let bring_up = tokio::spawn(bring_up(
             self.drive.clone(),
             self.home_on_start,
@@ -250,8 +260,7 @@ impl Core {
             self.follow.subscribe(),
             shutdown.clone(),
         ));
-        let mut tick = tokio::time::interval(self.snapshot_period.min(Duration::from_millis(100)));
-        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+        let inputs = self.forward_inputs(commands);
         let watchdog = notify::watchdog_period().filter(|_| self.watchdog);
         let mut last_watchdog = Instant::now();
         let mut core_events = self
@@ -268,48 +277,29 @@ impl Core {
             if std::mem::take(&mut behind) {
                 tokio::task::yield_now().await;
             }
-            tokio::select! {
+            // Three inputs: everything but the frames comes through the core's own channel
+            // (`forward_inputs`), so a frame wakes a select whose other branches are two.
+            let e = tokio::select! {
+                biased;
                 _ = shutdown.recv() => break,
-                Some(e) = core_events.recv() => self.handle_core_event(e),
-                f = frames.recv() => match f {
-                    Ok(f) => {
-                        let waiting = frames.len();
-                        behind = waiting > 0;
-                        self.handle_frame(&f, waiting);
+                Some(e) = core_events.recv() => e,
+                f = frames.recv() => {
+                    match f {
+                        Ok(f) => {
+                            let waiting = frames.len();
+                            behind = waiting > 0;
+                            self.handle_frame(&f, waiting);
+                        }
+                        Err(broadcast::error::RecvError::Lagged(n)) => {
+                            tracing::warn!("core fell behind the acquisition by {n} frames");
+                        }
+                        Err(broadcast::error::RecvError::Closed) => break,
                     }
-                    Err(broadcast::error::RecvError::Lagged(n)) => {
-                        tracing::warn!("core fell behind the acquisition by {n} frames");
-                    }
-                    Err(broadcast::error::RecvError::Closed) => break,
-                },
-                r = status.changed() => {
-                    if r.is_err() { break; }
-                    let st = status.borrow_and_update().clone();
-                    self.pipeline.handle_drive_status(&st, Instant::now());
-                    self.try_resume();
-                    self.drive_status = st;
-                    self.pump();
+                    continue;
                 }
-                e = events.recv() => match e {
-                    Ok(e) => {
-                        self.note_following(&e);
-                        self.pipeline.handle_drive_event(&e, &self.can_peer);
-                        self.pump();
-                    }
-                    Err(broadcast::error::RecvError::Lagged(_)) => {}
-                    Err(broadcast::error::RecvError::Closed) => break,
-                },
-                r = io_state.changed() => {
-                    if r.is_ok() {
-                        let st = *io_state.borrow_and_update();
-                        self.handle_io_state(&st);
-                    }
-                }
-                c = commands.recv() => match c {
-                    Some(c) => self.handle_command(c),
-                    None => break,
-                },
-                _ = tick.tick() => {
+            };
+            match e {
+                CoreEvent::Tick => {
                     self.on_tick();
                     if let Some(period) = watchdog
                         && last_watchdog.elapsed() >= period
@@ -318,13 +308,100 @@ impl Core {
                         last_watchdog = Instant::now();
                     }
                 }
+                CoreEvent::Closed(what) => {
+                    tracing::debug!("core input closed: {what}");
+                    break;
+                }
+                e => self.handle_core_event(e),
             }
+        }
+        for t in inputs {
+            t.abort();
         }
         bring_up.abort();
         follower.abort();
         // Leave the follower at rest.
         let _ = tokio::time::timeout(Duration::from_secs(1), self.drive.stop()).await;
         Ok(())
+    }
+
+    /// Tasks that forward the core's inputs other than frames (drive status and events, the
+    /// I/O link's state, operator commands, the snapshot tick) into its event channel, in
+    /// the order they come. Waiting on each input in the core's own select would register
+    /// and drop a waker for every one of them at every frame.
+    fn forward_inputs(&self, mut commands: mpsc::Receiver<Command>) -> Vec<JoinHandle<()>> {
+        let tx = &self.events_tx;
+        let mut status = self.drive.watch_status();
+        let mut events = self.drive.events();
+        let mut io_state = self.acquisition.link().state();
+        let mut tick = tokio::time::interval(self.snapshot_period.min(Duration::from_millis(100)));
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+        let forward = |tx: &mpsc::UnboundedSender<CoreEvent>, e| tx.send(e).is_ok();
+        vec![
+            tokio::spawn({
+                let tx = tx.clone();
+                async move {
+                    while status.changed().await.is_ok() {
+                        let st = Box::new(status.borrow_and_update().clone());
+                        if !forward(&tx, CoreEvent::DriveStatus(st)) {
+                            return;
+                        }
+                    }
+                    forward(&tx, CoreEvent::Closed("drive status"));
+                }
+            }),
+            tokio::spawn({
+                let tx = tx.clone();
+                async move {
+                    loop {
+                        let e = match events.recv().await {
+                            Ok(e) => CoreEvent::Drive(e),
+                            Err(broadcast::error::RecvError::Lagged(_)) => continue,
+                            Err(broadcast::error::RecvError::Closed) => {
+                                CoreEvent::Closed("drive events")
+                            }
+                        };
+                        let closed = matches!(e, CoreEvent::Closed(_));
+                        if !forward(&tx, e) || closed {
+                            return;
+                        }
+                    }
+                }
+            }),
+            tokio::spawn({
+                let tx = tx.clone();
+                async move {
+                    while io_state.changed().await.is_ok() {
+                        let st = *io_state.borrow_and_update();
+                        if !forward(&tx, CoreEvent::IoState(st)) {
+                            return;
+                        }
+                    }
+                }
+            }),
+            tokio::spawn({
+                let tx = tx.clone();
+                async move {
+                    while let Some(c) = commands.recv().await {
+                        if !forward(&tx, CoreEvent::Command(c)) {
+                            return;
+                        }
+                    }
+                    forward(&tx, CoreEvent::Closed("control API"));
+                }
+            }),
+            tokio::spawn({
+                let tx = tx.clone();
+                async move {
+                    loop {
+                        tick.tick().await;
+                        if !forward(&tx, CoreEvent::Tick) {
+                            return;
+                        }
+                    }
+                }
+            }),
+        ]
     }
 
     /// A frame, with `behind` newer frames already waiting.
@@ -669,6 +746,21 @@ impl Core {
 
     fn handle_core_event(&mut self, e: CoreEvent) {
         match e {
+            CoreEvent::DriveStatus(st) => {
+                self.pipeline.handle_drive_status(&st, Instant::now());
+                self.try_resume();
+                self.drive_status = *st;
+                self.pump();
+            }
+            CoreEvent::Drive(e) => {
+                self.note_following(&e);
+                self.pipeline.handle_drive_event(&e, &self.can_peer);
+                self.pump();
+            }
+            CoreEvent::IoState(st) => self.handle_io_state(&st),
+            CoreEvent::Command(c) => self.handle_command(c),
+            // The loop's own (the watchdog, leaving the loop).
+            CoreEvent::Tick | CoreEvent::Closed(_) => {}
             CoreEvent::Delivered(Ok(n)) => {
                 if let Some(run) = self.run.as_mut() {
                     run.twin_programs_at_send = Some(n);
