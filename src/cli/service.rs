@@ -80,6 +80,10 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
 /// at 500 frames/s is waking tasks, and on one thread that is a function call, not an OS
 /// context switch between workers.
 fn service_runtime() -> Result<tokio::runtime::Runtime> {
+    // The pacing grid starts just before the runtime's clock: tokio rounds a deadline up to
+    // its next millisecond tick, so grid points just before its ticks fire at once rather
+    // than up to a millisecond late (which at 2 ms made every tenth frame or so miss its tick).
+    axiscomp::util::pace::origin();
     tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()

@@ -16,7 +16,10 @@ use std::sync::OnceLock;
 use std::time::Duration;
 use tokio::time::{Instant, Sleep, sleep_until};
 
-/// The process-wide origin of the pacing grids (the first call's time).
+/// The process-wide origin of the pacing grids (the first call's time). Call it just before
+/// building the runtime whose timers pace on it: tokio's timer rounds deadlines up to whole
+/// milliseconds from its start, and a grid that starts just before that keeps its points just
+/// before the timer's ticks (fired on time) instead of up to a millisecond after them.
 pub fn origin() -> std::time::Instant {
     static ORIGIN: OnceLock<std::time::Instant> = OnceLock::new();
     *ORIGIN.get_or_init(std::time::Instant::now)
