@@ -247,7 +247,7 @@ impl Core {
     pub(super) async fn run(
         mut self,
         commands: mpsc::Receiver<Command>,
-        mut shutdown: Shutdown,
+        shutdown: Shutdown,
     ) -> Result<(), super::ServiceError> {
         let mut frames = self.acquisition.subscribe();
         let bring_up = tokio::spawn(bring_up(
@@ -260,7 +260,7 @@ impl Core {
             self.follow.subscribe(),
             shutdown.clone(),
         ));
-        let inputs = self.forward_inputs(commands);
+        let inputs = self.forward_inputs(commands, shutdown.clone());
         let watchdog = notify::watchdog_period().filter(|_| self.watchdog);
         let mut last_watchdog = Instant::now();
         let mut core_events = self
@@ -277,11 +277,10 @@ impl Core {
             if std::mem::take(&mut behind) {
                 tokio::task::yield_now().await;
             }
-            // Three inputs: everything but the frames comes through the core's own channel
-            // (`forward_inputs`), so a frame wakes a select whose other branches are two.
+            // Two inputs: everything but the frames comes through the core's own channel
+            // (`forward_inputs`), the shutdown too.
             let e = tokio::select! {
                 biased;
-                _ = shutdown.recv() => break,
                 Some(e) = core_events.recv() => e,
                 f = frames.recv() => {
                     match f {
@@ -325,11 +324,15 @@ impl Core {
         Ok(())
     }
 
-    /// Tasks that forward the core's inputs other than frames (drive status and events, the
-    /// I/O link's state, operator commands, the snapshot tick) into its event channel, in
-    /// the order they come. Waiting on each input in the core's own select would register
-    /// and drop a waker for every one of them at every frame.
-    fn forward_inputs(&self, mut commands: mpsc::Receiver<Command>) -> Vec<JoinHandle<()>> {
+    /// Tasks that forward the core's inputs other than frames (the shutdown, drive status and
+    /// events, the I/O link's state, operator commands, the snapshot tick) into its event
+    /// channel, in the order they come. Waiting on each input in the core's own select would
+    /// register and drop a waker for every one of them at every frame.
+    fn forward_inputs(
+        &self,
+        mut commands: mpsc::Receiver<Command>,
+        mut shutdown: Shutdown,
+    ) -> Vec<JoinHandle<()>> {
         let tx = &self.events_tx;
         let mut status = self.drive.watch_status();
         let mut events = self.drive.events();
@@ -338,6 +341,13 @@ impl Core {
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
         let forward = |tx: &mpsc::UnboundedSender<CoreEvent>, e| tx.send(e).is_ok();
         vec![
+            tokio::spawn({
+                let tx = tx.clone();
+                async move {
+                    shutdown.recv().await;
+                    forward(&tx, CoreEvent::Closed("shutdown"));
+                }
+            }),
             tokio::spawn({
                 let tx = tx.clone();
                 async move {
