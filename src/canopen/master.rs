@@ -444,6 +444,9 @@ pub struct Master {
     commanded: Option<i32>,
     /// CSP: the demand generator, while the master streams demands.
     ramp: Option<DemandRamp>,
+    /// The ramp has not stepped yet: its first step is one nominal period, however long ago
+    /// the previous SYNC went out (a quiet SYNC, or none yet in this mode).
+    ramp_new: bool,
     /// Follow targets feed the ramp's goal.
     following: bool,
     /// The follow targets (time-stamped), the latest one first of all.
@@ -485,6 +488,7 @@ impl Master {
             boot_count: 0,
             commanded: None,
             ramp: None,
+            ramp_new: false,
             following: false,
             follow_track: TargetTrack::default(),
             follow_entry: None,
@@ -752,7 +756,10 @@ impl Master {
             r.set_goal_moving(g, v);
         }
         let period = self.s.config().sync_period.as_secs_f64();
-        let dt = dt.map_or(period, |d| d.as_secs_f64());
+        let dt = match dt {
+            Some(d) if !std::mem::take(&mut self.ramp_new) => d.as_secs_f64(),
+            _ => period,
+        };
         let mm = r.step(dt.clamp(period / 4.0, period * 4.0));
         if let Some(c) = self.s.mm_to_counts(mm) {
             self.set_demand(c, self.sync.count());
@@ -1502,6 +1509,7 @@ impl Master {
                     r.hold_at(g);
                 }
                 self.ramp = Some(r);
+                self.ramp_new = true;
                 self.commanded = Some(self.target);
                 self.status.commanded_mm = Some(start);
                 self.start_following();
@@ -2600,6 +2608,34 @@ mod tests {
         assert!(!r.m.status().sync_quiet);
         r.advance(Duration::from_millis(20));
         assert!(r.m.status().state.is_some_and(|s| s.is_fault()));
+    }
+
+    /// Following that starts after a quiet spell runs as it does from the full rate: the
+    /// ramp's first step is one SYNC period, not the 100 ms since the last quiet SYNC (which
+    /// the twin, like a drive, answered with a following error).
+    #[test]
+    fn following_after_a_quiet_spell_has_no_following_error() {
+        let mut r = Rig::new(
+            DriveConfig {
+                quiet_sync_period: Duration::from_millis(100),
+                ..csp_config()
+            },
+            TwinDriveConfig {
+                start_mm: 2.0,
+                ..Default::default()
+            },
+        );
+        r.ready();
+        r.advance(QUIET_AFTER * 2);
+        assert!(r.m.status().sync_quiet);
+        let t0 = r.t;
+        while r.t - t0 < Duration::from_millis(800) {
+            let target = 2.0 + 20.0 * (r.t - t0).as_secs_f64();
+            r.m.follow_moving(target, Some(20.0), r.t, r.t)
+                .unwrap_or_else(|e| panic!("{e}: {:?}", following_events(&r)));
+            r.advance(Duration::from_millis(2));
+        }
+        assert_eq!(following_events(&r), vec![Event::FollowingStarted]);
     }
 
     fn csp_rig() -> Rig {
