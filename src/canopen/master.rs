@@ -1010,6 +1010,7 @@ impl Master {
     }
 
     fn run(&mut self, now: Instant) {
+        // A command under way (or one that ends in this call) counts as activity.
         if self.op.is_some() || !self.queue.is_empty() {
             self.active_at = Some(now);
         }
@@ -1080,12 +1081,8 @@ impl Master {
     /// not following. Anything else, and the first change the drive reports, brings back the
     /// full rate at once.
     fn pace_sync(&mut self, now: Instant) {
-        let busy = self.op.is_some()
-            || !self.queue.is_empty()
-            || self.following
-            || self.ramp.is_some()
-            || self.status.mode == Some(MODE_CSP);
-        if busy {
+        // Commands were counted when `run` began (with this same `now`).
+        if self.following || self.ramp.is_some() || self.status.mode == Some(MODE_CSP) {
             self.active_at = Some(now);
         }
         let quiet = self

@@ -236,7 +236,9 @@ pub fn solve_nonlinear_from(
 #[derive(Clone, Debug, Default)]
 pub struct BetaCache {
     at: Option<(f64, f64)>,
+    beta: Matrix6<f64>,
     inverse: Matrix6<f64>,
+    /// The Gauss–Newton start from `beta` (nonlinear decoupling only), made on first use.
     start: Option<Start>,
 }
 
@@ -244,25 +246,33 @@ pub struct BetaCache {
 pub const BETA_REUSE_MM: f64 = 0.05;
 
 impl BetaCache {
+    /// β⁻¹ at (about) this travel and follower position.
     fn get(
         &mut self,
         dec: &Decoupler,
         travel: f64,
         follower: f64,
-    ) -> Result<(&Start, Matrix6<f64>), DecoupleError> {
+    ) -> Result<Matrix6<f64>, DecoupleError> {
         let fresh = self.at.is_some_and(|(t, f)| {
             (t - travel).abs() < BETA_REUSE_MM && (f - follower).abs() < BETA_REUSE_MM
         });
+        if !fresh {
+            let beta = dec.beta(travel, follower)?;
+            self.inverse = beta.try_inverse().ok_or(DecoupleError::Singular)?;
+            self.beta = beta;
+            self.start = None;
+            self.at = Some((travel, follower));
+        }
+        Ok(self.inverse)
+    }
+
+    /// The Gauss–Newton start from the β of the last [`get`](Self::get).
+    fn start(&mut self, sigma_mm: &[f64; 6]) -> Result<&Start, DecoupleError> {
         let start = match self.start.take() {
-            Some(s) if fresh => s,
-            _ => {
-                let beta = dec.beta(travel, follower)?;
-                self.inverse = beta.try_inverse().ok_or(DecoupleError::Singular)?;
-                self.at = Some((travel, follower));
-                Start::new(beta, &dec.sigma_mm)?
-            }
+            Some(s) => s,
+            None => Start::new(self.beta, sigma_mm)?,
         };
-        Ok((self.start.insert(start), self.inverse))
+        Ok(self.start.insert(start))
     }
 }
 
@@ -337,9 +347,10 @@ impl Decoupler {
         extra_var: &[f64; 6],
         cache: &mut BetaCache,
     ) -> Result<(Estimate, Matrix6<f64>), DecoupleError> {
-        let (start, inv) = cache.get(self, travel, follower)?;
+        let inv = cache.get(self, travel, follower)?;
         let est = match (&self.source, self.method) {
             (Source::Simulated(l) | Source::Model(l), Method::Nonlinear) => {
+                let start = cache.start(&self.sigma_mm)?;
                 solve_nonlinear_from(l, r, travel, follower, &self.options, start)?
             }
             _ => self.decouple(r, travel, follower)?,

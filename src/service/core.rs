@@ -148,6 +148,27 @@ enum CoreEvent {
     ),
 }
 
+/// A task forwarding each new value of `rx` into the core's channel as `event(value)`; when
+/// the sender is gone, `closed` (if the core cannot go on without it).
+fn forward_watch<T: Clone + Send + Sync + 'static>(
+    tx: mpsc::UnboundedSender<CoreEvent>,
+    mut rx: watch::Receiver<T>,
+    event: fn(T) -> CoreEvent,
+    closed: Option<&'static str>,
+) -> JoinHandle<()> {
+    tokio::spawn(async move {
+        while rx.changed().await.is_ok() {
+            let v = rx.borrow_and_update().clone();
+            if tx.send(event(v)).is_err() {
+                return;
+            }
+        }
+        if let Some(what) = closed {
+            let _ = tx.send(CoreEvent::Closed(what));
+        }
+    })
+}
+
 /// Send one JSON request to the twin's control socket and read its reply.
 async fn twin_request(
     addr: std::net::SocketAddr,
@@ -334,9 +355,9 @@ impl Core {
         mut shutdown: Shutdown,
     ) -> Vec<JoinHandle<()>> {
         let tx = &self.events_tx;
-        let mut status = self.drive.watch_status();
+        let status = self.drive.watch_status();
         let mut events = self.drive.events();
-        let mut io_state = self.acquisition.link().state();
+        let io_state = self.acquisition.link().state();
         let mut tick = tokio::time::interval(self.snapshot_period.min(Duration::from_millis(100)));
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
         let forward = |tx: &mpsc::UnboundedSender<CoreEvent>, e| tx.send(e).is_ok();
@@ -348,47 +369,32 @@ impl Core {
                     forward(&tx, CoreEvent::Closed("shutdown"));
                 }
             }),
-            tokio::spawn({
-                let tx = tx.clone();
-                async move {
-                    while status.changed().await.is_ok() {
-                        let st = Box::new(status.borrow_and_update().clone());
-                        if !forward(&tx, CoreEvent::DriveStatus(st)) {
-                            return;
-                        }
-                    }
-                    forward(&tx, CoreEvent::Closed("drive status"));
-                }
-            }),
+            forward_watch(
+                tx.clone(),
+                status,
+                |st| CoreEvent::DriveStatus(Box::new(st)),
+                Some("drive status"),
+            ),
             tokio::spawn({
                 let tx = tx.clone();
                 async move {
                     loop {
-                        let e = match events.recv().await {
-                            Ok(e) => CoreEvent::Drive(e),
-                            Err(broadcast::error::RecvError::Lagged(_)) => continue,
-                            Err(broadcast::error::RecvError::Closed) => {
-                                CoreEvent::Closed("drive events")
+                        match events.recv().await {
+                            Ok(e) => {
+                                if !forward(&tx, CoreEvent::Drive(e)) {
+                                    return;
+                                }
                             }
-                        };
-                        let closed = matches!(e, CoreEvent::Closed(_));
-                        if !forward(&tx, e) || closed {
-                            return;
+                            Err(broadcast::error::RecvError::Lagged(_)) => {}
+                            Err(broadcast::error::RecvError::Closed) => {
+                                forward(&tx, CoreEvent::Closed("drive events"));
+                                return;
+                            }
                         }
                     }
                 }
             }),
-            tokio::spawn({
-                let tx = tx.clone();
-                async move {
-                    while io_state.changed().await.is_ok() {
-                        let st = *io_state.borrow_and_update();
-                        if !forward(&tx, CoreEvent::IoState(st)) {
-                            return;
-                        }
-                    }
-                }
-            }),
+            forward_watch(tx.clone(), io_state, CoreEvent::IoState, None),
             tokio::spawn({
                 let tx = tx.clone();
                 async move {
