@@ -273,6 +273,13 @@ pub struct DriveStatus {
     pub tpdo_count: u64,
 }
 
+impl Default for DriveStatus {
+    /// Nothing heard from the drive yet.
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
 impl DriveStatus {
     fn new() -> Self {
         DriveStatus {

@@ -207,13 +207,20 @@ pub fn check(a: ServeArgs) -> Result<()> {
 
 fn print_snapshot(s: &Snapshot) {
     println!(
-        "links: I/O {} ({}; {:.0} frames/s, p99 {:.0} µs), CAN {} ({})",
+        "links: I/O {} ({}; {:.0} frames/s, p99 {:.0} µs), CAN {} ({}; {:.0} TPDO/s{})",
         s.links.io.state,
         s.links.io.peer,
         s.links.io.rate_hz,
         s.links.io.latency_p99_us,
         s.links.can.state,
-        s.links.can.peer
+        s.links.can.peer,
+        s.links.can.rate_hz,
+        s.links
+            .can
+            .detail
+            .as_ref()
+            .map(|d| format!(", {d}"))
+            .unwrap_or_default()
     );
     match &s.psd {
         Some(p) => {

@@ -47,6 +47,67 @@ fn link_view(state: &LinkState, peer: String) -> LinkView {
     }
 }
 
+/// The CAN link as the snapshot shows it: up while the drive's heartbeat comes; the detail
+/// names the drive's NMT state and the SYNC period in use (the quiet one at rest, see
+/// `DriveConfig::quiet_sync_period`); the rate is the TPDOs the drive answers with per second.
+fn can_view(st: &DriveStatus, peer: String, sync: (Duration, Duration), tpdo_hz: f64) -> LinkView {
+    let mut detail = Vec::new();
+    if let Some(n) = st.nmt {
+        detail.push(format!("NMT {n:?}"));
+    }
+    if st.sync_running {
+        detail.push(if st.sync_quiet {
+            format!("SYNC {} ms (quiet at rest)", sync.1.as_millis())
+        } else {
+            format!("SYNC {} ms", sync.0.as_millis())
+        });
+    }
+    LinkView {
+        state: if st.heartbeat_ok {
+            "up".into()
+        } else {
+            "no heartbeat".into()
+        },
+        peer,
+        detail: (!detail.is_empty()).then(|| detail.join(", ")),
+        rate_hz: tpdo_hz,
+        ..LinkView::default()
+    }
+}
+
+/// Events per second from a running count, over spans of at least `span` (the last complete
+/// span; 0 before the first ends). Sans-I/O: time is an argument.
+#[derive(Clone, Copy, Debug)]
+struct CountRate {
+    span: Duration,
+    since: Option<(Instant, u64)>,
+    rate_hz: f64,
+}
+
+impl CountRate {
+    fn new(span: Duration) -> Self {
+        CountRate {
+            span,
+            since: None,
+            rate_hz: 0.0,
+        }
+    }
+
+    fn update(&mut self, now: Instant, count: u64) -> f64 {
+        match self.since {
+            Some((t0, c0)) if now.saturating_duration_since(t0) >= self.span => {
+                let dt = now.saturating_duration_since(t0).as_secs_f64();
+                self.rate_hz = count.saturating_sub(c0) as f64 / dt;
+                self.since = Some((now, count));
+            }
+            Some((_, c0)) if count < c0 => self.since = Some((now, count)),
+            Some(_) => {}
+            None => self.since = Some((now, count)),
+        }
+        self.rate_hz
+    }
+}
+
 fn power_name(s: Option<PowerState>) -> String {
     s.map(|p| format!("{p:?}"))
         .unwrap_or_else(|| "unknown".into())
@@ -59,6 +120,10 @@ pub(super) struct Core {
     drive_status: DriveStatus,
     can_peer: String,
     node_id: u8,
+    /// The follower's SYNC period and its quiet period (for the snapshot).
+    sync_periods: (Duration, Duration),
+    /// TPDOs per second, from `DriveStatus::tpdo_count` at the snapshot ticks.
+    tpdo_rate: CountRate,
     snapshot: watch::Sender<Snapshot>,
     snapshot_period: Duration,
     half_size_um: [f64; 3],
@@ -230,6 +295,11 @@ impl Core {
             drive,
             can_peer,
             node_id: s.follower.drive.node_id,
+            sync_periods: (
+                s.follower.drive.sync_period,
+                s.follower.drive.quiet_sync_period,
+            ),
+            tpdo_rate: CountRate::new(Duration::from_secs(1)),
             snapshot,
             snapshot_period: s.service.snapshot_period,
             half_size_um,
@@ -1162,6 +1232,7 @@ impl Core {
                 }
             });
         }
+        self.tpdo_rate.update(now, self.drive_status.tpdo_count);
         let snap = self.build_snapshot();
         self.snapshot.send_replace(snap);
     }
@@ -1206,17 +1277,12 @@ impl Core {
             .unwrap_or(0.0);
         io.errors = link_stats.errors;
         io.reconnects = link_stats.reconnects;
-        let can = LinkView {
-            state: if st.heartbeat_ok {
-                "up".into()
-            } else {
-                "no heartbeat".into()
-            },
-            peer: self.can_peer.clone(),
-            detail: st.nmt.map(|n| format!("NMT {n:?}")),
-            rate_hz: 0.0,
-            ..LinkView::default()
-        };
+        let can = can_view(
+            st,
+            self.can_peer.clone(),
+            self.sync_periods,
+            self.tpdo_rate.rate_hz,
+        );
         Snapshot {
             unix_us: now_us(),
             psd,
@@ -1321,5 +1387,51 @@ async fn bring_up(drive: DriveHandle, home: bool, mut shutdown: Shutdown) {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::canopen::NmtState;
+
+    const SYNC: (Duration, Duration) = (Duration::from_millis(10), Duration::from_millis(100));
+
+    #[test]
+    fn the_can_link_names_nmt_and_the_sync_period_in_use() {
+        let mut st = DriveStatus::default();
+        let v = can_view(&st, "peer".into(), SYNC, 0.0);
+        assert_eq!((v.state.as_str(), v.detail), ("no heartbeat", None));
+        st.heartbeat_ok = true;
+        st.nmt = Some(NmtState::Operational);
+        st.sync_running = true;
+        let v = can_view(&st, "peer".into(), SYNC, 100.0);
+        assert_eq!(v.state, "up");
+        assert_eq!(v.detail.as_deref(), Some("NMT Operational, SYNC 10 ms"));
+        assert_eq!(v.rate_hz, 100.0);
+        st.sync_quiet = true;
+        let v = can_view(&st, "peer".into(), SYNC, 10.0);
+        assert_eq!(
+            v.detail.as_deref(),
+            Some("NMT Operational, SYNC 100 ms (quiet at rest)")
+        );
+    }
+
+    #[test]
+    fn the_count_rate_is_over_whole_spans() {
+        let t0 = Instant::now();
+        let ms = Duration::from_millis;
+        let mut r = CountRate::new(Duration::from_secs(1));
+        assert_eq!(r.update(t0, 50), 0.0);
+        // Within the span the last rate holds.
+        assert_eq!(r.update(t0 + ms(500), 100), 0.0);
+        // 125 TPDOs over 1.25 s.
+        assert!((r.update(t0 + ms(1250), 175) - 100.0).abs() < 1e-9);
+        assert!((r.update(t0 + ms(1900), 180) - 100.0).abs() < 1e-9);
+        // 10 over the next 1 s: the quiet SYNC.
+        assert!((r.update(t0 + ms(2250), 185) - 10.0).abs() < 1e-9);
+        // A count that restarts (a new drive handle) starts a new span instead of going negative.
+        assert!((r.update(t0 + ms(2500), 3) - 10.0).abs() < 1e-9);
+        assert!((r.update(t0 + ms(3500), 13) - 10.0).abs() < 1e-9);
     }
 }

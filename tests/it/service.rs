@@ -256,10 +256,20 @@ async fn io_module_outage_reconnects_within_2_s() {
     rig.stop().await;
 }
 
-/// The drive's heartbeat stops: alarm in the snapshot, the follower shown lost; it comes back.
+/// The CAN link at rest shows the quiet SYNC and the drive's TPDOs at that rate; then the
+/// drive's heartbeat stops: alarm in the snapshot, the follower shown lost; it comes back.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn heartbeat_loss_raises_an_alarm_and_stops_the_follower() {
     let rig = ServiceRig::start(rig_options("overlap")).await;
+    // At rest SYNC slows from 10 ms to the default quiet 100 ms: about 10 TPDO/s, measured
+    // over whole seconds (so it takes a couple of seconds to show).
+    let s = rig
+        .wait_for(10, "the quiet SYNC on the CAN link", |s| {
+            s.links.can.detail.as_deref() == Some("NMT Operational, SYNC 100 ms (quiet at rest)")
+                && (7.0..13.0).contains(&s.links.can.rate_hz)
+        })
+        .await;
+    assert_eq!(s.links.can.state, "up");
     rig.twin.drive.set_heartbeat(false);
     let s = rig
         .wait_for(10, "the heartbeat-lost alarm", |s| {

@@ -184,10 +184,17 @@ fn link_line(name: &str, l: &LinkView, detailed: bool, theme: Theme) -> Vec<Line
     }
     let mut lines = vec![Line::from(first)];
     if detailed {
-        lines.push(Line::raw(format!(
-            "    {:.0}/s  p50 {:.0} µs  p99 {:.0} µs",
-            l.rate_hz, l.latency_p50_us, l.latency_p99_us
-        )));
+        // A link without request/reply timing (the CAN bus: the rate is its TPDOs) shows none.
+        lines.push(Line::raw(
+            if l.latency_p50_us == 0.0 && l.latency_p99_us == 0.0 {
+                format!("    {:.0}/s", l.rate_hz)
+            } else {
+                format!(
+                    "    {:.0}/s  p50 {:.0} µs  p99 {:.0} µs",
+                    l.rate_hz, l.latency_p50_us, l.latency_p99_us
+                )
+            },
+        ));
         lines.push(Line::raw(format!(
             "    {} errors, {} reconnects",
             l.errors, l.reconnects
