@@ -68,8 +68,34 @@ enum Command {
     Table(table::Command),
 }
 
+/// Let a closed standard output end the process quietly, as it ends `cat` or `grep`
+/// (`axiscomp decouple < readings.csv | head`). Rust ignores SIGPIPE, so a write into a closed
+/// pipe fails and `println!` panics with a backtrace instead. Only for commands whose last
+/// work is printing: the service, the twin and the console keep it ignored (a write into a
+/// socket whose peer left must be an error they handle, not the end of the process), and the
+/// control-socket clients call this once their request is answered.
+pub fn stdout_closes_quietly() {
+    // SAFETY: restoring a signal's default action has no memory effects; the CLI installs no
+    // SIGPIPE handler of its own.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 /// Run a parsed command line.
 pub fn run(cli: Cli) -> Result<()> {
+    if matches!(
+        cli.command,
+        Command::Optics(_)
+            | Command::Calibrate(_)
+            | Command::Decouple(_)
+            | Command::Evaluate(_)
+            | Command::Check(_)
+            | Command::Report(_)
+            | Command::Export(_)
+    ) {
+        stdout_closes_quietly();
+    }
     match cli.command {
         Command::Demo(a) => demo::run(a),
         Command::Optics(c) => optics::run(c),

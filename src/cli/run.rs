@@ -123,6 +123,7 @@ pub fn run(c: Command) -> Result<()> {
         let mut c = Client::connect(&socket).await?;
         c.request(&req).await
     })?;
+    super::stdout_closes_quietly();
     println!("{}", serde_json::to_string_pretty(&v)?);
     Ok(())
 }

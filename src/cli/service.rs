@@ -298,6 +298,7 @@ pub fn status(a: StatusArgs) -> Result<()> {
         let mut c = Client::connect(&socket).await?;
         c.status().await
     })?;
+    super::stdout_closes_quietly();
     if a.json {
         println!("{}", serde_json::to_string_pretty(&snap)?);
     } else {

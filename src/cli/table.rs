@@ -116,6 +116,7 @@ pub fn run(c: Command) -> Result<()> {
             ClientError::Refused(m) => anyhow::Error::from(InputError(m)),
             e => e.into(),
         })?;
+    super::stdout_closes_quietly();
     if at.json {
         println!("{}", serde_json::to_string_pretty(&v)?);
     }

@@ -517,3 +517,44 @@ fn check_validates_the_cnc_map() {
         stdout(&o)
     );
 }
+
+/// A reader that leaves early (`axiscomp decouple < readings.csv | head -1`) ends the command
+/// as it ends `cat`: by SIGPIPE, with nothing on standard error, not with a panic's backtrace.
+#[test]
+fn a_closed_stdout_ends_a_filter_quietly() {
+    use std::io::{BufRead, BufReader};
+    use std::os::unix::process::ExitStatusExt;
+    use std::process::Stdio;
+    let mut child = crate::helpers::bin()
+        .args(["decouple", "--simulated"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn axiscomp");
+    // Far more output than a pipe buffers, so the command is still writing when we leave.
+    let mut input = String::from("X1_um,Y1_um,X2_um,Y2_um,X3_um,Y3_um\n");
+    for k in 0..20_000 {
+        input.push_str(&format!("{k},0,0,0,0,0\n"));
+    }
+    let mut stdin = child.stdin.take().expect("stdin");
+    let feeder = std::thread::spawn(move || {
+        // The command may be gone before it has read everything: that is the point.
+        let _ = std::io::Write::write_all(&mut stdin, input.as_bytes());
+    });
+    let mut out = BufReader::new(child.stdout.take().expect("stdout"));
+    let mut header = String::new();
+    out.read_line(&mut header).expect("the header line");
+    assert!(header.starts_with("dx"), "{header}");
+    drop(out);
+    let o = child.wait_with_output().expect("wait axiscomp");
+    let _ = feeder.join();
+    let err = stderr(&o);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(
+        o.status.signal(),
+        Some(libc::SIGPIPE),
+        "{:?}: {err}",
+        o.status
+    );
+}
