@@ -18,6 +18,7 @@
 //! and `util`.
 
 pub mod acquire;
+pub mod align;
 pub mod calibrate;
 pub mod can;
 pub mod canopen;

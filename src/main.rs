@@ -11,7 +11,7 @@ fn main() -> ExitCode {
     match cli::run(args) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("axiscomp: {e:#}");
+            eprintln!("axiscomp: {}", cli::one_line(&e));
             ExitCode::from(cli::exit_code(&e))
         }
     }

@@ -114,6 +114,20 @@ pub fn run(cli: Cli) -> Result<()> {
     }
 }
 
+/// The error and its causes on one line, each cause once: an error whose message already
+/// quotes its cause (`"{pass} run: {source}"`) is not followed by the cause again.
+pub fn one_line(e: &anyhow::Error) -> String {
+    let mut out = e.to_string();
+    for cause in e.chain().skip(1) {
+        let c = cause.to_string();
+        if !out.contains(&c) {
+            out.push_str(": ");
+            out.push_str(&c);
+        }
+    }
+    out
+}
+
 /// 2 for input the user must fix, 1 for anything else.
 pub fn exit_code(e: &anyhow::Error) -> u8 {
     use axiscomp::calibrate::CalError;
@@ -158,4 +172,26 @@ pub fn load_layout(path: Option<&Path>) -> Result<axiscomp::optics::Layout> {
             }
         }
     })
+}
+
+#[cfg(test)]
+mod tests {
+    #[derive(Debug, thiserror::Error)]
+    #[error("the run failed: {0}")]
+    struct Outer(#[source] Inner);
+
+    #[derive(Debug, thiserror::Error)]
+    #[error("PSD2 lost the spot")]
+    struct Inner;
+
+    #[test]
+    fn one_line_says_each_cause_once() {
+        let e = anyhow::Error::new(Outer(Inner)).context("before run");
+        assert_eq!(
+            super::one_line(&e),
+            "before run: the run failed: PSD2 lost the spot"
+        );
+        let plain = anyhow::Error::new(Inner).context("demo");
+        assert_eq!(super::one_line(&plain), "demo: PSD2 lost the spot");
+    }
 }

@@ -336,6 +336,15 @@ impl RunMachine {
     /// A frame estimate from the live pipeline.
     /// The stitch changed under a capture (a handover was measured): frames from before it
     /// are not averaged with those after.
+    /// A pause: a capture in progress is dropped (it is taken again when the run goes on).
+    pub fn interrupt(&mut self) {
+        if matches!(self.phase, Phase::Averaging { .. }) {
+            self.acc = Acc::default();
+            self.set_nominal(None);
+            self.phase = Phase::Watch;
+        }
+    }
+
     pub fn restart_average(&mut self) {
         if matches!(self.phase, Phase::Averaging { .. }) {
             self.acc = Acc::default();

@@ -32,6 +32,14 @@ impl Direction {
             Direction::Down => "-",
         }
     }
+
+    /// "upwards" or "downwards".
+    pub fn words(self) -> &'static str {
+        match self {
+            Direction::Up => "upwards",
+            Direction::Down => "downwards",
+        }
+    }
 }
 
 /// One capture: the stable mean of the six errors at one target, in one run and direction.

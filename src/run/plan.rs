@@ -99,6 +99,24 @@ impl TargetKey {
             direction: c.direction,
         }
     }
+
+    /// In words, with the target's position from `plan`: `run 1, target 8 at 700.000 mm,
+    /// approached upwards`.
+    pub fn describe(&self, plan: &Plan) -> String {
+        let at = plan
+            .targets
+            .get(self.target_index as usize)
+            .map(|t| format!(" at {t:.3} mm"))
+            .unwrap_or_default();
+        format!("{self}{at}, approached {}", self.direction.words())
+    }
+}
+
+impl std::fmt::Display for TargetKey {
+    /// `run 1, target 8` (targets counted from 1, as the plan lists them).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "run {}, target {}", self.run, self.target_index + 1)
+    }
 }
 
 /// A validated plan.

@@ -555,7 +555,7 @@ impl Core {
                             "captured"
                         ),
                         Ok(false) => {
-                            tracing::info!("capture {:?} was already stored", TargetKey::of(&c))
+                            tracing::info!("capture {} was already stored", TargetKey::of(&c))
                         }
                         Err(e) => self.pipeline.alarms.raise(
                             "store",
@@ -564,6 +564,10 @@ impl Core {
                     }
                 }
                 Output::Acknowledge(_) => {}
+                // The pipeline keeps the alarm; what is missing is taken by the make-up pass
+                // that follows the program.
+                Output::RunPaused(why) => tracing::warn!("{why}"),
+                Output::RunResumed => tracing::info!("every spot is back: the run goes on"),
                 Output::RunFinished => self.end_run(RunState::Finished, "all captures taken"),
                 Output::RunFailed(why) => self.end_run(RunState::Failed, &why),
             }

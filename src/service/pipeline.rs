@@ -71,6 +71,12 @@ pub enum Output {
     Captured(Capture),
     /// Handshake: tell the PLC this target code is captured.
     Acknowledge(u32),
+    /// A PSD lost its spot during the run: the run is paused (nothing is captured) until
+    /// every spot is back; the driver holds the CNC or stops the program at its next stop.
+    RunPaused(String),
+    /// Every spot is back (PSD2's stitch re-referenced by the encoder): the driver sends the
+    /// rest of the cycle from the next missing capture.
+    RunResumed,
     /// The active run has every capture.
     RunFinished,
     /// The active run cannot go on.
@@ -93,7 +99,14 @@ pub struct Pipeline {
     pub late_frames: u64,
     /// When a zero reference was asked for: it is taken once the window has refilled.
     zero_due: Option<Instant>,
+    /// Since when each PSD has had no spot.
+    no_spot_since: [Option<Instant>; 3],
+    /// Why the active run is paused.
+    paused: Option<String>,
 }
+
+/// A PSD without a spot for this long pauses a run (a beam cut for a moment does not).
+pub const PAUSE_AFTER: Duration = Duration::from_millis(500);
 
 impl Pipeline {
     /// A pipeline with these tracking settings, decoupler and live window.
@@ -110,6 +123,62 @@ impl Pipeline {
             last_frame: None,
             late_frames: 0,
             zero_due: None,
+            no_spot_since: [None; 3],
+            paused: None,
+        }
+    }
+
+    /// Why the active run is paused, if it is.
+    pub fn paused(&self) -> Option<&str> {
+        self.paused.as_deref()
+    }
+
+    /// Pause or resume the active run by the PSDs' spots at `now`.
+    fn judge_spots(&mut self, now: Instant) {
+        if self.run.is_none() {
+            self.paused = None;
+            return;
+        }
+        let lost: Vec<String> = (0..3)
+            .filter(|&k| {
+                self.no_spot_since[k]
+                    .is_some_and(|t| now.saturating_duration_since(t) >= PAUSE_AFTER)
+            })
+            .map(|k| format!("PSD{}", k + 1))
+            .collect();
+        match (&self.paused, lost.is_empty()) {
+            (None, false) => {
+                let msg = format!(
+                    "{} {} no spot: the run is paused; clear the beam or realign the head (axiscomp align), and it resumes at the next missing capture",
+                    lost.join(", "),
+                    if lost.len() == 1 { "has" } else { "have" }
+                );
+                self.alarms.raise("run-paused", msg.clone());
+                if lost.iter().any(|p| p == "PSD2") {
+                    // When PSD2 sees the spot again, the encoder bridges the gap.
+                    self.rereference_on_spot = true;
+                }
+                if let Some(run) = &mut self.run {
+                    run.interrupt();
+                }
+                self.drain_run();
+                self.paused = Some(msg.clone());
+                self.outputs.push_back(Output::RunPaused(msg));
+            }
+            (Some(_), true)
+                if self.no_spot_since.iter().all(Option::is_none)
+                    && !self.rereference_on_spot
+                    && self.tracker.stitch().valid =>
+            {
+                self.paused = None;
+                self.alarms.clear("run-paused");
+                self.measure.restart();
+                if let Some(run) = &mut self.run {
+                    run.restart_average();
+                }
+                self.outputs.push_back(Output::RunResumed);
+            }
+            _ => {}
         }
     }
 
@@ -139,6 +208,14 @@ impl Pipeline {
     pub fn handle_frame(&mut self, f: &Frame, late: bool) {
         let now = f.at;
         self.last_frame = Some(*f);
+        for (k, since) in self.no_spot_since.iter_mut().enumerate() {
+            match f.spots[k] {
+                Some(_) => *since = None,
+                None => {
+                    since.get_or_insert(now);
+                }
+            }
+        }
         match f.spots.iter().position(Option::is_none) {
             Some(k) => self.alarms.raise(
                 "beam-blocked",
@@ -167,6 +244,7 @@ impl Pipeline {
             self.referenced_once = self.tracker.reference();
         }
         self.drain_tracker();
+        self.judge_spots(now);
         if late {
             self.late_frames += 1;
             return;
@@ -174,7 +252,7 @@ impl Pipeline {
         match self.measure.handle_frame(f, &self.tracker.stitch(), now) {
             Ok(sample) => {
                 self.alarms.clear("decoupling");
-                if let (Some(run), Some(s)) = (self.run.as_mut(), sample) {
+                if let (Some(run), Some(s), None) = (self.run.as_mut(), sample, &self.paused) {
                     run.handle_sample(&s, now);
                     run.handle_timeout(now);
                     self.drain_run();
@@ -210,14 +288,20 @@ impl Pipeline {
                 TrackEvent::SpotLost if self.rereference_on_spot => {
                     tracing::info!("PSD2 has no spot yet: waiting for the carriage");
                 }
+                TrackEvent::SpotLost if self.run.is_some() => {
+                    // The run pauses (judge_spots); the encoder bridges the gap when the spot
+                    // is back.
+                    self.rereference_on_spot = true;
+                    self.alarms.raise(
+                        "stitch-broken",
+                        "PSD2 lost the spot during the run: positioning is bridged by the follower's encoder when it is back".into(),
+                    );
+                }
                 TrackEvent::SpotLost => {
                     self.alarms.raise(
                         "stitch-broken",
                         "PSD2 lost the spot: positioning has lost its reference; zero again (control: zero)".into(),
                     );
-                    if self.run.is_some() {
-                        self.fail_run("PSD2 lost the spot during the run".into());
-                    }
                 }
                 TrackEvent::SpotFound if self.rereference_on_spot => {
                     if self.tracker.reference_by_encoder() {
@@ -251,15 +335,12 @@ impl Pipeline {
         }
         if let Some(out) = finished {
             self.run = None;
+            if self.paused.take().is_some() {
+                self.alarms.clear("run-paused");
+            }
             self.measure.set_nominal(None);
             self.outputs.push_back(out);
         }
-    }
-
-    fn fail_run(&mut self, msg: String) {
-        self.run = None;
-        self.measure.set_nominal(None);
-        self.outputs.push_back(Output::RunFailed(msg));
     }
 
     /// A follower drive status update.
@@ -302,7 +383,7 @@ impl Pipeline {
                     "drive-rebooted",
                     "the follower drive rebooted: reconfiguring it".into(),
                 );
-                self.tracker.invalidate();
+                self.tracker.forget();
             }
             _ => {}
         }
@@ -322,6 +403,7 @@ impl Pipeline {
             return false;
         }
         self.referenced_once = true;
+        self.rereference_on_spot = false;
         self.alarms.clear("stitch-broken");
         self.measure.clear_zero();
         self.measure.restart();
@@ -362,6 +444,9 @@ impl Pipeline {
     /// Stop the active run, if any.
     pub fn abort_run(&mut self) -> bool {
         let had = self.run.take().is_some();
+        if self.paused.take().is_some() {
+            self.alarms.clear("run-paused");
+        }
         if had {
             self.measure.set_nominal(None);
         }

@@ -13,7 +13,7 @@
 //! Time is simulated in the measuring steps (a 1000 mm cycle takes seconds, not minutes);
 //! publishing is real Modbus TCP traffic on a small Tokio runtime of its own.
 
-use super::lab::{Lab, LabError, LabRun, LabSpec, Progress};
+use super::lab::{AlignRound, Lab, LabError, LabRun, LabSpec, Progress, plan_span};
 use super::plc::{TwinPlc, TwinPlcConfig, TwinPlcError};
 use crate::comp::{
     AxisMapping, CompError, CompTable, MachineAxis, PositioningMode, TableSet, TableSpec,
@@ -89,6 +89,8 @@ impl std::fmt::Display for Pass {
 /// What the loop is doing, for whoever shows progress.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Step {
+    /// A round of beam alignment over the plan's travel (before the first pass).
+    Aligning(Box<AlignRound>),
     /// Follower up and homed, the zero reference taken, for a pass.
     Ready(Pass),
     /// About once per simulated second during a run.
@@ -118,6 +120,9 @@ pub struct LoopSpec {
     pub step_mm: Option<f64>,
     /// Averaging window of the zero reference.
     pub zero_window: Duration,
+    /// Align the head over the plan's travel before the first pass, in at most this many
+    /// rounds (0: do not; the pre-run check still runs).
+    pub align_rounds: usize,
 }
 
 /// One measuring run and its evaluation.
@@ -143,6 +148,8 @@ pub struct LoopResult {
     pub tables: TableSet,
     pub published: Vec<Published>,
     pub after: Measured,
+    /// How the head was mounted at the start and after the alignment (the twin's truth).
+    pub mount: [crate::align::Mount; 2],
 }
 
 /// The figures the loop is judged by (mm and rad, the crate's internal units).
@@ -196,7 +203,9 @@ pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, Lo
         pass: Pass::Before,
         source,
     })?;
+    let mount_at_start = lab.plant.mount();
     let before = measure(&mut lab, spec, Pass::Before, &mut step)?;
+    let mount_aligned = lab.plant.mount();
     let tables = build_tables(
         &before.eval,
         &TableSpec {
@@ -214,6 +223,7 @@ pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, Lo
         tables,
         published,
         after,
+        mount: [mount_at_start, mount_aligned],
     })
 }
 
@@ -227,7 +237,15 @@ fn measure(
     let lab_err = |source| LoopError::Lab { pass, source };
     if pass == Pass::Before {
         lab.bring_up().map_err(lab_err)?;
+        if spec.align_rounds > 0 {
+            lab.align(plan_span(&spec.plan), spec.align_rounds, |r| {
+                step(Step::Aligning(Box::new(r.clone())))
+            })
+            .map_err(lab_err)?;
+        }
     }
+    // Before the zero: the check may traverse the travel.
+    lab.pre_run_check(&spec.plan).map_err(lab_err)?;
     let reference = spec.plan.reference_mm;
     lab.move_carriage(reference).map_err(lab_err)?;
     lab.zero(reference, spec.zero_window).map_err(lab_err)?;

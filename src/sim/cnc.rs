@@ -256,6 +256,9 @@ pub struct Cnc {
     pub handshake: Handshake,
     pub started: Option<Instant>,
     pub finished: Option<Instant>,
+    /// Stop the program when the move in progress ends (feed hold at the next stop, then
+    /// reset), as an operator or the service does when a run pauses.
+    stop_requested: bool,
 }
 
 impl Cnc {
@@ -268,7 +271,13 @@ impl Cnc {
             handshake: Handshake::default(),
             started: None,
             finished: None,
+            stop_requested: false,
         }
+    }
+
+    /// Stop the program at its next stop: the move in progress ends, nothing after it runs.
+    pub fn stop_at_next_stop(&mut self) {
+        self.stop_requested = true;
     }
 
     /// Whether the program has ended.
@@ -295,6 +304,11 @@ impl Cnc {
                 State::Moving { until } | State::Dwelling { until } if now < until => return,
                 State::Waiting { until } if !captured && now < until => return,
                 _ => {}
+            }
+            if self.stop_requested {
+                self.state = State::Done;
+                self.finished = Some(now);
+                return;
             }
             let Some(op) = self.ops.get(self.pc).cloned() else {
                 self.state = State::Done;

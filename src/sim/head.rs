@@ -93,6 +93,10 @@ impl TwinHead {
                     })
                     .collect(),
             };
+            let mut install = install;
+            if spec.tilt_deg > 0.0 || spec.offset_mm > 0.0 {
+                factory_align(nominal, &mut install, rng);
+            }
             let truth = install.apply(nominal);
             let home = truth.forward(&Pose::default());
             let aligned = home.psd.iter().all(|s| {
@@ -137,6 +141,78 @@ impl TwinHead {
     }
 }
 
+/// The factory's alignment tolerance of the beams' and the moving mirror's angles (rad).
+const FACTORY_TOLERANCE_RAD: f64 = 20e-6;
+
+/// The spots' slopes over 1000 mm of travel with no axis error and the follower following: the
+/// beams' angles to the travel (X2, Y2 for beam A; X3, Y3 for beam B) and the moving
+/// splitter's angle to beam A (X1, Y1). Zero on a factory-aligned head.
+fn slopes(layout: &Layout) -> Option<[f64; 6]> {
+    let at = |d: f64| {
+        layout
+            .forward_unbounded(&Pose::new(Errors6::ZERO, d, d))
+            .vector()
+    };
+    let (a, b) = (at(0.0)?, at(1000.0)?);
+    Some(std::array::from_fn(|i| b[i] - a[i]))
+}
+
+/// Align the head as its maker does, before it ships: tilt the laser until beam A runs
+/// parallel to the housing's travel axis, the fold mirror until beam B does, and the moving
+/// splitter until it returns beam A on itself, each within the factory's tolerance. (A head
+/// whose two beams are not parallel cannot be aligned to any axis: over 2 m the corner cube's
+/// spot would walk off PSD3 whatever the mount.) Layouts without those elements are left.
+fn factory_align(nominal: &Layout, install: &mut Installation, rng: &mut Rng) {
+    let find = |name: &str| nominal.elements.iter().position(|e| e.name == name);
+    let (Some(laser), Some(fold), Some(splitter)) = (find("LASER"), find("M0"), find("BS2")) else {
+        return;
+    };
+    let params = [
+        (laser, 0),
+        (laser, 1),
+        (fold, 0),
+        (fold, 1),
+        (splitter, 0),
+        (splitter, 1),
+    ];
+    let tilt = |i: &Installation, (e, k): (usize, usize)| i.elements[e].tilt[k];
+    let set = |i: &mut Installation, (e, k): (usize, usize), v: f64| i.elements[e].tilt[k] = v;
+    for _ in 0..4 {
+        let Some(r) = slopes(&install.apply(nominal)) else {
+            return;
+        };
+        if r.iter().all(|v| v.abs() < 1e-6) {
+            break;
+        }
+        let h = 1e-5;
+        let mut j = nalgebra::Matrix6::zeros();
+        for (c, &p) in params.iter().enumerate() {
+            let v = tilt(install, p);
+            set(install, p, v + h);
+            let hi = slopes(&install.apply(nominal));
+            set(install, p, v - h);
+            let lo = slopes(&install.apply(nominal));
+            set(install, p, v);
+            let (Some(hi), Some(lo)) = (hi, lo) else {
+                return;
+            };
+            for row in 0..6 {
+                j[(row, c)] = (hi[row] - lo[row]) / (2.0 * h);
+            }
+        }
+        let Ok(step) = j.svd(true, true).solve(&nalgebra::Vector6::from(r), 1e-12) else {
+            return;
+        };
+        for (c, &p) in params.iter().enumerate() {
+            set(install, p, tilt(install, p) - step[c]);
+        }
+    }
+    for p in params {
+        let v = tilt(install, p) + rng.uniform(-1.0, 1.0) * FACTORY_TOLERANCE_RAD;
+        set(install, p, v);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -158,6 +234,30 @@ mod tests {
             .flat_map(|e| e.offset)
             .fold(0.0_f64, |m, x| m.max(x.abs()));
         assert!(max_off > 0.3 && max_off <= 0.5);
+    }
+
+    #[test]
+    fn random_heads_leave_the_factory_aligned() {
+        // Over 1000 mm the spots walk by at most twice the tolerance times the lever (µm), where
+        // unaligned 0.2° tilts would walk them by millimetres.
+        let l = Layout::reference();
+        for seed in 1..6 {
+            let h =
+                TwinHead::random(&l, &InstallSpec::default(), 1e-3, &mut Rng::new(seed)).unwrap();
+            let s = slopes(&h.truth).unwrap();
+            let worst = s.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+            assert!(worst < 0.12, "seed {seed}: {s:?}");
+        }
+        let mut rng = Rng::new(3);
+        let mut i = Installation::none(&l);
+        for e in &mut i.elements {
+            e.tilt = [2e-3, -3e-3, 1e-3];
+        }
+        let before = slopes(&i.apply(&l)).unwrap();
+        assert!(before.iter().any(|v| v.abs() > 1.0), "{before:?}");
+        factory_align(&l, &mut i, &mut rng);
+        let after = slopes(&i.apply(&l)).unwrap();
+        assert!(after.iter().all(|v| v.abs() < 0.12), "{after:?}");
     }
 
     #[test]

@@ -16,12 +16,14 @@ use super::drive::{TwinDrive, TwinDriveConfig};
 use super::plant::{Plant, PlantSpec, Truth};
 use crate::acquire::IoMap;
 use crate::acquire::decode::{Reading, encode, frame};
+use crate::align::{Advice, AlignSettings, Check, Observed, SpotSource, Station};
 use crate::canopen::{Command, DriveConfig, DriveError, DriveStatus, Event, Master, OpId};
 use crate::config::Settings;
 use crate::decouple::Decoupler;
 use crate::optics::Layout;
-use crate::run::program::{CaptureMode, generate};
-use crate::run::{Capture, CaptureSettings, Dialect, Plan, RunMachine};
+use crate::optics::Spot;
+use crate::run::program::{CaptureMode, generate, generate_settled, makeup_steps, remaining_steps};
+use crate::run::{Capture, CaptureSettings, Dialect, Plan, RunMachine, TargetKey};
 use crate::service::pipeline::{Output, Pipeline, now_us};
 use crate::track::{FollowerCommand, HandoverRecord, TrackSettings};
 use std::collections::BTreeSet;
@@ -44,8 +46,18 @@ pub enum LabError {
     Program(String),
     #[error("the run failed: {0}")]
     RunFailed(String),
-    #[error("the program ended with {missing} captures missing (first: {first})")]
-    Missing { missing: usize, first: String },
+    #[error("{missing} captures still missing after {tries} make-up passes (first: {first})")]
+    Missing {
+        missing: usize,
+        tries: u32,
+        first: String,
+    },
+    #[error("the pre-run check refused the run: {check}; align the head first (axiscomp align)")]
+    Refused { check: String },
+    #[error("the alignment did not pass in {rounds} rounds: {check}")]
+    NotAligned { rounds: usize, check: String },
+    #[error("alignment: {0}")]
+    Align(#[from] crate::align::AlignError),
     #[error("I/O map: {0}")]
     Io(String),
     #[error("the lab's clock stalled at {0:?}: a state machine keeps asking for the same instant")]
@@ -137,9 +149,11 @@ impl LabSpec {
             start_mm: 2.0,
             ..TwinDriveConfig::default()
         };
-        Ok(LabSpec::with_parts(
-            &layout, plant, drive, map, &settings, decoupler,
-        ))
+        let mut spec = LabSpec::with_parts(&layout, plant, drive, map, &settings, decoupler);
+        // The follower's stage covers the twin's axis (it follows the carriage all the way).
+        let limits = &mut spec.drive.limits;
+        limits.max_mm = limits.max_mm.max(spec.plant.axis.length_mm + 100.0);
+        Ok(spec)
     }
 }
 
@@ -203,6 +217,8 @@ struct Plc {
 
 /// The lab.
 pub struct Lab {
+    /// The head's nominal layout (what the service knows of it).
+    layout: Layout,
     t0: Instant,
     unix0_us: i64,
     now: Instant,
@@ -227,6 +243,31 @@ pub struct Lab {
     pub stats: LabStats,
     /// Every frame, when set to `Some` (off by default: it grows by a row per frame).
     pub trace: Option<Vec<TraceRow>>,
+    /// The spots of every frame while a station is read.
+    spot_log: Option<Vec<[Option<Spot>; 3]>>,
+    /// The last alignment check that passed.
+    alignment: Option<Check>,
+    /// How the lab's technician aligns the head.
+    pub align: AlignSettings,
+    /// The lab's technician realigns a head whose spots left their PSDs during a run (the
+    /// targets show the beam off the PSD, not blocked), instead of waiting for them.
+    pub realign_when_paused: bool,
+    /// What the last run went through: pauses (with why) and resumptions.
+    pub pauses: Vec<String>,
+    /// The last run's programs after the first (resumed and make-up ones).
+    pub extra_programs: usize,
+}
+
+/// A station is read over this long with the carriage at rest.
+const STATION_WINDOW: Duration = Duration::from_millis(500);
+/// A make-up pass is sent for a missing capture at most this many times (as the service).
+const MAKEUP_TRIES: u32 = 3;
+
+/// One round of alignment: what the spots read and what the technician was told.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AlignRound {
+    pub stations: Vec<Station>,
+    pub advice: Advice,
 }
 
 impl std::fmt::Debug for Lab {
@@ -259,6 +300,7 @@ impl Lab {
             )));
         }
         Ok(Lab {
+            layout: spec.layout.clone(),
             t0,
             unix0_us: now_us(),
             now: t0,
@@ -281,6 +323,12 @@ impl Lab {
             pending_follow: None,
             stats: LabStats::default(),
             trace: None,
+            spot_log: None,
+            alignment: None,
+            align: AlignSettings::default(),
+            realign_when_paused: true,
+            pauses: Vec::new(),
+            extra_programs: 0,
         })
     }
 
@@ -401,6 +449,9 @@ impl Lab {
         match f {
             Ok(f) => {
                 self.stats.frames += 1;
+                if let Some(log) = self.spot_log.as_mut() {
+                    log.push(f.spots);
+                }
                 self.pipeline.handle_frame(&f, false);
                 if let Some(rows) = self.trace.as_mut() {
                     let st = self.pipeline.tracker.stitch();
@@ -491,6 +542,13 @@ impl Lab {
                     truth: self.plant.truth(now),
                 }),
                 Output::Acknowledge(code) => self.plc.acknowledged = Some(code),
+                Output::RunPaused(why) => {
+                    self.pauses.push(why);
+                    if let Some(cnc) = self.cnc.as_mut() {
+                        cnc.stop_at_next_stop();
+                    }
+                }
+                Output::RunResumed => {}
                 Output::RunFinished => self.run_end = Some(Ok(())),
                 Output::RunFailed(why) => self.run_end = Some(Err(why)),
             }
@@ -517,7 +575,8 @@ impl Lab {
     }
 
     /// Bring the follower up as the service does: configure, start, enable, home; then wait
-    /// until the tracker has taken its reference (the spot on PSD2, the follower at rest).
+    /// until the tracker has taken its reference (the spot on PSD2, the follower at rest) —
+    /// on a head not aligned yet, as long as PSD2 can be brought to its spot.
     pub fn bring_up(&mut self) -> Result<(), LabError> {
         let t = Duration::from_secs(30);
         for cmd in [
@@ -528,9 +587,23 @@ impl Lab {
         ] {
             self.command(cmd, t)?;
         }
-        self.advance_until("the stitch's first reference", t, |lab| {
-            lab.pipeline.tracker.stitch().valid
-        })
+        let referenced = |lab: &Lab| lab.pipeline.tracker.stitch().valid;
+        if self
+            .advance_until(
+                "the stitch's first reference",
+                Duration::from_secs(5),
+                referenced,
+            )
+            .is_ok()
+        {
+            return Ok(());
+        }
+        // PSD2 shows no spot: a head not aligned yet. The technician brings the follower to
+        // the spot when its target shows it; the zero reference takes the stitch's reference
+        // after the alignment.
+        self.find_psd2_spot()?;
+        let _ = self.advance_until("the stitch's first reference", t, referenced);
+        Ok(())
     }
 
     /// Move the carriage to `mm` (as a jog would) and wait until it and the follower are at
@@ -583,6 +656,12 @@ impl Lab {
     /// Measure `plan`: the CNC runs the program the service generates for it (`dialect`,
     /// stability or handshake capture), the pipeline captures. `progress` is called about
     /// once per simulated second.
+    ///
+    /// The run starts only when the pre-run check passes ([`Lab::pre_run_check`]). A spot lost
+    /// on the way pauses it: the program stops at its next stop, the lab's technician clears
+    /// the beam's way (waits), brings the follower back to the spot or realigns the head, and
+    /// the rest of the cycle runs from the next missing capture. Captures still missing when
+    /// a program ends are taken by make-up passes, as the service does.
     pub fn measure(
         &mut self,
         plan: &Plan,
@@ -590,16 +669,16 @@ impl Lab {
         mode: CaptureMode,
         mut progress: impl FnMut(Progress),
     ) -> Result<LabRun, LabError> {
+        self.pre_run_check(plan)?;
         let text = generate(plan, dialect, mode).map_err(|e| LabError::Program(e.to_string()))?;
-        let ops =
-            parse(&text, dialect, &plan.spec.axis).map_err(|e| LabError::Program(e.to_string()))?;
         let handshake = matches!(mode, CaptureMode::Handshake(_));
         self.captures.clear();
         self.handovers.clear();
+        self.pauses.clear();
+        self.extra_programs = 0;
         self.run_end = None;
-        self.plc = Plc::default();
         let started = self.now;
-        self.cnc = Some(Cnc::new(ops));
+        self.load(&text, plan, dialect)?;
         self.pipeline.start_run(RunMachine::new(
             plan.clone(),
             self.capture,
@@ -607,10 +686,16 @@ impl Lab {
             BTreeSet::new(),
         ));
         self.pump();
-        // Generous: the whole motion and dwell time twice over, plus the capture timeout.
-        let limit = Duration::from_secs_f64(2.0 * plan.motion_time_s(self.plant.spec.accel))
-            + self.capture.timeout;
+        // Generous: the whole motion and dwell time three times over, the capture timeout,
+        // and ten minutes for pauses.
+        let limit = Duration::from_secs_f64(3.0 * plan.motion_time_s(self.plant.spec.accel))
+            + self.capture.timeout
+            + Duration::from_secs(600);
         let expected = plan.capture_count();
+        let mut makeup_for: std::collections::BTreeMap<TargetKey, u32> = Default::default();
+        // A program stopped by a pause is followed by the rest of the cycle.
+        let mut stopped_by_pause = false;
+        let mut next_recovery = self.now;
         let result = loop {
             if let Some(end) = self.run_end.take() {
                 break end.map_err(LabError::RunFailed);
@@ -621,7 +706,17 @@ impl Lab {
                     within: limit,
                 });
             }
-            if self.cnc.as_ref().is_some_and(Cnc::is_done)
+            let cnc_done = self.cnc.as_ref().is_none_or(Cnc::is_done);
+            if self.pipeline.paused().is_some() {
+                stopped_by_pause = true;
+                if cnc_done && self.now >= next_recovery {
+                    if let Err(e) = self.recover(plan) {
+                        self.pipeline.abort_run();
+                        break Err(e);
+                    }
+                    next_recovery = self.now + Duration::from_secs(2);
+                }
+            } else if cnc_done
                 && self.now
                     > self
                         .cnc
@@ -632,14 +727,43 @@ impl Lab {
                         + self.live_window_bound()
             {
                 let missing = self.pipeline.run_missing().unwrap_or_default();
-                self.pipeline.abort_run();
-                break Err(LabError::Missing {
-                    missing: missing.len(),
-                    first: missing
-                        .first()
-                        .map(|k| format!("{k:?}"))
-                        .unwrap_or_default(),
-                });
+                let next = if stopped_by_pause {
+                    stopped_by_pause = false;
+                    let done: BTreeSet<TargetKey> = self
+                        .captures
+                        .iter()
+                        .map(|c| TargetKey::of(&c.capture))
+                        .collect();
+                    remaining_steps(plan, &done).map(|steps| (steps, "resumed".to_string()))
+                } else {
+                    let tries = |k: &TargetKey| makeup_for.get(k).copied().unwrap_or(0);
+                    if missing.iter().all(|k| tries(k) >= MAKEUP_TRIES) {
+                        self.pipeline.abort_run();
+                        break Err(LabError::Missing {
+                            missing: missing.len(),
+                            tries: MAKEUP_TRIES,
+                            first: missing
+                                .first()
+                                .map(|k| k.describe(plan))
+                                .unwrap_or_default(),
+                        });
+                    }
+                    let pass = missing.iter().map(tries).min().unwrap_or(0) + 1;
+                    for k in &missing {
+                        *makeup_for.entry(*k).or_insert(0) += 1;
+                    }
+                    Some((
+                        makeup_steps(plan, &missing, plan.spec.overrun_mm),
+                        format!("make-up {pass}"),
+                    ))
+                };
+                if let Some((steps, note)) = next {
+                    let text =
+                        generate_settled(plan, &steps, &note, dialect, mode, plan.spec.dwell_s)
+                            .map_err(|e| LabError::Program(e.to_string()))?;
+                    self.load(&text, plan, dialect)?;
+                    self.extra_programs += 1;
+                }
             }
             if let Err(e) = self.advance(Duration::from_secs(1)) {
                 self.pipeline.abort_run();
@@ -669,8 +793,235 @@ impl Lab {
         })
     }
 
+    /// Load a part program into the CNC (which starts it at once).
+    fn load(&mut self, text: &str, plan: &Plan, dialect: Dialect) -> Result<(), LabError> {
+        let ops =
+            parse(text, dialect, &plan.spec.axis).map_err(|e| LabError::Program(e.to_string()))?;
+        self.plc = Plc::default();
+        self.cnc = Some(Cnc::new(ops));
+        Ok(())
+    }
+
+    /// A paused run, its program stopped: what the technician does. A beam that shows on no
+    /// target is blocked: wait. PSD2's spot on its target only: bring the follower to it. PSD1's
+    /// or PSD3's spot on its target: the head moved on its mount: realign over the plan's
+    /// travel and take the zero again at the plan's reference.
+    fn recover(&mut self, plan: &Plan) -> Result<(), LabError> {
+        let spots = self
+            .pipeline
+            .last_frame
+            .map(|f| f.spots)
+            .unwrap_or([None; 3]);
+        let targets = self.plant.target_readings(self.now);
+        let off = |k: usize| spots[k].is_none() && targets[k].is_some();
+        let blocked = (0..3).any(|k| spots[k].is_none() && targets[k].is_none());
+        if blocked {
+            return Ok(());
+        }
+        if self.realign_when_paused && (off(0) || off(2)) {
+            let span = plan_span(plan);
+            self.align(span, 8, |_| {})?;
+            self.move_carriage(plan.reference_mm)?;
+            self.zero(plan.reference_mm, Duration::from_millis(500))?;
+            return Ok(());
+        }
+        if off(1) {
+            self.find_psd2_spot()?;
+        }
+        Ok(())
+    }
+
+    /// PSD2 shows no spot: the technician reads it on PSD2's target and moves the follower by
+    /// as much (X2 grows as the follower falls behind the carriage); when the target shows
+    /// nothing either, the follower goes to where the carriage is first.
+    fn find_psd2_spot(&mut self) -> Result<(), LabError> {
+        if self.psd2_sees_spot() {
+            return Ok(());
+        }
+        if self.pipeline.paused().is_none() {
+            self.pipeline
+                .invalidate_stitch("the follower was moved to find the spot: zero again");
+        }
+        for _ in 0..2 {
+            let Some(at) = self.status.position_mm else {
+                return Ok(());
+            };
+            let target = match self.plant.target_readings(self.now)[1] {
+                Some(t) => at + t.x,
+                None => self.plant.carriage(self.now).0,
+            };
+            if (target - at).abs() < 0.05 {
+                break;
+            }
+            self.command(
+                Command::SetTarget { target_mm: target },
+                Duration::from_secs(120),
+            )?;
+            if self
+                .advance_until("PSD2's spot", Duration::from_secs(1), Lab::psd2_sees_spot)
+                .is_ok()
+            {
+                break;
+            }
+        }
+        Ok(())
+    }
+
+    fn psd2_sees_spot(&self) -> bool {
+        self.pipeline
+            .last_frame
+            .is_some_and(|f| f.spots[1].is_some())
+    }
+
+    /// Move the carriage to `mm` for a reading and let it settle; bring the follower to the
+    /// spot if PSD2 lost it on the way.
+    fn goto(&mut self, mm: f64) -> Result<(), LabError> {
+        // A jog waits for a handover in progress, as an operator waits for the follower.
+        let _ = self.advance_until("the handover's end", Duration::from_secs(10), |lab| {
+            !lab.pipeline.tracker.handing_over()
+        });
+        self.plant.move_carriage(mm, self.now);
+        let end = self.plant.carriage_move_end();
+        if end > self.now {
+            self.advance(end - self.now)?;
+        }
+        let rest = |lab: &Lab| lab.pipeline.tracker.at_rest(lab.now);
+        if self
+            .advance_until("rest", Duration::from_secs(5), rest)
+            .is_err()
+        {
+            self.find_psd2_spot()?;
+            let _ = self.advance_until("rest", Duration::from_secs(5), rest);
+        }
+        Ok(())
+    }
+
+    /// The spots with the carriage at rest at `mm`: each PSD's mean over a short window, or
+    /// where its spot is off the PSD, what its alignment target shows.
+    pub fn read_station(&mut self, mm: f64) -> Result<Station, LabError> {
+        self.goto(mm)?;
+        self.spot_log = Some(Vec::new());
+        let r = self.advance(STATION_WINDOW);
+        let log = self.spot_log.take().unwrap_or_default();
+        r?;
+        let targets = self.plant.target_readings(self.now);
+        let spots = std::array::from_fn(|k| {
+            let valid: Vec<Spot> = log.iter().filter_map(|f| f[k]).collect();
+            if !valid.is_empty() && valid.len() * 10 >= log.len() * 9 {
+                let n = valid.len() as f64;
+                Some(Observed::psd(Spot {
+                    x: valid.iter().map(|s| s.x).sum::<f64>() / n,
+                    y: valid.iter().map(|s| s.y).sum::<f64>() / n,
+                }))
+            } else {
+                targets[k].map(|t| Observed {
+                    x: t.x,
+                    y: t.y,
+                    source: SpotSource::Target,
+                })
+            }
+        });
+        Ok(Station {
+            travel_mm: mm,
+            spots,
+        })
+    }
+
+    /// Align the head over `span` (mm) as a technician does: read the spots at both ends,
+    /// turn the screws as advised, and again, until the check passes (at most `rounds`
+    /// times). `report` hears each round. The check that passed is kept for the pre-run
+    /// check.
+    pub fn align(
+        &mut self,
+        span: (f64, f64),
+        rounds: usize,
+        mut report: impl FnMut(&AlignRound),
+    ) -> Result<Vec<AlignRound>, LabError> {
+        let mut out: Vec<AlignRound> = Vec::new();
+        for i in 0..rounds {
+            // Start at the end the carriage is nearer to.
+            let pos = self.plant.carriage(self.now).0;
+            let order = if i == 0 || (pos - span.0).abs() <= (pos - span.1).abs() {
+                [span.0, span.1]
+            } else {
+                [span.1, span.0]
+            };
+            let stations = vec![self.read_station(order[0])?, self.read_station(order[1])?];
+            let advice = crate::align::advise(&self.layout, &self.align, &stations, span)?;
+            let round = AlignRound { stations, advice };
+            report(&round);
+            let passed = round.advice.now.passed();
+            if passed {
+                self.alignment = Some(round.advice.now.clone());
+            } else {
+                for t in &round.advice.turns {
+                    self.plant.turn_screw(t.screw, t.turns);
+                }
+            }
+            out.push(round);
+            if passed {
+                return Ok(out);
+            }
+        }
+        Err(LabError::NotAligned {
+            rounds,
+            check: out
+                .last()
+                .map(|r| r.advice.now.to_string())
+                .unwrap_or_default(),
+        })
+    }
+
+    /// Before a run: the spots must stay on their PSDs over the plan's whole travel. From the
+    /// last alignment when it covers the travel, else from a quick traverse to both ends (the
+    /// carriage is brought back). Refuses with the PSD that leaves, where, and what to turn.
+    pub fn pre_run_check(&mut self, plan: &Plan) -> Result<Check, LabError> {
+        let span = plan_span(plan);
+        if let Some(c) = &self.alignment
+            && c.passed()
+            && c.span_mm.0 <= span.0 + 1e-6
+            && c.span_mm.1 >= span.1 - 1e-6
+        {
+            return Ok(c.clone());
+        }
+        let back = self.plant.carriage(self.now).0;
+        let stations = [self.read_station(span.0)?, self.read_station(span.1)?];
+        self.goto(back)?;
+        match crate::align::advise(&self.layout, &self.align, &stations, span) {
+            Ok(a) if a.now.passed() => {
+                self.alignment = Some(a.now.clone());
+                Ok(a.now)
+            }
+            Ok(a) => {
+                let turns: Vec<String> = a.turns.iter().map(ToString::to_string).collect();
+                Err(LabError::Refused {
+                    check: format!("{} (to correct: {})", a.now, turns.join(", ")),
+                })
+            }
+            Err(e) => Err(LabError::Refused {
+                check: e.to_string(),
+            }),
+        }
+    }
+
+    /// Forget the stored alignment (the head was touched).
+    pub fn forget_alignment(&mut self) {
+        self.alignment = None;
+    }
+
     /// How long averaging a capture can take after the carriage stops.
     fn live_window_bound(&self) -> Duration {
         self.frame_period * (self.capture.frames as u32 + 10)
     }
+}
+
+/// The travel a plan covers, with the overrun on both sides (mm).
+pub fn plan_span(plan: &Plan) -> (f64, f64) {
+    let lo = plan.targets.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = plan
+        .targets
+        .iter()
+        .copied()
+        .fold(f64::NEG_INFINITY, f64::max);
+    (lo - plan.spec.overrun_mm, hi + plan.spec.overrun_mm)
 }

@@ -1,6 +1,7 @@
 //! The twin's physical state, shared by its parts: the carriage on the measured axis, the
 //! follower stage carrying PSD2 (with its own positioning and vertical straightness errors),
-//! the head (installation errors, noise, laser pointing drift) and beam blockers.
+//! the head (installation errors, noise, laser pointing drift), how the head is mounted on the
+//! machine (a misalignment drawn at random, adjusted by turning its screws) and beam blockers.
 //!
 //! The twin's I/O module samples it (`sample`), the twin's drive sets the follower's encoder
 //! position (`set_follower_encoder`), the motion interface moves the carriage (`move_carriage`),
@@ -8,6 +9,7 @@
 
 use super::axis::{AxisProfile, AxisSpec, Carriage, Direction};
 use super::{InstallSpec, Rng, SimError, TwinHead};
+use crate::align::{Mount, MountGeometry, Screw};
 use crate::optics::geometry::{V3, rot_zyx};
 use crate::optics::layout::Kind;
 use crate::optics::{Layout, Pose, Spot};
@@ -34,6 +36,43 @@ impl Default for FollowerSpec {
     }
 }
 
+/// How far from aligned the head is mounted (uniform within ±): yaw and pitch of the head's
+/// base to the axis, and its offsets across the travel.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct MountSpec {
+    pub angle_deg: f64,
+    pub offset_mm: f64,
+}
+
+impl MountSpec {
+    /// A technician's first mounting, by eye and a rule: up to 0.3° and 2 mm.
+    pub fn by_eye() -> MountSpec {
+        MountSpec {
+            angle_deg: 0.3,
+            offset_mm: 2.0,
+        }
+    }
+}
+
+/// How much a real mount's screws differ from their nominal travel per turn (±), and how far
+/// its pivot is from the nominal one (mm, ±).
+const SCREW_ERROR: f64 = 0.05;
+const PIVOT_ERROR_MM: f64 = 20.0;
+
+/// The ruled alignment target in front of each PSD: its half-size and the resolution a
+/// technician reads it to (mm).
+pub const TARGET_HALF_MM: f64 = 20.0;
+pub const TARGET_RESOLUTION_MM: f64 = 0.5;
+
+/// Something that happens to the plant at a set instant (for tests on the virtual clock).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum PlantEvent {
+    /// Block (or clear) the beams to the PSDs flagged.
+    Block([bool; 3]),
+    /// The head is knocked on its mount (rad, mm added).
+    Knock(Mount),
+}
+
 /// Everything the plant is built from.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PlantSpec {
@@ -45,6 +84,8 @@ pub struct PlantSpec {
     /// Laser pointing drift: random-walk rate (rad per √s) of the beam's two tilt angles.
     pub beam_drift_rad_per_sqrt_s: f64,
     pub follower: FollowerSpec,
+    /// The head's mounting error (none by default: aligned exactly).
+    pub mount: MountSpec,
     /// SUM signal with the beam on a PSD (V), and with it blocked.
     pub sum_on_v: f64,
     pub sum_off_v: f64,
@@ -62,6 +103,7 @@ impl Default for PlantSpec {
             noise_mm: 1e-3,
             beam_drift_rad_per_sqrt_s: 0.0,
             follower: FollowerSpec::default(),
+            mount: MountSpec::default(),
             sum_on_v: 5.0,
             sum_off_v: 0.02,
             feed: 50.0,
@@ -89,6 +131,8 @@ pub struct Truth {
     pub follower_encoder: f64,
     pub follower_true: f64,
     pub follower_vertical: f64,
+    /// How the head is mounted (rad, mm).
+    pub mount: Mount,
 }
 
 /// A correction profile along the travel (mm), linear between points, held beyond the ends;
@@ -126,6 +170,9 @@ struct State {
     compensation: Compensation,
     follower_encoder: f64,
     blocked: [bool; 3],
+    mount: Mount,
+    /// Events still to happen, in time order.
+    scheduled: Vec<(Instant, PlantEvent)>,
     rng: Rng,
     /// Beam tilt angles (rad) about the laser's u and v.
     drift: [f64; 2],
@@ -140,6 +187,8 @@ pub struct Plant {
     pub head: TwinHead,
     pub axis: AxisProfile,
     follower_shape: [(f64, f64, f64); 2],
+    /// The real mount's screws and pivot (the nominal ones with their errors).
+    pub mount_geometry: MountGeometry,
     laser: Option<usize>,
     t0: Instant,
     state: Mutex<State>,
@@ -164,6 +213,23 @@ impl Plant {
                 r.uniform(0.0, 2.0 * PI),
             ),
         ];
+        let mut r = root.fork(15);
+        let (ma, mo) = (spec.mount.angle_deg.to_radians(), spec.mount.offset_mm);
+        let mount = Mount {
+            yaw: r.uniform(-ma, ma),
+            pitch: r.uniform(-ma, ma),
+            x: r.uniform(-mo, mo),
+            z: r.uniform(-mo, mo),
+        };
+        let nominal_mount = MountGeometry::default();
+        let mount_geometry = MountGeometry {
+            pivot_mm: std::array::from_fn(|i| {
+                nominal_mount.pivot_mm[i] + r.uniform(-PIVOT_ERROR_MM, PIVOT_ERROR_MM)
+            }),
+            per_turn: std::array::from_fn(|i| {
+                nominal_mount.per_turn[i] * (1.0 + r.uniform(-SCREW_ERROR, SCREW_ERROR))
+            }),
+        };
         let laser = head
             .truth
             .elements
@@ -175,6 +241,8 @@ impl Plant {
                 compensation: Compensation::default(),
                 follower_encoder: 0.0,
                 blocked: [false; 3],
+                mount,
+                scheduled: Vec::new(),
                 rng: root.fork(14),
                 drift: [0.0; 2],
                 drift_at: now,
@@ -184,6 +252,7 @@ impl Plant {
             head,
             axis,
             follower_shape,
+            mount_geometry,
             laser,
             t0: now,
         })
@@ -259,6 +328,87 @@ impl Plant {
         }
     }
 
+    /// Make `event` happen at `at` (it takes effect at the first sample from then on).
+    pub fn schedule(&self, at: Instant, event: PlantEvent) {
+        let mut s = self.lock();
+        s.scheduled.push((at, event));
+        s.scheduled.sort_by_key(|(t, _)| *t);
+    }
+
+    fn apply_due(s: &mut State, now: Instant) {
+        while s.scheduled.first().is_some_and(|(t, _)| *t <= now) {
+            let (_, e) = s.scheduled.remove(0);
+            match e {
+                PlantEvent::Block(b) => s.blocked = b,
+                PlantEvent::Knock(m) => s.mount = s.mount.plus(m),
+            }
+        }
+    }
+
+    /// Turn one of the mount's screws by `turns` (clockwise positive), as a technician does.
+    pub fn turn_screw(&self, screw: Screw, turns: f64) {
+        if turns.is_finite() {
+            let amount = self.mount_geometry.amount(screw, turns);
+            let mut s = self.lock();
+            s.mount = s.mount.adjusted(screw, amount);
+        }
+    }
+
+    /// Knock the head on its mount (rad, mm added).
+    pub fn knock(&self, by: Mount) {
+        let mut s = self.lock();
+        s.mount = s.mount.plus(by);
+    }
+
+    /// How the head is mounted now.
+    pub fn mount(&self) -> Mount {
+        self.lock().mount
+    }
+
+    /// What the alignment target in front of each PSD shows at `now`: the spot (mm, to the
+    /// target's resolution) when the beam reaches the PSD's plane within the target, whether
+    /// or not it is on the PSD's active area.
+    pub fn target_readings(&self, now: Instant) -> [Option<Spot>; 3] {
+        let s = self.lock();
+        let t = self.truth_locked(&s, now);
+        let layout = &s.layout;
+        let r = layout.forward(&self.head_pose(&s, &t));
+        let round = |v: f64| (v / TARGET_RESOLUTION_MM).round() * TARGET_RESOLUTION_MM;
+        std::array::from_fn(|k| {
+            if s.blocked[k] {
+                return None;
+            }
+            let on_plane = match r.psd[k] {
+                Ok(spot) => Some(spot),
+                Err(inv) => match inv.kind {
+                    crate::optics::trace::InvalidKind::OffActiveArea { x, y } => {
+                        Some(Spot { x, y })
+                    }
+                    _ => None,
+                },
+            }?;
+            (on_plane.x.abs() <= TARGET_HALF_MM && on_plane.y.abs() <= TARGET_HALF_MM).then(|| {
+                Spot {
+                    x: round(on_plane.x),
+                    y: round(on_plane.y),
+                }
+            })
+        })
+    }
+
+    /// The pose the head sees: the axis' errors through the mount, PSD2 where it really is.
+    fn head_pose(&self, s: &State, t: &Truth) -> Pose {
+        let l = &self.head.truth;
+        let e = s.mount.head_pose(
+            self.mount_geometry.pivot(),
+            l.c,
+            l.travel_axis,
+            t.travel,
+            &t.errors,
+        );
+        Pose::new(e, t.travel, t.follower_true)
+    }
+
     /// The truth at `now`.
     pub fn truth(&self, now: Instant) -> Truth {
         let s = self.lock();
@@ -288,6 +438,7 @@ impl Plant {
             follower_encoder: s.follower_encoder,
             follower_true: s.follower_encoder + fu,
             follower_vertical: fv,
+            mount: s.mount,
         }
     }
 
@@ -311,10 +462,10 @@ impl Plant {
     /// What the three PSDs deliver at `now`, with noise.
     pub fn sample(&self, now: Instant) -> PsdSample {
         let mut s = self.lock();
+        Plant::apply_due(&mut s, now);
         self.update_drift(&mut s, now);
         let t = self.truth_locked(&s, now);
-        let pose = Pose::new(t.errors, t.travel, t.follower_true);
-        let r = s.layout.forward(&pose);
+        let r = s.layout.forward(&self.head_pose(&s, &t));
         let mut spots = [None; 3];
         let mut sums = [self.spec.sum_off_v; 3];
         for k in 0..3 {

@@ -249,6 +249,9 @@ pub struct Tracker {
     follower_mm: f64,
     /// The encoder position at the reference (mm).
     reference_encoder: f64,
+    /// Overlap: the encoder position where PSD2 stood at `follower_mm` (the last handover's
+    /// end, or the reference), when the stitch has been referenced.
+    stitch_encoder: Option<f64>,
     vertical_mm: f64,
     variance: [f64; 2],
     handovers: usize,
@@ -275,6 +278,7 @@ impl Tracker {
             encoder_before: 0.0,
             follower_mm: 0.0,
             reference_encoder: 0.0,
+            stitch_encoder: None,
             vertical_mm: 0.0,
             variance: [0.0; 2],
             handovers: 0,
@@ -301,12 +305,28 @@ impl Tracker {
     }
 
     /// Re-reference after the stitch was broken in the middle of something (a service restart
-    /// in a run): PSD2 is where the encoder says, the encoder bridging the gap with its
-    /// uncertainty over the distance from its home.
+    /// in a run, a spot lost and found again): PSD2 is where the encoder says, the encoder
+    /// bridging the gap with its uncertainty over the distance. A stitch referenced before
+    /// keeps what it had measured (overlap: the stitched position and the vertical offset),
+    /// moved on by the encoder's increment since; otherwise the encoder is taken from its
+    /// home.
     pub fn reference_by_encoder(&mut self) -> bool {
         let Some(f) = self.follower else {
             return false;
         };
+        if let (Strategy::Overlap, Some(at)) = (self.settings.strategy, self.stitch_encoder) {
+            if self.lost {
+                return false;
+            }
+            let moved = f.position_mm - at;
+            let e = self.encoder_var(moved);
+            self.follower_mm += moved;
+            self.stitch_encoder = Some(f.position_mm);
+            self.variance = [self.variance[0] + e[0], self.variance[1] + e[1]];
+            self.valid = true;
+            self.phase = Phase::Watch;
+            return true;
+        }
         if !self.reference() {
             return false;
         }
@@ -322,6 +342,7 @@ impl Tracker {
         };
         self.follower_mm = f.position_mm;
         self.reference_encoder = f.position_mm;
+        self.stitch_encoder = Some(f.position_mm);
         self.vertical_mm = 0.0;
         self.variance = [0.0; 2];
         self.handovers = 0;
@@ -335,6 +356,13 @@ impl Tracker {
     pub fn invalidate(&mut self) {
         self.valid = false;
         self.phase = Phase::Watch;
+    }
+
+    /// Forget the stitch altogether (the follower's encoder may have a new origin: a drive
+    /// that rebooted homes again): only a new reference makes it valid.
+    pub fn forget(&mut self) {
+        self.invalidate();
+        self.stitch_encoder = None;
     }
 
     /// Where PSD2 is now.
@@ -370,6 +398,12 @@ impl Tracker {
             strategy: self.settings.strategy,
             valid: self.valid && !self.lost,
         }
+    }
+
+    /// Whether a handover is under way (the follower stepping or settling): a carriage that
+    /// starts to move now may leave PSD2 before the follower follows.
+    pub fn handing_over(&self) -> bool {
+        self.in_flight_from().is_some()
     }
 
     /// Overlap: the encoder position the follower left the stitched position from, while a
@@ -710,6 +744,9 @@ impl Tracker {
 
     fn apply(&mut self, r: HandoverRecord) {
         self.follower_mm += r.delta[0];
+        if self.stitch_encoder.is_some() {
+            self.stitch_encoder = Some(r.encoder_after);
+        }
         self.vertical_mm += r.delta[1];
         self.variance[0] += r.variance[0];
         self.variance[1] += r.variance[1];

@@ -257,6 +257,7 @@ fn closed_loop_case(length_mm: f64, targets: usize, runs: u32, step_mm: f64) {
         // at the (irregular) targets.
         step_mm: Some(step_mm),
         zero_window: Duration::from_millis(500),
+        align_rounds: 0,
     };
     let r = closed_loop::run(&spec, |_| {}).expect("the loop");
     let (b, a) = (r.before.figures, r.after.figures);

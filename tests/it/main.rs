@@ -4,6 +4,7 @@ mod helpers;
 mod lab;
 
 mod acquire;
+mod align;
 mod calibration;
 mod can;
 mod canopen;

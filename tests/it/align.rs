@@ -1,0 +1,291 @@
+//! Long axes on any head: the twin's head mounted by eye (within 0.3° and 2 mm), aligned from
+//! the spots at both ends of the travel, checked before a run starts, and runs that pause —
+//! never fail — when a spot is lost, on the virtual clock and judged by the twin's truth.
+
+use axiscomp::decouple::{Decoupler, Method, SolveOptions, Source};
+use axiscomp::optics::Layout;
+use axiscomp::run::program::CaptureMode;
+use axiscomp::run::{Dialect, Plan, PlanSpec, TargetKey};
+use axiscomp::sim::InstallSpec;
+use axiscomp::sim::axis::AxisSpec;
+use axiscomp::sim::lab::{Lab, LabError, LabRun, LabSpec, plan_span};
+use axiscomp::sim::plant::{MountSpec, Plant, PlantEvent, PlantSpec, Truth};
+use std::collections::BTreeSet;
+use std::time::Duration;
+
+/// A lab whose head has the twin's random installation errors, is decoupled with its true
+/// installation (as after a good calibration: the subject here is the mount), and is
+/// mounted on a `length_mm` axis by eye, or exactly when `mount` is `None`.
+fn lab(seed: u64, length_mm: f64, mount: Option<MountSpec>) -> Lab {
+    lab_with(seed, length_mm, mount, InstallSpec::default())
+}
+
+fn lab_with(seed: u64, length_mm: f64, mount: Option<MountSpec>, install: InstallSpec) -> Lab {
+    let plant = PlantSpec {
+        seed,
+        axis: AxisSpec {
+            length_mm,
+            ..AxisSpec::default()
+        },
+        install,
+        mount: mount.unwrap_or_default(),
+        ..PlantSpec::default()
+    };
+    let head = Plant::draw_head(&Layout::reference(), &plant).expect("head");
+    let decoupler = Decoupler {
+        source: Source::Model(head.truth.clone()),
+        method: Method::Nonlinear,
+        sigma_mm: [plant.noise_mm; 6],
+        options: SolveOptions::default(),
+    };
+    let spec = LabSpec::standard(plant, Some(decoupler)).expect("spec");
+    let mut lab = Lab::new(&spec).expect("lab");
+    lab.bring_up().expect("bring-up");
+    lab
+}
+
+fn plan(end_mm: f64, targets: usize, runs: u32) -> Plan {
+    Plan::new(PlanSpec {
+        axis: "X".into(),
+        start_mm: 0.0,
+        end_mm,
+        targets,
+        runs,
+        overrun_mm: 2.0,
+        dwell_s: 2.0,
+        feed_mm_min: 6000.0,
+        lead_mm: 10.0,
+        reference_mm: None,
+    })
+    .expect("plan")
+}
+
+fn measure(lab: &mut Lab, plan: &Plan) -> Result<LabRun, LabError> {
+    lab.measure(plan, Dialect::LinuxCnc, CaptureMode::Stability, |_| {})
+}
+
+/// Every capture of the plan exactly once, each at rest on its target, and its positioning
+/// and angles within `k` stated standard uncertainties of the truth (relative to the truth
+/// at the zero reference). Straightness is left out: a mount's residual angle adds a slope
+/// (the ISO 230-1 line removes it), which is not the head's error.
+fn assert_complete_and_true(run: &LabRun, plan: &Plan, at_zero: &Truth, k: f64, what: &str) {
+    let keys: BTreeSet<TargetKey> = run
+        .captures
+        .iter()
+        .map(|c| TargetKey::of(&c.capture))
+        .collect();
+    assert_eq!(
+        run.captures.len(),
+        plan.capture_count(),
+        "{what}: captures taken"
+    );
+    assert_eq!(keys.len(), plan.capture_count(), "{what}: a capture twice");
+    for c in &run.captures {
+        let (cap, truth) = (&c.capture, &c.truth);
+        assert!(
+            !truth.moving && (truth.travel - cap.target_mm).abs() < 1e-4,
+            "{what}: {} not at rest on its target",
+            TargetKey::of(cap).describe(plan)
+        );
+        let (m, t, t0, u) = (
+            cap.errors.to_array(),
+            truth.errors.to_array(),
+            at_zero.errors.to_array(),
+            cap.u.to_array(),
+        );
+        for i in [1, 3, 4, 5] {
+            let z = (m[i] - (t[i] - t0[i])).abs() / u[i];
+            assert!(
+                z <= k,
+                "{what}: DOF {i} at {}: measured {:e}, truth {:e} ({z:.1} u)",
+                TargetKey::of(cap).describe(plan),
+                m[i],
+                t[i] - t0[i]
+            );
+        }
+    }
+}
+
+/// Align, zero at the plan's reference, measure; returns the run, the truth at the zero and
+/// the rounds the alignment took.
+fn aligned_run(lab: &mut Lab, plan: &Plan, what: &str) -> (LabRun, Truth, usize) {
+    let rounds = lab
+        .align(plan_span(plan), 8, |_| {})
+        .unwrap_or_else(|e| panic!("{what}: {e}"));
+    let last = &rounds.last().expect("a round").advice;
+    assert!(last.now.passed(), "{what}: {}", last.now);
+    lab.move_carriage(plan.reference_mm)
+        .expect("to the reference");
+    let at_zero = lab.truth();
+    lab.zero(plan.reference_mm, Duration::from_millis(500))
+        .expect("zero");
+    let run = measure(lab, plan).unwrap_or_else(|e| panic!("{what}: {e}"));
+    (run, at_zero, rounds.len())
+}
+
+/// Must show 1: 50 seeds × 500, 1000 and 2000 mm, each head mounted by eye. Aligned, every
+/// run completes and matches the truth; the beam's residual angle to the travel is within
+/// what the margin allows at that length. Not aligned, the pre-run check refuses (or, for a
+/// mount that happens to be good enough, the run completes): never a run failing half-way.
+#[test]
+#[ignore = "300 labs on long axes: run optimised by .ci/run"]
+fn fifty_seeds_on_500_1000_2000_mm_axes_align_and_complete_or_are_refused() {
+    crate::helpers::init_test_log();
+    let _machine = crate::helpers::heavy();
+    let mut summary = Vec::new();
+    for length in [500.0, 1000.0, 2000.0] {
+        // The shortest plan ISO 230-2 allows: five targets per metre, at least five; one run.
+        let plan = plan(length, ((length / 200.0).ceil() as usize).max(5), 1);
+        let (mut refused, mut lucky, mut rounds_max) = (0, 0, 0);
+        let mut worst_angle_urad = 0.0_f64;
+        for seed in 1..=50u64 {
+            let what = format!("seed {seed}, {length} mm");
+            let mut raw = lab(seed, length, Some(MountSpec::by_eye()));
+            match measure(&mut raw, &plan) {
+                Err(LabError::Refused { check }) => {
+                    assert!(check.contains("PSD"), "{what}: {check}");
+                    assert!(check.contains("turn the"), "{what}: {check}");
+                    refused += 1;
+                }
+                Ok(run) => {
+                    assert_eq!(run.captures.len(), plan.capture_count(), "{what}");
+                    lucky += 1;
+                }
+                Err(e) => {
+                    panic!("{what}: not aligned, the run failed instead of being refused: {e}")
+                }
+            }
+            let mut lab = lab(seed, length, Some(MountSpec::by_eye()));
+            let (run, at_zero, rounds) = aligned_run(&mut lab, &plan, &what);
+            rounds_max = rounds_max.max(rounds);
+            let m = lab.plant.mount();
+            worst_angle_urad = worst_angle_urad.max(m.yaw.abs().max(m.pitch.abs()) * 1e6);
+            assert_complete_and_true(&run, &plan, &at_zero, 4.0, &what);
+            assert!(lab.pauses.is_empty(), "{what}: {:?}", lab.pauses);
+        }
+        summary.push(format!(
+            "{length} mm: 50/50 aligned and complete (at most {rounds_max} rounds, beam within {worst_angle_urad:.0} µrad of the travel); not aligned: {refused} refused, {lucky} good enough as mounted"
+        ));
+    }
+    eprintln!("{}", summary.join("\n"));
+}
+
+/// Must show 3a: every beam blocked for 30 s in the middle of a run. The run pauses (the
+/// program stops at its next stop), goes on when the beams are back, and ends with every
+/// capture exactly once, each at the truth. (A head without installation errors: overlap
+/// stitching reads a rotated PSD2's cross-talk as a vertical step, which is the follower's
+/// subject, not the pause's.)
+#[test]
+fn a_beam_blocked_for_30_s_pauses_the_run_and_it_resumes_with_every_capture_once() {
+    crate::helpers::init_test_log();
+    let _machine = crate::helpers::heavy();
+    let exact = InstallSpec {
+        offset_mm: 0.0,
+        tilt_deg: 0.0,
+        gain_error: 0.0,
+    };
+    let mut lab = lab_with(3, 1000.0, None, exact);
+    let plan = plan(40.0, 5, 2);
+    lab.pre_run_check(&plan).expect("the check passes");
+    lab.move_carriage(0.0).expect("home");
+    let at_zero = lab.truth();
+    lab.zero(0.0, Duration::from_millis(500)).expect("zero");
+    // 15 s into the run (the second target of the first run): everything dark for 30 s.
+    let t = lab.now() + Duration::from_secs(15);
+    lab.plant.schedule(t, PlantEvent::Block([true; 3]));
+    lab.plant
+        .schedule(t + Duration::from_secs(30), PlantEvent::Block([false; 3]));
+    let run = measure(&mut lab, &plan);
+    let run = run.unwrap_or_else(|e| panic!("{e}; pauses: {:?}", lab.pauses));
+    assert_eq!(lab.pauses.len(), 1, "{:?}", lab.pauses);
+    let why = &lab.pauses[0];
+    assert!(
+        why.contains("PSD1, PSD2, PSD3 have no spot") && why.contains("paused"),
+        "{why}"
+    );
+    assert!(lab.extra_programs >= 1, "the rest of the cycle was sent");
+    assert_complete_and_true(&run, &plan, &at_zero, 3.0, "blocked 30 s");
+}
+
+/// Must show 3b: the head knocked on its mount in the middle of a 1000 mm run. The spot
+/// leaves its PSD, the run pauses naming the PSD; the technician realigns (the targets show
+/// the beam off the PSD, not blocked) and takes the zero again, and the run finishes with
+/// every capture exactly once.
+#[test]
+#[ignore = "a 1000 mm run with a realignment in it: run optimised by .ci/run"]
+fn a_knocked_mount_pauses_the_run_naming_the_psd_and_it_finishes_after_realignment() {
+    crate::helpers::init_test_log();
+    let _machine = crate::helpers::heavy();
+    let mut lab = lab(21, 1000.0, Some(MountSpec::by_eye()));
+    let plan = plan(1000.0, 5, 1);
+    lab.align(plan_span(&plan), 8, |_| {}).expect("aligned");
+    lab.move_carriage(0.0).expect("home");
+    lab.zero(0.0, Duration::from_millis(500)).expect("zero");
+    let t = lab.now() + Duration::from_secs(40);
+    lab.plant.schedule(
+        t,
+        PlantEvent::Knock(axiscomp::align::Mount {
+            yaw: 3e-3,
+            x: 1.0,
+            ..Default::default()
+        }),
+    );
+    let run = measure(&mut lab, &plan).expect("the run finishes");
+    assert!(!lab.pauses.is_empty());
+    let why = &lab.pauses[0];
+    assert!(why.contains("PSD1") || why.contains("PSD3"), "{why}");
+    let keys: BTreeSet<TargetKey> = run
+        .captures
+        .iter()
+        .map(|c| TargetKey::of(&c.capture))
+        .collect();
+    assert_eq!(run.captures.len(), plan.capture_count());
+    assert_eq!(keys.len(), plan.capture_count());
+    // Realigned: the beam is back within a few hundred µrad of the travel.
+    let m = lab.plant.mount();
+    assert!(m.yaw.abs() < 1e-3 && m.pitch.abs() < 1e-3, "{m:?}");
+    // Positioning stays true across the realignment (the re-zero is at the same reference).
+    for c in &run.captures {
+        let dy = c.capture.errors.dy - c.truth.errors.dy;
+        assert!(
+            dy.abs() < 5e-3,
+            "{}: {:.1} µm off",
+            TargetKey::of(&c.capture).describe(&plan),
+            dy * 1e3
+        );
+    }
+}
+
+/// Must show 2 in small: the demo's path (align from the spots, then the check) on a 2000 mm
+/// axis for a few seeds in plain `cargo test`, against the truth.
+#[test]
+fn a_2000_mm_axis_is_aligned_from_the_spots_at_both_ends() {
+    crate::helpers::init_test_log();
+    let _machine = crate::helpers::heavy();
+    for seed in [12, 14] {
+        let mut lab = lab(seed, 2000.0, Some(MountSpec::by_eye()));
+        let before = lab.plant.mount();
+        let rounds = lab.align((-2.0, 2002.0), 8, |_| {}).expect("aligned");
+        let after = lab.plant.mount();
+        // The first round saw the mount as it was: the advice's misalignment, when PSD3 was
+        // read at both ends, is the twin's true beam angle.
+        let last = &rounds.last().expect("a round").advice;
+        assert!(last.now.passed(), "seed {seed}: {}", last.now);
+        let [yaw, pitch] = last.misalignment_urad.expect("PSD3 read at both ends");
+        assert!(
+            (yaw.abs() - after.yaw.abs() * 1e6).abs() < 60.0
+                && (pitch.abs() - after.pitch.abs() * 1e6).abs() < 60.0,
+            "seed {seed}: reported {yaw:.0}/{pitch:.0} µrad, truth {:.0}/{:.0} µrad",
+            after.yaw * 1e6,
+            after.pitch * 1e6
+        );
+        assert!(
+            before.yaw.abs().max(before.pitch.abs()) > 5e-4,
+            "seed {seed}: mounted too well to prove anything: {before:?}"
+        );
+        assert!(
+            after.yaw.abs() < 5e-4 && after.pitch.abs() < 5e-4,
+            "{after:?}"
+        );
+    }
+}
