@@ -1,6 +1,7 @@
 //! Subcommands. Each module turns arguments into library calls and prints the result; the
 //! measurement logic lives in the library.
 
+mod align;
 mod calibrate;
 mod console;
 mod decouple;
@@ -62,6 +63,10 @@ enum Command {
     Report(run::ReportArgs),
     /// Export a run's compensation table for a controller.
     Export(run::ExportArgs),
+    /// Beam alignment on the running service: read the spots at each end of the travel, enter
+    /// what a target shows, get the screw turns and the check.
+    #[command(subcommand)]
+    Align(align::Command),
     /// Compensation tables for the CNC's PLC on the running service: list, generate,
     /// publish, status.
     #[command(subcommand)]
@@ -80,6 +85,34 @@ pub fn stdout_closes_quietly() {
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
+}
+
+/// One request to the running service's control socket (`socket`, else the configured one);
+/// a request the service refused is input to fix (exit code 2).
+pub fn control_request(
+    socket: Option<&Path>,
+    config: Option<&Path>,
+    req: &axiscomp::service::control::Request,
+) -> Result<serde_json::Value> {
+    use anyhow::Context;
+    use axiscomp::service::control::{Client, ClientError};
+    let socket = match socket {
+        Some(s) => s.to_path_buf(),
+        None => service::settings(config)?.service.socket,
+    };
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    rt.block_on(async {
+        let mut c = Client::connect(&socket).await?;
+        c.request(req).await
+    })
+    .map_err(|e| match e {
+        // The service understood the request and refused it: input to fix.
+        ClientError::Refused(m) => anyhow::Error::from(InputError(m)),
+        e => e.into(),
+    })
 }
 
 /// Run a parsed command line.
@@ -111,6 +144,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Report(a) => run::report(a),
         Command::Export(a) => run::export(a),
         Command::Table(c) => table::run(c),
+        Command::Align(c) => align::run(c),
     }
 }
 

@@ -6,8 +6,8 @@
 //! no confirmation, no PLC configured, role) or bad arguments.
 
 use super::InputError;
-use anyhow::{Context, Result};
-use axiscomp::service::control::{Client, ClientError, Request};
+use anyhow::Result;
+use axiscomp::service::control::Request;
 use axiscomp::service::tables::{PublishView, StatusView, TableView};
 use clap::Subcommand;
 use std::path::PathBuf;
@@ -94,28 +94,7 @@ pub fn run(c: Command) -> Result<()> {
         }
         Command::Status(a) => (a, Request::TableStatus),
     };
-    let socket = match &at.socket {
-        Some(s) => s.clone(),
-        None => {
-            super::service::settings(at.config.as_deref())?
-                .service
-                .socket
-        }
-    };
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the async runtime")?;
-    let v = rt
-        .block_on(async {
-            let mut c = Client::connect(&socket).await?;
-            c.request(&req).await
-        })
-        .map_err(|e| match e {
-            // The service understood the request and refused it: input to fix.
-            ClientError::Refused(m) => anyhow::Error::from(InputError(m)),
-            e => e.into(),
-        })?;
+    let v = super::control_request(at.socket.as_deref(), at.config.as_deref(), &req)?;
     super::stdout_closes_quietly();
     if at.json {
         println!("{}", serde_json::to_string_pretty(&v)?);

@@ -119,6 +119,19 @@ pub enum Request {
     },
     /// What the PLC holds now, read back and compared with the store.
     TableStatus,
+    /// Beam alignment: read the spots as a station with the carriage at rest at `at_mm` (the
+    /// measured position when left out).
+    AlignRead {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        at_mm: Option<f64>,
+    },
+    /// What the alignment target in front of PSD `psd` (1..3) shows at the last station (mm),
+    /// where the spot is off the PSD.
+    AlignTarget { psd: usize, x: f64, y: f64 },
+    /// The screw turns, beam angle and check over `from_mm`..`to_mm` from the stations read.
+    AlignAdvice { from_mm: f64, to_mm: f64 },
+    /// Forget the stations read (after turning screws, read both ends again).
+    AlignClear,
 }
 
 impl Request {

@@ -115,6 +115,7 @@ fn power_name(s: Option<PowerState>) -> String {
 
 pub(super) struct Core {
     pipeline: Pipeline,
+    align: super::align::AlignState,
     acquisition: Acquisition,
     drive: DriveHandle,
     drive_status: DriveStatus,
@@ -290,6 +291,7 @@ impl Core {
         }
         Core {
             pipeline: Pipeline::new(s.tracking, p.decoupler.clone(), s.head.live_window),
+            align: Default::default(),
             acquisition,
             drive_status: drive.status(),
             drive,
@@ -497,6 +499,7 @@ impl Core {
         // core catches up at once (tracking is cheap, decoupling is not: β is recomputed as
         // the carriage moves).
         let late = behind > 0 || Instant::now().saturating_duration_since(f.at) > LATE;
+        self.align.handle_frame(f);
         self.pipeline.handle_frame(f, late);
         self.pump();
     }
@@ -1103,6 +1106,31 @@ impl Core {
                 }
                 self.pipeline.measure.set_nominal(mm);
                 Self::reply(c.reply, Ok(serde_json::json!({"nominal_mm": mm})));
+            }
+            Request::AlignRead { at_mm } => {
+                let at = at_mm.or_else(|| self.pipeline.measure.position());
+                let r = match at {
+                    Some(at) => self.align.read(at).map(|st| super::align::station_json(&st)),
+                    None => Err("where is the carriage? give at_mm (the position is measured only after a zero reference)".into()),
+                };
+                Self::reply(c.reply, r);
+            }
+            Request::AlignTarget { psd, x, y } => {
+                let r = self
+                    .align
+                    .target(psd, x, y)
+                    .map(|st| super::align::station_json(&st));
+                Self::reply(c.reply, r);
+            }
+            Request::AlignAdvice { from_mm, to_mm } => {
+                let r = self
+                    .align
+                    .advice(self.calibrations.layout(), (from_mm, to_mm));
+                Self::reply(c.reply, r);
+            }
+            Request::AlignClear => {
+                self.align.clear();
+                Self::reply(c.reply, Ok(serde_json::json!({"stations": 0})));
             }
             Request::Strategy { strategy } => {
                 self.pipeline.tracker.set_strategy(strategy);

@@ -90,6 +90,11 @@ impl Measure {
         self.nominal
     }
 
+    /// The carriage position of the newest frame decoupled (travel plus dy, mm).
+    pub fn position(&self) -> Option<f64> {
+        self.samples.back().map(|s| s.travel + s.errors[1])
+    }
+
     /// The measured carriage position (travel plus dy, mm) of the frame decoupled at `at`.
     pub fn position_at(&self, at: Instant) -> Option<f64> {
         self.samples

@@ -4,6 +4,7 @@
 //! a `Snapshot` on a watch channel. `run(settings, shutdown)` is the whole service; `prepare`
 //! loads and checks everything it reads (also `axiscomp check`).
 
+pub mod align;
 pub mod calibration;
 pub mod control;
 mod core;

@@ -71,6 +71,11 @@ struct RawAxis {
 struct RawHead {
     install_offset_mm: f64,
     install_tilt_deg: f64,
+    /// How far from aligned the head is mounted on the axis (± each; 0: exactly).
+    #[serde(default)]
+    mount_angle_deg: f64,
+    #[serde(default)]
+    mount_offset_mm: f64,
     gain_error: f64,
     noise_um: f64,
     beam_drift_urad_per_sqrt_s: f64,
@@ -205,6 +210,10 @@ pub fn parse_all(
             offset_mm: non_neg("twin.head.install_offset_mm", h.install_offset_mm)?,
             tilt_deg: non_neg("twin.head.install_tilt_deg", h.install_tilt_deg)?,
             gain_error: non_neg("twin.head.gain_error", h.gain_error)?,
+        },
+        mount: super::plant::MountSpec {
+            angle_deg: non_neg("twin.head.mount_angle_deg", h.mount_angle_deg)?,
+            offset_mm: non_neg("twin.head.mount_offset_mm", h.mount_offset_mm)?,
         },
         noise_mm: non_neg("twin.head.noise_um", h.noise_um)? * 1e-3,
         beam_drift_rad_per_sqrt_s: non_neg(

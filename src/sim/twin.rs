@@ -11,6 +11,11 @@
 //! - `{"cmd":"drive","fault":34321}`, `{"cmd":"drive","heartbeat":false}`
 //! - `{"cmd":"program","dialect":"linuxcnc","axis":"X","text":"..."}`: run a part program on
 //!   the twin's CNC (replacing one that runs); `{"cmd":"cnc"}` → its state
+//! - `{"cmd":"mount"}` → how the head is mounted (`yaw_urad`, `pitch_urad`, `x_mm`, `z_mm`);
+//!   `{"cmd":"turn","screw":"yaw","turns":1.25}` turns a mount screw (clockwise positive) as a
+//!   technician does; `{"cmd":"knock","yaw_urad":3000}` (any of the four) knocks the head
+//! - `{"cmd":"target"}` → what the alignment target in front of each PSD shows (mm, to 0.5 mm;
+//!   `null` where no beam reaches it)
 
 use super::SimError;
 use super::drive::{TwinDriveConfig, TwinDriveHandle, spawn_twin_drive};
@@ -377,8 +382,49 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
             let st = ctx.cnc.lock().map(|s| s.clone()).unwrap_or_default();
             Ok(serde_json::json!({"ok": true, "cnc": st}))
         }
+        "mount" => {
+            let m = ctx.plant.mount();
+            Ok(serde_json::json!({"ok": true, "mount": {
+                "yaw_urad": m.yaw * 1e6, "pitch_urad": m.pitch * 1e6, "x_mm": m.x, "z_mm": m.z,
+            }}))
+        }
+        "turn" => {
+            let name = v
+                .get("screw")
+                .and_then(|x| x.as_str())
+                .ok_or("turn needs \"screw\": yaw, pitch, x or z")?;
+            let screw = crate::align::Screw::parse(name)
+                .ok_or_else(|| format!("screw \"{name}\": use yaw, pitch, x or z"))?;
+            let turns = num("turns").ok_or("turn needs \"turns\" (clockwise positive)")?;
+            if !turns.is_finite() || turns.abs() > 20.0 {
+                return Err(format!("{turns} turns: at most 20 either way"));
+            }
+            ctx.plant.turn_screw(screw, turns);
+            Ok(serde_json::json!({"ok": true}))
+        }
+        "knock" => {
+            let by = crate::align::Mount {
+                yaw: num("yaw_urad").unwrap_or(0.0) * 1e-6,
+                pitch: num("pitch_urad").unwrap_or(0.0) * 1e-6,
+                x: num("x_mm").unwrap_or(0.0),
+                z: num("z_mm").unwrap_or(0.0),
+            };
+            ctx.plant.knock(by);
+            Ok(serde_json::json!({"ok": true}))
+        }
+        "target" => {
+            let t = ctx.plant.target_readings(Instant::now());
+            let view: Vec<serde_json::Value> = t
+                .iter()
+                .map(|s| match s {
+                    Some(s) => serde_json::json!({"x": s.x, "y": s.y}),
+                    None => serde_json::Value::Null,
+                })
+                .collect();
+            Ok(serde_json::json!({"ok": true, "targets": view}))
+        }
         other => Err(format!(
-            "unknown cmd \"{other}\": use move, wait, truth, block, io, drive, program or cnc"
+            "unknown cmd \"{other}\": use move, wait, truth, block, io, drive, program, cnc, mount, turn, knock or target"
         )),
     }
 }
