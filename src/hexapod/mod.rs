@@ -20,6 +20,8 @@
 
 pub mod driver;
 pub mod gcs;
+pub mod plan;
+pub mod procedure;
 pub mod xps;
 
 pub use driver::Hexapod;

@@ -188,3 +188,247 @@ async fn stop_halts_a_move() {
         assert!(y > 0.1 && y < 1.5, "{kind:?}: halted at y = {y} mm ({r:?})");
     }
 }
+
+// ---------- the calibration procedure on the twin ----------
+
+use crate::helpers::{TempDir, link_config};
+use axiscomp::acquire::{AcquireConfig, Acquisition, IoMap};
+use axiscomp::calibrate::CalibrateOptions;
+use axiscomp::hexapod::plan::{PlanError, PlanSpec, PosePlan};
+use axiscomp::hexapod::procedure::{PoseStore, ProcedureError, RunOptions, fit_and_judge, run};
+use axiscomp::optics::Layout;
+use axiscomp::sim::InstallSpec;
+use axiscomp::sim::iomodule::IoModule;
+use axiscomp::sim::plant::{Plant, PlantSpec};
+use axiscomp::units::DOF_NAMES;
+
+struct Rig {
+    plant: Arc<Plant>,
+    _io: IoModule,
+    acq: Acquisition,
+    servers: HexapodServers,
+}
+
+/// The twin's head with installation errors (±0.5 mm, ±0.2°, 1 % PSD gain) on the hexapod,
+/// read through the I/O module over Modbus at 1 kHz.
+async fn rig(seed: u64) -> Rig {
+    let plant = Arc::new(
+        Plant::new(
+            &Layout::reference(),
+            &PlantSpec {
+                seed,
+                install: InstallSpec {
+                    offset_mm: 0.5,
+                    tilt_deg: 0.2,
+                    gain_error: 0.01,
+                },
+                ..PlantSpec::default()
+            },
+            Instant::now(),
+        )
+        .expect("plant"),
+    );
+    let io = IoModule::generic(plant.clone()).await.expect("I/O module");
+    let acq = Acquisition::spawn_paced(
+        link_config(io.local_addr()),
+        Arc::new(IoMap::generic().expect("map")),
+        AcquireConfig {
+            rate_hz: 1000.0,
+            ..AcquireConfig::default()
+        },
+    );
+    let servers = start(spec(), plant.hexapod.clone()).await.expect("hexapod");
+    Rig {
+        plant,
+        _io: io,
+        acq,
+        servers,
+    }
+}
+
+fn quick() -> RunOptions {
+    RunOptions {
+        settle: Duration::from_millis(5),
+        frames: 20,
+        ..RunOptions::default()
+    }
+}
+
+/// The whole procedure on the twin through the XPS driver: every pose stored, the fitted
+/// calibration within 1.15× the single-frame Cramér–Rao bound on every DOF on the held-out
+/// poses, and the head at the calibrated pose reads what the hexapod says.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_procedure_calibrates_the_twins_head() {
+    let r = rig(5).await;
+    let dir = TempDir::new("hexapod-proc");
+    let plan = PosePlan::generate(&PlanSpec {
+        poses: 120,
+        ..PlanSpec::default()
+    });
+    let mut store = PoseStore::open(&dir.path("run"), &plan).expect("store");
+    let mut h = driver(&r.servers, Driver::NewportXps).await;
+    let mut rx = r.acq.subscribe();
+    let mut seen = Vec::new();
+    let report = run(
+        &mut h,
+        &mut rx,
+        &plan,
+        &spec().workspace,
+        &mut store,
+        &quick(),
+        &mut |p| seen.push((p.done, p.eta)),
+    )
+    .await
+    .expect("run");
+    assert_eq!(report.taken, 120);
+    assert_eq!(store.poses.len(), 120);
+    assert_eq!(seen.len(), 120);
+    assert!(seen[10].1.is_some_and(|eta| eta > Duration::ZERO));
+    assert_eq!(seen.last().map(|s| s.1), Some(Some(Duration::ZERO)));
+    // The plant saw the hexapod's last pose (plus the axis' own errors at D = 0, tens of µm
+    // and arcsec at most).
+    let truth = r.plant.truth(Instant::now()).errors.to_array();
+    let last = store.poses[119].reached.to_errors().to_array();
+    for k in 0..6 {
+        let tol = if k < 3 { 0.04 } else { 2e-4 };
+        assert!((truth[k] - last[k]).abs() < tol, "{truth:?} vs {last:?}");
+    }
+    assert!(last[1].abs() > 0.5, "a pose far out along y: {last:?}");
+
+    let j = fit_and_judge(
+        &store,
+        &Layout::reference(),
+        &CalibrateOptions::default(),
+        &mut |_, _| {},
+    )
+    .expect("fit");
+    assert_eq!(j.holdout_poses, 24);
+    assert_eq!(j.frames, 24 * 20);
+    let ratio = j.ratio();
+    for k in 0..6 {
+        assert!(
+            ratio[k] <= 1.15,
+            "{}: hold-out {:.3e} is {:.3}× the bound {:.3e}",
+            DOF_NAMES[k],
+            j.holdout_rms[k],
+            ratio[k],
+            j.crlb[k]
+        );
+    }
+    // The frame noise is the twin's 1 µm (plus the I/O module's quantisation).
+    for s in j.sigma_frame_mm {
+        assert!((0.9e-3..1.3e-3).contains(&s), "σ {s}");
+    }
+}
+
+/// A controller error mid-plan stops the run with the controller's code and text, nothing
+/// after it moves, and a second run resumes at the next pose; a dropped link is reconnected
+/// and the pose taken again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_controller_error_stops_and_the_run_resumes_a_dropped_link_reconnects() {
+    let r = rig(6).await;
+    let dir = TempDir::new("hexapod-resume");
+    let plan = PosePlan::generate(&PlanSpec {
+        poses: 12,
+        ..PlanSpec::default()
+    });
+    let mut store = PoseStore::open(&dir.path("run"), &plan).expect("store");
+    let mut h = driver(&r.servers, Driver::PiGcs).await;
+    let mut rx = r.acq.subscribe();
+    let hx = r.servers.hexapod.clone();
+    let e = run(
+        &mut h,
+        &mut rx,
+        &plan,
+        &spec().workspace,
+        &mut store,
+        &quick(),
+        &mut |p| {
+            if p.done == 5 {
+                hx.inject(HexapodFault::Error(10));
+            }
+        },
+    )
+    .await
+    .expect_err("controller error");
+    assert_eq!(
+        e.to_string(),
+        "pose 6 of 12: PI C-887 error 10: Controller was stopped by command; the poses taken so far are stored: run again to resume"
+    );
+    assert_eq!(store.poses.len(), 5);
+    let moves = hx.moves();
+    assert_eq!(moves, 6);
+
+    // Resume from the files, as after a crash; the link drops at pose 8.
+    let mut store = PoseStore::open(&dir.path("run"), &plan).expect("reopen");
+    assert_eq!(store.next_index(), 5);
+    let report = run(
+        &mut h,
+        &mut rx,
+        &plan,
+        &spec().workspace,
+        &mut store,
+        &quick(),
+        &mut |p| {
+            if p.done == 7 {
+                hx.inject(HexapodFault::DropLink);
+            }
+        },
+    )
+    .await
+    .expect("resumed");
+    assert_eq!(report.resumed_from, 5);
+    assert_eq!(report.taken, 7);
+    assert_eq!(report.reconnects, 1);
+    let idx: Vec<usize> = store.poses.iter().map(|p| p.index).collect();
+    assert_eq!(idx, (1..=12).collect::<Vec<_>>());
+    let again = PoseStore::open(&dir.path("run"), &plan).expect("reopen");
+    assert_eq!(again.poses.len(), 12);
+    assert_eq!(again.frames().expect("frames").len(), 12 * 20);
+
+    // Another plan is not resumed into this run.
+    let other = PosePlan::generate(&PlanSpec {
+        poses: 13,
+        ..PlanSpec::default()
+    });
+    let e = PoseStore::open(&dir.path("run"), &other)
+        .err()
+        .expect("refused");
+    assert!(e.to_string().contains("another plan"), "{e}");
+}
+
+/// A plan pose outside the workspace is refused before any move.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_plan_outside_the_workspace_is_refused_before_any_move() {
+    let r = rig(7).await;
+    let dir = TempDir::new("hexapod-ws");
+    let mut plan = PosePlan::generate(&PlanSpec {
+        poses: 10,
+        ..PlanSpec::default()
+    });
+    plan.poses[6].pose.0[2] = 6.5;
+    let mut store = PoseStore::open(&dir.path("run"), &plan).expect("store");
+    let mut h = driver(&r.servers, Driver::PiGcs).await;
+    let mut rx = r.acq.subscribe();
+    let e = run(
+        &mut h,
+        &mut rx,
+        &plan,
+        &spec().workspace,
+        &mut store,
+        &quick(),
+        &mut |_| {},
+    )
+    .await
+    .expect_err("outside");
+    match &e {
+        ProcedureError::Plan(PlanError::OutsideWorkspace {
+            index, axis, value, ..
+        }) => {
+            assert_eq!((*index, *axis, *value), (7, "Z", 6.5));
+        }
+        other => panic!("{other}"),
+    }
+    assert_eq!(r.servers.hexapod.moves(), 0);
+    assert!(store.poses.is_empty());
+}
