@@ -192,6 +192,15 @@ impl Hexapod {
         Ok(())
     }
 
+    /// The linear speed (mm/s; 0 keeps the controller's).
+    pub async fn set_speed(&mut self, mm_s: f64) -> Result<(), HexapodError> {
+        if mm_s > 0.0 {
+            self.exec(Command::SetSpeed(mm_s), self.timeouts.reply)
+                .await?;
+        }
+        Ok(())
+    }
+
     /// Move to `p` (work coordinates), wait in position, and read the reached pose.
     pub async fn move_to(&mut self, p: HexPose) -> Result<HexPose, HexapodError> {
         self.exec(Command::Move(p), self.timeouts.motion).await?;

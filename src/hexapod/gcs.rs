@@ -135,6 +135,7 @@ impl Gcs {
             // A motion error (following error) shows only in the error register.
             Command::OnTarget => vec![query("ONT?", Expect::Axes), query("ERR?", Expect::ErrCode)],
             Command::Stop => vec![set("STP".into())],
+            Command::SetSpeed(v) => vec![set(format!("VLS {}", wire_number(*v)))],
         }
     }
 
@@ -346,6 +347,11 @@ mod tests {
         m.handle_input(b"0\n");
         assert_eq!(m.poll_outcome(), None);
         assert_eq!(sent(&mut m), "KEN AXISCOMP\nERR?\n");
+        m.handle_input(b"0\n");
+        assert_eq!(m.poll_outcome(), Some(Ok(Reply::Done)));
+
+        m.start(Command::SetSpeed(2.5));
+        assert_eq!(sent(&mut m), "VLS 2.5\nERR?\n");
         m.handle_input(b"0\n");
         assert_eq!(m.poll_outcome(), Some(Ok(Reply::Done)));
 

@@ -18,6 +18,7 @@
 //! with its origin at the moving module's reference point, so a pose is the six errors
 //! `(dx, dy, dz, ex, ey, ez)` the head should read (small angles: U, V, W about x, y, z).
 
+pub mod config;
 pub mod driver;
 pub mod gcs;
 pub mod plan;
@@ -192,6 +193,9 @@ pub enum Command {
     OnTarget,
     /// Stop all motion now.
     Stop,
+    /// The linear speed (mm/s): GCS `VLS`; the HXP takes its speed from its own
+    /// configuration, so its machine answers at once.
+    SetSpeed(f64),
 }
 
 impl Command {
@@ -206,6 +210,7 @@ impl Command {
             Command::Position => "position",
             Command::OnTarget => "on-target status",
             Command::Stop => "stop",
+            Command::SetSpeed(_) => "set speed",
         }
     }
 }

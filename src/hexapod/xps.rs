@@ -119,6 +119,7 @@ impl Xps {
                 Expect::Pose,
             )],
             Command::Stop => vec![call(format!("GroupMoveAbort({g})"), Expect::Nothing)],
+            Command::SetSpeed(_) => Vec::new(),
         }
     }
 

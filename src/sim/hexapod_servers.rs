@@ -808,3 +808,67 @@ async fn serve_xps(mut s: TcpStream, h: Arc<TwinHexapod>) {
 pub fn gcs_error_text(code: i64) -> &'static str {
     gcs::error_text(code)
 }
+
+/// The twin's `[hexapod]` section as written (`configs/sim.toml`).
+#[derive(Debug, Default, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+struct RawTwinHexapod {
+    gcs_listen: Option<String>,
+    xps_listen: Option<String>,
+    workspace: Option<Vec<f64>>,
+    speed_mm_s: Option<f64>,
+    speed_deg_s: Option<f64>,
+}
+
+/// The twin hexapod's spec from the twin's configuration text: `[hexapod]` when present, else
+/// the defaults (GCS on 127.0.0.1:50000, XPS on 127.0.0.1:5001, where the real controllers
+/// listen). An empty address turns that server off. `label` names the file in errors.
+pub fn spec_from_config(text: &str, label: &str) -> Result<TwinHexapodSpec, String> {
+    #[derive(serde::Deserialize)]
+    struct Outer {
+        #[serde(default)]
+        hexapod: Option<toml::Value>,
+    }
+    let bad = |key: &str, problem: String| format!("twin config {label}: hexapod.{key}: {problem}");
+    let outer: Outer = toml::from_str(text).map_err(|e| format!("twin config {label}: {e}"))?;
+    let raw: RawTwinHexapod = match outer.hexapod {
+        Some(v) => v
+            .try_into()
+            .map_err(|e| format!("twin config {label}: [hexapod]: {e}"))?,
+        None => RawTwinHexapod::default(),
+    };
+    let mut spec = TwinHexapodSpec::default();
+    let addr = |key: &str, v: &Option<String>, dflt: Option<SocketAddr>| match v.as_deref() {
+        None => Ok(dflt),
+        Some("") => Ok(None),
+        Some(s) => s.parse().map(Some).map_err(|_| {
+            bad(
+                key,
+                format!("\"{s}\" is not IP:port, e.g. \"127.0.0.1:50000\""),
+            )
+        }),
+    };
+    spec.gcs = addr("gcs_listen", &raw.gcs_listen, spec.gcs)?;
+    spec.xps = addr("xps_listen", &raw.xps_listen, spec.xps)?;
+    if let Some(w) = raw.workspace {
+        if w.len() != 6 || w.iter().any(|x| !(x.is_finite() && *x > 0.0)) {
+            return Err(bad(
+                "workspace",
+                "give six positive half-ranges (mm, mm, mm, °, °, °)".into(),
+            ));
+        }
+        spec.workspace = Workspace::symmetric(std::array::from_fn(|k| w[k]));
+    }
+    for (key, v, slot) in [
+        ("speed_mm_s", raw.speed_mm_s, &mut spec.speed_mm_s),
+        ("speed_deg_s", raw.speed_deg_s, &mut spec.speed_deg_s),
+    ] {
+        if let Some(v) = v {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(bad(key, format!("{v} must be a positive number")));
+            }
+            *slot = v;
+        }
+    }
+    Ok(spec)
+}

@@ -432,3 +432,54 @@ async fn a_plan_outside_the_workspace_is_refused_before_any_move() {
     assert_eq!(r.servers.hexapod.moves(), 0);
     assert!(store.poses.is_empty());
 }
+
+// ---------- the command line ----------
+
+use crate::helpers::{run as run_bin, stderr};
+
+/// `axiscomp calibrate run` refuses a plan pose outside `[hexapod] workspace` before it
+/// connects to anything, and `axiscomp check` names a bad `[hexapod]` key.
+#[test]
+fn the_command_line_checks_plan_and_config_first() {
+    let dir = TempDir::new("hexapod-cli");
+    let cfg = dir.write(
+        "svc.toml",
+        "[hexapod]\ndriver = \"newport-xps\"\naddress = \"127.0.0.1:9\"\nworkspace = [1.0, 1.0, 1.0, 1.0, 1.0, 1.0]\n",
+    );
+    let plan = dir.write(
+        "plan.csv",
+        "x_mm,y_mm,z_mm,u_deg,v_deg,w_deg\n0,0,0,0,0,0\n0,1.5,0,0,0,0\n",
+    );
+    let out = dir.path("run");
+    let o = run_bin(
+        &[
+            "calibrate",
+            "run",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--plan",
+            plan.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        "",
+    );
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("pose 2 of the plan: Y = 1.5 is outside the hexapod's workspace (-1 to 1); no pose was moved to"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!out.exists(), "nothing stored");
+
+    let bad = dir.write("bad.toml", "[hexapod]\ndriver = \"hxp\"\n");
+    let o = run_bin(&["check", "--config", bad.to_str().unwrap()], "");
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        stderr(&o).contains("hexapod.driver: \"hxp\": use \"pi-gcs\""),
+        "{}",
+        stderr(&o)
+    );
+    let o = run_bin(&["check", "--config", "configs/twin-service.toml"], "");
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+}
