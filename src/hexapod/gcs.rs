@@ -8,8 +8,8 @@
 //! a work coordinate system with `KSD name X .. Y .. Z .. U .. V .. W ..` and enabled with
 //! `KEN name`. The controller has no error-text query: the texts below are the manual's.
 
+use super::exchange::Exchange;
 use super::{AXES, Command, HexPose, HexapodError, Protocol, Reply, wire_number};
-use std::collections::VecDeque;
 
 const CONTROLLER: &str = "PI C-887";
 
@@ -46,24 +46,14 @@ enum Expect {
     Axes,
 }
 
-#[derive(Clone, Debug, PartialEq)]
-struct Step {
-    send: String,
-    expect: Expect,
-}
+type Step = (String, Expect);
 
 fn set(cmd: String) -> Step {
-    Step {
-        send: format!("{cmd}\nERR?\n"),
-        expect: Expect::ErrCode,
-    }
+    (format!("{cmd}\nERR?\n"), Expect::ErrCode)
 }
 
 fn query(cmd: &str, expect: Expect) -> Step {
-    Step {
-        send: format!("{cmd}\n"),
-        expect,
-    }
+    (format!("{cmd}\n"), expect)
 }
 
 fn axes_args(v: &[f64]) -> String {
@@ -75,14 +65,15 @@ fn axes_args(v: &[f64]) -> String {
 }
 
 /// The GCS 2.0 machine.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct Gcs {
-    cmd: Option<Command>,
-    steps: VecDeque<Step>,
-    current: Option<Step>,
-    out: VecDeque<Vec<u8>>,
-    buf: Vec<u8>,
-    outcome: Option<Result<Reply, HexapodError>>,
+    x: Exchange<Expect>,
+}
+
+impl Default for Gcs {
+    fn default() -> Self {
+        Gcs { x: Exchange::new() }
+    }
 }
 
 /// Whether `buf` holds a whole GCS answer: it ends with LF not preceded by a space.
@@ -139,21 +130,6 @@ impl Gcs {
         }
     }
 
-    fn next(&mut self) {
-        match self.steps.pop_front() {
-            Some(s) => {
-                self.out.push_back(s.send.clone().into_bytes());
-                self.current = Some(s);
-            }
-            None => {
-                self.current = None;
-                if self.outcome.is_none() {
-                    self.outcome = Some(Ok(Reply::Done));
-                }
-            }
-        }
-    }
-
     fn protocol_error(&self, reply: &str) -> HexapodError {
         HexapodError::Protocol {
             controller: CONTROLLER,
@@ -163,43 +139,37 @@ impl Gcs {
     }
 
     fn answer(&mut self, text: &str) {
-        let Some(step) = self.current.clone() else {
+        let Some((_, expect)) = self.x.current.clone() else {
             return;
         };
-        let cmd = self.cmd.unwrap_or(Command::Identify);
-        match step.expect {
+        let cmd = self.x.cmd.unwrap_or(Command::Identify);
+        match expect {
             Expect::ErrCode => match text.trim().parse::<i64>() {
                 // STP reports itself as error 10.
-                Ok(0) => self.next(),
-                Ok(10) if cmd == Command::Stop => self.next(),
-                Ok(code) => self.fail(HexapodError::Controller {
+                Ok(0) => self.x.next(),
+                Ok(10) if cmd == Command::Stop => self.x.next(),
+                Ok(code) => self.x.fail(HexapodError::Controller {
                     controller: CONTROLLER,
                     code,
                     text: error_text(code).into(),
                 }),
-                Err(_) => self.fail(self.protocol_error(text)),
+                Err(_) => self.x.fail(self.protocol_error(text)),
             },
             Expect::Line => {
-                self.outcome = Some(Ok(Reply::Text(text.trim().to_string())));
-                self.next();
+                self.x.outcome = Some(Ok(Reply::Text(text.trim().to_string())));
+                self.x.next();
             }
             Expect::Axes => match parse_axes(text) {
                 Some(v) => {
-                    self.outcome = Some(Ok(match cmd {
+                    self.x.outcome = Some(Ok(match cmd {
                         Command::Position => Reply::Pose(HexPose(v)),
                         _ => Reply::Flag(v.iter().all(|x| *x == 1.0)),
                     }));
-                    self.next();
+                    self.x.next();
                 }
-                None => self.fail(self.protocol_error(text)),
+                None => self.x.fail(self.protocol_error(text)),
             },
         }
-    }
-
-    fn fail(&mut self, e: HexapodError) {
-        self.steps.clear();
-        self.current = None;
-        self.outcome = Some(Err(e));
     }
 }
 
@@ -209,39 +179,31 @@ impl Protocol for Gcs {
     }
 
     fn start(&mut self, cmd: Command) {
-        self.cmd = Some(cmd);
-        self.steps = Gcs::steps(&cmd).into();
-        self.buf.clear();
-        self.out.clear();
-        self.outcome = None;
-        self.next();
+        self.x.start(cmd, Gcs::steps(&cmd));
     }
 
     fn poll_transmit(&mut self) -> Option<Vec<u8>> {
-        self.out.pop_front()
+        self.x.poll_transmit()
     }
 
     fn handle_input(&mut self, data: &[u8]) {
-        self.buf.extend_from_slice(data);
-        while self.current.is_some() && answer_complete(&self.buf) {
+        self.x.buf.extend_from_slice(data);
+        while self.x.current.is_some() && answer_complete(&self.x.buf) {
             // One answer per request: answers are never pipelined by this machine.
-            let text = String::from_utf8_lossy(&self.buf).into_owned();
-            self.buf.clear();
+            let text = String::from_utf8_lossy(&self.x.buf).into_owned();
+            self.x.buf.clear();
             self.answer(&text);
         }
     }
 
     fn poll_outcome(&mut self) -> Option<Result<Reply, HexapodError>> {
-        if self.current.is_some() {
-            return None;
-        }
-        self.outcome.take()
+        self.x.poll_outcome()
     }
 
     fn current(&self) -> String {
-        self.current
-            .as_ref()
-            .map(|s| format!("\"{}\"", s.send.trim_end().escape_debug()))
+        self.x
+            .request()
+            .map(|s| format!("\"{}\"", s.escape_debug()))
             .unwrap_or_else(|| "no request".into())
     }
 }

@@ -20,6 +20,7 @@
 
 pub mod config;
 pub mod driver;
+mod exchange;
 pub mod gcs;
 pub mod plan;
 pub mod procedure;

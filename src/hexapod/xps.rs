@@ -9,8 +9,8 @@
 //! with `HexapodCoordinateSystemSet`. Group states (`GroupStatusGet`): 10 to 19 are ready
 //! states (11 after homing, 12 after a move), 42 not referenced, 43 homing, 44 moving.
 
+use super::exchange::Exchange;
 use super::{Command, HexPose, HexapodError, Protocol, Reply, wire_number};
-use std::collections::VecDeque;
 
 const CONTROLLER: &str = "Newport HXP";
 const SUFFIX: &str = "EndOfAPI";
@@ -30,14 +30,10 @@ enum Expect {
     ErrorText(i64),
 }
 
-#[derive(Clone, Debug, PartialEq)]
-struct Step {
-    send: String,
-    expect: Expect,
-}
+type Step = (String, Expect);
 
 fn call(send: String, expect: Expect) -> Step {
-    Step { send, expect }
+    (send, expect)
 }
 
 fn six(p: &HexPose) -> String {
@@ -62,24 +58,14 @@ pub fn split_reply(text: &str) -> Option<(i64, &str)> {
 #[derive(Debug)]
 pub struct Xps {
     group: String,
-    cmd: Option<Command>,
-    steps: VecDeque<Step>,
-    current: Option<Step>,
-    out: VecDeque<Vec<u8>>,
-    buf: Vec<u8>,
-    outcome: Option<Result<Reply, HexapodError>>,
+    x: Exchange<Expect>,
 }
 
 impl Xps {
     pub fn new(group: &str) -> Self {
         Xps {
             group: group.to_string(),
-            cmd: None,
-            steps: VecDeque::new(),
-            current: None,
-            out: VecDeque::new(),
-            buf: Vec::new(),
-            outcome: None,
+            x: Exchange::new(),
         }
     }
 
@@ -123,27 +109,6 @@ impl Xps {
         }
     }
 
-    fn next(&mut self) {
-        match self.steps.pop_front() {
-            Some(s) => {
-                self.out.push_back(s.send.clone().into_bytes());
-                self.current = Some(s);
-            }
-            None => {
-                self.current = None;
-                if self.outcome.is_none() {
-                    self.outcome = Some(Ok(Reply::Done));
-                }
-            }
-        }
-    }
-
-    fn fail(&mut self, e: HexapodError) {
-        self.steps.clear();
-        self.current = None;
-        self.outcome = Some(Err(e));
-    }
-
     fn protocol_error(&self, reply: &str) -> HexapodError {
         HexapodError::Protocol {
             controller: CONTROLLER,
@@ -153,19 +118,19 @@ impl Xps {
     }
 
     fn answer(&mut self, text: &str) {
-        let Some(step) = self.current.clone() else {
+        let Some((_, expect)) = self.x.current.clone() else {
             return;
         };
         let Some((code, rest)) = split_reply(text) else {
-            return self.fail(self.protocol_error(text));
+            return self.x.fail(self.protocol_error(text));
         };
-        if let Expect::ErrorText(orig) = step.expect {
+        if let Expect::ErrorText(orig) = expect {
             let text = if code == 0 && !rest.is_empty() {
                 rest.to_string()
             } else {
                 format!("(ErrorStringGet answered {code})")
             };
-            return self.fail(HexapodError::Controller {
+            return self.x.fail(HexapodError::Controller {
                 controller: CONTROLLER,
                 code: orig,
                 text,
@@ -173,22 +138,20 @@ impl Xps {
         }
         if code != 0 {
             // Ask the controller for its own text of the code, then fail with both.
-            self.steps.clear();
-            self.steps.push_back(call(
+            return self.x.instead(call(
                 format!("ErrorStringGet({code},char *)"),
                 Expect::ErrorText(code),
             ));
-            return self.next();
         }
-        let parsed = match step.expect {
+        let parsed = match expect {
             Expect::Nothing => None,
             Expect::Text => Some(Reply::Text(rest.to_string())),
             Expect::Status => match rest.trim().parse::<i64>() {
-                Ok(s) => Some(Reply::Flag(match self.cmd {
+                Ok(s) => Some(Reply::Flag(match self.x.cmd {
                     Some(Command::OnTarget) => s == 12 || s == 11 || s == 10,
                     _ => is_ready(s),
                 })),
-                Err(_) => return self.fail(self.protocol_error(text)),
+                Err(_) => return self.x.fail(self.protocol_error(text)),
             },
             Expect::Pose => {
                 let v: Vec<f64> = rest
@@ -197,15 +160,15 @@ impl Xps {
                     .collect();
                 match <[f64; 6]>::try_from(v) {
                     Ok(a) => Some(Reply::Pose(HexPose(a))),
-                    Err(_) => return self.fail(self.protocol_error(text)),
+                    Err(_) => return self.x.fail(self.protocol_error(text)),
                 }
             }
             Expect::ErrorText(_) => None,
         };
         if let Some(r) = parsed {
-            self.outcome = Some(Ok(r));
+            self.x.outcome = Some(Ok(r));
         }
-        self.next();
+        self.x.next();
     }
 }
 
@@ -215,43 +178,33 @@ impl Protocol for Xps {
     }
 
     fn start(&mut self, cmd: Command) {
-        self.cmd = Some(cmd);
-        self.steps = self.steps(&cmd).into();
-        self.buf.clear();
-        self.out.clear();
-        self.outcome = None;
-        self.next();
+        let steps = self.steps(&cmd);
+        self.x.start(cmd, steps);
     }
 
     fn poll_transmit(&mut self) -> Option<Vec<u8>> {
-        self.out.pop_front()
+        self.x.poll_transmit()
     }
 
     fn handle_input(&mut self, data: &[u8]) {
-        self.buf.extend_from_slice(data);
-        while self.current.is_some() {
-            let text = String::from_utf8_lossy(&self.buf).into_owned();
+        self.x.buf.extend_from_slice(data);
+        while self.x.current.is_some() {
+            let text = String::from_utf8_lossy(&self.x.buf).into_owned();
             let Some(end) = text.find(SUFFIX) else {
                 return;
             };
             let one = text[..end + SUFFIX.len()].to_string();
-            self.buf.drain(..one.len());
+            self.x.buf.drain(..one.len());
             self.answer(&one);
         }
     }
 
     fn poll_outcome(&mut self) -> Option<Result<Reply, HexapodError>> {
-        if self.current.is_some() {
-            return None;
-        }
-        self.outcome.take()
+        self.x.poll_outcome()
     }
 
     fn current(&self) -> String {
-        self.current
-            .as_ref()
-            .map(|s| s.send.clone())
-            .unwrap_or_else(|| "no request".into())
+        self.x.request().unwrap_or("no request").to_string()
     }
 }
 

@@ -195,7 +195,9 @@ use crate::helpers::{TempDir, link_config};
 use axiscomp::acquire::{AcquireConfig, Acquisition, IoMap};
 use axiscomp::calibrate::CalibrateOptions;
 use axiscomp::hexapod::plan::{PlanError, PlanSpec, PosePlan};
-use axiscomp::hexapod::procedure::{PoseStore, ProcedureError, RunOptions, fit_and_judge, run};
+use axiscomp::hexapod::procedure::{
+    PoseStore, ProcedureError, RunOptions, RunProgress, RunReport, fit_and_judge, run,
+};
 use axiscomp::optics::Layout;
 use axiscomp::sim::InstallSpec;
 use axiscomp::sim::iomodule::IoModule;
@@ -246,6 +248,18 @@ async fn rig(seed: u64) -> Rig {
     }
 }
 
+/// Run `plan` on the rig with quick settings (5 ms settle, 20 frames).
+async fn take(
+    h: &mut Hexapod,
+    r: &Rig,
+    plan: &PosePlan,
+    store: &mut PoseStore,
+    on: &mut dyn FnMut(&RunProgress),
+) -> Result<RunReport, ProcedureError> {
+    let mut rx = r.acq.subscribe();
+    run(h, &mut rx, plan, &spec().workspace, store, &quick(), on).await
+}
+
 fn quick() -> RunOptions {
     RunOptions {
         settle: Duration::from_millis(5),
@@ -267,17 +281,10 @@ async fn the_procedure_calibrates_the_twins_head() {
     });
     let mut store = PoseStore::open(&dir.path("run"), &plan).expect("store");
     let mut h = driver(&r.servers, Driver::NewportXps).await;
-    let mut rx = r.acq.subscribe();
     let mut seen = Vec::new();
-    let report = run(
-        &mut h,
-        &mut rx,
-        &plan,
-        &spec().workspace,
-        &mut store,
-        &quick(),
-        &mut |p| seen.push((p.done, p.eta)),
-    )
+    let report = take(&mut h, &r, &plan, &mut store, &mut |p| {
+        seen.push((p.done, p.eta))
+    })
     .await
     .expect("run");
     assert_eq!(report.taken, 120);
@@ -334,21 +341,12 @@ async fn a_controller_error_stops_and_the_run_resumes_a_dropped_link_reconnects(
     });
     let mut store = PoseStore::open(&dir.path("run"), &plan).expect("store");
     let mut h = driver(&r.servers, Driver::PiGcs).await;
-    let mut rx = r.acq.subscribe();
     let hx = r.servers.hexapod.clone();
-    let e = run(
-        &mut h,
-        &mut rx,
-        &plan,
-        &spec().workspace,
-        &mut store,
-        &quick(),
-        &mut |p| {
-            if p.done == 5 {
-                hx.inject(HexapodFault::Error(10));
-            }
-        },
-    )
+    let e = take(&mut h, &r, &plan, &mut store, &mut |p| {
+        if p.done == 5 {
+            hx.inject(HexapodFault::Error(10));
+        }
+    })
     .await
     .expect_err("controller error");
     assert_eq!(
@@ -362,19 +360,11 @@ async fn a_controller_error_stops_and_the_run_resumes_a_dropped_link_reconnects(
     // Resume from the files, as after a crash; the link drops at pose 8.
     let mut store = PoseStore::open(&dir.path("run"), &plan).expect("reopen");
     assert_eq!(store.next_index(), 5);
-    let report = run(
-        &mut h,
-        &mut rx,
-        &plan,
-        &spec().workspace,
-        &mut store,
-        &quick(),
-        &mut |p| {
-            if p.done == 7 {
-                hx.inject(HexapodFault::DropLink);
-            }
-        },
-    )
+    let report = take(&mut h, &r, &plan, &mut store, &mut |p| {
+        if p.done == 7 {
+            hx.inject(HexapodFault::DropLink);
+        }
+    })
     .await
     .expect("resumed");
     assert_eq!(report.resumed_from, 5);
@@ -409,18 +399,9 @@ async fn a_plan_outside_the_workspace_is_refused_before_any_move() {
     plan.poses[6].pose.0[2] = 6.5;
     let mut store = PoseStore::open(&dir.path("run"), &plan).expect("store");
     let mut h = driver(&r.servers, Driver::PiGcs).await;
-    let mut rx = r.acq.subscribe();
-    let e = run(
-        &mut h,
-        &mut rx,
-        &plan,
-        &spec().workspace,
-        &mut store,
-        &quick(),
-        &mut |_| {},
-    )
-    .await
-    .expect_err("outside");
+    let e = take(&mut h, &r, &plan, &mut store, &mut |_| {})
+        .await
+        .expect_err("outside");
     match &e {
         ProcedureError::Plan(PlanError::OutsideWorkspace {
             index, axis, value, ..
