@@ -32,6 +32,14 @@ def check(cond, what):
     checks += 1
 
 
+def wait_for(query, what, tries=200):
+    for _ in range(tries):
+        if all(query().values()):
+            return
+        time.sleep(0.02)
+    check(False, what)
+
+
 def close(a, b, tol):
     return all(abs(x - y) <= tol for x, y in zip(a, b))
 
@@ -57,22 +65,15 @@ with PISocket(host=host, port=gcs_port) as gw:
         check("Unallowable move attempted on unreferenced axis" in str(e), str(e))
     dev.SVO(AXES, [True] * 6)
     dev.FRF()
-    for _ in range(100):
-        if all(dev.qFRF().values()):
-            break
-        time.sleep(0.05)
-    check(all(dev.qFRF(AXES).values()), "referenced after FRF")
+    wait_for(dev.qFRF, "referenced after FRF")
+    check(all(dev.qFRF(AXES).values()), "FRF? X Y Z U V W")
     dev.SPI(["R", "S", "T"], [0.0, 0.0, 120.5])
     spi = dev.qSPI()
     check(close([spi["R"], spi["S"], spi["T"]], [0, 0, 120.5], 1e-9), f"SPI? {dict(spi)}")
     dev.KSD("AXISCOMP", AXES, [0, 0, 0, 0, 0, 90])
     dev.KEN("AXISCOMP")
     dev.MOV(AXES, POSE)
-    for _ in range(200):
-        if all(dev.qONT(AXES).values()):
-            break
-        time.sleep(0.02)
-    check(all(dev.qONT().values()), "on target")
+    wait_for(dev.qONT, "on target")
     pos = dev.qPOS()
     check(list(pos.keys()) == AXES, f"POS? axes {list(pos.keys())}")
     check(close(list(pos.values()), POSE, 1e-3), f"POS? {dict(pos)}")
