@@ -143,7 +143,7 @@ impl Hexapod {
             reply: match r {
                 Reply::Done => "nothing".into(),
                 Reply::Text(t) => t,
-                Reply::Pose(p) => format!("a pose {:?}", p.0),
+                Reply::Pose(p) => format!("a pose ({})", p.0.map(super::wire_number).join(", ")),
                 Reply::Flag(b) => b.to_string(),
             },
         }
