@@ -464,3 +464,34 @@ fn the_command_line_checks_plan_and_config_first() {
     let o = run_bin(&["check", "--config", "configs/twin-service.toml"], "");
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
 }
+
+/// A following error mid-plan (Newport): the run stops with -25 and the controller's text;
+/// the resumed run initialises the disabled group again and finishes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_following_error_stops_and_the_resumed_run_initialises_again() {
+    let r = rig(8).await;
+    let dir = TempDir::new("hexapod-following");
+    let plan = PosePlan::generate(&PlanSpec {
+        poses: 8,
+        ..PlanSpec::default()
+    });
+    let mut store = PoseStore::open(&dir.path("run"), &plan).expect("store");
+    let mut h = driver(&r.servers, Driver::NewportXps).await;
+    let hx = r.servers.hexapod.clone();
+    let e = take(&mut h, &r, &plan, &mut store, &mut |p| {
+        if p.done == 3 {
+            hx.inject(HexapodFault::FollowingError);
+        }
+    })
+    .await
+    .expect_err("following error");
+    assert_eq!(
+        e.to_string(),
+        "pose 4 of 8: Newport HXP error -25: Following Error; the poses taken so far are stored: run again to resume"
+    );
+    let report = take(&mut h, &r, &plan, &mut store, &mut |_| {})
+        .await
+        .expect("resumed");
+    assert_eq!((report.resumed_from, report.taken), (3, 5));
+    assert_eq!(store.poses.len(), 8);
+}
