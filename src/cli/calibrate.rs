@@ -19,6 +19,29 @@ pub enum Command {
     Simulate(SimulateArgs),
     /// Fit β and offset (and the installation errors) to a pose set; print the report.
     Fit(FitArgs),
+    /// Calibrate with the hexapod in the loop: drive `[hexapod]` through the pose plan, read
+    /// the head through `[io]` at each pose, store as it goes (run again to resume), fit,
+    /// judge on held-out poses, and write the calibration file.
+    Run(RunArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct RunArgs {
+    /// The service's configuration (`[hexapod]`, `[io]`, `[head]`).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// A pose plan CSV (`x_mm,y_mm,z_mm,u_deg,v_deg,w_deg[,travel_mm,follower_mm]`); default:
+    /// `--poses` poses over ±100 µm, ±2 mm positioning (the follower window), ±60″.
+    #[arg(long)]
+    pub plan: Option<PathBuf>,
+    #[arg(long, default_value_t = 200)]
+    pub poses: usize,
+    /// Where the run's files go (resumed when they exist).
+    #[arg(long, default_value = "calibration-run")]
+    pub out: PathBuf,
+    /// Hold out every n-th pose to judge the fit.
+    #[arg(long, default_value_t = 5)]
+    pub holdout_every: usize,
 }
 
 #[derive(clap::Args, Debug)]
@@ -89,6 +112,7 @@ pub fn run(c: Command) -> Result<()> {
     match c {
         Command::Simulate(a) => simulate(a),
         Command::Fit(a) => fit(a),
+        Command::Run(a) => hexapod_run(a),
     }
 }
 
@@ -217,5 +241,172 @@ fn fit(a: FitArgs) -> Result<()> {
     print!("{}", cal.report(Some(&bound)));
     CalibrationFile::from_calibration(&cal, &layout).save(&a.output)?;
     eprintln!("wrote {}", a.output.display());
+    Ok(())
+}
+
+fn duration_text(d: std::time::Duration) -> String {
+    let s = d.as_secs_f64();
+    if s < 90.0 {
+        format!("{s:.0} s")
+    } else {
+        format!("{} min {:02.0} s", (s / 60.0).floor(), s % 60.0)
+    }
+}
+
+fn hexapod_run(a: RunArgs) -> Result<()> {
+    use axiscomp::hexapod::Hexapod;
+    use axiscomp::hexapod::plan::{PlanSpec, PosePlan};
+    use axiscomp::hexapod::procedure::{self, PoseStore};
+    use axiscomp::units::{DOF_NAMES, DOF_TO_USER, DOF_UNITS};
+    let wall = std::time::Instant::now();
+    let settings = super::service::settings(a.config.as_deref())?;
+    let hx = settings.hexapod.clone();
+    let Some(kind) = hx.driver else {
+        return Err(InputError(
+            "[hexapod] driver is \"none\": set driver = \"pi-gcs\" or \"newport-xps\" and its address in the configuration".into(),
+        )
+        .into());
+    };
+    let plan = match &a.plan {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .map_err(|e| InputError(format!("{}: cannot read it: {e}", p.display())))?;
+            PosePlan::parse(&text, &p.display().to_string())
+                .map_err(|e| InputError(e.to_string()))?
+        }
+        None => {
+            if a.poses < 20 {
+                return Err(InputError(format!("--poses {}: give at least 20", a.poses)).into());
+            }
+            PosePlan::generate(&PlanSpec {
+                poses: a.poses,
+                ..PlanSpec::default()
+            })
+        }
+    };
+    // Refused before anything connects or moves.
+    plan.check(&hx.workspace)
+        .map_err(|e| InputError(e.to_string()))?;
+    let prepared = axiscomp::service::prepare(&settings).map_err(|e| InputError(e.to_string()))?;
+    let layout = prepared.layout.clone();
+    let mut store = PoseStore::open(&a.out, &plan)?;
+    let resumed = store.poses.len();
+    if resumed > 0 {
+        eprintln!(
+            "resuming {}: {resumed} of {} poses stored",
+            a.out.display(),
+            plan.poses.len()
+        );
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    let report = rt.block_on(async {
+        let mut map = prepared.map.clone();
+        if settings.io.unit != 0 {
+            map.unit_id = settings.io.unit;
+        }
+        let acq = axiscomp::acquire::Acquisition::spawn_paced(
+            settings.io.link.clone(),
+            std::sync::Arc::new(map),
+            settings.io.acquire,
+        );
+        let mut rx = acq.subscribe();
+        let mut h = Hexapod::connect(kind, &hx.address, &hx.group, hx.timeouts).await?;
+        let id = h.identify().await?;
+        eprintln!("{} at {}: {id}", kind.name(), hx.address);
+        h.set_speed(hx.speed_mm_s).await?;
+        let total = plan.poses.len();
+        let step = (total / 20).max(1);
+        let r = procedure::run(
+            &mut h,
+            &mut rx,
+            &plan,
+            &hx.workspace,
+            &mut store,
+            &hx.run,
+            &mut |p| {
+                if p.done % step == 0 || p.done == total {
+                    eprintln!(
+                        "hexapod pose {}/{} ({:.0} %), ETA {}",
+                        p.done,
+                        p.total,
+                        100.0 * p.done as f64 / p.total as f64,
+                        p.eta.map(duration_text).unwrap_or_else(|| "?".into())
+                    );
+                }
+            },
+        )
+        .await;
+        acq.stop();
+        anyhow::Ok(r?)
+    })?;
+    let opts = CalibrateOptions {
+        holdout_every: a.holdout_every,
+        ..CalibrateOptions::default()
+    };
+    let mut progress = Progress::new("model fit (iterations)", opts.model_options.max_iter as u64);
+    let mut last_iter = 0;
+    let j = procedure::fit_and_judge(&store, &layout, &opts, &mut |it, _| {
+        last_iter = it;
+        progress.set(it as u64)
+    })?;
+    progress.finish(&format!("{last_iter} iterations"));
+    let bound = j.calibration.crlb(&layout)?;
+    print!("{}", j.calibration.report(Some(&bound)));
+    println!(
+        "held out: {} poses, {} frames decoupled one by one against the reached poses",
+        j.holdout_poses, j.frames
+    );
+    println!(
+        "  {:<24}{}",
+        "DOF",
+        DOF_NAMES.map(|n| format!("{n:>9}")).join("")
+    );
+    let row = |label: &str, v: [f64; 6]| {
+        let cells: String = (0..6)
+            .map(|k| format!("{:>9.3}", v[k] * DOF_TO_USER[k]))
+            .collect();
+        println!("  {label:<24}{cells}");
+    };
+    row("hold-out RMS, 1 frame", j.holdout_rms);
+    row("Cramér–Rao, 1 frame", j.crlb);
+    println!(
+        "  {:<24}{}",
+        "ratio",
+        j.ratio().map(|r| format!("{r:>9.3}")).join("")
+    );
+    println!("  units: {}", DOF_UNITS.join(", "));
+    let cal_path = a.out.join("calibration.toml");
+    CalibrationFile::from_calibration(&j.calibration, &layout).save(&cal_path)?;
+    let poses_path = a.out.join("poses.csv");
+    std::fs::write(
+        &poses_path,
+        procedure::pose_set_csv(
+            &store,
+            &[format!(
+                "axiscomp calibrate run: {} poses with the {} at {}",
+                store.poses.len(),
+                kind.name(),
+                hx.address
+            )],
+        ),
+    )
+    .with_context(|| format!("writing {}", poses_path.display()))?;
+    println!(
+        "poses: {} this run, {} resumed; machine time {}, wall time {}; {} link reconnects",
+        report.taken,
+        report.resumed_from,
+        duration_text(report.machine),
+        duration_text(wall.elapsed()),
+        report.reconnects
+    );
+    println!(
+        "wrote {} and the pose set {} (fit, accept or reject it on the console's Calibrate screen)",
+        cal_path.display(),
+        poses_path.display()
+    );
     Ok(())
 }

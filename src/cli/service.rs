@@ -338,11 +338,44 @@ pub fn sim(a: SimArgs) -> Result<()> {
                 .map(|p| format!(", PLC on {} ({})", p.local_addr(), p.map().name))
                 .unwrap_or_default()
         );
+        let hexapod = start_twin_hexapod(&a.config, &twin).await?;
         let (trigger, mut listener) = shutdown::channel();
         on_signals(trigger)?;
         listener.recv().await;
+        drop(hexapod);
         drop(plc);
         drop(twin);
         Ok(())
     })
+}
+
+/// The twin's hexapod controller (`[hexapod]` of the twin's config; by default GCS on
+/// 127.0.0.1:50000 and XPS on 127.0.0.1:5001). A port already taken (another twin, a real
+/// controller's simulator) is a warning: the rest of the twin runs without it.
+async fn start_twin_hexapod(
+    config: &std::path::Path,
+    twin: &axiscomp::sim::twin::Twin,
+) -> Result<Option<axiscomp::sim::hexapod_servers::HexapodServers>> {
+    use axiscomp::sim::hexapod_servers::{spec_from_config, start};
+    let text =
+        std::fs::read_to_string(config).with_context(|| format!("reading {}", config.display()))?;
+    let spec = spec_from_config(&text, &config.display().to_string()).map_err(super::InputError)?;
+    match start(spec, twin.plant.hexapod.clone()).await {
+        Ok(s) => {
+            let at = |a: Option<std::net::SocketAddr>| {
+                a.map(|a| a.to_string()).unwrap_or_else(|| "off".into())
+            };
+            println!(
+                "twin hexapod: PI GCS on {}, Newport XPS on {}",
+                at(s.gcs),
+                at(s.xps)
+            );
+            Ok(Some(s))
+        }
+        Err(e) => {
+            tracing::warn!("{e}: the twin runs without its hexapod");
+            eprintln!("warning: {e}: the twin runs without its hexapod");
+            Ok(None)
+        }
+    }
 }

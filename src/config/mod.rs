@@ -196,6 +196,7 @@ pub struct RawConfig {
     pub cnc: RawCnc,
     pub capture: RawCapture,
     pub plc: RawPlc,
+    pub hexapod: crate::hexapod::config::RawHexapod,
 }
 
 /// Where a file, map or layout comes from: a path, or the copy built into the binary.
@@ -325,6 +326,8 @@ pub struct Settings {
     pub cnc: CncSettings,
     pub capture: CaptureSettings,
     pub plc: PlcSettings,
+    /// `[hexapod]`: the calibration hexapod (`hexapod::config`).
+    pub hexapod: crate::hexapod::config::HexapodSettings,
     /// The files that were read, in layer order (for `check` and the logs).
     pub sources: Vec<String>,
 }
@@ -804,6 +807,7 @@ fn validate(
         timeout: Duration::from_secs(k.timeout_s.max(1)),
     };
     let plc = plc_settings(&v, &raw.plc)?;
+    let hexapod = crate::hexapod::config::validate(&raw.hexapod, origin)?;
     Ok(Settings {
         service,
         head,
@@ -814,6 +818,7 @@ fn validate(
         cnc,
         capture,
         plc,
+        hexapod,
         sources,
     })
 }

@@ -25,6 +25,10 @@ struct RawSimConfig {
     control: RawControl,
     #[serde(default)]
     plc: Option<RawPlc>,
+    /// The twin hexapod's controller, read by `sim::hexapod_servers::spec_from_config`.
+    #[serde(default)]
+    #[serde(rename = "hexapod")]
+    _hexapod: Option<toml::Value>,
 }
 
 #[derive(Debug, Deserialize)]

@@ -16,6 +16,7 @@ pub mod config;
 pub mod drive;
 pub mod head;
 pub mod hexapod;
+pub mod hexapod_servers;
 pub mod iomodule;
 pub mod lab;
 pub mod plant;

@@ -192,6 +192,9 @@ pub struct Plant {
     laser: Option<usize>,
     t0: Instant,
     state: Mutex<State>,
+    /// The calibration hexapod the moving module may sit on (`sim::hexapod_servers`): its
+    /// pose adds to the axis' errors. At its home pose it changes nothing.
+    pub hexapod: std::sync::Arc<super::hexapod_servers::HexapodMount>,
 }
 
 impl Plant {
@@ -255,6 +258,7 @@ impl Plant {
             mount_geometry,
             laser,
             t0: now,
+            hexapod: Default::default(),
         })
     }
 
@@ -431,6 +435,7 @@ impl Plant {
         if let Some(p) = &c.dz {
             errors.dz += p.at(travel, dir);
         }
+        self.hexapod.apply(&mut errors, now);
         Truth {
             travel,
             moving: s.carriage.is_moving(now),

@@ -13,6 +13,7 @@ mod comp;
 mod console;
 mod decoupling;
 mod evaluate;
+mod hexapod;
 mod modbus;
 mod plc;
 mod resume;

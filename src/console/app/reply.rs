@@ -1,0 +1,251 @@
+//! The replies to the console's requests, each applied to the state of the screen that asked.
+
+use super::*;
+
+impl App {
+    /// The reply to request `id`; it may ask for more (the result of a run that finished).
+    pub fn handle_reply(
+        &mut self,
+        id: u64,
+        result: Result<serde_json::Value, ClientError>,
+        now: Instant,
+    ) -> Vec<Action> {
+        self.now = now;
+        let Some(pending) = self.pending.remove(&id) else {
+            return Vec::new();
+        };
+        let v = match result {
+            Ok(v) => v,
+            Err(e) => {
+                if e.is_role_refusal() {
+                    match pending {
+                        Pending::Publish(_) => self.publish.publishing = None,
+                        Pending::Generate(_) => self.publish.generating = None,
+                        Pending::Fit => self.calibrate.fitting = false,
+                        _ => {}
+                    }
+                    self.access = Access::Viewer;
+                    self.say(Level::Warn, format!("read-only (viewer): {e}"));
+                    self.log(Level::Error, format!("✗ {e}"));
+                } else {
+                    match pending {
+                        Pending::RunStatus | Pending::RunResult(ResultFor::Live) => {}
+                        Pending::RunResult(_) => {
+                            self.results.error = Some(e.to_string());
+                            self.say(Level::Error, e.to_string());
+                        }
+                        Pending::Tables => {
+                            self.publish.listed = true;
+                            self.say(Level::Error, format!("table list: {e}"));
+                        }
+                        Pending::TableStatus => self.publish.status = Some(Err(e.to_string())),
+                        Pending::Publish(table_id) => {
+                            self.publish.publishing = None;
+                            self.publish.outcome = Some(Err(e.to_string()));
+                            self.log(Level::Error, format!("✗ publish table {table_id}: {e}"));
+                            self.say(Level::Error, format!("publish failed: {e}"));
+                            return self.reload_publish();
+                        }
+                        Pending::Generate(run) => {
+                            self.publish.generating = None;
+                            self.log(Level::Error, format!("✗ generate from run {run}: {e}"));
+                            self.say(Level::Error, e.to_string());
+                        }
+                        Pending::Calibration => {
+                            self.calibrate.loaded = true;
+                            self.calibrate.error = Some(e.to_string());
+                        }
+                        Pending::Fit | Pending::CalAccept | Pending::CalReject => {
+                            if pending == Pending::Fit {
+                                self.calibrate.fitting = false;
+                            }
+                            self.calibrate.error = Some(e.to_string());
+                            self.log(Level::Error, format!("✗ {e}"));
+                            self.say(Level::Error, e.to_string());
+                        }
+                        _ => {
+                            self.say(Level::Error, e.to_string());
+                            self.log(Level::Error, format!("✗ {e}"));
+                        }
+                    }
+                }
+                return Vec::new();
+            }
+        };
+        if self.access == Access::Unknown && !pending.is_read() {
+            // An operator request went through.
+            self.access = Access::Operator;
+        }
+        match pending {
+            Pending::Tables => {
+                match serde_json::from_value::<Vec<TableView>>(v["tables"].clone()) {
+                    Ok(tables) => {
+                        let keep = self.publish.selected_table().map(|t| t.id);
+                        let p = &mut self.publish;
+                        p.tables = tables;
+                        p.map = v["map"].as_str().map(str::to_string);
+                        p.selected = keep
+                            .and_then(|id| p.tables.iter().position(|t| t.id == id))
+                            .unwrap_or(0);
+                    }
+                    Err(e) => self.say(Level::Error, format!("bad table list: {e}")),
+                }
+                self.publish.listed = true;
+            }
+            Pending::TableStatus => {
+                self.publish.status = Some(
+                    serde_json::from_value::<StatusView>(v)
+                        .map_err(|e| format!("bad table status from the service: {e}")),
+                );
+            }
+            Pending::Generate(run) => {
+                self.publish.generating = None;
+                let ids: Vec<String> = v["tables"]
+                    .as_array()
+                    .map(|a| {
+                        a.iter()
+                            .map(|t| {
+                                format!(
+                                    "{} {}",
+                                    t["id"].as_i64().unwrap_or(0),
+                                    t["name"].as_str().unwrap_or("?")
+                                )
+                            })
+                            .collect()
+                    })
+                    .unwrap_or_default();
+                let text = format!("run {run}: tables {} generated", ids.join(", "));
+                self.log(Level::Info, format!("✓ {text}"));
+                self.say(Level::Info, text);
+                // The newest first: select the first generated.
+                self.publish.selected = 0;
+                return self.reload_publish();
+            }
+            Pending::Publish(table_id) => {
+                self.publish.publishing = None;
+                let outcome = serde_json::from_value::<PublishView>(v)
+                    .map_err(|e| format!("bad publish reply from the service: {e}"));
+                let (level, text) = match &outcome {
+                    Ok(p) if p.result == "committed" => (
+                        Level::Info,
+                        format!("table {table_id} committed as sequence {}", p.sequence),
+                    ),
+                    Ok(p) => (
+                        Level::Error,
+                        format!("table {table_id} {}: {}", p.result, p.message),
+                    ),
+                    Err(e) => (Level::Error, e.clone()),
+                };
+                self.log(
+                    level,
+                    format!("{} {text}", if level == Level::Info { "✓" } else { "✗" }),
+                );
+                self.say(level, text);
+                self.publish.outcome = Some(outcome);
+                return self.reload_publish();
+            }
+            Pending::Calibration => self.apply_calibration(&v),
+            Pending::Fit => {
+                self.calibrate.fitting = false;
+                self.calibrate.error = None;
+                match serde_json::from_value::<CalSummary>(v["pending"].clone()) {
+                    Ok(c) => {
+                        let text = format!(
+                            "fitted {} poses ({}): judge it, then a accepts or x rejects",
+                            c.poses, c.decoupling
+                        );
+                        self.log(Level::Info, format!("✓ {text}"));
+                        self.say(Level::Info, text);
+                        self.calibrate.pending = Some(c);
+                    }
+                    Err(e) => self.say(Level::Error, format!("bad fit reply: {e}")),
+                }
+            }
+            Pending::CalAccept => {
+                let text = format!(
+                    "calibration {} in use ({}); the zero was cleared: take it again (screen 2, z)",
+                    v["calibration_id"].as_i64().unwrap_or(0),
+                    v["decoupling"].as_str().unwrap_or("?")
+                );
+                self.log(Level::Info, format!("✓ {text}"));
+                self.say(Level::Info, text);
+                self.calibrate.loaded = false;
+                return self.screens_need();
+            }
+            Pending::CalReject => {
+                self.calibrate.pending = None;
+                self.log(Level::Info, "✓ calibration rejected");
+                self.say(Level::Info, "calibration rejected");
+                self.calibrate.loaded = false;
+                return self.screens_need();
+            }
+            Pending::RunStart(plan) => {
+                let run_id = v["run_id"].as_i64().unwrap_or(0);
+                let expected = v["captures_expected"].as_u64().map(|n| n as usize);
+                let mut r = RunProgress::new(run_id, 0, now);
+                r.expected = expected;
+                r.program = v["program"].as_str().map(str::to_string);
+                r.plan = Some(*plan);
+                self.run = Some(r);
+                let cnc = v["cnc"].as_str().unwrap_or("");
+                let text = format!(
+                    "run {run_id} started: {} captures; {cnc}",
+                    expected.map(|e| e.to_string()).unwrap_or("?".into())
+                );
+                self.log(Level::Info, format!("✓ {text}"));
+                self.say(Level::Info, text);
+            }
+            Pending::RunStatus => return self.apply_run_status(&v, now),
+            Pending::Runs => self.apply_runs(v),
+            Pending::Audit => {
+                match serde_json::from_value::<Vec<AuditView>>(v["entries"].clone()) {
+                    Ok(entries) => self.audit = Some(entries),
+                    Err(e) => {
+                        self.say(Level::Error, format!("bad audit log from the service: {e}"))
+                    }
+                }
+            }
+            Pending::RunResult(to) => self.apply_result(to, v),
+            Pending::RunAbort => {
+                let text = match v["aborted"].as_i64() {
+                    Some(id) => format!("run {id} aborted (its captures stay stored)"),
+                    None => "run aborted".into(),
+                };
+                if let Some(r) = self.run.as_mut() {
+                    r.state = "aborted".into();
+                }
+                self.results.listed = false;
+                self.log(Level::Info, format!("✓ {text}"));
+                self.say(Level::Info, text);
+            }
+            Pending::Other(what) => {
+                let detail = if v.is_null() {
+                    String::new()
+                } else {
+                    format!(": {v}")
+                };
+                let text = format!("{what} done{detail}");
+                self.log(Level::Info, format!("✓ {text}"));
+                self.say(Level::Info, text);
+            }
+        }
+        Vec::new()
+    }
+
+    /// The outcome of an [`Action::Save`].
+    pub fn handle_saved(&mut self, path: &str, result: Result<(), String>) {
+        match result {
+            Ok(()) => {
+                self.log(Level::Info, format!("✓ part program saved to {path}"));
+                self.say(Level::Info, format!("part program saved to {path}"));
+                self.saved = Some(Ok(path.to_string()));
+            }
+            Err(e) => {
+                let text = format!("part program not saved to {path}: {e}");
+                self.log(Level::Error, format!("✗ {text}"));
+                self.say(Level::Error, text.clone());
+                self.saved = Some(Err(text));
+            }
+        }
+    }
+}

@@ -1,0 +1,307 @@
+//! The pose plan of a hexapod calibration: which poses, in which order, at which bench
+//! position (travel D) with the follower where (d). Generated to cover the operating window
+//! (DESIGN §3: positioning over the whole follower window, the angles and straightnesses the
+//! axis will show) with a Halton sequence, which fills the six-dimensional box evenly for any
+//! number of poses; or read from a CSV file. Checked against the workspace before any move.
+
+use super::{AXES, HexPose, Workspace};
+use crate::units::Errors6;
+use std::fmt::Write as _;
+use thiserror::Error;
+
+/// One pose of the plan.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PlanPose {
+    pub pose: HexPose,
+    /// Where the hexapod stands along the travel (mm) and the follower (mm).
+    pub travel_mm: f64,
+    pub follower_mm: f64,
+}
+
+/// The poses in the order they are visited.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PosePlan {
+    pub poses: Vec<PlanPose>,
+}
+
+/// What a generated plan covers.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlanSpec {
+    pub poses: usize,
+    /// Half-range per DOF (internal units), centred on the home pose.
+    pub half_range: Errors6,
+    /// Bench positions (travel, follower) visited in turn.
+    pub stations: Vec<(f64, f64)>,
+}
+
+impl Default for PlanSpec {
+    /// 200 poses, ±100 µm straightness, ±2 mm positioning (the follower window), ±60″.
+    fn default() -> Self {
+        PlanSpec {
+            poses: 200,
+            half_range: Errors6::from_user([100.0, 2000.0, 100.0, 60.0, 60.0, 60.0]),
+            stations: vec![(0.0, 0.0)],
+        }
+    }
+}
+
+#[derive(Clone, Debug, Error, PartialEq)]
+pub enum PlanError {
+    #[error("{source_name} line {line}: {problem}")]
+    Parse {
+        source_name: String,
+        line: usize,
+        problem: String,
+    },
+    #[error(
+        "pose {index} of the plan: {axis} = {value} is outside the hexapod's workspace ({min} to {max}); no pose was moved to: change the plan or [hexapod] workspace"
+    )]
+    OutsideWorkspace {
+        index: usize,
+        axis: &'static str,
+        value: f64,
+        min: f64,
+        max: f64,
+    },
+    #[error("the plan has no poses")]
+    Empty,
+}
+
+/// The `i`-th element of the van der Corput sequence in `base`, in [0, 1).
+fn radical_inverse(mut i: u64, base: u64) -> f64 {
+    let mut f = 1.0;
+    let mut r = 0.0;
+    while i > 0 {
+        f /= base as f64;
+        r += f * (i % base) as f64;
+        i /= base;
+    }
+    r
+}
+
+/// The CSV columns of a plan file.
+pub const PLAN_COLUMNS: [&str; 8] = [
+    "x_mm",
+    "y_mm",
+    "z_mm",
+    "u_deg",
+    "v_deg",
+    "w_deg",
+    "travel_mm",
+    "follower_mm",
+];
+
+impl PosePlan {
+    /// A plan covering `spec`'s window: Halton points (bases 2, 3, 5, 7, 11, 13; the first
+    /// point skipped, it is the corner), cycling through the stations.
+    pub fn generate(spec: &PlanSpec) -> PosePlan {
+        const BASES: [u64; 6] = [2, 3, 5, 7, 11, 13];
+        let h = spec.half_range.to_array();
+        let stations = if spec.stations.is_empty() {
+            vec![(0.0, 0.0)]
+        } else {
+            spec.stations.clone()
+        };
+        let poses = (0..spec.poses)
+            .map(|i| {
+                let e = Errors6::from_array(std::array::from_fn(|k| {
+                    h[k] * (2.0 * radical_inverse(i as u64 + 1, BASES[k]) - 1.0)
+                }));
+                let (travel_mm, follower_mm) = stations[i % stations.len()];
+                PlanPose {
+                    pose: HexPose::from_errors(&e),
+                    travel_mm,
+                    follower_mm,
+                }
+            })
+            .collect();
+        PosePlan { poses }
+    }
+
+    /// Every pose inside `ws`, or the first that is not.
+    pub fn check(&self, ws: &Workspace) -> Result<(), PlanError> {
+        if self.poses.is_empty() {
+            return Err(PlanError::Empty);
+        }
+        for (i, p) in self.poses.iter().enumerate() {
+            if let Some((k, value)) = ws.outside(&p.pose) {
+                return Err(PlanError::OutsideWorkspace {
+                    index: i + 1,
+                    axis: AXES[k],
+                    value,
+                    min: ws.min[k],
+                    max: ws.max[k],
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// A short fingerprint of the plan (FNV-1a of its text), so a pose file is resumed only
+    /// with the plan it was taken with.
+    pub fn fingerprint(&self) -> String {
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        for b in self.to_csv().bytes() {
+            h ^= b as u64;
+            h = h.wrapping_mul(0x0100_0000_01b3);
+        }
+        format!("{h:016x}")
+    }
+
+    /// The plan as CSV (the form `parse` reads).
+    pub fn to_csv(&self) -> String {
+        let mut s = format!("{}\n", PLAN_COLUMNS.join(","));
+        for p in &self.poses {
+            let v = p.pose.0;
+            let _ = writeln!(
+                s,
+                "{:.7},{:.7},{:.7},{:.9},{:.9},{:.9},{},{}",
+                v[0], v[1], v[2], v[3], v[4], v[5], p.travel_mm, p.follower_mm
+            );
+        }
+        s
+    }
+
+    /// Read a plan: the header names the columns (`travel_mm`, `follower_mm` optional, 0 when
+    /// absent); `#` lines and blank lines are skipped.
+    pub fn parse(text: &str, source_name: &str) -> Result<PosePlan, PlanError> {
+        let err = |line: usize, problem: String| PlanError::Parse {
+            source_name: source_name.to_string(),
+            line,
+            problem,
+        };
+        let mut lines = text
+            .lines()
+            .enumerate()
+            .map(|(i, l)| (i + 1, l.trim()))
+            .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
+        let Some((hl, header)) = lines.next() else {
+            return Err(PlanError::Empty);
+        };
+        let names: Vec<&str> = header.split(',').map(str::trim).collect();
+        let mut cols = [None; 8];
+        for (i, n) in names.iter().enumerate() {
+            match PLAN_COLUMNS.iter().position(|c| c == n) {
+                Some(k) => cols[k] = Some(i),
+                None => {
+                    return Err(err(
+                        hl,
+                        format!(
+                            "unknown column \"{n}\": the columns are {}",
+                            PLAN_COLUMNS.join(",")
+                        ),
+                    ));
+                }
+            }
+        }
+        if let Some(k) = (0..6).find(|&k| cols[k].is_none()) {
+            return Err(err(hl, format!("column {} missing", PLAN_COLUMNS[k])));
+        }
+        let mut poses = Vec::new();
+        for (ln, line) in lines {
+            let fields: Vec<&str> = line.split(',').map(str::trim).collect();
+            if fields.len() != names.len() {
+                return Err(err(
+                    ln,
+                    format!(
+                        "{} fields where the header has {}",
+                        fields.len(),
+                        names.len()
+                    ),
+                ));
+            }
+            let mut v = [0.0; 8];
+            for k in 0..8 {
+                if let Some(c) = cols[k] {
+                    v[k] = fields[c]
+                        .parse::<f64>()
+                        .ok()
+                        .filter(|x| x.is_finite())
+                        .ok_or_else(|| {
+                            err(
+                                ln,
+                                format!("{} = \"{}\" is not a number", PLAN_COLUMNS[k], fields[c]),
+                            )
+                        })?;
+                }
+            }
+            poses.push(PlanPose {
+                pose: HexPose([v[0], v[1], v[2], v[3], v[4], v[5]]),
+                travel_mm: v[6],
+                follower_mm: v[7],
+            });
+        }
+        if poses.is_empty() {
+            return Err(PlanError::Empty);
+        }
+        Ok(PosePlan { poses })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn generated_plan_covers_the_window_evenly() {
+        let spec = PlanSpec::default();
+        let plan = PosePlan::generate(&spec);
+        assert_eq!(plan.poses.len(), 200);
+        let h = HexPose::from_errors(&spec.half_range).0;
+        for (k, &hk) in h.iter().enumerate() {
+            let v: Vec<f64> = plan.poses.iter().map(|p| p.pose.0[k]).collect();
+            let (lo, hi) = v
+                .iter()
+                .fold((f64::MAX, f64::MIN), |(a, b), x| (a.min(*x), b.max(*x)));
+            // Within the window, reaching within 3 % of both ends.
+            assert!(lo >= -hk && hi <= hk, "{k}");
+            assert!(lo < -0.97 * hk && hi > 0.97 * hk, "{k}: {lo} .. {hi}");
+            // Every tenth of the range is visited by 10 % of the poses, ±4.
+            for b in 0..10 {
+                let a = -hk + 0.2 * hk * b as f64;
+                let n = v.iter().filter(|x| **x >= a && **x < a + 0.2 * hk).count();
+                assert!((16..=24).contains(&n), "axis {k} bin {b}: {n}");
+            }
+        }
+        assert_eq!(radical_inverse(1, 2), 0.5);
+        assert_eq!(radical_inverse(3, 2), 0.75);
+        assert!((radical_inverse(5, 3) - 7.0 / 9.0).abs() < 1e-15);
+    }
+
+    #[test]
+    fn the_workspace_check_names_pose_and_axis() {
+        let plan = PosePlan::generate(&PlanSpec::default());
+        assert_eq!(
+            plan.check(&Workspace::symmetric([1.0, 3.0, 1.0, 1.0, 1.0, 1.0])),
+            Ok(())
+        );
+        match plan.check(&Workspace::symmetric([1.0, 1.5, 1.0, 1.0, 1.0, 1.0])) {
+            Err(PlanError::OutsideWorkspace { axis, value, .. }) => {
+                assert_eq!(axis, "Y");
+                assert!(value.abs() > 1.5);
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn csv_round_trip_and_bad_input() {
+        let plan = PosePlan::generate(&PlanSpec {
+            poses: 5,
+            stations: vec![(0.0, 0.0), (100.0, 100.0)],
+            ..PlanSpec::default()
+        });
+        let back = PosePlan::parse(&plan.to_csv(), "plan.csv").expect("parse");
+        assert_eq!(back.poses.len(), 5);
+        assert_eq!(back.poses[1].travel_mm, 100.0);
+        assert_eq!(back.fingerprint(), plan.fingerprint());
+        let e = PosePlan::parse("x_mm,y_mm,z_mm,u_deg,v_deg,w_deg\n0,0,0,0,0,abc\n", "p.csv")
+            .expect_err("bad");
+        assert_eq!(
+            e.to_string(),
+            "p.csv line 2: w_deg = \"abc\" is not a number"
+        );
+        let e = PosePlan::parse("x_mm,y_mm,q\n", "p.csv").expect_err("bad");
+        assert!(e.to_string().contains("unknown column \"q\""), "{e}");
+    }
+}
