@@ -6,6 +6,7 @@ mod console;
 mod decouple;
 mod demo;
 mod evaluate;
+mod export;
 mod optics;
 mod run;
 mod service;
@@ -61,7 +62,7 @@ enum Command {
     /// Write a run's report (plots, ISO figures, HTML and Markdown) from the store.
     Report(run::ReportArgs),
     /// Export a run's compensation table for a controller.
-    Export(run::ExportArgs),
+    Export(export::ExportArgs),
     /// Compensation tables for the CNC's PLC on the running service: list, generate,
     /// publish, status.
     #[command(subcommand)]
@@ -109,7 +110,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Sim(a) => service::sim(a),
         Command::Run(c) => run::run(c),
         Command::Report(a) => run::report(a),
-        Command::Export(a) => run::export(a),
+        Command::Export(a) => export::run(a),
         Command::Table(c) => table::run(c),
     }
 }

@@ -196,6 +196,8 @@ pub struct RawConfig {
     pub cnc: RawCnc,
     pub capture: RawCapture,
     pub plc: RawPlc,
+    /// `[comp.<controller>]`: the controllers' settings for `axiscomp export`.
+    pub comp: crate::comp::settings::RawComp,
 }
 
 /// Where a file, map or layout comes from: a path, or the copy built into the binary.
@@ -325,6 +327,7 @@ pub struct Settings {
     pub cnc: CncSettings,
     pub capture: CaptureSettings,
     pub plc: PlcSettings,
+    pub comp: crate::comp::settings::CompSettings,
     /// The files that were read, in layer order (for `check` and the logs).
     pub sources: Vec<String>,
 }
@@ -804,6 +807,7 @@ fn validate(
         timeout: Duration::from_secs(k.timeout_s.max(1)),
     };
     let plc = plc_settings(&v, &raw.plc)?;
+    let comp = crate::comp::settings::validate(&raw.comp).map_err(|(k, p)| v.err(&k, p))?;
     Ok(Settings {
         service,
         head,
@@ -814,6 +818,7 @@ fn validate(
         cnc,
         capture,
         plc,
+        comp,
         sources,
     })
 }

@@ -9,6 +9,7 @@ mod can;
 mod canopen;
 mod cli;
 mod comp;
+mod comp_export;
 mod console;
 mod decoupling;
 mod evaluate;

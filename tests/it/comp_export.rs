@@ -1,0 +1,740 @@
+//! Controller exports that real controls load (issue 16): golden files from the vendors' worked
+//! examples (each test names the document and page), a test per defect fixed, the two new
+//! families (Beckhoff ISG, Mitsubishi) with one-point sign tests and a refusal per limit, and
+//! the `axiscomp export` CLI contract over a real store.
+
+use crate::helpers::{TempDir, run};
+use axiscomp::Errors6;
+use axiscomp::comp::beckhoff::{self, SsfkOptions};
+use axiscomp::comp::fanuc::{self, PitchOptions, ValueRange};
+use axiscomp::comp::heidenhain::{self, Backlash, ComOptions, Family};
+use axiscomp::comp::linuxcnc::{self, CompFileOptions, CompFileType, Units};
+use axiscomp::comp::mitsubishi::{self, MecOptions, Mode};
+use axiscomp::comp::siemens::{self, CecOptions, EndHandling, LecOptions, SiemensControl};
+use axiscomp::comp::{CompTable, MachineAxis, TableKind, TableValues};
+use axiscomp::evaluate::axis::synthetic_capture;
+use axiscomp::run::Direction;
+use axiscomp::store::{NewRun, Store};
+
+const UM: f64 = 1e-3;
+
+fn table(positions: Vec<f64>, values: TableValues, reference_mm: f64) -> CompTable {
+    CompTable {
+        kind: TableKind::Positioning,
+        name: "EXX".into(),
+        base_axis: MachineAxis::X,
+        comp_axis: MachineAxis::X,
+        reference_mm,
+        positions_mm: positions,
+        values,
+    }
+}
+
+fn single(v: Vec<f64>) -> TableValues {
+    TableValues::Single {
+        values: v,
+        backlash_mm: None,
+    }
+}
+
+/// +10 µm overshoot at 300 mm, zero elsewhere, over 0..500 mm.
+fn overshoot() -> CompTable {
+    let mut v = vec![0.0; 6];
+    v[3] = 10.0 * UM;
+    table((0..6).map(|k| 100.0 * k as f64).collect(), single(v), 0.0)
+}
+
+fn lines(text: &str) -> Vec<&str> {
+    text.lines().collect()
+}
+
+// ---------------------------------------------------------------- Siemens
+
+/// SINUMERIK 840D sl Function Manual Extended Functions (6FC5397-1BP40-3BA1, 03/2013), K3
+/// §4.4.2.3 "Example", p. 242: machine axis X1, 801 points from −200 to 600 mm at 1 mm, the
+/// first values +3, +10, +12 µm and the last 0.
+#[test]
+fn siemens_lec_reproduces_the_k3_example() {
+    let positions: Vec<f64> = (0..801).map(|k| -200.0 + k as f64).collect();
+    let mut v = vec![0.005; 801];
+    v[0] = 0.003;
+    v[1] = 0.010;
+    v[2] = 0.012;
+    v[800] = 0.0;
+    let t = table(positions, single(v), 600.0);
+    let x = siemens::lec(
+        &t,
+        &LecOptions {
+            max_points: 801,
+            step_mm: Some(1.0),
+            ..LecOptions::new("X1")
+        },
+    )
+    .unwrap();
+    let l = lines(&x.text);
+    for want in [
+        "%_N_AX_EEC_INI",
+        "CHANDATA(1)",
+        "$AA_ENC_COMP[0,0,X1]=0.003",
+        "$AA_ENC_COMP[0,1,X1]=0.01",
+        "$AA_ENC_COMP[0,2,X1]=0.012",
+        "$AA_ENC_COMP[0,800,X1]=0.0",
+        "$AA_ENC_COMP_STEP[0,X1]=1.0",
+        "$AA_ENC_COMP_MIN[0,X1]=-200.0",
+        "$AA_ENC_COMP_MAX[0,X1]=600.0",
+        "$AA_ENC_COMP_IS_MODULO[0,X1]=0",
+        "M17",
+    ] {
+        assert!(l.contains(&want), "{want} missing");
+    }
+    // "MD38000 $MA_MM_ENC_COMP_MAX_POINTS ≥ 801".
+    assert!(
+        x.text
+            .contains("MD38000 $MA_MM_ENC_COMP_MAX_POINTS[0,X1] >= 801")
+    );
+    // One point fewer allowed: refused with the limit, the value and the setting.
+    let e = siemens::lec(
+        &t,
+        &LecOptions {
+            max_points: 800,
+            step_mm: Some(1.0),
+            ..LecOptions::new("X1")
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert_eq!(
+        e,
+        "Siemens LEC: 801 points at the 1.0 mm spacing asked for exceeds MD38000 $MA_MM_ENC_COMP_MAX_POINTS = 800: raise comp.siemens.enc_comp_max_points (--max-points) with MD38000 on the control or give a larger --step-mm"
+    );
+    assert_eq!(e.lines().count(), 1);
+}
+
+/// Defect: the geometry letter was passed as the axis; K3 wants the machine axis name.
+#[test]
+fn siemens_refuses_a_geometry_letter() {
+    for f in [
+        siemens::lec(&overshoot(), &LecOptions::new("X")).map(|_| ()),
+        siemens::cec(&overshoot(), &CecOptions::new("X1", "Y")).map(|_| ()),
+    ] {
+        let e = f.unwrap_err().to_string();
+        assert!(e.contains("geometry axis letter"), "{e}");
+        assert!(e.contains("MD10000"), "{e}");
+        assert_eq!(e.lines().count(), 1);
+    }
+    assert_eq!(siemens::default_machine_axis("Y"), "Y1");
+}
+
+/// Defect: K3 p. 240 — the end values stay active beyond the table; `zero` adds a 0 point
+/// beyond each end, `hold` says that it holds.
+#[test]
+fn siemens_end_handling_is_written_and_said() {
+    let t = overshoot();
+    let o = LecOptions {
+        step_mm: Some(100.0),
+        ..LecOptions::new("X1")
+    };
+    let held = siemens::lec(&t, &o).unwrap();
+    assert!(held.text.contains("; ends: held"));
+    assert!(held.text.contains("$AA_ENC_COMP_MIN[0,X1]=0.0"));
+    assert!(held.text.contains("$AA_ENC_COMP[0,3,X1]=0.01"));
+    let zero = siemens::lec(
+        &t,
+        &LecOptions {
+            ends: EndHandling::Zero,
+            ..o.clone()
+        },
+    )
+    .unwrap();
+    assert!(zero.text.contains("; ends: zero"));
+    assert!(zero.text.contains("$AA_ENC_COMP_MIN[0,X1]=-100.0"));
+    assert!(zero.text.contains("$AA_ENC_COMP_MAX[0,X1]=600.0"));
+    assert!(zero.text.contains("$AA_ENC_COMP[0,0,X1]=0.0"));
+    assert!(zero.text.contains("$AA_ENC_COMP[0,4,X1]=0.01"));
+    assert!(zero.text.contains("$AA_ENC_COMP[0,7,X1]=0.0"));
+    assert_eq!(zero.grid.unwrap().count, 8);
+    // The two extra points count against MD38000.
+    let e = siemens::lec(
+        &t,
+        &LecOptions {
+            ends: EndHandling::Zero,
+            max_points: 7,
+            ..o
+        },
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("MD38000"), "{e}");
+}
+
+/// Defect: limits follow MD18342 and the 828D's fixed 200; the CEC sign is marked unconfirmed.
+#[test]
+fn siemens_cec_limits_and_unconfirmed_sign() {
+    let t = overshoot();
+    let e = siemens::cec(
+        &t,
+        &CecOptions {
+            max_points: 201,
+            control: SiemensControl::S828d,
+            ..CecOptions::new("X1", "X1")
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("828D's fixed 200 points"), "{e}");
+    assert!(e.contains("comp.siemens.cec_max_points"), "{e}");
+    let e = siemens::cec(
+        &t,
+        &CecOptions {
+            max_points: 3,
+            step_mm: Some(100.0),
+            ..CecOptions::new("X1", "X1")
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("6 points") && e.contains("MD18342 $MN_MM_CEC_MAX_POINTS = 3"),
+        "{e}"
+    );
+    let x = siemens::cec(&t, &CecOptions::new("X1", "X1")).unwrap();
+    assert!(x.text.contains("; CEC sign unconfirmed"));
+}
+
+// ---------------------------------------------------------------- FANUC
+
+/// FANUC Series 0i-PB Parameter Manual B-63980EN/01, parameters 3620–3624, example 1, p. 100:
+/// reference position at point 40, points 33…49 holding +2 +1 +1 −2 0 −1 0 −1 +2 +1 0 −1 −1 −2
+/// 0 +1 +2. A table whose absolute compensation has these increments gives exactly this tape.
+#[test]
+fn fanuc_reproduces_the_parameter_manual_example() {
+    let inc = [2, 1, 1, -2, 0, -1, 0, -1, 2, 1, 0, -1, -1, -2, 0, 1, 2];
+    // Point N = 40 + k covers ((k − 1)·d, k·d]; C(0) = 0 at the reference.
+    let c = |k: i64| -> i64 {
+        if k >= 0 {
+            (1..=k).map(|j| inc[(7 + j) as usize]).sum()
+        } else {
+            -(k + 1..=0).map(|j| inc[(7 + j) as usize]).sum::<i64>()
+        }
+    };
+    let ks: Vec<i64> = (-8..=9).collect();
+    let positions: Vec<f64> = ks.iter().map(|k| 50.0 * *k as f64).collect();
+    let e: Vec<f64> = ks.iter().map(|k| -(c(*k) as f64) * UM).collect();
+    let t = table(positions, single(e), 0.0);
+    let o = PitchOptions {
+        step_mm: Some(50.0),
+        max_feed_mm_min: Some(24000.0),
+        ..PitchOptions::new(1, 40)
+    };
+    let x = fanuc::pitch(&t, &o).unwrap();
+    let l = lines(&x.text);
+    for (i, v) in inc.iter().enumerate() {
+        let want = format!("N{:05}P{v}", 10033 + i);
+        assert!(l.contains(&want.as_str()), "{want} missing:\n{}", x.text);
+    }
+    for want in [
+        "N03620A1P40",
+        "N03621A1P33",
+        "N03622A1P49",
+        "N03623A1P1",
+        "N03624A1P50000",
+    ] {
+        assert!(l.contains(&want), "{want}");
+    }
+}
+
+/// Defect: 3620 was 0, so a reference in the middle of the travel failed. Now 3620 follows the
+/// reference; a configured 3620 that is too small is refused naming 3620.
+#[test]
+fn fanuc_reference_number_follows_the_reference() {
+    // Reference at 300 mm of 0..500 mm (a mill's reference at the positive end is the same).
+    let mut t = overshoot();
+    t.reference_mm = 300.0;
+    let o = PitchOptions {
+        reference_number: None,
+        step_mm: Some(100.0),
+        ..PitchOptions::new(1, 0)
+    };
+    let d = fanuc::pitch_data(&t, &o).unwrap();
+    // Grid 0..500 through 300: k = −3..2, points for k = −2..2 → numbers 0..4, reference 2.
+    assert_eq!(
+        (d.reference_number, d.most_negative, d.most_positive),
+        (2, 0, 4)
+    );
+    let e = fanuc::pitch(
+        &t,
+        &PitchOptions {
+            reference_number: Some(0),
+            ..o
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("points -2..=2 around reference number 3620 = 0"),
+        "{e}"
+    );
+    assert!(
+        e.contains("comp.fanuc.reference_number (parameter 3620) to 2"),
+        "{e}"
+    );
+}
+
+/// Defect: the minimum interval (max feed / 7500) was not checked.
+#[test]
+fn fanuc_minimum_interval_is_checked() {
+    let o = PitchOptions {
+        max_feed_mm_min: Some(30000.0),
+        step_mm: Some(1.0),
+        ..PitchOptions::new(1, 0)
+    };
+    let e = fanuc::pitch(&overshoot(), &o).unwrap_err().to_string();
+    assert_eq!(
+        e,
+        "Fanuc pitch error: the interval 1.0 mm exceeds the minimum interval 4.0 mm (max feed 30000.0 mm/min / 7500, parameter 3624): give a larger --step-mm or check comp.fanuc.max_feed_mm_min"
+    );
+    // Automatic spacing: at least 4 mm.
+    let t = table(
+        (0..101).map(|k| k as f64).collect(),
+        single(vec![0.0; 101]),
+        0.0,
+    );
+    let d = fanuc::pitch_data(&t, &PitchOptions { step_mm: None, ..o }).unwrap();
+    assert_eq!(d.interval_increments, 4000);
+}
+
+/// Defect: the ±7 × magnification range of older controls was not offered.
+#[test]
+fn fanuc_legacy_range_is_seven() {
+    let o = PitchOptions {
+        step_mm: Some(100.0),
+        range: ValueRange::Pm7,
+        ..PitchOptions::new(1, 0)
+    };
+    let e = fanuc::pitch(&overshoot(), &o).unwrap_err().to_string();
+    assert!(e.contains("= -10 at 300 mm is outside -7..=7"), "{e}");
+    let ok = fanuc::pitch_data(
+        &overshoot(),
+        &PitchOptions {
+            magnification: 2,
+            ..o
+        },
+    )
+    .unwrap();
+    assert!(ok.points.iter().any(|(_, v)| *v == -5));
+    assert_eq!(ValueRange::from_family("legacy"), Some(ValueRange::Pm7));
+}
+
+/// Defect: bidirectional pitch error compensation was refused. A-77810E Table (a): 3605#0,
+/// 3621/3622 for the positive direction, 3626 start of the negative set, 3627 the absolute
+/// compensation at the reference approached in the negative direction.
+#[test]
+fn fanuc_bidirectional_tape() {
+    let up = vec![0.0, 0.0, 0.0, 10.0 * UM, 0.0, 0.0];
+    let down = vec![4.0 * UM, 5.0 * UM, 6.0 * UM, 14.0 * UM, 6.0 * UM, 4.0 * UM];
+    let t = table(
+        (0..6).map(|k| 100.0 * k as f64).collect(),
+        TableValues::Bidirectional { up, down },
+        0.0,
+    );
+    let o = PitchOptions {
+        reference_number: None,
+        step_mm: Some(100.0),
+        ..PitchOptions::new(1, 0)
+    };
+    let x = fanuc::pitch(&t, &o).unwrap();
+    let d = fanuc::pitch_data(&t, &o).unwrap();
+    let l = lines(&x.text);
+    assert!(l.contains(&"N03605A1P00000001"));
+    assert!(l.contains(&"N03621A1P0") && l.contains(&"N03622A1P5"));
+    assert!(l.contains(&"N03626A1P6"), "{}", x.text);
+    // C↓ at the reference = −e↓(0) = −4 µm.
+    assert!(l.contains(&"N03627A1P-4"));
+    let n = d.negative.unwrap();
+    let (at_ref, neg) = (n.at_reference, n.points);
+    assert_eq!((n.start, at_ref), (6, -4));
+    // Parse back the negative set: C↓(k) = 3627 + Σ increments, e↓ = −C↓.
+    let mut c = at_ref;
+    let mut e_down = vec![-(c as f64) * UM];
+    for (_, v) in neg.iter().skip(1) {
+        c += v;
+        e_down.push(-(c as f64) * UM);
+    }
+    for (a, b) in e_down.iter().zip(t.reverse()) {
+        assert!((a - b).abs() < 0.5 * UM, "{a} vs {b}");
+    }
+}
+
+// ---------------------------------------------------------------- LinuxCNC
+
+/// Defect: values were always mm; an inch machine reads every number in inches.
+#[test]
+fn linuxcnc_inch_file_is_in_inches() {
+    let t = overshoot();
+    let mm = linuxcnc::comp_file(&t, &CompFileOptions::new(CompFileType::Type1)).unwrap();
+    let inch = linuxcnc::comp_file(
+        &t,
+        &CompFileOptions {
+            units: Units::Inch,
+            ..CompFileOptions::new(CompFileType::Type1)
+        },
+    )
+    .unwrap();
+    assert_eq!(lines(&mm.text)[3], "300.000000 -0.010000 -0.010000");
+    // 300 mm = 11.811024 in; −10 µm = −0.00039370 in.
+    assert_eq!(lines(&inch.text)[3], "11.81102362 -0.00039370 -0.00039370");
+    let t0 = linuxcnc::comp_file(
+        &t,
+        &CompFileOptions {
+            units: Units::Inch,
+            ..CompFileOptions::new(CompFileType::Type0)
+        },
+    )
+    .unwrap();
+    assert_eq!(lines(&t0.text)[3], "11.81102362 11.81141732 11.81141732");
+}
+
+// ---------------------------------------------------------------- HEIDENHAIN
+
+fn bidirectional() -> CompTable {
+    table(
+        (0..6).map(|k| 100.0 * k as f64).collect(),
+        TableValues::Bidirectional {
+            up: vec![0.0, 1.0 * UM, 2.0 * UM, 3.0 * UM, 4.0 * UM, 5.0 * UM],
+            down: vec![4.0 * UM, 5.0 * UM, 6.0 * UM, 7.0 * UM, 8.0 * UM, 9.0 * UM],
+        },
+        0.0,
+    )
+}
+
+/// Defects: AXISPOS is referred to the machine datum; BACKLASH can hold the reversal only.
+#[test]
+fn heidenhain_tnc640_datum_and_backlash() {
+    let t = bidirectional();
+    let o = ComOptions {
+        step_mm: Some(100.0),
+        datum_mm: -250.0,
+        ..ComOptions::new("X.COM")
+    };
+    let x = heidenhain::com(&t, &o).unwrap();
+    let l = lines(&x.text);
+    assert_eq!(
+        l[1].split_whitespace().collect::<Vec<_>>(),
+        ["NR", "AXISPOS", "X", "BACKLASH"]
+    );
+    // Position 100 mm is 350 mm from a datum at −250 mm; BACKLASH = e↓ (the manual's words).
+    assert_eq!(
+        l[3].split_whitespace().collect::<Vec<_>>(),
+        ["1", "+350.0000", "+0.0010", "+0.0050"]
+    );
+    let r = heidenhain::com(
+        &t,
+        &ComOptions {
+            backlash: Backlash::Reversal,
+            ..o
+        },
+    )
+    .unwrap();
+    assert_eq!(
+        lines(&r.text)[3].split_whitespace().collect::<Vec<_>>(),
+        ["1", "+350.0000", "+0.0010", "+0.0040"]
+    );
+    let cma = heidenhain::cma(&t, "X.COM", None);
+    assert!(cma.contains("X.COM") && cma.starts_with("BEGIN"));
+}
+
+/// TNC 407 Technical Manual §1.6.4 (p. 4-28): 7 mm asked for → "possible power of two = 2^16 =
+/// 6.5536 mm"; the table starts at the datum with 0 and runs positive; at most 256 entries.
+#[test]
+fn heidenhain_tnc4xx_power_of_two_from_the_datum() {
+    assert_eq!(heidenhain::power_of_two_step(7.0).0, 17);
+    assert_eq!(heidenhain::power_of_two_step(6.5).1, 6.5536);
+    let t = table(
+        (0..11).map(|k| 50.0 * k as f64).collect(),
+        single((0..11).map(|k| k as f64 * UM).collect()),
+        0.0,
+    );
+    let o = ComOptions {
+        family: Family::Tnc4xx,
+        step_mm: Some(6.5),
+        ..ComOptions::new("X.COM")
+    };
+    let x = heidenhain::com(&t, &o).unwrap();
+    let l = lines(&x.text);
+    assert_eq!(l[1], "DATUM +0.0000");
+    assert_eq!(l[2], "SPACING 16");
+    assert_eq!(
+        l[4].split_whitespace().collect::<Vec<_>>(),
+        ["0", "+0.0000"]
+    );
+    // 500 mm / 6.5536 mm → 77 intervals, 78 rows (the manual's Y example: 77).
+    assert_eq!(x.grid.unwrap().count, 78);
+    // Data below the datum is refused.
+    let mut below = t.clone();
+    below.reference_mm = 100.0;
+    let e = heidenhain::com(&below, &o).unwrap_err().to_string();
+    assert!(
+        e.contains("below the reference 100.0 mm") && e.contains("--reference-mm"),
+        "{e}"
+    );
+    // More than 256 rows at the spacing asked for.
+    let e = heidenhain::com(
+        &t,
+        &ComOptions {
+            step_mm: Some(1.0),
+            ..o
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("256 entries per table"), "{e}");
+}
+
+// ---------------------------------------------------------------- Beckhoff
+
+/// Beckhoff TF5200 Axis compensation, "Example – Non-equidistant bilateral SSFK": setpoints
+/// −200000, −199306, −198667 (0.1 µm); pos 0, 24, −102; neg 0, 67, 80.
+#[test]
+fn beckhoff_reproduces_the_manual_example() {
+    let t = table(
+        vec![-20.0, -19.9306, -19.8667],
+        TableValues::Bidirectional {
+            up: vec![0.0, 2.4 * UM, -10.2 * UM],
+            down: vec![0.0, 6.7 * UM, 8.0 * UM],
+        },
+        -20.0,
+    );
+    let x = beckhoff::ssfk(&t, &SsfkOptions::new(2, "Y")).unwrap();
+    let kv: Vec<(String, String)> = x
+        .text
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| {
+            let mut f = l.split_whitespace();
+            (f.next().unwrap().into(), f.next().unwrap().into())
+        })
+        .collect();
+    let get = |k: &str| kv.iter().find(|(a, _)| a == k).map(|(_, v)| v.as_str());
+    for (k, v) in [
+        ("kopf.achs_nr", "2"),
+        ("kw.ssfk.interval", "0"),
+        ("kw.ssfk.kw_startpos", "-200000"),
+        ("kw.ssfk.kw_nr_max", "3"),
+        ("kw.ssfk.unit", "1"),
+        ("kw.ssfk.bilateral", "1"),
+        ("kw.ssfk.table[0].setpoint", "-200000"),
+        ("kw.ssfk.table[1].setpoint", "-199306"),
+        ("kw.ssfk.table[2].setpoint", "-198667"),
+        ("kw.ssfk.table[1].pos", "24"),
+        ("kw.ssfk.table[2].pos", "-102"),
+        ("kw.ssfk.table[1].neg", "67"),
+        ("kw.ssfk.table[2].neg", "80"),
+    ] {
+        assert_eq!(get(k), Some(v), "{k}");
+    }
+}
+
+/// One point: +10 µm overshoot → +100 (0.1 µm, value = measured − setpoint); refusal beyond
+/// P-COMP-00059.
+#[test]
+fn beckhoff_one_point_sign_and_limit() {
+    let x = beckhoff::ssfk(&overshoot(), &SsfkOptions::new(1, "X")).unwrap();
+    assert!(
+        x.text
+            .lines()
+            .any(|l| l.split_whitespace().eq(["kw.ssfk.table[3].pos", "100"]))
+    );
+    assert!(x.text.contains("kw.ssfk.bilateral            0"));
+    assert!(!x.text.contains(".neg"));
+    let long = table(
+        (0..2001).map(|k| k as f64).collect(),
+        single(vec![0.0; 2001]),
+        0.0,
+    );
+    let e = beckhoff::ssfk(
+        &long,
+        &SsfkOptions {
+            step_mm: Some(1.0),
+            ..SsfkOptions::new(1, "X")
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("2001 points") && e.contains("P-COMP-00059 kw.ssfk.max_points = 1500"),
+        "{e}"
+    );
+}
+
+// ---------------------------------------------------------------- Mitsubishi
+
+/// One point: +10 µm overshoot at 300 mm → absolute −10 at that division point; incremental
+/// −10 into it and +10 out of it; the range −128..127 is refused with the scale factor named.
+#[test]
+fn mitsubishi_one_point_sign_and_range() {
+    let o = MecOptions {
+        step_mm: Some(100.0),
+        ..MecOptions::new("X")
+    };
+    let a = mitsubishi::mec_data(&overshoot(), &o).unwrap();
+    assert_eq!(a.values[3], (4, -10));
+    assert_eq!(a.reference_number, 1);
+    let x = mitsubishi::mec(&overshoot(), &o).unwrap();
+    assert!(x.text.lines().any(|l| l == "#4104 -10"));
+    assert!(x.text.contains("unconfirmed"));
+    let i = mitsubishi::mec_data(
+        &overshoot(),
+        &MecOptions {
+            mode: Mode::Incremental,
+            ..o.clone()
+        },
+    )
+    .unwrap();
+    assert_eq!(
+        i.values.iter().map(|v| v.1).collect::<Vec<_>>(),
+        [0, 0, 0, -10, 10, 0]
+    );
+    let mut big = overshoot();
+    if let TableValues::Single { values, .. } = &mut big.values {
+        values[3] = 200.0 * UM;
+    }
+    let e = mitsubishi::mec(&big, &o).unwrap_err().to_string();
+    assert!(
+        e.contains("-200") && e.contains("-128..=127") && e.contains("#4006 sc"),
+        "{e}"
+    );
+    assert!(mitsubishi::mec(&big, &MecOptions { scale: 2, ..o }).is_ok());
+}
+
+// ---------------------------------------------------------------- CLI contract
+
+/// A store with one X run (0..400 mm, 5 targets, both directions, +10 µm at 200 mm up).
+fn store_with_run(dir: &TempDir) -> std::path::PathBuf {
+    let path = dir.path("axiscomp.db");
+    let mut store = Store::open(&path).unwrap();
+    let run = store
+        .create_run(&NewRun {
+            axis: "X".into(),
+            plan: serde_json::json!({}),
+            config: serde_json::json!({}),
+            calibration: None,
+            notes: String::new(),
+        })
+        .unwrap();
+    for t in 0..5u32 {
+        for r in 1..=2u32 {
+            for d in [Direction::Up, Direction::Down] {
+                let dy =
+                    if t == 2 { 10.0 } else { 0.0 } + if d == Direction::Down { 4.0 } else { 0.0 };
+                let c = synthetic_capture(
+                    t,
+                    100.0 * f64::from(t),
+                    r,
+                    d,
+                    Errors6::from_user([0.0, dy, 0.0, 0.0, 0.0, 0.0]),
+                    Errors6::from_user([0.1; 6]),
+                );
+                store.insert_capture(run, &c).unwrap();
+            }
+        }
+    }
+    path
+}
+
+#[test]
+fn export_cli_contract() {
+    let dir = TempDir::new("comp-export");
+    let db = store_with_run(&dir);
+    let db = db.to_str().unwrap();
+    let out = dir.path("X.out");
+    let o = out.to_str().unwrap();
+    let export = |extra: &[&str]| {
+        let mut a = vec!["export", "--run", "1", "--db", db, "--out", o];
+        a.extend_from_slice(extra);
+        run(&a, "")
+    };
+    // Siemens: the default machine axis name X1, never the letter.
+    let r = export(&["--format", "siemens-lec"]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let text = std::fs::read_to_string(&out).unwrap();
+    assert!(text.contains("$AA_ENC_COMP[0,0,X1]="), "{text}");
+    // --machine-axis overrides.
+    let r = export(&["--format", "siemens-lec", "--machine-axis", "AX1"]);
+    assert!(r.status.success());
+    assert!(
+        std::fs::read_to_string(&out)
+            .unwrap()
+            .contains("$AA_ENC_COMP_STEP[0,AX1]=")
+    );
+    // --max-points with --step-mm: one line naming limit, value and setting; exit 2 or 1, no file change.
+    std::fs::remove_file(&out).unwrap();
+    let r = export(&[
+        "--format",
+        "siemens-lec",
+        "--max-points",
+        "3",
+        "--step-mm",
+        "100",
+    ]);
+    assert!(!r.status.success());
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(err.contains("5 points at the 100.0 mm spacing asked for exceeds MD38000 $MA_MM_ENC_COMP_MAX_POINTS = 3"), "{err}");
+    assert!(!out.exists(), "nothing written on refusal");
+    // --reference-mm: FANUC's 3620 point sits at 200 mm; the table is zero there.
+    let r = export(&[
+        "--format",
+        "fanuc",
+        "--reference-mm",
+        "200",
+        "--step-mm",
+        "100",
+    ]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let tape = std::fs::read_to_string(&out).unwrap();
+    assert!(
+        tape.contains("N03620A1P1\n") && tape.contains("N03621A1P0\n"),
+        "{tape}"
+    );
+    // --units inch, and the joint named.
+    let r = export(&["--format", "linuxcnc-type1", "--units", "inch"]);
+    assert!(r.status.success());
+    let comp = std::fs::read_to_string(&out).unwrap();
+    assert_eq!(
+        comp.lines().nth(2).unwrap(),
+        "7.87401575 -0.00039370 -0.00055118"
+    );
+    assert!(String::from_utf8_lossy(&r.stderr).contains("[JOINT_0] COMP_FILE"));
+    // --family: a wrong word is refused naming the choices.
+    let r = export(&["--format", "fanuc", "--family", "31i"]);
+    assert!(!r.status.success());
+    assert!(String::from_utf8_lossy(&r.stderr).contains("\"0i\", \"legacy\", \"30i\""));
+    let com = dir.path("X.COM");
+    let r = run(
+        &[
+            "export",
+            "--run",
+            "1",
+            "--db",
+            db,
+            "--out",
+            com.to_str().unwrap(),
+            "--format",
+            "heidenhain",
+            "--family",
+            "tnc640",
+        ],
+        "",
+    );
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert!(
+        std::fs::read_to_string(&com)
+            .unwrap()
+            .starts_with("BEGIN X.COM MM\n")
+    );
+    assert!(dir.path("X.CMA").exists());
+    // --help says what is unconfirmed.
+    let h = run(&["export", "--help"], "");
+    let h = String::from_utf8_lossy(&h.stdout);
+    assert!(
+        h.contains("Unconfirmed") && h.contains("--machine-axis") && h.contains("--reference-mm")
+    );
+}
