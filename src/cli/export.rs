@@ -110,6 +110,15 @@ pub struct Rendered {
     pub notes: Vec<String>,
 }
 
+/// A configured axis number, or (0) the axis's own: X 1, Y 2, Z 3.
+fn or_axis_number<T: From<u8> + PartialEq>(configured: T, index: usize) -> T {
+    if configured == T::from(0) {
+        T::from(index as u8 + 1)
+    } else {
+        configured
+    }
+}
+
 fn input(e: (String, String), flag: &str) -> anyhow::Error {
     InputError(format!("{flag} (or {}): {}", e.0, e.1)).into()
 }
@@ -182,11 +191,7 @@ pub fn render(
             let x = fanuc::pitch(
                 table,
                 &fanuc::PitchOptions {
-                    axis_number: if f.axis_number == 0 {
-                        idx as u8 + 1
-                    } else {
-                        f.axis_number
-                    },
+                    axis_number: or_axis_number(f.axis_number, idx),
                     reference_number: f.reference_number,
                     max_number: f.max_number,
                     max_points: o.max_points.unwrap_or(f.max_points),
@@ -286,11 +291,7 @@ pub fn render(
             beckhoff::ssfk(
                 table,
                 &beckhoff::SsfkOptions {
-                    axis_number: if b.axis_number == 0 {
-                        idx as u16 + 1
-                    } else {
-                        b.axis_number
-                    },
+                    axis_number: or_axis_number(b.axis_number, idx),
                     axis_name: o.machine_axis.clone().unwrap_or_else(|| {
                         if b.axis_name.is_empty() {
                             letter.to_string()

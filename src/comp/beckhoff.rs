@@ -20,7 +20,7 @@
 //! Unconfirmed: the `#` comment lines of the header (the manual has a page on comments in the
 //! ASCII file that was not read) and the meaning of `unit` 1 (copied from the example).
 
-use super::table::{CompTable, GridLimits, TableKind, TableValues, fit_grid};
+use super::table::{CompTable, GridLimits, TableValues};
 use super::{CompError, Exported, check_identifier, trimmed};
 use std::fmt::Write;
 
@@ -61,38 +61,21 @@ fn units(mm: f64) -> i64 {
 pub fn ssfk(table: &CompTable, o: &SsfkOptions) -> Result<Exported, CompError> {
     const F: &str = "Beckhoff SSFK";
     check_identifier("axis_name", &o.axis_name)?;
-    if table.kind != TableKind::Positioning || table.base_axis != table.comp_axis {
-        return Err(CompError::Unsupported {
-            format: F,
-            problem: format!(
-                "{} compensates {} over {}: leadscrew compensation acts on the axis's own position (use kw.crosscomp)",
-                table.name, table.comp_axis, table.base_axis
-            ),
-        });
-    }
-    let (t, grid) = if table.positions_mm.len() <= o.max_points && o.step_mm.is_none() {
-        (table.clone(), None)
-    } else {
-        let g = fit_grid(
-            table,
-            &GridLimits {
-                max_points: o.max_points,
-                min_step_mm: 0.0,
-                step_quantum_mm: UNIT_MM,
-                step_mm: o.step_mm,
-            },
-            F,
-        )?;
-        super::check_step(
-            F,
-            table,
-            &g,
-            o.step_mm,
-            format!("P-COMP-00059 kw.ssfk.max_points = {}", o.max_points),
-            "comp.beckhoff.max_points (--max-points) with P-COMP-00059",
-        )?;
-        (table.resample(&g.positions()), Some(g))
-    };
+    super::own_axis(
+        table,
+        F,
+        "leadscrew compensation acts on the axis's own position (use kw.crosscomp)",
+    )?;
+    let (t, grid) = super::measured_or_grid(
+        F,
+        table,
+        &GridLimits {
+            step_quantum_mm: UNIT_MM,
+            ..GridLimits::points(o.max_points, o.step_mm)
+        },
+        format!("P-COMP-00059 kw.ssfk.max_points = {}", o.max_points),
+        "comp.beckhoff.max_points (--max-points) with P-COMP-00059",
+    )?;
     let bilateral = !matches!(
         &t.values,
         TableValues::Single {

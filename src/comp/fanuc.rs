@@ -34,7 +34,7 @@
 //! 3605 is written as `N03605A<a>P00000001` (#7…#0); unconfirmed. FANUC tapes carry no comments,
 //! so what is unconfirmed is said in `axiscomp export --help`.
 
-use super::table::{CompTable, GridLimits, TableKind, TableValues, fit_grid};
+use super::table::{CompTable, GridLimits, TableValues};
 use super::{CompError, Exported, trimmed};
 use std::fmt::Write;
 
@@ -270,15 +270,11 @@ fn build(
     o: &PitchOptions,
 ) -> Result<(String, PitchData, CompTable, super::Grid), CompError> {
     check_options(o)?;
-    if table.kind != TableKind::Positioning || table.base_axis != table.comp_axis {
-        return Err(CompError::Unsupported {
-            format: F,
-            problem: format!(
-                "{} is a cross-axis table: pitch error compensation acts on the axis's own position (use straightness compensation of the control)",
-                table.name
-            ),
-        });
-    }
+    super::own_axis(
+        table,
+        F,
+        "pitch error compensation acts on the axis's own position (use the control's straightness compensation)",
+    )?;
     let min_step = o.min_step_mm();
     if let Some(s) = o.step_mm
         && s < min_step * (1.0 - 1e-9)
@@ -299,7 +295,8 @@ fn build(
         TableValues::Bidirectional { .. } => (None, true),
     };
     // The negative set needs as many numbers again.
-    let grid = fit_grid(
+    let grid = super::fit_checked(
+        F,
         table,
         &GridLimits {
             max_points: o.max_points,
@@ -307,13 +304,6 @@ fn build(
             step_quantum_mm: o.input_increment_mm,
             step_mm: o.step_mm,
         },
-        F,
-    )?;
-    super::check_step(
-        F,
-        table,
-        &grid,
-        o.step_mm,
         format!("{} points per axis", o.max_points),
         "comp.fanuc.max_points (--max-points)",
     )?;

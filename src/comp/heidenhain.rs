@@ -24,7 +24,7 @@
 //! `Backlash::Reversal` writes e↓ − e↑ for a control that adds it), the TNC 4xx text layout
 //! (`DATUM`/`SPACING` lines before the rows) and the `.CMA` layout.
 
-use super::table::{CompTable, Grid, GridLimits, TableValues, fit_grid};
+use super::table::{CompTable, Grid, GridLimits, TableValues};
 use super::{CompError, Exported, fixed, trimmed};
 use std::fmt::Write;
 
@@ -145,27 +145,13 @@ pub fn com(table: &CompTable, o: &ComOptions) -> Result<Exported, CompError> {
         .unwrap_or_else(|| table.comp_axis.letter().to_string());
     super::check_identifier("axis_key", &key)?;
     let grid = match o.family {
-        Family::Tnc640 => {
-            let g = fit_grid(
-                table,
-                &GridLimits {
-                    max_points: o.max_points,
-                    min_step_mm: 0.0,
-                    step_quantum_mm: 0.0,
-                    step_mm: o.step_mm,
-                },
-                F,
-            )?;
-            super::check_step(
-                F,
-                table,
-                &g,
-                o.step_mm,
-                format!("{} rows", o.max_points),
-                "comp.heidenhain.max_points (--max-points)",
-            )?;
-            g
-        }
+        Family::Tnc640 => super::fit_checked(
+            F,
+            table,
+            &GridLimits::points(o.max_points, o.step_mm),
+            format!("{} rows", o.max_points),
+            "comp.heidenhain.max_points (--max-points)",
+        )?,
         Family::Tnc4xx => tnc4xx_grid(table, o, F)?,
     };
     let t = table.resample(&grid.positions());

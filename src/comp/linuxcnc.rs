@@ -23,7 +23,7 @@
 //! `[JOINT_n]` section; `axiscomp export` names the sections. The file has no room to say this,
 //! so the CLI prints it.
 
-use super::table::{CompTable, GridLimits, TableKind, fit_grid};
+use super::table::{CompTable, GridLimits};
 use super::{CompError, Exported, fixed};
 use std::fmt::Write;
 
@@ -86,30 +86,18 @@ impl CompFileOptions {
 /// The compensation file of a positioning table.
 pub fn comp_file(table: &CompTable, o: &CompFileOptions) -> Result<Exported, CompError> {
     const F: &str = "LinuxCNC comp file";
-    if table.kind != TableKind::Positioning || table.base_axis != table.comp_axis {
-        return Err(CompError::Unsupported {
-            format: F,
-            problem: format!(
-                "{} compensates {} over {}: a joint comp file acts on the joint's own position",
-                table.name, table.comp_axis, table.base_axis
-            ),
-        });
-    }
-    let (t, grid) = if table.positions_mm.len() <= o.max_points && o.step_mm.is_none() {
-        (table.clone(), None)
-    } else {
-        let g = fit_grid(
-            table,
-            &GridLimits {
-                max_points: o.max_points,
-                min_step_mm: 0.0,
-                step_quantum_mm: 0.0,
-                step_mm: o.step_mm,
-            },
-            F,
-        )?;
-        (table.resample(&g.positions()), Some(g))
-    };
+    super::own_axis(
+        table,
+        F,
+        "a joint comp file acts on the joint's own position",
+    )?;
+    let (t, grid) = super::measured_or_grid(
+        F,
+        table,
+        &GridLimits::points(o.max_points, o.step_mm),
+        format!("{} points", o.max_points),
+        "comp.linuxcnc.max_points (--max-points)",
+    )?;
     let fwd = t.primary().to_vec();
     let rev = t.reverse();
     let u = o.units.mm();

@@ -19,7 +19,7 @@
 //! at `#(4100 + n)`) were not found in a public M800/M80/E70 document; they follow the M700-era
 //! layout. The sheet is for entry on the parameter screen, one `#number value` per line.
 
-use super::table::{CompTable, GridLimits, TableKind, TableValues, fit_grid};
+use super::table::{CompTable, GridLimits, TableValues};
 use super::{CompError, Exported, check_identifier, trimmed};
 use std::fmt::Write;
 
@@ -98,36 +98,20 @@ fn build(table: &CompTable, o: &MecOptions) -> Result<(Exported, MecData), CompE
             ),
         });
     }
-    if table.kind != TableKind::Positioning || table.base_axis != table.comp_axis {
-        return Err(CompError::Unsupported {
-            format: F,
-            problem: format!(
-                "{} is a cross-axis table: export the positioning table",
-                table.name
-            ),
-        });
-    }
+    super::own_axis(table, F, "export the positioning table")?;
     if matches!(table.values, TableValues::Bidirectional { .. }) {
         return Err(CompError::Unsupported {
             format: F,
             problem: "one table serves both directions: build a unidirectional table (the backlash goes to the backlash parameter)".into(),
         });
     }
-    let grid = fit_grid(
+    let grid = super::fit_checked(
+        F,
         table,
         &GridLimits {
-            max_points: o.max_points,
-            min_step_mm: 0.0,
             step_quantum_mm: 0.001,
-            step_mm: o.step_mm,
+            ..GridLimits::points(o.max_points, o.step_mm)
         },
-        F,
-    )?;
-    super::check_step(
-        F,
-        table,
-        &grid,
-        o.step_mm,
         format!("{} division points", o.max_points),
         "comp.mitsubishi.max_points (--max-points)",
     )?;

@@ -80,17 +80,18 @@ pub enum CompError {
     },
 }
 
-/// Refuse a grid that had to be made coarser than the spacing asked for: `max_points` (the
-/// controller's limit, named by `limit`) does not hold the table at that spacing.
-pub(crate) fn check_step(
+/// The controller's grid for `table` within `limits`, refused when it had to be made coarser
+/// than the spacing asked for: the controller's point limit (named by `limit`; `setting` is the
+/// key that raises it) does not hold the table at that spacing.
+pub(crate) fn fit_checked(
     format: &'static str,
     table: &CompTable,
-    grid: &Grid,
-    wanted_mm: Option<f64>,
+    limits: &GridLimits,
     limit: String,
     setting: &str,
-) -> Result<(), CompError> {
-    if let Some(w) = wanted_mm
+) -> Result<Grid, CompError> {
+    let grid = fit_grid(table, limits, format)?;
+    if let Some(w) = limits.step_mm
         && grid.step_mm > w * (1.0 + 1e-9)
     {
         let r = table.reference_mm;
@@ -107,6 +108,40 @@ pub(crate) fn check_step(
                 trimmed(w, 4)
             ),
             setting: format!("raise {setting} or give a larger --step-mm"),
+        });
+    }
+    Ok(grid)
+}
+
+/// The table as measured when its points fit `limits.max_points` and no spacing is asked for
+/// (for controllers that take any positions), else resampled on `fit_checked`'s grid.
+pub(crate) fn measured_or_grid(
+    format: &'static str,
+    table: &CompTable,
+    limits: &GridLimits,
+    limit: String,
+    setting: &str,
+) -> Result<(CompTable, Option<Grid>), CompError> {
+    if table.positions_mm.len() <= limits.max_points && limits.step_mm.is_none() {
+        return Ok((table.clone(), None));
+    }
+    let g = fit_checked(format, table, limits, limit, setting)?;
+    Ok((table.resample(&g.positions()), Some(g)))
+}
+
+/// Refuse a cross-axis table for a format that compensates an axis over its own position.
+pub(crate) fn own_axis(
+    table: &CompTable,
+    format: &'static str,
+    why: &str,
+) -> Result<(), CompError> {
+    if table.kind != TableKind::Positioning || table.base_axis != table.comp_axis {
+        return Err(CompError::Unsupported {
+            format,
+            problem: format!(
+                "{} compensates {} over {}: {why}",
+                table.name, table.comp_axis, table.base_axis
+            ),
         });
     }
     Ok(())

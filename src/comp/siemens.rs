@@ -36,8 +36,8 @@
 //! written for CEC, and the file's header says that this is not confirmed for CEC. The `M17`
 //! closing the CEC file is copied from the MSEC example.
 
-use super::table::{CompTable, Grid, GridLimits, TableKind, TableValues, fit_grid};
-use super::{CompError, Exported, check_identifier, check_step, trimmed};
+use super::table::{CompTable, Grid, GridLimits, TableKind, TableValues};
+use super::{CompError, Exported, check_identifier, fit_checked, trimmed};
 use std::fmt::Write;
 
 /// Decimals of mm written (0.1 nm: below any measuring-system resolution, so no rounding bias).
@@ -259,12 +259,10 @@ pub fn lec(table: &CompTable, o: &LecOptions) -> Result<Exported, CompError> {
             });
         }
     };
-    let grid = fit_grid(table, &grid_limits(o.max_points, o.step_mm, o.ends), F)?;
-    check_step(
+    let grid = fit_checked(
         F,
         table,
-        &grid,
-        o.step_mm,
+        &grid_limits(o.max_points, o.step_mm, o.ends),
         format!("MD38000 $MA_MM_ENC_COMP_MAX_POINTS = {}", o.max_points),
         "comp.siemens.enc_comp_max_points (--max-points) with MD38000 on the control",
     )?;
@@ -325,12 +323,10 @@ pub fn cec(table: &CompTable, o: &CecOptions) -> Result<Exported, CompError> {
             setting: "set comp.siemens.cec_max_points (--max-points) to 200 or less".into(),
         });
     }
-    let grid = fit_grid(table, &grid_limits(o.max_points, o.step_mm, o.ends), F)?;
-    check_step(
+    let grid = fit_checked(
         F,
         table,
-        &grid,
-        o.step_mm,
+        &grid_limits(o.max_points, o.step_mm, o.ends),
         format!("MD18342 $MN_MM_CEC_MAX_POINTS = {}", o.max_points),
         "comp.siemens.cec_max_points (--max-points) with MD18342 on the control",
     )?;

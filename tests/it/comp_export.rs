@@ -738,3 +738,263 @@ fn export_cli_contract() {
         h.contains("Unconfirmed") && h.contains("--machine-axis") && h.contains("--reference-mm")
     );
 }
+
+// ---------------------------------------------------------------- LinuxCNC as a peer
+// Run by tests/interop/linuxcnc.sh after installing linuxcnc-uspace.
+
+/// Canonical moves and dwells from LinuxCNC's `rs274` for `program`: (x, dwell after it).
+fn rs274_moves(program: &str, dir: &TempDir, name: &str) -> Vec<(f64, f64)> {
+    let file = dir.path(name);
+    std::fs::write(&file, program).unwrap();
+    let out = std::process::Command::new("rs274")
+        .arg("-g")
+        .arg(&file)
+        .output()
+        .expect("rs274 (linuxcnc-uspace) on PATH");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "rs274 failed: {text}");
+    let mut moves: Vec<(f64, f64)> = Vec::new();
+    for l in text.lines() {
+        let call = l.split_whitespace().nth(2).unwrap_or("");
+        let args = |c: &str| -> Vec<f64> {
+            c.split_once('(')
+                .and_then(|(_, a)| a.strip_suffix(')'))
+                .map(|a| a.split(',').filter_map(|x| x.trim().parse().ok()).collect())
+                .unwrap_or_default()
+        };
+        let rest: String = l.split_whitespace().skip(2).collect::<Vec<_>>().join(" ");
+        if call.starts_with("STRAIGHT_FEED") || call.starts_with("STRAIGHT_TRAVERSE") {
+            moves.push((args(&rest)[0], 0.0));
+        } else if call.starts_with("DWELL") {
+            moves.last_mut().expect("a dwell after a move").1 += args(&rest)[0];
+        }
+        assert!(!l.contains("ERROR"), "{l}");
+    }
+    moves
+}
+
+/// The generated LinuxCNC part program through LinuxCNC's own interpreter: every target of
+/// every run and direction is reached in order, from its direction's side, with its dwell, and
+/// the axis overruns the end targets before each reversal.
+#[test]
+#[ignore = "needs rs274 from linuxcnc-uspace: tests/interop/linuxcnc.sh"]
+fn linuxcnc_rs274_runs_the_plan() {
+    use axiscomp::run::program::generate;
+    use axiscomp::run::{CaptureMode, Dialect, Plan, PlanSpec};
+    let dir = TempDir::new("rs274");
+    let plan = Plan::new(PlanSpec {
+        axis: "X".into(),
+        start_mm: 0.0,
+        end_mm: 200.0,
+        targets: 5,
+        runs: 2,
+        overrun_mm: 5.0,
+        dwell_s: 1.5,
+        feed_mm_min: 1000.0,
+        lead_mm: 10.0,
+        reference_mm: None,
+    })
+    .unwrap();
+    let program = generate(&plan, Dialect::LinuxCnc, CaptureMode::Stability).unwrap();
+    let moves = rs274_moves(&program, &dir, "cycle.ngc");
+    let t = &plan.targets;
+    let (first, last) = (t[0], *t.last().unwrap());
+    let mut i = 0;
+    let mut prev = f64::NAN;
+    let mut find = |want: f64, dwell: f64| {
+        while i < moves.len() && (moves[i].0 - want).abs() > 1e-4 {
+            prev = moves[i].0;
+            i += 1;
+        }
+        assert!(i < moves.len(), "target {want} mm not reached in order");
+        assert!(
+            (moves[i].1 - dwell).abs() < 1e-9,
+            "dwell at {want}: {}",
+            moves[i].1
+        );
+        let from = prev;
+        prev = moves[i].0;
+        i += 1;
+        from
+    };
+    for _run in 0..plan.spec.runs {
+        find(first - plan.spec.overrun_mm, 0.0);
+        for &x in t {
+            let from = find(x, plan.spec.dwell_s);
+            assert!(from < x, "up target {x} approached from {from}");
+        }
+        find(last + plan.spec.overrun_mm, 0.0);
+        for &x in t.iter().rev() {
+            let from = find(x, plan.spec.dwell_s);
+            assert!(from > x, "down target {x} approached from {from}");
+        }
+    }
+    let dwells = moves.iter().filter(|m| m.1 > 0.0).count();
+    assert_eq!(dwells, 2 * t.len() * plan.spec.runs as usize);
+}
+
+/// A headless LinuxCNC machine (one linear joint, trivkins, motor command looped back) loading
+/// `comp` as `[JOINT_0]COMP_FILE` with `comp_type`, in `units`; runs the display script and
+/// returns its JSON result.
+fn run_linuxcnc(comp: &str, comp_type: u8, units: Units, moves: &[Vec<f64>]) -> serde_json::Value {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = TempDir::new(&format!("linuxcnc-{}-{comp_type}", units.name()));
+    let (unit, limit, vel, acc, gcode) = match units {
+        Units::Mm => ("mm", 400.0, 50.0, 500.0, "G21"),
+        Units::Inch => ("inch", 400.0 / 25.4, 2.0, 80.0, "G20"),
+    };
+    dir.write("comp.dat", comp);
+    dir.write("tool.tbl", "");
+    dir.write("sim.var", "");
+    dir.write(
+        "core.hal",
+        "loadrt [KINS]KINEMATICS\n\
+         loadrt [EMCMOT]EMCMOT servo_period_nsec=[EMCMOT]SERVO_PERIOD num_joints=[KINS]JOINTS\n\
+         addf motion-command-handler servo-thread\n\
+         addf motion-controller servo-thread\n\
+         net j0pos joint.0.motor-pos-cmd => joint.0.motor-pos-fb\n\
+         net estop-loop iocontrol.0.user-enable-out => iocontrol.0.emc-enable-in\n\
+         net tool-prep-loop iocontrol.0.tool-prepare => iocontrol.0.tool-prepared\n\
+         net tool-change-loop iocontrol.0.tool-change => iocontrol.0.tool-changed\n",
+    );
+    let ui = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/linuxcnc_ui.py");
+    let ini = format!(
+        "[EMC]\nVERSION = 1.1\nMACHINE = axiscomp-comp-{unit}\n\
+         [DISPLAY]\nDISPLAY = {ui}\n\
+         [TASK]\nTASK = milltask\nCYCLE_TIME = 0.010\n\
+         [RS274NGC]\nPARAMETER_FILE = sim.var\n\
+         [EMCMOT]\nEMCMOT = motmod\nCOMM_TIMEOUT = 1.0\nSERVO_PERIOD = 1000000\n\
+         [EMCIO]\nEMCIO = io\nCYCLE_TIME = 0.100\nTOOL_TABLE = tool.tbl\n\
+         [HAL]\nHALFILE = core.hal\n\
+         [TRAJ]\nCOORDINATES = X\nLINEAR_UNITS = {unit}\nANGULAR_UNITS = degree\nMAX_LINEAR_VELOCITY = {vel}\n\
+         [KINS]\nKINEMATICS = trivkins coordinates=X\nJOINTS = 1\n\
+         [AXIS_X]\nMAX_VELOCITY = {vel}\nMAX_ACCELERATION = {acc}\nMIN_LIMIT = -{limit}\nMAX_LIMIT = {limit}\n\
+         [JOINT_0]\nTYPE = LINEAR\nHOME = 0\nHOME_OFFSET = 0\nHOME_SEARCH_VEL = 0\nHOME_LATCH_VEL = 0\n\
+         HOME_SEQUENCE = 0\nMAX_VELOCITY = {vel}\nMAX_ACCELERATION = {acc}\nMIN_LIMIT = -{limit}\n\
+         MAX_LIMIT = {limit}\nFERROR = 10\nMIN_FERROR = 10\nCOMP_FILE = comp.dat\nCOMP_FILE_TYPE = {comp_type}\n",
+        ui = ui.display()
+    );
+    let ini = dir.write("machine.ini", &ini);
+    // As root, rtapi_app runs as $RTAPI_UID: its FIFO must be in a directory that uid can write.
+    let fifo = std::env::temp_dir().join(format!("axiscomp-rtapi-{}", std::process::id()));
+    std::fs::create_dir_all(&fifo).unwrap();
+    std::fs::set_permissions(&fifo, std::fs::Permissions::from_mode(0o777)).unwrap();
+    let result = dir.path("result.json");
+    let mut child = std::process::Command::new("linuxcnc")
+        .arg(&ini)
+        .current_dir(dir.path(""))
+        .env("RTAPI_FIFO_PATH", fifo.join("rtapi_fifo"))
+        .env("RESULT_FILE", &result)
+        .env("UNITS_GCODE", gcode)
+        .env("MOVES", serde_json::to_string(moves).unwrap())
+        .env("FEED", if units == Units::Mm { "3000" } else { "118" })
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .expect("linuxcnc (linuxcnc-uspace) on PATH");
+    let end = std::time::Instant::now() + std::time::Duration::from_secs(180);
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if std::time::Instant::now() > end {
+            let _ = child.kill();
+            panic!("linuxcnc did not finish within 180 s");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    };
+    let _ = std::fs::remove_dir_all(&fifo);
+    let text = std::fs::read_to_string(&result)
+        .unwrap_or_else(|_| panic!("no result from the display (linuxcnc exited {status})"));
+    let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    assert!(v.get("error").is_none(), "display: {v}");
+    v
+}
+
+/// A bidirectional table with a curved profile, a reversal and a reference at 100 mm.
+fn linuxcnc_table() -> CompTable {
+    let p: Vec<f64> = (0..7).map(|k| 50.0 * k as f64).collect();
+    let up: Vec<f64> = [-6.0, -2.5, 0.0, 4.0, 9.0, 7.5, 12.0]
+        .iter()
+        .map(|v| v * UM)
+        .collect();
+    let down: Vec<f64> = up
+        .iter()
+        .zip([5.0, 4.0, 3.5, 4.0, 4.5, 5.0, 6.0])
+        .map(|(u, b)| u + b * UM)
+        .collect();
+    table(p, TableValues::Bidirectional { up, down }, 100.0)
+}
+
+/// LinuxCNC loads our comp files (types 0 and 1, mm and inch) and applies −e: the correction
+/// motor-pos-cmd − pos-cmd read from HAL at table points and between them, approached in both
+/// directions, equals −e of that direction, interpolated linearly.
+fn linuxcnc_applies(units: Units) {
+    let t = linuxcnc_table();
+    let u = units.mm();
+    let mut at: Vec<f64> = t.positions_mm.clone();
+    at.extend(t.positions_mm.windows(2).map(|w| 0.5 * (w[0] + w[1])));
+    at.extend([30.0, 212.5]);
+    // Approach each point from 20 mm below and from 20 mm above.
+    let moves: Vec<Vec<f64>> = at
+        .iter()
+        .flat_map(|x| [vec![(x - 20.0) / u, x / u], vec![(x + 20.0) / u, x / u]])
+        .collect();
+    for (ty, file_type) in [(0u8, CompFileType::Type0), (1, CompFileType::Type1)] {
+        let comp = linuxcnc::comp_file(
+            &t,
+            &CompFileOptions {
+                units,
+                ..CompFileOptions::new(file_type)
+            },
+        )
+        .unwrap();
+        let r = run_linuxcnc(&comp.text, ty, units, &moves);
+        let rows = r.as_array().unwrap();
+        assert_eq!(rows.len(), moves.len());
+        let mut worst: f64 = 0.0;
+        let mut report = String::new();
+        for row in rows {
+            let x = row["x"].as_f64().unwrap() * u;
+            let c = (row["motor_pos_cmd"].as_f64().unwrap() - row["pos_cmd"].as_f64().unwrap()) * u;
+            report.push_str(&format!("{x} from {}: {:.6}\n", row["from"], c));
+        }
+        for row in rows {
+            let x = row["x"].as_f64().unwrap() * u;
+            let from = row["from"].as_f64().unwrap() * u;
+            let correction =
+                (row["motor_pos_cmd"].as_f64().unwrap() - row["pos_cmd"].as_f64().unwrap()) * u;
+            let profile = if from < x {
+                t.primary().to_vec()
+            } else {
+                t.reverse()
+            };
+            let e = axiscomp::comp::interpolate(&t.positions_mm, &profile, x);
+            worst = worst.max((correction + e).abs());
+            assert!(
+                (correction + e).abs() < 2e-6,
+                "type {ty} {}: at {x} mm from {from} mm LinuxCNC applies {:.6} mm, −e = {:.6} mm; all readings (mm):\n{report}",
+                units.name(),
+                correction,
+                -e
+            );
+        }
+        eprintln!(
+            "LinuxCNC type {ty} {}: {} readings, largest |correction + e| {:.2e} mm",
+            units.name(),
+            rows.len(),
+            worst
+        );
+    }
+}
+
+#[test]
+#[ignore = "needs linuxcnc-uspace: tests/interop/linuxcnc.sh"]
+fn linuxcnc_applies_the_comp_file_mm() {
+    linuxcnc_applies(Units::Mm);
+}
+
+#[test]
+#[ignore = "needs linuxcnc-uspace: tests/interop/linuxcnc.sh"]
+fn linuxcnc_applies_the_comp_file_inch() {
+    linuxcnc_applies(Units::Inch);
+}
