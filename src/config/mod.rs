@@ -428,7 +428,7 @@ pub fn load(layers: &Layers) -> Result<Settings, ConfigError> {
     })?;
     // `get_table` keeps each value's origin (deserialising a single value drops it).
     let origin = |key: &str| -> String {
-        let (section, name) = key.split_once('.').unwrap_or(("", key));
+        let (section, name) = key.rsplit_once('.').unwrap_or(("", key));
         cfg.get_table(section)
             .ok()
             .and_then(|t| t.get(name).and_then(|v| v.origin().map(str::to_string)))

@@ -731,6 +731,55 @@ fn export_cli_contract() {
             .starts_with("BEGIN X.COM MM\n")
     );
     assert!(dir.path("X.CMA").exists());
+    // [comp.linuxcnc] from --config: a gantry's two joints, inch; the flag overrides the file.
+    let cfg = dir.write(
+        "gantry.toml",
+        "[comp.linuxcnc]\nunits = \"inch\"\njoints = [0, 3]\n",
+    );
+    let cfg = cfg.to_str().unwrap();
+    let r = export(&["--format", "linuxcnc-type1", "--config", cfg]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(
+        err.contains("[JOINT_0] COMP_FILE") && err.contains("[JOINT_3] COMP_FILE"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(&out)
+            .unwrap()
+            .lines()
+            .nth(2)
+            .unwrap(),
+        "7.87401575 -0.00039370 -0.00055118"
+    );
+    let r = export(&[
+        "--format",
+        "linuxcnc-type1",
+        "--config",
+        cfg,
+        "--units",
+        "mm",
+    ]);
+    assert!(r.status.success());
+    assert_eq!(
+        std::fs::read_to_string(&out)
+            .unwrap()
+            .lines()
+            .nth(2)
+            .unwrap(),
+        "200.000000 -0.010000 -0.014000"
+    );
+    // A bad value in [comp.*] names the key and the file.
+    let bad = dir.write("bad.toml", "[comp.siemens]\nends = \"ramp\"\n");
+    let r = export(&["--format", "siemens-lec", "--config", bad.to_str().unwrap()]);
+    assert_eq!(r.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(
+        err.contains("bad.toml")
+            && err.contains("comp.siemens.ends")
+            && err.contains("\"ramp\" is not one of \"hold\", \"zero\""),
+        "{err}"
+    );
     // --help says what is unconfirmed.
     let h = run(&["export", "--help"], "");
     let h = String::from_utf8_lossy(&h.stdout);
@@ -997,4 +1046,103 @@ fn linuxcnc_applies_the_comp_file_mm() {
 #[ignore = "needs linuxcnc-uspace: tests/interop/linuxcnc.sh"]
 fn linuxcnc_applies_the_comp_file_inch() {
     linuxcnc_applies(Units::Inch);
+}
+
+// ---------------------------------------------------------------- parse-back of the new formats
+
+/// A curved bidirectional table over 0..500 mm with its reference at 0.
+fn curved() -> CompTable {
+    let p: Vec<f64> = (0..11).map(|k| 50.0 * k as f64).collect();
+    let up: Vec<f64> = p.iter().map(|x| (x / 80.0).sin() * 7.0 * UM).collect();
+    let down: Vec<f64> = up.iter().map(|u| u + 4.2 * UM).collect();
+    table(p, TableValues::Bidirectional { up, down }, 0.0)
+}
+
+#[test]
+fn beckhoff_parses_back() {
+    let t = curved();
+    let x = beckhoff::ssfk(&t, &SsfkOptions::new(1, "X")).unwrap();
+    let val = |key: &str| -> Vec<f64> {
+        x.text
+            .lines()
+            .filter(|l| {
+                l.starts_with("kw.ssfk.table[")
+                    && l.split_whitespace().next().unwrap().ends_with(key)
+            })
+            .map(|l| l.split_whitespace().nth(1).unwrap().parse::<f64>().unwrap() * 1e-4)
+            .collect()
+    };
+    let (p, pos, neg) = (val("].setpoint"), val("].pos"), val("].neg"));
+    assert_eq!(p.len(), 11);
+    for i in 0..11 {
+        assert!((p[i] - t.positions_mm[i]).abs() < 1e-9);
+        assert!((pos[i] - t.primary()[i]).abs() <= 0.5e-4 + 1e-12);
+        assert!((neg[i] - t.reverse()[i]).abs() <= 0.5e-4 + 1e-12);
+    }
+}
+
+#[test]
+fn mitsubishi_parses_back() {
+    let mut t = curved();
+    t.values = single(t.primary().to_vec());
+    let o = MecOptions {
+        step_mm: Some(50.0),
+        ..MecOptions::new("X")
+    };
+    let read = |text: &str| -> Vec<i64> {
+        text.lines()
+            .filter_map(|l| l.strip_prefix("#41"))
+            .map(|l| l.split_whitespace().nth(1).unwrap().parse().unwrap())
+            .collect()
+    };
+    let abs = read(&mitsubishi::mec(&t, &o).unwrap().text);
+    let inc = read(
+        &mitsubishi::mec(
+            &t,
+            &MecOptions {
+                mode: Mode::Incremental,
+                ..o
+            },
+        )
+        .unwrap()
+        .text,
+    );
+    // Absolute: −e in µm; incremental from the reference (point 0) upwards sums to it.
+    let mut c = 0;
+    for i in 0..11 {
+        assert!((-(abs[i] as f64) * UM - t.primary()[i]).abs() <= 0.5 * UM);
+        c += inc[i];
+        assert_eq!(c, abs[i], "incremental sum at {i}");
+    }
+}
+
+#[test]
+fn heidenhain_tnc4xx_parses_back() {
+    let mut t = curved();
+    t.values = single(t.primary().to_vec());
+    let x = heidenhain::com(
+        &t,
+        &ComOptions {
+            family: Family::Tnc4xx,
+            ..ComOptions::new("X.COM")
+        },
+    )
+    .unwrap();
+    let l = lines(&x.text);
+    let datum: f64 = l[1].strip_prefix("DATUM ").unwrap().parse().unwrap();
+    let k: i32 = l[2].strip_prefix("SPACING ").unwrap().parse().unwrap();
+    let step = 1e-4 * 2f64.powi(k);
+    assert_eq!(
+        step, 52.4288,
+        "the power of two at or above the 50 mm targets"
+    );
+    for (n, row) in l[4..l.len() - 1].iter().enumerate() {
+        let f: Vec<&str> = row.split_whitespace().collect();
+        let pos = datum + n as f64 * step;
+        let want = axiscomp::comp::interpolate(&t.positions_mm, t.primary(), pos);
+        assert!(
+            (f[1].parse::<f64>().unwrap() - want).abs() <= 0.5e-4 + 1e-12,
+            "row {n}"
+        );
+    }
 }
