@@ -82,13 +82,15 @@ pub struct ExportArgs {
     /// The controller's point limit (MD38000 / MD18342, FANUC points, rows, P-COMP-00059, …).
     #[arg(long)]
     pub max_points: Option<usize>,
-    /// The control family: siemens 840d|828d, fanuc 0i|legacy|30i, heidenhain tnc640|tnc4xx.
+    /// The control family or format: siemens 840d|828d, fanuc 0i|legacy|30i, heidenhain
+    /// tnc640|tnc4xx, mitsubishi absolute|incremental.
     #[arg(long)]
     pub family: Option<String>,
     /// Spacing of the compensation points (mm); refused when the controller's limits cannot
     /// hold it. Default: the measured targets' mean spacing (power of two for TNC 4xx).
     #[arg(long)]
     pub step_mm: Option<f64>,
+    /// The file to write (HEIDENHAIN: NAME.COM, with NAME.CMA beside it for tnc640).
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -311,7 +313,12 @@ pub fn render(
                 table,
                 &mitsubishi::MecOptions {
                     axis_name: o.machine_axis.clone().unwrap_or_else(|| letter.to_string()),
-                    mode: comp.mitsubishi_mode,
+                    mode: match family {
+                        Some(f) => {
+                            settings::mitsubishi_mode(f).map_err(|e| input(e, "--family"))?
+                        }
+                        None => comp.mitsubishi_mode,
+                    },
                     output_unit_mm: m.output_unit_mm,
                     scale: m.scale,
                     first_number: m.first_number,

@@ -254,6 +254,17 @@ pub fn heidenhain_family(v: &str) -> Result<Family, (String, String)> {
     )
 }
 
+pub fn mitsubishi_mode(v: &str) -> Result<Mode, (String, String)> {
+    word(
+        "comp.mitsubishi.mode",
+        v,
+        &[
+            ("absolute", Mode::Absolute),
+            ("incremental", Mode::Incremental),
+        ],
+    )
+}
+
 /// Check `[comp]`; an error is (key, problem).
 pub fn validate(raw: &RawComp) -> Result<CompSettings, (String, String)> {
     let positive = |key: &str, v: f64| {

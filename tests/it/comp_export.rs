@@ -731,6 +731,20 @@ fn export_cli_contract() {
             .starts_with("BEGIN X.COM MM\n")
     );
     assert!(dir.path("X.CMA").exists());
+    let r = export(&[
+        "--format",
+        "mitsubishi",
+        "--family",
+        "incremental",
+        "--step-mm",
+        "100",
+    ]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert!(
+        std::fs::read_to_string(&out)
+            .unwrap()
+            .contains("#4000 Pinc 1\n")
+    );
     // [comp.linuxcnc] from --config: a gantry's two joints, inch; the flag overrides the file.
     let cfg = dir.write(
         "gantry.toml",
