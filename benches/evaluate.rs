@@ -79,11 +79,8 @@ fn bench(c: &mut Criterion) {
     let set = build_tables(&eval, &spec).unwrap();
     let p = &set.positioning;
     let cec = CecOptions {
-        table_index: 0,
-        input_axis: "AX2".into(),
-        output_axis: "AX1".into(),
-        max_points: 200,
         step_mm: Some(10.0),
+        ..CecOptions::new("AX2", "AX1")
     };
     let lec = LecOptions {
         step_mm: Some(10.0),

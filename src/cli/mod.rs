@@ -7,6 +7,7 @@ mod console;
 mod decouple;
 mod demo;
 mod evaluate;
+mod export;
 mod optics;
 mod run;
 mod service;
@@ -62,7 +63,7 @@ enum Command {
     /// Write a run's report (plots, ISO figures, HTML and Markdown) from the store.
     Report(run::ReportArgs),
     /// Export a run's compensation table for a controller.
-    Export(run::ExportArgs),
+    Export(export::ExportArgs),
     /// Beam alignment on the running service: read the spots at each end of the travel, enter
     /// what a target shows, get the screw turns and the check.
     #[command(subcommand)]
@@ -142,7 +143,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Sim(a) => service::sim(a),
         Command::Run(c) => run::run(c),
         Command::Report(a) => run::report(a),
-        Command::Export(a) => run::export(a),
+        Command::Export(a) => export::run(a),
         Command::Table(c) => table::run(c),
         Command::Align(c) => align::run(c),
     }

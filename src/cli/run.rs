@@ -1,17 +1,15 @@
-//! `axiscomp run start|status|abort` (through the running service), `axiscomp report` and
-//! `axiscomp export` (from the store).
+//! `axiscomp run start|status|abort` (through the running service) and `axiscomp report` (from
+//! the store); `axiscomp export` is in `export.rs`.
 
 use super::InputError;
 use anyhow::{Context, Result};
-use axiscomp::comp::{self, AxisMapping, MachineAxis, PositioningMode, TableSpec};
-use axiscomp::evaluate::iso230_1::ReferenceLine;
 use axiscomp::evaluate::{EvalOptions, evaluate_captures};
 use axiscomp::report::{RunMeta, write_run_report};
 use axiscomp::run::PlanSpec;
 use axiscomp::service::control::{Client, Request};
 use axiscomp::store::{RunId, Store};
-use clap::{Subcommand, ValueEnum};
-use std::path::{Path, PathBuf};
+use clap::Subcommand;
+use std::path::PathBuf;
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
@@ -141,7 +139,7 @@ pub struct StoreArgs {
     pub config: Option<PathBuf>,
 }
 
-fn open_store(a: &StoreArgs) -> Result<Store> {
+pub(super) fn open_store(a: &StoreArgs) -> Result<Store> {
     let path = match &a.db {
         Some(p) => p.clone(),
         None => super::service::settings(a.config.as_deref())?
@@ -181,141 +179,4 @@ pub fn report(a: ReportArgs) -> Result<()> {
         println!("{}", f.display());
     }
     Ok(())
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum, PartialEq)]
-pub enum Format {
-    SiemensLec,
-    SiemensCec,
-    Fanuc,
-    Heidenhain,
-    LinuxcncType0,
-    LinuxcncType1,
-    Csv,
-    Json,
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum, PartialEq)]
-pub enum Table {
-    Positioning,
-    StraightnessX,
-    StraightnessZ,
-}
-
-#[derive(clap::Args, Debug)]
-pub struct ExportArgs {
-    #[command(flatten)]
-    pub store: StoreArgs,
-    #[arg(long, value_enum)]
-    pub format: Format,
-    /// Which table (the head's transverse x or vertical z straightness, or positioning).
-    #[arg(long, value_enum, default_value_t = Table::Positioning)]
-    pub table: Table,
-    /// The machine axis the head measured along (default: the run's).
-    #[arg(long)]
-    pub axis: Option<String>,
-    /// One table per direction instead of one with backlash.
-    #[arg(long)]
-    pub bidirectional: bool,
-    #[arg(long)]
-    pub out: PathBuf,
-}
-
-/// `axiscomp export --run ID --format FORMAT --out FILE`.
-pub fn export(a: ExportArgs) -> Result<()> {
-    let store = open_store(&a.store)?;
-    let id = RunId(a.store.run);
-    let rec = store.run(id)?;
-    let captures = store.captures(id)?;
-    let eval = evaluate_captures(&captures, &EvalOptions::default())?;
-    let axis_name = a.axis.clone().unwrap_or(rec.axis.clone());
-    let axis = MachineAxis::from_letter(&axis_name)
-        .ok_or_else(|| InputError(format!("--axis {axis_name}: use X, Y or Z")))?;
-    let plan: Option<axiscomp::run::Plan> = serde_json::from_value(rec.plan.clone()).ok();
-    let spec = TableSpec {
-        mapping: AxisMapping::standard(axis),
-        reference_mm: plan.map(|p| p.reference_mm).unwrap_or(0.0),
-        positioning: if a.bidirectional {
-            PositioningMode::Bidirectional
-        } else {
-            PositioningMode::Unidirectional
-        },
-        straightness_line: ReferenceLine::LeastSquares,
-        functional_point_mm: None,
-    };
-    let set = comp::build_tables(&eval, &spec)?;
-    let table = match a.table {
-        Table::Positioning => &set.positioning,
-        Table::StraightnessX => set
-            .straightness
-            .first()
-            .ok_or_else(|| InputError("no straightness table".into()))?,
-        Table::StraightnessZ => set
-            .straightness
-            .get(1)
-            .ok_or_else(|| InputError("no vertical straightness table".into()))?,
-    };
-    let letter = axis.letter();
-    let text = match a.format {
-        Format::SiemensLec => {
-            comp::siemens::lec(table, &comp::siemens::LecOptions::new(letter))?.text
-        }
-        Format::SiemensCec => {
-            comp::siemens::cec(
-                table,
-                &comp::siemens::CecOptions {
-                    table_index: 0,
-                    input_axis: table.base_axis.letter().to_string(),
-                    output_axis: table.comp_axis.letter().to_string(),
-                    max_points: 200,
-                    step_mm: None,
-                },
-            )?
-            .text
-        }
-        Format::Fanuc => {
-            comp::fanuc::pitch(
-                table,
-                &comp::fanuc::PitchOptions::new(axis.index() as u8 + 1, 0),
-            )?
-            .text
-        }
-        Format::Heidenhain => {
-            comp::heidenhain::com(
-                table,
-                &comp::heidenhain::ComOptions::new(&file_name(&a.out)),
-            )?
-            .text
-        }
-        Format::LinuxcncType0 => {
-            comp::linuxcnc::comp_file(
-                table,
-                &comp::linuxcnc::CompFileOptions::new(comp::linuxcnc::CompFileType::Type0),
-            )?
-            .text
-        }
-        Format::LinuxcncType1 => {
-            comp::linuxcnc::comp_file(
-                table,
-                &comp::linuxcnc::CompFileOptions::new(comp::linuxcnc::CompFileType::Type1),
-            )?
-            .text
-        }
-        Format::Csv => comp::neutral::csv(table),
-        Format::Json => comp::neutral::json(table)?,
-    };
-    std::fs::write(&a.out, text).with_context(|| format!("writing {}", a.out.display()))?;
-    eprintln!(
-        "wrote {} ({} table {})",
-        a.out.display(),
-        format!("{:?}", a.format).to_lowercase(),
-        table.name
-    );
-    Ok(())
-}
-
-fn file_name(p: &Path) -> String {
-    p.file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "AXISCOMP.COM".into())
 }

@@ -14,8 +14,16 @@
 //!
 //! LinuxCNC interpolates linearly between arbitrary nominals, so the measured targets are
 //! written as they are when they fit; otherwise the table is resampled onto a uniform grid.
+//!
+//! Units and coordinates: the loader reads the file in the joint's machine units (ini-config.adoc,
+//! `[JOINT_n]COMP_FILE`: "…in machine units") and applies it to the *joint* position
+//! (usrmotintf.cc hands the triplets to motion per joint), so an inch machine needs inches
+//! (`Units::Inch`: every number / 25.4) and the nominals are joint positions — the axis
+//! positions on a trivkins machine. A gantry's two joints each need the file in their own
+//! `[JOINT_n]` section; `axiscomp export` names the sections. The file has no room to say this,
+//! so the CLI prints it.
 
-use super::table::{CompTable, GridLimits, TableKind, fit_grid};
+use super::table::{CompTable, GridLimits};
 use super::{CompError, Exported, fixed};
 use std::fmt::Write;
 
@@ -29,10 +37,35 @@ pub enum CompFileType {
     Type1,
 }
 
+/// The machine's length unit (`[TRAJ]LINEAR_UNITS`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Units {
+    #[default]
+    Mm,
+    Inch,
+}
+
+impl Units {
+    /// mm per unit.
+    pub fn mm(self) -> f64 {
+        match self {
+            Units::Mm => 1.0,
+            Units::Inch => 25.4,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Units::Mm => "mm",
+            Units::Inch => "inch",
+        }
+    }
+}
+
 /// Compensation file options.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CompFileOptions {
     pub file_type: CompFileType,
+    pub units: Units,
     /// 256 in LinuxCNC.
     pub max_points: usize,
     /// Spacing when resampling is needed.
@@ -43,6 +76,7 @@ impl CompFileOptions {
     pub fn new(file_type: CompFileType) -> Self {
         CompFileOptions {
             file_type,
+            units: Units::Mm,
             max_points: 256,
             step_mm: None,
         }
@@ -52,44 +86,39 @@ impl CompFileOptions {
 /// The compensation file of a positioning table.
 pub fn comp_file(table: &CompTable, o: &CompFileOptions) -> Result<Exported, CompError> {
     const F: &str = "LinuxCNC comp file";
-    if table.kind != TableKind::Positioning || table.base_axis != table.comp_axis {
-        return Err(CompError::Unsupported {
-            format: F,
-            problem: format!(
-                "{} compensates {} over {}: a joint comp file acts on the joint's own position",
-                table.name, table.comp_axis, table.base_axis
-            ),
-        });
-    }
-    let (t, grid) = if table.positions_mm.len() <= o.max_points && o.step_mm.is_none() {
-        (table.clone(), None)
-    } else {
-        let g = fit_grid(
-            table,
-            &GridLimits {
-                max_points: o.max_points,
-                min_step_mm: 0.0,
-                step_quantum_mm: 0.0,
-                step_mm: o.step_mm,
-            },
-            F,
-        )?;
-        (table.resample(&g.positions()), Some(g))
-    };
+    super::own_axis(
+        table,
+        F,
+        "a joint comp file acts on the joint's own position",
+    )?;
+    let (t, grid) = super::measured_or_grid(
+        F,
+        table,
+        &GridLimits::points(o.max_points, o.step_mm),
+        format!("{} points", o.max_points),
+        "comp.linuxcnc.max_points (--max-points)",
+    )?;
     let fwd = t.primary().to_vec();
     let rev = t.reverse();
+    let u = o.units.mm();
+    // 1 nm in either unit: inches get two more decimals.
+    let decimals = match o.units {
+        Units::Mm => DECIMALS,
+        Units::Inch => DECIMALS + 2,
+    };
     let mut out = String::new();
     for ((p, f), r) in t.positions_mm.iter().zip(&fwd).zip(&rev) {
         let (a, b) = match o.file_type {
-            CompFileType::Type0 => (p + f, p + r),
-            CompFileType::Type1 => (-f, -r),
+            CompFileType::Type0 => ((p + f) / u, (p + r) / u),
+            CompFileType::Type1 => (-f / u, -r / u),
         };
+        let p = p / u;
         let _ = writeln!(
             out,
             "{} {} {}",
-            fixed(*p, DECIMALS),
-            fixed(a, DECIMALS),
-            fixed(b, DECIMALS)
+            fixed(p, decimals),
+            fixed(a, decimals),
+            fixed(b, decimals)
         );
     }
     Ok(Exported {

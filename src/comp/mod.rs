@@ -12,39 +12,30 @@
 //! | `fanuc::pitch` | parameter tape: 3620–3624 and pitch data `N1xxxx P` (incremental, units of detection unit × magnification) | `≈ −Δe` | FANUC Series 0i-PB Parameter Manual B-63980EN/01 (parameters 3620–3624, example p. 100); Series 16i/18i bidirectional pitch error compensation A-77810E (parameter list); 15i/30i parameter manuals B-63330EN/03 p. 25, B-63950EN/02 §3.3 (tape format) |
 //! | `heidenhain::com` | `*.COM` table: `NR AXISPOS <axis> [BACKLASH]` (mm) | `+e` | HEIDENHAIN MANUALplus 620 Technical Manual, "Entering compensation values" / "Assigning the compensation value tables" (pp. 716–718); TNC 407 Technical Manual (non-linear axis error compensation, .COM/.CMA) |
 //! | `linuxcnc::comp_file` | `[JOINT_n]COMP_FILE`, type 0: `nominal fwd_actual rev_actual`; type 1: `nominal fwd_trim rev_trim` | type 0: `nominal + e`; type 1: `−e` | LinuxCNC docs/src/config/ini-config.adoc (`COMP_FILE`, `COMP_FILE_TYPE`); src/emc/motion/usrmotintf.cc `usrmotLoadComp` (trim = nominal − actual) |
+//! | `beckhoff::ssfk` | TwinCAT CNC (ISG) compensation value list `kw.ssfk.*` (0.1 µm, bilateral, ≤ 1500 points) | `+e` | Beckhoff TF5200 Axis compensation, "Leadscrew error compensation (kw.ssfk.*)", P-COMP-00059, "Example – Non-equidistant bilateral SSFK" (Δs = s_actual − s_setpoint) |
+//! | `mitsubishi::mec` | M800/M80/E70 machine error compensation parameter sheet, absolute or incremental | absolute `−e`, incremental `≈ −Δe` | Mitsubishi "Machine error compensation" §9.2 (C64/E68 manuals: incremental values, range −128..127); parameter numbers unconfirmed |
 //! | `neutral::csv`, `neutral::json` | our own | `+e` (µm) | — |
 //!
 //! Sign reasoning, for a +10 µm overshoot (the carriage stops 10 µm beyond nominal, e = +10 µm):
 //! Siemens: "a positive compensation value causes the machine axis to move in the negative
-//! direction" (MSEC) — so +0.010 mm; the K3 terms define the compensation value the same way for
-//! all interpolatory compensation (MSEC and CEC alike). Fanuc adds the compensation pulses to the
+//! direction" (MSEC) — so +0.010 mm; CEC is written the same way, which K3 does not state for
+//! CEC (unconfirmed, said in the CEC file). Beckhoff's value is measured − setpoint, +e. Fanuc adds the compensation pulses to the
 //! command, so the absolute compensation is −e and the data are its increments per interval.
 //! LinuxCNC adds `trim = nominal − actual` to the command (usrmotintf.cc).
 //!
-//! Uncertain details (stated where they are used, to be confirmed on a machine):
-//! - Siemens CEC sign: taken equal to MSEC from the common K3 definition; no sentence in the
-//!   sources read says so for CEC alone. The `M17` closing the CEC file is copied from the EEC
-//!   example.
-//! - Fanuc: the pitch data block number `N(10000 + point)` and the keyword-free tape format are
-//!   those of 0i/15i/16i-era tapes; Series 30i tapes add `Q1` (parameters) and a data keyword for
-//!   pitch data that we do not emit. The value range (int8 −128..127 on 0i/16i-class controls,
-//!   int16 on later ones) and the highest point number are configurable because they differ by
-//!   series. Backlash (parameter 1851, detection units, positive for lost motion) is written
-//!   when the table carries one.
-//! - Heidenhain: the `.COM` layout (`BEGIN <name> MM`, column header, rows, `[END]`) follows
-//!   HEIDENHAIN's generic table files; the value sign (+e, the error as measured, as in the
-//!   ISO 230-1 error columns of KinematicsComp) and the meaning of `BACKLASH` (we write the
-//!   negative-direction values, read literally from "enter the compensation values measured in
-//!   the negative direction of traverse in the BACKLASH column") are not confirmed.
-//! - LinuxCNC: no header or comment lines — the loader stops at the first line that is not three
-//!   numbers. With a `COMP_FILE`, `BACKLASH` is ignored, so a backlash is folded into the reverse
-//!   column.
+//! Each exporter's module docs cite the manual, section and page of every sign and layout
+//! rule, and list what stays unconfirmed; `axiscomp export --help` repeats that list
+//! (`cli/export.rs`), and formats with comments say it in the file's header. Controller
+//! settings come from `[comp.<controller>]` (`settings`).
 
+pub mod beckhoff;
 pub mod fanuc;
 pub mod heidenhain;
 pub mod linuxcnc;
 pub mod mapping;
+pub mod mitsubishi;
 pub mod neutral;
+pub mod settings;
 pub mod siemens;
 pub mod table;
 
@@ -78,6 +69,82 @@ pub enum CompError {
         position_mm: f64,
         hint: &'static str,
     },
+    /// The table does not fit a controller limit: one line with the limit, the value and the
+    /// setting to change.
+    #[error("{format}: {value} exceeds {limit}: {setting}")]
+    Limit {
+        format: &'static str,
+        limit: String,
+        value: String,
+        setting: String,
+    },
+}
+
+/// The controller's grid for `table` within `limits`, refused when it had to be made coarser
+/// than the spacing asked for: the controller's point limit (named by `limit`; `setting` is the
+/// key that raises it) does not hold the table at that spacing.
+pub(crate) fn fit_checked(
+    format: &'static str,
+    table: &CompTable,
+    limits: &GridLimits,
+    limit: String,
+    setting: &str,
+) -> Result<Grid, CompError> {
+    let grid = fit_grid(table, limits, format)?;
+    if let Some(w) = limits.step_mm
+        && grid.step_mm > w * (1.0 + 1e-9)
+    {
+        let r = table.reference_mm;
+        let (lo, hi) = match (table.positions_mm.first(), table.positions_mm.last()) {
+            (Some(a), Some(b)) => (a.min(r), b.max(r)),
+            _ => (r, r),
+        };
+        let need = (((hi - r) / w - 1e-9).ceil() - ((lo - r) / w + 1e-9).floor()) as usize + 1;
+        return Err(CompError::Limit {
+            format,
+            limit,
+            value: format!(
+                "{need} points at the {} mm spacing asked for",
+                trimmed(w, 4)
+            ),
+            setting: format!("raise {setting} or give a larger --step-mm"),
+        });
+    }
+    Ok(grid)
+}
+
+/// The table as measured when its points fit `limits.max_points` and no spacing is asked for
+/// (for controllers that take any positions), else resampled on `fit_checked`'s grid.
+pub(crate) fn measured_or_grid(
+    format: &'static str,
+    table: &CompTable,
+    limits: &GridLimits,
+    limit: String,
+    setting: &str,
+) -> Result<(CompTable, Option<Grid>), CompError> {
+    if table.positions_mm.len() <= limits.max_points && limits.step_mm.is_none() {
+        return Ok((table.clone(), None));
+    }
+    let g = fit_checked(format, table, limits, limit, setting)?;
+    Ok((table.resample(&g.positions()), Some(g)))
+}
+
+/// Refuse a cross-axis table for a format that compensates an axis over its own position.
+pub(crate) fn own_axis(
+    table: &CompTable,
+    format: &'static str,
+    why: &str,
+) -> Result<(), CompError> {
+    if table.kind != TableKind::Positioning || table.base_axis != table.comp_axis {
+        return Err(CompError::Unsupported {
+            format,
+            problem: format!(
+                "{} compensates {} over {}: {why}",
+                table.name, table.comp_axis, table.base_axis
+            ),
+        });
+    }
+    Ok(())
 }
 
 /// A written file and exactly what it encodes: `table` is the resampled table (before rounding

@@ -13,20 +13,63 @@
 //!   t + 1: DIRECTION −1).
 //!
 //! Value = +e (mm): "a positive compensation value causes the corresponding machine axis to
-//! move in the negative direction". The table is zero at the reference point, as K3 asks, so
-//! activating it after referencing makes no jump. Comments are ASCII (`;`).
+//! move in the negative direction" (K3, MSEC). The table is zero at the reference point, as K3
+//! asks, so activating it after referencing makes no jump. Comments are ASCII (`;`).
+//!
+//! Rules and where they come from (SINUMERIK 840D sl Function Manual Extended Functions,
+//! 6FC5397-1BP40-3BA1, 03/2013, K3 §4.4 "Interpolatory compensation"):
+//! - the axis index is the *machine* axis name (`X1`, `AX1`; MD10000
+//!   `$MN_AXCONF_MACHAX_NAME_TAB`, default X1, Y1, Z1 …): §4.4.2.2, "<AXi> = Axis name (e.g.
+//!   X1, Y1, Z1)", p. 239, and the example for machine axis X1, §4.4.2.3, p. 242. A bare
+//!   geometry letter is refused;
+//! - 0 ≤ N ≤ MD38000 − 1 (p. 240); CEC tables hold MD18342 `$MN_MM_CEC_MAX_POINTS[t]` points,
+//!   and on the 828D eight tables of 200 points are fixed, "This cannot be extended!" (§4.4.4.3,
+//!   p. 264). Both limits are settings (`[comp.siemens]`, `--max-points`);
+//! - "The first and last compensation values remain active over the entire traversing range;
+//!   i.e. these values should be set to 0 if the compensation table does not cover the entire
+//!   traversing range" (p. 240): `EndHandling::Hold` writes the measured end values and says so
+//!   in the file; `EndHandling::Zero` adds one point beyond each end holding 0, so the
+//!   compensation ramps to 0 over one interval;
+//! - linear interpolation between equally spaced points from MIN to MAX (p. 237).
+//!
+//! Unconfirmed: the CEC sign. K3's sentence on the sign is in the MSEC section; the same +e is
+//! written for CEC, and the file's header says that this is not confirmed for CEC. The `M17`
+//! closing the CEC file is copied from the MSEC example.
 
-use super::table::{CompTable, GridLimits, TableKind, TableValues, fit_grid};
-use super::{CompError, Exported, check_identifier, trimmed};
+use super::table::{CompTable, Grid, GridLimits, TableKind, TableValues};
+use super::{CompError, Exported, check_identifier, fit_checked, trimmed};
 use std::fmt::Write;
 
 /// Decimals of mm written (0.1 nm: below any measuring-system resolution, so no rounding bias).
 const DECIMALS: usize = 7;
 
+/// What the table holds beyond its first and last points (K3: the end values stay active).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum EndHandling {
+    /// The measured end values, active over the rest of the travel.
+    #[default]
+    Hold,
+    /// One more point beyond each end, holding 0: the compensation is 0 outside the table.
+    Zero,
+}
+
+/// The control: its point limits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum SiemensControl {
+    /// 840D sl: MD38000 / MD18342 as configured.
+    #[default]
+    S840d,
+    /// 828D / 808D: CEC tables have 200 points, fixed.
+    S828d,
+}
+
+/// CEC points on the 828D (K3 §4.4.4.3, p. 264).
+pub const CEC_POINTS_828D: usize = 200;
+
 /// LEC options.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LecOptions {
-    /// The machine axis name in the NC (e.g. "X1" or "AX1").
+    /// The machine axis name in the NC (e.g. "X1" or "AX1"), never the geometry letter.
     pub axis: String,
     /// Measuring system: 0 (first) or 1 (second).
     pub encoder: u8,
@@ -34,6 +77,7 @@ pub struct LecOptions {
     pub max_points: usize,
     /// Wanted spacing (mm); default the mean target spacing.
     pub step_mm: Option<f64>,
+    pub ends: EndHandling,
 }
 
 impl LecOptions {
@@ -43,8 +87,29 @@ impl LecOptions {
             encoder: 0,
             max_points: 125,
             step_mm: None,
+            ends: EndHandling::Hold,
         }
     }
+}
+
+/// The control's default machine axis name for a geometry axis (MD10000: X1, Y1, Z1).
+pub fn default_machine_axis(letter: &str) -> String {
+    format!("{letter}1")
+}
+
+/// A machine axis name: an identifier that is not a bare geometry letter.
+fn check_machine_axis(name: &'static str, v: &str) -> Result<(), CompError> {
+    check_identifier(name, v)?;
+    if v.len() == 1 {
+        return Err(CompError::Option {
+            name,
+            problem: format!(
+                "\"{v}\" is a geometry axis letter; K3 indexes tables by the machine axis name (MD10000, e.g. {}): give --machine-axis or comp.siemens.machine_axis",
+                default_machine_axis(v)
+            ),
+        });
+    }
+    Ok(())
 }
 
 /// CEC options.
@@ -59,15 +124,93 @@ pub struct CecOptions {
     /// MD18342 `$MN_MM_CEC_MAX_POINTS[t]`.
     pub max_points: usize,
     pub step_mm: Option<f64>,
+    pub ends: EndHandling,
+    pub control: SiemensControl,
 }
 
-fn grid_limits(max_points: usize, step_mm: Option<f64>) -> GridLimits {
+impl CecOptions {
+    /// Table 0, 200 points (MD18342), held ends, 840D sl.
+    pub fn new(input_axis: &str, output_axis: &str) -> Self {
+        CecOptions {
+            table_index: 0,
+            input_axis: input_axis.into(),
+            output_axis: output_axis.into(),
+            max_points: 200,
+            step_mm: None,
+            ends: EndHandling::Hold,
+            control: SiemensControl::S840d,
+        }
+    }
+}
+
+fn grid_limits(max_points: usize, step_mm: Option<f64>, ends: EndHandling) -> GridLimits {
     GridLimits {
-        max_points,
+        // Zero ends take one point at each end.
+        max_points: match ends {
+            EndHandling::Hold => max_points,
+            EndHandling::Zero => max_points.saturating_sub(2),
+        },
         min_step_mm: 0.0,
         step_quantum_mm: 0.0,
         step_mm,
     }
+}
+
+/// The table on `grid`, with a zero point added beyond each end for `EndHandling::Zero`.
+fn on_grid(table: &CompTable, grid: &Grid, ends: EndHandling) -> (CompTable, Grid) {
+    let t = table.resample(&grid.positions());
+    match ends {
+        EndHandling::Hold => (t, *grid),
+        EndHandling::Zero => {
+            let g = Grid {
+                start_mm: grid.start_mm - grid.step_mm,
+                count: grid.count + 2,
+                reference_index: grid.reference_index + 1,
+                ..*grid
+            };
+            let pad = |v: &[f64]| -> Vec<f64> {
+                std::iter::once(0.0)
+                    .chain(v.iter().copied())
+                    .chain(std::iter::once(0.0))
+                    .collect()
+            };
+            let values = match &t.values {
+                TableValues::Single {
+                    values,
+                    backlash_mm,
+                } => TableValues::Single {
+                    values: pad(values),
+                    backlash_mm: *backlash_mm,
+                },
+                TableValues::Bidirectional { up, down } => TableValues::Bidirectional {
+                    up: pad(up),
+                    down: pad(down),
+                },
+            };
+            (
+                CompTable {
+                    positions_mm: g.positions(),
+                    values,
+                    name: t.name.clone(),
+                    ..t
+                },
+                g,
+            )
+        }
+    }
+}
+
+fn ends_comment(out: &mut String, ends: EndHandling) {
+    let _ = writeln!(
+        out,
+        "{}",
+        match ends {
+            EndHandling::Hold =>
+                "; ends: held - the first and last values stay active beyond MIN and MAX (K3 p. 240); set ends = zero if the table does not cover the whole travel",
+            EndHandling::Zero =>
+                "; ends: zero - one point beyond each measured end holds 0, so the compensation is 0 beyond MIN and MAX (K3 p. 240)",
+        }
+    );
 }
 
 fn header(out: &mut String, program: &str, t: &CompTable, what: &str) {
@@ -91,7 +234,7 @@ fn header(out: &mut String, program: &str, t: &CompTable, what: &str) {
 /// The LEC program for a positioning table (base = compensated axis, not bidirectional).
 pub fn lec(table: &CompTable, o: &LecOptions) -> Result<Exported, CompError> {
     const F: &str = "Siemens LEC";
-    check_identifier("axis", &o.axis)?;
+    check_machine_axis("machine_axis", &o.axis)?;
     if o.encoder > 1 {
         return Err(CompError::Option {
             name: "encoder",
@@ -116,11 +259,23 @@ pub fn lec(table: &CompTable, o: &LecOptions) -> Result<Exported, CompError> {
             });
         }
     };
-    let grid = fit_grid(table, &grid_limits(o.max_points, o.step_mm), F)?;
-    let t = table.resample(&grid.positions());
+    let grid = fit_checked(
+        F,
+        table,
+        &grid_limits(o.max_points, o.step_mm, o.ends),
+        format!("MD38000 $MA_MM_ENC_COMP_MAX_POINTS = {}", o.max_points),
+        "comp.siemens.enc_comp_max_points (--max-points) with MD38000 on the control",
+    )?;
+    let (t, grid) = on_grid(table, &grid, o.ends);
     let (e, a) = (o.encoder, &o.axis);
     let mut out = String::new();
     header(&mut out, "%_N_AX_EEC_INI", &t, "LEC");
+    let _ = writeln!(
+        out,
+        "; {} points, MD38000 $MA_MM_ENC_COMP_MAX_POINTS[{e},{a}] >= {} needed",
+        grid.count, grid.count
+    );
+    ends_comment(&mut out, o.ends);
     if let Some(b) = backlash {
         let _ = writeln!(
             out,
@@ -158,12 +313,33 @@ pub fn lec(table: &CompTable, o: &LecOptions) -> Result<Exported, CompError> {
 /// table (bidirectional → two direction-dependent tables).
 pub fn cec(table: &CompTable, o: &CecOptions) -> Result<Exported, CompError> {
     const F: &str = "Siemens CEC";
-    check_identifier("input_axis", &o.input_axis)?;
-    check_identifier("output_axis", &o.output_axis)?;
-    let grid = fit_grid(table, &grid_limits(o.max_points, o.step_mm), F)?;
-    let t = table.resample(&grid.positions());
+    check_machine_axis("input_axis", &o.input_axis)?;
+    check_machine_axis("output_axis", &o.output_axis)?;
+    if o.control == SiemensControl::S828d && o.max_points > CEC_POINTS_828D {
+        return Err(CompError::Limit {
+            format: F,
+            limit: format!("the 828D's fixed {CEC_POINTS_828D} points per table (K3 p. 264)"),
+            value: format!("max_points {}", o.max_points),
+            setting: "set comp.siemens.cec_max_points (--max-points) to 200 or less".into(),
+        });
+    }
+    let grid = fit_checked(
+        F,
+        table,
+        &grid_limits(o.max_points, o.step_mm, o.ends),
+        format!("MD18342 $MN_MM_CEC_MAX_POINTS = {}", o.max_points),
+        "comp.siemens.cec_max_points (--max-points) with MD18342 on the control",
+    )?;
+    let (t, grid) = on_grid(table, &grid, o.ends);
     let mut out = String::new();
     header(&mut out, "%_N_NC_CEC_INI", &t, "CEC");
+    let _ = writeln!(
+        out,
+        "; {} points per table, MD18342 $MN_MM_CEC_MAX_POINTS >= {} needed",
+        grid.count, grid.count
+    );
+    ends_comment(&mut out, o.ends);
+    out.push_str("; CEC sign unconfirmed: +e as for MSEC (K3 states the sign for MSEC only)\n");
     let tables: Vec<(usize, i8, &[f64])> = match &t.values {
         TableValues::Single {
             values,

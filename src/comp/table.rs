@@ -345,6 +345,18 @@ pub struct GridLimits {
     pub step_mm: Option<f64>,
 }
 
+impl GridLimits {
+    /// At most `max_points`, any spacing (`step_mm` wanted).
+    pub fn points(max_points: usize, step_mm: Option<f64>) -> Self {
+        GridLimits {
+            max_points,
+            min_step_mm: 0.0,
+            step_quantum_mm: 0.0,
+            step_mm,
+        }
+    }
+}
+
 /// Fit a grid through the reference point that covers the measured range and the reference,
 /// within `limits`: the spacing starts at the wanted one (at least the minimum, rounded up to
 /// the quantum) and grows until the points fit. A reference point outside the measured range

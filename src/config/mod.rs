@@ -197,6 +197,8 @@ pub struct RawConfig {
     pub capture: RawCapture,
     pub plc: RawPlc,
     pub hexapod: crate::hexapod::config::RawHexapod,
+    /// `[comp.<controller>]`: the controllers' settings for `axiscomp export`.
+    pub comp: crate::comp::settings::RawComp,
 }
 
 /// Where a file, map or layout comes from: a path, or the copy built into the binary.
@@ -328,6 +330,7 @@ pub struct Settings {
     pub plc: PlcSettings,
     /// `[hexapod]`: the calibration hexapod (`hexapod::config`).
     pub hexapod: crate::hexapod::config::HexapodSettings,
+    pub comp: crate::comp::settings::CompSettings,
     /// The files that were read, in layer order (for `check` and the logs).
     pub sources: Vec<String>,
 }
@@ -428,7 +431,7 @@ pub fn load(layers: &Layers) -> Result<Settings, ConfigError> {
     })?;
     // `get_table` keeps each value's origin (deserialising a single value drops it).
     let origin = |key: &str| -> String {
-        let (section, name) = key.split_once('.').unwrap_or(("", key));
+        let (section, name) = key.rsplit_once('.').unwrap_or(("", key));
         cfg.get_table(section)
             .ok()
             .and_then(|t| t.get(name).and_then(|v| v.origin().map(str::to_string)))
@@ -808,6 +811,7 @@ fn validate(
     };
     let plc = plc_settings(&v, &raw.plc)?;
     let hexapod = crate::hexapod::config::validate(&raw.hexapod, origin)?;
+    let comp = crate::comp::settings::validate(&raw.comp).map_err(|(k, p)| v.err(&k, p))?;
     Ok(Settings {
         service,
         head,
@@ -819,6 +823,7 @@ fn validate(
         capture,
         plc,
         hexapod,
+        comp,
         sources,
     })
 }

@@ -83,6 +83,7 @@ fn cec_opts() -> CecOptions {
         output_axis: "AX1".into(),
         max_points: 100,
         step_mm: Some(50.0),
+        ..CecOptions::new("AX2", "AX1")
     }
 }
 
@@ -646,14 +647,10 @@ fn limits_and_refusals() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("use cec"), "{e}");
-    let e = fanuc::pitch(&bi.positioning, &fanuc_opts())
-        .unwrap_err()
-        .to_string();
-    assert!(e.contains("bidirectional pitch error compensation"), "{e}");
     let e = siemens::lec(&uni.positioning, &LecOptions::new("X 1"))
         .unwrap_err()
         .to_string();
-    assert!(e.starts_with("option axis: \"X 1\""), "{e}");
+    assert!(e.starts_with("option machine_axis: \"X 1\""), "{e}");
     let e = heidenhain::com(&uni.positioning, &ComOptions::new("Y.TXT")).unwrap_err();
     assert!(e.to_string().contains("Y.COM"), "{e}");
     // A bidirectional table needs both directions.

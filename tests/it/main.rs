@@ -10,6 +10,7 @@ mod can;
 mod canopen;
 mod cli;
 mod comp;
+mod comp_export;
 mod console;
 mod decoupling;
 mod evaluate;
