@@ -186,7 +186,10 @@ mod tests {
         let st = a.read(0.0).unwrap();
         let s1 = st.spots[0].unwrap();
         // The last 0.5 s of frames, alternating 0.1 and 0.3 mm.
-        assert!((s1.x - 0.2).abs() < 1e-3 && (s1.y + 0.2).abs() < 1e-12, "{s1:?}");
+        assert!(
+            (s1.x - 0.2).abs() < 1e-3 && (s1.y + 0.2).abs() < 1e-12,
+            "{s1:?}"
+        );
         assert!(st.spots[2].is_none());
         let st = a.target(3, 5.5, -1.0).unwrap();
         assert_eq!(st.spots[2].unwrap().source, SpotSource::Target);

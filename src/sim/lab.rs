@@ -613,7 +613,9 @@ impl Lab {
         let end = self.plant.carriage_move_end();
         let within = (end - self.now) + Duration::from_secs(10);
         self.advance_until("the carriage and follower at rest", within, |lab| {
-            lab.now >= end && lab.pipeline.tracker.at_rest(lab.now)
+            lab.now >= end
+                && lab.pipeline.tracker.at_rest(lab.now)
+                && !lab.pipeline.tracker.handing_over()
         })
     }
 
@@ -638,8 +640,21 @@ impl Lab {
                 why: "the follower's position is not known".into(),
             });
         }
-        // The pipeline takes it once the averaging window has refilled.
+        // The pipeline takes it once the averaging window has refilled. A handover in the
+        // window (the follower centring PSD2 on the spot right after the reference) moves the
+        // reference under the zero: the operator takes the zero again once it is done.
         self.advance(window + Duration::from_millis(60))?;
+        for _ in 0..3 {
+            if self.pipeline.tracker.stitch().handovers == 0 {
+                break;
+            }
+            let _ = self.advance_until("the handover's end", Duration::from_secs(10), |lab| {
+                !lab.pipeline.tracker.handing_over()
+            });
+            let _ = self.pipeline.zero_ready(self.now);
+            self.pipeline.begin_zero(self.now, window);
+            self.advance(window + Duration::from_millis(60))?;
+        }
         match self.pipeline.zero_ready(self.now) {
             Some(Some(z)) => Ok(z),
             Some(None) => Err(LabError::BringUp {
