@@ -12,6 +12,7 @@ mod comp;
 mod console;
 mod decoupling;
 mod evaluate;
+mod links;
 mod modbus;
 mod plc;
 mod resume;

@@ -82,8 +82,21 @@ async fn an_exception_keeps_the_connection() {
         e.to_string(),
         "the device answered with exception 0x06 (server device busy)"
     );
+    // Connected, answering with exceptions only: refusing, not up, the exception named.
+    let st = *link.state().borrow();
+    assert_eq!(st.name(), "refusing");
+    assert!(
+        st.to_string()
+            .ends_with("is exception 0x06 (server device busy)"),
+        "{st}"
+    );
+    assert_eq!(
+        link.stats().last_exception.map(|(x, _)| x),
+        Some(Exception::ServerDeviceBusy)
+    );
     srv.set_exception(None);
     assert_eq!(link.read_input_registers(1, r(199, 1)).await, Ok(vec![199]));
+    assert!(link.state().borrow().is_up(), "up after a good reply");
     assert_eq!(
         link.read_input_registers(1, r(150, 60)).await,
         Err(LinkError::Exception(Exception::IllegalDataAddress))
@@ -146,7 +159,7 @@ async fn peers_outside_the_allow_list_are_closed_on_accept() {
 async fn link_state_follows_the_device_and_ends_with_the_handles() {
     let (srv, _) = server(None).await;
     let link = link(srv.local_addr(), 300);
-    assert!(link.wait_up(Duration::from_secs(2)).await);
+    assert!(link.wait_connected(Duration::from_secs(2)).await);
     srv.stop().await;
     assert!(!srv.is_running());
     // The next call notices the closed connection; reconnects are refused while stopped.
@@ -174,7 +187,7 @@ async fn link_state_follows_the_device_and_ends_with_the_handles() {
         "calls fail fast while down"
     );
     srv.restart().await.unwrap();
-    assert!(link.wait_up(Duration::from_secs(2)).await);
+    assert!(link.wait_connected(Duration::from_secs(2)).await);
     assert_eq!(link.read_input_registers(1, r(3, 1)).await, Ok(vec![3]));
     let mut st = link.state();
     drop(link);
@@ -245,9 +258,10 @@ async fn the_paced_reader_collects_each_reply_at_the_next_tick() {
         1,
         r(10, 4),
     );
-    // The first tick connects and sends; nothing to collect yet.
+    // The first tick connects and sends; nothing to collect yet: connected, not up until
+    // the first reply is in.
     assert_eq!(reader.tick().await, None);
-    assert!(monitor.state().borrow().is_up());
+    assert_eq!(monitor.state().borrow().name(), "connected");
     // A reply holds the registers as they were at some time between its request's send and
     // its collection: the values when it was sent, or the ones set after (when the device
     // served it late). Never older ones.
@@ -278,6 +292,7 @@ async fn the_paced_reader_collects_each_reply_at_the_next_tick() {
         }
         last_at = Some(reply.at);
     }
+    assert!(monitor.state().borrow().is_up(), "up once replies came");
     let st = monitor.stats();
     assert_eq!((st.ok, st.errors, st.reconnects), (20, 0, 0));
     assert!(
