@@ -12,6 +12,7 @@ mod comp;
 mod console;
 mod decoupling;
 mod evaluate;
+mod fuzz;
 mod links;
 mod modbus;
 mod plc;
