@@ -436,10 +436,7 @@ async fn fuzz_modbus_servers_over_tcp() {
         Some((10, 5)),
     ));
     let ours = ServerHandle::start(
-        ServerConfig {
-            bind: "127.0.0.1:0".parse().expect("addr"),
-            allow: None,
-        },
+        ServerConfig::new("127.0.0.1:0".parse().expect("addr")),
         bank,
     )
     .await

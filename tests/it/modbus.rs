@@ -15,8 +15,8 @@ async fn server(allow: Option<Vec<std::net::IpAddr>>) -> (ServerHandle, Arc<Memo
         Some((10, 5)),
     ));
     let cfg = ServerConfig {
-        bind: "127.0.0.1:0".parse().unwrap(),
         allow,
+        ..ServerConfig::new("127.0.0.1:0".parse().unwrap())
     };
     let h = ServerHandle::start(cfg, bank.clone()).await.unwrap();
     (h, bank)
@@ -131,6 +131,45 @@ async fn writes_round_trip_within_the_writable_range() {
         link.write_multiple_registers(1, 0, &[]).await,
         Err(LinkError::Address(_))
     ));
+}
+
+/// At most `max_connections` at once: the next is closed on accept (counted, logged), and a
+/// place that frees up is taken again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn connections_beyond_the_limit_are_closed_on_accept() {
+    use tokio::io::AsyncReadExt;
+    let bank = Arc::new(MemoryBank::new((0..200).collect(), vec![0; 20], None));
+    let srv = ServerHandle::start(
+        ServerConfig {
+            max_connections: 2,
+            ..ServerConfig::new("127.0.0.1:0".parse().unwrap())
+        },
+        bank,
+    )
+    .await
+    .unwrap();
+    let addr = srv.local_addr();
+    let mut kept = Vec::new();
+    for tid in 1..=2u16 {
+        let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+        // Answered: the connection is in.
+        let reply = crate::helpers::raw_request(&mut s, tid, 1, &[4, 0, 5, 0, 1]).await;
+        assert_eq!(reply, [4, 2, 0, 5]);
+        kept.push(s);
+    }
+    let mut third = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let mut buf = [0u8; 16];
+    let n = tokio::time::timeout(Duration::from_secs(2), third.read(&mut buf))
+        .await
+        .expect("closed at once");
+    assert!(matches!(n, Ok(0) | Err(_)), "{n:?}");
+    assert_eq!(srv.stats().refused, 1);
+    drop(kept.pop());
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let mut again = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let reply = crate::helpers::raw_request(&mut again, 9, 1, &[4, 0, 7, 0, 1]).await;
+    assert_eq!(reply, [4, 2, 0, 7]);
+    assert_eq!(srv.stats().accepted, 3);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
