@@ -17,34 +17,17 @@ Run by the Rust test `interop_field_links_tell_the_truth` (tests/it/links.rs) vi
 tests/interop/links.sh.
 """
 
-import argparse
 import asyncio
 import json
 import sys
-import tomllib
 
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
+from pymodbus_io import encode, port_and_map
 
 # X, Y, SUM volts per PSD: every beam on, spots within 0.1 mm of the centres.
 VOLTS = [(0.01, -0.02, 5.0), (0.0, 0.01, 4.5), (-0.01, 0.0, 4.0)]
-
-
-def encode(map_):
-    """The block's registers for VOLTS (16-bit integer channels, big-endian words)."""
-    d = map_.get("defaults", {})
-    regs = [0] * map_["block_length"]
-    for psd, volts in zip(map_["psd"], VOLTS):
-        for key, v in zip(("x", "y", "sum"), volts):
-            ch = psd[key]
-            ty = ch.get("type", d.get("type"))
-            if ty not in ("i16", "u16"):
-                sys.exit(f"pymodbus_faults.py: 16-bit integer channels only, got {ty}")
-            vpc = ch.get("volts_per_count", d.get("volts_per_count"))
-            voff = ch.get("volts_offset", d.get("volts_offset", 0.0))
-            regs[ch["register"]] = int(round((v - voff) / vpc)) & 0xFFFF
-    return regs
 
 
 class Module:
@@ -120,21 +103,16 @@ class Module:
 
 
 async def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--port", type=int, required=True)
-    ap.add_argument("--map", default="plc-maps/io/generic.toml")
-    args = ap.parse_args()
-    with open(args.map, "rb") as f:
-        map_ = tomllib.load(f)
-    if map_["mode"] != "conditioned" or map_["register"] != "input":
-        sys.exit("pymodbus_faults.py: conditioned maps on input registers only")
-    regs = encode(map_)
-    module = Module(args.port, map_, regs)
+    port, map_ = port_and_map()
+    if map_["register"] != "input":
+        sys.exit("pymodbus_faults.py: maps on input registers only")
+    regs, _, _ = encode(map_, VOLTS)
+    module = Module(port, map_, regs)
     await module.start_modbus()
     print(
         json.dumps(
             {
-                "port": args.port,
+                "port": port,
                 "registers": regs,
                 "block_start": map_["block_start"],
                 "unit_id": map_["unit_id"],

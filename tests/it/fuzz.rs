@@ -887,36 +887,31 @@ fn calibration_seeds() -> &'static (String, String) {
         let dir = TempDir::new("fuzz-cal");
         let poses = dir.path("poses.csv");
         let cal = dir.path("cal.toml");
-        let p = poses.to_str().expect("path");
-        let o = run(
-            &[
-                "calibrate",
-                "simulate",
-                "--poses",
-                "30",
-                "--seed",
-                "18",
-                "--output",
-                p,
-            ],
-            "",
-        );
-        assert!(o.status.success(), "{}", crate::helpers::stderr(&o));
-        let c = cal.to_str().expect("path");
-        let o = run(
-            &[
-                "calibrate",
-                "fit",
-                "--input",
-                p,
-                "--output",
-                c,
-                "--method",
-                "linear",
-            ],
-            "",
-        );
-        assert!(o.status.success(), "{}", crate::helpers::stderr(&o));
+        let (p, c) = (poses.to_str().expect("path"), cal.to_str().expect("path"));
+        let cli = |args: &[&str]| {
+            let o = run(args, "");
+            assert!(o.status.success(), "{}", crate::helpers::stderr(&o));
+        };
+        cli(&[
+            "calibrate",
+            "simulate",
+            "--poses",
+            "30",
+            "--seed",
+            "18",
+            "--output",
+            p,
+        ]);
+        cli(&[
+            "calibrate",
+            "fit",
+            "--input",
+            p,
+            "--output",
+            c,
+            "--method",
+            "linear",
+        ]);
         (
             std::fs::read_to_string(&poses).expect("poses"),
             std::fs::read_to_string(&cal).expect("cal"),
