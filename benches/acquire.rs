@@ -26,7 +26,7 @@ fn bench(c: &mut Criterion) {
         );
         let module = IoModule::generic(plant).await.expect("I/O module");
         let link = Link::spawn(LinkConfig::new(module.local_addr()));
-        assert!(link.wait_up(Duration::from_secs(5)).await, "link up");
+        assert!(link.wait_connected(Duration::from_secs(5)).await, "link up");
         let acq = Acquisition::spawn(
             link.clone(),
             Arc::new(IoMap::generic().expect("generic map")),

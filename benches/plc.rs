@@ -60,7 +60,7 @@ fn bench(c: &mut Criterion) {
         .await
         .expect("twin PLC");
         let link = Link::spawn(LinkConfig::new(twin.local_addr()));
-        assert!(link.wait_up(Duration::from_secs(5)).await, "link up");
+        assert!(link.wait_connected(Duration::from_secs(5)).await, "link up");
         (twin, link)
     });
     let seq = AtomicU32::new(1);
@@ -110,7 +110,7 @@ fn bench(c: &mut Criterion) {
         .expect("pull server");
         srv.set_table(&t, 1).expect("table");
         let l = Link::spawn(LinkConfig::new(srv.local_addr()));
-        assert!(l.wait_up(Duration::from_secs(5)).await, "link up");
+        assert!(l.wait_connected(Duration::from_secs(5)).await, "link up");
         (srv, l)
     });
     // The block: header (16..30) then the payload in 120-register reads.
@@ -145,7 +145,7 @@ fn bench(c: &mut Criterion) {
         .map(|_| {
             rt.block_on(async {
                 let l = Link::spawn(LinkConfig::new(srv.local_addr()));
-                assert!(l.wait_up(Duration::from_secs(5)).await, "link up");
+                assert!(l.wait_connected(Duration::from_secs(5)).await, "link up");
                 l
             })
         })

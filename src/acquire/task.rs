@@ -22,6 +22,12 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tokio::sync::{broadcast, watch};
 use tokio::task::JoinHandle;
 
+/// A frame is stale, never shown or used as valid, once older than this or
+/// [`STALE_PERIODS`] frame periods, whichever is longer ([`AcquireConfig::stale_after`]).
+pub const STALE_AFTER: Duration = Duration::from_millis(100);
+/// Frame periods after which a frame is stale, at low frame rates.
+pub const STALE_PERIODS: u32 = 5;
+
 /// Acquisition settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AcquireConfig {
@@ -31,6 +37,21 @@ pub struct AcquireConfig {
     pub capacity: usize,
     /// Frames in the statistics window (default 1024).
     pub window: usize,
+}
+
+impl AcquireConfig {
+    /// The age at which the latest frame is stale: [`STALE_AFTER`] (100 ms), or
+    /// [`STALE_PERIODS`] (5) periods at `rate_hz` when that is longer. At 500 Hz: 100 ms, 50
+    /// frames; at 10 Hz: 500 ms.
+    pub fn stale_after(&self) -> Duration {
+        if self.rate_hz > 0.0 && self.rate_hz.is_finite() {
+            STALE_AFTER.max(Duration::from_secs_f64(
+                f64::from(STALE_PERIODS) / self.rate_hz,
+            ))
+        } else {
+            STALE_AFTER
+        }
+    }
 }
 
 impl Default for AcquireConfig {
@@ -55,7 +76,7 @@ pub struct AcquireStats {
     pub decode_errors: u64,
     /// The last error, if any.
     pub last_error: Option<AcquireError>,
-    /// Frames per second over the window.
+    /// Frames per second over the last second.
     pub frames_per_s: f64,
     /// Request-to-reply time per frame over the window.
     pub latency_p50: Option<Duration>,
@@ -88,6 +109,7 @@ pub struct Acquisition {
     latest: watch::Receiver<Option<Frame>>,
     counters: Arc<Mutex<Counters>>,
     link: Monitor,
+    stale_after: Duration,
     task: JoinHandle<()>,
 }
 
@@ -152,6 +174,7 @@ impl Acquisition {
             latest,
             counters,
             link,
+            stale_after: config.stale_after(),
             task,
         }
     }
@@ -159,6 +182,16 @@ impl Acquisition {
     /// The link's address, state and statistics.
     pub fn link(&self) -> &Monitor {
         &self.link
+    }
+
+    /// The age at which a frame is stale ([`AcquireConfig::stale_after`]).
+    pub fn stale_after(&self) -> Duration {
+        self.stale_after
+    }
+
+    /// Whether `frame` is still fresh at `now` (not older than [`stale_after`](Self::stale_after)).
+    pub fn is_fresh(&self, frame: &Frame, now: Instant) -> bool {
+        now.saturating_duration_since(frame.at) <= self.stale_after
     }
 
     /// Every frame from now on.
@@ -268,7 +301,7 @@ async fn run(link: Link, map: Arc<IoMap>, config: AcquireConfig, mut out: Output
                 // Wait for the link to come back rather than spinning on errors.
                 let _ = tokio::time::timeout(
                     Duration::from_secs(1),
-                    state.wait_for(|s| s.is_up() || *s == LinkState::Closed),
+                    state.wait_for(|s| s.is_connected() || *s == LinkState::Closed),
                 )
                 .await;
             }

@@ -181,6 +181,21 @@ impl PowerState {
         }
     }
 
+    /// The state's name as CiA 402 writes it (a capital first letter), for the snapshot and
+    /// the console: "Operation enabled".
+    pub fn label(self) -> &'static str {
+        match self {
+            PowerState::NotReadyToSwitchOn => "Not ready to switch on",
+            PowerState::SwitchOnDisabled => "Switch on disabled",
+            PowerState::ReadyToSwitchOn => "Ready to switch on",
+            PowerState::SwitchedOn => "Switched on",
+            PowerState::OperationEnabled => "Operation enabled",
+            PowerState::QuickStopActive => "Quick stop active",
+            PowerState::FaultReactionActive => "Fault reaction active",
+            PowerState::Fault => "Fault",
+        }
+    }
+
     /// Whether the drive is in (or entering) its fault state.
     pub fn is_fault(self) -> bool {
         matches!(self, PowerState::Fault | PowerState::FaultReactionActive)

@@ -23,6 +23,17 @@ pub fn command_frame(cmd: NmtCommand, node: NodeId) -> CanFrame {
     frame(cob::NMT, &encode_command(cmd, node))
 }
 
+/// An NMT state's name as CiA 301 writes it: "Initialising", "Pre-operational",
+/// "Operational", "Stopped".
+pub fn state_name(s: NmtState) -> &'static str {
+    match s {
+        NmtState::Initialising => "Initialising",
+        NmtState::PreOperational => "Pre-operational",
+        NmtState::Operational => "Operational",
+        NmtState::Stopped => "Stopped",
+    }
+}
+
 /// What the consumer noticed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum HeartbeatEvent {

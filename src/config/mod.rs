@@ -47,6 +47,7 @@ pub struct RawService {
     pub viewer_group: String,
     pub snapshot_hz: f64,
     pub watchdog: bool,
+    pub max_connections: u64,
 }
 
 /// `[head]`
@@ -217,6 +218,8 @@ pub struct ServiceSettings {
     pub viewer_group: String,
     pub snapshot_period: Duration,
     pub watchdog: bool,
+    /// Control connections open at once; more are refused (with an error line) and logged.
+    pub max_connections: usize,
 }
 
 /// `[head]`, validated.
@@ -435,9 +438,24 @@ pub fn load(layers: &Layers) -> Result<Settings, ConfigError> {
         cfg.get_table(section)
             .ok()
             .and_then(|t| t.get(name).and_then(|v| v.origin().map(str::to_string)))
-            .unwrap_or_else(|| "built-in defaults".into())
+            .unwrap_or_else(|| DEFAULTS_ORIGIN.into())
     };
     validate(&raw, &origin, sources)
+}
+
+/// The origin of a key no layer set.
+const DEFAULTS_ORIGIN: &str = "built-in defaults";
+
+/// The other `[follower]` key of a relation checked by `DriveConfig::validate`.
+fn follower_related(key: &str) -> Option<&'static str> {
+    match key {
+        "follower.heartbeat_timeout_ms" => Some("follower.heartbeat_ms"),
+        "follower.heartbeat_ms" => Some("follower.heartbeat_timeout_ms"),
+        "follower.quiet_sync_ms" => Some("follower.sync_ms"),
+        "follower.min_mm" => Some("follower.max_mm"),
+        "follower.max_mm" => Some("follower.min_mm"),
+        _ => None,
+    }
 }
 
 /// The `[follower]` key behind an error of `DriveConfig::validate`.
@@ -481,6 +499,27 @@ impl V<'_> {
             origin: (self.origin)(key),
             key: key.into(),
             problem: problem.into(),
+        }
+    }
+
+    /// An error of `key` against `other` (a relation between two keys): it names the file
+    /// that set one of them, so when `key` is at its built-in default and `other` was set
+    /// in a file, the error is that file's, at `other`.
+    fn err_with(&self, key: &str, other: &str, problem: impl Into<String>) -> ConfigError {
+        let problem = problem.into();
+        let (mine, theirs) = ((self.origin)(key), (self.origin)(other));
+        if mine == DEFAULTS_ORIGIN && theirs != DEFAULTS_ORIGIN {
+            ConfigError {
+                origin: theirs,
+                key: other.into(),
+                problem: format!("{problem} (with {key} at its built-in default)"),
+            }
+        } else {
+            ConfigError {
+                origin: mine,
+                key: key.into(),
+                problem,
+            }
         }
     }
 
@@ -559,6 +598,15 @@ fn validate(
             1.0 / v.positive("service.snapshot_hz", s.snapshot_hz)?,
         ),
         watchdog: s.watchdog,
+        max_connections: match s.max_connections {
+            1..=10_000 => s.max_connections as usize,
+            n => {
+                return Err(v.err(
+                    "service.max_connections",
+                    format!("{n} is out of range: use 1..=10000 (default 64)"),
+                ));
+            }
+        },
     };
     let h = &raw.head;
     let head = HeadSettings {
@@ -721,7 +769,10 @@ fn validate(
     };
     if let Err(e) = drive.validate() {
         let key = follower_key(&e);
-        return Err(v.err(&key, e.to_string()));
+        return Err(match follower_related(&key) {
+            Some(other) => v.err_with(&key, other, e.to_string()),
+            None => v.err(&key, e.to_string()),
+        });
     }
     let follower = FollowerSettings {
         drive,
@@ -741,8 +792,9 @@ fn validate(
     let handover_mm = v.positive("tracking.handover_mm", t.handover_mm)?;
     let edge_mm = v.positive("tracking.edge_mm", t.edge_mm)?;
     if edge_mm <= handover_mm {
-        return Err(v.err(
+        return Err(v.err_with(
             "tracking.edge_mm",
+            "tracking.handover_mm",
             format!("{edge_mm} mm must exceed tracking.handover_mm ({handover_mm} mm)"),
         ));
     }
@@ -892,8 +944,9 @@ fn plc_settings(v: &V, p: &RawPlc) -> Result<PlcSettings, ConfigError> {
         echo: v.ms("plc.echo_timeout_ms", p.echo_timeout_ms, 1)?,
     };
     if timeouts.heartbeat > timeouts.ready {
-        return Err(v.err(
+        return Err(v.err_with(
             "plc.heartbeat_timeout_ms",
+            "plc.ready_timeout_ms",
             format!(
                 "{} ms exceeds plc.ready_timeout_ms ({} ms): the heartbeat must be seen to change before the ready wait ends",
                 p.heartbeat_timeout_ms, p.ready_timeout_ms
@@ -931,7 +984,10 @@ mod tests {
     fn load_text(text: &str, env: &[(&str, &str)]) -> Result<Settings, ConfigError> {
         let dir = std::env::temp_dir().join(format!("axiscomp-cfg-{}", std::process::id()));
         let _ = std::fs::create_dir_all(&dir);
-        let path = dir.join(format!("t{}.toml", text.len()));
+        // A file per call: tests run in parallel (a name by text length collided).
+        static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let path = dir.join(format!("t{n}.toml"));
         std::fs::write(&path, text).unwrap();
         let r = load(&Layers {
             etc: None,
@@ -1059,6 +1115,29 @@ mod tests {
         .unwrap_err();
         assert_eq!(e.key, "follower.node_id");
         assert_eq!(e.origin, "the environment");
+
+        // A relation broken by the file against a default names the file's key (found by
+        // tests/it/fuzz.rs: heartbeat_ms = 350 blamed the built-in heartbeat_timeout_ms).
+        let e = load_text("[follower]\nheartbeat_ms = 350\n", &[]).unwrap_err();
+        assert_eq!(e.key, "follower.heartbeat_ms", "{e}");
+        assert!(e.origin.ends_with(".toml"), "{e}");
+        assert!(
+            e.problem
+                .ends_with("(with follower.heartbeat_timeout_ms at its built-in default)"),
+            "{e}"
+        );
+        let e = load_text("[tracking]\nhandover_mm = 4.0\n", &[]).unwrap_err();
+        assert_eq!(e.key, "tracking.handover_mm", "{e}");
+        assert!(e.origin.ends_with(".toml"), "{e}");
+        let e = load_text("[plc]\nready_timeout_ms = 100\n", &[]).unwrap_err();
+        assert_eq!(e.key, "plc.ready_timeout_ms", "{e}");
+        // Both set in the file: the key checked is named.
+        let e = load_text(
+            "[follower]\nheartbeat_ms = 350\nheartbeat_timeout_ms = 300\n",
+            &[],
+        )
+        .unwrap_err();
+        assert_eq!(e.key, "follower.heartbeat_timeout_ms", "{e}");
 
         let e = load_text("[io]\nratehz = 5.0\n", &[]).unwrap_err();
         assert!(

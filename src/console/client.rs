@@ -386,6 +386,7 @@ mod tests {
                 snap_rx,
                 cmd_tx,
                 Duration::from_millis(20),
+                64,
                 shutdown,
             ));
             tokio::spawn(async move {

@@ -13,7 +13,12 @@
 //!   only `debug_assert!`s the count, which panics in debug builds on a short reply);
 //! - reconnect with exponential backoff ([`Backoff`]), calls failing fast with
 //!   [`LinkError::Disconnected`] while the link is down;
-//! - the [`LinkState`] on a `tokio::sync::watch` for the console, and [`LinkStats`].
+//! - the [`LinkState`] on a `tokio::sync::watch` for the console, and [`LinkStats`]. The
+//!   state says what the device does, not what the socket does: a TCP connection is
+//!   [`LinkState::Connected`] until the first good reply makes it [`LinkState::Up`] (a device
+//!   that accepts connections and never answers is never up); a device answering with Modbus
+//!   exceptions is [`LinkState::Refusing`], named and logged (once per run of exceptions; the
+//!   same exception at most every [`EXCEPTION_LOG_EVERY`]).
 //!
 //! A call whose caller gave up (its future dropped) is still completed by the task, so the
 //! connection stays in step. The task ends when every handle is dropped.
@@ -80,13 +85,25 @@ impl LinkError {
     }
 }
 
+/// The first exception of a run of exception replies is logged, unless the same exception
+/// was logged less than this ago (a device alternating good replies and exceptions).
+pub const EXCEPTION_LOG_EVERY: Duration = Duration::from_secs(10);
+
 /// The link's state, as the console shows it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum LinkState {
     /// Connecting (attempt counts from 1 since the last connection).
     Connecting { attempt: u32 },
-    /// Connected since `since`.
+    /// The TCP connection is open since `since`, but no good reply has come yet.
+    Connected { since: Instant },
+    /// Good replies since `since`.
     Up { since: Instant },
+    /// Connected, but every reply since `since` has been a Modbus exception, the last one
+    /// `exception` (the connection is kept: it is in step).
+    Refusing {
+        exception: Exception,
+        since: Instant,
+    },
     /// Down after `error`; the next attempt is at `retry_at`.
     Down { error: LinkError, retry_at: Instant },
     /// Every handle was dropped; the task has ended.
@@ -94,8 +111,40 @@ pub enum LinkState {
 }
 
 impl LinkState {
+    /// Whether good replies are coming.
     pub fn is_up(&self) -> bool {
         matches!(self, LinkState::Up { .. })
+    }
+
+    /// Whether the TCP connection is open (calls go out), whatever the replies.
+    pub fn is_connected(&self) -> bool {
+        matches!(
+            self,
+            LinkState::Connected { .. } | LinkState::Up { .. } | LinkState::Refusing { .. }
+        )
+    }
+
+    /// The short name the snapshot shows: "connecting", "connected", "up", "refusing",
+    /// "down" or "closed".
+    pub fn name(&self) -> &'static str {
+        match self {
+            LinkState::Connecting { .. } => "connecting",
+            LinkState::Connected { .. } => "connected",
+            LinkState::Up { .. } => "up",
+            LinkState::Refusing { .. } => "refusing",
+            LinkState::Down { .. } => "down",
+            LinkState::Closed => "closed",
+        }
+    }
+
+    /// The exception the device has been answering with, and for how long at `now`.
+    pub fn refusing_for(&self, now: Instant) -> Option<(Exception, Duration)> {
+        match self {
+            LinkState::Refusing { exception, since } => {
+                Some((*exception, now.saturating_duration_since(*since)))
+            }
+            _ => None,
+        }
     }
 }
 
@@ -103,7 +152,17 @@ impl fmt::Display for LinkState {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             LinkState::Connecting { attempt } => write!(f, "connecting (attempt {attempt})"),
+            LinkState::Connected { since } => write!(
+                f,
+                "connected for {:.1} s, no reply yet",
+                since.elapsed().as_secs_f64()
+            ),
             LinkState::Up { since } => write!(f, "up for {:.1} s", since.elapsed().as_secs_f64()),
+            LinkState::Refusing { exception, since } => write!(
+                f,
+                "every reply for {:.1} s is {exception}",
+                since.elapsed().as_secs_f64()
+            ),
             LinkState::Down { error, retry_at } => write!(
                 f,
                 "down: {error}; retry in {:.1} s",
@@ -152,6 +211,9 @@ impl LinkConfig {
 
 pub use crate::util::backoff::Backoff;
 
+/// The span rates are taken over: the last second, as the snapshot documents.
+pub const RATE_SPAN: Duration = Duration::from_secs(1);
+
 /// The last `capacity` events with their latency: rate and percentiles over that window
 /// (sans-I/O; time is an argument).
 #[derive(Clone, Debug)]
@@ -180,17 +242,27 @@ impl Window {
     pub fn is_empty(&self) -> bool {
         self.events.is_empty()
     }
-    /// Events per second from the oldest event in the window to `now` (so it decays to zero
-    /// when events stop); `0` with fewer than two events.
+    /// Events per second over the last second before `now` ([`RATE_SPAN`]): the events in
+    /// it, per second. When the window holds less than a second of events (fast events, or
+    /// the first second), over the span from its oldest event to `now` instead; so it decays
+    /// to zero when events stop. `0` with fewer than two events.
     pub fn rate_hz(&self, now: Instant) -> f64 {
         let (Some(first), true) = (self.events.front(), self.events.len() >= 2) else {
             return 0.0;
         };
-        let span = now.saturating_duration_since(first.0).as_secs_f64();
-        if span <= 0.0 {
-            return 0.0;
+        match now.checked_sub(RATE_SPAN) {
+            Some(from) if first.0 <= from => {
+                let older = self.events.partition_point(|e| e.0 <= from);
+                (self.events.len() - older) as f64 / RATE_SPAN.as_secs_f64()
+            }
+            _ => {
+                let span = now.saturating_duration_since(first.0).as_secs_f64();
+                if span <= 0.0 {
+                    return 0.0;
+                }
+                (self.events.len() - 1) as f64 / span
+            }
         }
-        (self.events.len() - 1) as f64 / span
     }
     /// The `q`-quantile (0..=1) of the latencies, nearest rank; `None` when empty.
     pub fn quantile(&self, q: f64) -> Option<Duration> {
@@ -219,7 +291,9 @@ pub struct LinkStats {
     pub exceptions: u64,
     /// Successful connections after the first.
     pub reconnects: u64,
-    /// Successful calls per second over the window.
+    /// The last exception the device answered with, and when.
+    pub last_exception: Option<(Exception, Instant)>,
+    /// Successful calls per second over the last second.
     pub rate_hz: f64,
     /// Latency of successful calls (task dequeue to reply) over the window.
     pub latency_p50: Option<Duration>,
@@ -233,6 +307,7 @@ pub(super) struct Counters {
     timeouts: u64,
     exceptions: u64,
     reconnects: u64,
+    last_exception: Option<(Exception, Instant)>,
     window: Window,
 }
 
@@ -249,7 +324,10 @@ impl Counters {
                 self.errors += 1;
                 match e {
                     LinkError::Timeout(_) => self.timeouts += 1,
-                    LinkError::Exception(_) => self.exceptions += 1,
+                    LinkError::Exception(x) => {
+                        self.exceptions += 1;
+                        self.last_exception = Some((*x, now));
+                    }
                     _ => {}
                 }
             }
@@ -293,10 +371,16 @@ impl fmt::Debug for Monitor {
     }
 }
 
-/// The writer's side of a [`Monitor`].
+/// The writer's side of a [`Monitor`]: counts every outcome and moves the state between
+/// connected, up and refusing by the replies.
 pub(super) struct Reporter {
     pub(super) state: watch::Sender<LinkState>,
     pub(super) counters: Arc<Mutex<Counters>>,
+    addr: SocketAddr,
+    /// Exceptions in the current run of exception replies.
+    run: u64,
+    /// The exception last logged, and when.
+    last_log: Option<(Exception, Instant)>,
 }
 
 impl Reporter {
@@ -309,6 +393,7 @@ impl Reporter {
             timeouts: 0,
             exceptions: 0,
             reconnects: 0,
+            last_exception: None,
             window: Window::new(window),
         }));
         let monitor = Monitor {
@@ -316,15 +401,87 @@ impl Reporter {
             counters: counters.clone(),
             addr,
         };
-        (Reporter { state, counters }, monitor)
+        (
+            Reporter {
+                state,
+                counters,
+                addr,
+                run: 0,
+                last_log: None,
+            },
+            monitor,
+        )
     }
 
-    pub(super) fn record<T>(&self, outcome: &Result<T, LinkError>, started: Instant, now: Instant) {
+    /// The outcome of a call that went out on the connection: counted, and the state follows
+    /// the reply (a transport error is reported by the caller with [`down`](Self::down)).
+    pub(super) fn record<T>(
+        &mut self,
+        outcome: &Result<T, LinkError>,
+        started: Instant,
+        now: Instant,
+    ) {
         lock(&self.counters).record(outcome, started, now);
+        match outcome {
+            Ok(_) => {
+                let run = std::mem::take(&mut self.run);
+                let up = self.state.send_if_modified(|s| {
+                    let change = !s.is_up();
+                    if change {
+                        *s = LinkState::Up { since: now };
+                    }
+                    change
+                });
+                if up && run > 0 {
+                    tracing::info!(addr = %self.addr, exceptions = run, "modbus device answers again");
+                } else if up {
+                    tracing::info!(addr = %self.addr, "modbus link up: the device answers");
+                }
+            }
+            Err(LinkError::Exception(x)) => {
+                self.run += 1;
+                let x = *x;
+                let changed = self.state.send_if_modified(|s| match s {
+                    LinkState::Refusing { exception, .. } if *exception == x => false,
+                    LinkState::Refusing { exception, .. } => {
+                        *exception = x;
+                        true
+                    }
+                    _ => {
+                        *s = LinkState::Refusing {
+                            exception: x,
+                            since: now,
+                        };
+                        true
+                    }
+                });
+                let quiet = self.last_log.is_some_and(|(last, t)| {
+                    last == x && now.saturating_duration_since(t) < EXCEPTION_LOG_EVERY
+                });
+                if changed && !quiet {
+                    self.last_log = Some((x, now));
+                    tracing::warn!(addr = %self.addr, "modbus device answered with {x}");
+                }
+            }
+            Err(_) => {}
+        }
     }
 
-    pub(super) fn reconnected(&self) {
-        lock(&self.counters).reconnects += 1;
+    /// The TCP connection is open: connected, not up until a good reply.
+    pub(super) fn connected(&mut self, now: Instant, reconnect: bool) {
+        if reconnect {
+            lock(&self.counters).reconnects += 1;
+        }
+        self.run = 0;
+        self.state.send_replace(LinkState::Connected { since: now });
+        tracing::info!(addr = %self.addr, "modbus connection open, awaiting the first reply");
+    }
+
+    /// The connection failed or was dropped after `error`; the next attempt is at `retry_at`.
+    pub(super) fn down(&mut self, error: LinkError, retry_at: Instant) {
+        self.run = 0;
+        tracing::warn!(addr = %self.addr, %error, "modbus link down");
+        self.state.send_replace(LinkState::Down { error, retry_at });
     }
 }
 
@@ -339,16 +496,16 @@ impl Monitor {
         self.state.clone()
     }
 
-    /// Wait until the link is up, at most `timeout`; whether it is.
-    pub async fn wait_up(&self, timeout: Duration) -> bool {
+    /// Wait until the link is connected (calls go out), at most `timeout`; whether it is.
+    pub async fn wait_connected(&self, timeout: Duration) -> bool {
         let mut rx = self.state.clone();
         matches!(
             tokio::time::timeout(
                 timeout,
-                rx.wait_for(|s| s.is_up() || *s == LinkState::Closed)
+                rx.wait_for(|s| s.is_connected() || *s == LinkState::Closed)
             )
             .await,
-            Ok(Ok(s)) if s.is_up()
+            Ok(Ok(s)) if s.is_connected()
         )
     }
 
@@ -363,6 +520,7 @@ impl Monitor {
             timeouts: c.timeouts,
             exceptions: c.exceptions,
             reconnects: c.reconnects,
+            last_exception: c.last_exception,
             rate_hz: c.window.rate_hz(now),
             latency_p50: c.window.quantile(0.5),
             latency_p99: c.window.quantile(0.99),
@@ -408,9 +566,9 @@ impl Link {
         self.monitor.state()
     }
 
-    /// Wait until the link is up, at most `timeout`; whether it is.
-    pub async fn wait_up(&self, timeout: Duration) -> bool {
-        self.monitor.wait_up(timeout).await
+    /// Wait until the link is connected (calls go out), at most `timeout`; whether it is.
+    pub async fn wait_connected(&self, timeout: Duration) -> bool {
+        self.monitor.wait_connected(timeout).await
     }
 
     /// A statistics snapshot.
@@ -510,26 +668,21 @@ enum Served {
 }
 
 /// The task: connect, serve calls until an error drops the connection, back off, repeat.
-async fn run(cfg: LinkConfig, mut rx: mpsc::Receiver<Call>, reporter: Reporter) {
-    let Reporter { state, counters } = &reporter;
+async fn run(cfg: LinkConfig, mut rx: mpsc::Receiver<Call>, mut reporter: Reporter) {
     let mut backoff = Backoff::new(cfg.backoff_min, cfg.backoff_max);
     let mut attempt = 0u32;
     let mut connected_before = false;
     loop {
         attempt += 1;
-        state.send_replace(LinkState::Connecting { attempt });
+        reporter
+            .state
+            .send_replace(LinkState::Connecting { attempt });
         let error = match connect(&cfg).await {
             Ok(ctx) => {
                 attempt = 0;
-                if connected_before {
-                    lock(counters).reconnects += 1;
-                }
+                reporter.connected(Instant::now(), connected_before);
                 connected_before = true;
-                state.send_replace(LinkState::Up {
-                    since: Instant::now(),
-                });
-                tracing::info!(addr = %cfg.addr, "modbus link up");
-                match serve(&cfg, ctx, &mut rx, counters, &mut backoff).await {
+                match serve(&cfg, ctx, &mut rx, &mut reporter, &mut backoff).await {
                     Served::Closed => break,
                     Served::Failed(e) => e,
                 }
@@ -537,8 +690,7 @@ async fn run(cfg: LinkConfig, mut rx: mpsc::Receiver<Call>, reporter: Reporter) 
             Err(e) => e,
         };
         let retry_at = Instant::now() + backoff.next_delay();
-        tracing::warn!(addr = %cfg.addr, %error, "modbus link down");
-        state.send_replace(LinkState::Down { error, retry_at });
+        reporter.down(error, retry_at);
         // Fail calls fast while down, so callers see the outage instead of queueing into it.
         let deadline = tokio::time::Instant::from_std(retry_at);
         loop {
@@ -546,27 +698,27 @@ async fn run(cfg: LinkConfig, mut rx: mpsc::Receiver<Call>, reporter: Reporter) 
                 _ = tokio::time::sleep_until(deadline) => break,
                 call = rx.recv() => match call {
                     None => {
-                        state.send_replace(LinkState::Closed);
+                        reporter.state.send_replace(LinkState::Closed);
                         return;
                     }
                     Some(call) => {
                         let now = Instant::now();
                         let outcome: Result<Reply, LinkError> = Err(LinkError::Disconnected);
-                        lock(counters).record(&outcome, now, now);
+                        lock(&reporter.counters).record(&outcome, now, now);
                         let _ = call.reply.send(outcome);
                     }
                 },
             }
         }
     }
-    state.send_replace(LinkState::Closed);
+    reporter.state.send_replace(LinkState::Closed);
 }
 
 async fn serve(
     cfg: &LinkConfig,
     mut ctx: Context,
     rx: &mut mpsc::Receiver<Call>,
-    counters: &Mutex<Counters>,
+    reporter: &mut Reporter,
     backoff: &mut Backoff,
 ) -> Served {
     loop {
@@ -580,7 +732,7 @@ async fn serve(
             Err(_) => Err(LinkError::Timeout(cfg.timeout)),
             Ok(r) => check(&call.op, r),
         };
-        lock(counters).record(&outcome, started, Instant::now());
+        reporter.record(&outcome, started, Instant::now());
         let fatal = match &outcome {
             Ok(_) => {
                 backoff.reset();
@@ -690,6 +842,83 @@ mod tests {
         assert_eq!(w.len(), 100);
         assert_eq!(w.quantile(1.0), Some(Duration::from_micros(1000)));
         assert!(w.rate_hz(t0 + Duration::from_secs(20)) < 6.0);
+    }
+
+    #[test]
+    fn the_rate_is_over_the_last_second() {
+        // 2 s at 500 Hz, then 1 s at 250 Hz, in a window of 1024 events (about 2 s at
+        // 500 Hz): the rate is the last second's 250/s, not a mean over the window.
+        let t0 = Instant::now();
+        let mut w = Window::new(1024);
+        let mut t = t0;
+        for _ in 0..1000 {
+            t += Duration::from_millis(2);
+            w.push(t, Duration::ZERO);
+        }
+        assert!((w.rate_hz(t) - 500.0).abs() <= 1.0, "{}", w.rate_hz(t));
+        for _ in 0..250 {
+            t += Duration::from_millis(4);
+            w.push(t, Duration::ZERO);
+        }
+        assert!((w.rate_hz(t) - 250.0).abs() <= 1.0, "{}", w.rate_hz(t));
+        // Half a second without events: 125 events in the last second.
+        let later = t + Duration::from_millis(500);
+        assert!(
+            (w.rate_hz(later) - 125.0).abs() <= 1.0,
+            "{}",
+            w.rate_hz(later)
+        );
+        assert_eq!(w.rate_hz(t + Duration::from_secs(2)), 0.0);
+    }
+
+    #[test]
+    fn the_state_follows_the_replies() {
+        let addr: SocketAddr = "127.0.0.1:502".parse().unwrap();
+        let (mut r, m) = Reporter::new(addr, 16);
+        let rx = m.state();
+        let t0 = Instant::now();
+        r.connected(t0, false);
+        // A connection is not a reply: connected, not up.
+        assert_eq!(*rx.borrow(), LinkState::Connected { since: t0 });
+        assert!(!rx.borrow().is_up() && rx.borrow().is_connected());
+        let t1 = t0 + Duration::from_millis(5);
+        r.record::<()>(&Ok(()), t0, t1);
+        assert_eq!(*rx.borrow(), LinkState::Up { since: t1 });
+        // Exceptions: refusing since the first, named by the last.
+        let x = |c| Err::<(), _>(LinkError::Exception(Exception::from_code(c)));
+        let t2 = t1 + Duration::from_millis(5);
+        r.record(&x(2), t2, t2);
+        r.record(&x(2), t2, t2 + Duration::from_millis(500));
+        assert_eq!(
+            rx.borrow().refusing_for(t2 + Duration::from_secs(1)),
+            Some((Exception::IllegalDataAddress, Duration::from_secs(1)))
+        );
+        r.record(&x(4), t2, t2 + Duration::from_millis(600));
+        assert_eq!(
+            *rx.borrow(),
+            LinkState::Refusing {
+                exception: Exception::ServerDeviceFailure,
+                since: t2
+            }
+        );
+        assert_eq!(rx.borrow().name(), "refusing");
+        let st = m.stats();
+        assert_eq!((st.exceptions, st.errors, st.ok), (3, 3, 1));
+        assert_eq!(
+            st.last_exception,
+            Some((
+                Exception::ServerDeviceFailure,
+                t2 + Duration::from_millis(600)
+            ))
+        );
+        let t3 = t2 + Duration::from_secs(1);
+        r.record::<()>(&Ok(()), t3, t3);
+        assert_eq!(*rx.borrow(), LinkState::Up { since: t3 });
+        r.down(LinkError::Timeout(Duration::from_millis(200)), t3);
+        assert_eq!(rx.borrow().name(), "down");
+        r.connected(t3, true);
+        assert_eq!(m.stats().reconnects, 1);
+        assert_eq!(rx.borrow().name(), "connected");
     }
 
     fn range(start: u16, count: u16) -> ReadRange {

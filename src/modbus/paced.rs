@@ -156,18 +156,12 @@ impl PacedReader {
         });
         match open(&self.cfg).await {
             Ok(sock) => {
-                if self.connected_before {
-                    self.report.reconnected();
-                }
+                self.report.connected(Instant::now(), self.connected_before);
                 self.connected_before = true;
                 self.attempt = 0;
                 self.retry_at = None;
                 self.sock = Some(sock);
                 self.buf.clear();
-                self.report.state.send_replace(LinkState::Up {
-                    since: Instant::now(),
-                });
-                tracing::info!(addr = %self.cfg.addr, "modbus link up (paced)");
                 Ok(())
             }
             Err(e) => {
@@ -184,10 +178,7 @@ impl PacedReader {
         self.buf.clear();
         let retry_at = Instant::now() + self.backoff.next_delay();
         self.retry_at = Some(retry_at);
-        tracing::warn!(addr = %self.cfg.addr, %error, "modbus link down");
-        self.report
-            .state
-            .send_replace(LinkState::Down { error, retry_at });
+        self.report.down(error, retry_at);
     }
 
     fn send(&mut self) -> Result<(), LinkError> {

@@ -29,7 +29,7 @@ use std::net::{IpAddr, SocketAddr};
 use std::pin::Pin;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use thiserror::Error;
 use tokio::net::{TcpListener, TcpSocket, TcpStream};
 use tokio::task::JoinHandle;
@@ -194,6 +194,12 @@ fn checked_len(v: Vec<u16>, count: u16) -> Result<Vec<u16>, Exception> {
     }
 }
 
+/// Connections a server keeps open at once unless told otherwise.
+pub const DEFAULT_MAX_CONNECTIONS: usize = 32;
+
+/// A refused connection is logged at most this often (with the count refused meanwhile).
+const REFUSAL_LOG_EVERY: Duration = Duration::from_secs(10);
+
 /// Server settings.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ServerConfig {
@@ -201,11 +207,19 @@ pub struct ServerConfig {
     pub bind: SocketAddr,
     /// Peers allowed to connect; `None` allows everyone.
     pub allow: Option<Vec<IpAddr>>,
+    /// Connections open at once; more are closed on accept and logged (default
+    /// [`DEFAULT_MAX_CONNECTIONS`]). Each connection's buffers are bounded by the Modbus
+    /// frame (at most 260 bytes per ADU).
+    pub max_connections: usize,
 }
 
 impl ServerConfig {
     pub fn new(bind: SocketAddr) -> Self {
-        ServerConfig { bind, allow: None }
+        ServerConfig {
+            bind,
+            allow: None,
+            max_connections: DEFAULT_MAX_CONNECTIONS,
+        }
     }
 }
 
@@ -243,6 +257,26 @@ struct Inner {
     exceptions: AtomicU64,
     /// Connections whose service still exists.
     open: AtomicU64,
+    max_connections: usize,
+    /// When a refusal was last logged, and the refusals since.
+    refusal_log: Mutex<(Option<Instant>, u64)>,
+}
+
+impl Inner {
+    /// Count a refusal of `peer` and log it, at most every [`REFUSAL_LOG_EVERY`].
+    fn refuse(&self, peer: SocketAddr, why: &str) {
+        self.refused.fetch_add(1, Ordering::Relaxed);
+        let now = Instant::now();
+        let mut log = self.refusal_log.lock().unwrap_or_else(|p| p.into_inner());
+        log.1 += 1;
+        if log
+            .0
+            .is_none_or(|t| now.saturating_duration_since(t) >= REFUSAL_LOG_EVERY)
+        {
+            tracing::warn!(server = %self.addr, %peer, refused = log.1, "modbus connection refused: {why}");
+            *log = (Some(now), 0);
+        }
+    }
 }
 
 /// The accept loop's task, held by the handles only: the last handle dropped aborts it, which
@@ -309,6 +343,8 @@ impl ServerHandle {
             requests: AtomicU64::new(0),
             exceptions: AtomicU64::new(0),
             open: AtomicU64::new(0),
+            max_connections: config.max_connections.max(1),
+            refusal_log: Mutex::new((None, 0)),
         });
         let handle = ServerHandle {
             inner,
@@ -335,8 +371,15 @@ impl ServerHandle {
                     if let Some(allow) = &inner.allow
                         && !allow.contains(&peer.ip())
                     {
-                        inner.refused.fetch_add(1, Ordering::Relaxed);
-                        tracing::warn!(%peer, "modbus peer not in the allow-list: connection closed");
+                        inner.refuse(peer, "the peer is not in the allow-list");
+                        return Ok(None);
+                    }
+                    let open = inner.open.load(Ordering::Relaxed);
+                    if open >= inner.max_connections as u64 {
+                        inner.refuse(
+                            peer,
+                            &format!("{open} connections are open, the most this server keeps"),
+                        );
                         return Ok(None);
                     }
                     inner.accepted.fetch_add(1, Ordering::Relaxed);

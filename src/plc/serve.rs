@@ -285,8 +285,8 @@ impl PullServer {
         });
         let server = ServerHandle::start(
             ServerConfig {
-                bind: config.bind,
                 allow: config.allow,
+                ..ServerConfig::new(config.bind)
             },
             bank.clone(),
         )

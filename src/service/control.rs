@@ -13,14 +13,20 @@ use super::snapshot::Snapshot;
 use crate::track::Strategy;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
-use std::time::Duration;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
 use thiserror::Error;
 use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{UnixListener, UnixStream};
 use tokio::sync::{mpsc, oneshot, watch};
 
-/// Longest accepted request line (bytes).
+/// Longest accepted request line (bytes): a longer one is answered with an error and the
+/// connection closed, so a connection never buffers more than this.
 pub const MAX_LINE: usize = 64 * 1024;
+
+/// A refused connection is logged at most this often (with the count refused meanwhile).
+const REFUSAL_LOG_EVERY: Duration = Duration::from_secs(10);
 
 /// What the follower should do.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -224,25 +230,40 @@ pub fn bind(path: &Path) -> Result<UnixListener, ControlError> {
 }
 
 /// Serve the control socket until shutdown. Each connection gets its own task.
+#[allow(clippy::too_many_arguments)]
 pub async fn serve(
     listener: UnixListener,
     policy: RolePolicy,
     snapshots: watch::Receiver<Snapshot>,
     commands: mpsc::Sender<Command>,
     snapshot_period: Duration,
+    max_connections: usize,
     mut shutdown: Shutdown,
 ) {
+    let open = Arc::new(AtomicUsize::new(0));
+    let mut refusals = Refusals::default();
     loop {
         tokio::select! {
             _ = shutdown.recv() => break,
             accepted = listener.accept() => match accepted {
                 Ok((stream, _)) => {
+                    if open.load(Ordering::Relaxed) >= max_connections {
+                        refusals.refused(max_connections, Instant::now());
+                        // Best effort, never waiting on the refused peer.
+                        let msg = error_line(&format!(
+                            "the service has {max_connections} control connections open (service.max_connections): close one and retry"
+                        ));
+                        let _ = stream.try_write(msg.as_bytes());
+                        continue;
+                    }
+                    open.fetch_add(1, Ordering::Relaxed);
                     let conn = Connection {
                         policy: policy.clone(),
                         snapshots: snapshots.clone(),
                         commands: commands.clone(),
                         snapshot_period,
                         shutdown: shutdown.clone(),
+                        _open: OpenGuard(open.clone()),
                     };
                     tokio::spawn(conn.run(stream));
                 }
@@ -255,12 +276,47 @@ pub async fn serve(
     }
 }
 
+/// Counts refused connections and logs them, at most every [`REFUSAL_LOG_EVERY`].
+#[derive(Default)]
+struct Refusals {
+    since_log: u64,
+    last_log: Option<Instant>,
+}
+
+impl Refusals {
+    fn refused(&mut self, limit: usize, now: Instant) {
+        self.since_log += 1;
+        if self
+            .last_log
+            .is_none_or(|t| now.saturating_duration_since(t) >= REFUSAL_LOG_EVERY)
+        {
+            tracing::warn!(
+                refused = self.since_log,
+                "control socket: refused a connection: {limit} are open (service.max_connections)"
+            );
+            self.since_log = 0;
+            self.last_log = Some(now);
+        }
+    }
+}
+
+/// One open connection in the count, for as long as it lives.
+struct OpenGuard(Arc<AtomicUsize>);
+
+impl Drop for OpenGuard {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::Relaxed);
+    }
+}
+
 struct Connection {
     policy: RolePolicy,
     snapshots: watch::Receiver<Snapshot>,
     commands: mpsc::Sender<Command>,
     snapshot_period: Duration,
     shutdown: Shutdown,
+    /// Counted while the connection lives.
+    _open: OpenGuard,
 }
 
 fn reply_line(v: &serde_json::Value) -> String {
@@ -284,14 +340,14 @@ impl Connection {
         };
         let (rd, mut wr) = stream.into_split();
         let mut lines = BufReader::new(rd);
-        let mut buf = String::new();
+        let mut buf = Vec::new();
         let mut line_no = 0usize;
         loop {
             buf.clear();
             let mut limited = (&mut lines).take(MAX_LINE as u64 + 1);
             let n = tokio::select! {
                 _ = self.shutdown.recv() => return,
-                n = limited.read_line(&mut buf) => n,
+                n = limited.read_until(b'\n', &mut buf) => n,
             };
             match n {
                 Ok(0) | Err(_) => return,
@@ -307,7 +363,19 @@ impl Connection {
                     .await;
                 return;
             }
-            let text = buf.trim();
+            let text = match std::str::from_utf8(&buf) {
+                Ok(t) => t.trim(),
+                Err(e) => {
+                    let msg = format!(
+                        "line {line_no}: not UTF-8 text (byte {} is not); requests are JSON like {{\"cmd\":\"status\"}}",
+                        e.valid_up_to() + 1
+                    );
+                    if wr.write_all(error_line(&msg).as_bytes()).await.is_err() {
+                        return;
+                    }
+                    continue;
+                }
+            };
             if text.is_empty() {
                 continue;
             }
@@ -598,6 +666,7 @@ mod tests {
             snap_rx,
             cmd_tx,
             Duration::from_millis(20),
+            2,
             shutdown.clone(),
         ));
         tokio::spawn(async move {
@@ -615,6 +684,43 @@ mod tests {
         c.wr.write_all(b"{\"cmd\":\"fly\"}\n").await.unwrap();
         let v = c.next_value().await.unwrap();
         assert!(v["error"].as_str().unwrap().starts_with("line 3:"), "{v}");
+        // A line that is not JSON, and one that is not even text: an error each, not silence.
+        c.wr.write_all(b"hello\n").await.unwrap();
+        let v = c.next_value().await.unwrap();
+        let e = v["error"].as_str().unwrap();
+        assert!(
+            e.starts_with("line 4: expected value")
+                && e.ends_with(r#"requests are JSON like {"cmd":"status"}"#),
+            "{v}"
+        );
+        c.wr.write_all(b"{\"cmd\":\xff\xfe}\n").await.unwrap();
+        let v = c.next_value().await.unwrap();
+        assert_eq!(
+            v["error"],
+            r#"line 5: not UTF-8 text (byte 8 is not); requests are JSON like {"cmd":"status"}"#
+        );
+        assert_eq!(v["ok"], false);
+        // Two connections at most here: a third is refused with a reason, and admitted once
+        // one closes.
+        let c2 = Client::connect(&path).await.unwrap();
+        let mut c3 = Client::connect(&path).await.unwrap();
+        let v = c3.next_value().await.unwrap();
+        assert_eq!(
+            v["error"],
+            "the service has 2 control connections open (service.max_connections): close one and retry"
+        );
+        drop((c2, c3));
+        let mut c4 = None;
+        for _ in 0..50 {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+            let mut c = Client::connect(&path).await.unwrap();
+            if c.status().await.is_ok() {
+                c4 = Some(c);
+                break;
+            }
+        }
+        assert!(c4.is_some(), "admitted again once a connection closed");
+        drop(c4);
         c.subscribe(Some(50.0)).await.unwrap();
         snap_tx.send_modify(|s| s.unix_us = 7);
         let mut seen = false;

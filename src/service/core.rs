@@ -15,7 +15,7 @@ use super::snapshot::{
 use crate::acquire::{Acquisition, Frame};
 use crate::canopen::{DriveError, DriveHandle, DriveStatus, Event, PowerState};
 use crate::config::CncMode;
-use crate::modbus::LinkState;
+use crate::modbus::{Exception, LinkState};
 use crate::optics::layout::{Aperture, Kind};
 use crate::run::program::{CaptureMode, generate_settled, makeup_steps, remaining_steps};
 use crate::run::{CaptureSettings, Dialect, Plan, RunMachine, TargetKey};
@@ -30,17 +30,32 @@ use tokio::task::JoinHandle;
 /// A frame older than this when the core gets to it is not decoupled (it is still tracked).
 const LATE: Duration = Duration::from_millis(100);
 
-fn link_view(state: &LinkState, peer: String) -> LinkView {
-    let (state, detail) = match state {
-        LinkState::Up { .. } => ("up".to_string(), None),
-        LinkState::Connecting { attempt } => {
-            ("connecting".to_string(), Some(format!("attempt {attempt}")))
-        }
-        LinkState::Down { error, .. } => ("down".to_string(), Some(error.to_string())),
-        LinkState::Closed => ("closed".to_string(), None),
+/// Exception replies for this long raise the `io-exception` alarm.
+const EXCEPTIONS_PERSIST: Duration = Duration::from_secs(1);
+
+/// No sign of the follower drive (no heartbeat, no boot-up) this long after start raises
+/// the `drive-absent` alarm.
+const DRIVE_ABSENT_AFTER: Duration = Duration::from_secs(5);
+
+/// The I/O link as the snapshot shows it: the state's name; the detail says why it is not up,
+/// or names the last exception of the last minute while up.
+fn link_view(
+    state: &LinkState,
+    peer: String,
+    last_exception: Option<(Exception, Instant)>,
+    now: Instant,
+) -> LinkView {
+    let detail = match state {
+        LinkState::Connecting { attempt } => Some(format!("attempt {attempt}")),
+        LinkState::Up { .. } => last_exception
+            .map(|(x, at)| (x, now.saturating_duration_since(at)))
+            .filter(|(_, ago)| *ago <= Duration::from_secs(60))
+            .map(|(x, ago)| format!("last {x} {:.1} s ago", ago.as_secs_f64())),
+        LinkState::Closed => None,
+        s => Some(s.to_string()),
     };
     LinkView {
-        state,
+        state: state.name().to_string(),
         peer,
         detail,
         ..LinkView::default()
@@ -53,7 +68,7 @@ fn link_view(state: &LinkState, peer: String) -> LinkView {
 fn can_view(st: &DriveStatus, peer: String, sync: (Duration, Duration), tpdo_hz: f64) -> LinkView {
     let mut detail = Vec::new();
     if let Some(n) = st.nmt {
-        detail.push(format!("NMT {n:?}"));
+        detail.push(format!("NMT {}", crate::canopen::nmt::state_name(n)));
     }
     if st.sync_running {
         detail.push(if st.sync_quiet {
@@ -109,7 +124,7 @@ impl CountRate {
 }
 
 fn power_name(s: Option<PowerState>) -> String {
-    s.map(|p| format!("{p:?}"))
+    s.map(|p| p.label().to_string())
         .unwrap_or_else(|| "unknown".into())
 }
 
@@ -994,16 +1009,35 @@ impl Core {
         }
     }
 
+    /// The I/O link's state (on each change and at each tick): `io-link-down` from a failure
+    /// until the module answers; `io-exception` once it has answered only with exceptions
+    /// for [`EXCEPTIONS_PERSIST`].
     fn handle_io_state(&mut self, st: &LinkState) {
+        let addr = self.acquisition.link().addr();
+        let alarms = &mut self.pipeline.alarms;
         match st {
-            LinkState::Up { .. } => self.pipeline.alarms.clear("io-link-down"),
-            LinkState::Down { error, .. } => self.pipeline.alarms.raise(
-                "io-link-down",
-                format!(
-                    "PSD I/O module {} unreachable: {error}; reconnecting",
-                    self.acquisition.link().addr()
-                ),
-            ),
+            LinkState::Up { .. } => {
+                alarms.clear("io-link-down");
+                alarms.clear("io-exception");
+            }
+            LinkState::Refusing { .. } => {
+                alarms.clear("io-link-down");
+                if let Some((x, d)) = st.refusing_for(Instant::now())
+                    && d >= EXCEPTIONS_PERSIST
+                {
+                    alarms.raise(
+                        "io-exception",
+                        format!("PSD I/O module {addr} answers every read with {x}: check the I/O map's unit id, register kind and block against the module"),
+                    );
+                }
+            }
+            LinkState::Down { error, .. } => {
+                alarms.clear("io-exception");
+                alarms.raise(
+                    "io-link-down",
+                    format!("PSD I/O module {addr} unreachable: {error}; reconnecting"),
+                );
+            }
             _ => {}
         }
     }
@@ -1264,6 +1298,20 @@ impl Core {
                 }
             });
         }
+        let io = *self.acquisition.link().state().borrow();
+        self.handle_io_state(&io);
+        let st = &self.drive_status;
+        if st.nmt.is_some() || st.heartbeat_ok {
+            self.pipeline.alarms.clear("drive-absent");
+        } else if now.saturating_duration_since(self.started) >= DRIVE_ABSENT_AFTER {
+            self.pipeline.alarms.raise(
+                "drive-absent",
+                format!(
+                    "no heartbeat or boot-up from the follower drive (node {}, {}) since the service started: check its power, the CAN wiring and [follower] node_id",
+                    self.node_id, self.can_peer
+                ),
+            );
+        }
         self.tpdo_rate.update(now, self.drive_status.tpdo_count);
         let snap = self.build_snapshot();
         self.snapshot.send_replace(snap);
@@ -1272,12 +1320,14 @@ impl Core {
     fn build_snapshot(&self) -> Snapshot {
         let stats = self.acquisition.stats();
         let p = &self.pipeline;
+        let now = Instant::now();
         let psd = p.last_frame.map(|f| PsdView {
             seq: f.seq,
             spots_um: f.spots.map(|s| s.map(|s| [s.x * 1e3, s.y * 1e3])),
             sums_v: f.sums,
             half_size_um: self.half_size_um,
-            valid: f.is_valid(),
+            valid: f.is_valid() && self.acquisition.is_fresh(&f, now),
+            age_ms: now.saturating_duration_since(f.at).as_secs_f64() * 1e3,
             rate_hz: stats.frames_per_s,
             invalid_frames: stats.invalid_frames,
             late_frames: p.late_frames,
@@ -1297,7 +1347,10 @@ impl Core {
         let mut io = link_view(
             &self.acquisition.link().state().borrow(),
             self.acquisition.link().addr().to_string(),
+            link_stats.last_exception,
+            now,
         );
+        io.exceptions = link_stats.exceptions;
         io.rate_hz = stats.frames_per_s;
         io.latency_p50_us = link_stats
             .latency_p50

@@ -228,6 +228,7 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
         snap_rx,
         cmd_tx,
         s.service.snapshot_period,
+        s.service.max_connections,
         shutdown.clone(),
     ));
     let core = core::Core::new(&p, acquisition, drive, can_peer, snap_tx, store);

@@ -43,7 +43,12 @@ pub struct PsdView {
     pub sums_v: [f64; 3],
     /// PSD active-area half-size (µm), for drawing the boxes.
     pub half_size_um: [f64; 3],
+    /// Every PSD has its spot and the frame is fresh (not older than the acquisition's
+    /// stale age: 100 ms, or 5 frame periods at low rates).
     pub valid: bool,
+    /// The frame's age when the snapshot was taken (ms).
+    #[serde(default)]
+    pub age_ms: f64,
     /// Frames per second over the last second.
     pub rate_hz: f64,
     /// Invalid frames (beam blocked or off a PSD) since start.
@@ -100,7 +105,8 @@ pub struct TrackingView {
 /// One field link.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct LinkView {
-    /// "up", "connecting", "down", …
+    /// "up" (good replies), "connecting", "connected" (no reply yet), "refusing" (Modbus
+    /// exceptions only), "down", "closed"; the CAN link: "up" or "no heartbeat".
     pub state: String,
     /// Peer address or interface.
     pub peer: String,
@@ -110,6 +116,9 @@ pub struct LinkView {
     pub latency_p50_us: f64,
     pub latency_p99_us: f64,
     pub errors: u64,
+    /// Of which Modbus exception replies.
+    #[serde(default)]
+    pub exceptions: u64,
     pub reconnects: u64,
 }
 
@@ -123,7 +132,8 @@ pub struct LinksView {
 /// An alarm.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Alarm {
-    /// Stable code, e.g. "heartbeat-lost", "drive-fault", "beam-blocked", "io-link-down".
+    /// Stable code, e.g. "heartbeat-lost", "drive-fault", "drive-absent", "beam-blocked",
+    /// "io-link-down", "io-exception".
     pub code: String,
     pub text: String,
     pub since_unix_us: i64,

@@ -48,6 +48,23 @@ fn err(line: usize, text: &str, problem: impl Into<String>) -> ProgramError {
     }
 }
 
+/// The longest dwell or wait a program may ask for.
+const MAX_WAIT_S: f64 = 86_400.0;
+
+/// A dwell or wait of `secs` (at least 0) as a duration; longer than a day is an error
+/// (a huge P word overflowed `Duration`: found by tests/it/fuzz.rs).
+fn wait_time(ln: usize, raw: &str, what: &str, secs: f64) -> Result<Duration, ProgramError> {
+    if secs <= MAX_WAIT_S {
+        Ok(Duration::from_secs_f64(secs))
+    } else {
+        Err(err(
+            ln,
+            raw,
+            format!("{what} of {secs:.0} s is longer than a day"),
+        ))
+    }
+}
+
 /// Parse program text in `dialect` for `axis` ("X", "Y" or "Z").
 pub fn parse(text: &str, dialect: Dialect, axis: &str) -> Result<Vec<Op>, ProgramError> {
     if !matches!(dialect, Dialect::Iso | Dialect::LinuxCnc) {
@@ -190,7 +207,7 @@ pub fn parse(text: &str, dialect: Dialect, axis: &str) -> Result<Vec<Op>, Progra
                     if secs.is_nan() || secs < 0.0 {
                         return Err(err(ln, raw, "negative dwell"));
                     }
-                    ops.push(Op::Dwell(Duration::from_secs_f64(secs)));
+                    ops.push(Op::Dwell(wait_time(ln, raw, "dwell", secs)?));
                 }
                 17 | 21 | 90 | 94 => {}
                 other => {
@@ -210,9 +227,12 @@ pub fn parse(text: &str, dialect: Dialect, axis: &str) -> Result<Vec<Op>, Progra
                 )),
                 64 => ops.push(Op::AtTarget(true)),
                 65 => ops.push(Op::AtTarget(false)),
-                66 => ops.push(Op::WaitCaptured(Duration::from_secs_f64(
+                66 => ops.push(Op::WaitCaptured(wait_time(
+                    ln,
+                    raw,
+                    "M66 wait (Q)",
                     get('Q').unwrap_or(3600.0).max(0.0),
-                ))),
+                )?)),
                 other => {
                     return Err(err(
                         ln,
@@ -420,6 +440,14 @@ mod tests {
         let e = parse("G1 Y10 F100\n", Dialect::LinuxCnc, "X").unwrap_err();
         assert!(e.problem.contains("X word"), "{e}");
         assert!(parse("G1 X1 F1\n", Dialect::Siemens, "X").is_err());
+        // A dwell too long for a Duration is an error, not a panic (found by fuzzing).
+        let e = parse("G04 P184467440737095516161500\n", Dialect::Iso, "X").unwrap_err();
+        assert_eq!(e.line, 1);
+        assert!(e.problem.contains("longer than a day"), "{e}");
+        // 401 digits parse as infinity.
+        let inf = format!("M66 Q1{}\n", "0".repeat(400));
+        assert!(parse(&inf, Dialect::LinuxCnc, "X").is_err());
+        assert!(parse("G04 P86400\n", Dialect::LinuxCnc, "X").is_ok());
     }
 
     #[test]

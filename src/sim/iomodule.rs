@@ -151,8 +151,8 @@ impl IoModule {
         });
         let server = ServerHandle::start(
             ServerConfig {
-                bind: config.bind,
                 allow: config.allow,
+                ..ServerConfig::new(config.bind)
             },
             bank.clone(),
         )

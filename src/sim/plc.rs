@@ -488,8 +488,8 @@ impl TwinPlc {
         }
         let server = ServerHandle::start(
             ServerConfig {
-                bind: config.bind,
                 allow: config.allow,
+                ..ServerConfig::new(config.bind)
             },
             Arc::new(Bank(shared.clone())),
         )

@@ -31,7 +31,7 @@ def encode(map_, volts):
     length = map_["block_length"]
     regs = [0] * length
     spots, sums = [], []
-    for psd, (vx, vy, vs) in zip(map_["psd"], VOLTS):
+    for psd, (vx, vy, vs) in zip(map_["psd"], volts):
         decoded = {}
         for key, v in (("x", vx), ("y", vy), ("sum", vs)):
             ch = psd[key]
@@ -78,7 +78,9 @@ def context(unit, start, regs, holding):
     return ModbusServerContext(**{kw: {unit: dev}, "single": False})
 
 
-async def main():
+def port_and_map():
+    """The --port and the I/O map (--map, conditioned maps only) from the command line; also
+    used by pymodbus_faults.py."""
     ap = argparse.ArgumentParser()
     ap.add_argument("--port", type=int, required=True)
     ap.add_argument("--map", default="plc-maps/io/generic.toml")
@@ -86,7 +88,12 @@ async def main():
     with open(args.map, "rb") as f:
         map_ = tomllib.load(f)
     if map_["mode"] != "conditioned":
-        sys.exit("pymodbus_io.py: conditioned maps only")
+        sys.exit(f"{ap.prog}: conditioned maps only")
+    return args.port, map_
+
+
+async def main():
+    port, map_ = port_and_map()
     regs, spots, sums = encode(map_, VOLTS)
     print(
         json.dumps(
@@ -103,7 +110,7 @@ async def main():
     from pymodbus.server import StartAsyncTcpServer
 
     ctx = context(map_["unit_id"], map_["block_start"], regs, map_["register"] == "holding")
-    await StartAsyncTcpServer(context=ctx, address=("127.0.0.1", args.port))
+    await StartAsyncTcpServer(context=ctx, address=("127.0.0.1", port))
 
 
 if __name__ == "__main__":

@@ -18,29 +18,9 @@ cargo build --locked -q
 bin="${CARGO_TARGET_DIR:-target}/debug/axiscomp"
 [ -x "$bin" ] || { echo "resume.sh: no binary at $bin" >&2; exit 1; }
 
-work=$(mktemp -d)
-sim=""
-svc=""
-cleanup() {
-  [ -n "$svc" ] && kill "$svc" 2>/dev/null
-  [ -n "$sim" ] && kill "$sim" 2>/dev/null
-  wait 2>/dev/null || true
-  if [ -n "${KEEP:-}" ]; then echo "resume.sh: kept $work" >&2; else rm -rf "$work"; fi
-}
-trap cleanup EXIT
-
-fail() {
-  echo "resume.sh: FAIL: $*" >&2
-  for f in serve-1.log serve-2.log sim.log; do
-    [ -f "$work/$f" ] || continue
-    echo "---- $f (tail) ----" >&2
-    tail -n 40 "$work/$f" >&2
-  done
-  exit 1
-}
-
 # The twin and the service on free loopback ports, the twin's CNC running the programs.
 source tests/interop/twin-configs.sh
+harness resume.sh
 twin_configs "$work"
 sock="$work/control.sock"
 db="$work/state/axiscomp.db"

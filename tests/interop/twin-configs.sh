@@ -33,3 +33,30 @@ mode = "twin"
 twin = "127.0.0.1:$ctl"
 EOF
 }
+
+# harness NAME: a work directory ($work) and the twin's and the service's pids ($sim, $svc,
+# set by the caller), killed on exit; the directory removed unless KEEP is set. It defines
+# fail MESSAGE: print NAME: FAIL: MESSAGE and the tail of every log in $work, exit 1 (only
+# when called, so a script with a fail of its own keeps it).
+harness() {
+  harness_name=$1
+  work=$(mktemp -d)
+  sim=""
+  svc=""
+  harness_cleanup() {
+    [ -n "$svc" ] && kill "$svc" 2>/dev/null
+    [ -n "$sim" ] && kill "$sim" 2>/dev/null
+    wait 2>/dev/null || true
+    if [ -n "${KEEP:-}" ]; then echo "$harness_name: kept $work" >&2; else rm -rf "$work"; fi
+  }
+  fail() {
+    echo "$harness_name: FAIL: $*" >&2
+    for f in "$work"/*.log; do
+      [ -f "$f" ] || continue
+      echo "---- $(basename "$f") (tail) ----" >&2
+      tail -n 40 "$f" >&2
+    done
+    exit 1
+  }
+  trap harness_cleanup EXIT
+}

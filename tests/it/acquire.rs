@@ -369,7 +369,10 @@ async fn interop_pymodbus_io_frames() {
         backoff_max: Duration::from_millis(200),
         ..LinkConfig::new(addr)
     });
-    assert!(link.wait_up(Duration::from_secs(10)).await, "pymodbus up");
+    assert!(
+        link.wait_connected(Duration::from_secs(10)).await,
+        "pymodbus up"
+    );
     let map = Arc::new(IoMap::generic().unwrap());
     let raw = link
         .read(map.kind, map.unit_id, map.block)

@@ -296,6 +296,13 @@ pub struct RigOptions {
     /// Start the twin's PLC (generic map) on the twin's plant and let the service push tables
     /// to it (`[plc] push = true`; then `service_toml` must not have a `[plc]` section).
     pub twin_plc: bool,
+    /// The body of the `[io]` section instead of the twin's I/O module at 500 Hz (a test's
+    /// own Modbus peer).
+    pub io_toml: Option<String>,
+    /// The `[follower]` section's body (e.g. another node id, for an absent drive).
+    pub follower_toml: Option<String>,
+    /// Wait in `ServiceRig::start` until the follower is homed and the stitch referenced.
+    pub wait_ready: bool,
 }
 
 impl Default for RigOptions {
@@ -313,6 +320,9 @@ impl Default for RigOptions {
             },
             twin_cnc: false,
             twin_plc: false,
+            io_toml: None,
+            follower_toml: None,
+            wait_ready: true,
         }
     }
 }
@@ -376,15 +386,21 @@ pub async fn twin_and_config(
         None => String::new(),
     };
     let socket = dir.path("control.sock");
+    let io = opts
+        .io_toml
+        .unwrap_or_else(|| format!("address = \"{}\"\nrate_hz = 500.0\n", twin.io.local_addr()));
+    let follower = opts
+        .follower_toml
+        .map(|f| format!("[follower]\n{f}\n"))
+        .unwrap_or_default();
     let config = dir.write(
         "axiscomp.toml",
         &format!(
             "[service]\nsocket = \"{}\"\nstate_dir = \"{}\"\nsnapshot_hz = 20.0\n\n\
-             [io]\naddress = \"{}\"\nrate_hz = 500.0\n\n\
-             [can]\ntransport = \"cannelloni\"\nlocal = \"127.0.0.1:{svc_port}\"\nremote = \"127.0.0.1:{twin_port}\"\n\n{cnc}{plc_toml}{}",
+             [io]\n{io}\n\
+             [can]\ntransport = \"cannelloni\"\nlocal = \"127.0.0.1:{svc_port}\"\nremote = \"127.0.0.1:{twin_port}\"\n\n{follower}{cnc}{plc_toml}{}",
             socket.display(),
             dir.path("state").display(),
-            twin.io.local_addr(),
             opts.service_toml
         ),
     );
@@ -429,6 +445,7 @@ impl ServiceRig {
         init_test_log();
         let exclusive = exclusive().await;
         let dir = TempDir::new("service");
+        let wait_ready = opts.wait_ready;
         let (twin, plc, config, socket) = twin_and_config(opts, &dir).await;
         let settings = axiscomp::config::load(&axiscomp::config::Layers {
             etc: None,
@@ -449,12 +466,14 @@ impl ServiceRig {
             _dir: dir,
             _exclusive: exclusive,
         };
-        rig.wait_for(
-            60,
-            "the follower homed, the stitch referenced, the spot at rest",
-            |s| s.follower.homed && s.tracking.valid && s.tracking.at_rest && s.live.is_some(),
-        )
-        .await;
+        if wait_ready {
+            rig.wait_for(
+                60,
+                "the follower homed, the stitch referenced, the spot at rest",
+                |s| s.follower.homed && s.tracking.valid && s.tracking.at_rest && s.live.is_some(),
+            )
+            .await;
+        }
         rig
     }
 

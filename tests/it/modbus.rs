@@ -15,8 +15,8 @@ async fn server(allow: Option<Vec<std::net::IpAddr>>) -> (ServerHandle, Arc<Memo
         Some((10, 5)),
     ));
     let cfg = ServerConfig {
-        bind: "127.0.0.1:0".parse().unwrap(),
         allow,
+        ..ServerConfig::new("127.0.0.1:0".parse().unwrap())
     };
     let h = ServerHandle::start(cfg, bank.clone()).await.unwrap();
     (h, bank)
@@ -82,8 +82,21 @@ async fn an_exception_keeps_the_connection() {
         e.to_string(),
         "the device answered with exception 0x06 (server device busy)"
     );
+    // Connected, answering with exceptions only: refusing, not up, the exception named.
+    let st = *link.state().borrow();
+    assert_eq!(st.name(), "refusing");
+    assert!(
+        st.to_string()
+            .ends_with("is exception 0x06 (server device busy)"),
+        "{st}"
+    );
+    assert_eq!(
+        link.stats().last_exception.map(|(x, _)| x),
+        Some(Exception::ServerDeviceBusy)
+    );
     srv.set_exception(None);
     assert_eq!(link.read_input_registers(1, r(199, 1)).await, Ok(vec![199]));
+    assert!(link.state().borrow().is_up(), "up after a good reply");
     assert_eq!(
         link.read_input_registers(1, r(150, 60)).await,
         Err(LinkError::Exception(Exception::IllegalDataAddress))
@@ -120,6 +133,45 @@ async fn writes_round_trip_within_the_writable_range() {
     ));
 }
 
+/// At most `max_connections` at once: the next is closed on accept (counted, logged), and a
+/// place that frees up is taken again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn connections_beyond_the_limit_are_closed_on_accept() {
+    use tokio::io::AsyncReadExt;
+    let bank = Arc::new(MemoryBank::new((0..200).collect(), vec![0; 20], None));
+    let srv = ServerHandle::start(
+        ServerConfig {
+            max_connections: 2,
+            ..ServerConfig::new("127.0.0.1:0".parse().unwrap())
+        },
+        bank,
+    )
+    .await
+    .unwrap();
+    let addr = srv.local_addr();
+    let mut kept = Vec::new();
+    for tid in 1..=2u16 {
+        let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+        // Answered: the connection is in.
+        let reply = crate::helpers::raw_request(&mut s, tid, 1, &[4, 0, 5, 0, 1]).await;
+        assert_eq!(reply, [4, 2, 0, 5]);
+        kept.push(s);
+    }
+    let mut third = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let mut buf = [0u8; 16];
+    let n = tokio::time::timeout(Duration::from_secs(2), third.read(&mut buf))
+        .await
+        .expect("closed at once");
+    assert!(matches!(n, Ok(0) | Err(_)), "{n:?}");
+    assert_eq!(srv.stats().refused, 1);
+    drop(kept.pop());
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let mut again = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let reply = crate::helpers::raw_request(&mut again, 9, 1, &[4, 0, 7, 0, 1]).await;
+    assert_eq!(reply, [4, 2, 0, 7]);
+    assert_eq!(srv.stats().accepted, 3);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn peers_outside_the_allow_list_are_closed_on_accept() {
     let (srv, _) = server(Some(vec!["192.0.2.1".parse().unwrap()])).await;
@@ -146,7 +198,7 @@ async fn peers_outside_the_allow_list_are_closed_on_accept() {
 async fn link_state_follows_the_device_and_ends_with_the_handles() {
     let (srv, _) = server(None).await;
     let link = link(srv.local_addr(), 300);
-    assert!(link.wait_up(Duration::from_secs(2)).await);
+    assert!(link.wait_connected(Duration::from_secs(2)).await);
     srv.stop().await;
     assert!(!srv.is_running());
     // The next call notices the closed connection; reconnects are refused while stopped.
@@ -174,7 +226,7 @@ async fn link_state_follows_the_device_and_ends_with_the_handles() {
         "calls fail fast while down"
     );
     srv.restart().await.unwrap();
-    assert!(link.wait_up(Duration::from_secs(2)).await);
+    assert!(link.wait_connected(Duration::from_secs(2)).await);
     assert_eq!(link.read_input_registers(1, r(3, 1)).await, Ok(vec![3]));
     let mut st = link.state();
     drop(link);
@@ -245,9 +297,10 @@ async fn the_paced_reader_collects_each_reply_at_the_next_tick() {
         1,
         r(10, 4),
     );
-    // The first tick connects and sends; nothing to collect yet.
+    // The first tick connects and sends; nothing to collect yet: connected, not up until
+    // the first reply is in.
     assert_eq!(reader.tick().await, None);
-    assert!(monitor.state().borrow().is_up());
+    assert_eq!(monitor.state().borrow().name(), "connected");
     // A reply holds the registers as they were at some time between its request's send and
     // its collection: the values when it was sent, or the ones set after (when the device
     // served it late). Never older ones.
@@ -278,6 +331,7 @@ async fn the_paced_reader_collects_each_reply_at_the_next_tick() {
         }
         last_at = Some(reply.at);
     }
+    assert!(monitor.state().borrow().is_up(), "up once replies came");
     let st = monitor.stats();
     assert_eq!((st.ok, st.errors, st.reconnects), (20, 0, 0));
     assert!(

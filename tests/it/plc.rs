@@ -43,7 +43,7 @@ fn assert_applied(plant: &Plant, t: &PlcTable, what: &str) {
 
 async fn link(addr: std::net::SocketAddr) -> Link {
     let l = axiscomp_link(addr);
-    assert!(l.wait_up(Duration::from_secs(5)).await, "link up");
+    assert!(l.wait_connected(Duration::from_secs(5)).await, "link up");
     l
 }
 
@@ -631,7 +631,10 @@ async fn interop_pymodbus_plc_takes_pushed_tables_in_every_word_order() {
             backoff_max: Duration::from_millis(200),
             ..LinkConfig::new(format!("127.0.0.1:{port}").parse().unwrap())
         });
-        assert!(l.wait_up(Duration::from_secs(10)).await, "pymodbus up");
+        assert!(
+            l.wait_connected(Duration::from_secs(10)).await,
+            "pymodbus up"
+        );
         let r = within_s(30, &file, publish(&l, &map, &t, seq, plc_timeouts())).await;
         // The script accepts only if every register it received equals its own encoding of
         // the values (and the CRC it computed matches); otherwise it rejects with code 1000

@@ -328,7 +328,7 @@ async fn drive_fault_alarm_and_reset_on_command() {
         .expect("fault reset");
     assert!(r.get("position_mm").is_some(), "{r}");
     rig.wait_for(10, "the drive enabled again", |s| {
-        s.follower.state == "OperationEnabled"
+        s.follower.state == "Operation enabled"
             && s.alarms
                 .iter()
                 .all(|a| a.code != "drive-fault" || !a.active)

@@ -115,7 +115,7 @@ fn follower_lines(s: &Snapshot, theme: Theme) -> Vec<Line<'static>> {
         Line::from(vec![
             Span::styled("follower ", theme.bold()),
             Span::raw(format!("node {} ", f.node_id)),
-            if f.state == "OperationEnabled" {
+            if f.state == "Operation enabled" {
                 Span::styled(f.state.clone(), theme.ok())
             } else {
                 Span::styled(
