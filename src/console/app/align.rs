@@ -114,8 +114,11 @@ pub fn parse_target(text: &str) -> Result<(usize, f64, f64), String> {
     let [p, x, y] = parts[..] else {
         return Err(bad());
     };
-    let psd = p
-        .trim_start_matches(['P', 'p', 'S', 's', 'D', 'd'])
+    let digits = match p.get(..3) {
+        Some(pre) if pre.eq_ignore_ascii_case("psd") => &p[3..],
+        _ => p,
+    };
+    let psd = digits
         .parse::<usize>()
         .ok()
         .filter(|k| (1..=3).contains(k))
