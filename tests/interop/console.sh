@@ -284,6 +284,7 @@ print(" ".join("%s=%s" % kv for kv in seen.items()))' "$adv")
 done
 [ -n "$passed" ] || fail "the check did not pass in 8 rounds"
 expect 5 "beam to travel: yaw"
+echo "console.sh: the screen says: $(panel)"
 echo "console.sh: aligned in $passed rounds, $((SECONDS - align_t0)) s; mount before: $mount0; after: $(twin '{"cmd":"mount"}')"
 
 echo "console.sh: colours, then quit"

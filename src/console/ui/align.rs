@@ -201,6 +201,12 @@ pub fn alignment_lines(app: &App, theme: Theme) -> Vec<Line<'static>> {
                     Span::raw(adv.check.clone()),
                 ]));
             }
+            if adv.passed && !adv.turns.is_empty() {
+                lines.push(Line::styled(
+                    "optional, to centre the spots further:",
+                    theme.dim(),
+                ));
+            }
             for t in &adv.turns {
                 lines.push(Line::styled(t.clone(), theme.bold()));
             }
