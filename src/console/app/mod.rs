@@ -18,6 +18,7 @@ mod results;
 #[cfg(test)]
 mod tests;
 
+pub use align::{AdviceView, AlignProc, StationSpot, StationView};
 pub use calibrate::{CalSummary, CalibrateState};
 pub use measure::{Field, PlanForm, RunProgress};
 pub use publish::PublishState;
@@ -132,6 +133,10 @@ pub enum InputFor {
     PosePath,
     /// Where to save the part program of the plan (on this host).
     ProgramPath,
+    /// The alignment's span: "FROM TO" (mm).
+    AlignSpan,
+    /// What the alignment target shows where a spot is off its PSD: "PSD X Y" (mm).
+    AlignTarget,
 }
 
 /// A line being typed (Enter takes it, Esc drops it).
@@ -199,6 +204,11 @@ enum Pending {
     Runs,
     RunResult(ResultFor),
     Audit,
+    AlignRead,
+    AlignTarget,
+    /// The advice over this span (mm).
+    AlignAdvice((f64, f64)),
+    AlignClear,
     Other(String),
 }
 
@@ -275,6 +285,8 @@ pub struct App {
     last_audit: Option<Instant>,
     pub publish: PublishState,
     pub calibrate: CalibrateState,
+    /// The beam alignment on the Align screen.
+    pub align: AlignProc,
     /// Where the part program was last saved, or why not.
     pub saved: Option<Result<String, String>>,
     pub log: VecDeque<LogLine>,
@@ -320,6 +332,7 @@ impl App {
             last_audit: None,
             publish: PublishState::default(),
             calibrate: CalibrateState::default(),
+            align: AlignProc::default(),
             saved: None,
             log: VecDeque::new(),
             now,
@@ -711,6 +724,7 @@ impl App {
                     }
                 }
             }
+            InputFor::AlignSpan | InputFor::AlignTarget => self.align_input(&input.purpose, &text),
         }
     }
 
@@ -799,6 +813,11 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
             ("c", "clear the zero"),
             ("x", "stop the follower"),
             ("r", "reset a drive fault and enable"),
+            ("s", "type the alignment span (from to, mm)"),
+            ("n / f", "read the spots at the near / far end"),
+            ("t", "type what a PSD's target shows (no spot)"),
+            ("a", "advice: the check, the screws to turn"),
+            ("e", "erase the stations read (after turning)"),
         ],
         Screen::Measure => &[
             ("↑ / ↓", "select a plan field"),

@@ -218,6 +218,15 @@ impl App {
                 self.log(Level::Info, format!("✓ {text}"));
                 self.say(Level::Info, text);
             }
+            Pending::AlignRead => self.apply_align_station(&v, false),
+            Pending::AlignTarget => self.apply_align_station(&v, true),
+            Pending::AlignAdvice(span) => self.apply_align_advice(&v, span),
+            Pending::AlignClear => {
+                self.align.stations.clear();
+                self.align.advice = None;
+                self.log(Level::Info, "✓ stations cleared");
+                self.say(Level::Info, "stations cleared: read both ends again (n, f)");
+            }
             Pending::Other(what) => {
                 let detail = if v.is_null() {
                     String::new()

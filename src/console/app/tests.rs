@@ -376,3 +376,228 @@ fn run_status_is_polled_only_on_the_measure_screen() {
     // Not again while one is outstanding, nor before the interval.
     assert!(a.tick(t0 + Duration::from_secs(5)).is_empty());
 }
+
+/// The request an action sends, and its id.
+fn sent(out: &[Action]) -> (u64, Request) {
+    match out {
+        [Action::Send { id, request }] => (*id, request.clone()),
+        other => panic!("expected one request, got {other:?}"),
+    }
+}
+
+/// The 80×24 screen as text.
+fn screen_text(a: &App) -> String {
+    use ratatui::{Terminal, backend::TestBackend};
+    let mut t = Terminal::new(TestBackend::new(80, 24)).expect("terminal");
+    t.draw(|f| crate::console::ui::render(f, a)).expect("draw");
+    let buf = t.backend().buffer();
+    (0..buf.area.height)
+        .map(|y| {
+            (0..buf.area.width)
+                .map(|x| buf[(x, y)].symbol())
+                .collect::<String>()
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+fn type_line(a: &mut App, text: &str) {
+    for _ in 0..20 {
+        a.handle_key(key(KeyCode::Backspace));
+    }
+    for c in text.chars() {
+        a.handle_key(ch(c));
+    }
+    a.handle_key(key(KeyCode::Enter));
+}
+
+#[test]
+fn align_reads_both_ends_types_a_target_and_shows_the_advice_in_words() {
+    let (mut a, t0) = app();
+    a.handle_key(ch('2'));
+    // The span defaults to the Measure plan's, and is typed with s.
+    assert_eq!(a.align_span(), (0.0, 1000.0));
+    a.handle_key(ch('s'));
+    assert!(
+        matches!(&a.overlay, Overlay::Input(i) if i.purpose == InputFor::AlignSpan && i.text == "0 1000")
+    );
+    type_line(&mut a, "0 400");
+    assert_eq!(a.overlay, Overlay::None);
+    assert_eq!(a.align_span(), (0.0, 400.0));
+
+    let (id, r) = sent(&a.handle_key(ch('n')));
+    assert_eq!(r, Request::AlignRead { at_mm: Some(0.0) });
+    a.handle_reply(
+        id,
+        Ok(serde_json::json!({"at_mm": 0.0, "spots": [
+            {"x": -2.88, "y": -0.72, "from": "psd"},
+            {"x": 0.0, "y": -0.15, "from": "psd"},
+            {"x": 3.05, "y": 0.76, "from": "psd"}]})),
+        t0,
+    );
+    let (id, r) = sent(&a.handle_key(ch('f')));
+    assert_eq!(r, Request::AlignRead { at_mm: Some(400.0) });
+    a.handle_reply(
+        id,
+        Ok(serde_json::json!({"at_mm": 400.0, "spots": [
+            {"x": -5.9, "y": -1.4, "from": "psd"},
+            {"x": -0.11, "y": -0.14, "from": "psd"},
+            null]})),
+        t0,
+    );
+    assert!(
+        a.message.as_ref().unwrap().text.contains("no spot on PSD3"),
+        "{:?}",
+        a.message
+    );
+    assert!(
+        screen_text(&a)
+            .contains("at 400.0 mm: PSD1 -5.90 -1.40  PSD2 -0.11 -0.14  PSD3 no spot (t)")
+    );
+
+    // t offers the PSD with no spot; a bad line keeps the box open and says what to type.
+    a.handle_key(ch('t'));
+    assert!(
+        matches!(&a.overlay, Overlay::Input(i) if i.purpose == InputFor::AlignTarget && i.text == "3 ")
+    );
+    type_line(&mut a, "4 1 2");
+    assert!(matches!(a.overlay, Overlay::Input(_)));
+    assert!(a.message.as_ref().unwrap().text.contains("the PSD (1–3)"));
+    for _ in 0..5 {
+        a.handle_key(key(KeyCode::Backspace));
+    }
+    for c in "3 7.5 2".chars() {
+        a.handle_key(ch(c));
+    }
+    let (id, r) = sent(&a.handle_key(key(KeyCode::Enter)));
+    assert_eq!(
+        r,
+        Request::AlignTarget {
+            psd: 3,
+            x: 7.5,
+            y: 2.0
+        }
+    );
+    a.handle_reply(
+        id,
+        Ok(serde_json::json!({"at_mm": 400.0, "spots": [
+            {"x": -5.9, "y": -1.4, "from": "psd"},
+            {"x": -0.11, "y": -0.14, "from": "psd"},
+            {"x": 7.5, "y": 2.0, "from": "target"}]})),
+        t0,
+    );
+    assert_eq!(a.align.stations.len(), 2);
+    assert!(a.align.stations[1].spots[2].unwrap().from_target);
+
+    let (id, r) = sent(&a.handle_key(ch('a')));
+    assert_eq!(
+        r,
+        Request::AlignAdvice {
+            from_mm: 0.0,
+            to_mm: 400.0
+        }
+    );
+    a.handle_reply(
+        id,
+        Ok(serde_json::json!({
+            "passed": false,
+            "check": "PSD3 leaves its PSD at 300 mm",
+            "after": "every spot stays on its PSD from 0 to 400 mm",
+            "turns": [
+                {"screw": "yaw", "turns": 1.35, "text": "turn the yaw screw 1.35 turns clockwise"},
+                {"screw": "pitch", "turns": -0.4, "text": "turn the pitch screw 0.40 turns anticlockwise"}],
+            "misalignment_urad": [3512.4, -880.2],
+            "stations": 2,
+            "text": ""})),
+        t0,
+    );
+    let s = screen_text(&a);
+    for want in [
+        "check not passed: PSD3 leaves its PSD at 300 mm",
+        "turn the yaw screw 1.35 turns clockwise",
+        "turn the pitch screw 0.40 turns anticlockwise",
+        "beam to travel: yaw +3512 µrad, pitch -880 µrad",
+    ] {
+        assert!(s.contains(want), "no \"{want}\" in\n{s}");
+    }
+    assert!(!s.contains("CHECK PASSED"));
+
+    // e clears the stations (the service's and the screen's).
+    let (id, r) = sent(&a.handle_key(ch('e')));
+    assert_eq!(r, Request::AlignClear);
+    a.handle_reply(id, Ok(serde_json::json!({"stations": 0})), t0);
+    assert!(a.align.stations.is_empty() && a.align.advice.is_none());
+
+    let (id, _) = sent(&a.handle_key(ch('a')));
+    a.handle_reply(
+        id,
+        Ok(serde_json::json!({
+            "passed": true,
+            "check": "every spot stays on its PSD from 0 to 400 mm, at least 3.10 mm inside the edge",
+            "after": "", "turns": [], "misalignment_urad": [46.4, 27.3], "stations": 2, "text": ""})),
+        t0,
+    );
+    let s = screen_text(&a);
+    assert!(
+        s.contains("✓ CHECK PASSED: every spot stays on its PSD from 0 to 400 mm"),
+        "{s}"
+    );
+    assert!(s.contains("yaw +46 µrad, pitch +27 µrad"), "{s}");
+    // The help lists the alignment keys.
+    a.handle_key(ch('?'));
+    let s = screen_text(&a);
+    assert!(s.contains("read the spots at the near / far end"), "{s}");
+}
+
+#[test]
+fn align_keys_are_read_only_for_a_viewer_and_a_refusal_is_said() {
+    let (mut a, t0) = app();
+    a.handle_key(ch('2'));
+    let (id, _) = sent(&a.handle_key(ch('n')));
+    a.handle_reply(
+        id,
+        Err(ClientError::Refused(
+            "no frames from the I/O module: is the link up?".into(),
+        )),
+        t0,
+    );
+    assert!(a.message.as_ref().unwrap().text.contains("no frames"));
+    assert!(a.align.stations.is_empty());
+    a.access = Access::Viewer;
+    for c in ['n', 'f', 't', 'a', 'e'] {
+        assert!(a.handle_key(ch(c)).is_empty(), "{c}");
+        assert_eq!(a.overlay, Overlay::None, "{c}");
+    }
+    assert!(
+        a.message
+            .as_ref()
+            .unwrap()
+            .text
+            .starts_with("read-only (viewer)")
+    );
+}
+
+#[test]
+fn align_span_and_target_lines_are_parsed_with_errors_in_words() {
+    use super::align::{parse_span, parse_target};
+    assert_eq!(parse_span("0 400"), Ok((0.0, 400.0)));
+    assert_eq!(parse_span("-2, 2002"), Ok((-2.0, 2002.0)));
+    assert!(
+        parse_span("400 0")
+            .unwrap_err()
+            .contains("near end must be below")
+    );
+    assert!(parse_span("0").unwrap_err().contains("two positions in mm"));
+    assert!(
+        parse_span("0 x")
+            .unwrap_err()
+            .contains("two positions in mm")
+    );
+    assert_eq!(parse_target("2 1.5 -0.5"), Ok((2, 1.5, -0.5)));
+    assert_eq!(parse_target("PSD3 7 2"), Ok((3, 7.0, 2.0)));
+    assert_eq!(parse_target("psd1 0 0"), Ok((1, 0.0, 0.0)));
+    assert!(parse_target("SS2 1 1").is_err());
+    assert!(parse_target("0 1 1").is_err());
+    assert!(parse_target("2 1").is_err());
+    assert!(parse_target("2 nan 1").is_err());
+}

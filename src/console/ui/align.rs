@@ -1,9 +1,10 @@
-//! Align: is the beam on each PSD, how far from centre is the spot, and the follower's jog,
-//! home and the zero reference.
+//! Align: is the beam on each PSD, how far from centre is the spot, the follower's jog,
+//! home and the zero reference, and the beam alignment over the travel (stations, the check,
+//! the screws to turn, the beam's angle). At 80×24 the PSD plots give way to the alignment.
 
 use super::live::psd_row;
 use super::{TALL, Theme, panel};
-use crate::console::app::App;
+use crate::console::app::{App, StationSpot};
 use crate::service::snapshot::Snapshot;
 use ratatui::Frame;
 use ratatui::layout::{Constraint, Layout, Rect};
@@ -20,10 +21,22 @@ pub fn render(frame: &mut Frame, area: Rect, app: &App) {
         color: app.opts.color,
     };
     let snap = app.snapshot.as_ref();
-    let bottom_h = if area.height >= TALL { 12 } else { 10 };
-    let [top, bottom] =
-        Layout::vertical([Constraint::Min(6), Constraint::Length(bottom_h)]).areas(area);
-    psd_row(frame, top, snap, theme);
+    let bottom = if area.height >= TALL {
+        let [top, bottom, aligning] = Layout::vertical([
+            Constraint::Min(6),
+            Constraint::Length(12),
+            Constraint::Length(12),
+        ])
+        .areas(area);
+        psd_row(frame, top, snap, theme);
+        render_alignment(frame, aligning, app, theme);
+        bottom
+    } else {
+        let [bottom, aligning] =
+            Layout::vertical([Constraint::Length(10), Constraint::Min(6)]).areas(area);
+        render_alignment(frame, aligning, app, theme);
+        bottom
+    };
     let [hints, follower] =
         Layout::horizontal([Constraint::Percentage(55), Constraint::Percentage(45)]).areas(bottom);
     frame.render_widget(
@@ -140,5 +153,93 @@ fn follower_lines(app: &App, snap: Option<&Snapshot>, theme: Theme) -> Vec<Line<
             theme.warn(),
         ));
     }
+    lines
+}
+
+fn render_alignment(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
+    frame.render_widget(
+        Paragraph::new(alignment_lines(app, theme))
+            .wrap(Wrap { trim: true })
+            .block(panel("Beam alignment over the travel")),
+        area,
+    );
+}
+
+fn spot_text(k: usize, s: Option<StationSpot>) -> String {
+    match s {
+        None => format!("PSD{} no spot (t)", k + 1),
+        Some(s) => format!(
+            "PSD{} {:+.2} {:+.2}{}",
+            k + 1,
+            s.x,
+            s.y,
+            if s.from_target { " target" } else { "" }
+        ),
+    }
+}
+
+/// The check first (it decides what to do), the screws to turn, the beam's angle, the stations
+/// read, then the span and the keys.
+pub fn alignment_lines(app: &App, theme: Theme) -> Vec<Line<'static>> {
+    let a = &app.align;
+    let (from, to) = app.align_span();
+    let mut lines = Vec::new();
+    match &a.advice {
+        None => lines.push(Line::styled(
+            "no advice yet: read both ends (n, f), then a",
+            theme.dim(),
+        )),
+        Some(adv) => {
+            if adv.passed {
+                lines.push(Line::from(vec![
+                    Span::styled("✓ CHECK PASSED: ", theme.ok()),
+                    Span::raw(adv.check.clone()),
+                ]));
+            } else {
+                lines.push(Line::from(vec![
+                    Span::styled("check not passed: ", theme.warn()),
+                    Span::raw(adv.check.clone()),
+                ]));
+            }
+            if adv.passed && !adv.turns.is_empty() {
+                lines.push(Line::styled(
+                    "optional, to centre the spots further:",
+                    theme.dim(),
+                ));
+            }
+            for t in &adv.turns {
+                lines.push(Line::styled(t.clone(), theme.bold()));
+            }
+            if !adv.turns.is_empty() && !adv.passed {
+                lines.push(Line::styled(
+                    format!("then: {} (read both ends again)", adv.after),
+                    theme.dim(),
+                ));
+            }
+            lines.push(Line::raw(match adv.misalignment_urad {
+                Some([y, p]) => format!("beam to travel: yaw {y:+.0} µrad, pitch {p:+.0} µrad"),
+                None => "beam to travel: not known (PSD3 not read at both ends)".into(),
+            }));
+        }
+    }
+    if a.stations.is_empty() {
+        lines.push(Line::styled("no station read", theme.dim()));
+    }
+    for st in &a.stations {
+        let spots: Vec<String> = (0..3).map(|k| spot_text(k, st.spots[k])).collect();
+        let style = if st.spots.iter().any(Option::is_none) {
+            theme.warn()
+        } else {
+            ratatui::style::Style::new()
+        };
+        lines.push(Line::styled(
+            format!("at {:.1} mm: {} (mm)", st.at_mm, spots.join("  ")),
+            style,
+        ));
+    }
+    lines.push(Line::styled(
+        format!("span {from}–{to} mm (s)  n/f read near/far  t target  a advice  e erase"),
+        theme.dim(),
+    ));
     lines
 }

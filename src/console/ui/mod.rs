@@ -143,6 +143,18 @@ fn render_input(frame: &mut Frame, input: &Input, theme: Theme) {
                 "File to write the plan's program to (on this host):",
             )],
         ),
+        InputFor::AlignSpan => (
+            " Alignment span ".to_string(),
+            vec![Line::raw(
+                "The travel to align over: near and far end in mm (e.g. 0 400):",
+            )],
+        ),
+        InputFor::AlignTarget => (
+            " Target reading ".to_string(),
+            vec![Line::raw(
+                "The PSD with no spot and what its target shows, X and Y in mm (e.g. 2 1.5 -0.5):",
+            )],
+        ),
     };
     let mut lines = about;
     lines.push(Line::raw(""));
