@@ -76,6 +76,9 @@ pub struct AlignSettings {
     pub geometry: MountGeometry,
     /// How far inside its active area every spot must stay (mm).
     pub margin_mm: f64,
+    /// The largest angle of the beam to the travel the check passes (rad): the cosine error
+    /// it leaves is L·θ²/2 (200 µrad: 0.02 µm per metre).
+    pub max_angle_rad: f64,
 }
 
 impl Default for AlignSettings {
@@ -83,9 +86,13 @@ impl Default for AlignSettings {
         AlignSettings {
             geometry: MountGeometry::default(),
             margin_mm: 1.0,
+            max_angle_rad: 200e-6,
         }
     }
 }
+
+/// How much more the corner cube's slope over the travel weighs than a spot's position.
+const PARALLEL_WEIGHT: f64 = 5.0;
 
 /// A reading channel the alignment uses: PSD index (0..3) and axis (0 = X, 1 = Y).
 const CHANNELS: [(usize, usize); 5] = [(0, 0), (0, 1), (1, 1), (2, 0), (2, 1)];
@@ -296,6 +303,21 @@ pub fn advise(
         }
         jac.push(j);
     }
+    // Parallelism first: the corner cube's spot must not walk over the travel (its slope is
+    // the beam's angle to the travel, and the cosine error grows with its square), so the
+    // slope of X3 and Y3 between the outermost stations is asked to vanish with a heavy
+    // weight; the other readings then centre what a mount can centre.
+    if let Some((i0, i1)) = outermost(stations)
+        && let (Some(p0), Some(p1)) = (stations[i0].spots[2], stations[i1].spots[2])
+    {
+        for (a, v0, v1) in [(0, p0.x, p1.x), (1, p0.y, p1.y)] {
+            let c = channel_index((2, a));
+            let row: [f64; 4] = std::array::from_fn(|i| {
+                PARALLEL_WEIGHT * (jac[i1][c][i] - jac[i0][c][i]) * scale[i]
+            });
+            rows.push((row, PARALLEL_WEIGHT * (v1 - v0)));
+        }
+    }
     if rows.is_empty() {
         // With fewer than four readings the correction is the smallest one that centres
         // those seen; the next round sees more.
@@ -337,11 +359,27 @@ pub fn advise(
         })
         .collect();
     let half = psd_half(layout);
+    let misalignment_urad = misalignment(stations, &jac);
+    let mut now = check(stations, span, &half, settings.margin_mm);
+    if let Some([y, p]) = misalignment_urad {
+        let worst = y.abs().max(p.abs());
+        let limit = settings.max_angle_rad * 1e6;
+        if worst > limit {
+            let len = span.1 - span.0;
+            now.leaves.push(Leave {
+                psd: 2,
+                what: format!(
+                    "the beam runs {worst:.0} µrad off the travel (at most {limit:.0} µrad: a cosine error of {:.2} µm over {len:.0} mm)",
+                    len * (worst * 1e-6).powi(2) / 2.0 * 1e3
+                ),
+            });
+        }
+    }
     Ok(Advice {
         correction,
         turns,
-        misalignment_urad: misalignment(stations, &jac),
-        now: check(stations, span, &half, settings.margin_mm),
+        misalignment_urad,
+        now,
         after: check(&after, span, &half, settings.margin_mm),
     })
 }

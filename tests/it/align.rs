@@ -178,7 +178,14 @@ fn fifty_seeds_on_500_1000_2000_mm_axes_align_and_complete_or_are_refused() {
             let (run, at_zero, rounds) = aligned_run(&mut lab, &plan, &what);
             rounds_max = rounds_max.max(rounds);
             let m = lab.plant.mount();
-            worst_angle_urad = worst_angle_urad.max(m.yaw.abs().max(m.pitch.abs()) * 1e6);
+            let angle = m.yaw.abs().max(m.pitch.abs());
+            // The check passes at 200 µrad measured by the corner cube, which sees the
+            // factory's own residual too.
+            assert!(
+                angle < 400e-6,
+                "{what}: the beam is {angle:e} rad off the travel"
+            );
+            worst_angle_urad = worst_angle_urad.max(angle * 1e6);
             assert_complete(&run, &plan, &what);
             worst_dy_um = worst_dy_um.max(worst_positioning_um(&run, &at_zero));
             assert!(lab.pauses.is_empty(), "{what}: {:?}", lab.pauses);
