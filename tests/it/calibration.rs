@@ -56,10 +56,11 @@ fn calibration_at_one_position_reaches_the_bound() {
             ratios(&r.linear, &r.crlb),
             1.15,
         );
-        // Without calibration the installation errors bias the result far beyond the noise.
+        // Without calibration the installation errors bias the result beyond the noise (twice
+        // the bound at least, at this one position, on a head whose beams the factory aligned).
         let sim = ratios(&r.simulated_zero_ref, &r.crlb);
         assert!(
-            sim.iter().any(|x| *x > 3.0),
+            sim.iter().any(|x| *x > 2.0),
             "simulated β too good: {sim:?}"
         );
     }
