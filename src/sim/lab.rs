@@ -634,18 +634,24 @@ impl Lab {
     }
 
     fn take_zero(&mut self, window: Duration) -> Result<crate::units::Errors6, LabError> {
+        let _ = self.advance_until("the handover's end", Duration::from_secs(10), |lab| {
+            !lab.pipeline.tracker.handing_over()
+        });
         if !self.pipeline.begin_zero(self.now, window) {
             return Err(LabError::BringUp {
                 what: "zero",
                 why: "the follower's position is not known".into(),
             });
         }
-        // The pipeline takes it once the averaging window has refilled. A handover in the
-        // window (the follower centring PSD2 on the spot right after the reference) moves the
-        // reference under the zero: the operator takes the zero again once it is done.
+        // The pipeline takes it once the averaging window has refilled. A follower step in the
+        // window (PSD2 centred on the spot right after the reference) is placed by an encoder
+        // that lags the frames, and moved the zero by up to 40 µm on mounted heads: the
+        // operator takes the zero again once the step is over.
         self.advance(window + Duration::from_millis(60))?;
         for _ in 0..3 {
-            if self.pipeline.tracker.stitch().handovers == 0 {
+            if self.pipeline.tracker.stitch().handovers == 0
+                && !self.pipeline.tracker.handing_over()
+            {
                 break;
             }
             let _ = self.advance_until("the handover's end", Duration::from_secs(10), |lab| {

@@ -140,9 +140,9 @@ fn aligned_run(lab: &mut Lab, plan: &Plan, what: &str) -> (LabRun, Truth, usize)
 }
 
 /// Must show 1: 50 seeds × 500, 1000 and 2000 mm, each head mounted by eye. Aligned, every
-/// run completes with every capture once, at rest on its target; the beam's residual angle to
-/// the travel and the positioning's worst distance from the truth are reported (a follower
-/// handover right after the zero can leave tens of µm: the follower's subject, issue 14). Not aligned, the pre-run check refuses (or, for a
+/// run completes with every capture once, at rest on its target, the beam within 400 µrad of
+/// the travel and the positioning within 6 µm of the truth (the twin's follower errs by up to
+/// 4 µm along its axis). Not aligned, the pre-run check refuses (or, for a
 /// mount that happens to be good enough, the run completes): never a run failing half-way.
 #[test]
 #[ignore = "300 labs on long axes: run optimised by .ci/run"]
@@ -187,7 +187,11 @@ fn fifty_seeds_on_500_1000_2000_mm_axes_align_and_complete_or_are_refused() {
             );
             worst_angle_urad = worst_angle_urad.max(angle * 1e6);
             assert_complete(&run, &plan, &what);
-            worst_dy_um = worst_dy_um.max(worst_positioning_um(&run, &at_zero));
+            // Within the follower's own positioning error (4 µm peak in the twin, mapped by
+            // issue 14) and the noise.
+            let dy = worst_positioning_um(&run, &at_zero);
+            assert!(dy < 6.0, "{what}: positioning {dy:.1} µm from the truth");
+            worst_dy_um = worst_dy_um.max(dy);
             assert!(lab.pauses.is_empty(), "{what}: {:?}", lab.pauses);
         }
         summary.push(format!(
