@@ -133,6 +133,34 @@ impl Check {
     pub fn passed(&self) -> bool {
         self.leaves.is_empty() && self.least_clearance_mm.is_some()
     }
+
+    /// Whether it passed over a span that holds `span` (mm).
+    pub fn covers(&self, span: (f64, f64)) -> bool {
+        self.passed() && self.span_mm.0 <= span.0 + 1e-6 && self.span_mm.1 >= span.1 - 1e-6
+    }
+}
+
+/// A station from the frames read at rest at `at_mm`: each PSD's mean spot, where it had one
+/// in at least nine frames of ten (else `None`: its target is read instead).
+pub fn mean_station<'a>(
+    at_mm: f64,
+    frames: impl Iterator<Item = &'a [Option<Spot>; 3]> + Clone,
+) -> Station {
+    let n = frames.clone().count();
+    let spots = std::array::from_fn(|k| {
+        let valid: Vec<Spot> = frames.clone().filter_map(|f| f[k]).collect();
+        (!valid.is_empty() && valid.len() * 10 >= n * 9).then(|| {
+            let m = valid.len() as f64;
+            Observed::psd(Spot {
+                x: valid.iter().map(|s| s.x).sum::<f64>() / m,
+                y: valid.iter().map(|s| s.y).sum::<f64>() / m,
+            })
+        })
+    });
+    Station {
+        travel_mm: at_mm,
+        spots,
+    }
 }
 
 impl std::fmt::Display for Check {

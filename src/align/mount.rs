@@ -45,11 +45,6 @@ impl Screw {
             .find(|k| k.name().eq_ignore_ascii_case(s.trim()))
     }
 
-    /// Whether it turns the head (an angle, rad) rather than shifting it (mm).
-    pub fn is_angle(self) -> bool {
-        matches!(self, Screw::Yaw | Screw::Pitch)
-    }
-
     fn index(self) -> usize {
         self as usize
     }

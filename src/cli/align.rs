@@ -8,10 +8,10 @@
 //! the check passes. Exit codes: 0 done (advice: check passed), 1 the service is unreachable or
 //! the check did not pass yet, 2 the request was refused or bad arguments.
 
+use super::table::Common;
 use anyhow::Result;
 use axiscomp::service::control::Request;
 use clap::Subcommand;
-use std::path::PathBuf;
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
@@ -24,19 +24,6 @@ pub enum Command {
     Advice(AdviceArgs),
     /// Forget the stations read (after turning screws).
     Clear(Common),
-}
-
-/// How to reach the service, and the output form.
-#[derive(clap::Args, Debug)]
-pub struct Common {
-    /// The control socket (default: from the configuration).
-    #[arg(long)]
-    pub socket: Option<PathBuf>,
-    #[arg(long)]
-    pub config: Option<PathBuf>,
-    /// Print the service's reply as JSON.
-    #[arg(long)]
-    pub json: bool,
 }
 
 #[derive(clap::Args, Debug)]

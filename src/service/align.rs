@@ -5,7 +5,7 @@
 //! answers the requests; [`crate::align`] does the geometry.
 
 use crate::acquire::Frame;
-use crate::align::{AlignSettings, Check, Observed, SpotSource, Station, advise};
+use crate::align::{AlignSettings, Observed, SpotSource, Station, advise};
 use crate::optics::{Layout, Spot};
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -18,8 +18,6 @@ pub const STATION_WINDOW: Duration = Duration::from_millis(500);
 pub struct AlignState {
     recent: VecDeque<(Instant, [Option<Spot>; 3])>,
     stations: Vec<Station>,
-    /// The last check that passed, with when.
-    pub passed: Option<Check>,
     pub settings: AlignSettings,
 }
 
@@ -42,24 +40,10 @@ impl AlignState {
         if !at_mm.is_finite() {
             return Err("at_mm must be a finite position (mm)".into());
         }
-        let n = self.recent.len();
-        if n == 0 {
+        if self.recent.is_empty() {
             return Err("no frames from the I/O module: is the link up?".into());
         }
-        let spots = std::array::from_fn(|k| {
-            let valid: Vec<Spot> = self.recent.iter().filter_map(|(_, s)| s[k]).collect();
-            (!valid.is_empty() && valid.len() * 10 >= n * 9).then(|| {
-                let m = valid.len() as f64;
-                Observed::psd(Spot {
-                    x: valid.iter().map(|s| s.x).sum::<f64>() / m,
-                    y: valid.iter().map(|s| s.y).sum::<f64>() / m,
-                })
-            })
-        });
-        let st = Station {
-            travel_mm: at_mm,
-            spots,
-        };
+        let st = crate::align::mean_station(at_mm, self.recent.iter().map(|(_, s)| s));
         self.stations.retain(|s| (s.travel_mm - at_mm).abs() > 1.0);
         self.stations.push(st);
         Ok(st)
@@ -90,13 +74,9 @@ impl AlignState {
         self.stations.clear();
     }
 
-    /// The advice over `span` (mm) from the stations read, as JSON for the control API. The
-    /// stations are used once: the screws are turned next, and the spots read again.
-    pub fn advice(
-        &mut self,
-        layout: &Layout,
-        span: (f64, f64),
-    ) -> Result<serde_json::Value, String> {
+    /// The advice over `span` (mm) from the stations read, as JSON for the control API (the
+    /// stations stay until `clear`: after turning screws, clear and read both ends again).
+    pub fn advice(&self, layout: &Layout, span: (f64, f64)) -> Result<serde_json::Value, String> {
         if !(span.0.is_finite() && span.1.is_finite() && span.0 < span.1) {
             return Err(format!(
                 "from_mm {} must be below to_mm {} (mm)",
@@ -105,9 +85,6 @@ impl AlignState {
         }
         let a = advise(layout, &self.settings, &self.stations, span).map_err(|e| e.to_string())?;
         let passed = a.now.passed();
-        if passed {
-            self.passed = Some(a.now.clone());
-        }
         let turns: Vec<serde_json::Value> = a
             .turns
             .iter()
@@ -122,13 +99,6 @@ impl AlignState {
             "stations": self.stations.len(),
             "text": a.describe(),
         }))
-    }
-
-    /// The stored check covers `span` and passed.
-    pub fn covers(&self, span: (f64, f64)) -> bool {
-        self.passed.as_ref().is_some_and(|c| {
-            c.passed() && c.span_mm.0 <= span.0 + 1e-6 && c.span_mm.1 >= span.1 - 1e-6
-        })
     }
 }
 

@@ -153,11 +153,9 @@ impl Pipeline {
                     lost.join(", "),
                     if lost.len() == 1 { "has" } else { "have" }
                 );
+                // A lost PSD2 is the tracker's SpotLost, which has the encoder bridge the gap
+                // when the spot is back.
                 self.alarms.raise("run-paused", msg.clone());
-                if lost.iter().any(|p| p == "PSD2") {
-                    // When PSD2 sees the spot again, the encoder bridges the gap.
-                    self.rereference_on_spot = true;
-                }
                 if let Some(run) = &mut self.run {
                     run.interrupt();
                 }

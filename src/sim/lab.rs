@@ -925,27 +925,18 @@ impl Lab {
         let r = self.advance(STATION_WINDOW);
         let log = self.spot_log.take().unwrap_or_default();
         r?;
+        let mut st = crate::align::mean_station(mm, log.iter());
         let targets = self.plant.target_readings(self.now);
-        let spots = std::array::from_fn(|k| {
-            let valid: Vec<Spot> = log.iter().filter_map(|f| f[k]).collect();
-            if !valid.is_empty() && valid.len() * 10 >= log.len() * 9 {
-                let n = valid.len() as f64;
-                Some(Observed::psd(Spot {
-                    x: valid.iter().map(|s| s.x).sum::<f64>() / n,
-                    y: valid.iter().map(|s| s.y).sum::<f64>() / n,
-                }))
-            } else {
-                targets[k].map(|t| Observed {
+        for (o, t) in st.spots.iter_mut().zip(targets) {
+            if o.is_none() {
+                *o = t.map(|t| Observed {
                     x: t.x,
                     y: t.y,
                     source: SpotSource::Target,
-                })
+                });
             }
-        });
-        Ok(Station {
-            travel_mm: mm,
-            spots,
-        })
+        }
+        Ok(st)
     }
 
     /// Align the head over `span` (mm) as a technician does: read the spots at both ends,
@@ -998,11 +989,7 @@ impl Lab {
     /// carriage is brought back). Refuses with the PSD that leaves, where, and what to turn.
     pub fn pre_run_check(&mut self, plan: &Plan) -> Result<Check, LabError> {
         let span = plan_span(plan);
-        if let Some(c) = &self.alignment
-            && c.passed()
-            && c.span_mm.0 <= span.0 + 1e-6
-            && c.span_mm.1 >= span.1 - 1e-6
-        {
+        if let Some(c) = self.alignment.as_ref().filter(|c| c.covers(span)) {
             return Ok(c.clone());
         }
         let back = self.plant.carriage(self.now).0;
@@ -1023,11 +1010,6 @@ impl Lab {
                 check: e.to_string(),
             }),
         }
-    }
-
-    /// Forget the stored alignment (the head was touched).
-    pub fn forget_alignment(&mut self) {
-        self.alignment = None;
     }
 
     /// How long averaging a capture can take after the carriage stops.

@@ -5,7 +5,7 @@
 use axiscomp::decouple::{Decoupler, Method, SolveOptions, Source};
 use axiscomp::optics::Layout;
 use axiscomp::run::program::CaptureMode;
-use axiscomp::run::{Dialect, Plan, PlanSpec, TargetKey};
+use axiscomp::run::{Dialect, Plan, TargetKey};
 use axiscomp::sim::InstallSpec;
 use axiscomp::sim::axis::AxisSpec;
 use axiscomp::sim::lab::{Lab, LabError, LabRun, LabSpec, plan_span};
@@ -44,20 +44,9 @@ fn lab_with(seed: u64, length_mm: f64, mount: Option<MountSpec>, install: Instal
     lab
 }
 
+/// A plan over 0..`end_mm` at 6000 mm/min (the lab tests' plan).
 fn plan(end_mm: f64, targets: usize, runs: u32) -> Plan {
-    Plan::new(PlanSpec {
-        axis: "X".into(),
-        start_mm: 0.0,
-        end_mm,
-        targets,
-        runs,
-        overrun_mm: 2.0,
-        dwell_s: 2.0,
-        feed_mm_min: 6000.0,
-        lead_mm: 10.0,
-        reference_mm: None,
-    })
-    .expect("plan")
+    crate::lab::plan(end_mm, targets, runs, 6000.0)
 }
 
 fn measure(lab: &mut Lab, plan: &Plan) -> Result<LabRun, LabError> {

@@ -25,7 +25,7 @@ fn perfect_head(seed: u64) -> PlantSpec {
     }
 }
 
-fn plan(end_mm: f64, targets: usize, runs: u32, feed_mm_min: f64) -> Plan {
+pub(crate) fn plan(end_mm: f64, targets: usize, runs: u32, feed_mm_min: f64) -> Plan {
     Plan::new(PlanSpec {
         axis: "X".into(),
         start_mm: 0.0,
