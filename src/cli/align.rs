@@ -58,6 +58,9 @@ pub struct AdviceArgs {
     pub from_mm: f64,
     #[arg(long, allow_negative_numbers = true)]
     pub to_mm: f64,
+    /// The machine axis the alignment is stored for (the pre-run check of its runs reads it).
+    #[arg(long, default_value = "X")]
+    pub axis: String,
 }
 
 pub fn run(c: Command) -> Result<()> {
@@ -76,6 +79,7 @@ pub fn run(c: Command) -> Result<()> {
             Request::AlignAdvice {
                 from_mm: a.from_mm,
                 to_mm: a.to_mm,
+                axis: Some(a.axis),
             },
         ),
         Command::Clear(a) => (a, Request::AlignClear),

@@ -160,6 +160,16 @@ pub struct RawCapture {
     pub timeout_s: u64,
 }
 
+/// `[align]`
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct RawAlign {
+    pub margin_mm: f64,
+    pub max_angle_urad: f64,
+    pub check_before_run: bool,
+    pub valid_for_h: f64,
+}
+
 /// `[plc]`
 #[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
@@ -196,6 +206,7 @@ pub struct RawConfig {
     pub tracking: RawTracking,
     pub cnc: RawCnc,
     pub capture: RawCapture,
+    pub align: RawAlign,
     pub plc: RawPlc,
     pub hexapod: crate::hexapod::config::RawHexapod,
     /// `[comp.<controller>]`: the controllers' settings for `axiscomp export`.
@@ -319,6 +330,17 @@ pub struct PlcSettings {
     pub tables: TableBuild,
 }
 
+/// `[align]`, validated.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AlignConfig {
+    /// The check's margin and beam-angle limit (the mount's geometry is the reference one).
+    pub settings: crate::align::AlignSettings,
+    /// Refuse `run_start` unless a passed alignment of the axis covers the plan's travel.
+    pub check_before_run: bool,
+    /// How long a stored alignment stands for the pre-run check.
+    pub valid_for: Duration,
+}
+
 /// The validated configuration.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Settings {
@@ -330,6 +352,8 @@ pub struct Settings {
     pub tracking: TrackSettings,
     pub cnc: CncSettings,
     pub capture: CaptureSettings,
+    /// `[align]`: the beam alignment's check and the pre-run check.
+    pub align: AlignConfig,
     pub plc: PlcSettings,
     /// `[hexapod]`: the calibration hexapod (`hexapod::config`).
     pub hexapod: crate::hexapod::config::HexapodSettings,
@@ -861,6 +885,18 @@ fn validate(
         frames: k.frames as usize,
         timeout: Duration::from_secs(k.timeout_s.max(1)),
     };
+    let a = &raw.align;
+    let align = AlignConfig {
+        settings: crate::align::AlignSettings {
+            margin_mm: v.positive("align.margin_mm", a.margin_mm)?,
+            max_angle_rad: v.positive("align.max_angle_urad", a.max_angle_urad)? * 1e-6,
+            ..Default::default()
+        },
+        check_before_run: a.check_before_run,
+        valid_for: Duration::from_secs_f64(
+            v.positive("align.valid_for_h", a.valid_for_h)? * 3600.0,
+        ),
+    };
     let plc = plc_settings(&v, &raw.plc)?;
     let hexapod = crate::hexapod::config::validate(&raw.hexapod, origin)?;
     let comp = crate::comp::settings::validate(&raw.comp).map_err(|(k, p)| v.err(&k, p))?;
@@ -873,6 +909,7 @@ fn validate(
         tracking,
         cnc,
         capture,
+        align,
         plc,
         hexapod,
         comp,

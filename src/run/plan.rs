@@ -259,6 +259,18 @@ impl Plan {
         out
     }
 
+    /// The travel the run covers (mm): the end targets and the overrun beyond them, the span
+    /// the beam alignment must hold.
+    pub fn travel_mm(&self) -> (f64, f64) {
+        let lo = self.targets.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = self
+            .targets
+            .iter()
+            .copied()
+            .fold(f64::NEG_INFINITY, f64::max);
+        (lo - self.spec.overrun_mm, hi + self.spec.overrun_mm)
+    }
+
     /// The number of captures a complete run gives.
     pub fn capture_count(&self) -> usize {
         2 * self.targets.len() * self.spec.runs as usize

@@ -6,7 +6,9 @@
 
 use crate::acquire::Frame;
 use crate::align::{AlignSettings, Observed, SpotSource, Station, advise};
+use crate::config::AlignConfig;
 use crate::optics::{Layout, Spot};
+use crate::store::{NewAlignment, Store};
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
@@ -14,14 +16,32 @@ use std::time::{Duration, Instant};
 pub const STATION_WINDOW: Duration = Duration::from_millis(500);
 
 /// The alignment's state.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct AlignState {
     recent: VecDeque<(Instant, [Option<Spot>; 3])>,
     stations: Vec<Station>,
-    pub settings: AlignSettings,
+    pub config: AlignConfig,
+}
+
+impl Default for AlignState {
+    fn default() -> Self {
+        AlignState::new(AlignConfig {
+            settings: AlignSettings::default(),
+            check_before_run: true,
+            valid_for: Duration::from_secs(24 * 3600),
+        })
+    }
 }
 
 impl AlignState {
+    pub fn new(config: AlignConfig) -> AlignState {
+        AlignState {
+            recent: VecDeque::new(),
+            stations: Vec::new(),
+            config,
+        }
+    }
+
     /// A frame from the I/O module.
     pub fn handle_frame(&mut self, f: &Frame) {
         self.recent.push_back((f.at, f.spots));
@@ -74,8 +94,99 @@ impl AlignState {
         self.stations.clear();
     }
 
-    /// The advice over `span` (mm) from the stations read, as JSON for the control API (the
-    /// stations stay until `clear`: after turning screws, clear and read both ends again).
+    /// The advice over `span` (mm) from the stations read, as JSON for the control API, stored
+    /// for `axis` (the pre-run check reads the newest). The stations stay until `clear`: after
+    /// turning screws, clear and read both ends again.
+    pub fn advise_and_store(
+        &self,
+        layout: &Layout,
+        axis: &str,
+        span: (f64, f64),
+        store: &mut Store,
+    ) -> Result<serde_json::Value, String> {
+        let mut v = self.advice(layout, span)?;
+        let [yaw, pitch] = match v["misalignment_urad"].as_array() {
+            Some(a) if a.len() == 2 => [a[0].as_f64(), a[1].as_f64()],
+            _ => [None, None],
+        };
+        let passed = v["passed"].as_bool() == Some(true);
+        let id = store
+            .insert_alignment(&NewAlignment {
+                axis: axis.to_string(),
+                from_mm: span.0,
+                to_mm: span.1,
+                // Without a residual angle (one station) nothing passed: record 0.
+                passed,
+                yaw_rad: yaw.unwrap_or(0.0) * 1e-6,
+                pitch_rad: pitch.unwrap_or(0.0) * 1e-6,
+                check: v["check"].as_str().unwrap_or_default().to_string(),
+                advice: v.clone(),
+            })
+            .map_err(|e| format!("the advice was not stored: {e}"))?;
+        v["alignment_id"] = serde_json::json!(id);
+        v["axis"] = serde_json::json!(axis);
+        Ok(v)
+    }
+
+    /// The pre-run check (issue 13): a run over `travel` (mm) of `axis` starts only when the
+    /// newest alignment of the axis passed over a span that holds the travel, no longer ago than
+    /// the configured validity. The error says what is missing and what to do.
+    pub fn pre_run_check(
+        &self,
+        store: &Store,
+        axis: &str,
+        travel: (f64, f64),
+        now_us: i64,
+    ) -> Result<(), String> {
+        if !self.config.check_before_run {
+            return Ok(());
+        }
+        let how = format!(
+            "align the head over {:.1} to {:.1} mm first (`axiscomp align read` at both ends, \
+             then `axiscomp align advice --from-mm {:.1} --to-mm {:.1} --axis {axis}`, or the \
+             console's Align screen), or set align.check_before_run = false",
+            travel.0, travel.1, travel.0, travel.1
+        );
+        let Some(rec) = store
+            .latest_alignment(axis)
+            .map_err(|e| format!("the pre-run check cannot read the alignments: {e}"))?
+        else {
+            return Err(format!("axis {axis} has no beam alignment: {how}"));
+        };
+        let a = &rec.alignment;
+        if !a.passed {
+            let turns: Vec<&str> = a.advice["turns"]
+                .as_array()
+                .map(|t| t.iter().filter_map(|t| t["text"].as_str()).collect())
+                .unwrap_or_default();
+            let adjust = if turns.is_empty() {
+                String::new()
+            } else {
+                format!("; adjust: {}", turns.join(", "))
+            };
+            return Err(format!(
+                "axis {axis}'s last alignment ({:.1} to {:.1} mm) did not pass: {}{adjust}; then {how}",
+                a.from_mm, a.to_mm, a.check
+            ));
+        }
+        if a.from_mm > travel.0 + 1e-6 || a.to_mm < travel.1 - 1e-6 {
+            return Err(format!(
+                "axis {axis} was aligned over {:.1} to {:.1} mm, the run travels {:.1} to {:.1} mm: {how}",
+                a.from_mm, a.to_mm, travel.0, travel.1
+            ));
+        }
+        let age_s = (now_us - rec.unix_us) as f64 * 1e-6;
+        if age_s > self.config.valid_for.as_secs_f64() {
+            return Err(format!(
+                "axis {axis}'s alignment is {:.1} h old (align.valid_for_h is {:.1} h): {how}",
+                age_s / 3600.0,
+                self.config.valid_for.as_secs_f64() / 3600.0
+            ));
+        }
+        Ok(())
+    }
+
+    /// The advice over `span` (mm) from the stations read, as JSON for the control API.
     pub fn advice(&self, layout: &Layout, span: (f64, f64)) -> Result<serde_json::Value, String> {
         if !(span.0.is_finite() && span.1.is_finite() && span.0 < span.1) {
             return Err(format!(
@@ -83,7 +194,8 @@ impl AlignState {
                 span.0, span.1
             ));
         }
-        let a = advise(layout, &self.settings, &self.stations, span).map_err(|e| e.to_string())?;
+        let a = advise(layout, &self.config.settings, &self.stations, span)
+            .map_err(|e| e.to_string())?;
         let passed = a.now.passed();
         let turns: Vec<serde_json::Value> = a
             .turns
@@ -169,5 +281,72 @@ mod tests {
         assert_eq!(v["passed"], false);
         assert!(v["check"].as_str().unwrap().contains("PSD3"), "{v}");
         assert!(a.advice(&layout, (5.0, 1.0)).unwrap_err().contains("below"));
+    }
+
+    /// The pre-run check against the alignments stored on disk: none, one that failed (its
+    /// check and turns quoted), one over too short a span, one too old, one that covers.
+    #[test]
+    fn the_pre_run_check_reads_the_newest_alignment_of_the_axis() {
+        let dir = std::env::temp_dir().join(format!("axiscomp-prerun-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut store = Store::open(dir.join("store.sqlite")).unwrap();
+        let a = AlignState::default();
+        let now = crate::store::now_us();
+        let travel = (-5.0, 1005.0);
+        let e = a.pre_run_check(&store, "X", travel, now).unwrap_err();
+        assert!(
+            e.contains("axis X has no beam alignment") && e.contains("-5.0 to 1005.0 mm"),
+            "{e}"
+        );
+        let mut rec = NewAlignment {
+            axis: "X".into(),
+            from_mm: -5.0,
+            to_mm: 1005.0,
+            passed: false,
+            yaw_rad: 3e-3,
+            pitch_rad: 0.0,
+            check: "PSD3 leaves its margin at 1005 mm (X3 4.6 mm)".into(),
+            advice: serde_json::json!({"turns": [{"text": "turn the yaw screw 1.20 turns clockwise"}]}),
+        };
+        store.insert_alignment(&rec).unwrap();
+        let e = a.pre_run_check(&store, "X", travel, now).unwrap_err();
+        assert!(
+            e.contains("did not pass: PSD3 leaves its margin at 1005 mm")
+                && e.contains("adjust: turn the yaw screw 1.20 turns clockwise"),
+            "{e}"
+        );
+        // Another axis's alignment is not this one's.
+        assert!(
+            a.pre_run_check(&store, "Y", travel, now)
+                .unwrap_err()
+                .contains("axis Y has no")
+        );
+        rec.passed = true;
+        rec.to_mm = 800.0;
+        store.insert_alignment(&rec).unwrap();
+        let e = a.pre_run_check(&store, "X", travel, now).unwrap_err();
+        assert!(
+            e.contains("aligned over -5.0 to 800.0 mm, the run travels -5.0 to 1005.0 mm"),
+            "{e}"
+        );
+        rec.to_mm = 1005.0;
+        store.insert_alignment(&rec).unwrap();
+        a.pre_run_check(&store, "X", travel, now).unwrap();
+        let day_later = now + 25 * 3_600_000_000;
+        let e = a.pre_run_check(&store, "X", travel, day_later).unwrap_err();
+        assert!(
+            e.contains("25.0 h old (align.valid_for_h is 24.0 h)"),
+            "{e}"
+        );
+        let off = AlignState::new(AlignConfig {
+            check_before_run: false,
+            ..a.config.clone()
+        });
+        off.pre_run_check(&store, "Z", travel, now).unwrap();
+        let stored = store.latest_alignment("X").unwrap().unwrap();
+        assert_eq!(stored.alignment, rec);
+        drop(store);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -135,7 +135,13 @@ pub enum Request {
     /// where the spot is off the PSD.
     AlignTarget { psd: usize, x: f64, y: f64 },
     /// The screw turns, beam angle and check over `from_mm`..`to_mm` from the stations read.
-    AlignAdvice { from_mm: f64, to_mm: f64 },
+    AlignAdvice {
+        from_mm: f64,
+        to_mm: f64,
+        /// The axis the alignment is stored for ("X" when not given).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        axis: Option<String>,
+    },
     /// Forget the stations read (after turning screws, read both ends again).
     AlignClear,
 }

@@ -201,6 +201,9 @@ struct ActiveRun {
     twin_programs_at_send: Option<u32>,
     /// Make-up programs sent so far for each capture.
     makeup_for: std::collections::BTreeMap<TargetKey, u32>,
+    /// The twin's program was stopped because the run paused: once the spots are back, the
+    /// rest of the cycle is sent (from the next missing capture), not a make-up pass.
+    stopped_by_pause: bool,
 }
 
 /// The outcome of asynchronous work the core started.
@@ -306,7 +309,7 @@ impl Core {
         }
         Core {
             pipeline: Pipeline::new(s.tracking, p.decoupler.clone(), s.head.live_window),
-            align: Default::default(),
+            align: super::align::AlignState::new(s.align.clone()),
             acquisition,
             drive_status: drive.status(),
             drive,
@@ -582,9 +585,16 @@ impl Core {
                     }
                 }
                 Output::Acknowledge(_) => {}
-                // The pipeline keeps the alarm; what is missing is taken by the make-up pass
-                // that follows the program.
-                Output::RunPaused(why) => tracing::warn!("{why}"),
+                // The pipeline keeps the alarm. With the beam off the fixed PSDs the twin's
+                // CNC stops at its next stop, and the rest of the cycle follows once the beam
+                // is back. PSD2 alone (the follower behind) waits for the carriage's pass. A CNC
+                // the service does not drive goes on: what it missed is the make-up pass's.
+                Output::RunPaused(why) => {
+                    tracing::warn!("{why}");
+                    if self.pipeline.beam_lost() {
+                        self.stop_twin_program();
+                    }
+                }
                 Output::RunResumed => tracing::info!("every spot is back: the run goes on"),
                 Output::RunFinished => self.end_run(RunState::Finished, "all captures taken"),
                 Output::RunFailed(why) => self.end_run(RunState::Failed, &why),
@@ -740,6 +750,7 @@ impl Core {
             programs_sent: 0,
             twin_programs_at_send: None,
             makeup_for: Default::default(),
+            stopped_by_pause: false,
         });
     }
 
@@ -888,7 +899,32 @@ impl Core {
                     return;
                 }
                 let missing: Vec<TargetKey> = self.pipeline.run_missing().unwrap_or_default();
-                if missing.is_empty() {
+                if missing.is_empty() || self.pipeline.beam_lost() {
+                    return;
+                }
+                if run.stopped_by_pause {
+                    // The beam is back on the fixed PSDs: the rest of the cycle, from the
+                    // carriage's stop, with the approach points held as after a restart. Where
+                    // PSD2 is still without its spot (the follower stayed behind while the beam
+                    // was off), the carriage's pass brings it back and the run resumes then.
+                    let done: BTreeSet<TargetKey> = run
+                        .plan
+                        .steps()
+                        .iter()
+                        .filter_map(|s| s.target)
+                        .filter(|k| !missing.contains(k))
+                        .collect();
+                    let steps = remaining_steps(&run.plan, &done).unwrap_or_default();
+                    let hold = run.plan.spec.dwell_s;
+                    if let Some(run) = self.run.as_mut() {
+                        run.stopped_by_pause = false;
+                        run.twin_programs_at_send = None;
+                    }
+                    tracing::info!(
+                        missing = missing.len(),
+                        "the spots are back: the rest of the cycle goes to the CNC"
+                    );
+                    self.deliver_with(&steps, "resumed", None, Some(hold));
                     return;
                 }
                 let tries = |k: &TargetKey| run.makeup_for.get(k).copied().unwrap_or(0);
@@ -924,6 +960,23 @@ impl Core {
         }
     }
 
+    /// A run paused: stop the twin's program at its next stop (the carriage goes no further
+    /// than the target it is moving to; nothing is captured while paused).
+    fn stop_twin_program(&mut self) {
+        let (Some(run), CncMode::Twin(addr)) = (self.run.as_mut(), &self.cnc) else {
+            return;
+        };
+        let addr = *addr;
+        run.stopped_by_pause = true;
+        tokio::spawn(async move {
+            if let Err(e) =
+                twin_request(addr, serde_json::json!({"cmd": "cnc", "stop": true})).await
+            {
+                tracing::warn!("the twin's CNC was not stopped: {e}");
+            }
+        });
+    }
+
     /// Start a run on request.
     fn start_run_request(
         &mut self,
@@ -949,6 +1002,12 @@ impl Core {
             200.0
         };
         self.capture.check_dwell(&plan, rate)?;
+        self.align.pre_run_check(
+            &self.store,
+            &plan.spec.axis,
+            plan.travel_mm(),
+            crate::store::now_us(),
+        )?;
         let dialect = match dialect {
             Some(d) => Dialect::parse(&d).ok_or_else(|| {
                 format!("dialect \"{d}\": use iso, siemens, heidenhain or linuxcnc")
@@ -1156,10 +1215,17 @@ impl Core {
                     .map(|st| super::align::station_json(&st));
                 Self::reply(c.reply, r);
             }
-            Request::AlignAdvice { from_mm, to_mm } => {
-                let r = self
-                    .align
-                    .advice(self.calibrations.layout(), (from_mm, to_mm));
+            Request::AlignAdvice {
+                from_mm,
+                to_mm,
+                axis,
+            } => {
+                let r = self.align.advise_and_store(
+                    self.calibrations.layout(),
+                    axis.as_deref().unwrap_or("X"),
+                    (from_mm, to_mm),
+                    &mut self.store,
+                );
                 Self::reply(c.reply, r);
             }
             Request::AlignClear => {

@@ -97,13 +97,24 @@ pub struct Pipeline {
     outputs: VecDeque<Output>,
     pub last_frame: Option<Frame>,
     pub late_frames: u64,
-    /// When a zero reference was asked for: it is taken once the window has refilled.
-    zero_due: Option<Instant>,
+    /// A zero reference asked for: taken once the window has refilled with no follower step.
+    zero: Option<PendingZero>,
     /// Since when each PSD has had no spot.
     no_spot_since: [Option<Instant>; 3],
     /// Why the active run is paused.
     paused: Option<String>,
 }
+
+/// A zero reference on its way (see [`Pipeline::begin_zero`]).
+#[derive(Clone, Copy, Debug)]
+struct PendingZero {
+    due: Instant,
+    window: Duration,
+    retakes: u8,
+}
+
+/// A zero is retaken at most this many times for follower steps in its window.
+const ZERO_RETAKES: u8 = 3;
 
 /// A PSD without a spot for this long pauses a run (a beam cut for a moment does not).
 pub const PAUSE_AFTER: Duration = Duration::from_millis(500);
@@ -122,10 +133,17 @@ impl Pipeline {
             outputs: VecDeque::new(),
             last_frame: None,
             late_frames: 0,
-            zero_due: None,
+            zero: None,
             no_spot_since: [None; 3],
             paused: None,
         }
+    }
+
+    /// Whether the beam is off the fixed PSDs (PSD1 or PSD3 has no spot): blocked, or the head
+    /// knocked. PSD2 alone without a spot is the follower behind the carriage, which the
+    /// carriage's next pass brings back.
+    pub fn beam_lost(&self) -> bool {
+        self.no_spot_since[0].is_some() || self.no_spot_since[2].is_some()
     }
 
     /// Why the active run is paused, if it is.
@@ -396,7 +414,24 @@ impl Pipeline {
     /// Start a zero reference: re-reference the stitch now and take the live mean as zero
     /// once the averaging window has refilled (`zero_ready`). False when the follower's
     /// position is not known yet.
+    ///
+    /// A follower step in the window (PSD2 centred on the spot right after the reference) is
+    /// placed by an encoder that lags the frames, and moved the zero by up to 40 µm on mounted
+    /// heads: the zero waits for the step to end and is taken again over a fresh window (at
+    /// most `ZERO_RETAKES` times).
     pub fn begin_zero(&mut self, now: Instant, window: Duration) -> bool {
+        if !self.reference_for_zero() {
+            return false;
+        }
+        self.zero = Some(PendingZero {
+            due: now + window + Duration::from_millis(50),
+            window,
+            retakes: 0,
+        });
+        true
+    }
+
+    fn reference_for_zero(&mut self) -> bool {
         if !self.tracker.reference() {
             return false;
         }
@@ -405,18 +440,39 @@ impl Pipeline {
         self.alarms.clear("stitch-broken");
         self.measure.clear_zero();
         self.measure.restart();
-        self.zero_due = Some(now + window + Duration::from_millis(50));
         true
+    }
+
+    /// Whether a zero reference is on its way.
+    pub fn zero_pending(&self) -> bool {
+        self.zero.is_some()
     }
 
     /// When a zero reference is pending and due at `now`: take it (`Some(Some(offsets))`), or
     /// report that there were no valid frames (`Some(None)`).
     pub fn zero_ready(&mut self, now: Instant) -> Option<Option<Errors6>> {
-        let due = self.zero_due?;
-        if now < due {
+        let z = self.zero?;
+        if now < z.due {
             return None;
         }
-        self.zero_due = None;
+        let stepping = self.tracker.handing_over();
+        let stepped = stepping || self.tracker.stitch().handovers > 0;
+        // A step that does not end (the follower cannot reach the spot) does not hold the
+        // zero for ever: after this long it is taken as it is.
+        let waited_out = now >= z.due + Duration::from_secs(10);
+        if stepped && z.retakes < ZERO_RETAKES && !waited_out {
+            // Wait for the step's end, then refill the window from a new reference.
+            if stepping || !self.reference_for_zero() {
+                return None;
+            }
+            self.zero = Some(PendingZero {
+                due: now + z.window + Duration::from_millis(50),
+                retakes: z.retakes + 1,
+                ..z
+            });
+            return None;
+        }
+        self.zero = None;
         Some(self.measure.set_zero())
     }
 

@@ -634,43 +634,33 @@ impl Lab {
     }
 
     fn take_zero(&mut self, window: Duration) -> Result<crate::units::Errors6, LabError> {
-        let _ = self.advance_until("the handover's end", Duration::from_secs(10), |lab| {
-            !lab.pipeline.tracker.handing_over()
-        });
         if !self.pipeline.begin_zero(self.now, window) {
             return Err(LabError::BringUp {
                 what: "zero",
                 why: "the follower's position is not known".into(),
             });
         }
-        // The pipeline takes it once the averaging window has refilled. A follower step in the
-        // window (PSD2 centred on the spot right after the reference) is placed by an encoder
-        // that lags the frames, and moved the zero by up to 40 µm on mounted heads: the
-        // operator takes the zero again once the step is over.
+        // The pipeline takes it once the averaging window has refilled, again after a
+        // follower step in the window (`Pipeline::begin_zero`).
+        let deadline = self.now + (window + Duration::from_secs(10)) * 5;
         self.advance(window + Duration::from_millis(60))?;
-        for _ in 0..3 {
-            if self.pipeline.tracker.stitch().handovers == 0
-                && !self.pipeline.tracker.handing_over()
-            {
-                break;
+        loop {
+            match self.pipeline.zero_ready(self.now) {
+                Some(Some(z)) => return Ok(z),
+                Some(None) => {
+                    return Err(LabError::BringUp {
+                        what: "zero",
+                        why: "no valid frames in the window".into(),
+                    });
+                }
+                None if self.now >= deadline => {
+                    return Err(LabError::BringUp {
+                        what: "zero",
+                        why: "the reference was not due".into(),
+                    });
+                }
+                None => self.advance(Duration::from_millis(20))?,
             }
-            let _ = self.advance_until("the handover's end", Duration::from_secs(10), |lab| {
-                !lab.pipeline.tracker.handing_over()
-            });
-            let _ = self.pipeline.zero_ready(self.now);
-            self.pipeline.begin_zero(self.now, window);
-            self.advance(window + Duration::from_millis(60))?;
-        }
-        match self.pipeline.zero_ready(self.now) {
-            Some(Some(z)) => Ok(z),
-            Some(None) => Err(LabError::BringUp {
-                what: "zero",
-                why: "no valid frames in the window".into(),
-            }),
-            None => Err(LabError::BringUp {
-                what: "zero",
-                why: "the reference was not due".into(),
-            }),
         }
     }
 
@@ -1020,11 +1010,5 @@ impl Lab {
 
 /// The travel a plan covers, with the overrun on both sides (mm).
 pub fn plan_span(plan: &Plan) -> (f64, f64) {
-    let lo = plan.targets.iter().copied().fold(f64::INFINITY, f64::min);
-    let hi = plan
-        .targets
-        .iter()
-        .copied()
-        .fold(f64::NEG_INFINITY, f64::max);
-    (lo - plan.spec.overrun_mm, hi + plan.spec.overrun_mm)
+    plan.travel_mm()
 }

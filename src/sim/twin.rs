@@ -10,7 +10,9 @@
 //! - `{"cmd":"io","action":"stop"|"restart"}`, `{"cmd":"io","delay_ms":50}`
 //! - `{"cmd":"drive","fault":34321}`, `{"cmd":"drive","heartbeat":false}`
 //! - `{"cmd":"program","dialect":"linuxcnc","axis":"X","text":"..."}`: run a part program on
-//!   the twin's CNC (replacing one that runs); `{"cmd":"cnc"}` → its state
+//!   the twin's CNC (replacing one that runs); `{"cmd":"cnc"}` → its state;
+//!   `{"cmd":"cnc","stop":true}` stops the running program at its next stop (the move in
+//!   progress ends; `stopped` says so once it has)
 //! - `{"cmd":"mount"}` → how the head is mounted (`yaw_urad`, `pitch_urad`, `x_mm`, `z_mm`);
 //!   `{"cmd":"turn","screw":"yaw","turns":1.25}` turns a mount screw (clockwise positive) as a
 //!   technician does; `{"cmd":"knock","yaw_urad":3000}` (any of the four) knocks the head
@@ -80,6 +82,10 @@ pub struct CncState {
     pub captured: bool,
     /// The program time of the last completed program (s).
     pub last_program_s: Option<f64>,
+    /// Stop the running program at its next stop (as the service asks when a run pauses).
+    pub stop_requested: bool,
+    /// Whether the last program ended by such a stop.
+    pub stopped: bool,
 }
 
 /// The running twin.
@@ -249,12 +255,20 @@ fn start_program(
         st.done = false;
         st.programs += 1;
         st.at_target = false;
+        st.stop_requested = false;
+        st.stopped = false;
     }
     let (plant, cnc) = (plant.clone(), cnc.clone());
     *slot = Some(tokio::spawn(async move {
         let mut m = super::cnc::Cnc::new(ops);
         loop {
-            let captured = cnc.lock().map(|s| s.captured).unwrap_or(false);
+            let (captured, stop) = cnc
+                .lock()
+                .map(|s| (s.captured, s.stop_requested))
+                .unwrap_or((false, false));
+            if stop {
+                m.stop_at_next_stop();
+            }
             m.step(Instant::now(), &plant, captured);
             {
                 let mut st = cnc.lock().unwrap_or_else(|p| p.into_inner());
@@ -263,6 +277,7 @@ fn start_program(
                 if m.is_done() {
                     st.running = false;
                     st.done = true;
+                    st.stopped = st.stop_requested;
                     st.last_program_s = match (m.started, m.finished) {
                         (Some(a), Some(b)) => Some((b - a).as_secs_f64()),
                         _ => None,
@@ -379,6 +394,12 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
             Ok(serde_json::json!({"ok": true}))
         }
         "cnc" => {
+            if v.get("stop").and_then(|x| x.as_bool()) == Some(true) {
+                let mut st = ctx.cnc.lock().unwrap_or_else(|p| p.into_inner());
+                if st.running {
+                    st.stop_requested = true;
+                }
+            }
             let st = ctx.cnc.lock().map(|s| s.clone()).unwrap_or_default();
             Ok(serde_json::json!({"ok": true, "cnc": st}))
         }

@@ -19,9 +19,11 @@
 //! `Store` wraps one connection: it is `Send` but not `Sync`; share it behind a mutex or own it in
 //! one task. Open a second `Store` (e.g. `open_read_only`) for a concurrent reader.
 
+mod alignments;
 mod records;
 pub mod schema;
 
+pub use alignments::{AlignmentRecord, NewAlignment};
 pub use records::{
     Actor, AuditEntry, AuditRecord, CalibrationId, CalibrationRecord, CalibrationSummary, NewRun,
     Publication, PublicationOutcome, PublicationRecord, RunId, RunRecord, RunState, StoredHandover,

@@ -19,7 +19,7 @@ pub const APPLICATION_ID: i32 = 0x4158_4353;
 pub const LATEST: i64 = MIGRATIONS.len() as i64;
 
 /// Forward migrations; `MIGRATIONS[i]` goes from version `i` to `i + 1`.
-pub const MIGRATIONS: &[&str] = &[V1];
+pub const MIGRATIONS: &[&str] = &[V1, V2];
 
 /// Version 1: the first schema.
 const V1: &str = r#"
@@ -160,6 +160,24 @@ BEGIN SELECT RAISE(ABORT, 'the audit log is append-only'); END;
 PRAGMA application_id = 1096303443;
 "#;
 
+/// Version 2: the beam alignments per axis (issue 13), for the pre-run check and the record.
+const V2: &str = r#"
+CREATE TABLE alignments (
+    id          INTEGER PRIMARY KEY,
+    unix_us     INTEGER NOT NULL,
+    axis        TEXT    NOT NULL CHECK (axis <> ''),
+    from_mm     REAL    NOT NULL,
+    to_mm       REAL    NOT NULL,
+    passed      INTEGER NOT NULL CHECK (passed IN (0, 1)),
+    yaw_rad     REAL    NOT NULL,                  -- the beam's residual angle to the travel
+    pitch_rad   REAL    NOT NULL,
+    check_text  TEXT    NOT NULL,
+    advice_json TEXT    NOT NULL CHECK (json_valid(advice_json)),
+    CHECK (from_mm < to_mm)
+) STRICT;
+CREATE INDEX alignments_axis ON alignments (axis, id);
+"#;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -168,6 +186,6 @@ mod tests {
     fn application_id_literal_matches_the_constant() {
         // The pragma cannot take a bound parameter, so V1 spells the number out.
         assert!(V1.contains(&format!("PRAGMA application_id = {APPLICATION_ID};")));
-        assert_eq!(LATEST, 1);
+        assert_eq!(LATEST, 2);
     }
 }

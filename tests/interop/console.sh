@@ -1,14 +1,15 @@
 #!/usr/bin/env bash
 # The console in a real terminal (issue 6, must-show 3): tmux runs `axiscomp console` at 80×24
 # against `axiscomp sim` + `axiscomp serve` (the twin's CNC runs the part programs), keys go in
-# with send-keys and every screen is checked with capture-pane: Live, help, Align, the plan
-# typed into Measure, start, progress, the finished run's results, the audit log on Events,
-# quit (the terminal given back, exit status 0), then NO_COLOR. Exits non-zero on the first
-# screen that does not show what it should, printing that screen. Then the beam alignment
-# (issue 13, must-show 4): the twin's head is knocked off the axis, and the script does what the
-# Align screen tells a technician (the carriage moved to each end of 0–400 mm, the spots read,
-# the targets typed where a spot is off its PSD, the screws turned as the screen says) until the
-# screen shows the check passed. Needs tmux and python3 (.ci/run installs tmux).
+# with send-keys and every screen is checked with capture-pane: Live, help, Align, the beam
+# alignment (issue 13, must-show 4: the twin's head is knocked off the axis, and the script does
+# what the Align screen tells a technician — the carriage moved to each end of -1–400 mm, the
+# spots read, the targets typed where a spot is off its PSD, the screws turned as the screen
+# says — until the screen shows the check passed; the zero taken at 0 mm), the plan typed into
+# Measure (its travel inside the alignment: the service's pre-run check lets it start), start,
+# progress, the finished run's results, the audit log on Events, quit (the terminal given back,
+# exit status 0), then NO_COLOR. Exits non-zero on the first screen that does not show what it
+# should, printing that screen. Needs tmux and python3 (.ci/run installs tmux).
 #   bash tests/interop/console.sh            # from anywhere in the repository
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
@@ -119,41 +120,7 @@ echo "console.sh: Align"
 keys 2
 expect 5 "Beam and centring" "PSD1 beam on" "Follower and zero" "jog step 0.1 mm"
 
-echo "console.sh: Measure, the plan typed in"
-keys 4
-expect 5 "Plan (ISO 230-2)" "No run seen yet"
-keys Down Down        # start, end
-field 8
-field 5               # targets
-field 2               # runs
-field 1               # overrun
-field 1.5             # dwell
-field 3000            # feed
-field 0               # screw lead
-expect 5 "✓ 20 captures" "targets (mm): 0.0 2.0 4.0 6.0 8.0"
-
-echo "console.sh: start"
-keys s
-expect 5 "Start the run?" "Axis X, 0 to 8 mm, 5 targets, 2 bidirectional runs"
-keys y
-expect 15 "running" "/20" "captures in cycle order"
-
-echo "console.sh: progress"
-expect 60 "ETA" "run 1  ↑ ■■"
-expect 30 "dy positioning (µm)"
-
-echo "console.sh: the run ends, its results"
-expect 150 "finished: its results are on screen 5"
-keys 5
-expect 15 "X finished, 20 captures" "dy positioning (µm)" "Figures (←→ error)" "A (accuracy)" "R (repeatability)"
-keys Right
-expect 5 "dz vertical straightness (µm)" "straight LS"
-
-echo "console.sh: Events, the audit log"
-keys 7
-expect 10 "Alarms (UTC, newest first)" "This console's requests" "Audit log" "run_start X 0.0–8.0 mm, 5 targets, 2 runs"
-
-echo "console.sh: Align, the beam aligned over 0–400 mm by following the screen"
+echo "console.sh: Align, the beam aligned over -1–400 mm (the plan's travel and more) by following the screen"
 twin_addr=$(sed -n 's/^twin = "\(.*\)"$/\1/p' "$work/service.toml")
 # twin JSON: one request to the twin's control socket; prints the reply.
 twin() {
@@ -217,15 +184,15 @@ keys 2
 keys s
 expect 5 "Alignment span"
 for _ in $(seq 1 12); do keys BSpace; done
-keys -l "0 400"
+keys -l "-1 400"
 keys Enter
-expect 5 "span 0–400 mm (s)"
+expect 5 "span -1–400 mm (s)"
 align_t0=$SECONDS
 passed=""
 for round in $(seq 1 8); do
   keys e
   expect 10 "no station read"
-  for end in 0 400; do
+  for end in -1 400; do
     twin "{\"cmd\":\"move\",\"mm\":$end}" >/dev/null
     twin '{"cmd":"wait"}' >/dev/null
     sleep 1.5
@@ -236,7 +203,7 @@ for round in $(seq 1 8); do
       psd2_lit || fail "PSD2 has no spot at $end mm after the follower move"
       sleep 1.5
     fi
-    if [ "$end" = 0 ]; then keys n; else keys f; fi
+    if [ "$end" = -1 ]; then keys n; else keys f; fi
     expect 10 "at $end.0 mm:"
     # Where a PSD shows no spot, type what its target shows (the twin's target).
     missing=$(no_spot "$end")
@@ -286,6 +253,53 @@ done
 expect 5 "beam to travel: yaw"
 echo "console.sh: the screen says: $(panel)"
 echo "console.sh: aligned in $passed rounds, $((SECONDS - align_t0)) s; mount before: $mount0; after: $(twin '{"cmd":"mount"}')"
+
+echo "console.sh: back to 0 mm, the zero taken on the Align screen"
+twin '{"cmd":"move","mm":0}' >/dev/null
+twin '{"cmd":"wait"}' >/dev/null
+sleep 1.5
+if ! psd2_lit; then
+  follower_to 0
+  for _ in $(seq 1 60); do psd2_lit && break; sleep 0.5; done
+  psd2_lit || fail "PSD2 has no spot at 0 mm after the follower move"
+  sleep 1.5
+fi
+keys z
+expect 15 "zero here"
+
+echo "console.sh: Measure, the plan typed in"
+keys 4
+expect 5 "Plan (ISO 230-2)" "No run seen yet"
+keys Down Down        # start, end
+field 8
+field 5               # targets
+field 2               # runs
+field 1               # overrun
+field 1.5             # dwell
+field 3000            # feed
+field 0               # screw lead
+expect 5 "✓ 20 captures" "targets (mm): 0.0 2.0 4.0 6.0 8.0"
+
+echo "console.sh: start"
+keys s
+expect 5 "Start the run?" "Axis X, 0 to 8 mm, 5 targets, 2 bidirectional runs"
+keys y
+expect 15 "running" "/20" "captures in cycle order"
+
+echo "console.sh: progress"
+expect 60 "ETA" "run 1  ↑ ■■"
+expect 30 "dy positioning (µm)"
+
+echo "console.sh: the run ends, its results"
+expect 150 "finished: its results are on screen 5"
+keys 5
+expect 15 "X finished, 20 captures" "dy positioning (µm)" "Figures (←→ error)" "A (accuracy)" "R (repeatability)"
+keys Right
+expect 5 "dz vertical straightness (µm)" "straight LS"
+
+echo "console.sh: Events, the audit log"
+keys 7
+expect 10 "Alarms (UTC, newest first)" "This console's requests" "Audit log" "run_start X 0.0–8.0 mm, 5 targets, 2 runs"
 
 echo "console.sh: colours, then quit"
 "${tmx[@]}" capture-pane -e -p -t console | grep -qE $'\e\\[[0-9;]*(3[0-7]|38;)' \

@@ -73,6 +73,8 @@ sys.exit(0 if s["tracking"]["valid"] and s["tracking"]["at_rest"] else 1)' 2>/de
   sleep 0.5
 done
 
+# The pre-run check wants the plan's travel (0–20 mm and 1 mm of overrun) aligned.
+align_cli -1 21 >"$work/align.txt" 2>&1 || { cat "$work/align.txt" >&2; fail "the alignment check did not pass"; }
 "$bin" run start --socket "$sock" --axis X --start-mm 0 --end-mm 20 --targets 5 --runs 2 \
   --dwell-s 1.5 --feed-mm-min 3000 --overrun-mm 1 --lead-mm 5 --dialect linuxcnc \
   >"$work/start.json" 2>&1 || { cat "$work/start.json" >&2; fail "run start refused"; }

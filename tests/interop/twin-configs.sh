@@ -32,6 +32,83 @@ EOF
 mode = "twin"
 twin = "127.0.0.1:$ctl"
 EOF
+  twin_ctl="127.0.0.1:$ctl"
+}
+
+# twin_cmd JSON: one request to the twin's control socket (after twin_configs); prints the
+# reply, fails unless it is ok.
+twin_cmd() {
+  python3 - "$twin_ctl" "$1" <<'EOF'
+import json, socket, sys
+host, port = sys.argv[1].rsplit(":", 1)
+with socket.create_connection((host, int(port)), timeout=120) as s:
+    s.sendall(sys.argv[2].encode() + b"\n")
+    r = s.makefile().readline()
+print(r.strip())
+if not json.loads(r).get("ok"):
+    sys.exit(f"twin: {sys.argv[2]}: {r.strip()}")
+EOF
+}
+
+# svc_cmd JSON: one request to the service's control socket at $sock (the console's and the
+# CLI's protocol, for what the CLI has no command for); prints the reply, fails on an error.
+svc_cmd() {
+  python3 - "$sock" "$1" <<'EOF'
+import json, socket, sys
+s = socket.socket(socket.AF_UNIX)
+s.settimeout(60)
+s.connect(sys.argv[1])
+s.sendall(sys.argv[2].encode() + b"\n")
+r = s.makefile().readline()
+print(r.strip())
+if not r.strip() or "error" in json.loads(r):
+    sys.exit(f"service: {sys.argv[2]}: {r.strip()}")
+EOF
+}
+
+# align_cli FROM TO: one round of the beam alignment over FROM..TO mm with `axiscomp align`
+# against the service at $sock ($bin the binary), the twin's carriage moved to each end, as a
+# technician does before a run (the pre-run check wants the plan's travel aligned): where PSD2
+# lost its spot on the way, the follower is brought to the carriage; back at 0 mm, the zero is
+# taken again. Fails unless the check passes.
+align_cli() {
+  local from=$1 to=$2 at
+  "$bin" align clear --socket "$sock" >/dev/null || return 1
+  for at in "$from" "$to"; do
+    twin_cmd "{\"cmd\":\"move\",\"mm\":$at}" >/dev/null || return 1
+    twin_cmd '{"cmd":"wait"}' >/dev/null || return 1
+    if ! spots_at_rest 6; then
+      svc_cmd "{\"cmd\":\"follower\",\"action\":\"move\",\"mm\":$at}" >/dev/null || return 1
+      spots_at_rest 30 || return 1
+    fi
+    "$bin" align read --socket "$sock" --at-mm="$at" >/dev/null || return 1
+  done
+  "$bin" align advice --socket "$sock" --from-mm "$from" --to-mm "$to" --axis X || return 1
+  twin_cmd '{"cmd":"move","mm":0}' >/dev/null || return 1
+  twin_cmd '{"cmd":"wait"}' >/dev/null || return 1
+  if ! spots_at_rest 6; then
+    svc_cmd '{"cmd":"follower","action":"move","mm":0}' >/dev/null || return 1
+    spots_at_rest 30 || return 1
+  fi
+  svc_cmd '{"cmd":"zero"}' >/dev/null
+}
+
+# spots_at_rest SECONDS: wait until the service sees a spot on every PSD with the carriage at
+# rest, then a station's window more; fails (quietly) after SECONDS.
+spots_at_rest() {
+  local i
+  for i in $(seq 1 $(( $1 * 2 ))); do
+    if "$bin" status --socket "$sock" --json 2>/dev/null | python3 -c '
+import json, sys
+s = json.load(sys.stdin)
+p, t = s.get("psd") or {}, s["tracking"]
+sys.exit(0 if all(x is not None for x in p.get("spots_um", [None])) and t["at_rest"] else 1)' 2>/dev/null; then
+      sleep 0.6
+      return 0
+    fi
+    sleep 0.5
+  done
+  return 1
 }
 
 # harness NAME: a work directory ($work) and the twin's and the service's pids ($sim, $svc,

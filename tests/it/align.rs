@@ -343,6 +343,28 @@ async fn the_service_advises_the_screw_turns_until_the_check_passes() {
         ..Default::default()
     });
     let before = rig.twin.plant.mount();
+    // 10..390 mm with 5 mm of overrun: the travel is the span aligned.
+    let run_start = || Request::RunStart {
+        plan: axiscomp::run::PlanSpec {
+            start_mm: 10.0,
+            end_mm: 390.0,
+            targets: 5,
+            runs: 2,
+            ..Default::default()
+        },
+        dialect: None,
+        notes: None,
+    };
+    let refused = rig
+        .request(run_start())
+        .await
+        .expect_err("no alignment yet")
+        .to_string();
+    assert!(
+        refused.contains("axis X has no beam alignment") && refused.contains("5.0 to 395.0 mm"),
+        "{refused}"
+    );
+    let mut failed_once = false;
     for round in 1..=6 {
         rig.request(Request::AlignClear).await.expect("clear");
         for at in [span.0, span.1] {
@@ -386,6 +408,7 @@ async fn the_service_advises_the_screw_turns_until_the_check_passes() {
             .request(Request::AlignAdvice {
                 from_mm: span.0,
                 to_mm: span.1,
+                axis: Some("X".into()),
             })
             .await
             .expect("advice");
@@ -399,7 +422,30 @@ async fn the_service_advises_the_screw_turns_until_the_check_passes() {
                 m.yaw * 1e6
             );
             assert!(m.yaw.abs() < 1e-3 && m.pitch.abs() < 1e-3, "{m:?}");
+            assert!(failed_once, "the first round's check failed");
+            // The passed alignment is stored for axis X: a run over its span starts.
+            let started = rig
+                .request(run_start())
+                .await
+                .expect("aligned: the run starts");
+            assert!(started["run_id"].as_i64().is_some(), "{started}");
+            rig.request(Request::RunAbort).await.expect("abort");
             return;
+        }
+        if !failed_once {
+            // The stored failed check refuses a run, saying which PSD leaves and what to turn.
+            failed_once = true;
+            let refused = rig
+                .request(run_start())
+                .await
+                .expect_err("not aligned")
+                .to_string();
+            assert!(
+                refused.contains("did not pass")
+                    && refused.contains("PSD")
+                    && refused.contains("turn"),
+                "{refused}"
+            );
         }
         let turns = adv["turns"].as_array().expect("turns").clone();
         assert!(!turns.is_empty(), "not passed and nothing to turn: {adv}");

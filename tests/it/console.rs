@@ -646,7 +646,18 @@ async fn measure_workflow_by_keys_against_the_twin() {
     c.keys(keys).await;
     assert_eq!(c.app.plan.spec, plan);
     assert!(c.screen().contains("✓ 20 captures"), "{}", c.screen());
-    // Start: asks first, then sends the plan.
+    // Start before the beam is aligned: the service's pre-run check refuses, in words.
+    c.keys(chars("s")).await;
+    assert!(c.screen().contains("Start the run?"), "{}", c.screen());
+    c.keys(chars("y")).await;
+    c.run(Vec::new(), Duration::from_millis(500)).await;
+    assert!(c.app.run.is_none(), "started without an alignment");
+    assert!(c.screen().contains("no beam alignment"), "{}", c.screen());
+    // Aligned over the plan's travel (the Align screen's keys are console.sh's), it starts.
+    let travel = axiscomp::run::Plan::new(plan.clone())
+        .expect("plan")
+        .travel_mm();
+    crate::helpers::align_service(&rig.socket, &rig.twin, travel).await;
     c.keys(chars("s")).await;
     assert!(c.screen().contains("Start the run?"), "{}", c.screen());
     c.keys(chars("y")).await;

@@ -619,3 +619,68 @@ pub fn short_plan() -> axiscomp::run::PlanSpec {
         reference_mm: None,
     }
 }
+
+/// One round of the beam alignment over `span` (mm) through the service's control API at
+/// `socket`, as a technician does before a run: the carriage to each end (the follower brought
+/// to it where PSD2 lost the spot on the way), a station read at rest, the advice stored for
+/// axis X; back at 0 mm, the zero taken again. The twin's head in these rigs is mounted square,
+/// so the first round passes.
+pub async fn align_service(socket: &Path, twin: &axiscomp::sim::twin::Twin, span: (f64, f64)) {
+    use axiscomp::service::control::{Client, FollowerAction, Request};
+    use std::time::{Duration, Instant};
+    let mut c = Client::connect(socket).await.expect("the control socket");
+    // Wait for a spot on every PSD with the carriage at rest; the follower brought to the
+    // carriage when PSD2 has none after a while.
+    async fn at_rest(c: &mut Client, twin: &axiscomp::sim::twin::Twin, at: f64) {
+        let mut moved = false;
+        let start = Instant::now();
+        loop {
+            let s = c.request(&Request::Status).await.expect("status");
+            let spots = s["psd"]["spots_um"]
+                .as_array()
+                .is_some_and(|a| a.len() == 3 && a.iter().all(|v| !v.is_null()));
+            if spots && s["tracking"]["at_rest"] == true {
+                tokio::time::sleep(Duration::from_millis(600)).await;
+                return;
+            }
+            if !moved && start.elapsed() > Duration::from_secs(4) {
+                moved = true;
+                c.request(&Request::Follower {
+                    action: FollowerAction::Move,
+                    mm: Some(at),
+                })
+                .await
+                .expect("follower move");
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(40),
+                "no spot on every PSD at {at} mm: {s}; truth {:?}",
+                twin.plant.truth(Instant::now())
+            );
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+    c.request(&Request::AlignClear).await.expect("align clear");
+    for at in [span.0, span.1] {
+        twin.move_and_wait(at).await;
+        at_rest(&mut c, twin, at).await;
+        c.request(&Request::AlignRead { at_mm: Some(at) })
+            .await
+            .expect("align read");
+    }
+    let advice = c
+        .request(&Request::AlignAdvice {
+            from_mm: span.0,
+            to_mm: span.1,
+            axis: Some("X".into()),
+        })
+        .await
+        .expect("align advice");
+    assert_eq!(
+        advice["passed"], true,
+        "a square-mounted head failed: {advice}"
+    );
+    twin.move_and_wait(0.0).await;
+    at_rest(&mut c, twin, 0.0).await;
+    c.request(&Request::Zero).await.expect("zero");
+}

@@ -111,6 +111,11 @@ async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {
             "the service did not come up with the stitch referenced within 60 s".into(),
         );
     }
+    // The pre-run check wants the plan's travel aligned.
+    let travel = axiscomp::run::Plan::new(short_plan())
+        .expect("plan")
+        .travel_mm();
+    crate::helpers::align_service(&socket, &twin, travel).await;
     let started = ask(
         &socket,
         &Request::RunStart {

@@ -131,11 +131,15 @@ pub fn parse_target(text: &str) -> Result<(usize, f64, f64), String> {
 }
 
 impl App {
-    /// The span the alignment covers (mm): typed, or the Measure plan's.
+    /// The span the alignment covers (mm): typed, or the Measure plan's travel (its end targets
+    /// and the overrun: what the pre-run check asks for).
     pub fn align_span(&self) -> (f64, f64) {
         self.align
             .span
-            .unwrap_or((self.plan.spec.start_mm, self.plan.spec.end_mm))
+            .unwrap_or_else(|| match self.plan.checked() {
+                Ok(plan) => plan.travel_mm(),
+                Err(_) => (self.plan.spec.start_mm, self.plan.spec.end_mm),
+            })
     }
 
     fn align_read(&mut self, at_mm: f64, end: &str) -> Vec<Action> {
@@ -244,6 +248,7 @@ impl App {
                     Request::AlignAdvice {
                         from_mm: from,
                         to_mm: to,
+                        axis: Some(self.plan.spec.axis.clone()),
                     },
                     Pending::AlignAdvice((from, to)),
                 )]

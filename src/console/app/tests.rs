@@ -415,11 +415,12 @@ fn type_line(a: &mut App, text: &str) {
 fn align_reads_both_ends_types_a_target_and_shows_the_advice_in_words() {
     let (mut a, t0) = app();
     a.handle_key(ch('2'));
-    // The span defaults to the Measure plan's, and is typed with s.
-    assert_eq!(a.align_span(), (0.0, 1000.0));
+    // The span defaults to the Measure plan's travel (its end targets and 5 mm of overrun),
+    // and is typed with s.
+    assert_eq!(a.align_span(), (-5.0, 1005.0));
     a.handle_key(ch('s'));
     assert!(
-        matches!(&a.overlay, Overlay::Input(i) if i.purpose == InputFor::AlignSpan && i.text == "0 1000")
+        matches!(&a.overlay, Overlay::Input(i) if i.purpose == InputFor::AlignSpan && i.text == "-5 1005")
     );
     type_line(&mut a, "0 400");
     assert_eq!(a.overlay, Overlay::None);
@@ -494,7 +495,8 @@ fn align_reads_both_ends_types_a_target_and_shows_the_advice_in_words() {
         r,
         Request::AlignAdvice {
             from_mm: 0.0,
-            to_mm: 400.0
+            to_mm: 400.0,
+            axis: Some("X".into())
         }
     );
     a.handle_reply(
