@@ -1051,6 +1051,7 @@ impl Core {
                 "run_id": r.id.0, "state": "running", "captures": done, "expected": total,
                 "missing": self.pipeline.run_missing().map(|m| m.len()).unwrap_or(0),
                 "program": r.program,
+                "paused": self.pipeline.paused(),
             }),
             _ => match self
                 .store
@@ -1466,6 +1467,7 @@ impl Core {
                     captures,
                     expected,
                     program: r.program.clone(),
+                    paused: p.paused().map(str::to_string),
                 }
             }),
         }

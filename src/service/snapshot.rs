@@ -32,6 +32,9 @@ pub struct RunView {
     pub expected: usize,
     /// Where the part program went (a file, or "twin").
     pub program: String,
+    /// Why the run is paused (a PSD without its spot), while it is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub paused: Option<String>,
 }
 
 /// The last PSD frame.

@@ -804,6 +804,10 @@ async fn capture_console_fixture() {
         .unwrap_or_else(|| "root".into());
     let rest = rig.snapshot().await;
     let plan = short_plan();
+    let travel = axiscomp::run::Plan::new(plan.clone())
+        .expect("plan")
+        .travel_mm();
+    crate::helpers::align_service(&rig.socket, &rig.twin, travel).await;
     let start = || Request::RunStart {
         plan: plan.clone(),
         dialect: None,

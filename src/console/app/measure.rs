@@ -160,6 +160,8 @@ pub struct RunProgress {
     pub missing: Option<usize>,
     pub program: Option<String>,
     pub notes: Option<String>,
+    /// Why the run is paused, while it is (the service's snapshot).
+    pub paused: Option<String>,
     /// The plan, when this console started the run (for the per-target view).
     pub plan: Option<Plan>,
     /// The captures so far as the service evaluates them (`run_result` of this run), for the
@@ -181,6 +183,7 @@ impl RunProgress {
             missing: None,
             program: None,
             notes: None,
+            paused: None,
             plan: None,
             live: None,
             first_seen: now,

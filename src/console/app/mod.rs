@@ -574,6 +574,7 @@ impl App {
                 r.observe(rv.captures, now);
                 r.expected = Some(rv.expected);
                 r.program = Some(rv.program.clone());
+                r.paused = rv.paused.clone();
             }
             None => {
                 // The run ended: ask how.

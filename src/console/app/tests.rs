@@ -54,10 +54,16 @@ fn quit_asks_while_a_run_is_active() {
                 captures: 1,
                 expected: 20,
                 program: "twin".into(),
+                paused: Some("PSD1 has no spot: the run is paused".into()),
             }),
             ..Snapshot::default()
         },
         t0,
+    );
+    // The snapshot's reason for a pause reaches the run's progress (Measure shows it).
+    assert_eq!(
+        a.run.as_ref().and_then(|r| r.paused.as_deref()),
+        Some("PSD1 has no spot: the run is paused")
     );
     assert!(a.handle_key(ch('q')).is_empty());
     assert_eq!(a.overlay, Overlay::Confirm(Confirm::Quit));
@@ -188,6 +194,7 @@ fn start_confirms_then_sends_the_plan_and_progress_gives_an_eta() {
             captures,
             expected: 20,
             program: "p.nc".into(),
+            paused: None,
         }),
         ..Snapshot::default()
     };

@@ -179,6 +179,9 @@ fn head_lines(r: &RunProgress, width: u16, theme: Theme) -> Vec<Line<'static>> {
         }
         None => Line::raw(format!("{} captures", r.captures)),
     });
+    if let (true, Some(why)) = (r.running(), &r.paused) {
+        lines.push(Line::styled(format!("PAUSED: {why}"), theme.warn()));
+    }
     lines.push(Line::raw(match (r.running(), r.eta()) {
         (true, Some(eta)) => format!(
             "ETA {} (watched for {})",
