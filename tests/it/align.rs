@@ -461,3 +461,102 @@ async fn the_service_advises_the_screw_turns_until_the_check_passes() {
         rig.twin.plant.mount()
     );
 }
+
+/// The live service, the beam cut mid-run (all three PSDs dark, as when someone walks through
+/// the beam): the run pauses and says why in the snapshot, the twin's CNC stops at its next
+/// stop, nothing is captured while the beam is off, and once it is back the rest of the cycle
+/// runs and the run finishes with every capture stored exactly once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_service_pauses_a_run_while_the_beam_is_cut_and_finishes_it_with_every_capture_once() {
+    use crate::helpers::{RigOptions, ServiceRig, align_service, short_plan};
+    use axiscomp::service::control::Request;
+    use axiscomp::store::{RunId, Store};
+    use std::time::Instant;
+    let rig = ServiceRig::start(RigOptions {
+        service_toml: "[tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n\n\
+                       [capture]\nframes = 100\nsettle_ms = 200\n"
+            .into(),
+        twin_cnc: true,
+        ..RigOptions::default()
+    })
+    .await;
+    let plan = short_plan();
+    let travel = Plan::new(plan.clone()).expect("plan").travel_mm();
+    align_service(&rig.socket, &rig.twin, travel).await;
+    let started = rig
+        .request(Request::RunStart {
+            plan: plan.clone(),
+            dialect: None,
+            notes: None,
+        })
+        .await
+        .expect("aligned: the run starts");
+    let id = RunId(started["run_id"].as_i64().expect("run id"));
+    let captures = || async {
+        rig.request(Request::RunStatus).await.expect("run status")["captures"]
+            .as_u64()
+            .unwrap_or(0)
+    };
+    let t0 = Instant::now();
+    while captures().await < 4 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(90),
+            "no 4 captures in 90 s"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    for k in 0..3 {
+        rig.twin.plant.set_blocked(k, true);
+    }
+    rig.wait_for(10, "the run paused", |s| {
+        s.run.as_ref().is_some_and(|r| r.paused.is_some())
+    })
+    .await;
+    let why = rig
+        .snapshot()
+        .await
+        .run
+        .and_then(|r| r.paused)
+        .unwrap_or_default();
+    assert!(why.contains("PSD1, PSD2, PSD3 have no spot"), "{why}");
+    let t1 = Instant::now();
+    while !rig.twin.cnc.lock().map(|c| c.stopped).unwrap_or(false) {
+        assert!(
+            t1.elapsed() < Duration::from_secs(30),
+            "the twin's CNC did not stop"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let at_stop = captures().await;
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    assert_eq!(captures().await, at_stop, "captured with the beam off");
+    for k in 0..3 {
+        rig.twin.plant.set_blocked(k, false);
+    }
+    let t2 = Instant::now();
+    loop {
+        let st = rig.request(Request::RunStatus).await.expect("run status");
+        match st["state"].as_str() {
+            Some("running") => {}
+            Some("finished") => break,
+            _ => panic!("the run ended so: {st}"),
+        }
+        assert!(
+            t2.elapsed() < Duration::from_secs(240),
+            "not finished: {st}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let stored = Store::open_read_only(&rig.store)
+        .expect("store")
+        .captures(id)
+        .expect("captures");
+    let keys: BTreeSet<TargetKey> = stored.iter().map(TargetKey::of).collect();
+    let p = Plan::new(plan).expect("plan");
+    assert_eq!(
+        stored.len(),
+        p.capture_count(),
+        "every capture exactly once"
+    );
+    assert_eq!(keys.len(), p.capture_count(), "no capture twice");
+}
