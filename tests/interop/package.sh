@@ -238,12 +238,12 @@ else
 out=${CARGO_TARGET_DIR:-target}/debian/package-test
 rm -rf "$out" && mkdir -p "$out"
 # The release build as the rest of CI makes it (so cargo-deb adds no build of its own), then
-# the packaging alone, timed.
+# the packaging alone, timed; --strip: the release profile keeps line tables, the package not.
 cargo build --release --locked
 start=$(date +%s.%N)
-"$cargo_deb" --no-build --deb-revision 1 -o "$out/" >/dev/null
+"$cargo_deb" --no-build --strip --deb-revision 1 -o "$out/" >/dev/null
 mid=$(date +%s.%N)
-"$cargo_deb" --no-build --deb-revision 2 -o "$out/" >/dev/null
+"$cargo_deb" --no-build --strip --deb-revision 2 -o "$out/" >/dev/null
 deb1=$(realpath "$out"/axiscomp_*-1_*.deb)
 deb2=$(realpath "$out"/axiscomp_*-2_*.deb)
 python3 -c 'import sys; print(f"package.sh: {sys.argv[1]}: {int(sys.argv[2]) / 2**20:.1f} MiB ({int(sys.argv[3]) / 2**20:.1f} MiB installed); cargo deb --no-build took {float(sys.argv[5]) - float(sys.argv[4]):.1f} s")' \
