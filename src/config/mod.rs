@@ -189,6 +189,8 @@ pub struct RawPlc {
     pub pull_bind: String,
     pub pull_allow: Vec<String>,
     pub pull_writers: Vec<String>,
+    pub pull_max_connections: u64,
+    pub pull_idle_timeout_s: u64,
     pub positioning: String,
     pub straightness: bool,
     pub step_mm: f64,
@@ -970,6 +972,26 @@ fn plc_settings(v: &V, p: &RawPlc) -> Result<PlcSettings, ConfigError> {
             bind: v.addr("plc.pull_bind", &p.pull_bind)?,
             allow: ips("plc.pull_allow", &p.pull_allow)?,
             writers: ips("plc.pull_writers", &p.pull_writers)?,
+            max_connections: match p.pull_max_connections {
+                1..=1000 => p.pull_max_connections as usize,
+                n => {
+                    return Err(v.err(
+                        "plc.pull_max_connections",
+                        format!("{n} is out of range: use 1..=1000 (default 32)"),
+                    ));
+                }
+            },
+            idle_timeout: match p.pull_idle_timeout_s {
+                1..=3600 => Duration::from_secs(p.pull_idle_timeout_s),
+                n => {
+                    return Err(v.err(
+                        "plc.pull_idle_timeout_s",
+                        format!(
+                            "{n} s is out of range: use 1..=3600 s (default 60), longer than the PLC's poll period"
+                        ),
+                    ));
+                }
+            },
         })
     } else {
         None
@@ -1096,6 +1118,22 @@ mod tests {
         let pull = s.plc.pull.unwrap();
         assert_eq!(pull.allow.unwrap().len(), 2);
         assert_eq!(pull.writers, None);
+        assert_eq!(
+            (pull.max_connections, pull.idle_timeout),
+            (32, Duration::from_secs(60))
+        );
+        let limits = load_text(
+            "[plc]\npull = true\npull_max_connections = 4\npull_idle_timeout_s = 5\n",
+            &[],
+        )
+        .unwrap()
+        .plc
+        .pull
+        .unwrap();
+        assert_eq!(
+            (limits.max_connections, limits.idle_timeout),
+            (4, Duration::from_secs(5))
+        );
         assert_eq!(s.plc.tables.step_mm, Some(5.0));
         assert_eq!(
             s.plc.map,
@@ -1107,6 +1145,22 @@ mod tests {
             (
                 "pull = true\npull_allow = [\"plc.local\"]",
                 "plc.pull_allow",
+            ),
+            (
+                "pull = true\npull_max_connections = 0",
+                "plc.pull_max_connections",
+            ),
+            (
+                "pull = true\npull_max_connections = 1001",
+                "plc.pull_max_connections",
+            ),
+            (
+                "pull = true\npull_idle_timeout_s = 0",
+                "plc.pull_idle_timeout_s",
+            ),
+            (
+                "pull = true\npull_idle_timeout_s = 3601",
+                "plc.pull_idle_timeout_s",
             ),
             ("positioning = \"both\"", "plc.positioning"),
             ("heartbeat_timeout_ms = 9000", "plc.heartbeat_timeout_ms"),

@@ -23,6 +23,9 @@ pub enum ClientError {
         "cannot connect to {path}: {reason}; is the service running (systemctl status axiscomp)?"
     )]
     Connect { path: String, reason: String },
+    /// The socket refused this user (not in the viewer or operator group).
+    #[error("{0}")]
+    Forbidden(String),
     #[error("control connection: {0}")]
     Io(String),
     #[error("the service closed the connection")]
@@ -56,6 +59,7 @@ impl From<control::ClientError> for ClientError {
                 path,
                 reason: source.to_string(),
             },
+            e @ C::Forbidden { .. } => ClientError::Forbidden(e.to_string()),
             C::Io(e) => ClientError::Io(e.to_string()),
             C::Closed => ClientError::Closed,
             C::Reply(r) => ClientError::Reply(r),

@@ -16,6 +16,10 @@
 //!   one, gets no reply, as from a device that died mid-request (the twin's PLC uses it to
 //!   drop out after N writes, then stops and restarts the server).
 //!
+//! - Idle connections: with [`ServerConfig::idle_timeout`] set, a connection on which no complete
+//!   request arrived for that long is closed (logged), so idle peers and slow writers that
+//!   trickle a frame byte by byte cannot hold a place of `max_connections` for ever.
+//!
 //! Limits that come from tokio-modbus and that we cannot answer with an exception: a frame its
 //! decoder rejects (bad MBAP header, function codes ≥ 0x80, a write whose byte count does not
 //! match its quantity) closes that connection; the server keeps running.
@@ -211,6 +215,9 @@ pub struct ServerConfig {
     /// [`DEFAULT_MAX_CONNECTIONS`]). Each connection's buffers are bounded by the Modbus
     /// frame (at most 260 bytes per ADU).
     pub max_connections: usize,
+    /// Close a connection on which no complete request arrived for this long (`None`: keep
+    /// it for as long as the peer does).
+    pub idle_timeout: Option<Duration>,
 }
 
 impl ServerConfig {
@@ -219,6 +226,7 @@ impl ServerConfig {
             bind,
             allow: None,
             max_connections: DEFAULT_MAX_CONNECTIONS,
+            idle_timeout: None,
         }
     }
 }
@@ -258,6 +266,7 @@ struct Inner {
     /// Connections whose service still exists.
     open: AtomicU64,
     max_connections: usize,
+    idle_timeout: Option<Duration>,
     /// When a refusal was last logged, and the refusals since.
     refusal_log: Mutex<(Option<Instant>, u64)>,
 }
@@ -344,6 +353,7 @@ impl ServerHandle {
             exceptions: AtomicU64::new(0),
             open: AtomicU64::new(0),
             max_connections: config.max_connections.max(1),
+            idle_timeout: config.idle_timeout,
             refusal_log: Mutex::new((None, 0)),
         });
         let handle = ServerHandle {
@@ -386,7 +396,9 @@ impl ServerHandle {
                     if let Err(e) = stream.set_nodelay(true) {
                         tracing::debug!(%peer, error = %e, "TCP_NODELAY not set");
                     }
-                    Ok(Some((Service::new(inner, peer), stream)))
+                    let service = Service::new(inner, peer);
+                    let stream = IdleStream::new(stream, &service);
+                    Ok(Some((service, stream)))
                 }
             };
             let on_error = |e: io::Error| tracing::debug!(error = %e, "modbus connection ended");
@@ -470,12 +482,113 @@ impl ServerHandle {
 struct Service {
     inner: Arc<Inner>,
     peer: SocketAddr,
+    /// When the last complete request arrived (the connection's start before the first): the
+    /// idle timeout counts from here.
+    last_request: Arc<Mutex<Instant>>,
 }
 
 impl Service {
     fn new(inner: Arc<Inner>, peer: SocketAddr) -> Service {
         inner.open.fetch_add(1, Ordering::Relaxed);
-        Service { inner, peer }
+        Service {
+            inner,
+            peer,
+            last_request: Arc::new(Mutex::new(Instant::now())),
+        }
+    }
+}
+
+/// A connection's stream that ends with an error once no complete request has arrived for the
+/// server's idle timeout (bytes alone do not count, so a slow writer is closed too). Without an
+/// idle timeout it only passes reads and writes through.
+struct IdleStream {
+    stream: TcpStream,
+    inner: Arc<Inner>,
+    peer: SocketAddr,
+    last_request: Arc<Mutex<Instant>>,
+    timer: Option<Pin<Box<tokio::time::Sleep>>>,
+}
+
+impl IdleStream {
+    fn new(stream: TcpStream, service: &Service) -> Self {
+        IdleStream {
+            stream,
+            inner: service.inner.clone(),
+            peer: service.peer,
+            last_request: service.last_request.clone(),
+            timer: None,
+        }
+    }
+
+    /// `Ready(error)` once the connection has been idle too long; otherwise the timer is set
+    /// for the deadline (a later request moves it) and `Pending`.
+    fn poll_idle(&mut self, cx: &mut std::task::Context<'_>) -> std::task::Poll<io::Error> {
+        use std::task::Poll;
+        let Some(idle) = self.inner.idle_timeout else {
+            return Poll::Pending;
+        };
+        loop {
+            let last = *self.last_request.lock().unwrap_or_else(|p| p.into_inner());
+            let deadline = tokio::time::Instant::from_std(last + idle);
+            if tokio::time::Instant::now() >= deadline {
+                tracing::info!(
+                    server = %self.inner.addr, peer = %self.peer,
+                    "modbus connection closed: no request for {:.1} s (the idle timeout)",
+                    idle.as_secs_f64()
+                );
+                return Poll::Ready(io::Error::new(
+                    io::ErrorKind::TimedOut,
+                    "no request within the idle timeout",
+                ));
+            }
+            let timer = self
+                .timer
+                .get_or_insert_with(|| Box::pin(tokio::time::sleep_until(deadline)));
+            if timer.deadline() != deadline {
+                timer.as_mut().reset(deadline);
+            }
+            if timer.as_mut().poll(cx).is_pending() {
+                return Poll::Pending;
+            }
+        }
+    }
+}
+
+impl tokio::io::AsyncRead for IdleStream {
+    fn poll_read(
+        self: Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &mut tokio::io::ReadBuf<'_>,
+    ) -> std::task::Poll<io::Result<()>> {
+        let this = self.get_mut();
+        match Pin::new(&mut this.stream).poll_read(cx, buf) {
+            std::task::Poll::Pending => this.poll_idle(cx).map(Err),
+            ready => ready,
+        }
+    }
+}
+
+impl tokio::io::AsyncWrite for IdleStream {
+    fn poll_write(
+        self: Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &[u8],
+    ) -> std::task::Poll<io::Result<usize>> {
+        Pin::new(&mut self.get_mut().stream).poll_write(cx, buf)
+    }
+
+    fn poll_flush(
+        self: Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<io::Result<()>> {
+        Pin::new(&mut self.get_mut().stream).poll_flush(cx)
+    }
+
+    fn poll_shutdown(
+        self: Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<io::Result<()>> {
+        Pin::new(&mut self.get_mut().stream).poll_shutdown(cx)
     }
 }
 
@@ -497,6 +610,7 @@ impl tokio_modbus::server::Service for Service {
     fn call(&self, req: Self::Request) -> Self::Future {
         let inner = &self.inner;
         inner.requests.fetch_add(1, Ordering::Relaxed);
+        *self.last_request.lock().unwrap_or_else(|p| p.into_inner()) = Instant::now();
         let faults = *inner.faults.lock().unwrap_or_else(|p| p.into_inner());
         let result = match faults.exception {
             Some(e) => Err(e),

@@ -21,6 +21,8 @@
 //!   function" (that peer may read, not write); the connection is kept either way and nothing
 //!   changes. Peers not in `allow` are refused on accept, before any Modbus traffic (the
 //!   scaffolding's allow-list).
+//! - At most `max_connections` peers at once, and a connection with no request for
+//!   `idle_timeout` is closed (both logged; `plc.pull_max_connections`, `plc.pull_idle_timeout_s`).
 //! - Unit ids other than the map's and 0xFF get "gateway target device failed to respond".
 
 use super::map::{CncMap, Field, Writer};
@@ -45,7 +47,15 @@ pub struct PullConfig {
     /// Peers allowed to write the acknowledgement range (`None`: every connected peer). The
     /// CNC's PLC belongs here; a console or monitoring tool may read but not write.
     pub writers: Option<Vec<IpAddr>>,
+    /// Connections open at once; more are closed on accept and logged.
+    pub max_connections: usize,
+    /// A connection with no request for this long is closed and logged (a PLC polls far
+    /// more often; an idle or trickling peer would otherwise hold a place for ever).
+    pub idle_timeout: Duration,
 }
+
+/// The pull server's idle timeout unless configured (`plc.pull_idle_timeout_s`).
+pub const DEFAULT_PULL_IDLE_TIMEOUT: Duration = Duration::from_secs(60);
 
 impl PullConfig {
     pub fn new(bind: SocketAddr) -> Self {
@@ -53,6 +63,8 @@ impl PullConfig {
             bind,
             allow: None,
             writers: None,
+            max_connections: crate::modbus::server::DEFAULT_MAX_CONNECTIONS,
+            idle_timeout: DEFAULT_PULL_IDLE_TIMEOUT,
         }
     }
 }
@@ -286,6 +298,8 @@ impl PullServer {
         let server = ServerHandle::start(
             ServerConfig {
                 allow: config.allow,
+                max_connections: config.max_connections,
+                idle_timeout: Some(config.idle_timeout),
                 ..ServerConfig::new(config.bind)
             },
             bank.clone(),

@@ -4,8 +4,9 @@
 //!
 //! Viewing (`status`, `subscribe`, `run_status`, `runs`, `run_result`, `audit`,
 //! `table_list`, `table_status`) needs the viewer role; anything that changes state needs the operator role, and the service writes it
-//! to the audit log; the `status` reply names the peer's `user` and `role`. Roles come from the peer's credentials (`peer`). The socket itself is
-//! world-connectable: access is decided per request, so refusals can say why.
+//! to the audit log; the `status` reply names the peer's `user` and `role`. Roles come from the peer's credentials (`peer`). The socket file
+//! admits only its owner and the two role groups ([`open_to_roles`]): others are refused on connect
+//! by the kernel; within, access is decided per request, so a viewer's refusal can say why.
 
 use super::peer::{Peer, Role, RolePolicy};
 use super::shutdown::Shutdown;
@@ -215,7 +216,7 @@ pub enum ControlError {
 }
 
 /// Bind the control socket at `path`: creates the parent directory, replaces a stale socket,
-/// opens it to every local user (access is checked per request).
+/// and lets only its owner connect until [`open_to_roles`] admits the role groups.
 pub fn bind(path: &Path) -> Result<UnixListener, ControlError> {
     let err = |source| ControlError::Io {
         path: path.display().to_string(),
@@ -231,8 +232,39 @@ pub fn bind(path: &Path) -> Result<UnixListener, ControlError> {
     }
     let listener = UnixListener::bind(path).map_err(err)?;
     use std::os::unix::fs::PermissionsExt;
-    std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o666)).map_err(err)?;
+    std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o600)).map_err(err)?;
     Ok(listener)
+}
+
+/// Let the policy's operator and viewer groups connect to the socket at `path` (an access
+/// ACL; mode 0660 as `ls` shows it, nothing for others). On a file system without POSIX ACLs
+/// the socket is opened to every local user instead, with a warning: requests are still
+/// checked per role.
+pub fn open_to_roles(path: &Path, policy: &RolePolicy) -> Result<(), ControlError> {
+    let gids: Vec<u32> = [policy.operator_gid, policy.viewer_gid]
+        .into_iter()
+        .flatten()
+        .collect();
+    match super::peer::open_to_groups(path, &gids) {
+        Ok(()) => Ok(()),
+        Err(e) if e.kind() == std::io::ErrorKind::Unsupported => {
+            tracing::warn!(
+                "control socket {}: the file system has no POSIX ACLs, so every local user may connect (requests are still checked per role)",
+                path.display()
+            );
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o666)).map_err(
+                |source| ControlError::Io {
+                    path: path.display().to_string(),
+                    source,
+                },
+            )
+        }
+        Err(source) => Err(ControlError::Io {
+            path: path.display().to_string(),
+            source,
+        }),
+    }
 }
 
 /// Serve the control socket until shutdown. Each connection gets its own task.
@@ -398,24 +430,20 @@ impl Connection {
                 }
             };
             if peer.role.is_none_or(|r| r < request.needs()) {
+                let (role, group, key) = if request.needs() == Role::Operator {
+                    ("operator", &self.policy.operator_group, "operator_group")
+                } else {
+                    ("viewer", &self.policy.viewer_group, "viewer_group")
+                };
                 let msg = format!(
-                    "user {} (uid {}) may not {}: it needs the {} role ({} group)",
+                    "user {} (uid {}) may not {}: it needs the {role} role, membership of group {group} (service.{key}); an administrator adds it with: adduser {} {group}",
                     peer.user,
                     peer.uid,
                     serde_json::to_value(&request)
                         .ok()
                         .and_then(|v| v.get("cmd").and_then(|c| c.as_str().map(str::to_string)))
                         .unwrap_or_default(),
-                    if request.needs() == Role::Operator {
-                        "operator"
-                    } else {
-                        "viewer"
-                    },
-                    if request.needs() == Role::Operator {
-                        "operator_group"
-                    } else {
-                        "viewer_group"
-                    },
+                    peer.user,
                 );
                 if wr.write_all(error_line(&msg).as_bytes()).await.is_err() {
                     return;
@@ -505,6 +533,10 @@ pub enum ClientError {
         path: String,
         source: std::io::Error,
     },
+    #[error(
+        "cannot connect to {path}: permission denied; only the service's viewer and operator groups may (axiscomp-view and axiscomp as installed): ask an administrator to add you to one"
+    )]
+    Forbidden { path: String },
     #[error("control connection: {0}")]
     Io(#[from] std::io::Error),
     #[error("the service closed the connection")]
@@ -518,12 +550,14 @@ pub enum ClientError {
 impl Client {
     /// Connect to the socket at `path`.
     pub async fn connect(path: &Path) -> Result<Client, ClientError> {
-        let s = UnixStream::connect(path)
-            .await
-            .map_err(|source| ClientError::Connect {
-                path: path.display().to_string(),
-                source,
-            })?;
+        let s = UnixStream::connect(path).await.map_err(|source| {
+            let path = path.display().to_string();
+            if source.kind() == std::io::ErrorKind::PermissionDenied {
+                ClientError::Forbidden { path }
+            } else {
+                ClientError::Connect { path, source }
+            }
+        })?;
         let (rd, wr) = s.into_split();
         Ok(Client {
             lines: BufReader::new(rd).lines(),

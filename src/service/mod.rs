@@ -222,6 +222,7 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
     });
     let tables_task = tokio::spawn(tables.run(tables_rx, shutdown.clone()));
     let policy = peer::RolePolicy::from_names(&s.service.operator_group, &s.service.viewer_group);
+    control::open_to_roles(&s.service.socket, &policy)?;
     let control = tokio::spawn(control::serve(
         listener,
         policy,

@@ -2,6 +2,10 @@
 //! may do: viewing needs the viewer group, changing anything the operator group (DESIGN §8).
 //! Root and the service's own user are operators. Group membership includes supplementary
 //! groups, looked up through the C library (so NSS users and groups work).
+//!
+//! The socket file itself admits only the two groups (and its owner): a POSIX access ACL
+//! ([`open_to_groups`]), since one file has one group and a site's viewers and operators are
+//! two. Everyone else is refused by the kernel on connect.
 
 use serde::Serialize;
 use std::ffi::{CStr, CString};
@@ -31,6 +35,9 @@ pub struct RolePolicy {
     pub operator_gid: Option<u32>,
     pub viewer_gid: Option<u32>,
     pub service_uid: u32,
+    /// The group names, for messages.
+    pub operator_group: String,
+    pub viewer_group: String,
 }
 
 impl RolePolicy {
@@ -39,6 +46,8 @@ impl RolePolicy {
         RolePolicy {
             operator_gid: group_gid(operator_group),
             viewer_gid: group_gid(viewer_group),
+            operator_group: operator_group.to_string(),
+            viewer_group: viewer_group.to_string(),
             // SAFETY: geteuid has no preconditions.
             service_uid: unsafe { libc::geteuid() },
         }
@@ -71,6 +80,59 @@ impl RolePolicy {
             role: self.role_of(uid, gid),
         }
     }
+}
+
+/// The `system.posix_acl_access` value (linux/posix_acl_xattr.h: version 2, then tag, permission
+/// and id per entry, little-endian, sorted by tag and id) that gives the owner and the groups
+/// `gids` read and write, and the owning group and everyone else nothing.
+pub fn acl_xattr(gids: &[u32]) -> Vec<u8> {
+    const USER_OBJ: u16 = 0x01;
+    const GROUP_OBJ: u16 = 0x04;
+    const GROUP: u16 = 0x08;
+    const MASK: u16 = 0x10;
+    const OTHER: u16 = 0x20;
+    const RW: u16 = 6;
+    const NO_ID: u32 = u32::MAX;
+    let mut gids = gids.to_vec();
+    gids.sort_unstable();
+    gids.dedup();
+    let mut entries = vec![(USER_OBJ, RW, NO_ID), (GROUP_OBJ, 0, NO_ID)];
+    entries.extend(gids.iter().map(|&g| (GROUP, RW, g)));
+    entries.extend([(MASK, RW, NO_ID), (OTHER, 0, NO_ID)]);
+    let mut out = 2u32.to_le_bytes().to_vec();
+    for (tag, perm, id) in entries {
+        out.extend(tag.to_le_bytes());
+        out.extend(perm.to_le_bytes());
+        out.extend(id.to_le_bytes());
+    }
+    out
+}
+
+/// Let only the owner and the groups `gids` connect to the socket at `path` (read and write),
+/// with an access ACL. Fails with `Unsupported` on a file system without POSIX ACLs.
+pub fn open_to_groups(path: &std::path::Path, gids: &[u32]) -> std::io::Result<()> {
+    use std::os::unix::ffi::OsStrExt;
+    let cpath = CString::new(path.as_os_str().as_bytes())
+        .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e))?;
+    let value = acl_xattr(gids);
+    // SAFETY: both strings are NUL-terminated and value's pointer and length match.
+    let rc = unsafe {
+        libc::setxattr(
+            cpath.as_ptr(),
+            c"system.posix_acl_access".as_ptr(),
+            value.as_ptr().cast(),
+            value.len(),
+            0,
+        )
+    };
+    if rc == 0 {
+        return Ok(());
+    }
+    let e = std::io::Error::last_os_error();
+    if e.raw_os_error() == Some(libc::EOPNOTSUPP) {
+        return Err(std::io::Error::new(std::io::ErrorKind::Unsupported, e));
+    }
+    Err(e)
 }
 
 fn buffer_size(kind: libc::c_int) -> usize {
@@ -156,6 +218,8 @@ mod tests {
     #[test]
     fn root_and_self_are_operators_strangers_nothing() {
         let p = RolePolicy {
+            operator_group: String::new(),
+            viewer_group: String::new(),
             operator_gid: None,
             viewer_gid: None,
             service_uid: 4242,
@@ -173,6 +237,8 @@ mod tests {
         assert_eq!(user_name(0).as_deref(), Some("root"));
         assert!(user_groups("root", 0).contains(&0));
         let p = RolePolicy {
+            operator_group: String::new(),
+            viewer_group: String::new(),
             operator_gid: None,
             viewer_gid: Some(65534),
             service_uid: 4242,
@@ -181,5 +247,41 @@ mod tests {
         assert_eq!(p.role_of(54321, 65534), Some(Role::Viewer));
         assert_eq!(p.role_of(54321, 1), None);
         assert_eq!(group_gid("no-such-group-axiscomp"), None);
+    }
+
+    #[test]
+    fn the_socket_acl_is_the_kernel_format() {
+        // Version 2; user::rw-, group::---, group:100:rw-, group:1001:rw-, mask::rw-,
+        // other::--- (what `setfacl -m g:100:rw,g:1001:rw,g::-,o::-` stores).
+        let want: Vec<u8> = [
+            &[2, 0, 0, 0][..],
+            &[1, 0, 6, 0, 0xff, 0xff, 0xff, 0xff],
+            &[4, 0, 0, 0, 0xff, 0xff, 0xff, 0xff],
+            &[8, 0, 6, 0, 100, 0, 0, 0],
+            &[8, 0, 6, 0, 0xe9, 0x03, 0, 0],
+            &[0x10, 0, 6, 0, 0xff, 0xff, 0xff, 0xff],
+            &[0x20, 0, 0, 0, 0xff, 0xff, 0xff, 0xff],
+        ]
+        .concat();
+        assert_eq!(acl_xattr(&[1001, 100, 1001]), want);
+    }
+
+    #[test]
+    fn a_socket_open_to_groups_refuses_others() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = std::env::temp_dir().join(format!("axiscomp-acl-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("s.sock");
+        let _ = std::fs::remove_file(&path);
+        let _l = std::os::unix::net::UnixListener::bind(&path).unwrap();
+        match open_to_groups(&path, &[65534]) {
+            Ok(()) => {
+                let mode = std::fs::metadata(&path).unwrap().permissions().mode() & 0o777;
+                // Owner rw, the mask (shown as the group bits) rw, others nothing.
+                assert_eq!(mode, 0o660, "{mode:o}");
+            }
+            Err(e) => assert_eq!(e.kind(), std::io::ErrorKind::Unsupported, "{e}"),
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -448,6 +448,82 @@ async fn the_pull_server_serves_the_table_and_guards_the_ack_range() {
     assert_eq!(ack.status.active_sequence, 6);
 }
 
+/// The pull server's limits (`plc.pull_max_connections`, `plc.pull_idle_timeout_s`): a peer
+/// beyond the limit is closed on accept; a peer that sends nothing, and one that trickles a
+/// frame byte by byte, are closed once no request came for the idle timeout, and not before;
+/// a PLC polling more often than that stays connected; the places freed are taken again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_pull_server_closes_idle_peers_and_refuses_beyond_its_limit() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    use tokio::net::TcpStream;
+    let idle = Duration::from_millis(1000);
+    let srv = PullServer::start(
+        cnc_map("generic.toml"),
+        PullConfig {
+            max_connections: 3,
+            idle_timeout: idle,
+            ..PullConfig::new("127.0.0.1:0".parse().unwrap())
+        },
+    )
+    .await
+    .unwrap();
+    let addr = srv.local_addr();
+    // Read holding register 0 (function 3) from unit 1, the generic map's.
+    let read = [3u8, 0, 0, 0, 1];
+    let mut plc = TcpStream::connect(addr).await.unwrap();
+    assert_eq!(raw_request(&mut plc, 1, 1, &read).await, [3, 2, 0, 0]);
+    let opened = Instant::now();
+    let mut silent = TcpStream::connect(addr).await.unwrap();
+    let mut slow = TcpStream::connect(addr).await.unwrap();
+    // An MBAP header announcing 253 bytes, one byte every 100 ms: never a whole request.
+    let trickle = tokio::spawn(async move {
+        for b in [0u8, 9, 0, 0, 0, 253, 1, 3].into_iter().chain([0u8; 40]) {
+            if slow.write_all(&[b]).await.is_err() {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        slow
+    });
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let mut fourth = TcpStream::connect(addr).await.unwrap();
+    let mut buf = [0u8; 16];
+    let n = tokio::time::timeout(Duration::from_secs(2), fourth.read(&mut buf))
+        .await
+        .expect("the fourth connection is closed on accept");
+    assert!(matches!(n, Ok(0) | Err(_)), "{n:?}");
+    assert_eq!(srv.server().stats().refused, 1);
+
+    // The PLC polls every 200 ms for 2.4 s (more than twice the idle timeout): always answered.
+    let poller = tokio::spawn(async move {
+        for tid in 2..14u16 {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            assert_eq!(raw_request(&mut plc, tid, 1, &read).await, [3, 2, 0, 0]);
+        }
+        plc
+    });
+    let n = tokio::time::timeout(Duration::from_secs(5), silent.read(&mut buf))
+        .await
+        .expect("the silent peer is closed within 5 s");
+    assert!(matches!(n, Ok(0) | Err(_)), "{n:?}");
+    let closed_after = opened.elapsed();
+    assert!(
+        closed_after >= idle,
+        "closed after {closed_after:?}, before the idle timeout"
+    );
+    let mut slow = trickle.await.unwrap();
+    let n = tokio::time::timeout(Duration::from_secs(5), slow.read(&mut buf))
+        .await
+        .expect("the trickling peer is closed");
+    assert!(matches!(n, Ok(0) | Err(_)), "{n:?}");
+    let mut plc = poller.await.unwrap();
+    assert_eq!(raw_request(&mut plc, 20, 1, &read).await, [3, 2, 0, 0]);
+    // Two places are free again.
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let mut again = TcpStream::connect(addr).await.unwrap();
+    assert_eq!(raw_request(&mut again, 21, 1, &read).await, [3, 2, 0, 0]);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_twin_plc_pulls_from_the_pull_server() {
     let map = cnc_map("generic.toml");

@@ -367,7 +367,9 @@ async fn blocked_beam_frames_are_invalid_and_not_published() {
     rig.stop().await;
 }
 
-/// A peer that is neither operator nor viewer is refused, by name, and changes nothing.
+/// A peer that is neither operator nor viewer is refused by the kernel on connect (the socket
+/// admits only the role groups, by its ACL) and changes nothing. Refusals by role, per
+/// request and by name, are tested with real users in tests/interop/package.sh.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stranger_is_refused_by_peer_credentials() {
     use std::os::unix::process::CommandExt;
@@ -388,7 +390,7 @@ async fn a_stranger_is_refused_by_peer_credentials() {
         dir = d.parent().map(std::path::Path::to_path_buf);
     }
     let script = format!(
-        "import socket,json\nfor req in ({{'cmd':'zero'}},{{'cmd':'status'}}):\n s=socket.socket(socket.AF_UNIX); s.connect({:?}); s.sendall((json.dumps(req)+'\\n').encode()); print(s.makefile().readline().strip()); s.close()\n",
+        "import socket,json\ns=socket.socket(socket.AF_UNIX)\ntry:\n s.connect({:?}); s.sendall(b'{{\"cmd\":\"zero\"}}\\n'); print(s.makefile().readline().strip())\nexcept PermissionError as e:\n print('refused', e.errno)\n",
         rig.socket.display().to_string()
     );
     let socket_path = rig.socket.clone();
@@ -409,17 +411,12 @@ async fn a_stranger_is_refused_by_peer_credentials() {
         "{text} {}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let lines: Vec<&str> = text.lines().collect();
-    assert_eq!(lines.len(), 2, "{text} (socket {})", socket_path.display());
+    // EACCES (13) where the file system has ACLs; a refusal by role where it has none.
     assert!(
-        lines[0].contains("may not zero") && lines[0].contains("operator"),
-        "{}",
-        lines[0]
-    );
-    assert!(
-        lines[1].contains("may not status") && lines[1].contains("viewer"),
-        "{}",
-        lines[1]
+        text.trim() == format!("refused {}", libc::EACCES)
+            || (text.contains("may not zero") && text.contains("operator")),
+        "{text} (socket {})",
+        socket_path.display()
     );
     // Nothing changed: no zero reference was taken.
     let s = rig.snapshot().await;
