@@ -8,7 +8,8 @@
 # window, SETTLE_S = 1 s after it resumed) then, the service stopped (SIGSTOP), libmodbus for
 # WINDOW_S seconds (blocks/s). Fine slices keep the two under the same load on a shared
 # machine (a neighbour's compile moves both alike). Prints frames/s, blocks/s and their ratio
-# per run, and the ratio of the totals.
+# per run, and the ratio of the totals. The service reads with configs/twin-service.toml's
+# io.pipeline (4 reads in flight; AXISCOMP__IO__PIPELINE=1 for one at a time).
 #
 # libmodbus is never a build dependency: the bench fetches the Debian packages (libmodbus5,
 # libmodbus-dev) with `apt-get download` into a temporary directory and unpacks them there

@@ -41,8 +41,8 @@ pub struct AcquireConfig {
     /// Frames in the statistics window (default 1024).
     pub window: usize,
     /// Block reads in flight when unthrottled through [`Acquisition::spawn_pipelined`]
-    /// (default [`DEFAULT_DEPTH`](crate::modbus::pipelined::DEFAULT_DEPTH), 4; 1 for a module
-    /// that takes one request at a time).
+    /// (default [`DEFAULT_DEPTH`](crate::modbus::pipelined::DEFAULT_DEPTH), 1: one at a time,
+    /// as every module takes; more for a module that answers requests queued behind another).
     pub pipeline: usize,
 }
 

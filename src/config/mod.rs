@@ -1118,15 +1118,15 @@ mod tests {
     }
 
     #[test]
-    fn io_pipeline_defaults_to_four_and_is_bounded() {
-        assert_eq!(load_text("", &[]).unwrap().io.acquire.pipeline, 4);
+    fn io_pipeline_defaults_to_one_and_is_bounded() {
+        assert_eq!(load_text("", &[]).unwrap().io.acquire.pipeline, 1);
         assert_eq!(
-            load_text("[io]\npipeline = 1\n", &[])
+            load_text("[io]\npipeline = 4\n", &[])
                 .unwrap()
                 .io
                 .acquire
                 .pipeline,
-            1
+            4
         );
         for bad in ["0", "17", "-1"] {
             let e = load_text(&format!("[io]\npipeline = {bad}\n"), &[]).unwrap_err();
