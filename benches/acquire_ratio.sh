@@ -42,6 +42,12 @@ twin_configs "$work"
 bin="$work/axiscomp"
 cp "$built" "$bin"
 sed -i 's/^rate_hz = .*/rate_hz = 0.0/' "$work/service.toml"
+# A binary from before io.pipeline (the "before" of a before/after) refuses the key: drop it.
+checked=$("$bin" check --config "$work/service.toml" 2>&1 || true)
+if grep -q 'unknown field `pipeline`' <<<"$checked"; then
+  sed -i '/^pipeline = /d' "$work/service.toml"
+  echo "acquire_ratio.sh: $built does not know io.pipeline: reading without it"
+fi
 sock="$work/control.sock"
 
 # libmodbus, unpacked into the work directory (or LIBMODBUS_PREFIX).
