@@ -7,6 +7,9 @@
 //! [`Acquisition::spawn_paced`] reads at a fixed rate through a [`PacedReader`] instead of a
 //! [`Link`]: one wake-up per frame instead of two, each frame published one period after its
 //! reply arrived (and stamped with that arrival).
+//! [`Acquisition::spawn_pipelined`] reads unthrottled through a [`PipelinedReader`] instead:
+//! several requests in flight, so the module answers the next read while this one is decoded
+//! and published, and nothing is allocated per frame.
 //! While the link is down the loop waits for it instead of spinning. Frames with a PSD below
 //! its SUM threshold are published marked invalid (that spot `None`) and counted; consumers
 //! must not average them in.
@@ -15,7 +18,7 @@ use super::Frame;
 use super::decode::{self, DecodeError};
 use super::map::IoMap;
 use crate::modbus::link::{LinkConfig, LinkError, LinkState, Window};
-use crate::modbus::{Link, Monitor, PacedReader};
+use crate::modbus::{Link, Monitor, PacedReader, PipelinedReader};
 use crate::util::pace::Pacer;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -37,6 +40,10 @@ pub struct AcquireConfig {
     pub capacity: usize,
     /// Frames in the statistics window (default 1024).
     pub window: usize,
+    /// Block reads in flight when unthrottled through [`Acquisition::spawn_pipelined`]
+    /// (default [`DEFAULT_DEPTH`](crate::modbus::pipelined::DEFAULT_DEPTH), 1: one at a time,
+    /// as every module takes; more for a module that answers requests queued behind another).
+    pub pipeline: usize,
 }
 
 impl AcquireConfig {
@@ -60,6 +67,7 @@ impl Default for AcquireConfig {
             rate_hz: 200.0,
             capacity: 4096,
             window: 1024,
+            pipeline: crate::modbus::pipelined::DEFAULT_DEPTH,
         }
     }
 }
@@ -148,6 +156,21 @@ impl Acquisition {
         })
     }
 
+    /// Start reading `map`'s block from the device in `link` as fast as it answers, with
+    /// `config.pipeline` reads in flight, through a [`PipelinedReader`] of its own
+    /// (`config.rate_hz` is not used).
+    pub fn spawn_pipelined(
+        link: LinkConfig,
+        map: Arc<IoMap>,
+        config: AcquireConfig,
+    ) -> Acquisition {
+        let (reader, monitor) =
+            PipelinedReader::new(link, map.kind, map.unit_id, map.block, config.pipeline);
+        Self::start(monitor, config, |out| {
+            tokio::spawn(run_pipelined(reader, map, config, out))
+        })
+    }
+
     fn start(
         link: Monitor,
         config: AcquireConfig,
@@ -168,6 +191,7 @@ impl Acquisition {
             latest: latest_tx,
             counters: counters.clone(),
             seq: 0,
+            last_stamp: None,
         });
         Acquisition {
             frames,
@@ -232,6 +256,9 @@ struct Outputs {
     latest: watch::Sender<Option<Frame>>,
     counters: Arc<Mutex<Counters>>,
     seq: u64,
+    /// The last reply time and its wall-clock time: replies read together (pipelined) share
+    /// one instant and get one wall time, so `unix_us` never steps back between them.
+    last_stamp: Option<(Instant, i64)>,
 }
 
 impl Outputs {
@@ -244,8 +271,12 @@ impl Outputs {
         sent: Instant,
         at: Instant,
     ) -> Result<(), AcquireError> {
-        let wall = SystemTime::now() - Instant::now().saturating_duration_since(at);
-        let frame = decode::frame(map, block, self.seq, at, unix_us(wall))?;
+        let wall = match self.last_stamp {
+            Some((last, us)) if last == at => us,
+            _ => unix_us(SystemTime::now() - Instant::now().saturating_duration_since(at)),
+        };
+        self.last_stamp = Some((at, wall));
+        let frame = decode::frame(map, block, self.seq, at, wall)?;
         self.seq += 1;
         {
             let mut c = lock(&self.counters);
@@ -339,6 +370,30 @@ async fn run_paced(
             Some(Err(e)) => AcquireError::Link(e),
         };
         out.count(error);
+    }
+}
+
+/// The pipelined loop: the reader's own backoff paces reconnects; after an exception or an
+/// undecodable block the next read waits a little (the module answers at once, again).
+async fn run_pipelined(
+    mut reader: PipelinedReader,
+    map: Arc<IoMap>,
+    _config: AcquireConfig,
+    mut out: Outputs,
+) {
+    loop {
+        let error = match reader.next().await {
+            Ok(b) => match out.publish(&map, b.registers, b.sent, b.at) {
+                Ok(()) => continue,
+                Err(e) => e,
+            },
+            Err(e) => AcquireError::Link(e),
+        };
+        out.count(error);
+        match error {
+            AcquireError::Link(e) if e.drops_connection() || link_down(&e) => {}
+            _ => tokio::time::sleep(Duration::from_millis(10)).await,
+        }
     }
 }
 

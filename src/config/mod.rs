@@ -71,6 +71,8 @@ pub struct RawIo {
     pub timeout_ms: u64,
     pub reconnect_min_ms: u64,
     pub reconnect_max_ms: u64,
+    /// Block reads in flight at rate_hz = 0 (1..=16).
+    pub pipeline: i64,
 }
 
 /// `[can]`
@@ -673,6 +675,7 @@ fn validate(
         map: v.resource("io.map", &i.map, &["generic"])?,
         acquire: AcquireConfig {
             rate_hz: rate,
+            pipeline: io_pipeline(&v, i.pipeline)?,
             ..AcquireConfig::default()
         },
     };
@@ -917,6 +920,19 @@ fn validate(
         comp,
         sources,
     })
+}
+
+/// `io.pipeline`: block reads in flight when unthrottled (modbus::pipelined).
+fn io_pipeline(v: &V, n: i64) -> Result<usize, ConfigError> {
+    let max = crate::modbus::pipelined::MAX_DEPTH as i64;
+    if (1..=max).contains(&n) {
+        Ok(n as usize)
+    } else {
+        Err(v.err(
+            "io.pipeline",
+            format!("{n} is out of range: use 1..={max} (1 for a module that takes one request at a time)"),
+        ))
+    }
 }
 
 fn plc_settings(v: &V, p: &RawPlc) -> Result<PlcSettings, ConfigError> {
@@ -1190,6 +1206,29 @@ mod tests {
         assert_eq!(s.io.acquire.rate_hz, 100.0);
         assert_eq!(s.io.link.addr, "10.0.0.5:502".parse().unwrap());
         assert!(matches!(s.can, CanSettings::Cannelloni { .. }));
+    }
+
+    #[test]
+    fn io_pipeline_defaults_to_one_and_is_bounded() {
+        assert_eq!(load_text("", &[]).unwrap().io.acquire.pipeline, 1);
+        assert_eq!(
+            load_text("[io]\npipeline = 4\n", &[])
+                .unwrap()
+                .io
+                .acquire
+                .pipeline,
+            4
+        );
+        for bad in ["0", "17", "-1"] {
+            let e = load_text(&format!("[io]\npipeline = {bad}\n"), &[]).unwrap_err();
+            assert_eq!(e.key, "io.pipeline");
+            assert!(e.origin.ends_with(".toml"), "{e}");
+            assert!(
+                e.to_string()
+                    .contains(&format!("{bad} is out of range: use 1..=16")),
+                "{e}"
+            );
+        }
     }
 
     #[test]

@@ -647,7 +647,8 @@ fn lock(c: &Mutex<Counters>) -> std::sync::MutexGuard<'_, Counters> {
     c.lock().unwrap_or_else(|p| p.into_inner())
 }
 
-async fn connect(cfg: &LinkConfig) -> Result<Context, LinkError> {
+/// A TCP connection to the device in `cfg` within its connect timeout, with TCP_NODELAY.
+pub(super) async fn open_tcp(cfg: &LinkConfig) -> Result<TcpStream, LinkError> {
     let stream = match tokio::time::timeout(cfg.connect_timeout, TcpStream::connect(cfg.addr)).await
     {
         Ok(Ok(s)) => s,
@@ -657,7 +658,87 @@ async fn connect(cfg: &LinkConfig) -> Result<Context, LinkError> {
     stream
         .set_nodelay(true)
         .map_err(|e| LinkError::Connect(e.kind()))?;
+    Ok(stream)
+}
+
+async fn connect(cfg: &LinkConfig) -> Result<Context, LinkError> {
+    let stream = open_tcp(cfg).await?;
     Ok(tokio_modbus::client::tcp::attach_slave(stream, Slave(0)))
+}
+
+/// The reconnect side of a reader that owns its connection (the paced and the pipelined
+/// readers): the backoff between attempts, the state reports, the statistics. Reports
+/// [`LinkState::Closed`] when dropped.
+pub(super) struct Redial {
+    backoff: Backoff,
+    retry_at: Option<Instant>,
+    attempt: u32,
+    connected_before: bool,
+    pub(super) report: Reporter,
+}
+
+impl Drop for Redial {
+    fn drop(&mut self) {
+        self.report.state.send_replace(LinkState::Closed);
+    }
+}
+
+impl Redial {
+    pub(super) fn new(cfg: &LinkConfig) -> (Redial, Monitor) {
+        let (report, monitor) = Reporter::new(cfg.addr, cfg.window);
+        let redial = Redial {
+            backoff: Backoff::new(cfg.backoff_min, cfg.backoff_max),
+            retry_at: None,
+            attempt: 0,
+            connected_before: false,
+            report,
+        };
+        (redial, monitor)
+    }
+
+    /// Wait for the next attempt (the backoff), then connect ([`open_tcp`]); the state says
+    /// connecting, then connected (or down, with the next attempt, on failure).
+    pub(super) async fn dial(&mut self, cfg: &LinkConfig) -> Result<TcpStream, LinkError> {
+        if let Some(at) = self.retry_at {
+            tokio::time::sleep_until(tokio::time::Instant::from_std(at)).await;
+        }
+        self.attempt += 1;
+        self.report.state.send_replace(LinkState::Connecting {
+            attempt: self.attempt,
+        });
+        match open_tcp(cfg).await {
+            Ok(stream) => {
+                self.report.connected(Instant::now(), self.connected_before);
+                self.connected_before = true;
+                self.attempt = 0;
+                self.retry_at = None;
+                Ok(stream)
+            }
+            Err(e) => Err(self.down(e)),
+        }
+    }
+
+    /// The connection is gone after `error`: schedule the next attempt and report it.
+    pub(super) fn down(&mut self, error: LinkError) -> LinkError {
+        let retry_at = Instant::now() + self.backoff.next_delay();
+        self.retry_at = Some(retry_at);
+        self.report.down(error, retry_at);
+        error
+    }
+
+    /// Count an outcome (started at `started`, ended at `now`); a good reply resets the
+    /// backoff.
+    pub(super) fn record<T>(
+        &mut self,
+        outcome: &Result<T, LinkError>,
+        started: Instant,
+        now: Instant,
+    ) {
+        if outcome.is_ok() {
+            self.backoff.reset();
+        }
+        self.report.record(outcome, started, now);
+    }
 }
 
 enum Served {

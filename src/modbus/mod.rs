@@ -8,6 +8,8 @@
 //!   its state on a `watch` and its statistics.
 //! - `paced`: the acquisition's block read at a fixed rate, sent at one tick and collected at
 //!   the next from a socket off the reactor (one wake-up per frame), with the link's guards.
+//! - `pipelined`: the acquisition's block read unthrottled, several requests in flight on one
+//!   connection (matched by transaction id), nothing allocated per frame, with the link's guards.
 //! - `server`: scaffolding for our own servers (the twin's I/O module, later a PLC twin and the
 //!   pull server): a register bank, request validation done by us (never trusting the library),
 //!   Modbus exceptions instead of dropped connections, a peer allow-list and fault injection.
@@ -17,11 +19,13 @@
 pub mod codec;
 pub mod link;
 pub mod paced;
+pub mod pipelined;
 pub mod server;
 
 pub use codec::{AddressError, ReadRange, ValueType, WordOrder, WriteRange};
 pub use link::{Link, LinkConfig, LinkError, LinkState, LinkStats, Monitor};
 pub use paced::PacedReader;
+pub use pipelined::PipelinedReader;
 pub use server::{MemoryBank, RegisterBank, ServerConfig, ServerError, ServerHandle};
 
 use serde::Deserialize;

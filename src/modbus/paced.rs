@@ -19,9 +19,8 @@
 //! v1.1b3 §6.3–6.4), checked here byte for byte.
 
 use super::codec::ReadRange;
-use super::link::{LinkConfig, LinkError, LinkState, Monitor, ReplyFault, Reporter};
+use super::link::{LinkConfig, LinkError, Monitor, Redial, ReplyFault};
 use super::{Exception, RegisterKind};
-use crate::util::backoff::Backoff;
 use std::io::{self, Write};
 use std::net::TcpStream;
 use std::os::fd::AsRawFd;
@@ -52,17 +51,7 @@ pub struct PacedReader {
     buf: Vec<u8>,
     pending: Option<Pending>,
     tid: u16,
-    backoff: Backoff,
-    retry_at: Option<Instant>,
-    attempt: u32,
-    connected_before: bool,
-    report: Reporter,
-}
-
-impl Drop for PacedReader {
-    fn drop(&mut self) {
-        self.report.state.send_replace(LinkState::Closed);
-    }
+    redial: Redial,
 }
 
 impl PacedReader {
@@ -74,8 +63,7 @@ impl PacedReader {
         unit: u8,
         range: ReadRange,
     ) -> (PacedReader, Monitor) {
-        let (report, monitor) = Reporter::new(cfg.addr, cfg.window);
-        let backoff = Backoff::new(cfg.backoff_min, cfg.backoff_max);
+        let (redial, monitor) = Redial::new(&cfg);
         (
             PacedReader {
                 cfg,
@@ -86,11 +74,7 @@ impl PacedReader {
                 buf: Vec::with_capacity(9 + 2 * range.count() as usize),
                 pending: None,
                 tid: 0,
-                backoff,
-                retry_at: None,
-                attempt: 0,
-                connected_before: false,
-                report,
+                redial,
             },
             monitor,
         )
@@ -124,21 +108,19 @@ impl PacedReader {
                 Err(e) => Err(e),
             };
             let at = outcome.as_ref().map(|r| r.at).unwrap_or(now);
-            self.report.record(&outcome, sent, at);
+            self.redial.record(&outcome, sent, at);
             self.pending = None;
-            match &outcome {
-                Ok(_) => self.backoff.reset(),
-                Err(e) if e.drops_connection() => {
-                    self.fail(*e);
-                    return Some(outcome);
-                }
-                Err(_) => {}
+            if let Err(e) = &outcome
+                && e.drops_connection()
+            {
+                self.fail(*e);
+                return Some(outcome);
             }
             out = Some(outcome);
         }
         if let Err(e) = self.send() {
             let now = Instant::now();
-            self.report.record::<()>(&Err(e), now, now);
+            self.redial.record::<()>(&Err(e), now, now);
             self.fail(e);
             // A reply collected this tick is still good; the send error shows next time.
             return out.or(Some(Err(e)));
@@ -147,19 +129,9 @@ impl PacedReader {
     }
 
     async fn connect(&mut self) -> Result<(), LinkError> {
-        if let Some(at) = self.retry_at {
-            tokio::time::sleep_until(tokio::time::Instant::from_std(at)).await;
-        }
-        self.attempt += 1;
-        self.report.state.send_replace(LinkState::Connecting {
-            attempt: self.attempt,
-        });
-        match open(&self.cfg).await {
+        let stream = self.redial.dial(&self.cfg).await?;
+        match off_reactor(stream) {
             Ok(sock) => {
-                self.report.connected(Instant::now(), self.connected_before);
-                self.connected_before = true;
-                self.attempt = 0;
-                self.retry_at = None;
                 self.sock = Some(sock);
                 self.buf.clear();
                 Ok(())
@@ -176,9 +148,7 @@ impl PacedReader {
         self.sock = None;
         self.pending = None;
         self.buf.clear();
-        let retry_at = Instant::now() + self.backoff.next_delay();
-        self.retry_at = Some(retry_at);
-        self.report.down(error, retry_at);
+        self.redial.down(error);
     }
 
     fn send(&mut self) -> Result<(), LinkError> {
@@ -237,19 +207,9 @@ impl PacedReader {
     }
 }
 
-async fn open(cfg: &LinkConfig) -> Result<TcpStream, LinkError> {
-    let stream = match tokio::time::timeout(
-        cfg.connect_timeout,
-        tokio::net::TcpStream::connect(cfg.addr),
-    )
-    .await
-    {
-        Ok(Ok(s)) => s,
-        Ok(Err(e)) => return Err(LinkError::Connect(e.kind())),
-        Err(_) => return Err(LinkError::Connect(io::ErrorKind::TimedOut)),
-    };
+/// The connection as a non-blocking std socket stamping what it receives.
+fn off_reactor(stream: tokio::net::TcpStream) -> Result<TcpStream, LinkError> {
     let connect = |e: io::Error| LinkError::Connect(e.kind());
-    stream.set_nodelay(true).map_err(connect)?;
     // Off the reactor: the reply's arrival must not wake the runtime. It stays non-blocking.
     let sock = stream.into_std().map_err(connect)?;
     sock.set_nonblocking(true).map_err(connect)?;
@@ -283,26 +243,55 @@ pub fn decode_read(
     kind: RegisterKind,
     range: ReadRange,
 ) -> Result<Option<Vec<u16>>, LinkError> {
-    let bad = |f| Err(LinkError::InvalidReply(f));
+    let Some(total) = reply_len(buf)? else {
+        return Ok(None);
+    };
+    if buf.len() < total {
+        return Ok(None);
+    }
+    if buf.len() > total {
+        return Err(LinkError::InvalidReply(ReplyFault::Malformed));
+    }
+    let data = read_reply(buf, tid, unit, kind, range)?;
+    Ok(Some(
+        data.chunks_exact(2)
+            .map(|w| u16::from_be_bytes([w[0], w[1]]))
+            .collect(),
+    ))
+}
+
+/// The length of the ADU that starts `buf` (MBAP header: protocol 0, length 2..=254), `None`
+/// while its header is incomplete. The ADU itself may still be incomplete.
+pub fn reply_len(buf: &[u8]) -> Result<Option<usize>, LinkError> {
     if buf.len() < 7 {
         return Ok(None);
     }
     let len = u16::from_be_bytes([buf[4], buf[5]]) as usize;
     if u16::from_be_bytes([buf[2], buf[3]]) != 0 || !(2..=254).contains(&len) {
+        return Err(LinkError::InvalidReply(ReplyFault::Malformed));
+    }
+    Ok(Some(6 + len))
+}
+
+/// The register bytes (big-endian, two per register) of `adu`, one whole reply ADU (as long
+/// as [`reply_len`] says) to the read of `range` with transaction id `tid`; or what is wrong
+/// with it (an exception reply is [`LinkError::Exception`]).
+pub fn read_reply(
+    adu: &[u8],
+    tid: u16,
+    unit: u8,
+    kind: RegisterKind,
+    range: ReadRange,
+) -> Result<&[u8], LinkError> {
+    let bad = |f| Err(LinkError::InvalidReply(f));
+    if adu.len() < 8 || reply_len(adu)? != Some(adu.len()) {
         return bad(ReplyFault::Malformed);
     }
-    let total = 6 + len;
-    if buf.len() < total {
-        return Ok(None);
-    }
-    if buf.len() > total {
-        return bad(ReplyFault::Malformed);
-    }
-    if u16::from_be_bytes([buf[0], buf[1]]) != tid || buf[6] != unit {
+    if u16::from_be_bytes([adu[0], adu[1]]) != tid || adu[6] != unit {
         return bad(ReplyFault::Header);
     }
     let fc = function(kind);
-    let pdu = &buf[7..];
+    let pdu = &adu[7..];
     match pdu[0] {
         f if f == fc | 0x80 => match pdu {
             [_, code] => Err(LinkError::Exception(Exception::from_code(*code))),
@@ -323,11 +312,7 @@ pub fn decode_read(
                     got: data.len() / 2,
                 });
             }
-            Ok(Some(
-                data.chunks_exact(2)
-                    .map(|w| u16::from_be_bytes([w[0], w[1]]))
-                    .collect(),
-            ))
+            Ok(data)
         }
         _ => bad(ReplyFault::Function),
     }

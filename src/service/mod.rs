@@ -26,7 +26,6 @@ use crate::can::socketcan::SocketCan;
 use crate::canopen::{DriveHandle, spawn_drive};
 use crate::config::{CanSettings, Resource, Settings};
 use crate::decouple::{Decoupler, Method, SolveOptions, Source};
-use crate::modbus::Link;
 use crate::optics::{Layout, LayoutError};
 use shutdown::Shutdown;
 use snapshot::Snapshot;
@@ -187,12 +186,12 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
         map.unit_id = s.io.unit;
     }
     let map = std::sync::Arc::new(map);
-    // Paced reads cost one wake-up per frame (modbus::paced); unthrottled ones go through the
-    // link task.
+    // Paced reads cost one wake-up per frame (modbus::paced); unthrottled ones keep
+    // io.pipeline reads in flight (modbus::pipelined).
     let acquisition = if s.io.acquire.rate_hz > 0.0 {
         Acquisition::spawn_paced(s.io.link.clone(), map, s.io.acquire)
     } else {
-        Acquisition::spawn(Link::spawn(s.io.link.clone()), map, s.io.acquire)
+        Acquisition::spawn_pipelined(s.io.link.clone(), map, s.io.acquire)
     };
     std::fs::create_dir_all(&s.service.state_dir).map_err(|source| ServiceError::StateDir {
         path: s.service.state_dir.display().to_string(),

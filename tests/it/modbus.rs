@@ -423,3 +423,169 @@ async fn a_paced_exception_keeps_the_connection_and_a_lost_device_reconnects() {
         );
     }
 }
+
+// ---------- the pipelined reader (modbus::pipelined) ----------
+
+use axiscomp::modbus::PipelinedReader;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+/// A reply ADU to a read of input registers (function 4) with `regs`.
+fn fc4_reply(tid: u16, unit: u8, regs: &[u16]) -> Vec<u8> {
+    let mut v = tid.to_be_bytes().to_vec();
+    v.extend_from_slice(&[0, 0]);
+    v.extend_from_slice(&(3 + 2 * regs.len() as u16).to_be_bytes());
+    v.extend_from_slice(&[unit, 4, 2 * regs.len() as u8]);
+    for r in regs {
+        v.extend_from_slice(&r.to_be_bytes());
+    }
+    v
+}
+
+/// Read `n` request ADUs of 12 bytes; their transaction ids, each checked against the
+/// Application Protocol's read-input-registers request (unit 1, start 10, quantity 2).
+async fn requests(s: &mut tokio::net::TcpStream, n: usize) -> Vec<u16> {
+    let mut buf = vec![0u8; 12 * n];
+    tokio::time::timeout(Duration::from_secs(2), s.read_exact(&mut buf))
+        .await
+        .expect("requests within 2 s")
+        .expect("read the requests");
+    buf.chunks_exact(12)
+        .map(|a| {
+            assert_eq!(
+                a[2..],
+                [0, 0, 0, 6, 1, 4, 0, 10, 0, 2],
+                "request ADU {a:02X?}"
+            );
+            u16::from_be_bytes([a[0], a[1]])
+        })
+        .collect()
+}
+
+/// A listener for a hand-written module and a pipelined reader of input registers 10..12 of
+/// unit 1 on it (`timeout_ms` per read, `depth` in flight, quick reconnects).
+async fn hand_written_module(
+    timeout_ms: u64,
+    depth: usize,
+) -> (
+    tokio::net::TcpListener,
+    PipelinedReader,
+    axiscomp::modbus::Monitor,
+) {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let cfg = LinkConfig {
+        timeout: Duration::from_millis(timeout_ms),
+        backoff_min: Duration::from_millis(20),
+        backoff_max: Duration::from_millis(200),
+        ..LinkConfig::new(listener.local_addr().unwrap())
+    };
+    let (reader, monitor) = PipelinedReader::new(cfg, RegisterKind::Input, 1, r(10, 2), depth);
+    (listener, reader, monitor)
+}
+
+/// Four reads go out before any reply (pipelining); replies answered out of order are each
+/// matched to their request by transaction id; an exception keeps the connection; a reply
+/// to no request in flight drops it and the reader reconnects. A hand-written module, so the
+/// bytes on the wire are the test's (Implementation Guide v1.0b §3.1.3, Application
+/// Protocol v1.1b3 §6.4).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_pipelined_reader_keeps_four_reads_in_flight_and_matches_replies_by_id() {
+    let (listener, mut reader, monitor) = hand_written_module(500, 4).await;
+    let module = tokio::spawn(async move {
+        let (mut s, _) = listener.accept().await.unwrap();
+        // Four requests before any reply, consecutive ids.
+        let tids = requests(&mut s, 4).await;
+        assert_eq!(tids, [1, 2, 3, 4]);
+        // Answered 2, 1, 4, 3: each reply carries its id in the first register.
+        let mut out = Vec::new();
+        for t in [2u16, 1, 4, 3] {
+            out.extend(fc4_reply(t, 1, &[t, 0xBEEF]));
+        }
+        s.write_all(&out).await.unwrap();
+        // The reader tops up as it takes replies: four more.
+        let tids = requests(&mut s, 4).await;
+        assert_eq!(tids, [5, 6, 7, 8]);
+        // An exception (02, illegal data address) to 5, a good reply to 6.
+        s.write_all(&[0, 5, 0, 0, 0, 3, 1, 0x84, 0x02])
+            .await
+            .unwrap();
+        s.write_all(&fc4_reply(6, 1, &[6, 0xBEEF])).await.unwrap();
+        assert_eq!(requests(&mut s, 2).await, [9, 10]);
+        // A reply to no request in flight: the reader drops the connection.
+        s.write_all(&fc4_reply(0x7777, 1, &[0, 0])).await.unwrap();
+        let mut rest = Vec::new();
+        let eof = tokio::time::timeout(Duration::from_secs(2), s.read_to_end(&mut rest)).await;
+        assert!(matches!(eof, Ok(Ok(_))), "the reader closed the connection");
+        // It comes back with four fresh reads.
+        let (mut s, _) = listener.accept().await.unwrap();
+        let tids = requests(&mut s, 4).await;
+        let mut out = Vec::new();
+        for t in &tids {
+            out.extend(fc4_reply(*t, 1, &[*t, 0xCAFE]));
+        }
+        s.write_all(&out).await.unwrap();
+        // Keep the connection open until the reader is done.
+        let _ = s.read_to_end(&mut rest).await;
+    });
+    for want in [2u16, 1, 4, 3] {
+        let b = reader.next().await.expect("a reply");
+        assert_eq!(b.registers, [want, 0xBEEF]);
+        assert!(b.at >= b.sent);
+    }
+    assert!(monitor.state().borrow().is_up());
+    assert_eq!(
+        reader.next().await,
+        Err(LinkError::Exception(Exception::IllegalDataAddress))
+    );
+    assert!(matches!(
+        *monitor.state().borrow(),
+        LinkState::Refusing {
+            exception: Exception::IllegalDataAddress,
+            ..
+        }
+    ));
+    assert_eq!(reader.next().await.expect("a reply").registers, [6, 0xBEEF]);
+    assert!(monitor.state().borrow().is_up());
+    match reader.next().await {
+        Err(LinkError::InvalidReply(axiscomp::modbus::link::ReplyFault::Header)) => {}
+        other => panic!("a reply to no request in flight gave {other:?}"),
+    }
+    assert!(matches!(*monitor.state().borrow(), LinkState::Down { .. }));
+    let b = reader.next().await.expect("a reply after the reconnect");
+    assert_eq!(b.registers[1], 0xCAFE);
+    let st = monitor.stats();
+    assert_eq!((st.ok, st.exceptions, st.reconnects), (6, 1, 1), "{st:?}");
+    drop(reader);
+    module.abort();
+}
+
+/// A module that never answers: the oldest read times out, the connection is dropped (a late
+/// reply can never be taken for another read) and the link is down, never up.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_pipelined_reader_times_out_a_silent_module_and_never_calls_it_up() {
+    let (listener, mut reader, monitor) = hand_written_module(200, 3).await;
+    let module = tokio::spawn(async move {
+        let (mut s, _) = listener.accept().await.unwrap();
+        assert_eq!(requests(&mut s, 3).await, [1, 2, 3]);
+        let mut rest = Vec::new();
+        let _ = s.read_to_end(&mut rest).await;
+        rest.len()
+    });
+    let t0 = std::time::Instant::now();
+    assert_eq!(
+        reader.next().await,
+        Err(LinkError::Timeout(Duration::from_millis(200)))
+    );
+    let waited = t0.elapsed();
+    assert!(
+        waited >= Duration::from_millis(190) && waited < Duration::from_secs(2),
+        "{waited:?}"
+    );
+    assert!(matches!(*monitor.state().borrow(), LinkState::Down { .. }));
+    // The module saw the connection close with no request beyond the first three.
+    let extra = tokio::time::timeout(Duration::from_secs(2), module)
+        .await
+        .expect("the connection closed")
+        .unwrap();
+    assert_eq!(extra, 0);
+    assert_eq!(monitor.stats().timeouts, 1);
+}
