@@ -194,8 +194,8 @@ pub enum Command {
     OnTarget,
     /// Stop all motion now.
     Stop,
-    /// The linear speed (mm/s): GCS `VLS`; the HXP takes its speed from its own
-    /// configuration, so its machine answers at once.
+    /// The linear speed (mm/s): GCS `VLS`; on the HXP the velocity of the six actuators'
+    /// SGamma profiles (`PositionerSGammaParametersSet`, see `xps`).
     SetSpeed(f64),
 }
 
