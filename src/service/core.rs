@@ -171,6 +171,7 @@ pub(super) struct Core {
     events_rx: Option<mpsc::UnboundedReceiver<CoreEvent>>,
     last_cnc_poll: Instant,
     calibrations: super::calibration::Calibrations,
+    hexapod: super::hexapod_run::HexapodRuns,
 }
 
 /// A make-up pass is sent for a missing capture at most this many times before the run fails.
@@ -348,6 +349,11 @@ impl Core {
                     .as_ref()
                     .map(|f| f.display().to_string())
                     .unwrap_or_default(),
+            ),
+            hexapod: super::hexapod_run::HexapodRuns::new(
+                s.hexapod.clone(),
+                p.layout.clone(),
+                &s.service.state_dir,
             ),
         }
     }
@@ -1214,6 +1220,15 @@ impl Core {
                 Self::reply(c.reply, r);
             }
             Request::CalibrationReject => Self::reply(c.reply, self.calibrations.reject()),
+            Request::HexapodStart { plan, poses, out } => {
+                let r = match self.run {
+                    Some(_) => Err("a run is under way: calibrate between runs".into()),
+                    None => (self.hexapod).start(plan, poses, out, self.acquisition.subscribe()),
+                };
+                Self::reply(c.reply, r);
+            }
+            Request::HexapodStatus => Self::reply(c.reply, Ok(self.hexapod.status())),
+            Request::HexapodStop => Self::reply(c.reply, self.hexapod.stop()),
             Request::RunAbort => {
                 if self.pipeline.abort_run() {
                     let id = self.run.as_ref().map(|r| r.id.0);
@@ -1262,6 +1277,9 @@ impl Core {
 
     fn on_tick(&mut self) {
         let now = Instant::now();
+        if let Some(p) = self.hexapod.take_finished() {
+            let _ = self.calibrations.fitted(Ok(p));
+        }
         if let Some(z) = self.pipeline.zero_ready(now)
             && let Some(reply) = self.zero_reply.take()
         {

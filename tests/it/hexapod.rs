@@ -224,7 +224,7 @@ use axiscomp::acquire::{AcquireConfig, Acquisition, IoMap};
 use axiscomp::calibrate::CalibrateOptions;
 use axiscomp::hexapod::plan::{PlanError, PlanSpec, PosePlan};
 use axiscomp::hexapod::procedure::{
-    PoseStore, ProcedureError, RunOptions, RunProgress, RunReport, fit_and_judge, run,
+    PoseStore, ProcedureError, RunOptions, RunProgress, RunReport, fit_and_judge, never_stop, run,
 };
 use axiscomp::optics::Layout;
 use axiscomp::sim::InstallSpec;
@@ -282,10 +282,21 @@ async fn take(
     r: &Rig,
     plan: &PosePlan,
     store: &mut PoseStore,
-    on: &mut dyn FnMut(&RunProgress),
+    on: &mut (dyn FnMut(&RunProgress) + Send),
 ) -> Result<RunReport, ProcedureError> {
     let mut rx = r.acq.subscribe();
-    run(h, &mut rx, plan, &spec().workspace, store, &quick(), on).await
+    let stop = never_stop();
+    run(
+        h,
+        &mut rx,
+        plan,
+        &spec().workspace,
+        store,
+        &quick(),
+        &stop,
+        on,
+    )
+    .await
 }
 
 fn quick() -> RunOptions {
