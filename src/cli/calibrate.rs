@@ -281,6 +281,7 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
     };
     // Refused before anything connects or moves.
     plan.check(&hx.workspace)
+        .and_then(|()| plan.station().map(|_| ()))
         .map_err(|e| InputError(e.to_string()))?;
     let prepared = axiscomp::service::prepare(&settings).map_err(|e| InputError(e.to_string()))?;
     let layout = prepared.layout.clone();

@@ -66,6 +66,7 @@ pub async fn run(
         problem,
     })?;
     plan.check(&hx.workspace)?;
+    plan.station()?;
     let mut store = PoseStore::open(out, plan)?;
     if !store.poses.is_empty() {
         events(SessionEvent::Resuming {

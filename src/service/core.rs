@@ -529,6 +529,9 @@ impl Core {
     fn pump(&mut self) {
         while let Some(out) = self.pipeline.poll_output() {
             match out {
+                // Under a hexapod calibration the follower holds still (the poses' PSD2
+                // readings are taken with it where it is).
+                Output::Follower(_) if self.hexapod.active() => {}
                 // Only the latest target matters: the follower task skips superseded ones.
                 Output::Follower(FollowerCommand::MoveTo(mm)) => {
                     self.follow.send_replace(Some(mm));
@@ -1225,6 +1228,11 @@ impl Core {
                     Some(_) => Err("a run is under way: calibrate between runs".into()),
                     None => (self.hexapod).start(plan, poses, out, self.acquisition.subscribe()),
                 };
+                if r.is_ok() {
+                    self.pipeline.invalidate_stitch(
+                        "the hexapod moved the head: zero again before measuring",
+                    );
+                }
                 Self::reply(c.reply, r);
             }
             Request::HexapodStatus => Self::reply(c.reply, Ok(self.hexapod.status())),

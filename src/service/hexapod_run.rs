@@ -153,6 +153,7 @@ impl HexapodRuns {
         let pose_plan = plan_for(plan.as_deref(), poses)?;
         pose_plan
             .check(&self.settings.workspace)
+            .and_then(|()| pose_plan.station().map(|_| ()))
             .map_err(|e| e.to_string())?;
         let out = out
             .filter(|o| !o.trim().is_empty())

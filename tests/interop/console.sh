@@ -8,7 +8,9 @@
 # (issue 13, must-show 4): the twin's head is knocked off the axis, and the script does what the
 # Align screen tells a technician (the carriage moved to each end of 0–400 mm, the spots read,
 # the targets typed where a spot is off its PSD, the screws turned as the screen says) until the
-# screen shows the check passed. Needs tmux and python3 (.ci/run installs tmux).
+# screen shows the check passed. Then the Calibrate screen (issue 17): a hexapod calibration
+# of 40 poses started by keys against the twin's PI controller, followed to its fit and
+# accepted. Needs tmux and python3 (.ci/run installs tmux).
 #   bash tests/interop/console.sh            # from anywhere in the repository
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
@@ -286,6 +288,37 @@ done
 expect 5 "beam to travel: yaw"
 echo "console.sh: the screen says: $(panel)"
 echo "console.sh: aligned in $passed rounds, $((SECONDS - align_t0)) s; mount before: $mount0; after: $(twin '{"cmd":"mount"}')"
+
+echo "console.sh: Calibrate, a hexapod run started from the console and followed to the fit"
+# The twin serves its PI controller on 127.0.0.1:50000, where twin-service.toml's [hexapod]
+# points. A 40-pose plan over the operating window (±100 µm, ±2 mm positioning, ±60″).
+python3 - "$work/plan.csv" <<'PY2'
+import random, sys
+r = random.Random(17)
+with open(sys.argv[1], "w") as f:
+    f.write("x_mm,y_mm,z_mm,u_deg,v_deg,w_deg\n")
+    for _ in range(40):
+        a = 60 / 3600
+        f.write(",".join(f"{v:.7f}" for v in (r.uniform(-0.1, 0.1), r.uniform(-2, 2),
+                r.uniform(-0.1, 0.1), r.uniform(-a, a), r.uniform(-a, a), r.uniform(-a, a))) + "\n")
+PY2
+keys 3
+expect 10 "Hexapod run" "No run: h calibrates"
+keys h
+expect 5 "Calibrate with the hexapod" "Plan CSV on the service's host"
+keys -l "$work/plan.csv"
+keys Enter
+expect 5 "Start the hexapod calibration?" "Keep clear of the platform"
+hexapod_t0=$SECONDS
+keys y
+expect 30 "running" "of 40 (" "machine time" "remaining ~" "PI C-887"
+echo "console.sh: $(screen | grep -o 'pose [0-9]* of 40[^│]*' | head -1)"
+expect 180 "done" "pose 40 of 40" "hold-out" "C–R bound" "worst" "Pending: $work"
+echo "console.sh: hexapod run and fit in $((SECONDS - hexapod_t0)) s: $(screen | grep -o 'ratio.*' | head -1 | tr -s ' │')"
+keys a
+expect 5 "Accept the calibration?"
+keys y
+expect 15 "in use   stored calibration"
 
 echo "console.sh: colours, then quit"
 "${tmx[@]}" capture-pane -e -p -t console | grep -qE $'\e\\[[0-9;]*(3[0-7]|38;)' \

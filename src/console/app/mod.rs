@@ -470,6 +470,7 @@ impl App {
             }
             _ => {}
         }
+        out.extend(self.calibrate_need_hexapod());
         out
     }
 

@@ -21,9 +21,12 @@ pub fn render(frame: &mut Frame, area: Rect, app: &App) {
     };
     let c = &app.calibrate;
     let wide = area.width >= WIDE;
+    // Two borders, the state line, where (two rows: paths are long), the keys; an error
+    // (two rows) and the judgement (three) when there are.
     let hex_rows = match &c.hexapod {
-        Some(h) if h.ratio.is_some() => 9,
-        Some(h) if h.state != "idle" => 6,
+        Some(h) if h.state != "idle" => {
+            6 + if h.error.is_some() { 2 } else { 0 } + if h.ratio.is_some() { 3 } else { 0 }
+        }
         _ => 3,
     };
     let [top, hex, rest] = Layout::vertical([
@@ -130,7 +133,7 @@ fn hexapod(frame: &mut Frame, area: Rect, h: Option<&HexapodView>, wide: bool, t
     match h {
         None => lines.push(Line::styled("asking the service…", theme.dim())),
         Some(h) if h.state == "idle" => lines.push(Line::styled(
-            "No run. h calibrates with the hexapod: the plan, then fit, hold-out, accept or reject.",
+            "No run: h calibrates with the hexapod (plan, fit, hold-out, accept).",
             theme.dim(),
         )),
         Some(h) => {
@@ -155,10 +158,9 @@ fn hexapod(frame: &mut Frame, area: Rect, h: Option<&HexapodView>, wide: bool, t
                 )),
             ];
             match (h.state.as_str(), h.eta_s) {
-                ("running", Some(eta)) => first.push(Span::raw(format!(
-                    "  remaining ~{}",
-                    duration_words(eta)
-                ))),
+                ("running", Some(eta)) => {
+                    first.push(Span::raw(format!("  remaining ~{}", duration_words(eta))))
+                }
                 ("fitting", _) => first.push(Span::raw(format!(
                     "  fitting (iteration {})",
                     h.fit_iteration
@@ -169,8 +171,16 @@ fn hexapod(frame: &mut Frame, area: Rect, h: Option<&HexapodView>, wide: bool, t
             lines.push(Line::styled(
                 format!(
                     "{}  plan {}  in {}{}",
-                    if h.controller.is_empty() { "hexapod" } else { &h.controller },
-                    if h.plan.is_empty() { "default" } else { &h.plan },
+                    if h.controller.is_empty() {
+                        "hexapod"
+                    } else {
+                        &h.controller
+                    },
+                    if h.plan.is_empty() {
+                        "default"
+                    } else {
+                        &h.plan
+                    },
                     h.out,
                     if h.reconnects > 0 {
                         format!("  {} link reconnects", h.reconnects)
@@ -195,7 +205,11 @@ fn hexapod(frame: &mut Frame, area: Rect, h: Option<&HexapodView>, wide: bool, t
                         h.holdout_poses,
                         h.holdout_frames
                     ),
-                    if worst <= 1.2 { theme.ok() } else { theme.warn() },
+                    if worst <= 1.2 {
+                        theme.ok()
+                    } else {
+                        theme.warn()
+                    },
                 ));
             }
             let keys = match h.state.as_str() {
