@@ -403,6 +403,9 @@ async fn average(
 }
 
 /// Run (or resume) the plan: workspace check first, then every pose not yet stored.
+/// (The controller, the frames, the plan and its limits, the store, how to take a pose, the
+/// operator's stop and the progress report are each their own: no struct would group them.)
+#[allow(clippy::too_many_arguments)]
 pub async fn run(
     hexapod: &mut Hexapod,
     frames: &mut impl FrameSource,
