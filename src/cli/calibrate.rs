@@ -30,7 +30,8 @@ pub struct RunArgs {
     /// The service's configuration (`[hexapod]`, `[io]`, `[head]`).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// A pose plan CSV (`x_mm,y_mm,z_mm,u_deg,v_deg,w_deg[,travel_mm,follower_mm]`); default:
+    /// A pose plan CSV (`x_mm,y_mm,z_mm,u_deg,v_deg,w_deg[,travel_mm,follower_mm]`, every pose
+    /// at one travel and follower position); default:
     /// `--poses` poses over ±100 µm, ±2 mm positioning (the follower window), ±60″.
     #[arg(long)]
     pub plan: Option<PathBuf>,

@@ -118,14 +118,9 @@ fn state(frame: &mut Frame, area: Rect, app: &App, _wide: bool, theme: Theme) {
     );
 }
 
-/// A duration as "1 h 02 min", "3 min 05 s" or "42 s".
-pub fn duration_words(s: f64) -> String {
-    let s = s.max(0.0).round() as u64;
-    match s {
-        0..90 => format!("{s} s"),
-        90..5400 => format!("{} min {:02} s", s / 60, s % 60),
-        _ => format!("{} h {:02} min", s / 3600, (s % 3600) / 60),
-    }
+/// Seconds as the console writes durations.
+fn duration_words(s: f64) -> String {
+    super::duration(std::time::Duration::from_secs_f64(s.max(0.0)))
 }
 
 fn hexapod(frame: &mut Frame, area: Rect, h: Option<&HexapodView>, wide: bool, theme: Theme) {
