@@ -314,7 +314,7 @@ keys y
 expect 30 "running" "of 40 (" "machine time" "remaining ~" "PI C-887"
 echo "console.sh: $(screen | grep -o 'pose [0-9]* of 40[^│]*' | head -1)"
 expect 180 "done" "pose 40 of 40" "hold-out" "C–R bound" "worst" "Pending: $work"
-echo "console.sh: hexapod run and fit in $((SECONDS - hexapod_t0)) s: $(screen | grep -o 'ratio.*' | head -1 | tr -s ' │')"
+echo "console.sh: hexapod run and fit in $((SECONDS - hexapod_t0)) s; hold-out $(screen | grep -o 'worst [0-9.]*×' | head -1) the bound"
 keys a
 expect 5 "Accept the calibration?"
 keys y
