@@ -30,7 +30,8 @@ pub struct RunArgs {
     /// The service's configuration (`[hexapod]`, `[io]`, `[head]`).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// A pose plan CSV (`x_mm,y_mm,z_mm,u_deg,v_deg,w_deg[,travel_mm,follower_mm]`); default:
+    /// A pose plan CSV (`x_mm,y_mm,z_mm,u_deg,v_deg,w_deg[,travel_mm,follower_mm]`, every pose
+    /// at one travel and follower position); default:
     /// `--poses` poses over ±100 µm, ±2 mm positioning (the follower window), ±60″.
     #[arg(long)]
     pub plan: Option<PathBuf>,
@@ -254,19 +255,14 @@ fn duration_text(d: std::time::Duration) -> String {
 }
 
 fn hexapod_run(a: RunArgs) -> Result<()> {
-    use axiscomp::hexapod::Hexapod;
     use axiscomp::hexapod::plan::{PlanSpec, PosePlan};
-    use axiscomp::hexapod::procedure::{self, PoseStore};
+    use axiscomp::hexapod::procedure::never_stop;
+    use axiscomp::hexapod::session::{self, SessionEvent};
     use axiscomp::units::{DOF_NAMES, DOF_TO_USER, DOF_UNITS};
     let wall = std::time::Instant::now();
     let settings = super::service::settings(a.config.as_deref())?;
     let hx = settings.hexapod.clone();
-    let Some(kind) = hx.driver else {
-        return Err(InputError(
-            "[hexapod] driver is \"none\": set driver = \"pi-gcs\" or \"newport-xps\" and its address in the configuration".into(),
-        )
-        .into());
-    };
+    session::driver(&hx).map_err(InputError)?;
     let plan = match &a.plan {
         Some(p) => {
             let text = std::fs::read_to_string(p)
@@ -286,24 +282,19 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
     };
     // Refused before anything connects or moves.
     plan.check(&hx.workspace)
+        .and_then(|()| plan.station().map(|_| ()))
         .map_err(|e| InputError(e.to_string()))?;
     let prepared = axiscomp::service::prepare(&settings).map_err(|e| InputError(e.to_string()))?;
     let layout = prepared.layout.clone();
-    let mut store = PoseStore::open(&a.out, &plan)?;
-    let resumed = store.poses.len();
-    if resumed > 0 {
-        eprintln!(
-            "resuming {}: {resumed} of {} poses stored",
-            a.out.display(),
-            plan.poses.len()
-        );
-    }
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
         .context("starting the async runtime")?;
-    let report = rt.block_on(async {
+    let total = plan.poses.len();
+    let step = (total / 20).max(1);
+    let mut fit_progress: Option<Progress> = None;
+    let out = rt.block_on(async {
         let mut map = prepared.map.clone();
         if settings.io.unit != 0 {
             map.unit_id = settings.io.unit;
@@ -314,46 +305,52 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
             settings.io.acquire,
         );
         let mut rx = acq.subscribe();
-        let mut h = Hexapod::connect(kind, &hx.address, &hx.group, hx.timeouts).await?;
-        let id = h.identify().await?;
-        eprintln!("{} at {}: {id}", kind.name(), hx.address);
-        h.set_speed(hx.speed_mm_s).await?;
-        let total = plan.poses.len();
-        let step = (total / 20).max(1);
-        let r = procedure::run(
-            &mut h,
+        let r = session::run(
+            &hx,
             &mut rx,
             &plan,
-            &hx.workspace,
-            &mut store,
-            &hx.run,
-            &mut |p| {
-                if p.done % step == 0 || p.done == total {
-                    eprintln!(
-                        "hexapod pose {}/{} ({:.0} %), ETA {}",
-                        p.done,
-                        p.total,
-                        100.0 * p.done as f64 / p.total as f64,
-                        p.eta.map(duration_text).unwrap_or_else(|| "?".into())
-                    );
+            &a.out,
+            &layout,
+            a.holdout_every,
+            &never_stop(),
+            &mut |e| match e {
+                SessionEvent::Resuming { stored, total } => eprintln!(
+                    "resuming {}: {stored} of {total} poses stored",
+                    a.out.display()
+                ),
+                SessionEvent::Connected { controller, id } => {
+                    eprintln!("{controller} at {}: {id}", hx.address)
                 }
+                SessionEvent::Pose(p) => {
+                    if p.done % step == 0 || p.done == p.total {
+                        eprintln!(
+                            "hexapod pose {}/{} ({:.0} %), machine time {}, ETA {}",
+                            p.done,
+                            p.total,
+                            100.0 * p.done as f64 / p.total as f64,
+                            duration_text(p.machine),
+                            p.eta.map(duration_text).unwrap_or_else(|| "?".into())
+                        );
+                    }
+                }
+                SessionEvent::Fitting { iteration } => fit_progress
+                    .get_or_insert_with(|| {
+                        Progress::new(
+                            "model fit (iterations)",
+                            CalibrateOptions::default().model_options.max_iter as u64,
+                        )
+                    })
+                    .set(iteration as u64),
             },
         )
         .await;
         acq.stop();
-        anyhow::Ok(r?)
+        r
     })?;
-    let opts = CalibrateOptions {
-        holdout_every: a.holdout_every,
-        ..CalibrateOptions::default()
-    };
-    let mut progress = Progress::new("model fit (iterations)", opts.model_options.max_iter as u64);
-    let mut last_iter = 0;
-    let j = procedure::fit_and_judge(&store, &layout, &opts, &mut |it, _| {
-        last_iter = it;
-        progress.set(it as u64)
-    })?;
-    progress.finish(&format!("{last_iter} iterations"));
+    if let Some(p) = fit_progress.take() {
+        p.finish("fitted");
+    }
+    let j = &out.judgement;
     let bound = j.calibration.crlb(&layout)?;
     print!("{}", j.calibration.report(Some(&bound)));
     println!(
@@ -379,22 +376,7 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
         j.ratio().map(|r| format!("{r:>9.3}")).join("")
     );
     println!("  units: {}", DOF_UNITS.join(", "));
-    let cal_path = a.out.join("calibration.toml");
-    CalibrationFile::from_calibration(&j.calibration, &layout).save(&cal_path)?;
-    let poses_path = a.out.join("poses.csv");
-    std::fs::write(
-        &poses_path,
-        procedure::pose_set_csv(
-            &store,
-            &[format!(
-                "axiscomp calibrate run: {} poses with the {} at {}",
-                store.poses.len(),
-                kind.name(),
-                hx.address
-            )],
-        ),
-    )
-    .with_context(|| format!("writing {}", poses_path.display()))?;
+    let report = out.report;
     println!(
         "poses: {} this run, {} resumed; machine time {}, wall time {}; {} link reconnects",
         report.taken,
@@ -405,8 +387,8 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
     );
     println!(
         "wrote {} and the pose set {} (fit, accept or reject it on the console's Calibrate screen)",
-        cal_path.display(),
-        poses_path.display()
+        out.calibration_file.display(),
+        out.pose_file.display()
     );
     Ok(())
 }

@@ -24,7 +24,7 @@ pub struct RawHexapod {
     pub work: Vec<f64>,
     /// The usable workspace: ± per axis (mm, degrees).
     pub workspace: Vec<f64>,
-    /// Linear speed (mm/s; GCS `VLS`); 0 keeps the controller's.
+    /// Linear speed (mm/s; GCS `VLS`, HXP actuator SGamma velocity); 0 keeps the controller's.
     pub speed_mm_s: f64,
     pub settle_ms: u64,
     pub frames: u64,

@@ -59,6 +59,12 @@ impl<E: Clone> Exchange<E> {
         self.next();
     }
 
+    /// Send `step` next, before the remaining requests (a request built from an answer).
+    pub fn then(&mut self, step: (String, E)) {
+        self.steps.push_front(step);
+        self.next();
+    }
+
     pub fn fail(&mut self, e: HexapodError) {
         self.steps.clear();
         self.current = None;

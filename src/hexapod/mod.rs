@@ -11,6 +11,7 @@
 //! - `plan`: the pose plan (generated over the operating window, or read from a CSV file) and
 //!   its workspace check before the first move;
 //! - `procedure`: the calibration run, resumable from its pose file;
+//! - `session`: connect, run or resume, fit, judge and write the files (CLI and service);
 //! - `config`: `[hexapod]`.
 //!
 //! Poses on the wire are in the controllers' units, millimetres and degrees, X Y Z U V W; in
@@ -24,6 +25,7 @@ mod exchange;
 pub mod gcs;
 pub mod plan;
 pub mod procedure;
+pub mod session;
 pub mod xps;
 
 pub use driver::Hexapod;
@@ -194,8 +196,8 @@ pub enum Command {
     OnTarget,
     /// Stop all motion now.
     Stop,
-    /// The linear speed (mm/s): GCS `VLS`; the HXP takes its speed from its own
-    /// configuration, so its machine answers at once.
+    /// The linear speed (mm/s): GCS `VLS`; on the HXP the velocity of the six actuators'
+    /// SGamma profiles (`PositionerSGammaParametersSet`, see `xps`).
     SetSpeed(f64),
 }
 

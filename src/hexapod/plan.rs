@@ -65,6 +65,16 @@ pub enum PlanError {
     },
     #[error("the plan has no poses")]
     Empty,
+    #[error(
+        "pose {index} of the plan is at travel {travel_mm} mm with the follower at {follower_mm} mm, pose 1 at {first_travel_mm} mm and {first_follower_mm} mm: the procedure does not move the carriage or the follower between poses; give a plan at one position and bring the carriage and the follower there first"
+    )]
+    Stations {
+        index: usize,
+        travel_mm: f64,
+        follower_mm: f64,
+        first_travel_mm: f64,
+        first_follower_mm: f64,
+    },
 }
 
 /// The `i`-th element of the van der Corput sequence in `base`, in [0, 1).
@@ -135,6 +145,27 @@ impl PosePlan {
             }
         }
         Ok(())
+    }
+
+    /// The one bench position (travel, follower) of every pose, or the first pose elsewhere:
+    /// the carriage and the follower stay where the operator put them for the whole run.
+    pub fn station(&self) -> Result<(f64, f64), PlanError> {
+        let first = self.poses.first().ok_or(PlanError::Empty)?;
+        let at = (first.travel_mm, first.follower_mm);
+        match self
+            .poses
+            .iter()
+            .position(|p| (p.travel_mm, p.follower_mm) != at)
+        {
+            None => Ok(at),
+            Some(i) => Err(PlanError::Stations {
+                index: i + 1,
+                travel_mm: self.poses[i].travel_mm,
+                follower_mm: self.poses[i].follower_mm,
+                first_travel_mm: at.0,
+                first_follower_mm: at.1,
+            }),
+        }
     }
 
     /// A short fingerprint of the plan (FNV-1a of its text), so a pose file is resumed only
@@ -294,6 +325,14 @@ mod tests {
         let back = PosePlan::parse(&plan.to_csv(), "plan.csv").expect("parse");
         assert_eq!(back.poses.len(), 5);
         assert_eq!(back.poses[1].travel_mm, 100.0);
+        assert_eq!(
+            back.station().expect_err("two stations").to_string(),
+            "pose 2 of the plan is at travel 100 mm with the follower at 100 mm, pose 1 at 0 mm and 0 mm: the procedure does not move the carriage or the follower between poses; give a plan at one position and bring the carriage and the follower there first"
+        );
+        assert_eq!(
+            PosePlan::generate(&PlanSpec::default()).station(),
+            Ok((0.0, 0.0))
+        );
         assert_eq!(back.fingerprint(), plan.fingerprint());
         let e = PosePlan::parse("x_mm,y_mm,z_mm,u_deg,v_deg,w_deg\n0,0,0,0,0,abc\n", "p.csv")
             .expect_err("bad");

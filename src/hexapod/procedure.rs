@@ -44,6 +44,18 @@ pub enum ProcedureError {
     Store { path: String, problem: String },
     #[error(transparent)]
     Calibrate(#[from] CalError),
+    #[error(
+        "stopped by the operator before pose {index} of {total}; the poses taken so far are stored: start again to resume"
+    )]
+    Stopped { index: usize, total: usize },
+}
+
+/// The operator's stop: once `true`, the run halts the hexapod and ends before the next pose.
+pub type StopSignal = tokio::sync::watch::Receiver<bool>;
+
+/// A stop signal that never fires.
+pub fn never_stop() -> StopSignal {
+    tokio::sync::watch::channel(false).1
 }
 
 /// A source of PSD frames: the readings (mm) of the next frame, `None` when it is invalid
@@ -315,6 +327,9 @@ pub struct RunProgress {
     /// Time left at this session's pace.
     pub eta: Option<Duration>,
     pub reconnects: u32,
+    /// Machine time (moves, settling, averaging) and wall time of this session so far.
+    pub machine: Duration,
+    pub elapsed: Duration,
 }
 
 /// What a run did.
@@ -388,6 +403,9 @@ async fn average(
 }
 
 /// Run (or resume) the plan: workspace check first, then every pose not yet stored.
+/// (The controller, the frames, the plan and its limits, the store, how to take a pose, the
+/// operator's stop and the progress report are each their own: no struct would group them.)
+#[allow(clippy::too_many_arguments)]
 pub async fn run(
     hexapod: &mut Hexapod,
     frames: &mut impl FrameSource,
@@ -395,9 +413,11 @@ pub async fn run(
     workspace: &Workspace,
     store: &mut PoseStore,
     opts: &RunOptions,
-    progress: &mut dyn FnMut(&RunProgress),
+    stop: &StopSignal,
+    progress: &mut (dyn FnMut(&RunProgress) + Send),
 ) -> Result<RunReport, ProcedureError> {
     plan.check(workspace)?;
+    let mut stop = stop.clone();
     let start = Instant::now();
     let total = plan.poses.len();
     let resumed_from = store.next_index();
@@ -412,6 +432,9 @@ pub async fn run(
     let mut i = resumed_from;
     while i < total {
         let index = i + 1;
+        if *stop.borrow() {
+            return Err(ProcedureError::Stopped { index, total });
+        }
         let t0 = Instant::now();
         let step = async {
             if !prepared {
@@ -420,7 +443,23 @@ pub async fn run(
             }
             hexapod.move_to(plan.poses[i].pose).await
         };
-        let reached = match step.await {
+        let stopped = async {
+            while !*stop.borrow_and_update() {
+                if stop.changed().await.is_err() {
+                    std::future::pending::<()>().await;
+                }
+            }
+        };
+        let outcome = tokio::select! {
+            r = step => Some(r),
+            () = stopped => None,
+        };
+        let Some(outcome) = outcome else {
+            // Halt the platform where it is; this pose is taken again on resume.
+            let _ = hexapod.stop().await;
+            return Err(ProcedureError::Stopped { index, total });
+        };
+        let reached = match outcome {
             Ok(r) => r,
             Err(e) if e.is_link() && reconnects < opts.reconnects => {
                 // Stop, reconnect, take this pose again.
@@ -464,6 +503,8 @@ pub async fn run(
             total,
             eta: Some(per.mul_f64((total - i) as f64)),
             reconnects,
+            machine,
+            elapsed: start.elapsed(),
         });
     }
     Ok(RunReport {

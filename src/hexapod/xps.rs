@@ -8,6 +8,13 @@
 //! systems: `Work` (where poses are given) and `Tool` (its origin is the pivot point), set
 //! with `HexapodCoordinateSystemSet`. Group states (`GroupStatusGet`): 10 to 19 are ready
 //! states (11 after homing, 12 after a move), 42 not referenced, 43 homing, 44 moving.
+//!
+//! Speed: `HexapodMoveAbsolute` takes no velocity; the platform moves with the SGamma
+//! profiles of its six actuators, the positioners `HEXAPOD.1` to `HEXAPOD.6`. The speed is set
+//! as Newport's own client sets a positioner's (`newportxps`' `set_velocity`): read each
+//! actuator's `PositionerSGammaParametersGet(HEXAPOD.n,double *,double *,double *,double *)`
+//! (velocity, acceleration, minimum and maximum jerk time) and write it back with the new
+//! velocity, `PositionerSGammaParametersSet(HEXAPOD.n,v,a,tmin,tmax)`.
 
 use super::exchange::Exchange;
 use super::{Command, HexPose, HexapodError, Protocol, Reply, wire_number};
@@ -28,6 +35,8 @@ enum Expect {
     Pose,
     /// The text of the error `code` (the reply to `ErrorStringGet`).
     ErrorText(i64),
+    /// An actuator's SGamma parameters, to write back with this velocity (mm/s).
+    SGamma(usize, f64),
 }
 
 type Step = (String, Expect);
@@ -105,7 +114,16 @@ impl Xps {
                 Expect::Pose,
             )],
             Command::Stop => vec![call(format!("GroupMoveAbort({g})"), Expect::Nothing)],
-            Command::SetSpeed(_) => Vec::new(),
+            Command::SetSpeed(v) => (1..=6)
+                .map(|n| {
+                    call(
+                        format!(
+                            "PositionerSGammaParametersGet({g}.{n},double *,double *,double *,double *)"
+                        ),
+                        Expect::SGamma(n, *v),
+                    )
+                })
+                .collect(),
         }
     }
 
@@ -164,6 +182,24 @@ impl Xps {
                 }
             }
             Expect::ErrorText(_) => None,
+            Expect::SGamma(n, v) => {
+                let p: Vec<f64> = rest
+                    .split(',')
+                    .filter_map(|x| x.trim().parse().ok())
+                    .collect();
+                let [_, acc, tmin, tmax] = p[..] else {
+                    return self.x.fail(self.protocol_error(text));
+                };
+                let set = format!(
+                    "PositionerSGammaParametersSet({}.{n},{},{},{},{})",
+                    self.group,
+                    wire_number(v),
+                    wire_number(acc),
+                    wire_number(tmin),
+                    wire_number(tmax)
+                );
+                return self.x.then(call(set, Expect::Nothing));
+            }
         };
         if let Some(r) = parsed {
             self.x.outcome = Some(Ok(r));
@@ -303,6 +339,41 @@ mod tests {
             sent(&mut m),
             "HexapodCoordinateSystemSet(HEXAPOD,Work,1,2,3,0,0,90)"
         );
+    }
+
+    /// The speed goes to each actuator's SGamma profile, acceleration and jerk times kept.
+    #[test]
+    fn speed_sets_every_actuators_sgamma_velocity() {
+        let mut m = Xps::new("HEXAPOD");
+        m.start(Command::SetSpeed(2.5));
+        for n in 1..=6 {
+            assert_eq!(
+                sent(&mut m),
+                format!(
+                    "PositionerSGammaParametersGet(HEXAPOD.{n},double *,double *,double *,double *)"
+                )
+            );
+            m.handle_input(b"0,5,20,0.04,0.2,EndOfAPI");
+            assert_eq!(
+                sent(&mut m),
+                format!("PositionerSGammaParametersSet(HEXAPOD.{n},2.5,20,0.04,0.2)")
+            );
+            assert_eq!(m.poll_outcome(), None);
+            m.handle_input(b"0,,EndOfAPI");
+        }
+        assert_eq!(m.poll_outcome(), Some(Ok(Reply::Done)));
+        // A refusal names the controller's code and text.
+        m.start(Command::SetSpeed(500.0));
+        sent(&mut m);
+        m.handle_input(b"0,5,20,0.04,0.2,EndOfAPI");
+        sent(&mut m);
+        m.handle_input(b"-17,,EndOfAPI");
+        assert_eq!(sent(&mut m), "ErrorStringGet(-17,char *)");
+        m.handle_input(b"0,Parameter out of range,EndOfAPI");
+        assert!(matches!(
+            m.poll_outcome(),
+            Some(Err(HexapodError::Controller { code: -17, .. }))
+        ));
     }
 
     #[test]

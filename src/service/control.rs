@@ -107,6 +107,22 @@ pub enum Request {
     CalibrationAccept,
     /// Drop the waiting calibration.
     CalibrationReject,
+    /// Calibrate with the hexapod in the loop (`[hexapod]`): the plan CSV `plan` on the
+    /// service's host, or `poses` poses generated over the operating window (200); the run
+    /// directory `out` (default: `hexapod-run` in the state directory) resumes when it holds
+    /// poses of the same plan. The fit then waits for accept or reject.
+    HexapodStart {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        plan: Option<String>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        poses: Option<usize>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        out: Option<String>,
+    },
+    /// Where the hexapod run is (`service::hexapod_run::RunView`).
+    HexapodStatus,
+    /// Halt the hexapod and end its run before the next pose (start again to resume).
+    HexapodStop,
     /// The stored compensation tables, newest first (at most `limit`, default 50), each with
     /// its latest publication.
     TableList {
@@ -158,6 +174,7 @@ impl Request {
             | Request::RunResult { .. }
             | Request::Audit { .. }
             | Request::Calibration
+            | Request::HexapodStatus
             | Request::TableList { .. }
             | Request::TableStatus => Role::Viewer,
             _ => Role::Operator,

@@ -171,6 +171,7 @@ pub(super) struct Core {
     events_rx: Option<mpsc::UnboundedReceiver<CoreEvent>>,
     last_cnc_poll: Instant,
     calibrations: super::calibration::Calibrations,
+    hexapod: super::hexapod_run::HexapodRuns,
 }
 
 /// A make-up pass is sent for a missing capture at most this many times before the run fails.
@@ -352,6 +353,11 @@ impl Core {
                     .map(|f| f.display().to_string())
                     .unwrap_or_default(),
             ),
+            hexapod: super::hexapod_run::HexapodRuns::new(
+                s.hexapod.clone(),
+                p.layout.clone(),
+                &s.service.state_dir,
+            ),
         }
     }
 
@@ -526,6 +532,9 @@ impl Core {
     fn pump(&mut self) {
         while let Some(out) = self.pipeline.poll_output() {
             match out {
+                // Under a hexapod calibration the follower holds still (the poses' PSD2
+                // readings are taken with it where it is).
+                Output::Follower(_) if self.hexapod.active() => {}
                 // Only the latest target matters: the follower task skips superseded ones.
                 Output::Follower(FollowerCommand::MoveTo(mm)) => {
                     self.follow.send_replace(Some(mm));
@@ -1281,6 +1290,20 @@ impl Core {
                 Self::reply(c.reply, r);
             }
             Request::CalibrationReject => Self::reply(c.reply, self.calibrations.reject()),
+            Request::HexapodStart { plan, poses, out } => {
+                let r = match self.run {
+                    Some(_) => Err("a run is under way: calibrate between runs".into()),
+                    None => (self.hexapod).start(plan, poses, out, self.acquisition.subscribe()),
+                };
+                if r.is_ok() {
+                    self.pipeline.invalidate_stitch(
+                        "the hexapod moved the head: zero again before measuring",
+                    );
+                }
+                Self::reply(c.reply, r);
+            }
+            Request::HexapodStatus => Self::reply(c.reply, Ok(self.hexapod.status())),
+            Request::HexapodStop => Self::reply(c.reply, self.hexapod.stop()),
             Request::RunAbort => {
                 if self.pipeline.abort_run() {
                     let id = self.run.as_ref().map(|r| r.id.0);
@@ -1329,6 +1352,9 @@ impl Core {
 
     fn on_tick(&mut self) {
         let now = Instant::now();
+        if let Some(p) = self.hexapod.take_finished() {
+            let _ = self.calibrations.fitted(Ok(p));
+        }
         if let Some(z) = self.pipeline.zero_ready(now)
             && let Some(reply) = self.zero_reply.take()
         {

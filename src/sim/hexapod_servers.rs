@@ -151,6 +151,12 @@ impl Default for TwinHexapodSpec {
     }
 }
 
+/// The twin's actuator profiles: acceleration (mm/s²) and jerk times (s).
+const SGAMMA_ACCEL: f64 = 20.0;
+const SGAMMA_JERK: (f64, f64) = (0.04, 0.2);
+/// The platform's top linear speed (GCS `VLS`, XPS actuator velocity), mm/s.
+const MAX_ACTUATOR_MM_S: f64 = 50.0;
+
 /// XPS group states used here.
 const NOT_INIT: i64 = 7;
 const NOT_REFERENCED: i64 = 42;
@@ -201,6 +207,10 @@ struct State {
     /// GCS error register (cleared by `ERR?`).
     error: i64,
     velocity: f64,
+    /// The actuators' SGamma parameters (XPS `HEXAPOD.1` to `.6`): velocity (mm/s),
+    /// acceleration (mm/s²), minimum and maximum jerk time (s). The platform moves at the
+    /// velocity last set.
+    sgamma: [[f64; 4]; 6],
     faults: VecDeque<HexapodFault>,
     moves: usize,
     rng: Rng,
@@ -250,6 +260,7 @@ impl TwinHexapod {
                 target: HexPose::default(),
                 error: 0,
                 velocity: spec.speed_mm_s,
+                sgamma: [[spec.speed_mm_s, SGAMMA_ACCEL, SGAMMA_JERK.0, SGAMMA_JERK.1]; 6],
                 faults: VecDeque::new(),
                 moves: 0,
                 rng,
@@ -580,7 +591,7 @@ fn gcs_line(h: &TwinHexapod, line: &str) -> Result<Option<String>, ()> {
         }
         "VLS" => {
             match args.first().and_then(|v| v.parse::<f64>().ok()) {
-                Some(v) if v > 0.0 => h.lock().velocity = v,
+                Some(v) if v > 0.0 && v <= MAX_ACTUATOR_MM_S => h.lock().velocity = v,
                 _ => set_error(17),
             }
             None
@@ -695,6 +706,39 @@ async fn xps_answer(h: &TwinHexapod, text: &str) -> Result<String, ()> {
             Some(c) => reply(0, xps_status_text(c)),
             None => reply(-7, ""),
         },
+        "PositionerSGammaParametersGet" | "PositionerSGammaParametersSet" => {
+            // The actuators: HEXAPOD.1 to HEXAPOD.6.
+            let Some(n) = args
+                .first()
+                .and_then(|p| p.strip_prefix("HEXAPOD."))
+                .and_then(|n| n.parse::<usize>().ok())
+                .filter(|n| (1..=6).contains(n))
+            else {
+                return Ok(reply(-19, ""));
+            };
+            if name.ends_with("Get") {
+                if args.len() != 5 {
+                    return Ok(reply(-9, ""));
+                }
+                let p = h.lock().sgamma[n - 1];
+                return Ok(reply(0, &p.map(wire_number).join(",")));
+            }
+            let v: Option<Vec<f64>> = args[1..].iter().map(|a| a.parse().ok()).collect();
+            match v.as_deref() {
+                Some(&[vel, acc, tmin, tmax]) => {
+                    if !(vel > 0.0 && vel <= MAX_ACTUATOR_MM_S && acc > 0.0 && tmin > 0.0)
+                        || tmax < tmin
+                    {
+                        return Ok(reply(-17, ""));
+                    }
+                    let mut s = h.lock();
+                    s.sgamma[n - 1] = [vel, acc, tmin, tmax];
+                    s.velocity = vel;
+                    reply(0, "")
+                }
+                _ => reply(-9, ""),
+            }
+        }
         _ if !group_ok(0) => reply(-19, ""),
         "GroupKill" => {
             h.stop();

@@ -9,7 +9,9 @@
 # Measure (its travel inside the alignment: the service's pre-run check lets it start), start,
 # progress, the finished run's results, the audit log on Events, quit (the terminal given back,
 # exit status 0), then NO_COLOR. Exits non-zero on the first screen that does not show what it
-# should, printing that screen. Needs tmux and python3 (.ci/run installs tmux).
+# should, printing that screen. Then the Calibrate screen (issue 17): a hexapod calibration of
+# 40 poses started by keys against the twin's PI controller, followed to its fit and accepted.
+# Needs tmux and python3 (.ci/run installs tmux).
 #   bash tests/interop/console.sh            # from anywhere in the repository
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
@@ -300,6 +302,37 @@ expect 5 "dz vertical straightness (µm)" "straight LS"
 echo "console.sh: Events, the audit log"
 keys 7
 expect 10 "Alarms (UTC, newest first)" "This console's requests" "Audit log" "run_start X 0.0–8.0 mm, 5 targets, 2 runs"
+
+echo "console.sh: Calibrate, a hexapod run started from the console and followed to the fit"
+# The twin serves its PI controller on 127.0.0.1:50000, where twin-service.toml's [hexapod]
+# points. A 40-pose plan over the operating window (±100 µm, ±2 mm positioning, ±60″).
+python3 - "$work/plan.csv" <<'PY2'
+import random, sys
+r = random.Random(17)
+with open(sys.argv[1], "w") as f:
+    f.write("x_mm,y_mm,z_mm,u_deg,v_deg,w_deg\n")
+    for _ in range(40):
+        a = 60 / 3600
+        f.write(",".join(f"{v:.7f}" for v in (r.uniform(-0.1, 0.1), r.uniform(-2, 2),
+                r.uniform(-0.1, 0.1), r.uniform(-a, a), r.uniform(-a, a), r.uniform(-a, a))) + "\n")
+PY2
+keys 3
+expect 10 "Hexapod run" "No run: h calibrates"
+keys h
+expect 5 "Calibrate with the hexapod" "Plan CSV on the service's host"
+keys -l "$work/plan.csv"
+keys Enter
+expect 5 "Start the hexapod calibration?" "Keep clear of the platform"
+hexapod_t0=$SECONDS
+keys y
+expect 30 "running" "of 40 (" "machine time" "remaining ~" "PI C-887"
+echo "console.sh: $(screen | grep -o 'pose [0-9]* of 40[^│]*' | head -1)"
+expect 180 "done" "pose 40 of 40" "hold-out" "C–R bound" "worst" "Pending: $work"
+echo "console.sh: hexapod run and fit in $((SECONDS - hexapod_t0)) s; hold-out $(screen | grep -o 'worst [0-9.]*×' | head -1) the bound"
+keys a
+expect 5 "Accept the calibration?"
+keys y
+expect 15 "in use   stored calibration"
 
 echo "console.sh: colours, then quit"
 "${tmx[@]}" capture-pane -e -p -t console | grep -qE $'\e\\[[0-9;]*(3[0-7]|38;)' \

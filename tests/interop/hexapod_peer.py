@@ -132,6 +132,42 @@ err, text = x.ErrorStringGet(sid, -25)
 check(text == "Following Error", f"ErrorStringGet(-25): {text!r}")
 err, _ = x.Send(sid, "HexapodMoveAbsolute(HEXAPOD,Work,0,0,0,0,0,0)")
 check(err == 0, f"home: {err}")
+# Speed: the actuators' SGamma velocity, as newportxps' set_velocity writes it; the request
+# is the literal string axiscomp's XPS machine sends (src/hexapod/xps.rs).
+xps_sent = []
+real_xps_send = x.Send
+
+
+def xps_spy(s, cmd):
+    xps_sent.append(cmd)
+    return real_xps_send(s, cmd)
+
+
+x.Send = xps_spy
+orig_vel = None
+for n in range(1, 7):
+    err, vel, acc, tmin, tmax = x.PositionerSGammaParametersGet(sid, f"HEXAPOD.{n}")
+    check(err == 0 and vel > 0 and acc > 0 and 0 < tmin <= tmax, f"SGamma get {n}: {err}")
+    orig_vel = orig_vel or vel
+    err, _ = x.PositionerSGammaParametersSet(sid, f"HEXAPOD.{n}", 4.0, acc, tmin, tmax)
+    check(err == 0, f"SGamma set {n}: {err}")
+check(
+    xps_sent[0] == "PositionerSGammaParametersGet(HEXAPOD.1,double *,double *,double *,double *)",
+    f"newportxps sent {xps_sent[0]!r}",
+)
+check(xps_sent[1].startswith("PositionerSGammaParametersSet(HEXAPOD.1,4.0,"), xps_sent[1])
+err, vel, *_ = x.PositionerSGammaParametersGet(sid, "HEXAPOD.6")
+check((err, vel) == (0, 4.0), f"SGamma velocity read back: {err} {vel}")
+err, _ = x.PositionerSGammaParametersSet(sid, "HEXAPOD.1", 500.0, acc, tmin, tmax)
+check(err == -17, f"an actuator velocity of 500 mm/s: {err}")
+t0 = time.monotonic()
+err, _ = x.Send(sid, "HexapodMoveAbsolute(HEXAPOD,Work,0,4,0,0,0,0)")
+took = time.monotonic() - t0
+check(err == 0 and 0.9 <= took <= 3.0, f"4 mm at 4 mm/s took {took:.2f} s ({err})")
+err, _ = x.Send(sid, "HexapodMoveAbsolute(HEXAPOD,Work,0,0,0,0,0,0)")
+for n in range(1, 7):
+    x.PositionerSGammaParametersSet(sid, f"HEXAPOD.{n}", orig_vel, acc, tmin, tmax)
 x.TCP_CloseSocket(sid)
-print(f"newportxps: {ver}; moved to {pose}; -17 and -25 with the manual's texts")
+print(f"newportxps: {ver}; moved to {pose}; -17 and -25 with the manual's texts; "
+      f"actuator speed 4 mm/s: 4 mm in {took:.2f} s")
 print(f"hexapod_peer: {checks} checks passed")

@@ -195,6 +195,8 @@ fn replies(fx: &Fixture, ended: bool) -> impl Fn(&Request) -> serde_json::Value 
         Request::TableStatus => fx.table_status.clone(),
         Request::TablePublish { confirm: true, .. } => fx.publish_reply.clone(),
         Request::Calibration => fx.calibration.clone(),
+        // The recorded session ran no hexapod calibration.
+        Request::HexapodStatus => serde_json::json!({"state": "idle"}),
         other => panic!("the console sent {other:?} here"),
     }
 }
@@ -321,7 +323,7 @@ fn calibrate_app(fx: &Fixture, t0: Instant, color: bool) -> App {
     let mut app = rest_app(fx, t0, color);
     let actions = app.handle_key(key(KeyCode::Char('3')));
     let sent = answer(&mut app, actions, t0, &replies(fx, true));
-    assert_eq!(sent, [Request::Calibration]);
+    assert_eq!(sent, [Request::Calibration, Request::HexapodStatus]);
     app
 }
 
@@ -1047,4 +1049,149 @@ fn shift_json(v: &mut serde_json::Value, shift: i64) {
         serde_json::Value::Array(a) => a.iter_mut().for_each(|x| shift_json(x, shift)),
         _ => {}
     }
+}
+
+/// The Calibrate screen drives a hexapod calibration through the service, by keys, against
+/// the twin's PI controller: h and the default plan's size typed as a plan (empty: 200
+/// poses; here a 40-pose plan file), progress with pose i of N, machine time and time left;
+/// a controller error mid-plan stops it with the controller's code and text on the screen;
+/// u resumes at the next pose; the fit's hold-out against the Cramér–Rao bound shows and the
+/// calibration waits for accept, which puts it in use.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn calibrate_screen_runs_the_hexapod_through_the_service() {
+    use axiscomp::hexapod::Workspace;
+    use axiscomp::hexapod::plan::{PlanSpec, PosePlan};
+    use axiscomp::sim::hexapod_servers::{HexapodFault, TwinHexapodSpec, gcs_error_text, start};
+    let port = crate::helpers::free_port();
+    let dir = crate::helpers::TempDir::new("console-hexapod");
+    let out = dir.path("run");
+    let rig = ServiceRig::start(RigOptions {
+        service_toml: format!(
+            "{FAST}\n[hexapod]\ndriver = \"pi-gcs\"\naddress = \"127.0.0.1:{port}\"\n\
+             settle_ms = 20\nframes = 20\nstable_um = 5.0\n"
+        ),
+        ..RigOptions::default()
+    })
+    .await;
+    let servers = start(
+        TwinHexapodSpec {
+            gcs: Some(std::net::SocketAddr::from(([127, 0, 0, 1], port))),
+            xps: None,
+            workspace: Workspace::symmetric([10.0, 10.0, 5.0, 7.0, 7.0, 7.0]),
+            speed_mm_s: 50.0,
+            speed_deg_s: 10.0,
+            ..TwinHexapodSpec::default()
+        },
+        rig.twin.plant.hexapod.clone(),
+    )
+    .await
+    .expect("twin hexapod");
+    let plan = PosePlan::generate(&PlanSpec {
+        poses: 40,
+        ..PlanSpec::default()
+    });
+    let plan_file = dir.write("plan.csv", &plan.to_csv());
+    let mut c = Console::start(&rig.socket, 160, 48);
+    c.until(10, "connected", |a| {
+        a.link == LinkState::Up && a.snapshot.is_some()
+    })
+    .await;
+    c.keys(chars("3")).await;
+    c.until(10, "the hexapod status", |a| a.calibrate.hexapod.is_some())
+        .await;
+    assert!(
+        c.screen().contains("No run: h calibrates"),
+        "{}",
+        c.screen()
+    );
+    // h asks for the plan, Enter asks to confirm, y starts.
+    let mut keys = chars("h");
+    keys.extend(chars(&plan_file.display().to_string()));
+    keys.push(key(KeyCode::Enter));
+    c.keys(keys).await;
+    assert!(
+        c.screen().contains("Start the hexapod calibration?"),
+        "{}",
+        c.screen()
+    );
+    c.keys(chars("y")).await;
+    c.until(60, "ten poses", |a| {
+        a.calibrate.hexapod.as_ref().is_some_and(|h| h.done >= 10)
+    })
+    .await;
+    let s = c.screen();
+    assert!(s.contains("of 40 ("), "{s}");
+    assert!(s.contains("machine time"), "{s}");
+    assert!(s.contains("remaining ~"), "{s}");
+    let out_dir = c.app.calibrate.hexapod.clone().expect("view").out;
+    // A controller error on a coming move: the run stops with the controller's words.
+    servers.hexapod.inject(HexapodFault::Error(10));
+    c.until(30, "the run failed", |a| {
+        a.calibrate
+            .hexapod
+            .as_ref()
+            .is_some_and(|h| h.state == "failed")
+    })
+    .await;
+    c.run(Vec::new(), Duration::from_millis(300)).await;
+    let text10 = gcs_error_text(10);
+    let s = c.screen();
+    assert!(s.contains(&format!("PI C-887 error 10: {text10}")), "{s}");
+    assert!(s.contains("u resume"), "{s}");
+    let stored = c
+        .app
+        .calibrate
+        .hexapod
+        .as_ref()
+        .map(|h| h.done)
+        .unwrap_or(0);
+    assert!((10..40).contains(&stored), "{stored}");
+    // u resumes at the next pose, in the same run directory.
+    c.keys(chars("u")).await;
+    c.until(120, "the fit", |a| {
+        a.calibrate
+            .hexapod
+            .as_ref()
+            .is_some_and(|h| h.state == "done")
+    })
+    .await;
+    let h = c.app.calibrate.hexapod.clone().expect("view");
+    assert_eq!(h.out, out_dir);
+    assert_eq!(h.resumed_from, stored, "{h:?}");
+    let run_csv =
+        std::fs::read_to_string(std::path::Path::new(&out_dir).join("run.csv")).expect("run.csv");
+    let idx: Vec<usize> = run_csv
+        .lines()
+        .filter(|l| l.starts_with(|ch: char| ch.is_ascii_digit()))
+        .filter_map(|l| l.split(',').next()?.parse().ok())
+        .collect();
+    assert_eq!(idx, (1..=40).collect::<Vec<_>>(), "every pose stored once");
+    let ratio = h.ratio.expect("ratio");
+    assert!(ratio.iter().all(|r| *r > 0.5 && *r < 1.6), "{ratio:?}");
+    c.until(10, "the calibration waits", |a| {
+        a.calibrate.pending.is_some()
+    })
+    .await;
+    c.run(Vec::new(), Duration::from_millis(300)).await;
+    let s = c.screen();
+    assert!(s.contains("hold-out"), "{s}");
+    assert!(s.contains("C–R bound"), "{s}");
+    assert!(s.contains("× the bound"), "{s}");
+    assert!(
+        s.contains(&format!("Pending: {out_dir}/calibration.toml")),
+        "{s}"
+    );
+    // Accept, as for any other calibration.
+    c.keys(chars("a")).await;
+    c.keys(chars("y")).await;
+    c.until(10, "in use", |a| {
+        a.calibrate
+            .active
+            .as_ref()
+            .is_some_and(|x| x.source.ends_with("calibration.toml"))
+            && a.calibrate.pending.is_none()
+    })
+    .await;
+    drop(out);
+    rig.stop().await;
 }

@@ -82,6 +82,34 @@ async fn both_drivers_move_the_twin_platform() {
     }
 }
 
+/// The speed setting reaches both controllers (GCS `VLS`, the HXP's actuator SGamma
+/// velocity) and the platform moves at it: 4 mm at 8 mm/s takes half a second.
+#[tokio::test]
+async fn both_drivers_set_the_platforms_speed() {
+    for kind in [Driver::PiGcs, Driver::NewportXps] {
+        let s = servers().await;
+        let mut h = driver(&s, kind).await;
+        h.initialize().await.expect("initialise");
+        h.set_speed(8.0).await.expect("speed");
+        let t0 = Instant::now();
+        h.move_to(HexPose([0.0, 4.0, 0.0, 0.0, 0.0, 0.0]))
+            .await
+            .expect("move");
+        let took = t0.elapsed();
+        // At the twin's 50 mm/s it would take 80 ms.
+        assert!(
+            took >= Duration::from_millis(480) && took < Duration::from_secs(3),
+            "{kind:?}: {took:?}"
+        );
+        // Beyond the controller's limit: refused with its code (GCS 17, XPS -17).
+        let e = h.set_speed(500.0).await.expect_err("too fast");
+        assert!(
+            matches!(e, HexapodError::Controller { code, .. } if code.abs() == 17),
+            "{kind:?}: {e}"
+        );
+    }
+}
+
 /// A pose outside the workspace is refused by the controller with its code and text
 /// (GCS 7, XPS -17) and nothing moves.
 #[tokio::test]
@@ -196,7 +224,7 @@ use axiscomp::acquire::{AcquireConfig, Acquisition, IoMap};
 use axiscomp::calibrate::CalibrateOptions;
 use axiscomp::hexapod::plan::{PlanError, PlanSpec, PosePlan};
 use axiscomp::hexapod::procedure::{
-    PoseStore, ProcedureError, RunOptions, RunProgress, RunReport, fit_and_judge, run,
+    PoseStore, ProcedureError, RunOptions, RunProgress, RunReport, fit_and_judge, never_stop, run,
 };
 use axiscomp::optics::Layout;
 use axiscomp::sim::InstallSpec;
@@ -254,10 +282,21 @@ async fn take(
     r: &Rig,
     plan: &PosePlan,
     store: &mut PoseStore,
-    on: &mut dyn FnMut(&RunProgress),
+    on: &mut (dyn FnMut(&RunProgress) + Send),
 ) -> Result<RunReport, ProcedureError> {
     let mut rx = r.acq.subscribe();
-    run(h, &mut rx, plan, &spec().workspace, store, &quick(), on).await
+    let stop = never_stop();
+    run(
+        h,
+        &mut rx,
+        plan,
+        &spec().workspace,
+        store,
+        &quick(),
+        &stop,
+        on,
+    )
+    .await
 }
 
 fn quick() -> RunOptions {

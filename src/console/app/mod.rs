@@ -19,7 +19,7 @@ mod results;
 mod tests;
 
 pub use align::{AdviceView, AlignProc, StationSpot, StationView};
-pub use calibrate::{CalSummary, CalibrateState};
+pub use calibrate::{CalSummary, CalibrateState, HexapodView};
 pub use measure::{Field, PlanForm, RunProgress};
 pub use publish::PublishState;
 pub use results::ResultsView;
@@ -122,6 +122,9 @@ pub enum Confirm {
     Fit(String),
     /// Accept the pending calibration.
     Accept,
+    /// Start a hexapod calibration run: the plan CSV on the service's host ("" for the
+    /// default plan).
+    HexapodStart(String),
 }
 
 /// What a line typed into the input box is for.
@@ -131,6 +134,8 @@ pub enum InputFor {
     PublishAxis { table_id: i64, axis: String },
     /// The path of a pose-set CSV on the service's host.
     PosePath,
+    /// The hexapod run's plan CSV on the service's host (empty: the default plan).
+    HexapodPlan,
     /// Where to save the part program of the plan (on this host).
     ProgramPath,
     /// The alignment's span: "FROM TO" (mm).
@@ -198,6 +203,9 @@ enum Pending {
     Fit,
     CalAccept,
     CalReject,
+    HexapodStart,
+    HexapodStatus,
+    HexapodStop,
     RunStart(Box<Plan>),
     RunStatus,
     RunAbort,
@@ -235,6 +243,7 @@ impl Pending {
                 | Pending::Tables
                 | Pending::TableStatus
                 | Pending::Calibration
+                | Pending::HexapodStatus
         )
     }
 }
@@ -435,6 +444,7 @@ impl App {
         }
         out.extend(self.results_need_list());
         out.extend(self.events_need_audit());
+        out.extend(self.calibrate_need_hexapod());
         out.extend(self.screens_need());
         out
     }
@@ -460,6 +470,7 @@ impl App {
             }
             _ => {}
         }
+        out.extend(self.calibrate_need_hexapod());
         out
     }
 
@@ -708,6 +719,10 @@ impl App {
                 self.overlay = Overlay::Confirm(Confirm::Fit(text));
                 Vec::new()
             }
+            InputFor::HexapodPlan => {
+                self.overlay = Overlay::Confirm(Confirm::HexapodStart(text));
+                Vec::new()
+            }
             InputFor::ProgramPath => {
                 if text.is_empty() {
                     self.say(Level::Warn, "type a file name for the part program");
@@ -784,6 +799,7 @@ impl App {
                 self.log(Level::Info, format!("→ fit the pose set {path}"));
                 vec![self.send(Request::CalibrationFit { poses: path }, Pending::Fit)]
             }
+            Confirm::HexapodStart(plan) => self.hexapod_start(plan),
             Confirm::Accept => {
                 self.log(Level::Info, "→ accept the calibration");
                 vec![self.send(Request::CalibrationAccept, Pending::CalAccept)]
@@ -839,6 +855,12 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
             ("r", "reload the run list"),
         ],
         Screen::Calibrate => &[
+            (
+                "h",
+                "calibrate with the hexapod: plan file or default (asks)",
+            ),
+            ("s", "stop the hexapod run (the poses stay stored)"),
+            ("u", "resume the stopped or failed hexapod run"),
             ("f", "fit a pose-set CSV on the service's host (asks)"),
             ("a", "accept the pending calibration (asks)"),
             ("x", "reject the pending calibration"),

@@ -55,7 +55,12 @@ impl App {
                             self.calibrate.loaded = true;
                             self.calibrate.error = Some(e.to_string());
                         }
-                        Pending::Fit | Pending::CalAccept | Pending::CalReject => {
+                        Pending::HexapodStatus => self.calibrate.error = Some(e.to_string()),
+                        Pending::Fit
+                        | Pending::CalAccept
+                        | Pending::CalReject
+                        | Pending::HexapodStart
+                        | Pending::HexapodStop => {
                             if pending == Pending::Fit {
                                 self.calibrate.fitting = false;
                             }
@@ -145,6 +150,29 @@ impl App {
                 return self.reload_publish();
             }
             Pending::Calibration => self.apply_calibration(&v),
+            Pending::HexapodStatus => return self.apply_hexapod_status(v),
+            Pending::HexapodStart => {
+                let text = format!(
+                    "hexapod run started: {} poses, {} stored already ({})",
+                    v["poses"].as_u64().unwrap_or(0),
+                    v["stored"].as_u64().unwrap_or(0),
+                    v["out"].as_str().unwrap_or("")
+                );
+                self.log(Level::Info, format!("✓ {text}"));
+                self.say(Level::Info, text);
+                // Follow it now.
+                self.calibrate.last_hexapod_status = None;
+                return self.calibrate_need_hexapod();
+            }
+            Pending::HexapodStop => {
+                let text = format!(
+                    "stopping the hexapod at pose {} of {}: u resumes",
+                    v["done"].as_u64().unwrap_or(0),
+                    v["total"].as_u64().unwrap_or(0)
+                );
+                self.log(Level::Info, format!("✓ {text}"));
+                self.say(Level::Info, text);
+            }
             Pending::Fit => {
                 self.calibrate.fitting = false;
                 self.calibrate.error = None;

@@ -294,10 +294,16 @@ fn calibrate_fit_asks_then_accept_asks_and_a_viewer_cannot() {
     let out = a.handle_key(ch('3'));
     assert!(matches!(
         &out[..],
-        [Action::Send {
-            request: Request::Calibration,
-            ..
-        }]
+        [
+            Action::Send {
+                request: Request::Calibration,
+                ..
+            },
+            Action::Send {
+                request: Request::HexapodStatus,
+                ..
+            }
+        ]
     ));
     a.handle_key(ch('f'));
     for c in "/tmp/p.csv".chars() {

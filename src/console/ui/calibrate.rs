@@ -2,9 +2,11 @@
 //! the service's host (`calibration_fit`), and what to judge it by — the residual RMS per
 //! reading channel against the noise, rank and condition number, the hold-out RMS per DOF, the
 //! model fit — before accepting or rejecting it. Every number is the service's.
+//! A hexapod run (`hexapod_status`) shows as it goes: pose i of N, machine time, time left,
+//! the controller's error in its words, then the hold-out against the Cramér–Rao bound.
 
 use super::{Theme, WIDE, panel};
-use crate::console::app::{App, CalSummary};
+use crate::console::app::{App, CalSummary, HexapodView};
 use ratatui::Frame;
 use ratatui::layout::{Constraint, Layout, Rect};
 use ratatui::text::{Line, Span};
@@ -19,12 +21,22 @@ pub fn render(frame: &mut Frame, area: Rect, app: &App) {
     };
     let c = &app.calibrate;
     let wide = area.width >= WIDE;
-    let [top, rest] = Layout::vertical([
+    // Two borders, the state line, where (two rows: paths are long), the keys; an error
+    // (two rows) and the judgement (three) when there are.
+    let hex_rows = match &c.hexapod {
+        Some(h) if h.state != "idle" => {
+            6 + if h.error.is_some() { 2 } else { 0 } + if h.ratio.is_some() { 3 } else { 0 }
+        }
+        _ => 3,
+    };
+    let [top, hex, rest] = Layout::vertical([
         Constraint::Length(if wide { 7 } else { 6 }),
+        Constraint::Length(hex_rows),
         Constraint::Min(6),
     ])
     .areas(area);
     state(frame, top, app, wide, theme);
+    hexapod(frame, hex, c.hexapod.as_ref(), wide, theme);
     match &c.pending {
         Some(p) => judge(frame, rest, p, wide, theme),
         None => {
@@ -94,7 +106,7 @@ fn state(frame: &mut Frame, area: Rect, app: &App, _wide: bool, theme: Theme) {
         if app.read_only() {
             "read-only (viewer): fitting, accepting and rejecting need the operator role"
         } else {
-            "f fit a pose set  a accept  x reject  r reload  ? help"
+            "h hexapod run  f fit a pose set  a accept  x reject  r reload  ? help"
         },
         theme.dim(),
     ));
@@ -102,6 +114,111 @@ fn state(frame: &mut Frame, area: Rect, app: &App, _wide: bool, theme: Theme) {
         Paragraph::new(lines)
             .wrap(Wrap { trim: true })
             .block(panel("Calibration")),
+        area,
+    );
+}
+
+/// Seconds as the console writes durations.
+fn duration_words(s: f64) -> String {
+    super::duration(std::time::Duration::from_secs_f64(s.max(0.0)))
+}
+
+fn hexapod(frame: &mut Frame, area: Rect, h: Option<&HexapodView>, wide: bool, theme: Theme) {
+    let mut lines = Vec::new();
+    match h {
+        None => lines.push(Line::styled("asking the service…", theme.dim())),
+        Some(h) if h.state == "idle" => lines.push(Line::styled(
+            "No run: h calibrates with the hexapod (plan, fit, hold-out, accept).",
+            theme.dim(),
+        )),
+        Some(h) => {
+            let pct = if h.total > 0 {
+                100.0 * h.done as f64 / h.total as f64
+            } else {
+                0.0
+            };
+            let state_style = match h.state.as_str() {
+                "failed" => theme.bad(),
+                "stopped" | "stopping" => theme.warn(),
+                "done" => theme.ok(),
+                _ => theme.accent(),
+            };
+            let mut first = vec![
+                Span::styled(format!("{:<9}", h.state), state_style),
+                Span::raw(format!(
+                    "pose {} of {} ({pct:.0} %)  machine time {}",
+                    h.done,
+                    h.total,
+                    duration_words(h.machine_s)
+                )),
+            ];
+            match (h.state.as_str(), h.eta_s) {
+                ("running", Some(eta)) => {
+                    first.push(Span::raw(format!("  remaining ~{}", duration_words(eta))))
+                }
+                ("fitting", _) => first.push(Span::raw(format!(
+                    "  fitting (iteration {})",
+                    h.fit_iteration
+                ))),
+                _ => {}
+            }
+            lines.push(Line::from(first));
+            lines.push(Line::styled(
+                format!(
+                    "{}  plan {}  in {}{}",
+                    if h.controller.is_empty() {
+                        "hexapod"
+                    } else {
+                        &h.controller
+                    },
+                    if h.plan.is_empty() {
+                        "default"
+                    } else {
+                        &h.plan
+                    },
+                    h.out,
+                    if h.reconnects > 0 {
+                        format!("  {} link reconnects", h.reconnects)
+                    } else {
+                        String::new()
+                    }
+                ),
+                theme.dim(),
+            ));
+            if let Some(e) = &h.error {
+                lines.push(Line::styled(e.clone(), theme.bad()));
+            }
+            if let (Some(r), Some(rms), Some(b)) = (&h.ratio, &h.holdout_rms, &h.crlb) {
+                let w = if wide { 10 } else { 7 };
+                let worst = r.iter().cloned().fold(0.0, f64::max);
+                lines.push(Line::raw(row("hold-out", rms, w)));
+                lines.push(Line::raw(row("C–R bound", b, w)));
+                lines.push(Line::styled(
+                    format!(
+                        "{}  worst {worst:.2}× the bound ({} poses, {} frames held out)",
+                        row("ratio", r, w),
+                        h.holdout_poses,
+                        h.holdout_frames
+                    ),
+                    if worst <= 1.2 {
+                        theme.ok()
+                    } else {
+                        theme.warn()
+                    },
+                ));
+            }
+            let keys = match h.state.as_str() {
+                "running" => "s stop",
+                "stopped" | "failed" => "u resume  h start another",
+                _ => "h start another",
+            };
+            lines.push(Line::styled(keys, theme.dim()));
+        }
+    }
+    frame.render_widget(
+        Paragraph::new(lines)
+            .wrap(Wrap { trim: true })
+            .block(panel("Hexapod run")),
         area,
     );
 }

@@ -137,6 +137,12 @@ fn render_input(frame: &mut Frame, input: &Input, theme: Theme) {
                 "Path of the pose-set CSV on the service's host (axiscomp calibrate simulate writes one):",
             )],
         ),
+        InputFor::HexapodPlan => (
+            " Calibrate with the hexapod ".to_string(),
+            vec![Line::raw(
+                "Plan CSV on the service's host (x_mm,y_mm,z_mm,u_deg,v_deg,w_deg[,travel_mm,follower_mm]); empty: 200 poses over the operating window:",
+            )],
+        ),
         InputFor::ProgramPath => (
             " Save the part program ".to_string(),
             vec![Line::raw(
@@ -350,6 +356,19 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
                 Line::raw(format!("Fit the pose set {path} on the service's host.")),
                 Line::raw(
                     "The result waits for you to accept or reject it; nothing changes until then.",
+                ),
+            ],
+        ),
+        Confirm::HexapodStart(plan) => (
+            " Start the hexapod calibration? ",
+            vec![
+                Line::raw(if plan.is_empty() {
+                    "The hexapod moves the head's moving module through 200 poses over the operating window.".to_string()
+                } else {
+                    format!("The hexapod moves the head's moving module through the plan {plan}.")
+                }),
+                Line::raw(
+                    "Keep clear of the platform. The run resumes where it stopped; the fit then waits for you.",
                 ),
             ],
         ),

@@ -1,0 +1,300 @@
+//! Calibrating with the hexapod in the loop from the service (the console's Calibrate
+//! screen): `hexapod_start` runs [`crate::hexapod::session`] — the same session as
+//! `axiscomp calibrate run` — on a task of its own, reading the head from the service's own
+//! acquisition; `hexapod_status` follows it (pose i of N, machine time, time left, the
+//! controller's error in its own words); `hexapod_stop` halts the platform and ends the run
+//! before the next pose. Every pose is stored as it is taken in the run directory, so starting
+//! again with the same plan resumes at the next pose (after a controller fault, a stop, a
+//! crash). The fitted calibration then waits for accept or reject like any other.
+
+use super::calibration::{Pending, Summary};
+use crate::acquire::Frame;
+use crate::hexapod::config::HexapodSettings;
+use crate::hexapod::plan::{PlanSpec, PosePlan};
+use crate::hexapod::procedure::{PoseStore, ProcedureError};
+use crate::hexapod::session::{self, SessionEvent};
+use crate::optics::Layout;
+use crate::units::DOF_TO_USER;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use tokio::sync::{broadcast, watch};
+
+/// Fewest poses a generated plan may have.
+pub const MIN_POSES: usize = 20;
+/// Poses of the default plan.
+pub const DEFAULT_POSES: usize = 200;
+/// Every n-th pose is held out of the fit to judge it.
+const HOLDOUT_EVERY: usize = 5;
+
+/// Where the run is, as `hexapod_status` answers (DOFs in µm and arcsec).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct RunView {
+    /// "idle", "running", "stopping", "fitting", "stopped", "failed" or "done".
+    pub state: String,
+    pub controller: String,
+    /// The plan file, or "" for the generated plan of `poses` poses.
+    pub plan: String,
+    pub poses: usize,
+    pub out: String,
+    pub done: usize,
+    pub total: usize,
+    pub resumed_from: usize,
+    pub machine_s: f64,
+    pub elapsed_s: f64,
+    pub eta_s: Option<f64>,
+    pub reconnects: u32,
+    pub fit_iteration: u32,
+    /// Why it stopped or failed (the controller's code and text when it was the controller).
+    pub error: Option<String>,
+    /// The judgement: held-out poses and frames, RMS of single frames against the reached
+    /// poses, the single-frame Cramér–Rao bound, and their ratio, per DOF.
+    pub holdout_poses: usize,
+    pub holdout_frames: usize,
+    pub holdout_rms: Option<[f64; 6]>,
+    pub crlb: Option<[f64; 6]>,
+    pub ratio: Option<[f64; 6]>,
+    pub calibration_file: String,
+}
+
+impl RunView {
+    fn idle() -> RunView {
+        RunView {
+            state: "idle".into(),
+            ..RunView::default()
+        }
+    }
+
+    /// Whether a run (or its fit) is under way.
+    pub fn active(&self) -> bool {
+        matches!(self.state.as_str(), "running" | "stopping" | "fitting")
+    }
+}
+
+/// The service's hexapod runs: at most one at a time.
+#[derive(Debug)]
+pub struct HexapodRuns {
+    settings: HexapodSettings,
+    layout: Layout,
+    state_dir: PathBuf,
+    view: Arc<Mutex<RunView>>,
+    stop: Option<watch::Sender<bool>>,
+    /// A finished run's calibration, for the core to make pending.
+    finished: Arc<Mutex<Option<Pending>>>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// The plan a start request asks for: the file on the service's host, or `poses` generated.
+pub fn plan_for(plan: Option<&str>, poses: Option<usize>) -> Result<PosePlan, String> {
+    match plan.filter(|p| !p.trim().is_empty()) {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).map_err(|e| {
+                format!("plan {path}: cannot read it ({e}); give a CSV on the service's host")
+            })?;
+            PosePlan::parse(&text, path).map_err(|e| e.to_string())
+        }
+        None => {
+            let n = poses.unwrap_or(DEFAULT_POSES);
+            if n < MIN_POSES {
+                return Err(format!("{n} poses: give at least {MIN_POSES}"));
+            }
+            Ok(PosePlan::generate(&PlanSpec {
+                poses: n,
+                ..PlanSpec::default()
+            }))
+        }
+    }
+}
+
+impl HexapodRuns {
+    pub fn new(settings: HexapodSettings, layout: Layout, state_dir: &Path) -> HexapodRuns {
+        HexapodRuns {
+            settings,
+            layout,
+            state_dir: state_dir.to_path_buf(),
+            view: Arc::new(Mutex::new(RunView::idle())),
+            stop: None,
+            finished: Arc::new(Mutex::new(None)),
+        }
+    }
+
+    /// Where the run is.
+    pub fn status(&self) -> serde_json::Value {
+        serde_json::to_value(&*lock(&self.view)).unwrap_or_default()
+    }
+
+    /// Whether a run is under way.
+    pub fn active(&self) -> bool {
+        lock(&self.view).active()
+    }
+
+    /// A finished run's calibration, once.
+    pub fn take_finished(&self) -> Option<Pending> {
+        lock(&self.finished).take()
+    }
+
+    /// Start (or resume) a run; everything the request can get wrong is refused here, before
+    /// the hexapod moves.
+    pub fn start(
+        &mut self,
+        plan: Option<String>,
+        poses: Option<usize>,
+        out: Option<String>,
+        frames: broadcast::Receiver<Frame>,
+    ) -> Result<serde_json::Value, String> {
+        if self.active() {
+            return Err("a hexapod run is under way: stop it (or wait) first".into());
+        }
+        session::driver(&self.settings)?;
+        let pose_plan = plan_for(plan.as_deref(), poses)?;
+        pose_plan
+            .check(&self.settings.workspace)
+            .and_then(|()| pose_plan.station().map(|_| ()))
+            .map_err(|e| e.to_string())?;
+        let out = out
+            .filter(|o| !o.trim().is_empty())
+            .map(PathBuf::from)
+            .unwrap_or_else(|| self.state_dir.join("hexapod-run"));
+        let stored = PoseStore::open(&out, &pose_plan)
+            .map_err(|e| e.to_string())?
+            .poses
+            .len();
+        let total = pose_plan.poses.len();
+        let (stop_tx, stop_rx) = watch::channel(false);
+        self.stop = Some(stop_tx);
+        *lock(&self.view) = RunView {
+            state: "running".into(),
+            controller: self.settings.driver.map(|d| d.name()).unwrap_or("").into(),
+            plan: plan.clone().unwrap_or_default(),
+            poses: total,
+            out: out.display().to_string(),
+            done: stored,
+            total,
+            resumed_from: stored,
+            ..RunView::default()
+        };
+        let (hx, layout) = (self.settings.clone(), self.layout.clone());
+        let (view, finished) = (self.view.clone(), self.finished.clone());
+        let dir = out.clone();
+        tokio::spawn(async move {
+            let mut frames = frames;
+            let ev_view = view.clone();
+            let r = session::run(
+                &hx,
+                &mut frames,
+                &pose_plan,
+                &dir,
+                &layout,
+                HOLDOUT_EVERY,
+                &stop_rx,
+                &mut |e| {
+                    let mut v = lock(&ev_view);
+                    match e {
+                        SessionEvent::Resuming { stored, .. } => v.resumed_from = stored,
+                        SessionEvent::Connected { controller, id } => {
+                            v.controller = format!("{controller} ({id})")
+                        }
+                        SessionEvent::Pose(p) => {
+                            v.done = p.done;
+                            v.machine_s = p.machine.as_secs_f64();
+                            v.elapsed_s = p.elapsed.as_secs_f64();
+                            v.eta_s = p.eta.map(|d| d.as_secs_f64());
+                            v.reconnects = p.reconnects;
+                        }
+                        SessionEvent::Fitting { iteration } => {
+                            v.state = "fitting".into();
+                            v.eta_s = None;
+                            v.fit_iteration = iteration;
+                        }
+                    }
+                },
+            )
+            .await;
+            let mut v = lock(&view);
+            match r {
+                Ok(o) => {
+                    let j = &o.judgement;
+                    let user = |a: [f64; 6]| -> [f64; 6] {
+                        std::array::from_fn(|k| a[k] * DOF_TO_USER[k])
+                    };
+                    v.state = "done".into();
+                    v.done = v.total;
+                    v.machine_s = o.report.machine.as_secs_f64();
+                    v.elapsed_s = o.report.wall.as_secs_f64();
+                    v.eta_s = None;
+                    v.holdout_poses = j.holdout_poses;
+                    v.holdout_frames = j.frames;
+                    v.holdout_rms = Some(user(j.holdout_rms));
+                    v.crlb = Some(user(j.crlb));
+                    v.ratio = Some(j.ratio());
+                    v.calibration_file = o.calibration_file.display().to_string();
+                    let source = o.calibration_file.display().to_string();
+                    match j.calibration.decoupler(&layout) {
+                        Ok(decoupler) => {
+                            *lock(&finished) = Some(Pending {
+                                summary: Summary::of(&j.calibration, &source),
+                                calibration: j.calibration.clone(),
+                                decoupler,
+                            })
+                        }
+                        Err(e) => {
+                            v.state = "failed".into();
+                            v.error = Some(format!("the fitted calibration: {e}"));
+                        }
+                    }
+                }
+                Err(e) => {
+                    v.state = match e {
+                        ProcedureError::Stopped { .. } => "stopped",
+                        _ => "failed",
+                    }
+                    .into();
+                    v.eta_s = None;
+                    v.error = Some(e.to_string());
+                    tracing::warn!(error = %e, "hexapod calibration run ended");
+                }
+            }
+        });
+        tracing::info!(poses = total, stored, out = %out.display(), "hexapod calibration run started");
+        Ok(serde_json::json!({
+            "poses": total,
+            "stored": stored,
+            "out": out.display().to_string(),
+        }))
+    }
+
+    /// Ask the run to stop: the platform halts, the run ends before the next pose.
+    pub fn stop(&mut self) -> Result<serde_json::Value, String> {
+        let mut v = lock(&self.view);
+        if v.state != "running" {
+            return Err("no hexapod run is moving".into());
+        }
+        if let Some(s) = &self.stop {
+            let _ = s.send(true);
+        }
+        v.state = "stopping".into();
+        Ok(serde_json::json!({"stopping": true, "done": v.done, "total": v.total}))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plans_from_a_file_or_generated_and_bad_input_named() {
+        assert_eq!(plan_for(None, None).unwrap().poses.len(), DEFAULT_POSES);
+        assert_eq!(plan_for(Some(" "), Some(40)).unwrap().poses.len(), 40);
+        let e = plan_for(None, Some(5)).unwrap_err();
+        assert_eq!(e, "5 poses: give at least 20");
+        let e = plan_for(Some("/nonexistent/plan.csv"), None).unwrap_err();
+        assert!(
+            e.starts_with("plan /nonexistent/plan.csv: cannot read it"),
+            "{e}"
+        );
+    }
+}
