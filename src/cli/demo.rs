@@ -351,14 +351,19 @@ struct Truths {
     after: Figures,
 }
 
-/// The calibration's own standard uncertainty per DOF: what the hold-out error adds beyond
-/// the noise bound, `√(max(0, h² − b²))` (internal units).
+/// The calibration's own standard uncertainty per DOF (internal units): what the hold-out
+/// error h adds to the noise bound b, h² − b², and what N hold-out poses cannot rule out: the
+/// mean of N squared errors is known to √(2/N)·b², so `u² = max(0, h² − b²) + √(2/N)·b²`.
 fn calibration_u(r: &StudyResult) -> Option<([f64; 6], String)> {
     let (h, b) = (r.model.as_ref()?.to_array(), r.crlb.to_array());
+    let resolution = (2.0 / r.holdout_poses.max(1) as f64).sqrt();
     Some((
-        std::array::from_fn(|k| (h[k] * h[k] - b[k] * b[k]).max(0.0).sqrt()),
+        std::array::from_fn(|k| {
+            let b2 = b[k] * b[k];
+            ((h[k] * h[k] - b2).max(0.0) + resolution * b2).sqrt()
+        }),
         format!(
-            "the model calibration's hold-out error beyond the Cramér–Rao bound ({} poses)",
+            "the model calibration's hold-out error h beyond the Cramér–Rao bound b, √(max(0, h² − b²) + √(2/N)·b²), N = {} poses",
             r.holdout_poses
         ),
     ))

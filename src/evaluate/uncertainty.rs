@@ -12,7 +12,7 @@
 //! |---|---|---|
 //! | PSD noise | `√(Σ_j sd_j²/f_j) / n` | each capture's frame scatter sd over its f frames, n runs |
 //! | repeatability | `s/√n` | the run-to-run scatter s (ISO 230-2's s) of the n runs |
-//! | calibration | `u_cal` per DOF | the calibration record: `√(max(0, h² − b²))`, h the hold-out RMS, b the Cramér–Rao bound (what the fit adds beyond noise) |
+//! | calibration | `u_cal` per DOF | the calibration record: `√(max(0, h² − b²) + √(2/N)·b²)`, h the hold-out RMS over N poses, b the Cramér–Rao bound: what the fit adds beyond noise, and what N poses cannot rule out |
 //! | follower map | `√((S_x·u_along)² + (S_y·u_vert)²)` | the follower's own errors at the point ([`FollowerInput`]), through PSD2's sensitivities S |
 //! | stitching | `√(mean_j(S_x²·v_x,j + S_y²·v_y,j))` | the overlap handovers' accumulated variance v at each capture (a random walk) |
 //! | misalignment | `L·(1 − cos φ)/√12` (dy only) | φ the beam's angle to the travel, from the measured straightness slopes: the cosine error lies between 0 and L(1 − cos φ) (rectangular) |
@@ -93,7 +93,7 @@ impl Component {
         match self {
             Component::Noise => "√(Σ sd²/frames)/n",
             Component::Repeatability => "s/√n",
-            Component::Calibration => "√(hold-out² − bound²)",
+            Component::Calibration => "√(max(0, h² − b²) + √(2/N)·b²)",
             Component::Follower => "S·u(follower) at the point",
             Component::Stitching => "S·√(Σ overlap handover variances)",
             Component::Misalignment => "L·(1 − cos φ)/√12",
