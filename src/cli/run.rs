@@ -171,7 +171,7 @@ pub struct ReportArgs {
     /// The follower stage's specification, ±µm along its axis and ±µm vertical straightness
     /// (e.g. 4,2), for the budget's follower term until a follower map is in use; without it
     /// the term is stated as unknown.
-    #[arg(long, value_delimiter = ',', num_args = 2, value_names = ["ALONG_UM", "VERTICAL_UM"])]
+    #[arg(long, value_delimiter = ',', value_name = "ALONG_UM,VERTICAL_UM")]
     pub follower_spec_um: Option<Vec<f64>>,
 }
 
@@ -198,8 +198,10 @@ pub fn report(a: ReportArgs) -> Result<()> {
             }
         }
         Some(v) => {
+            let given: Vec<String> = v.iter().map(ToString::to_string).collect();
             return Err(InputError(format!(
-                "--follower-spec-um {v:?}: give two non-negative numbers, µm along and µm vertical (e.g. 4,2)"
+                "--follower-spec-um {}: give two non-negative numbers, µm along and µm vertical (e.g. 4,2)",
+                given.join(",")
             ))
             .into());
         }
