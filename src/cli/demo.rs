@@ -10,20 +10,30 @@
 //! 3. Tables: positioning (bidirectional) and both straightnesses, published over Modbus TCP
 //!    into the twin's PLC, which applies them to the axis.
 //! 4. Verify: the same cycle on the compensated axis; the ISO figures before and after for
-//!    every error, and the report (HTML, Markdown, plots, tables, the store) in `--out`.
+//!    every error with the twin's truth beside each, how far the head is from the truth at
+//!    every point against its stated uncertainty, and the report (HTML, Markdown, plots,
+//!    tables, the store, `summary.md` and `summary.json`) in `--out`.
+//!
+//! `summary.json`: `{"seed", "length_mm", "follower": {settings}, "figures": [{"name", "unit",
+//! "before", "after", "truth_before", "truth_after"}], "points": [{"run": "before"|"after",
+//! "target_mm", "direction": "+"|"-", "dof": "dx"|…|"ez", "measured", "truth", "U"}]}` in µm
+//! and arcsec, U expanded with k = 2; straightness points relative to their least-squares
+//! line, the others to the zero reference.
 
 use super::load_layout;
 use anyhow::{Context, Result};
 use axiscomp::comp::{PositioningMode, neutral};
-use axiscomp::evaluate::{EvalOptions, ReferenceLine, evaluate_captures};
+use axiscomp::evaluate::ReferenceLine;
 use axiscomp::plc::CncMap;
-use axiscomp::report::runs::{run_report, series};
+use axiscomp::report::runs::{add_budget, run_report, series};
 use axiscomp::report::{Comparison, Dof, RunMeta, write_run_report};
 use axiscomp::run::program::CaptureMode;
 use axiscomp::run::{Capture, Dialect, Direction, Plan, PlanSpec};
 use axiscomp::sim::InstallSpec;
 use axiscomp::sim::axis::AxisSpec;
-use axiscomp::sim::closed_loop::{self, Figures, LoopResult, LoopSpec, Pass, Step};
+use axiscomp::sim::closed_loop::{
+    self, BudgetSpec, Figures, LoopResult, LoopSpec, Measured, Pass, Step, TruePoint,
+};
 use axiscomp::sim::lab::LabSpec;
 use axiscomp::sim::plant::{MountSpec, Plant, PlantSpec};
 use axiscomp::sim::study::{StudyResult, StudySpec, study_head};
@@ -66,6 +76,10 @@ pub struct Args {
     /// Spacing of the tables in the PLC (mm).
     #[arg(long, default_value_t = 5.0)]
     pub step_mm: f64,
+    /// The drift check before each run: the head reads the carriage at rest at the reference
+    /// for this long (s of machine time; 0: none), for the budget's environmental term.
+    #[arg(long, default_value_t = 60)]
+    pub drift_check_s: u64,
     /// Where the report goes.
     #[arg(long, default_value = "demo-out")]
     pub out: PathBuf,
@@ -128,6 +142,9 @@ pub fn run(a: Args) -> Result<()> {
     print!("\n{}", r.calibration.report(None));
     print_holdout(&r, &study);
     let decoupler = r.calibration.decoupler(&layout)?;
+    let mut budget = BudgetSpec::of_plant(&plant);
+    budget.calibration = calibration_u(&r);
+    budget.drift_check = (a.drift_check_s > 0).then(|| Duration::from_secs(a.drift_check_s));
 
     let a_spec = plant.axis;
     println!("\n== 2. measure the axis (ISO 230-2)");
@@ -174,6 +191,7 @@ pub fn run(a: Args) -> Result<()> {
         step_mm: Some(a.step_mm),
         zero_window: Duration::from_millis(500),
         align_rounds: 8,
+        budget,
     };
     let span = axiscomp::sim::lab::plan_span(&spec.plan);
     println!(
@@ -227,11 +245,24 @@ pub fn run(a: Args) -> Result<()> {
         wall.elapsed().as_secs_f64()
     );
 
-    println!("\n== 5. before and after");
-    let truth = truth_figures(&result)?;
+    println!("\n== 5. before and after, with the twin's truth");
+    let truth = Truths {
+        before: truth_figures(&result.before)?,
+        after: truth_figures(&result.after)?,
+    };
     print_figures(&result, &truth);
+    let points = [
+        ("before", result.before.points()?),
+        ("after", result.after.points()?),
+    ];
+    print_points(&result, &points);
     let files = write_out(&a.out, &spec, &result, &truth)?;
-    println!("\nreport: {} ({} files)", a.out.display(), files);
+    let json = summary_json(&a, &spec, &result, &truth, &points);
+    write(
+        &a.out.join("summary.json"),
+        &format!("{}\n", serde_json::to_string_pretty(&json)?),
+    )?;
+    println!("\nreport: {} ({} files)", a.out.display(), files + 1);
     println!(
         "  {}/after/report.html, the verification run against the first; {}/axiscomp.db: both runs (axiscomp report --db … --run 1|2)",
         a.out.display(),
@@ -314,138 +345,214 @@ fn print_holdout(r: &StudyResult, spec: &StudySpec) {
     );
 }
 
-/// The same figures computed from the twin's truth at the verification run's captures.
-fn truth_figures(r: &LoopResult) -> Result<Figures> {
-    let truths: Vec<Capture> = r
-        .after
-        .run
-        .captures
-        .iter()
-        .map(|c| Capture {
-            errors: c.truth.errors,
-            ..c.capture
-        })
-        .collect();
-    let eval = evaluate_captures(&truths, &EvalOptions::default())
-        .context("evaluating the twin's truth")?;
-    Ok(Figures::of(&eval, ReferenceLine::LeastSquares))
+/// The ISO figures of the twin's truth at each run's captures.
+struct Truths {
+    before: Figures,
+    after: Figures,
 }
 
-/// (name, unit, before, after, truth after, compensated) rows in user units.
-fn rows(r: &LoopResult, truth: &Figures) -> Vec<(String, &'static str, f64, f64, f64, bool)> {
-    let (b, a, t) = (&r.before.figures, &r.after.figures, truth);
+/// The calibration's own standard uncertainty per DOF (internal units): what the hold-out
+/// error h adds to the noise bound b, h² − b², and what N hold-out poses cannot rule out: the
+/// mean of N squared errors is known to √(2/N)·b², so `u² = max(0, h² − b²) + √(2/N)·b²`.
+fn calibration_u(r: &StudyResult) -> Option<([f64; 6], String)> {
+    let (h, b) = (r.model.as_ref()?.to_array(), r.crlb.to_array());
+    let resolution = (2.0 / r.holdout_poses.max(1) as f64).sqrt();
+    Some((
+        std::array::from_fn(|k| {
+            let b2 = b[k] * b[k];
+            ((h[k] * h[k] - b2).max(0.0) + resolution * b2).sqrt()
+        }),
+        format!(
+            "the model calibration's hold-out error h beyond the Cramér–Rao bound b, √(max(0, h² − b²) + √(2/N)·b²), N = {} poses",
+            r.holdout_poses
+        ),
+    ))
+}
+
+/// The same figures computed from the twin's truth at a run's captures.
+fn truth_figures(m: &Measured) -> Result<Figures> {
+    m.truth_figures(ReferenceLine::LeastSquares)
+        .context("evaluating the twin's truth")
+}
+
+/// One figure: name, unit, before, after, truth before, truth after (user units), and
+/// whether it is compensated.
+struct Row {
+    name: &'static str,
+    unit: &'static str,
+    before: f64,
+    after: f64,
+    truth_before: f64,
+    truth_after: f64,
+    compensated: bool,
+}
+
+fn rows(r: &LoopResult, truth: &Truths) -> Vec<Row> {
+    let (b, a) = (&r.before.figures, &r.after.figures);
+    let (tb, ta) = (&truth.before, &truth.after);
     let um = 1000.0;
     let arcsec = DOF_TO_USER[3];
     let opt = |v: Option<f64>| v.unwrap_or(f64::NAN);
+    let row = |name, unit, scale: f64, f: &dyn Fn(&Figures) -> f64, compensated| Row {
+        name,
+        unit,
+        before: f(b) * scale,
+        after: f(a) * scale,
+        truth_before: f(tb) * scale,
+        truth_after: f(ta) * scale,
+        compensated,
+    };
     vec![
-        (
-            "dy positioning E".into(),
+        row("positioning E", "µm", um, &|f| f.e, true),
+        row("positioning M", "µm", um, &|f| f.m, true),
+        row("positioning A", "µm", um, &|f| opt(f.a), true),
+        row("repeatability R", "µm", um, &|f| opt(f.r), true),
+        row("reversal B", "µm", um, &|f| opt(f.b), true),
+        row(
+            "straightness dx (LS)",
             "µm",
-            b.e * um,
-            a.e * um,
-            t.e * um,
+            um,
+            &|f| f.straightness_x,
             true,
         ),
-        (
-            "dy positioning M".into(),
+        row(
+            "straightness dz (LS)",
             "µm",
-            b.m * um,
-            a.m * um,
-            t.m * um,
+            um,
+            &|f| f.straightness_z,
             true,
         ),
-        (
-            "dy positioning A".into(),
-            "µm",
-            opt(b.a) * um,
-            opt(a.a) * um,
-            opt(t.a) * um,
-            true,
-        ),
-        (
-            "dy repeatability R".into(),
-            "µm",
-            opt(b.r) * um,
-            opt(a.r) * um,
-            opt(t.r) * um,
-            true,
-        ),
-        (
-            "dy reversal B".into(),
-            "µm",
-            opt(b.b) * um,
-            opt(a.b) * um,
-            opt(t.b) * um,
-            true,
-        ),
-        (
-            "dx straightness (LS)".into(),
-            "µm",
-            b.straightness_x * um,
-            a.straightness_x * um,
-            t.straightness_x * um,
-            true,
-        ),
-        (
-            "dz straightness (LS)".into(),
-            "µm",
-            b.straightness_z * um,
-            a.straightness_z * um,
-            t.straightness_z * um,
-            true,
-        ),
-        (
-            "ex pitch max − min".into(),
-            "″",
-            b.pitch * arcsec,
-            a.pitch * arcsec,
-            t.pitch * arcsec,
-            false,
-        ),
-        (
-            "ey roll max − min".into(),
-            "″",
-            b.roll * arcsec,
-            a.roll * arcsec,
-            t.roll * arcsec,
-            false,
-        ),
-        (
-            "ez yaw max − min".into(),
-            "″",
-            b.yaw * arcsec,
-            a.yaw * arcsec,
-            t.yaw * arcsec,
-            false,
-        ),
+        row("pitch range", "arcsec", arcsec, &|f| f.pitch, false),
+        row("roll range", "arcsec", arcsec, &|f| f.roll, false),
+        row("yaw range", "arcsec", arcsec, &|f| f.yaw, false),
     ]
 }
 
-fn print_figures(r: &LoopResult, truth: &Figures) {
+fn print_figures(r: &LoopResult, truth: &Truths) {
     println!(
-        "{:<24}{:>6}{:>10}{:>10}{:>8}{:>13}",
-        "figure", "unit", "before", "after", "ratio", "truth after"
+        "{:<22}{:>7}{:>10}{:>10}{:>10}{:>10}{:>9}",
+        "figure", "unit", "before", "truth", "after", "truth", "ratio"
     );
-    for (name, unit, b, a, t, comp) in rows(r, truth) {
-        let ratio = if comp && b.abs() > 0.0 {
-            format!("{:.1} %", 100.0 * a / b)
+    for x in rows(r, truth) {
+        // The ratio the compensation achieved, by the truth.
+        let ratio = if x.compensated && x.truth_before.abs() > 0.0 {
+            format!("{:.1} %", 100.0 * x.truth_after / x.truth_before)
         } else {
             "-".into()
         };
-        println!("{name:<24}{unit:>6}{b:>10.2}{a:>10.2}{ratio:>8}{t:>13.2}");
+        println!(
+            "{:<22}{:>7}{:>10.2}{:>10.2}{:>10.2}{:>10.2}{ratio:>9}",
+            x.name, x.unit, x.before, x.truth_before, x.after, x.truth_after
+        );
     }
     println!(
-        "\nafter: measured on the compensated axis by the same head and cycle; truth after: the same figures\n\
-         from the twin's true errors at those captures (the difference is the head's own error: the follower\n\
-         stage's errors between handovers, in the stated stitching uncertainty). Bidirectional R includes the\n\
-         reversal at each target, so the backlash table shrinks it too. The angular errors are measured, not\n\
-         compensated (no Abbe tables without a functional point): no ratio."
+        "\nbefore/after: measured by the head; truth: the same figures from the twin's true errors at the\n\
+         same captures; ratio: truth after / truth before. Bidirectional R includes the reversal at each\n\
+         target, so the backlash table shrinks it too. The angular errors are measured, not compensated\n\
+         (no Abbe tables without a functional point): no ratio."
     );
+}
+
+/// Per DOF and run: the largest |measured − truth| and the largest stated U over the points,
+/// and how many points have the truth inside U.
+fn print_points(r: &LoopResult, points: &[(&str, Vec<TruePoint>); 2]) {
+    println!(
+        "\nevery target and direction against the truth (U expanded, k = 2; follower: {})",
+        r.before.budget.inputs.follower.describe()
+    );
+    println!(
+        "{:<8}{:<5}{:>8}{:>16}{:>12}{:>14}",
+        "run", "DOF", "unit", "max |m − t|", "max U", "t inside U"
+    );
+    for (run, pts) in points {
+        for k in 0..6 {
+            let s = DOF_TO_USER[k];
+            let of: Vec<&TruePoint> = pts.iter().filter(|p| p.dof == k).collect();
+            let worst = of
+                .iter()
+                .map(|p| (p.measured - p.truth).abs() * s)
+                .fold(0.0, f64::max);
+            let big = of.iter().map(|p| p.expanded * s).fold(0.0, f64::max);
+            let inside = of.iter().filter(|p| p.covered()).count();
+            println!(
+                "{run:<8}{:<5}{:>8}{worst:>16.3}{big:>12.3}{:>14}",
+                DOF_NAMES[k],
+                DOF_UNITS[k],
+                format!("{inside}/{}", of.len())
+            );
+        }
+        let inside = pts.iter().filter(|p| p.covered()).count();
+        println!(
+            "{run}: the truth inside U at {inside} of {} points ({:.1} %)",
+            pts.len(),
+            100.0 * inside as f64 / pts.len().max(1) as f64
+        );
+    }
+}
+
+/// `summary.json` (see the module's documentation).
+fn summary_json(
+    a: &Args,
+    spec: &LoopSpec,
+    r: &LoopResult,
+    truth: &Truths,
+    points: &[(&str, Vec<TruePoint>); 2],
+) -> serde_json::Value {
+    let f = spec.lab.plant.follower;
+    let num = |v: f64| {
+        if v.is_finite() {
+            serde_json::json!(v)
+        } else {
+            serde_json::Value::Null
+        }
+    };
+    let figures: Vec<_> = rows(r, truth)
+        .iter()
+        .map(|x| {
+            serde_json::json!({
+                "name": x.name,
+                "unit": x.unit,
+                "before": num(x.before),
+                "after": num(x.after),
+                "truth_before": num(x.truth_before),
+                "truth_after": num(x.truth_after),
+            })
+        })
+        .collect();
+    let pts: Vec<_> = points
+        .iter()
+        .flat_map(|(run, pts)| {
+            pts.iter().map(move |p| {
+                let s = DOF_TO_USER[p.dof];
+                serde_json::json!({
+                    "run": run,
+                    "target_mm": p.target_mm,
+                    "direction": p.direction.sign(),
+                    "dof": DOF_NAMES[p.dof],
+                    "measured": p.measured * s,
+                    "truth": p.truth * s,
+                    "U": num(p.expanded * s),
+                })
+            })
+        })
+        .collect();
+    serde_json::json!({
+        "seed": a.seed,
+        "length_mm": a.length_mm,
+        "follower": {
+            "positioning_um": f.positioning_um,
+            "straightness_um": f.straightness_um,
+            "strategy": format!("{:?}", spec.lab.tracking.strategy).to_lowercase(),
+            "uncertainty": r.before.budget.inputs.follower.describe(),
+        },
+        "figures": figures,
+        "points": pts,
+    })
 }
 
 /// The report directory: a run report per pass (the second compared with the first), the
 /// tables, the part program, a summary, and the store with both runs.
-fn write_out(dir: &Path, spec: &LoopSpec, r: &LoopResult, truth: &Figures) -> Result<usize> {
+fn write_out(dir: &Path, spec: &LoopSpec, r: &LoopResult, truth: &Truths) -> Result<usize> {
     std::fs::create_dir_all(dir)
         .with_context(|| format!("creating {}; choose another --out", dir.display()))?;
     let mut files = 0;
@@ -462,16 +569,23 @@ fn write_out(dir: &Path, spec: &LoopSpec, r: &LoopResult, truth: &Figures) -> Re
     let before_caps: Vec<Capture> = r.before.run.captures.iter().map(|c| c.capture).collect();
     let after_caps: Vec<Capture> = r.after.run.captures.iter().map(|c| c.capture).collect();
     let mut ids = Vec::new();
-    for (pass, caps) in [("before", &before_caps), ("after", &after_caps)] {
+    for (pass, caps, run) in [
+        ("before", &before_caps, &r.before.run),
+        ("after", &after_caps, &r.after.run),
+    ] {
         let id = store_run(&mut store, spec, pass, caps)?;
+        for h in &run.handovers {
+            store.insert_handover(Some(id), h)?;
+        }
         ids.push(id);
         let rec = store.run(id)?;
-        let eval = if pass == "before" {
-            &r.before.eval
+        let m = if pass == "before" {
+            &r.before
         } else {
-            &r.after.eval
+            &r.after
         };
-        let mut report = run_report(RunMeta::from_record(&rec), caps, eval);
+        let mut report = run_report(RunMeta::from_record(&rec), caps, &m.eval);
+        add_budget(&mut report, &m.budget);
         if pass == "after" {
             report.comparisons = comparisons(&before_caps, &after_caps);
         }
@@ -544,24 +658,25 @@ fn comparisons(before: &[Capture], after: &[Capture]) -> Vec<Comparison> {
         .collect()
 }
 
-fn summary(r: &LoopResult, truth: &Figures, ids: &[RunId]) -> String {
+fn summary(r: &LoopResult, truth: &Truths, ids: &[RunId]) -> String {
     let mut s = String::from("# axiscomp demo: before and after compensation\n\n");
     s.push_str(&format!(
-        "Runs {} (before) and {} (after) in `axiscomp.db`; reports in `before/` and `after/`.\n\n",
+        "Runs {} (before) and {} (after) in `axiscomp.db`; reports in `before/` and `after/`; every point against the truth in `summary.json`.\n\n",
         ids.first().map(|i| i.0).unwrap_or(0),
         ids.get(1).map(|i| i.0).unwrap_or(0)
     ));
     s.push_str(
-        "| figure | unit | before | after | ratio | truth after |\n|---|---|---:|---:|---:|---:|\n",
+        "| figure | unit | before | truth before | after | truth after | truth ratio |\n|---|---|---:|---:|---:|---:|---:|\n",
     );
-    for (name, unit, b, a, t, comp) in rows(r, truth) {
-        let ratio = if comp && b.abs() > 0.0 {
-            format!("{:.1} %", 100.0 * a / b)
+    for x in rows(r, truth) {
+        let ratio = if x.compensated && x.truth_before.abs() > 0.0 {
+            format!("{:.1} %", 100.0 * x.truth_after / x.truth_before)
         } else {
             "–".into()
         };
         s.push_str(&format!(
-            "| {name} | {unit} | {b:.2} | {a:.2} | {ratio} | {t:.2} |\n"
+            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {ratio} |\n",
+            x.name, x.unit, x.before, x.truth_before, x.after, x.truth_after
         ));
     }
     s.push_str("\nTables published (sequence, points):\n\n");

@@ -137,23 +137,41 @@ pub fn render(r: &RunReport, svgs: &Svgs) -> String {
                 &rows,
             );
         }
-        if !d.series.is_empty() {
-            out.push_str("<h3>Points</h3>\n");
-            let rows: Vec<Vec<(String, bool)>> = text::point_rows(d.dof, &d.series)
+        if let Some(b) = &d.budget {
+            out.push_str("<h3>Uncertainty budget (ISO/TR 230-9)</h3>\n");
+            let rows: Vec<Vec<(String, bool)>> = text::budget_rows(d.dof, b)
                 .into_iter()
-                .map(|p| {
-                    vec![
-                        (p.position, true),
-                        (p.direction.to_string(), false),
-                        (p.n, true),
-                        (p.mean, true),
-                        (p.s, true),
-                        (p.two_s, true),
-                        (p.u, true),
-                    ]
+                .map(|r| {
+                    let [a, f, v, s] = r;
+                    vec![(a, false), (f, false), (v, true), (s, false)]
                 })
                 .collect();
-            grid(&mut out, &text::point_headings(d.dof), &rows);
+            grid(&mut out, &text::budget_headings(d.dof), &rows);
+        }
+        if !d.series.is_empty() {
+            out.push_str("<h3>Points</h3>\n");
+            let rows: Vec<Vec<(String, bool)>> =
+                text::point_rows(d.dof, &d.series, d.budget.as_ref())
+                    .into_iter()
+                    .map(|p| {
+                        let mut row = vec![
+                            (p.position, true),
+                            (p.direction.to_string(), false),
+                            (p.n, true),
+                            (p.mean, true),
+                            (p.s, true),
+                            (p.two_s, true),
+                            (p.u, true),
+                        ];
+                        row.extend(p.expanded.map(|x| (x, true)));
+                        row
+                    })
+                    .collect();
+            grid(
+                &mut out,
+                &text::point_headings(d.dof, d.budget.as_ref().map(|b| b.k)),
+                &rows,
+            );
         }
     }
     for (c, svg) in r.comparisons.iter().zip(&svgs.comparisons) {

@@ -85,12 +85,20 @@ pub fn render(r: &RunReport) -> String {
                 &[1],
             );
         }
+        if let Some(b) = &d.budget {
+            out.push_str("### Uncertainty budget (ISO/TR 230-9)\n\n");
+            let rows: Vec<Vec<String>> = text::budget_rows(d.dof, b)
+                .into_iter()
+                .map(|r| r.to_vec())
+                .collect();
+            table(&mut out, &text::budget_headings(d.dof), &rows, &[2]);
+        }
         if !d.series.is_empty() {
             out.push_str("### Points\n\n");
-            let rows: Vec<Vec<String>> = text::point_rows(d.dof, &d.series)
+            let rows: Vec<Vec<String>> = text::point_rows(d.dof, &d.series, d.budget.as_ref())
                 .into_iter()
                 .map(|p| {
-                    vec![
+                    let mut row = vec![
                         p.position,
                         p.direction.to_string(),
                         p.n,
@@ -98,14 +106,16 @@ pub fn render(r: &RunReport) -> String {
                         p.s,
                         p.two_s,
                         p.u,
-                    ]
+                    ];
+                    row.extend(p.expanded);
+                    row
                 })
                 .collect();
             table(
                 &mut out,
-                &text::point_headings(d.dof),
+                &text::point_headings(d.dof, d.budget.as_ref().map(|b| b.k)),
                 &rows,
-                &[0, 2, 3, 4, 5, 6],
+                &[0, 2, 3, 4, 5, 6, 7],
             );
         }
     }

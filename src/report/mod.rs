@@ -117,6 +117,41 @@ pub struct DofResult {
     pub dof: Dof,
     pub series: Vec<Series>,
     pub figures: Vec<Figure>,
+    /// Its uncertainty budget, when one was made.
+    pub budget: Option<BudgetTable>,
+}
+
+/// One term of an uncertainty budget, display-ready (`largest` in the DOF's user unit).
+#[derive(Clone, Debug, PartialEq)]
+pub struct BudgetTerm {
+    pub name: String,
+    pub formula: String,
+    pub source: String,
+    /// The largest standard uncertainty of this term over the points.
+    pub largest: f64,
+}
+
+/// One error's uncertainty budget (ISO/TR 230-9), display-ready, in the DOF's user unit.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BudgetTable {
+    /// The coverage factor of the expanded uncertainties.
+    pub k: f64,
+    pub terms: Vec<BudgetTerm>,
+    /// The largest combined standard uncertainty and expanded uncertainty over the points.
+    pub largest_combined: f64,
+    pub largest_expanded: f64,
+    /// Expanded uncertainty per (position mm, direction) point.
+    pub expanded: Vec<(f64, Direction, f64)>,
+}
+
+impl BudgetTable {
+    /// The expanded uncertainty at `position_mm` in `direction`, when stated.
+    pub fn expanded_at(&self, position_mm: f64, direction: Direction) -> Option<f64> {
+        self.expanded
+            .iter()
+            .find(|(p, d, _)| *d == direction && (p - position_mm).abs() < 1e-9)
+            .map(|e| e.2)
+    }
 }
 
 /// Two measurements of one error to compare (e.g. before and after compensation).

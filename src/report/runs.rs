@@ -2,9 +2,10 @@
 //! mean over the runs at each target with its standard deviation and the captures' standard
 //! uncertainty, and the ISO 230-2 / 230-1 figures in user units.
 
-use super::{DofResult, EnvSample, Figure, RunMeta, RunReport, Series};
+use super::{BudgetTable, BudgetTerm, DofResult, EnvSample, Figure, RunMeta, RunReport, Series};
 use crate::evaluate::AxisEvaluation;
 use crate::evaluate::iso230_1::ReferenceLine;
+use crate::evaluate::uncertainty::{Budget, Component};
 use crate::run::{Capture, Direction};
 use std::collections::BTreeMap;
 
@@ -116,6 +117,7 @@ pub fn run_report(meta: RunMeta, captures: &[Capture], eval: &AxisEvaluation) ->
             dof,
             series,
             figures,
+            budget: None,
         });
     }
     RunReport {
@@ -123,5 +125,37 @@ pub fn run_report(meta: RunMeta, captures: &[Capture], eval: &AxisEvaluation) ->
         dofs,
         comparisons: Vec::new(),
         environment: captures.iter().map(EnvSample::of_capture).collect(),
+    }
+}
+
+/// Put each DOF's uncertainty budget into `report` (user units).
+pub fn add_budget(report: &mut RunReport, budget: &Budget) {
+    let sources = budget.sources();
+    for d in &mut report.dofs {
+        let k = d.dof.index();
+        let (largest, uc, big) = budget.largest(k);
+        d.budget = Some(BudgetTable {
+            k: budget.k,
+            terms: Component::ALL
+                .iter()
+                .map(|c| BudgetTerm {
+                    name: c.name().into(),
+                    formula: c.formula().into(),
+                    source: sources[c.index()].clone(),
+                    largest: d.dof.to_user(largest[c.index()]),
+                })
+                .collect(),
+            largest_combined: d.dof.to_user(uc),
+            largest_expanded: d.dof.to_user(big),
+            expanded: budget
+                .points
+                .iter()
+                .filter(|p| p.dof == k)
+                .filter_map(|p| {
+                    p.direction
+                        .map(|dir| (p.position_mm, dir, d.dof.to_user(p.expanded)))
+                })
+                .collect(),
+        });
     }
 }

@@ -73,6 +73,31 @@ fn result(dof: Dof) -> DofResult {
                 unit: dof.unit().into(),
             },
         ],
+        budget: (dof == Dof::Dy).then(budget_table),
+    }
+}
+
+/// A budget of two terms for dy, its expanded U stated at the up series' first position only.
+fn budget_table() -> BudgetTable {
+    BudgetTable {
+        k: 2.0,
+        terms: vec![
+            BudgetTerm {
+                name: "PSD noise".into(),
+                formula: "√(Σ sd²/frames)/n".into(),
+                source: "frames".into(),
+                largest: 0.3,
+            },
+            BudgetTerm {
+                name: "follower map".into(),
+                formula: "S·u".into(),
+                source: "specification ±4 µm".into(),
+                largest: 0.4,
+            },
+        ],
+        largest_combined: 0.5,
+        largest_expanded: 1.0,
+        expanded: vec![(0.0, Direction::Up, 1.0)],
     }
 }
 
@@ -261,7 +286,8 @@ fn html_is_well_formed_self_contained_and_escaped() {
     assert_eq!(doc.root, "html");
     assert_eq!(doc.count("svg"), 1 + 6 + 1);
     assert_eq!(doc.count("h2"), 4 + 1 + 6 + 1 + 1);
-    assert_eq!(doc.count("table"), 3 + 6 * 2 + 1);
+    // The run's tables, figures and points per DOF, the environment, and dy's budget.
+    assert_eq!(doc.count("table"), 3 + 6 * 2 + 1 + 1);
     // No scripts, no external resources.
     assert!(!page.to_ascii_lowercase().contains("<script"));
     for banned in ["script", "link", "img", "iframe", "object", "embed"] {
@@ -368,6 +394,7 @@ fn a_result_without_series_is_drawn_as_no_data() {
         dof: Dof::Ex,
         series: vec![],
         figures: vec![],
+        budget: None,
     };
     let doc = svg_doc(&plot::dof_svg(&r).unwrap());
     assert!(doc.has_text("no data"));

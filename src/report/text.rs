@@ -1,7 +1,7 @@
 //! Text shared by the HTML and Markdown renderers: file names, number formats, escaping, and
 //! the rows both reports show.
 
-use super::{Dof, EnvSample, RunMeta, Series};
+use super::{BudgetTable, Dof, EnvSample, RunMeta, Series};
 use crate::run::Direction;
 use crate::util::time::rfc3339;
 
@@ -144,24 +144,72 @@ pub struct PointRow {
     pub s: String,
     pub two_s: String,
     pub u: String,
+    /// The budget's expanded uncertainty, when the result has a budget.
+    pub expanded: Option<String>,
 }
 
-/// Column headings of the per-point table.
-pub fn point_headings(dof: Dof) -> [String; 7] {
+/// Column headings of the per-point table: u is the captures' standard uncertainty; U, when
+/// a budget is given (`budget_k`), the budget's expanded uncertainty.
+pub fn point_headings(dof: Dof, budget_k: Option<f64>) -> Vec<String> {
     let u = dof.unit();
-    [
+    let mut h = vec![
         "Target (mm)".into(),
         "Dir".into(),
         "n".into(),
         format!("Mean ({u})"),
         format!("s ({u})"),
         format!("2s ({u})"),
-        format!("u ({u})"),
+        format!("u, standard ({u})"),
+    ];
+    if let Some(k) = budget_k {
+        h.push(format!("U, expanded k = {k} ({u})"));
+    }
+    h
+}
+
+/// The rows of a budget table: term, formula, largest standard uncertainty, source; then the
+/// combined and expanded uncertainty.
+pub fn budget_rows(dof: Dof, b: &BudgetTable) -> Vec<[String; 4]> {
+    let v = |x: f64| fixed(x, 3);
+    let mut rows: Vec<[String; 4]> = b
+        .terms
+        .iter()
+        .map(|t| {
+            [
+                t.name.clone(),
+                t.formula.clone(),
+                v(t.largest),
+                t.source.clone(),
+            ]
+        })
+        .collect();
+    rows.push([
+        "combined standard uncertainty u".into(),
+        "√(Σ u_i²)".into(),
+        v(b.largest_combined),
+        "the terms in quadrature (uncorrelated)".into(),
+    ]);
+    rows.push([
+        format!("expanded uncertainty U (k = {})", b.k),
+        format!("{}·u", b.k),
+        v(b.largest_expanded),
+        format!("largest over the points, in {}", dof.unit()),
+    ]);
+    rows
+}
+
+/// Column headings of a budget table.
+pub fn budget_headings(dof: Dof) -> [String; 4] {
+    [
+        "Term".into(),
+        "Formula".into(),
+        format!("Largest u ({})", dof.unit()),
+        "Source".into(),
     ]
 }
 
 /// The per-point rows of a result: by direction (↑ first), then by position.
-pub fn point_rows(dof: Dof, series: &[Series]) -> Vec<PointRow> {
+pub fn point_rows(dof: Dof, series: &[Series], budget: Option<&BudgetTable>) -> Vec<PointRow> {
     let mut ordered: Vec<&Series> = series.iter().collect();
     ordered.sort_by_key(|s| s.direction);
     let mut rows = Vec::new();
@@ -180,6 +228,10 @@ pub fn point_rows(dof: Dof, series: &[Series]) -> Vec<PointRow> {
                     .as_ref()
                     .and_then(|u| u.get(i))
                     .map_or_else(|| "—".to_string(), |&u| user(dof, u)),
+                expanded: budget.map(|b| {
+                    b.expanded_at(s.positions_mm[i], s.direction)
+                        .map_or_else(|| "—".to_string(), |x| fixed(x, 3))
+                }),
             });
         }
     }

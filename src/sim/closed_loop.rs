@@ -10,14 +10,23 @@
 //!    interpolated table, as a controller does.
 //! 4. The same cycle again on the compensated axis, and the figures before and after.
 //!
+//! Each run is judged twice: by the head (its ISO figures, and the uncertainty budget of every
+//! point, [`crate::evaluate::uncertainty`]) and by the twin's truth at the same captures
+//! ([`Measured::points`], [`Measured::truth_figures`]): the truth relative to the truth at the
+//! zero reference, straightness relative to its own least-squares line, as the head reads them.
+//!
 //! Time is simulated in the measuring steps (a 1000 mm cycle takes seconds, not minutes);
 //! publishing is real Modbus TCP traffic on a small Tokio runtime of its own.
 
 use super::lab::{AlignRound, Lab, LabError, LabRun, LabSpec, Progress, plan_span};
+use super::plant::{PlantSpec, Truth};
 use super::plc::{TwinPlc, TwinPlcConfig, TwinPlcError};
 use crate::comp::{
     AxisMapping, CompError, CompTable, MachineAxis, PositioningMode, TableSet, TableSpec,
     build_tables,
+};
+use crate::evaluate::uncertainty::{
+    Budget, BudgetInputs, FollowerInput, ThermalInput, budget, psd2_sensitivity, stitched,
 };
 use crate::evaluate::{AxisEvaluation, EvalError, EvalOptions, ReferenceLine, evaluate_captures};
 use crate::modbus::link::{Link, LinkConfig};
@@ -25,7 +34,7 @@ use crate::plc::map::CncMap;
 use crate::plc::publish::{PublishError, PublishOutcome, Timeouts, publish};
 use crate::plc::table::{PlcTable, TableError};
 use crate::run::program::CaptureMode;
-use crate::run::{Dialect, Plan};
+use crate::run::{Capture, Dialect, Direction, Plan};
 use std::time::Duration;
 use thiserror::Error;
 
@@ -66,6 +75,10 @@ pub enum LoopError {
     Axis(String),
     #[error("a Tokio runtime for publishing: {0}")]
     Runtime(std::io::Error),
+    #[error("the uncertainty budget: PSD2's sensitivities: {0}")]
+    Sensitivity(crate::decouple::DecoupleError),
+    #[error("the drift check: the head gave no live reading at the reference")]
+    Drift,
 }
 
 /// Which measuring run.
@@ -123,6 +136,37 @@ pub struct LoopSpec {
     /// Align the head over the plan's travel before the first pass, in at most this many
     /// rounds (0: do not; the pre-run check still runs).
     pub align_rounds: usize,
+    /// What the uncertainty budget is told beside the captures.
+    pub budget: BudgetSpec,
+}
+
+/// The budget's inputs that are not in the captures.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BudgetSpec {
+    /// What is known of the follower's own errors (its specification until a map exists).
+    pub follower: FollowerInput,
+    /// Per DOF standard uncertainty of the calibration (internal units) and its source.
+    pub calibration: Option<([f64; 6], String)>,
+    pub thermal: Option<ThermalInput>,
+    /// Before each pass, after the zero: the head reads the carriage at rest at the reference
+    /// for this long (ISO 230-2's drift check; its range per DOF is E_VE).
+    pub drift_check: Option<Duration>,
+}
+
+impl BudgetSpec {
+    /// The twin's follower stated by its specification (`[twin.follower]`: ±positioning,
+    /// ±vertical straightness), nothing else.
+    pub fn of_plant(plant: &PlantSpec) -> BudgetSpec {
+        BudgetSpec {
+            follower: FollowerInput::Specification {
+                positioning_mm: plant.follower.positioning_um * 1e-3,
+                straightness_mm: plant.follower.straightness_um * 1e-3,
+            },
+            calibration: None,
+            thermal: None,
+            drift_check: None,
+        }
+    }
 }
 
 /// One measuring run and its evaluation.
@@ -131,6 +175,101 @@ pub struct Measured {
     pub run: LabRun,
     pub eval: AxisEvaluation,
     pub figures: Figures,
+    /// The uncertainty budget of every point.
+    pub budget: Budget,
+    /// The twin's truth when the zero reference was taken.
+    pub zero_truth: Truth,
+    /// The drift check's range per DOF (internal units), when one was done.
+    pub drift_range: Option<[f64; 6]>,
+}
+
+/// One DOF at one target and direction: the head's mean over the runs, the truth's mean over
+/// the same captures, and the stated expanded uncertainty (internal units).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TruePoint {
+    pub dof: usize,
+    pub target_index: u32,
+    pub target_mm: f64,
+    pub direction: Direction,
+    pub measured: f64,
+    pub truth: f64,
+    /// Expanded, k = 2.
+    pub expanded: f64,
+}
+
+impl TruePoint {
+    /// The truth lies within the stated U of the measured value.
+    pub fn covered(&self) -> bool {
+        (self.measured - self.truth).abs() <= self.expanded
+    }
+}
+
+impl Measured {
+    /// The captures with the truth's errors in place of the head's, relative to the truth at
+    /// the zero reference (as the head's are relative to its zero).
+    pub fn truth_captures(&self) -> Vec<Capture> {
+        let z = self.zero_truth.errors.to_vector();
+        self.run
+            .captures
+            .iter()
+            .map(|c| Capture {
+                errors: crate::units::Errors6::from_vector(&(c.truth.errors.to_vector() - z)),
+                ..c.capture
+            })
+            .collect()
+    }
+
+    /// The figures of the truth at this run's captures.
+    pub fn truth_figures(&self, line: ReferenceLine) -> Result<Figures, EvalError> {
+        let eval = evaluate_captures(&self.truth_captures(), &EvalOptions::default())?;
+        Ok(Figures::of(&eval, line))
+    }
+
+    /// Every DOF at every target and direction, measured against the truth. Straightness
+    /// (dx, dz) is relative to the least-squares line of its bidirectional mean profile, the
+    /// head's and the truth's each to its own (the line is the beam's alignment, ISO 230-1);
+    /// the other DOFs relative to the zero reference.
+    pub fn points(&self) -> Result<Vec<TruePoint>, EvalError> {
+        let truth = evaluate_captures(&self.truth_captures(), &EvalOptions::default())?;
+        let mut out = Vec::new();
+        for k in 0..6 {
+            let line = |e: &AxisEvaluation| -> (f64, f64) {
+                let s = match k {
+                    0 => &e.straightness_x,
+                    2 => &e.straightness_z,
+                    _ => return (0.0, 0.0),
+                };
+                let l = s.mean.line(ReferenceLine::LeastSquares);
+                (l.slope, l.intercept_mm)
+            };
+            let (lm, lt) = (line(&self.eval), line(&truth));
+            for d in [Direction::Up, Direction::Down] {
+                let (Some(m), Some(t)) = (
+                    self.eval.profiles[k].direction(d),
+                    truth.profiles[k].direction(d),
+                ) else {
+                    continue;
+                };
+                for (i, &ti) in self.eval.target_indices.iter().enumerate() {
+                    let p = self.eval.positions_mm[i];
+                    let expanded = self
+                        .budget
+                        .point(k, ti, Some(d))
+                        .map_or(f64::NAN, |b| b.expanded);
+                    out.push(TruePoint {
+                        dof: k,
+                        target_index: ti,
+                        target_mm: p,
+                        direction: d,
+                        measured: m[i] - (lm.0 * p + lm.1),
+                        truth: t[i] - (lt.0 * p + lt.1),
+                        expanded,
+                    });
+                }
+            }
+        }
+        Ok(out)
+    }
 }
 
 /// A table as published.
@@ -227,8 +366,10 @@ pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, Lo
     })
 }
 
-/// Bring up (the first time), move to the reference, zero, run the cycle, evaluate.
-fn measure(
+/// Bring up (the first time), move to the reference, zero (and the drift check when asked
+/// for), run the cycle, evaluate, and make the uncertainty budget. One pass of [`run`], for
+/// tests that need a measured run judged by the truth without the compensation.
+pub fn measure(
     lab: &mut Lab,
     spec: &LoopSpec,
     pass: Pass,
@@ -249,6 +390,14 @@ fn measure(
     let reference = spec.plan.reference_mm;
     lab.move_carriage(reference).map_err(lab_err)?;
     lab.zero(reference, spec.zero_window).map_err(lab_err)?;
+    let zero_truth = lab.truth();
+    let drift_range = match spec.budget.drift_check {
+        Some(d) => Some(drift_check(lab, reference, d).map_err(|e| match e {
+            Some(source) => lab_err(source),
+            None => LoopError::Drift,
+        })?),
+        None => None,
+    };
     step(Step::Ready(pass));
     let run = lab
         .measure(&spec.plan, spec.dialect, spec.mode, |p| {
@@ -260,7 +409,54 @@ fn measure(
     let eval = evaluate_captures(&captures, &EvalOptions::default())
         .map_err(|source| LoopError::Evaluate { pass, source })?;
     let figures = Figures::of(&eval, spec.straightness_line);
-    Ok(Measured { run, eval, figures })
+    let b = &spec.budget;
+    let mid = (spec.plan.spec.start_mm + spec.plan.spec.end_mm) / 2.0;
+    let inputs = BudgetInputs {
+        reference_mm: reference,
+        psd2_sensitivity: psd2_sensitivity(&spec.lab.decoupler, mid)
+            .map_err(LoopError::Sensitivity)?,
+        follower: b.follower.clone(),
+        calibration: b.calibration.clone(),
+        thermal: b.thermal,
+        drift_range,
+    };
+    let budget = budget(&eval, &stitched(&captures, &run.handovers), &inputs);
+    Ok(Measured {
+        run,
+        eval,
+        figures,
+        budget,
+        zero_truth,
+        drift_range,
+    })
+}
+
+/// ISO 230-2's drift check: the head reads the carriage at rest at `reference` for `d`; the
+/// range of each DOF's live reading (sampled once a second) is E_VE. `Err(None)`: no reading.
+fn drift_check(lab: &mut Lab, reference: f64, d: Duration) -> Result<[f64; 6], Option<LabError>> {
+    lab.pipeline.measure.set_nominal(Some(reference));
+    let mut lo = [f64::INFINITY; 6];
+    let mut hi = [f64::NEG_INFINITY; 6];
+    let seconds = d.as_secs().max(1);
+    let mut result = Ok(());
+    for _ in 0..seconds {
+        if let Err(e) = lab.advance(Duration::from_secs(1)) {
+            result = Err(Some(e));
+            break;
+        }
+        if let Some(live) = lab.pipeline.measure.live() {
+            for (k, v) in live.errors.to_array().into_iter().enumerate() {
+                lo[k] = lo[k].min(v);
+                hi[k] = hi[k].max(v);
+            }
+        }
+    }
+    lab.pipeline.measure.set_nominal(None);
+    result?;
+    if !lo[0].is_finite() {
+        return Err(None);
+    }
+    Ok(std::array::from_fn(|k| hi[k] - lo[k]))
 }
 
 /// The tables of `set` that go to the PLC, with their names.

@@ -214,11 +214,11 @@ fn encoder_following_over_100_mm_in_one_move_matches_the_truth() {
     );
 }
 
-/// Issue 5's closed loop at test size: a 200 mm axis with the twin's default errors (±30 µm
-/// positioning with a 2 µm ball-screw periodic term and 5 µm backlash, ±20 µm straightness)
-/// is measured, its tables are published into the twin's PLC over Modbus TCP, and the
-/// verification run shows E, M and both straightnesses at a tenth of their values before.
-/// The truth agrees: the compensated plant's own errors at the captures are as small.
+/// Issue 5's closed loop at test size, judged by the truth (issue 14): a 200 mm axis with the
+/// twin's default errors (±30 µm positioning with a 2 µm ball-screw periodic term and 5 µm
+/// backlash, ±20 µm straightness) is measured, its tables are published into the twin's PLC
+/// over Modbus TCP, and the twin's own errors at the verification run's captures are compared
+/// with its errors at the first run's.
 #[test]
 fn the_closed_loop_cuts_positioning_and_straightness_to_a_tenth() {
     closed_loop_case(200.0, 6, 2, 2.0);
@@ -237,7 +237,7 @@ fn closed_loop_case(length_mm: f64, targets: usize, runs: u32, step_mm: f64) {
     use axiscomp::evaluate::ReferenceLine;
     use axiscomp::plc::CncMap;
     use axiscomp::sim::axis::AxisSpec;
-    use axiscomp::sim::closed_loop::{self, Figures, LoopSpec};
+    use axiscomp::sim::closed_loop::{self, BudgetSpec, LoopSpec};
     crate::helpers::init_test_log();
     let _machine = crate::helpers::heavy();
     let mut plant = perfect_head(5);
@@ -246,6 +246,7 @@ fn closed_loop_case(length_mm: f64, targets: usize, runs: u32, step_mm: f64) {
         ..AxisSpec::default()
     };
     let spec = LoopSpec {
+        budget: BudgetSpec::of_plant(&plant),
         lab: LabSpec::standard(plant, None).expect("spec"),
         plan: plan(length_mm, targets, runs, 3000.0),
         dialect: Dialect::LinuxCnc,
@@ -260,79 +261,235 @@ fn closed_loop_case(length_mm: f64, targets: usize, runs: u32, step_mm: f64) {
         align_rounds: 0,
     };
     let r = closed_loop::run(&spec, |_| {}).expect("the loop");
+    let line = ReferenceLine::LeastSquares;
     let (b, a) = (r.before.figures, r.after.figures);
+    let tb = r.before.truth_figures(line).expect("truth before");
+    let ta = r.after.truth_figures(line).expect("truth after");
     let um = |x: f64| x * 1000.0;
     eprintln!(
-        "{length_mm} mm: E {:.2} → {:.2} µm, M {:.2} → {:.2} µm, R {:.2?} → {:.2?}, straightness x {:.2} → {:.2} µm, z {:.2} → {:.2} µm",
+        "{length_mm} mm, head: E {:.2} → {:.2} µm, M {:.2} → {:.2} µm, straightness x {:.2} → {:.2} µm, z {:.2} → {:.2} µm",
         um(b.e),
         um(a.e),
         um(b.m),
         um(a.m),
-        b.r.map(um),
-        a.r.map(um),
         um(b.straightness_x),
         um(a.straightness_x),
         um(b.straightness_z),
         um(a.straightness_z)
     );
-    // The same figures of the plant's truth at the captures of the verification run.
-    let truths: Vec<_> = r
-        .after
-        .run
-        .captures
-        .iter()
-        .map(|c| {
-            let mut cap = c.capture;
-            cap.errors = c.truth.errors;
-            cap
-        })
-        .collect();
-    let t = Figures::of(
-        &evaluate_captures(&truths, &EvalOptions::default()).expect("truth evaluation"),
-        ReferenceLine::LeastSquares,
-    );
     eprintln!(
-        "truth after: E {:.2} µm, M {:.2} µm, straightness x {:.2} µm, z {:.2} µm",
-        um(t.e),
-        um(t.m),
-        um(t.straightness_x),
-        um(t.straightness_z)
+        "{length_mm} mm, truth: E {:.2} → {:.2} µm, M {:.2} → {:.2} µm, straightness x {:.2} → {:.2} µm, z {:.2} → {:.2} µm",
+        um(tb.e),
+        um(ta.e),
+        um(tb.m),
+        um(ta.m),
+        um(tb.straightness_x),
+        um(ta.straightness_x),
+        um(tb.straightness_z),
+        um(ta.straightness_z)
     );
     assert_eq!(r.published.len(), 3, "positioning and both straightnesses");
     assert!(
-        b.e > 20e-3 && b.m > 20e-3 && b.straightness_x > 10e-3 && b.straightness_z > 10e-3,
-        "the axis had errors to compensate: {b:?}"
+        tb.e > 20e-3 && tb.m > 20e-3 && tb.straightness_x > 10e-3 && tb.straightness_z > 10e-3,
+        "the axis had errors to compensate: {tb:?}"
     );
-    for (name, before, after, truth) in [
-        ("E", b.e, a.e, t.e),
-        ("M", b.m, a.m, t.m),
-        (
-            "straightness x",
-            b.straightness_x,
-            a.straightness_x,
-            t.straightness_x,
-        ),
-        (
-            "straightness z",
-            b.straightness_z,
-            a.straightness_z,
-            t.straightness_z,
-        ),
+    // By the truth: the compensated axis' own errors at the verification run's captures.
+    for (name, before, after) in [
+        ("straightness x", tb.straightness_x, ta.straightness_x),
+        ("straightness z", tb.straightness_z, ta.straightness_z),
+        ("E", tb.e, ta.e),
+        ("M", tb.m, ta.m),
     ] {
         assert!(
             after <= 0.1 * before,
-            "{name}: {:.2} µm after, {:.2} µm before",
+            "{name}: truth {:.2} µm after, {:.2} µm before",
             um(after),
             um(before)
         );
-        // The measurement's own systematic error (the follower's errors between handovers,
-        // stated in the stitching uncertainty) stays in the compensated axis: the truth is
-        // judged by the same tenth.
+    }
+    let bound = POSITIONING_AFTER_MM + UNMAPPED_FOLLOWER_MM;
+    for (name, after) in [("E", ta.e), ("M", ta.m)] {
         assert!(
-            truth <= 0.1 * before,
-            "{name}: truth {:.2} µm after, {:.2} µm before",
-            um(truth),
-            um(before)
+            after <= bound,
+            "{name}: truth {:.2} µm after compensation, above {:.2} µm",
+            um(after),
+            um(bound)
         );
+    }
+}
+
+/// What positioning E and M may be, by the truth, after compensation (issue 14).
+const POSITIONING_AFTER_MM: f64 = 1.0e-3;
+/// Until the follower error map is applied in encoder tracking (issue 14), the follower
+/// stage's own positioning error — ±4 µm in the twin — enters the measured positioning 1:1
+/// at every target, and so the published table and the compensated axis: the truth after is
+/// E 3.42 µm, M 3.37 µm on the 200 mm axis (7.6 % and 8.5 % of before). The bound allows the
+/// stage's stated error on top of 1.0 µm; set this to 0 when the map is in.
+const UNMAPPED_FOLLOWER_MM: f64 = 4.0e-3;
+
+/// Issue 14's budget, each component switched on alone in the twin: a 200 mm axis measured
+/// twice with the same seed, first with a follower stage without errors, then with the twin's
+/// ±4 µm positioning and ±2 µm vertical straightness. The budget's follower term follows what
+/// the stage is stated to be — a/√3 through PSD2's sensitivities: 1 µm of dy per µm along
+/// (X2 = dx + dy − 1.648·ez + …), 1/ρ2 of roll per µm vertical (Y2 = ρ2·(ey − ex),
+/// ρ2 = 150 mm) — and nothing else changes; with the term the truth lies inside U at every
+/// dy and roll point, without it it does not. A 0.5 K material-temperature uncertainty
+/// (α = 11.5e-6/K, steel) adds α·u(T)·L to positioning alone.
+#[test]
+fn the_budget_follows_each_component_switched_on_in_the_twin() {
+    use axiscomp::comp::PositioningMode;
+    use axiscomp::evaluate::ReferenceLine;
+    use axiscomp::evaluate::uncertainty::{
+        Component, FollowerInput, ThermalInput, budget, stitched,
+    };
+    use axiscomp::plc::CncMap;
+    use axiscomp::sim::axis::AxisSpec;
+    use axiscomp::sim::closed_loop::{self, BudgetSpec, LoopSpec, Pass};
+    use axiscomp::sim::plant::FollowerSpec;
+    use axiscomp::units::RAD_PER_ARCSEC;
+    crate::helpers::init_test_log();
+    let _machine = crate::helpers::heavy();
+    let length_mm = 200.0;
+    let run = |follower: FollowerSpec| {
+        let mut plant = perfect_head(21);
+        plant.axis = AxisSpec {
+            length_mm,
+            ..AxisSpec::default()
+        };
+        plant.follower = follower;
+        let spec = LoopSpec {
+            budget: BudgetSpec::of_plant(&plant),
+            lab: LabSpec::standard(plant, None).expect("spec"),
+            plan: plan(length_mm, 5, 2, 3000.0),
+            dialect: Dialect::LinuxCnc,
+            mode: CaptureMode::Stability,
+            positioning: PositioningMode::Bidirectional,
+            straightness_line: ReferenceLine::LeastSquares,
+            map: CncMap::generic().expect("generic map"),
+            step_mm: None,
+            zero_window: Duration::from_millis(500),
+            align_rounds: 0,
+        };
+        let mut lab = Lab::new(&spec.lab).expect("lab");
+        closed_loop::measure(&mut lab, &spec, Pass::Before, &mut |_| {}).expect("run")
+    };
+    let off = run(FollowerSpec {
+        positioning_um: 0.0,
+        straightness_um: 0.0,
+    });
+    let on = run(FollowerSpec::default());
+    let (along, vertical) = (4e-3 / 3f64.sqrt(), 2e-3 / 3f64.sqrt());
+    let f = Component::Follower.index();
+    for (a, b) in off.budget.points.iter().zip(&on.budget.points) {
+        assert_eq!(
+            (a.dof, a.target_index, a.direction),
+            (b.dof, b.target_index, b.direction)
+        );
+        assert_eq!(a.terms[f], 0.0, "no follower errors stated, no term");
+        let want = match b.dof {
+            1 => Some(along),
+            4 => Some(vertical / 150.0),
+            _ => None,
+        };
+        if let Some(w) = want {
+            assert!(
+                (b.terms[f] / w - 1.0).abs() < 0.02,
+                "dof {} at target {}: follower term {:e}, want {w:e}",
+                b.dof,
+                b.target_index,
+                b.terms[f]
+            );
+        }
+        // Every other term is what the run without follower errors stated, but for the
+        // repeatability, PSD noise and stitching, which come from the run's own frames.
+        for c in [
+            Component::Calibration,
+            Component::ThermalTemperature,
+            Component::ThermalCoefficient,
+            Component::Environment,
+        ] {
+            assert_eq!(a.terms[c.index()], b.terms[c.index()], "{}", c.name());
+        }
+        let others = |p: &axiscomp::evaluate::uncertainty::PointBudget| {
+            p.terms
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| *i != f)
+                .map(|(_, t)| t * t)
+                .sum::<f64>()
+                .sqrt()
+        };
+        assert!(
+            (others(a) - others(b)).abs() <= 0.1e-3 + 0.2 * others(a),
+            "dof {} target {}: the other terms moved from {:e} to {:e}",
+            a.dof,
+            a.target_index,
+            others(a),
+            others(b)
+        );
+    }
+    let roll = on
+        .budget
+        .point(4, 0, Some(Direction::Up))
+        .expect("roll")
+        .terms[f]
+        / RAD_PER_ARCSEC;
+    eprintln!("follower term: roll {roll:.2}″ (1.59″ at first order)");
+
+    // Judged by the truth: inside U with the term, not without it.
+    let points = on.points().expect("points");
+    let mut unstated = on.budget.inputs.clone();
+    unstated.follower = FollowerInput::Unstated;
+    let captures: Vec<_> = on.run.captures.iter().map(|c| c.capture).collect();
+    let without = budget(&on.eval, &stitched(&captures, &on.run.handovers), &unstated);
+    let mut outside_without = 0;
+    for p in points.iter().filter(|p| p.dof == 1 || p.dof == 4) {
+        assert!(
+            p.covered(),
+            "{} at {} mm {:?}: measured {:e}, truth {:e}, U {:e}",
+            DOF_NAMES[p.dof],
+            p.target_mm,
+            p.direction,
+            p.measured,
+            p.truth,
+            p.expanded
+        );
+        let u = without
+            .point(p.dof, p.target_index, Some(p.direction))
+            .expect("point")
+            .expanded;
+        outside_without += usize::from((p.measured - p.truth).abs() > u);
+    }
+    assert!(
+        outside_without > 0,
+        "the follower's errors should leave the truth outside a budget that ignores them"
+    );
+
+    // The temperature term alone: 0.5 K on steel, α·u(T)·L, positioning only.
+    let mut thermal = on.budget.inputs.clone();
+    thermal.thermal = Some(ThermalInput {
+        alpha_per_k: 11.5e-6,
+        u_alpha_per_k: 0.0,
+        u_temperature_k: 0.5,
+        delta_t_k: 0.0,
+    });
+    let hot = budget(&on.eval, &stitched(&captures, &on.run.handovers), &thermal);
+    let t = Component::ThermalTemperature.index();
+    for (a, b) in on.budget.points.iter().zip(&hot.points) {
+        let want = if a.dof == 1 {
+            11.5e-6 * 0.5 * (a.position_mm - on.budget.inputs.reference_mm).abs()
+        } else {
+            0.0
+        };
+        assert!(
+            (b.terms[t] - want).abs() < 1e-12,
+            "{:e} vs {want:e}",
+            b.terms[t]
+        );
+        for c in (0..a.terms.len()).filter(|&c| c != t) {
+            assert_eq!(a.terms[c], b.terms[c]);
+        }
+        let want_u = (a.combined * a.combined + want * want).sqrt() * 2.0;
+        assert!((b.expanded - want_u).abs() < 1e-12);
     }
 }
