@@ -14,6 +14,7 @@ pub mod closed_loop;
 pub mod cnc;
 pub mod config;
 pub mod drive;
+pub mod follower;
 pub mod head;
 pub mod hexapod;
 pub mod hexapod_servers;
