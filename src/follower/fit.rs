@@ -6,7 +6,11 @@
 //! down after moving up, −1 on the first step up after moving down (the reversal `r`), else 0.
 //!
 //! Vertically: unknown `v` at the visited positions (clustered within `merge_mm`), linear in
-//! between, `v = 0` at the lowest; each step observes `v(to) − v(from)`.
+//! between, zero at both ends, and a slope `c`; each step observes `v(to) − v(from) + c·Δ`.
+//! The slope takes what a step shows in proportion to its length: PSD2's in-plane tilt and the
+//! follower's inclination to PSD2's u axis, which no handover can tell apart (the spot is
+//! fixed in space and only the follower moves). So the map is the follower's straightness
+//! relative to its end-point line; the line itself is not mapped.
 //!
 //! Both solve the normal equations by Cholesky; a singular system (a gap in the steps, too
 //! few of them) is an error naming what is missing. Standard uncertainties come from the
@@ -26,6 +30,7 @@ pub(super) struct VerticalFit {
     pub positions: Vec<f64>,
     pub values: Vec<f64>,
     pub u: Vec<f64>,
+    pub slope: f64,
     pub chi2: f64,
 }
 
@@ -222,43 +227,49 @@ fn weights(nodes: &[f64], x: f64) -> [(usize, f64); 2] {
 
 pub(super) fn vertical(steps: &[Step], s: &MapSettings) -> Result<VerticalFit, MapError> {
     let nodes = nodes(steps, s.merge_mm.max(1e-6));
-    if nodes.len() < 3 {
+    if nodes.len() < 4 {
         return Err(MapError::TooFewSteps {
             found: steps.len(),
-            needed: 2,
+            needed: 3,
         });
     }
-    let p = nodes.len() - 1;
+    // Unknowns: v at nodes 1..N−2 (the first and last are 0: the end-point line), then the
+    // line's slope c (PSD2's jump per mm of follower step that is not straightness).
+    let last = nodes.len() - 1;
+    let p = last;
     let rows: Vec<(Vec<f64>, f64, f64)> = steps
         .iter()
         .map(|st| {
             let mut a = vec![0.0; p];
             for (sign, x) in [(1.0, st.to_mm), (-1.0, st.from_mm)] {
                 for (i, w) in weights(&nodes, x) {
-                    // Node 0 is the reference (v = 0): no unknown.
-                    if i > 0 {
+                    if i > 0 && i < last {
                         a[i - 1] += sign * w;
                     }
                 }
             }
+            a[p - 1] = st.to_mm - st.from_mm;
             (a, st.vertical_mm, weight(st.variance[1]))
         })
         .collect();
     let (x, cov, chi2) = solve(
         &rows,
         "vertical",
-        "every visited position must be linked to the first by steps (a pass over the whole travel)",
+        "every visited position must be linked to both ends by steps (passes over the whole travel)",
     )?;
     let mut values = vec![0.0];
     let mut u = vec![0.0];
-    for i in 0..p {
+    for i in 0..last - 1 {
         values.push(x[i]);
         u.push(cov[(i, i)].max(0.0).sqrt());
     }
+    values.push(0.0);
+    u.push(0.0);
     Ok(VerticalFit {
         positions: nodes,
         values,
         u,
+        slope: x[p - 1],
         chi2,
     })
 }

@@ -16,9 +16,12 @@
 //!   each handover the carriage rests and the spot is fixed in space, so PSD2's vertical jump
 //!   (the difference of means taken just before and just after the step: beam drift over a
 //!   second does not enter) is the follower's vertical step. Every step of every pass is an
-//!   observation of `v(to) − v(from)`; a weighted least-squares solution over the visited
-//!   positions, with `v = 0` at the first, gives the map and its standard uncertainty per
-//!   point: a random walk from the first point, shrunk by the number of passes.
+//!   observation of `v(to) − v(from)` plus a slope times its length; a weighted least-squares
+//!   solution over the visited positions gives the map and its standard uncertainty per
+//!   point (a random walk tied down at both ends, shrunk by the number of passes). The map is
+//!   the straightness relative to the end-point line over the calibrated travel: the line —
+//!   the follower's inclination to PSD2's u axis — reads the same at a handover as PSD2's
+//!   in-plane tilt, which the head's model already carries, so no handover can measure it.
 //!
 //! Sans-I/O: [`build`] takes the steps (from the tracker's handover records or the lab) and an
 //! optional certificate and returns the map; [`FollowerMap::correction`] is what the tracker
@@ -225,11 +228,14 @@ pub struct FollowerMap {
     pub reversal: Option<Estimate>,
     /// The certificate's own mean reversal (mm), a cross-check of the self-calibration's.
     pub certificate_reversal_mm: Option<f64>,
-    /// Vertical straightness (mm, PSD2 above a straight stage) at `vertical_positions_mm`,
-    /// zero at the first, with its standard uncertainty relative to the first.
+    /// Vertical straightness (mm, PSD2 above the end-point line) at `vertical_positions_mm`,
+    /// zero at both ends, with its standard uncertainty.
     pub vertical_positions_mm: Vec<f64>,
     pub vertical_mm: Vec<f64>,
     pub vertical_u_mm: Vec<f64>,
+    /// PSD2's vertical jump per mm of follower step the end-point line took (mm/mm): PSD2's
+    /// in-plane tilt and the follower's inclination together (not applied).
+    pub vertical_slope: f64,
 }
 
 /// The map at one position and direction, per PSD2 axis: the correction (PSD2's true position
@@ -313,8 +319,8 @@ impl FollowerMap {
     }
 
     /// Variance (mm²: along, vertical) of the correction's difference between encoder
-    /// positions `a` and `b`: the along terms as independent, the vertical as the random walk
-    /// between them.
+    /// positions `a` and `b`: the along terms as independent, the vertical as its own (a
+    /// bound: the random walk makes neighbours' errors alike).
     pub fn difference_variance(
         &self,
         a: f64,
@@ -324,7 +330,7 @@ impl FollowerMap {
     ) -> [f64; 2] {
         let pa = self.point_mm(a, dir_a);
         let pb = self.point_mm(b, dir_b);
-        [pa.1 * pa.1 + pb.1 * pb.1, (pa.3 * pa.3 - pb.3 * pb.3).abs()]
+        [pa.1 * pa.1 + pb.1 * pb.1, pa.3 * pa.3 + pb.3 * pb.3]
     }
 
     /// The span of encoder positions the map covers (mm).
@@ -424,10 +430,11 @@ impl FollowerMap {
             out.push("vertical straightness: not mapped (run the self-calibration)".into());
         } else {
             out.push(format!(
-                "vertical straightness: {:.2} µm range over {} points, u ≤ {:.2} µm, from the self-calibration",
+                "vertical straightness (to the end-point line): {:.2} µm range over {} points, u ≤ {:.2} µm, from the self-calibration; the line's {:.1} µm/m (PSD2's tilt and the follower's inclination) is not mapped",
                 range(&self.vertical_mm),
                 self.vertical_mm.len(),
-                max_u(&self.vertical_u_mm)
+                max_u(&self.vertical_u_mm),
+                self.vertical_slope * 1e6
             ));
         }
         if let Some(s) = &self.self_calibration {
@@ -512,11 +519,13 @@ pub fn build(
         vertical_positions_mm: Vec::new(),
         vertical_mm: Vec::new(),
         vertical_u_mm: Vec::new(),
+        vertical_slope: 0.0,
     };
     if let Some(v) = vertical {
         map.vertical_positions_mm = v.positions;
         map.vertical_mm = v.values;
         map.vertical_u_mm = v.u;
+        map.vertical_slope = v.slope;
     }
     if let Some(c) = certificate {
         let mut xs: Vec<f64> = c.up.iter().chain(&c.down).map(|p| p.position_mm).collect();

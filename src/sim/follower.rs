@@ -75,6 +75,10 @@ pub struct FollowerModel {
     vertical: [Sine; 2],
 }
 
+/// The shortest wavelength of the long-wavelength shapes (mm): a stage's guides and screw
+/// bend over a few hundred mm, whatever the travel.
+const LONG_MIN_MM: f64 = 100.0;
+
 /// The noise (µm, one standard deviation) of the twin's certificate, and its spacing (mm).
 pub const CERTIFICATE_NOISE_UM: f64 = 0.2;
 pub const CERTIFICATE_STEP_MM: f64 = 10.0;
@@ -84,16 +88,17 @@ impl FollowerModel {
     pub fn new(spec: FollowerSpec, travel_mm: f64, rng: &mut Rng) -> FollowerModel {
         let len = travel_mm.max(1.0);
         let long = |peak_um: f64, r: &mut Rng| {
-            // Two long waves: one of 0.5 to 2 cycles over the travel, a smaller one of 2 to 4.
+            // Two long waves: one of 0.5 to 2 cycles over the travel, a smaller one of 2 to 4,
+            // neither shorter than the stage's build allows (LONG_MIN_MM).
             [
                 Sine {
                     amp: 0.35 * peak_um * MM_PER_UM,
-                    wavelength: len / r.uniform(0.5, 2.0),
+                    wavelength: (len / r.uniform(0.5, 2.0)).max(2.0 * LONG_MIN_MM),
                     phase: r.uniform(0.0, 2.0 * PI),
                 },
                 Sine {
                     amp: 0.15 * peak_um * MM_PER_UM,
-                    wavelength: len / r.uniform(2.0, 4.0),
+                    wavelength: (len / r.uniform(2.0, 4.0)).max(LONG_MIN_MM),
                     phase: r.uniform(0.0, 2.0 * PI),
                 },
             ]
@@ -141,11 +146,12 @@ impl FollowerModel {
     }
 
     /// The follower's certificate as a vendor would write it (the format of
-    /// `follower::Certificate`): its along-axis error (µm) from 0 to `travel_mm` (rounded up to
-    /// the spacing) every 10 mm, moving up, then moving down, each with 0.2 µm of noise drawn
-    /// from `rng` and stated as its standard uncertainty.
+    /// `follower::Certificate`): its along-axis error (µm) every 10 mm from −10 mm to 10 mm
+    /// past `travel_mm` (the stage's whole stroke, rounded up to the spacing), moving up,
+    /// then moving down, each with 0.2 µm of noise drawn from `rng` and stated as its standard
+    /// uncertainty.
     pub fn certificate(&self, rng: &mut Rng) -> String {
-        let n = (self.travel_mm / CERTIFICATE_STEP_MM).ceil() as usize;
+        let n = ((self.travel_mm + 20.0) / CERTIFICATE_STEP_MM).ceil() as usize;
         let mut out = String::from(
             "# axiscomp twin follower: calibration certificate of the stage's encoder\n\
              # error = actual - indicated position, laser interferometer, 20.0 C\n\
@@ -153,7 +159,7 @@ impl FollowerModel {
         );
         for (dir, sign) in [(Motion::Up, "+"), (Motion::Down, "-")] {
             for k in 0..=n {
-                let d = k as f64 * CERTIFICATE_STEP_MM;
+                let d = k as f64 * CERTIFICATE_STEP_MM - 10.0;
                 let e = self.along(d, dir) * 1e3 + rng.gauss(CERTIFICATE_NOISE_UM);
                 out.push_str(&format!("{d:.3},{e:.3},{sign},{CERTIFICATE_NOISE_UM:.2}\n"));
             }
@@ -196,7 +202,7 @@ mod tests {
         let text = m.certificate(&mut Rng::new(10));
         let rows: Vec<&str> = text.lines().filter(|l| !l.starts_with('#')).collect();
         assert_eq!(rows[0], "position_mm,error_um,direction,uncertainty_um");
-        assert_eq!(rows.len(), 1 + 2 * 21);
+        assert_eq!(rows.len(), 1 + 2 * 23);
         for r in &rows[1..] {
             let f: Vec<&str> = r.split(',').collect();
             let d: f64 = f[0].parse().unwrap();

@@ -15,6 +15,7 @@ pub mod cnc;
 pub mod config;
 pub mod drive;
 pub mod follower;
+pub mod follower_cal;
 pub mod head;
 pub mod hexapod;
 pub mod hexapod_servers;
