@@ -159,6 +159,7 @@ pub(super) struct Core {
     /// A run to resume once the follower is ready.
     pending_resume: Option<PendingResume>,
     store: Store,
+    follower_map: Option<super::follower::FollowerMapView>,
     run: Option<ActiveRun>,
     cnc: CncMode,
     dialect: Dialect,
@@ -295,6 +296,9 @@ impl Core {
     ) -> Core {
         let (events_tx, events_rx) = mpsc::unbounded_channel();
         let s = &p.settings;
+        let (follower_map, map) = super::follower::in_use(&store);
+        let mut pipeline = Pipeline::new(s.tracking, p.decoupler.clone(), s.head.live_window);
+        pipeline.tracker.set_map(map);
         let mut half_size_um = [0.0; 3];
         for (k, path) in p.layout.paths.iter().enumerate() {
             let el = &p.layout.elements[path.psd];
@@ -305,7 +309,7 @@ impl Core {
             }
         }
         Core {
-            pipeline: Pipeline::new(s.tracking, p.decoupler.clone(), s.head.live_window),
+            pipeline,
             align: Default::default(),
             acquisition,
             drive_status: drive.status(),
@@ -331,6 +335,7 @@ impl Core {
             follow_rearm: false,
             pending_resume: None,
             store,
+            follower_map,
             run: None,
             cnc: s.cnc.mode.clone(),
             dialect: s.cnc.dialect,
@@ -1162,6 +1167,11 @@ impl Core {
                     .advice(self.calibrations.layout(), (from_mm, to_mm));
                 Self::reply(c.reply, r);
             }
+            Request::FollowerMap { id } => {
+                let (store, tracker) = (&mut self.store, &mut self.pipeline.tracker);
+                let r = super::follower::request(store, tracker, &mut self.follower_map, id);
+                Self::reply(c.reply, r);
+            }
             Request::AlignClear => {
                 self.align.clear();
                 Self::reply(c.reply, Ok(serde_json::json!({"stations": 0})));
@@ -1389,6 +1399,7 @@ impl Core {
                 vertical_um: stitch.vertical_mm * 1e3,
                 sd_um: stitch.variance.map(|v| v.sqrt() * 1e3),
                 handovers: stitch.handovers,
+                follower_map: self.follower_map.clone(),
             },
             links: LinksView { io, can },
             alarms: p.alarms.list().to_vec(),

@@ -179,3 +179,60 @@ fn encoder(lab: &Lab) -> Result<f64, LabError> {
             why: "the follower's position is not known".into(),
         })
 }
+
+/// Why mapping the twin's follower failed.
+#[derive(Debug, thiserror::Error)]
+pub enum MapTwinError {
+    #[error(transparent)]
+    Lab(#[from] LabError),
+    #[error(transparent)]
+    Map(#[from] crate::follower::MapError),
+}
+
+/// What mapping the twin's follower gave.
+#[derive(Debug)]
+pub struct TwinMap {
+    pub map: crate::follower::FollowerMap,
+    pub run: CalRun,
+    /// The twin's certificate (CSV) when it was the one used.
+    pub certificate_text: Option<String>,
+}
+
+/// Map the follower of a twin (`plant`, the reference head decoupled by its nominal layout):
+/// bring the lab up, run the self-calibration over `cal`'s span, and build the map with
+/// `certificate`, or with the twin's own certificate (its noise drawn from `plant.seed`) when
+/// `None`.
+pub fn map_twin(
+    plant: super::plant::PlantSpec,
+    cal: &CalSpec,
+    certificate: Option<crate::follower::Certificate>,
+    settings: &crate::follower::MapSettings,
+    progress: impl FnMut(usize, usize),
+) -> Result<TwinMap, MapTwinError> {
+    let seed = plant.seed;
+    let spec = super::lab::LabSpec::standard(plant, None)?;
+    let mut lab = Lab::new(&spec)?;
+    lab.bring_up()?;
+    let run = self_calibrate(&mut lab, cal, progress)?;
+    let (certificate, certificate_text) = match certificate {
+        Some(c) => (c, None),
+        None => {
+            let text = lab
+                .plant
+                .follower
+                .certificate(&mut super::Rng::new(seed).fork(16));
+            let c = crate::follower::Certificate::parse(&text, "twin-certificate.csv")
+                .map_err(crate::follower::MapError::from)?;
+            (c, Some(text))
+        }
+    };
+    let mut map = crate::follower::build(&run.steps, Some(&certificate), settings)?;
+    if let Some(s) = map.self_calibration.as_mut() {
+        s.machine_time_s = Some(run.machine_time.as_secs_f64());
+    }
+    Ok(TwinMap {
+        map,
+        run,
+        certificate_text,
+    })
+}

@@ -19,9 +19,11 @@
 //! `Store` wraps one connection: it is `Send` but not `Sync`; share it behind a mutex or own it in
 //! one task. Open a second `Store` (e.g. `open_read_only`) for a concurrent reader.
 
+mod follower;
 mod records;
 pub mod schema;
 
+pub use follower::FollowerMapRecord;
 pub use records::{
     Actor, AuditEntry, AuditRecord, CalibrationId, CalibrationRecord, CalibrationSummary, NewRun,
     Publication, PublicationOutcome, PublicationRecord, RunId, RunRecord, RunState, StoredHandover,
@@ -141,6 +143,8 @@ pub enum StoreError {
     NoSuchCalibration(CalibrationId),
     #[error("compensation table {0} is not in the store; list the tables to find its id")]
     NoSuchTable(TableId),
+    #[error("follower map {0} is not in the store; list the maps to find its id")]
+    NoSuchFollowerMap(i64),
     #[error("invalid {what}: {problem}")]
     Invalid { what: &'static str, problem: String },
     #[error("run {run} is {from}: it cannot become {to}")]

@@ -653,26 +653,23 @@ fn migrations_run_forward_one_transaction_per_step() {
     };
     let mut conn = Connection::open(&db.path).unwrap();
     conn.set_transaction_behavior(TransactionBehavior::Immediate);
-    // A failing step 2 leaves the file at version 1, without its partial DDL.
-    let broken = [
-        schema::MIGRATIONS[0],
-        "ALTER TABLE runs ADD COLUMN operator TEXT; THIS IS NOT SQL;",
-    ];
+    // A failing next step leaves the file at this build's version, without its partial DDL.
+    let latest = schema::LATEST;
+    let mut broken: Vec<&str> = schema::MIGRATIONS.to_vec();
+    broken.push("ALTER TABLE runs ADD COLUMN operator TEXT; THIS IS NOT SQL;");
     let (from, to, _) = migrate(&mut conn, &broken).unwrap_err();
-    assert_eq!((from, to), (1, 2));
+    assert_eq!((from, to), (latest, latest + 1));
     let version: i64 = conn
         .pragma_query_value(None, "user_version", |r| r.get(0))
         .unwrap();
-    assert_eq!(version, 1);
+    assert_eq!(version, latest);
     assert!(
         conn.prepare("SELECT operator FROM runs").is_err(),
-        "step 2 was rolled back"
+        "the step was rolled back"
     );
-    // A good step 2 applies once; step 1 is skipped; data is kept.
-    let steps = [
-        schema::MIGRATIONS[0],
-        "ALTER TABLE runs ADD COLUMN operator TEXT NOT NULL DEFAULT 'unknown';",
-    ];
+    // A good next step applies once; the earlier ones are skipped; data is kept.
+    let mut steps: Vec<&str> = schema::MIGRATIONS.to_vec();
+    steps.push("ALTER TABLE runs ADD COLUMN operator TEXT NOT NULL DEFAULT 'unknown';");
     migrate(&mut conn, &steps).unwrap();
     migrate(&mut conn, &steps).unwrap();
     let (version, operator): (i64, String) = (
@@ -683,12 +680,12 @@ fn migrations_run_forward_one_transaction_per_step() {
         })
         .unwrap(),
     );
-    assert_eq!((version, operator.as_str()), (2, "unknown"));
+    assert_eq!((version, operator.as_str()), (latest + 1, "unknown"));
     drop(conn);
-    // This build does not know version 2.
+    // This build does not know the next version.
     assert!(matches!(
         Store::open(&db.path),
-        Err(StoreError::FutureVersion { found: 2, .. })
+        Err(StoreError::FutureVersion { found, .. }) if found == latest + 1
     ));
 }
 

@@ -276,3 +276,140 @@ fn certificates_with_bad_rows_are_refused_with_the_line() {
     let c = Certificate::parse(&lab_model.certificate(&mut Rng::new(2)), "twin.csv").unwrap();
     assert_eq!((c.up.len(), c.down.len()), (33, 33));
 }
+
+const GOOD_CERT: &str = "# vendor\nposition_mm,error_um,direction,uncertainty_um\n0,0.0,+,0.2\n10,1.0,+,0.2\n20,1.5,+,0.2\n0,0.5,-,0.2\n10,1.5,-,0.2\n20,2.0,-,0.2\n";
+
+/// `axiscomp follower import|show`: a bad certificate exits 2 naming the file and line and
+/// stores nothing; a good one is stored, in use, and exported as TOML that reads back as the
+/// map built from it, and as CSV.
+#[test]
+fn the_command_line_imports_shows_and_exports() {
+    use crate::helpers::{TempDir, run, stderr, stdout};
+    let dir = TempDir::new("follower-cli");
+    let db = dir.path("store.db");
+    let db_s = db.display().to_string();
+    let bad = dir.write(
+        "bad.csv",
+        "position_mm,error_um,direction,uncertainty_um\n0,0,+,0.2\n10,1,,0.2\n",
+    );
+    let o = run(
+        &[
+            "follower",
+            "import",
+            &bad.display().to_string(),
+            "--db",
+            &db_s,
+        ],
+        "",
+    );
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(
+        err.contains(&format!(
+            "{} line 3: the direction is missing",
+            bad.display()
+        )),
+        "{err}"
+    );
+    let good = dir.write("vendor.csv", GOOD_CERT);
+    let o = run(
+        &[
+            "follower",
+            "import",
+            &good.display().to_string(),
+            "--db",
+            &db_s,
+        ],
+        "",
+    );
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("from the certificate"),
+        "{}",
+        stdout(&o)
+    );
+    let (toml, csv) = (dir.path("map.toml"), dir.path("map.csv"));
+    let o = run(
+        &[
+            "follower",
+            "show",
+            "--db",
+            &db_s,
+            "--toml",
+            &toml.display().to_string(),
+            "--csv",
+            &csv.display().to_string(),
+            "--step-mm",
+            "5",
+        ],
+        "",
+    );
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(
+        out.lines()
+            .any(|l| l.starts_with("*   1 ") && l.contains("certificate")),
+        "{out}"
+    );
+    let cert = Certificate::parse(GOOD_CERT, &good.display().to_string()).unwrap();
+    let want = follower::build(&[], Some(&cert), &MapSettings::default()).unwrap();
+    let got = FollowerMap::from_toml(&std::fs::read_to_string(&toml).unwrap(), "map.toml").unwrap();
+    assert_eq!(got, want);
+    let csv = std::fs::read_to_string(&csv).unwrap();
+    let rows: Vec<&str> = csv.lines().collect();
+    assert_eq!(
+        rows[0],
+        "position_mm,along_up_um,along_down_um,along_u_um,vertical_um,vertical_u_um"
+    );
+    // 10 mm: +1.0 µm up, +1.5 µm down (the certificate's own directions), u 0.2 µm.
+    assert_eq!(rows[3], "10.000,1.000,1.500,0.200,0.000,0.000");
+}
+
+/// The service: a stored map put in use by the control request is applied and named in the
+/// snapshot; viewers may ask which map is in use.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_service_puts_a_stored_map_in_use_and_shows_it() {
+    use crate::helpers::{RigOptions, ServiceRig};
+    use axiscomp::service::control::Request;
+    let rig = ServiceRig::start(RigOptions::default()).await;
+    let cert = Certificate::parse(GOOD_CERT, "vendor.csv").unwrap();
+    let map = follower::build(&[], Some(&cert), &MapSettings::default()).unwrap();
+    let id = {
+        let mut store = axiscomp::store::Store::open(&rig.store).expect("store");
+        store
+            .insert_follower_map(&map, "vendor.csv", false)
+            .expect("insert")
+    };
+    let r = rig
+        .request(Request::FollowerMap { id: None })
+        .await
+        .expect("show");
+    assert!(r["in_use"].is_null(), "{r}");
+    assert_eq!(r["maps"][0]["name"], "vendor.csv");
+    let r = rig
+        .request(Request::FollowerMap { id: Some(id) })
+        .await
+        .expect("use");
+    assert_eq!(r["in_use"]["id"], id);
+    assert_eq!(r["in_use"]["sources"]["long"], "certificate");
+    let s = rig
+        .wait_for(10, "the map in the snapshot", |s| {
+            s.tracking.follower_map.is_some()
+        })
+        .await;
+    let v = s.tracking.follower_map.expect("map view");
+    assert_eq!(
+        (v.id, v.name.as_str(), v.source.as_str()),
+        (id, "vendor.csv", "certificate")
+    );
+    let e = rig
+        .request(Request::FollowerMap { id: Some(id + 7) })
+        .await
+        .unwrap_err();
+    assert!(
+        e.to_string()
+            .contains(&format!("follower map {} is not in the store", id + 7)),
+        "{e}"
+    );
+    rig.stop().await;
+}
