@@ -241,7 +241,7 @@ fn show(a: ShowArgs) -> Result<()> {
         println!("written: {}", p.display());
     }
     if let Some(p) = &a.csv {
-        if !(a.step_mm > 0.0) {
+        if a.step_mm.is_nan() || a.step_mm <= 0.0 {
             return Err(
                 InputError(format!("--step-mm {}: give a positive step", a.step_mm)).into(),
             );
