@@ -37,24 +37,8 @@ use crate::track::{HandoverKind, HandoverRecord};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-/// The direction the follower last moved in.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Direction {
-    #[default]
-    Up,
-    Down,
-}
-
-impl Direction {
-    /// `+` or `-`, as in certificates and exports.
-    pub fn sign(self) -> &'static str {
-        match self {
-            Direction::Up => "+",
-            Direction::Down => "-",
-        }
-    }
-}
+/// The direction the follower last moved in (as a direction of approach).
+pub use crate::run::Direction;
 
 /// Where a term of the map comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

@@ -98,7 +98,7 @@ impl Store {
                 r.get::<_, i64>(0)
             })
             .optional()
-            .map_err(|e| classify(self, what, e))?;
+            .map_err(|e| self.fail(what, e))?;
         if found.is_none() {
             return Err(StoreError::NoSuchFollowerMap(id));
         }
@@ -111,10 +111,7 @@ impl Store {
     fn query_follower_maps(&self, sql: &str) -> Result<Vec<FollowerMapRecord>, StoreError> {
         let what = "read follower maps";
         type Raw = (i64, i64, String, String, i64, String);
-        let mut stmt = self
-            .conn
-            .prepare(sql)
-            .map_err(|e| classify(self, what, e))?;
+        let mut stmt = self.conn.prepare(sql).map_err(|e| self.fail(what, e))?;
         let raws: Vec<Raw> = stmt
             .query_map([], |r| {
                 Ok((
@@ -127,7 +124,7 @@ impl Store {
                 ))
             })
             .and_then(|rows| rows.collect())
-            .map_err(|e| classify(self, what, e))?;
+            .map_err(|e| self.fail(what, e))?;
         raws.into_iter()
             .map(|(id, created_us, source, name, in_use, text)| {
                 let map = FollowerMap::from_toml(&text, &format!("follower map {id}"))
@@ -143,10 +140,6 @@ impl Store {
             })
             .collect()
     }
-}
-
-fn classify(store: &Store, what: &'static str, e: rusqlite::Error) -> StoreError {
-    super::classify(&store.label(), what, e)
 }
 
 #[cfg(test)]

@@ -1109,6 +1109,69 @@ mod tests {
         );
     }
 
+    /// With a map of the follower's own errors, the encoder strategy's stitch is where PSD2
+    /// really is (along and vertically, from the reference), not where the encoder says.
+    #[test]
+    fn encoder_strategy_applies_the_follower_map() {
+        use crate::follower::{FollowerMap, Source, Sources};
+        let xs: Vec<f64> = (0..=400).map(|k| k as f64 * 0.25).collect();
+        let fus: Vec<f64> = xs.iter().map(|&x| fu(x)).collect();
+        let map = FollowerMap {
+            sources: Sources {
+                long: Source::Certificate,
+                periodic: Source::None,
+                reversal: Source::None,
+                vertical: Source::SelfCalibration,
+            },
+            certificate_name: None,
+            self_calibration: None,
+            long_positions_mm: xs.clone(),
+            long_up_mm: fus.clone(),
+            long_down_mm: fus,
+            long_u_mm: vec![0.1e-3; xs.len()],
+            periodic: None,
+            reversal: None,
+            certificate_reversal_mm: None,
+            vertical_positions_mm: xs.clone(),
+            vertical_mm: xs.iter().map(|&x| fv(x)).collect(),
+            vertical_u_mm: vec![0.2e-3; xs.len()],
+            vertical_slope: 0.0,
+        };
+        let (mut b, mut tr) = referenced(Strategy::Encoder);
+        tr.set_map(Some(Arc::new(map)));
+        assert!(tr.reference());
+        let (u0, v0, e0) = (fu(b.enc), fv(b.enc), b.enc);
+        for _ in 0..2000 {
+            b.carriage += 10.0 * 0.002;
+            b.step(&mut tr);
+        }
+        b.run(&mut tr, 500);
+        let s = tr.stitch();
+        let true_u = b.enc + fu(b.enc) - u0 + e0;
+        let true_v = fv(b.enc) - v0;
+        // Linear interpolation every 0.25 mm of 3 µm and 2 µm sines: within 2 nm.
+        assert!(
+            (s.follower_mm - true_u).abs() < 2e-6,
+            "{} vs {true_u}",
+            s.follower_mm
+        );
+        assert!(
+            (s.vertical_mm - true_v).abs() < 2e-6,
+            "{} vs {true_v}",
+            s.vertical_mm
+        );
+        assert!(
+            (fu(b.enc) - u0).abs() > 1e-3,
+            "the encoder alone would be off"
+        );
+        // The map's uncertainty replaces the per-mm terms.
+        let sd = s.variance.map(f64::sqrt);
+        assert!(
+            (sd[0] - (1e-6_f64 + 2.0 * 0.01e-6).sqrt()).abs() < 1e-9,
+            "{sd:?}"
+        );
+    }
+
     /// The follow target is the carriage, whatever the follower does and however late its
     /// reports come: the follower swinging ±0.5 mm at 5 Hz (a loop gone wrong), sampled at
     /// 10 ms SYNCs that come up to 30 ms late, reported up to 40 ms after that; the carriage at

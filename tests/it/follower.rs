@@ -413,3 +413,20 @@ async fn the_service_puts_a_stored_map_in_use_and_shows_it() {
     );
     rig.stop().await;
 }
+
+/// The map alone on a 1000 mm axis with a lighter pass (two passes, 300 frames a side):
+/// `cargo test --test it follower::the_followers_map_alone -- --ignored --nocapture`.
+#[test]
+#[ignore = "a 1000 mm self-calibration: 20 min of machine time"]
+fn the_followers_map_alone_over_1000_mm_two_light_passes() {
+    crate::helpers::init_test_log();
+    let _machine = crate::helpers::heavy();
+    let mut lab = lab(2026, 1000.0);
+    let cal = CalSpec {
+        passes: 2,
+        average_frames: 300,
+        ..CalSpec::default()
+    };
+    let map = map_follower(&mut lab, (-2.0, 1002.0), cal);
+    check_map(&lab, &map);
+}
