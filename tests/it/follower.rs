@@ -45,6 +45,8 @@ struct Compared {
     /// directions, every mm), and the largest |map − truth| (µm).
     along_ratio: f64,
     along_worst_um: f64,
+    /// The share of those within 2 u.
+    along_within_2u: f64,
 }
 
 fn compare(lab: &Lab, map: &FollowerMap) -> Compared {
@@ -65,6 +67,7 @@ fn compare(lab: &Lab, map: &FollowerMap) -> Compared {
         })
         .collect();
     let (mut along_ratio, mut along_worst_um) = (0.0f64, 0.0f64);
+    let (mut within, mut total) = (0usize, 0usize);
     let p0 = map.point(x0, Direction::Up);
     let t0 = m.along(x0, Motion::Up);
     let mut x = x0;
@@ -75,6 +78,8 @@ fn compare(lab: &Lab, map: &FollowerMap) -> Compared {
             let want = (m.along(x, motion(dir)) - t0) * 1e3;
             let u = p.along_u_um.hypot(p0.along_u_um);
             along_ratio = along_ratio.max((got - want).abs() / u);
+            total += 1;
+            within += usize::from((got - want).abs() <= 2.0 * u);
             along_worst_um = along_worst_um.max((got - want).abs());
         }
         x += 1.0;
@@ -83,6 +88,7 @@ fn compare(lab: &Lab, map: &FollowerMap) -> Compared {
         vertical,
         along_ratio,
         along_worst_um,
+        along_within_2u: within as f64 / total.max(1) as f64,
     }
 }
 
