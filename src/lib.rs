@@ -27,6 +27,7 @@ pub mod config;
 pub mod console;
 pub mod decouple;
 pub mod evaluate;
+pub mod follower;
 pub mod hexapod;
 pub mod modbus;
 pub mod optics;

@@ -8,6 +8,7 @@ mod decouple;
 mod demo;
 mod evaluate;
 mod export;
+mod follower;
 mod optics;
 mod run;
 mod service;
@@ -72,6 +73,10 @@ enum Command {
     /// publish, status.
     #[command(subcommand)]
     Table(table::Command),
+    /// The follower stage's error map: import its certificate, map it (stop-and-go
+    /// self-calibration), show and export the map in use.
+    #[command(subcommand)]
+    Follower(follower::Command),
 }
 
 /// Let a closed standard output end the process quietly, as it ends `cat` or `grep`
@@ -146,6 +151,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Export(a) => export::run(a),
         Command::Table(c) => table::run(c),
         Command::Align(c) => align::run(c),
+        Command::Follower(c) => follower::run(c),
     }
 }
 
@@ -173,6 +179,7 @@ pub fn exit_code(e: &anyhow::Error) -> u8 {
             || cause.is::<axiscomp::sim::SimError>()
             || cause.is::<axiscomp::evaluate::EvalError>()
             || cause.is::<axiscomp::comp::CompError>()
+            || cause.is::<axiscomp::follower::CertificateError>()
         {
             return 2;
         }

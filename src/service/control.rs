@@ -161,6 +161,12 @@ pub enum Request {
     },
     /// Forget the stations read (after turning screws, read both ends again).
     AlignClear,
+    /// The follower error map in use and the stored ones; with `id`, put stored map `id` in
+    /// use first (operators).
+    FollowerMap {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        id: Option<i64>,
+    },
 }
 
 impl Request {
@@ -176,7 +182,8 @@ impl Request {
             | Request::Calibration
             | Request::HexapodStatus
             | Request::TableList { .. }
-            | Request::TableStatus => Role::Viewer,
+            | Request::TableStatus
+            | Request::FollowerMap { id: None } => Role::Viewer,
             _ => Role::Operator,
         }
     }

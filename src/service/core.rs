@@ -159,6 +159,7 @@ pub(super) struct Core {
     /// A run to resume once the follower is ready.
     pending_resume: Option<PendingResume>,
     store: Store,
+    follower_map: Option<super::follower::FollowerMapView>,
     run: Option<ActiveRun>,
     cnc: CncMode,
     dialect: Dialect,
@@ -299,6 +300,9 @@ impl Core {
     ) -> Core {
         let (events_tx, events_rx) = mpsc::unbounded_channel();
         let s = &p.settings;
+        let (follower_map, map) = super::follower::in_use(&store);
+        let mut pipeline = Pipeline::new(s.tracking, p.decoupler.clone(), s.head.live_window);
+        pipeline.tracker.set_map(map);
         let mut half_size_um = [0.0; 3];
         for (k, path) in p.layout.paths.iter().enumerate() {
             let el = &p.layout.elements[path.psd];
@@ -309,7 +313,7 @@ impl Core {
             }
         }
         Core {
-            pipeline: Pipeline::new(s.tracking, p.decoupler.clone(), s.head.live_window),
+            pipeline,
             align: super::align::AlignState::new(s.align.clone()),
             acquisition,
             drive_status: drive.status(),
@@ -335,6 +339,7 @@ impl Core {
             follow_rearm: false,
             pending_resume: None,
             store,
+            follower_map,
             run: None,
             cnc: s.cnc.mode.clone(),
             dialect: s.cnc.dialect,
@@ -1238,6 +1243,11 @@ impl Core {
                 );
                 Self::reply(c.reply, r);
             }
+            Request::FollowerMap { id } => {
+                let (store, tracker) = (&mut self.store, &mut self.pipeline.tracker);
+                let r = super::follower::request(store, tracker, &mut self.follower_map, id);
+                Self::reply(c.reply, r);
+            }
             Request::AlignClear => {
                 self.align.clear();
                 Self::reply(c.reply, Ok(serde_json::json!({"stations": 0})));
@@ -1482,6 +1492,7 @@ impl Core {
                 vertical_um: stitch.vertical_mm * 1e3,
                 sd_um: stitch.variance.map(|v| v.sqrt() * 1e3),
                 handovers: stitch.handovers,
+                follower_map: self.follower_map.clone(),
             },
             links: LinksView { io, can },
             alarms: p.alarms.list().to_vec(),

@@ -8,6 +8,7 @@ pub mod align;
 pub mod calibration;
 pub mod control;
 mod core;
+pub mod follower;
 pub mod hexapod_run;
 pub mod measure;
 pub mod notify;

@@ -103,6 +103,9 @@ pub struct TrackingView {
     /// Accumulated stitching standard deviation (µm), along and vertical.
     pub sd_um: [f64; 2],
     pub handovers: usize,
+    /// The follower error map applied to encoder steps, when one is in use.
+    #[serde(default)]
+    pub follower_map: Option<super::follower::FollowerMapView>,
 }
 
 /// One field link.

@@ -90,7 +90,23 @@ struct RawHead {
 struct RawFollower {
     positioning_um: f64,
     straightness_um: f64,
+    #[serde(default = "default_follower_periodic_um")]
+    periodic_um: f64,
+    #[serde(default = "default_follower_lead_mm")]
+    lead_mm: f64,
+    #[serde(default = "default_follower_reversal_um")]
+    reversal_um: f64,
     start_mm: f64,
+}
+
+fn default_follower_periodic_um() -> f64 {
+    FollowerSpec::default().periodic_um
+}
+fn default_follower_lead_mm() -> f64 {
+    FollowerSpec::default().lead_mm
+}
+fn default_follower_reversal_um() -> f64 {
+    FollowerSpec::default().reversal_um
 }
 
 #[derive(Debug, Deserialize)]
@@ -227,6 +243,9 @@ pub fn parse_all(
         follower: FollowerSpec {
             positioning_um: non_neg("twin.follower.positioning_um", t.follower.positioning_um)?,
             straightness_um: non_neg("twin.follower.straightness_um", t.follower.straightness_um)?,
+            periodic_um: non_neg("twin.follower.periodic_um", t.follower.periodic_um)?,
+            lead_mm: non_neg("twin.follower.lead_mm", t.follower.lead_mm)?,
+            reversal_um: non_neg("twin.follower.reversal_um", t.follower.reversal_um)?,
         },
         feed: non_neg("twin.carriage.feed_mm_s", t.carriage.feed_mm_s)?,
         accel: non_neg("twin.carriage.accel_mm_s2", t.carriage.accel_mm_s2)?,

@@ -6,14 +6,18 @@
 //! (`head`), a hexapod that applies calibration poses (`hexapod`), the plant's shared physical
 //! state (`plant`: the measured axis, the follower, the beam), the I/O module that serves the
 //! PSDs as raw counts over Modbus TCP following an I/O-module map, with fault injection
-//! (`iomodule`), the follower's CiA 402 drive on a CAN transport (`drive`), and the PLC that
-//! takes compensation tables and applies them to the axis (`plc`).
+//! (`iomodule`), the follower's CiA 402 drive on a CAN transport (`drive`), the follower
+//! stage's own errors and its vendor certificate (`follower`), the stop-and-go self-calibration
+//! of those errors on the lab (`follower_cal`), and the PLC that takes compensation tables and
+//! applies them to the axis (`plc`).
 
 pub mod axis;
 pub mod closed_loop;
 pub mod cnc;
 pub mod config;
 pub mod drive;
+pub mod follower;
+pub mod follower_cal;
 pub mod head;
 pub mod hexapod;
 pub mod hexapod_servers;

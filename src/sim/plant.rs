@@ -13,28 +13,11 @@ use crate::align::{Mount, MountGeometry, Screw};
 use crate::optics::geometry::{V3, rot_zyx};
 use crate::optics::layout::Kind;
 use crate::optics::{Layout, Pose, Spot};
-use crate::units::{Errors6, MM_PER_UM};
-use std::f64::consts::PI;
+use crate::units::Errors6;
 use std::sync::Mutex;
 use std::time::Instant;
 
-/// The follower stage's own errors (peaks over its travel).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct FollowerSpec {
-    /// Peak positioning error along its axis (µm).
-    pub positioning_um: f64,
-    /// Peak vertical straightness (µm); it reads as roll (1.38″ per µm) unless stitched out.
-    pub straightness_um: f64,
-}
-
-impl Default for FollowerSpec {
-    fn default() -> Self {
-        FollowerSpec {
-            positioning_um: 4.0,
-            straightness_um: 2.0,
-        }
-    }
-}
+pub use super::follower::{FollowerModel, FollowerSpec, Motion};
 
 /// How far from aligned the head is mounted (uniform within ±): yaw and pitch of the head's
 /// base to the axis, and its offsets across the travel.
@@ -131,6 +114,8 @@ pub struct Truth {
     pub follower_encoder: f64,
     pub follower_true: f64,
     pub follower_vertical: f64,
+    /// The direction the follower last moved in (its reversal error depends on it).
+    pub follower_motion: Motion,
     /// How the head is mounted (rad, mm).
     pub mount: Mount,
 }
@@ -169,6 +154,7 @@ struct State {
     carriage: Carriage,
     compensation: Compensation,
     follower_encoder: f64,
+    follower_motion: Motion,
     blocked: [bool; 3],
     mount: Mount,
     /// Events still to happen, in time order.
@@ -186,7 +172,8 @@ pub struct Plant {
     pub spec: PlantSpec,
     pub head: TwinHead,
     pub axis: AxisProfile,
-    follower_shape: [(f64, f64, f64); 2],
+    /// The follower stage's own errors (`sim::follower`).
+    pub follower: FollowerModel,
     /// The real mount's screws and pivot (the nominal ones with their errors).
     pub mount_geometry: MountGeometry,
     laser: Option<usize>,
@@ -203,19 +190,7 @@ impl Plant {
         let root = Rng::new(spec.seed);
         let head = Plant::draw_head(nominal, spec)?;
         let axis = AxisProfile::random(&spec.axis, &mut root.fork(12));
-        let mut r = root.fork(13);
-        let follower_shape = [
-            (
-                spec.follower.positioning_um,
-                r.uniform(0.5, 2.0),
-                r.uniform(0.0, 2.0 * PI),
-            ),
-            (
-                spec.follower.straightness_um,
-                r.uniform(0.5, 2.0),
-                r.uniform(0.0, 2.0 * PI),
-            ),
-        ];
+        let follower = FollowerModel::new(spec.follower, spec.axis.length_mm, &mut root.fork(13));
         let mut r = root.fork(15);
         let (ma, mo) = (spec.mount.angle_deg.to_radians(), spec.mount.offset_mm);
         let mount = Mount {
@@ -243,6 +218,7 @@ impl Plant {
                 carriage: Carriage::new(0.0, spec.feed, spec.accel, now),
                 compensation: Compensation::default(),
                 follower_encoder: 0.0,
+                follower_motion: Motion::Up,
                 blocked: [false; 3],
                 mount,
                 scheduled: Vec::new(),
@@ -254,7 +230,7 @@ impl Plant {
             spec: spec.clone(),
             head,
             axis,
-            follower_shape,
+            follower,
             mount_geometry,
             laser,
             t0: now,
@@ -273,13 +249,10 @@ impl Plant {
         self.state.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// The follower stage's own errors (mm) at encoder position `d`: along its axis, vertical.
-    pub fn follower_errors(&self, d: f64) -> (f64, f64) {
-        let len = self.spec.axis.length_mm.max(1.0);
-        let f = |(peak, cycles, ph): (f64, f64, f64)| {
-            peak * MM_PER_UM * ((2.0 * PI * cycles * d / len + ph).sin() - ph.sin()) / 2.0
-        };
-        (f(self.follower_shape[0]), f(self.follower_shape[1]))
+    /// The follower stage's own errors (mm) at encoder position `d` after a motion in `dir`:
+    /// along its axis, vertical.
+    pub fn follower_errors(&self, d: f64, dir: Motion) -> (f64, f64) {
+        (self.follower.along(d, dir), self.follower.vertical(d))
     }
 
     /// Command the carriage to nominal position `target` (mm).
@@ -317,7 +290,15 @@ impl Plant {
 
     /// Set the follower's encoder position (mm), as its drive moves it.
     pub fn set_follower_encoder(&self, d: f64) {
-        self.lock().follower_encoder = d;
+        let mut s = self.lock();
+        if d != s.follower_encoder {
+            s.follower_motion = if d > s.follower_encoder {
+                Motion::Up
+            } else {
+                Motion::Down
+            };
+        }
+        s.follower_encoder = d;
     }
 
     /// The follower's encoder position (mm).
@@ -423,7 +404,7 @@ impl Plant {
         let travel = s.carriage.position(now);
         let hours = now.saturating_duration_since(self.t0).as_secs_f64() / 3600.0;
         let dir: Direction = s.carriage.direction();
-        let (fu, fv) = self.follower_errors(s.follower_encoder);
+        let (fu, fv) = self.follower_errors(s.follower_encoder, s.follower_motion);
         let mut errors = self.axis.errors(travel, dir, hours);
         let c = &s.compensation;
         if let Some(p) = &c.dy {
@@ -443,6 +424,7 @@ impl Plant {
             follower_encoder: s.follower_encoder,
             follower_true: s.follower_encoder + fu,
             follower_vertical: fv,
+            follower_motion: s.follower_motion,
             mount: s.mount,
         }
     }
@@ -542,7 +524,7 @@ mod tests {
         let want = e.dx + e.dy - 340.0 * e.ez + 1.0;
         assert!((x2 - want).abs() < 1e-6, "{x2} vs {want}");
         plant.set_follower_encoder(1.0);
-        let (fu, fv) = plant.follower_errors(1.0);
+        let (fu, fv) = plant.follower_errors(1.0, Motion::Up);
         let s = plant.sample(later);
         assert!((s.spots[1].unwrap().x - (want - 1.0 - fu)).abs() < 1e-6);
         let y2_nominal = 150.0 * (e.ey - e.ex);

@@ -20,10 +20,12 @@
 //! one task. Open a second `Store` (e.g. `open_read_only`) for a concurrent reader.
 
 mod alignments;
+mod follower;
 mod records;
 pub mod schema;
 
 pub use alignments::{AlignmentRecord, NewAlignment};
+pub use follower::FollowerMapRecord;
 pub use records::{
     Actor, AuditEntry, AuditRecord, CalibrationId, CalibrationRecord, CalibrationSummary, NewRun,
     Publication, PublicationOutcome, PublicationRecord, RunId, RunRecord, RunState, StoredHandover,
@@ -143,6 +145,8 @@ pub enum StoreError {
     NoSuchCalibration(CalibrationId),
     #[error("compensation table {0} is not in the store; list the tables to find its id")]
     NoSuchTable(TableId),
+    #[error("follower map {0} is not in the store; list the maps to find its id")]
+    NoSuchFollowerMap(i64),
     #[error("invalid {what}: {problem}")]
     Invalid { what: &'static str, problem: String },
     #[error("run {run} is {from}: it cannot become {to}")]

@@ -19,7 +19,7 @@ pub const APPLICATION_ID: i32 = 0x4158_4353;
 pub const LATEST: i64 = MIGRATIONS.len() as i64;
 
 /// Forward migrations; `MIGRATIONS[i]` goes from version `i` to `i + 1`.
-pub const MIGRATIONS: &[&str] = &[V1, V2];
+pub const MIGRATIONS: &[&str] = &[V1, V2, V3_FOLLOWER_MAPS];
 
 /// Version 1: the first schema.
 const V1: &str = r#"
@@ -178,6 +178,20 @@ CREATE TABLE alignments (
 CREATE INDEX alignments_axis ON alignments (axis, id);
 "#;
 
+/// Version 3: follower error maps (`follower::FollowerMap`), kept whole as TOML with where they
+/// came from; at most one is in use.
+const V3_FOLLOWER_MAPS: &str = r#"
+CREATE TABLE follower_maps (
+    id          INTEGER PRIMARY KEY,
+    created_us  INTEGER NOT NULL,
+    source      TEXT    NOT NULL CHECK (source IN ('certificate', 'self-calibration', 'both')),
+    name        TEXT    NOT NULL,              -- the certificate's file, or how it was made
+    map_toml    TEXT    NOT NULL,              -- the map (TOML, internal units)
+    in_use      INTEGER NOT NULL DEFAULT 0 CHECK (in_use IN (0, 1))
+) STRICT;
+CREATE UNIQUE INDEX follower_maps_in_use ON follower_maps (in_use) WHERE in_use = 1;
+"#;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -186,6 +200,6 @@ mod tests {
     fn application_id_literal_matches_the_constant() {
         // The pragma cannot take a bound parameter, so V1 spells the number out.
         assert!(V1.contains(&format!("PRAGMA application_id = {APPLICATION_ID};")));
-        assert_eq!(LATEST, 2);
+        assert_eq!(LATEST, 3);
     }
 }

@@ -1002,3 +1002,38 @@ fn fuzz_control_api_lines() {
         Ok(())
     });
 }
+
+#[test]
+fn fuzz_follower_certificates() {
+    let seed = axiscomp::sim::follower::FollowerModel::new(
+        Default::default(),
+        100.0,
+        &mut axiscomp::sim::Rng::new(1),
+    )
+    .certificate(&mut axiscomp::sim::Rng::new(2));
+    fuzz(
+        "follower certificates",
+        600,
+        text_from(vec![seed]),
+        |text| {
+            let (r, peak) =
+                peak_of(|| axiscomp::follower::Certificate::parse(&text, "fuzz-cert.csv"));
+            check_alloc("Certificate::parse", peak, text.len(), 512)?;
+            match r {
+                // A certificate that reads is sound: finite, increasing per direction, u > 0.
+                Ok(c) => {
+                    for pts in [&c.up, &c.down] {
+                        for w in pts.windows(2) {
+                            prop_assert!(w[1].position_mm > w[0].position_mm);
+                        }
+                        for p in pts.iter() {
+                            prop_assert!(p.error_mm.is_finite() && p.uncertainty_mm > 0.0);
+                        }
+                    }
+                }
+                Err(e) => names_input(Err::<(), _>(e), "fuzz-cert.csv")?,
+            }
+            Ok(())
+        },
+    );
+}

@@ -14,6 +14,7 @@ mod comp_export;
 mod console;
 mod decoupling;
 mod evaluate;
+mod follower;
 mod fuzz;
 mod hexapod;
 mod links;

@@ -1,0 +1,260 @@
+//! The follower encoder's calibration certificate: the length reference along the axis.
+//!
+//! Format (CSV, UTF-8): lines starting with `#` are comments, blank lines are skipped; the
+//! first other line is the header, exactly
+//!
+//! ```text
+//! position_mm,error_um,direction,uncertainty_um
+//! ```
+//!
+//! then one row per calibrated point: the encoder position (mm), the stage's error there
+//! (µm, actual − indicated, the sign of a measured deviation), the direction of approach
+//! (`+` or `-`) and the point's standard uncertainty (µm, k = 1). Rows of one direction are
+//! in increasing position; the two directions may come in either order, one after the other
+//! or interleaved. A certificate with one direction only applies to both.
+//!
+//! Every refused row names the file and the line.
+
+use super::Direction;
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// The header a certificate starts with.
+pub const HEADER: &str = "position_mm,error_um,direction,uncertainty_um";
+
+/// Why a certificate was refused.
+#[derive(Debug, Error, PartialEq)]
+pub enum CertificateError {
+    #[error("{file} line {line}: {problem}")]
+    Row {
+        file: String,
+        line: usize,
+        problem: String,
+    },
+    #[error("{file}: {problem}")]
+    File { file: String, problem: String },
+}
+
+/// One calibrated point (internal units: mm).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CertificatePoint {
+    pub position_mm: f64,
+    pub error_mm: f64,
+    pub direction: Direction,
+    pub uncertainty_mm: f64,
+}
+
+/// A parsed certificate: its points per direction, in increasing position.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Certificate {
+    /// Where it came from (the file name).
+    pub name: String,
+    pub up: Vec<CertificatePoint>,
+    pub down: Vec<CertificatePoint>,
+}
+
+impl Certificate {
+    /// Parse certificate text; `file` names it in errors.
+    pub fn parse(text: &str, file: &str) -> Result<Certificate, CertificateError> {
+        let row = |line: usize, problem: String| CertificateError::Row {
+            file: file.to_string(),
+            line,
+            problem,
+        };
+        let mut header_seen = false;
+        let (mut up, mut down): (Vec<CertificatePoint>, Vec<CertificatePoint>) = (vec![], vec![]);
+        let mut last_line = [0usize; 2];
+        for (i, raw) in text.lines().enumerate() {
+            let line = i + 1;
+            let l = raw.trim();
+            if l.is_empty() || l.starts_with('#') {
+                continue;
+            }
+            let fields: Vec<&str> = l.split(',').map(str::trim).collect();
+            if !header_seen {
+                if fields.join(",") != HEADER {
+                    return Err(row(
+                        line,
+                        format!("the first line must be the header {HEADER}, found \"{l}\""),
+                    ));
+                }
+                header_seen = true;
+                continue;
+            }
+            if fields.len() != 4 {
+                return Err(row(
+                    line,
+                    format!("{} fields, a row has 4 ({HEADER})", fields.len()),
+                ));
+            }
+            let number = |k: usize, name: &str| -> Result<f64, CertificateError> {
+                let f = fields[k];
+                match f.parse::<f64>() {
+                    Ok(v) if v.is_finite() => Ok(v),
+                    _ if f.is_empty() => Err(row(line, format!("{name} is missing"))),
+                    _ => Err(row(line, format!("{name} \"{f}\" is not a finite number"))),
+                }
+            };
+            let position_mm = number(0, "position_mm")?;
+            let error_um = number(1, "error_um")?;
+            let direction = match fields[2] {
+                "+" => Direction::Up,
+                "-" => Direction::Down,
+                "" => {
+                    return Err(row(
+                        line,
+                        "the direction is missing: write + or -".to_string(),
+                    ));
+                }
+                other => {
+                    return Err(row(
+                        line,
+                        format!("direction \"{other}\" is neither + nor -"),
+                    ));
+                }
+            };
+            let u = number(3, "uncertainty_um")?;
+            if u <= 0.0 {
+                return Err(row(
+                    line,
+                    format!(
+                        "uncertainty_um {u} must be positive (the point's standard uncertainty)"
+                    ),
+                ));
+            }
+            let (list, k) = match direction {
+                Direction::Up => (&mut up, 0),
+                Direction::Down => (&mut down, 1),
+            };
+            if let Some(prev) = list.last()
+                && position_mm <= prev.position_mm
+            {
+                return Err(row(
+                    line,
+                    format!(
+                        "position {position_mm} mm is not above the previous {} row's {} mm (line {}): rows of one direction go in increasing position",
+                        direction.sign(),
+                        prev.position_mm,
+                        last_line[k]
+                    ),
+                ));
+            }
+            last_line[k] = line;
+            list.push(CertificatePoint {
+                position_mm,
+                error_mm: error_um * 1e-3,
+                direction,
+                uncertainty_mm: u * 1e-3,
+            });
+        }
+        let file_err = |problem: String| CertificateError::File {
+            file: file.to_string(),
+            problem,
+        };
+        if !header_seen {
+            return Err(file_err(format!(
+                "empty: a certificate starts with the header {HEADER}"
+            )));
+        }
+        if up.len().max(down.len()) < 2
+            || (!up.is_empty() && up.len() < 2)
+            || (!down.is_empty() && down.len() < 2)
+        {
+            return Err(file_err(
+                "a certificate needs at least two points in each direction it gives".to_string(),
+            ));
+        }
+        Ok(Certificate {
+            name: file.to_string(),
+            up,
+            down,
+        })
+    }
+
+    /// The points approached in `dir` (the other direction's when the certificate has one
+    /// direction only).
+    pub fn points(&self, dir: Direction) -> &[CertificatePoint] {
+        match dir {
+            Direction::Up if !self.up.is_empty() => &self.up,
+            Direction::Down if !self.down.is_empty() => &self.down,
+            _ if self.up.is_empty() => &self.down,
+            _ => &self.up,
+        }
+    }
+
+    /// Whether both directions were calibrated.
+    pub fn bidirectional(&self) -> bool {
+        !self.up.is_empty() && !self.down.is_empty()
+    }
+
+    /// The error (mm) and its standard uncertainty at `position_mm` approached in `dir`,
+    /// linear between points, held beyond the ends.
+    pub fn at(&self, position_mm: f64, dir: Direction) -> (f64, f64) {
+        let p = self.points(dir);
+        let xs: Vec<f64> = p.iter().map(|c| c.position_mm).collect();
+        let e: Vec<f64> = p.iter().map(|c| c.error_mm).collect();
+        let u: Vec<f64> = p.iter().map(|c| c.uncertainty_mm).collect();
+        (
+            crate::util::interpolate(&xs, &e, position_mm),
+            crate::util::interpolate(&xs, &u, position_mm),
+        )
+    }
+
+    /// The range of positions it covers (mm).
+    pub fn span(&self) -> (f64, f64) {
+        let all = self.up.iter().chain(&self.down).map(|c| c.position_mm);
+        all.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), x| {
+            (lo.min(x), hi.max(x))
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn err(text: &str) -> String {
+        Certificate::parse(text, "cert.csv")
+            .unwrap_err()
+            .to_string()
+    }
+
+    #[test]
+    fn a_good_certificate_reads_in_mm() {
+        let c = Certificate::parse(
+            "# vendor X\nposition_mm,error_um,direction,uncertainty_um\n0,0.5,+,0.2\n10,1.5,+,0.2\n0,1,-,0.3\n10,2,-,0.3\n",
+            "cert.csv",
+        )
+        .unwrap();
+        assert!(c.bidirectional());
+        let (e, u) = c.at(5.0, Direction::Up);
+        assert!((e - 1.0e-3).abs() < 1e-15 && (u - 0.2e-3).abs() < 1e-15);
+        assert_eq!(c.at(20.0, Direction::Down).0, 2e-3);
+    }
+
+    #[test]
+    fn bad_rows_are_refused_with_their_line() {
+        let h = "position_mm,error_um,direction,uncertainty_um\n";
+        assert_eq!(
+            err(&format!("{h}0,0,+,0.2\n10,0,+,0.2\n5,0,+,0.2\n")),
+            "cert.csv line 4: position 5 mm is not above the previous + row's 10 mm (line 3): rows of one direction go in increasing position"
+        );
+        assert_eq!(
+            err(&format!("{h}0,0,+,0.2\n10,0,,0.2\n")),
+            "cert.csv line 3: the direction is missing: write + or -"
+        );
+        assert_eq!(
+            err(&format!("{h}0,NaN,+,0.2\n")),
+            "cert.csv line 2: error_um \"NaN\" is not a finite number"
+        );
+        assert_eq!(
+            err(&format!("{h}0,1,+\n")),
+            "cert.csv line 2: 3 fields, a row has 4 (position_mm,error_um,direction,uncertainty_um)"
+        );
+        assert_eq!(
+            err("x,y\n"),
+            "cert.csv line 1: the first line must be the header position_mm,error_um,direction,uncertainty_um, found \"x,y\""
+        );
+        assert!(err(&format!("{h}0,1,+,0.2\n")).contains("at least two points"));
+    }
+}

@@ -1,0 +1,141 @@
+//! The map from synthetic steps of the twin's follower model (the lab test in
+//! `tests/it/follower.rs` runs the whole chain).
+
+use super::*;
+use crate::sim::Rng;
+use crate::sim::follower::{FollowerModel, FollowerSpec, Motion};
+
+fn motion(d: Direction) -> Motion {
+    match d {
+        Direction::Up => Motion::Up,
+        Direction::Down => Motion::Down,
+    }
+}
+
+/// Steps of `passes` stop-and-go passes (up, down, …) over 0..travel every `step` mm, with a
+/// back-and-forth probe every 50 mm; PSD2 with a gain error of `gain` and `sd` (mm) of noise
+/// per step.
+fn steps(
+    m: &FollowerModel,
+    travel: f64,
+    step: f64,
+    passes: usize,
+    gain: f64,
+    sd: f64,
+) -> Vec<Step> {
+    let mut rng = Rng::new(77);
+    let mut path = vec![0.0];
+    for p in 0..passes {
+        let n = (travel / step) as usize;
+        for k in 1..=n {
+            let x = if p % 2 == 0 {
+                k as f64 * step
+            } else {
+                (n - k) as f64 * step
+            };
+            path.push(x);
+            if k % 13 == 0 {
+                let back = if p % 2 == 0 { x - step } else { x + step };
+                path.push(back);
+                path.push(x);
+            }
+        }
+    }
+    let mut out = Vec::new();
+    let mut dir = Direction::Up;
+    for w in path.windows(2) {
+        let (a, b) = (w[0], w[1]);
+        let nd = if b >= a {
+            Direction::Up
+        } else {
+            Direction::Down
+        };
+        let true_a = a + m.along(a, motion(dir));
+        let true_b = b + m.along(b, motion(nd));
+        out.push(Step {
+            from_mm: a,
+            to_mm: b,
+            along_mm: (true_b - true_a) * (1.0 + gain) + rng.gauss(sd),
+            // PSD2 tilted in its plane by 3 mrad: a jump in proportion to the step.
+            vertical_mm: (m.vertical(b) - m.vertical(a) + 3e-3 * (b - a)) * (1.0 + gain)
+                + rng.gauss(sd),
+            variance: [sd * sd; 2],
+        });
+        dir = nd;
+    }
+    out
+}
+
+#[test]
+fn the_map_recovers_the_followers_errors_from_its_steps_and_certificate() {
+    let spec = FollowerSpec::default();
+    let m = FollowerModel::new(spec, 300.0, &mut Rng::new(3));
+    let sd = 0.045e-3;
+    let st = steps(&m, 300.0, 3.75, 4, 6e-5, sd);
+    let cert = Certificate::parse(&m.certificate(&mut Rng::new(4)), "twin.csv").unwrap();
+    let map = build(&st, Some(&cert), &MapSettings::default()).unwrap();
+    assert_eq!(map.sources.long, Source::Certificate);
+    assert_eq!(map.sources.vertical, Source::SelfCalibration);
+    let sc = map.self_calibration.unwrap();
+    assert!(sc.chi2_along < 2.0 && sc.chi2_vertical < 2.0, "{sc:?}");
+    let p = map.periodic.unwrap();
+    assert!(
+        (p.amplitude() - 1e-3).abs() < 0.05e-3,
+        "periodic {}",
+        p.amplitude()
+    );
+    let r = map.reversal.unwrap();
+    assert!(
+        (r.value_mm - 1e-3).abs() < 4.0 * r.u_mm.max(0.01e-3),
+        "{r:?}"
+    );
+    // Vertical within 3 u of the truth's straightness to its end-point line everywhere.
+    let vp = &map.vertical_positions_mm;
+    let (x0, x1) = (vp[0], vp[vp.len() - 1]);
+    let line = |x: f64| m.vertical(x0) + (m.vertical(x1) - m.vertical(x0)) * (x - x0) / (x1 - x0);
+    for (i, &x) in vp.iter().enumerate() {
+        let err = map.vertical_mm[i] - (m.vertical(x) - line(x));
+        assert!(
+            err.abs() <= 3.0 * map.vertical_u_mm[i] + 1e-9,
+            "at {x}: {err} vs u {}",
+            map.vertical_u_mm[i]
+        );
+    }
+    // Along: differences between positions within the certificate's uncertainty.
+    for k in 0..300 {
+        let x = k as f64;
+        for dir in [Direction::Up, Direction::Down] {
+            let got = map.correction(x, dir)[0] - map.correction(0.0, Direction::Up)[0];
+            let want = m.along(x, motion(dir)) - m.along(0.0, Motion::Up);
+            let u = map
+                .point(x, dir)
+                .along_u_um
+                .hypot(map.point(0.0, Direction::Up).along_u_um)
+                * 1e-3;
+            assert!(
+                (got - want).abs() < 3.0 * u,
+                "at {x} {dir:?}: {got} vs {want} (u {u})"
+            );
+        }
+    }
+    // TOML round trip.
+    let back = FollowerMap::from_toml(&map.to_toml(), "map.toml").unwrap();
+    assert_eq!(back, map);
+    assert!(map.to_csv(1.0).lines().count() > 300);
+}
+
+#[test]
+fn a_certificate_alone_maps_the_along_axis_only() {
+    let m = FollowerModel::new(FollowerSpec::default(), 200.0, &mut Rng::new(5));
+    let cert = Certificate::parse(&m.certificate(&mut Rng::new(6)), "twin.csv").unwrap();
+    let map = build(&[], Some(&cert), &MapSettings::default()).unwrap();
+    assert_eq!(map.sources.vertical, Source::None);
+    assert_eq!(map.sources.periodic, Source::None);
+    assert_eq!(map.correction(50.0, Direction::Up)[1], 0.0);
+    let got = map.correction(50.0, Direction::Down)[0];
+    assert!((got - m.along(50.0, Motion::Down)).abs() < 1e-3);
+    assert!(matches!(
+        build(&[], None, &MapSettings::default()),
+        Err(MapError::Empty)
+    ));
+}

@@ -1,0 +1,218 @@
+//! The twin's follower stage: its own errors, repeatable functions of its encoder position and
+//! of the direction it last moved in (DESIGN §4, §9).
+//!
+//! Along its axis: a long-wavelength shape (two sines over the travel, within
+//! ±`positioning_um`), the ball screw's periodic term (`periodic_um` at the screw's lead
+//! `lead_mm`) and a reversal error (`reversal_um`: the stage stands `reversal_um / 2` behind
+//! its encoder in the direction it last moved). Vertically: a straightness within
+//! ±`straightness_um` (it reads as roll, 1.38″ per µm), the same in both directions. Every
+//! term is zero at encoder 0 moving up, so the follower's home is its reference.
+//!
+//! The stage can write its own calibration certificate as a vendor would
+//! ([`FollowerModel::certificate`]): its true along-axis error at 10 mm spacing in both
+//! directions, with 0.2 µm measurement noise, in the format `follower::Certificate` reads.
+
+use super::Rng;
+use crate::units::MM_PER_UM;
+use std::f64::consts::PI;
+
+/// The follower stage's own errors (µm and mm, as configured under `[twin.follower]`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FollowerSpec {
+    /// Peak long-wavelength positioning error along its axis (µm).
+    pub positioning_um: f64,
+    /// Peak vertical straightness (µm); it reads as roll (1.38″ per µm) unless mapped.
+    pub straightness_um: f64,
+    /// Amplitude of the screw-periodic positioning term (µm) and the screw's lead (mm).
+    pub periodic_um: f64,
+    pub lead_mm: f64,
+    /// Reversal error (µm): the difference between the two directions.
+    pub reversal_um: f64,
+}
+
+impl Default for FollowerSpec {
+    fn default() -> Self {
+        FollowerSpec {
+            positioning_um: 4.0,
+            straightness_um: 2.0,
+            periodic_um: 1.0,
+            lead_mm: 5.0,
+            reversal_um: 1.0,
+        }
+    }
+}
+
+/// The direction the follower last moved in.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Motion {
+    #[default]
+    Up,
+    Down,
+}
+
+/// A sine term `amp · sin(2π x / wavelength + phase)` (amp in mm).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Sine {
+    amp: f64,
+    wavelength: f64,
+    phase: f64,
+}
+
+impl Sine {
+    fn at(&self, x: f64) -> f64 {
+        self.amp * (2.0 * PI * x / self.wavelength + self.phase).sin()
+    }
+}
+
+/// The follower's errors, drawn once from its spec and a seed.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FollowerModel {
+    pub spec: FollowerSpec,
+    /// The stage's travel the shapes are drawn over (mm).
+    pub travel_mm: f64,
+    along: [Sine; 2],
+    periodic: Sine,
+    vertical: [Sine; 2],
+}
+
+/// The shortest wavelength of the long-wavelength shapes (mm): a stage's guides and screw
+/// bend over a few hundred mm, whatever the travel.
+const LONG_MIN_MM: f64 = 100.0;
+
+/// The noise (µm, one standard deviation) of the twin's certificate, and its spacing (mm).
+pub const CERTIFICATE_NOISE_UM: f64 = 0.2;
+pub const CERTIFICATE_STEP_MM: f64 = 10.0;
+
+impl FollowerModel {
+    /// Draw the follower's error shapes over `travel_mm` from `rng`.
+    pub fn new(spec: FollowerSpec, travel_mm: f64, rng: &mut Rng) -> FollowerModel {
+        let len = travel_mm.max(1.0);
+        let long = |peak_um: f64, r: &mut Rng| {
+            // Two long waves: one of 0.5 to 2 cycles over the travel, a smaller one of 2 to 4,
+            // neither shorter than the stage's build allows (LONG_MIN_MM).
+            [
+                Sine {
+                    amp: 0.35 * peak_um * MM_PER_UM,
+                    wavelength: (len / r.uniform(0.5, 2.0)).max(2.0 * LONG_MIN_MM),
+                    phase: r.uniform(0.0, 2.0 * PI),
+                },
+                Sine {
+                    amp: 0.15 * peak_um * MM_PER_UM,
+                    wavelength: (len / r.uniform(2.0, 4.0)).max(LONG_MIN_MM),
+                    phase: r.uniform(0.0, 2.0 * PI),
+                },
+            ]
+        };
+        let along = long(spec.positioning_um, rng);
+        let vertical = long(spec.straightness_um, rng);
+        let periodic = Sine {
+            amp: spec.periodic_um * MM_PER_UM,
+            wavelength: spec.lead_mm.max(0.1),
+            phase: rng.uniform(0.0, 2.0 * PI),
+        };
+        FollowerModel {
+            spec,
+            travel_mm: len,
+            along,
+            periodic,
+            vertical,
+        }
+    }
+
+    fn along_raw(&self, d: f64, dir: Motion) -> f64 {
+        let half = self.spec.reversal_um * MM_PER_UM / 2.0;
+        let rev = match dir {
+            Motion::Up => -half,
+            Motion::Down => half,
+        };
+        self.along.iter().map(|s| s.at(d)).sum::<f64>() + self.periodic.at(d) + rev
+    }
+
+    /// Where PSD2 really is along the follower's axis relative to its encoder (mm), at encoder
+    /// position `d` after a motion in `dir`.
+    pub fn along(&self, d: f64, dir: Motion) -> f64 {
+        self.along_raw(d, dir) - self.along_raw(0.0, Motion::Up)
+    }
+
+    /// Just the screw-periodic term (mm), relative to encoder 0.
+    pub fn periodic(&self, d: f64) -> f64 {
+        self.periodic.at(d) - self.periodic.at(0.0)
+    }
+
+    /// How far PSD2 is above where it would be on a straight stage (mm), at encoder `d`.
+    pub fn vertical(&self, d: f64) -> f64 {
+        let v = |x: f64| self.vertical.iter().map(|s| s.at(x)).sum::<f64>();
+        v(d) - v(0.0)
+    }
+
+    /// The follower's certificate as a vendor would write it (the format of
+    /// `follower::Certificate`): its along-axis error (µm) every 10 mm from −10 mm to 10 mm
+    /// past `travel_mm` (the stage's whole stroke, rounded up to the spacing), moving up,
+    /// then moving down, each with 0.2 µm of noise drawn from `rng` and stated as its standard
+    /// uncertainty.
+    pub fn certificate(&self, rng: &mut Rng) -> String {
+        let n = ((self.travel_mm + 20.0) / CERTIFICATE_STEP_MM).ceil() as usize;
+        let mut out = String::from(
+            "# axiscomp twin follower: calibration certificate of the stage's encoder\n\
+             # error = actual - indicated position, laser interferometer, 20.0 C\n\
+             position_mm,error_um,direction,uncertainty_um\n",
+        );
+        for (dir, sign) in [(Motion::Up, "+"), (Motion::Down, "-")] {
+            for k in 0..=n {
+                let d = k as f64 * CERTIFICATE_STEP_MM - 10.0;
+                let e = self.along(d, dir) * 1e3 + rng.gauss(CERTIFICATE_NOISE_UM);
+                out.push_str(&format!("{d:.3},{e:.3},{sign},{CERTIFICATE_NOISE_UM:.2}\n"));
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn errors_are_repeatable_and_within_their_spec() {
+        let spec = FollowerSpec::default();
+        let a = FollowerModel::new(spec, 1000.0, &mut Rng::new(5));
+        let b = FollowerModel::new(spec, 1000.0, &mut Rng::new(5));
+        assert_eq!(a, b);
+        assert_eq!(a.along(0.0, Motion::Up), 0.0);
+        assert_eq!(a.vertical(0.0), 0.0);
+        let mut vmax: f64 = 0.0;
+        for k in 0..=1000 {
+            let d = k as f64;
+            let rev = a.along(d, Motion::Down) - a.along(d, Motion::Up);
+            assert!((rev - 1e-3).abs() < 1e-12, "reversal {rev}");
+            vmax = vmax.max(a.vertical(d).abs());
+            assert!(a.along(d, Motion::Up).abs() <= 2.0 * (4.0 + 1.0) * 1e-3);
+        }
+        assert!(
+            vmax > 0.5e-3 && vmax <= 2.0 * 2.0e-3,
+            "vertical peak {vmax}"
+        );
+        // The periodic term repeats with the screw's lead.
+        assert!((a.periodic(12.0) - a.periodic(17.0)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn the_certificate_is_the_true_map_within_its_noise() {
+        let m = FollowerModel::new(FollowerSpec::default(), 200.0, &mut Rng::new(9));
+        let text = m.certificate(&mut Rng::new(10));
+        let rows: Vec<&str> = text.lines().filter(|l| !l.starts_with('#')).collect();
+        assert_eq!(rows[0], "position_mm,error_um,direction,uncertainty_um");
+        assert_eq!(rows.len(), 1 + 2 * 23);
+        for r in &rows[1..] {
+            let f: Vec<&str> = r.split(',').collect();
+            let d: f64 = f[0].parse().unwrap();
+            let e: f64 = f[1].parse().unwrap();
+            let dir = if f[2] == "+" {
+                Motion::Up
+            } else {
+                Motion::Down
+            };
+            assert!((e - m.along(d, dir) * 1e3).abs() < 5.0 * CERTIFICATE_NOISE_UM);
+        }
+    }
+}

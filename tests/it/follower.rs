@@ -1,0 +1,438 @@
+//! The follower error map (issue 14): the twin's follower mapped by the stop-and-go
+//! self-calibration on the virtual-time lab and by its certificate, compared with the twin's
+//! true follower errors; the map applied in tracking, compared with the truth; certificates
+//! with bad rows refused with the line named.
+
+use axiscomp::follower::{self, Certificate, Direction, FollowerMap, MapSettings, Source};
+use axiscomp::run::Dialect;
+use axiscomp::run::program::CaptureMode;
+use axiscomp::sim::Rng;
+use axiscomp::sim::follower::Motion;
+use axiscomp::sim::follower_cal::{CalSpec, self_calibrate};
+use axiscomp::sim::lab::{Lab, LabSpec, plan_span};
+use axiscomp::sim::plant::PlantSpec;
+use std::sync::Arc;
+use std::time::Duration;
+
+fn motion(d: Direction) -> Motion {
+    match d {
+        Direction::Up => Motion::Up,
+        Direction::Down => Motion::Down,
+    }
+}
+
+/// A lab on an axis of `length_mm` (the follower's travel is the axis'), brought up.
+fn lab(seed: u64, length_mm: f64) -> Lab {
+    let mut plant = PlantSpec {
+        seed,
+        ..PlantSpec::default()
+    };
+    plant.axis.length_mm = length_mm;
+    plant.install.offset_mm = 0.0;
+    plant.install.tilt_deg = 0.0;
+    let spec = LabSpec::standard(plant, None).expect("spec");
+    let mut lab = Lab::new(&spec).expect("lab");
+    lab.bring_up().expect("bring-up");
+    lab
+}
+
+/// How the map compares with the twin's truth.
+struct Compared {
+    /// Per vertical point: position (mm), map − truth (µm, both to their end-point lines),
+    /// stated u (µm).
+    vertical: Vec<(f64, f64, f64)>,
+    /// Largest |map − truth| / u along the axis (differences from the first point, both
+    /// directions, every mm), and the largest |map − truth| (µm).
+    along_ratio: f64,
+    along_worst_um: f64,
+    /// The share of those within 2 u.
+    along_within_2u: f64,
+}
+
+fn compare(lab: &Lab, map: &FollowerMap) -> Compared {
+    let m = &lab.plant.follower;
+    let vp = &map.vertical_positions_mm;
+    let (x0, x1) = (vp[0], vp[vp.len() - 1]);
+    let line = |x: f64| m.vertical(x0) + (m.vertical(x1) - m.vertical(x0)) * (x - x0) / (x1 - x0);
+    let vertical = vp
+        .iter()
+        .enumerate()
+        .map(|(i, &x)| {
+            let truth = m.vertical(x) - line(x);
+            (
+                x,
+                (map.vertical_mm[i] - truth) * 1e3,
+                map.vertical_u_mm[i] * 1e3,
+            )
+        })
+        .collect();
+    let (mut along_ratio, mut along_worst_um) = (0.0f64, 0.0f64);
+    let (mut within, mut total) = (0usize, 0usize);
+    let p0 = map.point(x0, Direction::Up);
+    let t0 = m.along(x0, Motion::Up);
+    let mut x = x0;
+    while x <= x1 {
+        for dir in [Direction::Up, Direction::Down] {
+            let p = map.point(x, dir);
+            let got = p.along_um - p0.along_um;
+            let want = (m.along(x, motion(dir)) - t0) * 1e3;
+            let u = p.along_u_um.hypot(p0.along_u_um);
+            along_ratio = along_ratio.max((got - want).abs() / u);
+            total += 1;
+            within += usize::from((got - want).abs() <= 2.0 * u);
+            along_worst_um = along_worst_um.max((got - want).abs());
+        }
+        x += 1.0;
+    }
+    Compared {
+        vertical,
+        along_ratio,
+        along_worst_um,
+        along_within_2u: within as f64 / total.max(1) as f64,
+    }
+}
+
+/// Map the twin's follower over `length_mm`: the stop-and-go pass, its certificate.
+fn map_follower(lab: &mut Lab, span: (f64, f64), cal: CalSpec) -> FollowerMap {
+    let cal = CalSpec {
+        from_mm: span.0,
+        to_mm: span.1,
+        ..cal
+    };
+    let run = self_calibrate(lab, &cal, |_, _| {}).expect("self-calibration");
+    let cert_text = lab.plant.follower.certificate(&mut Rng::new(99));
+    let cert = Certificate::parse(&cert_text, "twin-certificate.csv").expect("certificate");
+    let mut map = follower::build(&run.steps, Some(&cert), &MapSettings::default()).expect("map");
+    if let Some(s) = map.self_calibration.as_mut() {
+        s.machine_time_s = Some(run.machine_time.as_secs_f64());
+    }
+    eprintln!(
+        "self-calibration: {} steps ({} skipped), {:.1} min of machine time",
+        run.steps.len(),
+        run.skipped,
+        run.machine_time.as_secs_f64() / 60.0
+    );
+    for l in map.summary() {
+        eprintln!("  {l}");
+    }
+    map
+}
+
+fn check_map(lab: &Lab, map: &FollowerMap) {
+    assert_eq!(map.sources.long, Source::Certificate);
+    assert_eq!(map.sources.periodic, Source::SelfCalibration);
+    assert_eq!(map.sources.reversal, Source::SelfCalibration);
+    assert_eq!(map.sources.vertical, Source::SelfCalibration);
+    let c = compare(lab, map);
+    let (mut worst, mut worst_ratio, mut max_u) = (0.0f64, 0.0f64, 0.0f64);
+    for &(x, err, u) in &c.vertical {
+        eprintln!("  vertical at {x:8.2} mm: map − truth {err:+.3} µm, u {u:.3} µm");
+        worst = worst.max(err.abs());
+        max_u = max_u.max(u);
+        if u > 0.0 {
+            worst_ratio = worst_ratio.max(err.abs() / u);
+        }
+        // Within its expanded uncertainty (k = 2) at every point; the ends are the line's.
+        assert!(
+            err.abs() <= 2.0 * u + 1e-6,
+            "vertical at {x:.2} mm: map − truth {err:.3} µm, u {u:.3} µm"
+        );
+    }
+    eprintln!(
+        "vertical: max |map − truth| {worst:.3} µm, largest u {max_u:.3} µm, worst |map − truth|/u {worst_ratio:.2}; along: max |map − truth| {:.3} µm, worst /u {:.2}",
+        c.along_worst_um, c.along_ratio
+    );
+    assert!(
+        c.along_ratio <= 2.0,
+        "along-axis map off by {:.2} u",
+        c.along_ratio
+    );
+    let truth_rev = lab.plant.follower.spec.reversal_um;
+    let r = map.reversal.expect("reversal");
+    assert!(
+        (r.value_mm * 1e3 - truth_rev).abs() <= 2.0 * r.u_mm * 1e3 + 0.02,
+        "reversal {:.3} µm, truth {truth_rev} µm",
+        r.value_mm * 1e3
+    );
+}
+
+/// Max and RMS |measured − truth| of positioning (µm) and roll (″) over a run's captures.
+fn run_errors(
+    lab: &mut Lab,
+    map: Option<Arc<FollowerMap>>,
+    length_mm: f64,
+    targets: usize,
+    runs: u32,
+) -> [(f64, f64); 2] {
+    lab.pipeline.tracker.set_map(map);
+    lab.move_carriage(0.0).expect("to 0");
+    let at_zero = lab.plant.truth(lab.now()).errors.to_array();
+    lab.zero(0.0, Duration::from_millis(500)).expect("zero");
+    let plan = crate::lab::plan(length_mm, targets, runs, 6000.0);
+    let run = lab
+        .measure(&plan, Dialect::LinuxCnc, CaptureMode::Stability, |_| {})
+        .expect("run");
+    let mut out = [(0.0f64, 0.0f64); 2];
+    for (slot, (k, scale)) in [
+        (1usize, 1e3),
+        (4usize, 180.0 * 3600.0 / std::f64::consts::PI),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let errs: Vec<f64> = run
+            .captures
+            .iter()
+            .map(|c| {
+                let (m, t) = (c.capture.errors.to_array(), c.truth.errors.to_array());
+                (m[k] - (t[k] - at_zero[k])) * scale
+            })
+            .collect();
+        let max = errs.iter().fold(0.0f64, |a, e| a.max(e.abs()));
+        let rms = (errs.iter().map(|e| e * e).sum::<f64>() / errs.len() as f64).sqrt();
+        out[slot] = (max, rms);
+    }
+    out
+}
+
+fn case(seed: u64, length_mm: f64, cal: CalSpec, targets: usize, runs: u32) {
+    crate::helpers::init_test_log();
+    let _machine = crate::helpers::heavy();
+    let mut lab = lab(seed, length_mm);
+    let plan = crate::lab::plan(length_mm, targets, runs, 6000.0);
+    let span = plan_span(&plan);
+    let map = map_follower(&mut lab, span, cal);
+    check_map(&lab, &map);
+    let without = run_errors(&mut lab, None, length_mm, targets, runs);
+    let with = run_errors(&mut lab, Some(Arc::new(map)), length_mm, targets, runs);
+    eprintln!(
+        "{length_mm} mm run, |measured − truth| max / RMS: positioning {:.3} / {:.3} µm without the map, {:.3} / {:.3} µm with; roll {:.3} / {:.3}″ without, {:.3} / {:.3}″ with",
+        without[0].0,
+        without[0].1,
+        with[0].0,
+        with[0].1,
+        without[1].0,
+        without[1].1,
+        with[1].0,
+        with[1].1
+    );
+    assert!(with[0].1 < without[0].1, "positioning RMS not improved");
+    assert!(with[1].1 < without[1].1, "roll RMS not improved");
+}
+
+/// At test size: a 120 mm axis, two passes of 300 frames a side; the map against the twin's
+/// truth, then a run with the map closer to the truth than without.
+#[test]
+fn the_followers_map_matches_its_truth_and_improves_tracking() {
+    case(
+        21,
+        120.0,
+        CalSpec {
+            passes: 2,
+            average_frames: 300,
+            probe_every: 7,
+            ..CalSpec::default()
+        },
+        5,
+        2,
+    );
+}
+
+/// The same on a 1000 mm axis: four passes of 1000 frames a side, 11 targets, 2 runs (run
+/// optimised by `.ci/run`).
+#[test]
+#[ignore = "a whole 1000 mm self-calibration: run optimised by .ci/run"]
+fn the_followers_map_over_1000_mm() {
+    case(2026, 1000.0, CalSpec::default(), 11, 2);
+}
+
+/// A certificate with a bad row is refused, naming the file and the line.
+#[test]
+fn certificates_with_bad_rows_are_refused_with_the_line() {
+    let h = "# vendor\nposition_mm,error_um,direction,uncertainty_um\n";
+    for (body, line, what) in [
+        (
+            "0,0.1,+,0.2\n10,0.2,+,0.2\n10,0.3,+,0.2\n",
+            5,
+            "not above the previous + row's 10 mm",
+        ),
+        ("0,0.1,+,0.2\n10,0.2,,0.2\n", 4, "the direction is missing"),
+        (
+            "0,0.1,+,0.2\n10,NaN,+,0.2\n",
+            4,
+            "error_um \"NaN\" is not a finite number",
+        ),
+        ("0,0.1,+,0.2\n10,0.2,+\n", 4, "3 fields, a row has 4"),
+        ("0,0.1,+,0.2\n10,0.2,+,0.2,7\n", 4, "5 fields, a row has 4"),
+        (
+            "0,0.1,+,0.2\n10,0.2,x,0.2\n",
+            4,
+            "direction \"x\" is neither + nor -",
+        ),
+    ] {
+        let e = Certificate::parse(&format!("{h}{body}"), "cert.csv")
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with(&format!("cert.csv line {line}: ")), "{e}");
+        assert!(e.contains(what), "{e}");
+    }
+    // The twin's own certificate reads back.
+    let lab_model =
+        axiscomp::sim::follower::FollowerModel::new(Default::default(), 300.0, &mut Rng::new(1));
+    let c = Certificate::parse(&lab_model.certificate(&mut Rng::new(2)), "twin.csv").unwrap();
+    assert_eq!((c.up.len(), c.down.len()), (33, 33));
+}
+
+const GOOD_CERT: &str = "# vendor\nposition_mm,error_um,direction,uncertainty_um\n0,0.0,+,0.2\n10,1.0,+,0.2\n20,1.5,+,0.2\n0,0.5,-,0.2\n10,1.5,-,0.2\n20,2.0,-,0.2\n";
+
+/// `axiscomp follower import|show`: a bad certificate exits 2 naming the file and line and
+/// stores nothing; a good one is stored, in use, and exported as TOML that reads back as the
+/// map built from it, and as CSV.
+#[test]
+fn the_command_line_imports_shows_and_exports() {
+    use crate::helpers::{TempDir, run, stderr, stdout};
+    let dir = TempDir::new("follower-cli");
+    let db = dir.path("store.db");
+    let db_s = db.display().to_string();
+    let bad = dir.write(
+        "bad.csv",
+        "position_mm,error_um,direction,uncertainty_um\n0,0,+,0.2\n10,1,,0.2\n",
+    );
+    let o = run(
+        &[
+            "follower",
+            "import",
+            &bad.display().to_string(),
+            "--db",
+            &db_s,
+        ],
+        "",
+    );
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(
+        err.contains(&format!(
+            "{} line 3: the direction is missing",
+            bad.display()
+        )),
+        "{err}"
+    );
+    let good = dir.write("vendor.csv", GOOD_CERT);
+    let o = run(
+        &[
+            "follower",
+            "import",
+            &good.display().to_string(),
+            "--db",
+            &db_s,
+        ],
+        "",
+    );
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("from the certificate"),
+        "{}",
+        stdout(&o)
+    );
+    let (toml, csv) = (dir.path("map.toml"), dir.path("map.csv"));
+    let o = run(
+        &[
+            "follower",
+            "show",
+            "--db",
+            &db_s,
+            "--toml",
+            &toml.display().to_string(),
+            "--csv",
+            &csv.display().to_string(),
+            "--step-mm",
+            "5",
+        ],
+        "",
+    );
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(
+        out.lines()
+            .any(|l| l.starts_with("*   1 ") && l.contains("certificate")),
+        "{out}"
+    );
+    let cert = Certificate::parse(GOOD_CERT, &good.display().to_string()).unwrap();
+    let want = follower::build(&[], Some(&cert), &MapSettings::default()).unwrap();
+    let got = FollowerMap::from_toml(&std::fs::read_to_string(&toml).unwrap(), "map.toml").unwrap();
+    assert_eq!(got, want);
+    let csv = std::fs::read_to_string(&csv).unwrap();
+    let rows: Vec<&str> = csv.lines().collect();
+    assert_eq!(
+        rows[0],
+        "position_mm,along_up_um,along_down_um,along_u_um,vertical_um,vertical_u_um"
+    );
+    // 10 mm: +1.0 µm up, +1.5 µm down (the certificate's own directions), u 0.2 µm.
+    assert_eq!(rows[3], "10.000,1.000,1.500,0.200,0.000,0.000");
+}
+
+/// The service: a stored map put in use by the control request is applied and named in the
+/// snapshot; viewers may ask which map is in use.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_service_puts_a_stored_map_in_use_and_shows_it() {
+    use crate::helpers::{RigOptions, ServiceRig};
+    use axiscomp::service::control::Request;
+    let rig = ServiceRig::start(RigOptions::default()).await;
+    let cert = Certificate::parse(GOOD_CERT, "vendor.csv").unwrap();
+    let map = follower::build(&[], Some(&cert), &MapSettings::default()).unwrap();
+    let id = {
+        let mut store = axiscomp::store::Store::open(&rig.store).expect("store");
+        store
+            .insert_follower_map(&map, "vendor.csv", false)
+            .expect("insert")
+    };
+    let r = rig
+        .request(Request::FollowerMap { id: None })
+        .await
+        .expect("show");
+    assert!(r["in_use"].is_null(), "{r}");
+    assert_eq!(r["maps"][0]["name"], "vendor.csv");
+    let r = rig
+        .request(Request::FollowerMap { id: Some(id) })
+        .await
+        .expect("use");
+    assert_eq!(r["in_use"]["id"], id);
+    assert_eq!(r["in_use"]["sources"]["long"], "certificate");
+    let s = rig
+        .wait_for(10, "the map in the snapshot", |s| {
+            s.tracking.follower_map.is_some()
+        })
+        .await;
+    let v = s.tracking.follower_map.expect("map view");
+    assert_eq!(
+        (v.id, v.name.as_str(), v.source.as_str()),
+        (id, "vendor.csv", "certificate")
+    );
+    let e = rig
+        .request(Request::FollowerMap { id: Some(id + 7) })
+        .await
+        .unwrap_err();
+    assert!(
+        e.to_string()
+            .contains(&format!("follower map {} is not in the store", id + 7)),
+        "{e}"
+    );
+    rig.stop().await;
+}
+
+/// The map alone on a 1000 mm axis with a lighter pass (two passes, 300 frames a side):
+/// `cargo test --test it follower::the_followers_map_alone -- --ignored --nocapture`.
+#[test]
+#[ignore = "a 1000 mm self-calibration: 20 min of machine time"]
+fn the_followers_map_alone_over_1000_mm_two_light_passes() {
+    crate::helpers::init_test_log();
+    let _machine = crate::helpers::heavy();
+    let mut lab = lab(2026, 1000.0);
+    let cal = CalSpec {
+        passes: 2,
+        average_frames: 300,
+        ..CalSpec::default()
+    };
+    let map = map_follower(&mut lab, (-2.0, 1002.0), cal);
+    check_map(&lab, &map);
+}
