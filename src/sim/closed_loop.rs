@@ -159,7 +159,12 @@ impl BudgetSpec {
     pub fn of_plant(plant: &PlantSpec) -> BudgetSpec {
         BudgetSpec {
             follower: FollowerInput::Specification {
-                positioning_mm: plant.follower.positioning_um * 1e-3,
+                // The bound of the along-axis error: the long-wavelength shape, the
+                // screw-periodic term and half the reversal (each direction's share).
+                positioning_mm: (plant.follower.positioning_um
+                    + plant.follower.periodic_um
+                    + 0.5 * plant.follower.reversal_um)
+                    * 1e-3,
                 straightness_mm: plant.follower.straightness_um * 1e-3,
             },
             calibration: None,
