@@ -380,9 +380,15 @@ fn the_budget_follows_each_component_switched_on_in_the_twin() {
         reversal_um: 0.0,
         ..FollowerSpec::default()
     });
-    let on = run(FollowerSpec::default());
-    // ±4 µm of shape, 1 µm screw-periodic and half of 1 µm reversal; ±2 µm vertical.
-    let (along, vertical) = (5.5e-3 / 3f64.sqrt(), 2e-3 / 3f64.sqrt());
+    // The follower's shape (±4 µm along, ±2 µm vertical) alone: its reversal would also show as
+    // scatter between runs (the follower's last direction at a target varies), which is the
+    // repeatability term's, not this test's.
+    let on = run(FollowerSpec {
+        periodic_um: 0.0,
+        reversal_um: 0.0,
+        ..FollowerSpec::default()
+    });
+    let (along, vertical) = (4e-3 / 3f64.sqrt(), 2e-3 / 3f64.sqrt());
     let f = Component::Follower.index();
     for (a, b) in off.budget.points.iter().zip(&on.budget.points) {
         assert_eq!(
