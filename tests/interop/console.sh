@@ -186,7 +186,7 @@ keys 2
 keys s
 expect 5 "Alignment span"
 for _ in $(seq 1 12); do keys BSpace; done
-keys -l "-1 400"
+keys -l -- "-1 400"
 keys Enter
 expect 5 "span -1–400 mm (s)"
 align_t0=$SECONDS
