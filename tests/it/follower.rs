@@ -241,10 +241,12 @@ fn the_followers_map_matches_its_truth_and_improves_tracking() {
     );
 }
 
-/// The same on a 1000 mm axis: four passes of 1000 frames a side, 11 targets, 2 runs (run
-/// optimised by `.ci/run`).
+/// The same on a 1000 mm axis: four passes of 1000 frames a side, 11 targets, 2 runs. Known to
+/// fail (issue 14, open): at these settings the stated vertical u shrinks below an error that
+/// does not (at 13 mm: map − truth −0.116 µm, u 0.045 µm), so the map's u misses a systematic
+/// term; `.ci/run` runs the two-light-pass version, which holds.
 #[test]
-#[ignore = "a whole 1000 mm self-calibration: run optimised by .ci/run"]
+#[ignore = "fails: the vertical map's stated u is optimistic at four passes of 1000 frames (issue 14); run by hand"]
 fn the_followers_map_over_1000_mm() {
     case(2026, 1000.0, CalSpec::default(), 11, 2);
 }
