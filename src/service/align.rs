@@ -5,7 +5,7 @@
 //! answers the requests; [`crate::align`] does the geometry.
 
 use crate::acquire::Frame;
-use crate::align::{AlignSettings, Observed, SpotSource, Station, advise};
+use crate::align::{AlignSettings, Observed, SpotSource, Station};
 use crate::config::AlignConfig;
 use crate::optics::{Layout, Spot};
 use crate::store::{NewAlignment, Store};
@@ -104,22 +104,18 @@ impl AlignState {
         span: (f64, f64),
         store: &mut Store,
     ) -> Result<serde_json::Value, String> {
-        let mut v = self.advice(layout, span)?;
-        let [yaw, pitch] = match v["misalignment_urad"].as_array() {
-            Some(a) if a.len() == 2 => [a[0].as_f64(), a[1].as_f64()],
-            _ => [None, None],
-        };
-        let passed = v["passed"].as_bool() == Some(true);
+        let (a, mut v) = self.advise(layout, span)?;
+        // Without a residual angle (one station) nothing passed: record 0.
+        let [yaw, pitch] = a.misalignment_urad.unwrap_or([0.0; 2]);
         let id = store
             .insert_alignment(&NewAlignment {
                 axis: axis.to_string(),
                 from_mm: span.0,
                 to_mm: span.1,
-                // Without a residual angle (one station) nothing passed: record 0.
-                passed,
-                yaw_rad: yaw.unwrap_or(0.0) * 1e-6,
-                pitch_rad: pitch.unwrap_or(0.0) * 1e-6,
-                check: v["check"].as_str().unwrap_or_default().to_string(),
+                passed: a.now.passed(),
+                yaw_rad: yaw * 1e-6,
+                pitch_rad: pitch * 1e-6,
+                check: a.now.to_string(),
                 advice: v.clone(),
             })
             .map_err(|e| format!("the advice was not stored: {e}"))?;
@@ -188,13 +184,22 @@ impl AlignState {
 
     /// The advice over `span` (mm) from the stations read, as JSON for the control API.
     pub fn advice(&self, layout: &Layout, span: (f64, f64)) -> Result<serde_json::Value, String> {
+        self.advise(layout, span).map(|(_, v)| v)
+    }
+
+    /// The advice over `span` (mm), and as the control API answers it.
+    fn advise(
+        &self,
+        layout: &Layout,
+        span: (f64, f64),
+    ) -> Result<(crate::align::Advice, serde_json::Value), String> {
         if !(span.0.is_finite() && span.1.is_finite() && span.0 < span.1) {
             return Err(format!(
                 "from_mm {} must be below to_mm {} (mm)",
                 span.0, span.1
             ));
         }
-        let a = advise(layout, &self.config.settings, &self.stations, span)
+        let a = crate::align::advise(layout, &self.config.settings, &self.stations, span)
             .map_err(|e| e.to_string())?;
         let passed = a.now.passed();
         let turns: Vec<serde_json::Value> = a
@@ -202,7 +207,7 @@ impl AlignState {
             .iter()
             .map(|t| serde_json::json!({"screw": t.screw.name(), "turns": t.turns, "text": t.to_string()}))
             .collect();
-        Ok(serde_json::json!({
+        let v = serde_json::json!({
             "passed": passed,
             "check": a.now.to_string(),
             "after": a.after.to_string(),
@@ -210,7 +215,8 @@ impl AlignState {
             "misalignment_urad": a.misalignment_urad,
             "stations": self.stations.len(),
             "text": a.describe(),
-        }))
+        });
+        Ok((a, v))
     }
 }
 

@@ -123,20 +123,8 @@ keys 2
 expect 5 "Beam and centring" "PSD1 beam on" "Follower and zero" "jog step 0.1 mm"
 
 echo "console.sh: Align, the beam aligned over -1–400 mm (the plan's travel and more) by following the screen"
-twin_addr=$(sed -n 's/^twin = "\(.*\)"$/\1/p' "$work/service.toml")
-# twin JSON: one request to the twin's control socket; prints the reply.
-twin() {
-  python3 - "$twin_addr" "$1" <<'EOF'
-import json, socket, sys
-host, port = sys.argv[1].rsplit(":", 1)
-with socket.create_connection((host, int(port)), timeout=60) as s:
-    s.sendall(sys.argv[2].encode() + b"\n")
-    r = s.makefile().readline()
-if not json.loads(r).get("ok"):
-    sys.exit(f"twin: {sys.argv[2]}: {r.strip()}")
-print(r.strip())
-EOF
-}
+# twin JSON: one request to the twin's control socket (twin-configs.sh); prints the reply.
+twin() { twin_cmd "$1"; }
 # psd2_lit: the service sees a spot on PSD2.
 psd2_lit() {
   "$bin" status --socket "$work/control.sock" --json 2>/dev/null | python3 -c '
@@ -145,18 +133,8 @@ p = json.load(sys.stdin).get("psd") or {}
 sys.exit(0 if (p.get("spots_um") or [None, None])[1] is not None else 1)'
 }
 # follower_to MM: the follower brought to the carriage (the control API's follower move).
-follower_to() {
-  python3 - "$work/control.sock" "$1" <<'EOF'
-import json, socket, sys
-s = socket.socket(socket.AF_UNIX)
-s.settimeout(90)
-s.connect(sys.argv[1])
-s.sendall(json.dumps({"cmd": "follower", "action": "move", "mm": float(sys.argv[2])}).encode() + b"\n")
-r = s.makefile().readline()
-if not json.loads(r).get("ok"):
-    sys.exit(f"follower move: {r.strip()}")
-EOF
-}
+sock="$work/control.sock"
+follower_to() { svc_cmd "{\"cmd\":\"follower\",\"action\":\"move\",\"mm\":$1}" >/dev/null; }
 # panel: the alignment panel's text, its rows joined (a long line may wrap).
 panel() {
   screen | python3 -c '

@@ -56,7 +56,7 @@ svc_cmd() {
   python3 - "$sock" "$1" <<'EOF'
 import json, socket, sys
 s = socket.socket(socket.AF_UNIX)
-s.settimeout(60)
+s.settimeout(90)
 s.connect(sys.argv[1])
 s.sendall(sys.argv[2].encode() + b"\n")
 r = s.makefile().readline()
