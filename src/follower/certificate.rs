@@ -19,6 +19,9 @@ use super::Direction;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+/// The smallest standard uncertainty a certificate row may state (µm).
+pub const MIN_UNCERTAINTY_UM: f64 = 0.001;
+
 /// The header a certificate starts with.
 pub const HEADER: &str = "position_mm,error_um,direction,uncertainty_um";
 
@@ -114,11 +117,14 @@ impl Certificate {
                 }
             };
             let u = number(3, "uncertainty_um")?;
-            if u <= 0.0 {
+            // A laser certificate states tenths of a micrometre; below a nanometre the figure is
+            // a typo (and would vanish in the conversion to millimetres).
+            if u < MIN_UNCERTAINTY_UM {
                 return Err(row(
                     line,
                     format!(
-                        "uncertainty_um {u} must be positive (the point's standard uncertainty)"
+                        "uncertainty_um {} is below {MIN_UNCERTAINTY_UM} µm: write the point's standard uncertainty in micrometres",
+                        fields[3]
                     ),
                 ));
             }
@@ -256,5 +262,10 @@ mod tests {
             "cert.csv line 1: the first line must be the header position_mm,error_um,direction,uncertainty_um, found \"x,y\""
         );
         assert!(err(&format!("{h}0,1,+,0.2\n")).contains("at least two points"));
+        // A vanishing uncertainty (found by the fuzzer: 0.201e-320 µm became 0 mm).
+        assert_eq!(
+            err(&format!("{h}0,1,+,0.201e-320\n")),
+            "cert.csv line 2: uncertainty_um 0.201e-320 is below 0.001 µm: write the point's standard uncertainty in micrometres"
+        );
     }
 }
