@@ -13,6 +13,7 @@
 pub mod file;
 pub mod linear;
 pub mod model;
+pub mod plausible;
 pub mod poses;
 
 pub use file::CalibrationFile;

@@ -50,8 +50,13 @@ pub struct SimulateArgs {
     /// Number of poses.
     #[arg(long)]
     pub poses: usize,
-    /// Seed of the twin (head and poses).
-    #[arg(long)]
+    /// The head `axiscomp sim --config CONFIG` runs (its seed, installation errors, gains and
+    /// noise; the layout it names): the pose set to calibrate that twin with. Without it, a
+    /// head of its own is drawn from `--seed` and the `--install-*` flags.
+    #[arg(long, value_name = "CONFIG", conflicts_with_all = ["install_error_mm", "install_error_deg", "gain_error", "noise_um", "layout"])]
+    pub twin: Option<PathBuf>,
+    /// Seed of the twin (head and poses); with `--twin`, of the poses only.
+    #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Installation offset of every element, uniform within ± (mm).
     #[arg(long, default_value_t = 0.5)]
@@ -171,14 +176,33 @@ fn simulate(a: SimulateArgs) -> Result<()> {
             return Err(InputError(format!("--travel-mm {t}: give finite positions in mm")).into());
         }
     }
-    let layout = load_layout(a.layout.as_deref())?;
     let rng = Rng::new(a.seed);
-    let spec = InstallSpec {
-        offset_mm: a.install_error_mm,
-        tilt_deg: a.install_error_deg,
-        gain_error: a.gain_error,
+    let (layout, head, origin) = match &a.twin {
+        Some(config) => {
+            let (layout, spec) = axiscomp::sim::config::load(config)?;
+            let head = axiscomp::sim::plant::Plant::draw_head(&layout, &spec.plant)?;
+            let origin = format!(
+                "the head of `axiscomp sim --config {}` (seed {})",
+                config.display(),
+                spec.plant.seed
+            );
+            (layout, head, origin)
+        }
+        None => {
+            let layout = load_layout(a.layout.as_deref())?;
+            let spec = InstallSpec {
+                offset_mm: a.install_error_mm,
+                tilt_deg: a.install_error_deg,
+                gain_error: a.gain_error,
+            };
+            let head = twin_head(&layout, &spec, a.noise_um, &mut rng.fork(1))?;
+            let origin = format!(
+                "--seed {} --install-error-mm {} --install-error-deg {} --gain-error {} --noise-um {}",
+                a.seed, a.install_error_mm, a.install_error_deg, a.gain_error, a.noise_um
+            );
+            (layout, head, origin)
+        }
     };
-    let head = twin_head(&layout, &spec, a.noise_um, &mut rng.fork(1))?;
     let window = PoseWindow {
         half_range: Errors6::from_user([
             a.window_um,
@@ -199,13 +223,9 @@ fn simulate(a: SimulateArgs) -> Result<()> {
         samples.len()
     ));
     let mut comments = vec![format!(
-        "axiscomp calibrate simulate --poses {} --seed {} --install-error-mm {} --install-error-deg {} --gain-error {} --noise-um {} (layout {} {})",
+        "axiscomp calibrate simulate --poses {} (poses seed {}): {origin} (layout {} {})",
         a.poses,
         a.seed,
-        a.install_error_mm,
-        a.install_error_deg,
-        a.gain_error,
-        a.noise_um,
         layout.name,
         layout.hash()
     )];

@@ -8,11 +8,12 @@
 //! cleared: it belongs to the old decoupling); rejecting drops it. No hexapod is driven from
 //! here: the poses come from the file.
 
+use crate::calibrate::plausible::{self, Limits};
 use crate::calibrate::{self, CalError, CalibrateOptions, Calibration, CalibrationFile};
 use crate::decouple::Decoupler;
 use crate::optics::Layout;
 use crate::store::CalibrationId;
-use crate::units::DOF_TO_USER;
+use crate::units::{DOF_TO_USER, Errors6};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
@@ -74,6 +75,11 @@ pub struct Summary {
     pub model_params: Option<(usize, usize)>,
     /// The decoupling accepting it gives: "model" or "linear".
     pub decoupling: String,
+    /// What the calibration reads from the head's spots when it was judged (µm / arcsec).
+    pub here: Option<[f64; 6]>,
+    /// Why it looks implausible for this head (`calibrate::plausible`); accepting it then
+    /// needs the override.
+    pub concerns: Vec<String>,
 }
 
 impl Summary {
@@ -100,6 +106,8 @@ impl Summary {
             model_converged: m.map(|m| m.converged),
             model_params: m.map(|m| (m.fitted_params, m.well_determined)),
             decoupling: if m.is_some() { "model" } else { "linear" }.into(),
+            here: None,
+            concerns: Vec::new(),
         }
     }
 }
@@ -189,26 +197,59 @@ impl Calibrations {
         Ok(())
     }
 
-    /// A fit ended: its result becomes the pending calibration (replacing an older one).
+    /// A fit ended: its result becomes the pending calibration (replacing an older one),
+    /// judged with `read_here` (what a decoupler reads from the head's current spots).
     pub fn fitted(
         &mut self,
         r: Result<Pending, CalibrationError>,
+        read_here: impl Fn(&Decoupler) -> Option<Errors6>,
     ) -> Result<serde_json::Value, String> {
         self.fitting = false;
-        let p = r.map_err(|e| e.to_string())?;
+        let mut p = r.map_err(|e| e.to_string())?;
+        self.judge(&mut p, &read_here);
         let v = serde_json::json!({ "pending": p.summary });
         self.pending = Some(p);
         Ok(v)
     }
 
+    fn judge(&self, p: &mut Pending, read_here: &impl Fn(&Decoupler) -> Option<Errors6>) {
+        let here = read_here(&p.decoupler);
+        p.summary.here = here.map(Errors6::to_user);
+        p.summary.concerns = plausible::concerns(
+            &p.calibration,
+            &self.layout,
+            here.as_ref(),
+            &Limits::default(),
+        );
+    }
+
+    /// The pending calibration, judged again on the head's current spots, to accept: refused
+    /// (it keeps waiting) when it has concerns and `force` is not set.
+    pub fn take_for_accept(
+        &mut self,
+        force: bool,
+        read_here: impl Fn(&Decoupler) -> Option<Errors6>,
+    ) -> Result<Pending, String> {
+        let mut p = self.pending.take().ok_or_else(no_pending)?;
+        self.judge(&mut p, &read_here);
+        if !force && !p.summary.concerns.is_empty() {
+            let why = p.summary.concerns.join("; ");
+            self.pending = Some(p);
+            return Err(format!(
+                "the calibration was not accepted (it still waits): {why}. Reject it and fit a pose set of this head, or accept it anyway with the override (console: A; control: {{\"cmd\":\"calibration_accept\",\"force\":true}})"
+            ));
+        }
+        Ok(p)
+    }
+
+    /// Put a calibration taken for accepting back (it could not be stored).
+    pub fn restore_pending(&mut self, p: Pending) {
+        self.pending = Some(p);
+    }
+
     /// The pending calibration.
     pub fn pending(&self) -> Result<&Pending, String> {
         self.pending.as_ref().ok_or_else(no_pending)
-    }
-
-    /// The pending calibration, to accept.
-    pub fn take_pending(&mut self) -> Result<Pending, String> {
-        self.pending.take().ok_or_else(no_pending)
     }
 
     /// `p` was stored as `id` and is in use now.

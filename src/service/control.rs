@@ -104,7 +104,12 @@ pub enum Request {
     /// format); the result waits for accept or reject.
     CalibrationFit { poses: String },
     /// Store the waiting calibration and decouple with it from now on (the zero is cleared).
-    CalibrationAccept,
+    /// A calibration with plausibility concerns (`calibrate::plausible`) is refused unless
+    /// `force` is set.
+    CalibrationAccept {
+        #[serde(default)]
+        force: bool,
+    },
     /// Drop the waiting calibration.
     CalibrationReject,
     /// Calibrate with the hexapod in the loop (`[hexapod]`): the plan CSV `plan` on the

@@ -901,7 +901,11 @@ impl Core {
                 self.pipeline.alarms.clear("cnc");
             }
             CoreEvent::Delivered(Err(e)) => self.pipeline.alarms.raise("cnc", e),
-            CoreEvent::Fitted(reply, r) => Self::reply(reply, self.calibrations.fitted(*r)),
+            CoreEvent::Fitted(reply, r) => {
+                let measure = &self.pipeline.measure;
+                let v = self.calibrations.fitted(*r, |d| measure.read_with(d));
+                Self::reply(reply, v)
+            }
             CoreEvent::Cnc(v) => {
                 let done = v["cnc"]["done"].as_bool().unwrap_or(false);
                 let programs = v["cnc"]["programs"].as_u64().unwrap_or(0) as u32;
@@ -1159,27 +1163,44 @@ impl Core {
         });
     }
 
-    /// Store the waiting calibration and decouple with it.
-    fn calibration_accept(&mut self) -> Result<serde_json::Value, String> {
+    /// Store the waiting calibration and decouple with it (judged again on the current
+    /// spots; with concerns only when `force`).
+    fn calibration_accept(&mut self, force: bool) -> Result<serde_json::Value, String> {
         if self.run.is_some() {
             return Err("a run is under way: its captures must keep one decoupling".into());
         }
-        let text = {
-            let p = self.calibrations.pending()?;
-            super::calibration::file_text(&p.calibration, self.calibrations.layout())
+        let measure = &self.pipeline.measure;
+        let p = self
+            .calibrations
+            .take_for_accept(force, |d| measure.read_with(d))?;
+        let text = super::calibration::file_text(&p.calibration, self.calibrations.layout());
+        let id = match self.store.insert_calibration(&text) {
+            Ok(id) => id,
+            Err(e) => {
+                self.calibrations.restore_pending(p);
+                return Err(format!(
+                    "the calibration was not stored (it still waits): {e}"
+                ));
+            }
         };
-        let id = self
-            .store
-            .insert_calibration(&text)
-            .map_err(|e| format!("the calibration was not stored (it still waits): {e}"))?;
-        let p = self.calibrations.take_pending()?;
         self.pipeline.measure.set_decoupler(p.decoupler.clone());
         let decoupling = p.summary.decoupling.clone();
+        let overridden = p.summary.concerns.clone();
+        if overridden.is_empty() {
+            tracing::info!(calibration = id.0, %decoupling, "calibration accepted");
+        } else {
+            tracing::warn!(
+                calibration = id.0,
+                %decoupling,
+                concerns = %overridden.join("; "),
+                "calibration accepted over its concerns (override)"
+            );
+        }
         self.calibrations.accepted(id, p);
-        tracing::info!(calibration = id.0, %decoupling, "calibration accepted");
         Ok(serde_json::json!({
             "calibration_id": id.0,
             "decoupling": decoupling,
+            "overridden": overridden,
             "zero": "cleared: take the zero reference again",
         }))
     }
@@ -1295,8 +1316,8 @@ impl Core {
             ),
             Request::Calibration => Self::reply(c.reply, Ok(self.calibrations.status())),
             Request::CalibrationFit { poses } => self.calibration_fit(poses, c.reply),
-            Request::CalibrationAccept => {
-                let r = self.calibration_accept();
+            Request::CalibrationAccept { force } => {
+                let r = self.calibration_accept(force);
                 Self::reply(c.reply, r);
             }
             Request::CalibrationReject => Self::reply(c.reply, self.calibrations.reject()),
@@ -1363,7 +1384,8 @@ impl Core {
     fn on_tick(&mut self) {
         let now = Instant::now();
         if let Some(p) = self.hexapod.take_finished() {
-            let _ = self.calibrations.fitted(Ok(p));
+            let measure = &self.pipeline.measure;
+            let _ = self.calibrations.fitted(Ok(p), |d| measure.read_with(d));
         }
         if let Some(z) = self.pipeline.zero_ready(now)
             && let Some(reply) = self.zero_reply.take()

@@ -61,6 +61,9 @@ pub struct Measure {
     frame_cov: Matrix6<f64>,
     nominal: Option<f64>,
     zero: Option<Zero>,
+    /// The newest frame's readings (mm, PSD2 stitched), travel and follower position: what a
+    /// calibration waiting to be accepted is judged on.
+    last_input: Option<(Vector6<f64>, f64, f64)>,
 }
 
 impl Measure {
@@ -74,6 +77,7 @@ impl Measure {
             frame_cov: Matrix6::zeros(),
             nominal: None,
             zero: None,
+            last_input: None,
         }
     }
 
@@ -118,6 +122,13 @@ impl Measure {
         Some(live.errors)
     }
 
+    /// The six errors `other` reads from the newest frame's spots (no zero reference), when a
+    /// frame was decoupled; `None` also when `other` cannot decouple it.
+    pub fn read_with(&self, other: &Decoupler) -> Option<Errors6> {
+        let (r, travel, follower) = self.last_input?;
+        other.decouple(&r, travel, follower).ok().map(|e| e.errors)
+    }
+
     /// Forget the zero reference.
     pub fn clear_zero(&mut self) {
         self.zero = None;
@@ -158,6 +169,7 @@ impl Measure {
         let follower = stitch.follower_mm;
         let travel = self.nominal.unwrap_or(follower + r[2]);
         let var = [0.0, 0.0, stitch.variance[0], stitch.variance[1], 0.0, 0.0];
+        self.last_input = Some((r, travel, follower));
         let (est, stitch_cov) =
             self.decoupler
                 .decouple_cached(&r, travel, follower, &var, &mut self.beta)?;

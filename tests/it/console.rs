@@ -923,7 +923,7 @@ async fn capture_console_fixture() {
             .await
             .expect("calibration_fit");
         if k == 1 {
-            rig.request(Request::CalibrationAccept)
+            rig.request(Request::CalibrationAccept { force: false })
                 .await
                 .expect("calibration_accept");
         }

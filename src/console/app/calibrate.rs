@@ -184,11 +184,11 @@ impl App {
                     });
                 }
             }
-            Some('a') => {
+            Some(k @ ('a' | 'A')) => {
                 if self.calibrate.pending.is_none() {
                     self.say(Level::Info, "no calibration is waiting: fit a pose set (f)");
                 } else if self.may_operate("accepting a calibration") {
-                    self.overlay = Overlay::Confirm(Confirm::Accept);
+                    self.overlay = Overlay::Confirm(Confirm::Accept(k == 'A'));
                 }
             }
             Some('x') => {

@@ -120,8 +120,8 @@ pub enum Confirm {
     AbortRun(Option<i64>),
     /// Fit the pose set at this path on the service's host.
     Fit(String),
-    /// Accept the pending calibration.
-    Accept,
+    /// Accept the pending calibration; `true`: over its plausibility concerns (the override).
+    Accept(bool),
     /// Start a hexapod calibration run: the plan CSV on the service's host ("" for the
     /// default plan).
     HexapodStart(String),
@@ -800,9 +800,16 @@ impl App {
                 vec![self.send(Request::CalibrationFit { poses: path }, Pending::Fit)]
             }
             Confirm::HexapodStart(plan) => self.hexapod_start(plan),
-            Confirm::Accept => {
-                self.log(Level::Info, "→ accept the calibration");
-                vec![self.send(Request::CalibrationAccept, Pending::CalAccept)]
+            Confirm::Accept(force) => {
+                self.log(
+                    Level::Info,
+                    if force {
+                        "→ accept the calibration over its concerns"
+                    } else {
+                        "→ accept the calibration"
+                    },
+                );
+                vec![self.send(Request::CalibrationAccept { force }, Pending::CalAccept)]
             }
             Confirm::AbortRun(id) => {
                 self.log(
@@ -863,6 +870,10 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
             ("u", "resume the stopped or failed hexapod run"),
             ("f", "fit a pose-set CSV on the service's host (asks)"),
             ("a", "accept the pending calibration (asks)"),
+            (
+                "A",
+                "accept it over its plausibility concerns (the override, asks)",
+            ),
             ("x", "reject the pending calibration"),
             ("r", "reload"),
         ],

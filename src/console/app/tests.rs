@@ -340,7 +340,7 @@ fn calibrate_fit_asks_then_accept_asks_and_a_viewer_cannot() {
     assert!(matches!(
         &out[..],
         [Action::Send {
-            request: Request::CalibrationAccept,
+            request: Request::CalibrationAccept { force: false },
             ..
         }]
     ));

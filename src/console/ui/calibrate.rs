@@ -305,10 +305,29 @@ fn figures(p: &CalSummary, wide: bool, theme: Theme) -> Vec<Line<'static>> {
 
 fn judge(frame: &mut Frame, area: Rect, p: &CalSummary, wide: bool, theme: Theme) {
     let mut lines = figures(p, wide, theme);
-    lines.push(Line::styled(
-        "a accepts it (stores it, decouples with it, clears the zero); x rejects it",
-        theme.accent(),
-    ));
+    if let Some(h) = p.here {
+        lines.push(Line::raw(format!(
+            "reads here: dx {:+.1} dy {:+.1} dz {:+.1} µm, ex {:+.1} ey {:+.1} ez {:+.1}″",
+            h[0], h[1], h[2], h[3], h[4], h[5]
+        )));
+    }
+    if p.concerns.is_empty() {
+        lines.push(Line::styled(
+            "a accepts it (stores it, decouples with it, clears the zero); x rejects it",
+            theme.accent(),
+        ));
+    } else {
+        lines.push(Line::styled("IMPLAUSIBLE for this head:", theme.bad()));
+        lines.extend(
+            p.concerns
+                .iter()
+                .map(|c| Line::styled(c.clone(), theme.warn())),
+        );
+        lines.push(Line::styled(
+            "x rejects it; A accepts it anyway (the override, logged)",
+            theme.accent(),
+        ));
+    }
     frame.render_widget(
         Paragraph::new(lines)
             .wrap(Wrap { trim: false })

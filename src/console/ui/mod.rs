@@ -372,7 +372,13 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
                 ),
             ],
         ),
-        Confirm::Accept => {
+        Confirm::Accept(force) => {
+            let concerns = app
+                .calibrate
+                .pending
+                .as_ref()
+                .map(|p| p.concerns.clone())
+                .unwrap_or_default();
             let what = app
                 .calibrate
                 .pending
@@ -384,13 +390,22 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
                     )
                 })
                 .unwrap_or_else(|| "the pending calibration".into());
-            (
-                " Accept the calibration? ",
-                vec![
-                    Line::raw(format!("Store {what} and decouple with it from now on.")),
-                    Line::raw("The zero reference is cleared: take it again on screen 2."),
-                ],
-            )
+            let mut lines = vec![
+                Line::raw(format!("Store {what} and decouple with it from now on.")),
+                Line::raw("The zero reference is cleared: take it again on screen 2."),
+            ];
+            if *force {
+                lines.push(Line::styled(
+                    "OVERRIDE: accepted over its concerns (the service judges it again now):",
+                    theme.bad(),
+                ));
+                lines.extend(
+                    concerns
+                        .iter()
+                        .map(|c| Line::styled(c.clone(), theme.warn())),
+                );
+            }
+            (" Accept the calibration? ", lines)
         }
         Confirm::AbortRun(id) => (
             " Abort the run? ",
