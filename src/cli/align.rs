@@ -45,6 +45,7 @@ pub struct TargetArgs {
     /// The spot on the target, across (X) and up (Y), mm.
     #[arg(long, allow_negative_numbers = true)]
     pub x: f64,
+    /// The spot's height on the target (Y, mm).
     #[arg(long, allow_negative_numbers = true)]
     pub y: f64,
 }
@@ -56,6 +57,7 @@ pub struct AdviceArgs {
     /// The travel the spots must stay on their PSDs over (mm).
     #[arg(long, allow_negative_numbers = true)]
     pub from_mm: f64,
+    /// The far end of that travel (mm).
     #[arg(long, allow_negative_numbers = true)]
     pub to_mm: f64,
     /// The machine axis the alignment is stored for (the pre-run check of its runs reads it).

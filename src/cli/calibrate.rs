@@ -35,6 +35,7 @@ pub struct RunArgs {
     /// `--poses` poses over ±100 µm, ±2 mm positioning (the follower window), ±60″.
     #[arg(long)]
     pub plan: Option<PathBuf>,
+    /// Poses of the default plan (without --plan).
     #[arg(long, default_value_t = 200)]
     pub poses: usize,
     /// Where the run's files go (resumed when they exist).
@@ -82,6 +83,7 @@ pub struct SimulateArgs {
     /// Half-range of the angular poses (arcsec).
     #[arg(long, default_value_t = 60.0)]
     pub window_arcsec: f64,
+    /// Layout file (default: configs/optics/reference.toml).
     #[arg(long)]
     pub layout: Option<PathBuf>,
     /// Output CSV.
@@ -105,8 +107,10 @@ pub struct FitArgs {
     /// Calibration file to write (TOML).
     #[arg(long)]
     pub output: PathBuf,
+    /// Layout file (default: configs/optics/reference.toml).
     #[arg(long)]
     pub layout: Option<PathBuf>,
+    /// The fit: the model's installation errors, or the paper's linear β.
     #[arg(long, value_enum, default_value_t = FitMethod::Model)]
     pub method: FitMethod,
     /// Hold out every n-th pose to judge the fit (0: none).

@@ -8,6 +8,7 @@ pub struct Args {
     /// The control socket (default: from the configuration).
     #[arg(long)]
     pub socket: Option<PathBuf>,
+    /// The service's configuration (default: /etc/axiscomp/axiscomp.toml), for the socket.
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Follower jog step on the Align screen (mm; [ and ] change it there).

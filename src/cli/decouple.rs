@@ -21,6 +21,7 @@ pub struct Args {
     /// Use the layout's own model (no calibration).
     #[arg(long)]
     pub simulated: bool,
+    /// Layout file (default: configs/optics/reference.toml).
     #[arg(long)]
     pub layout: Option<PathBuf>,
     /// PSD noise per axis for the standard deviations (µm); default: the calibration's noise,

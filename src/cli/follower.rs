@@ -29,6 +29,7 @@ pub struct DbArgs {
     /// The store (default: axiscomp.db in the configured state directory).
     #[arg(long)]
     pub db: Option<PathBuf>,
+    /// The service's configuration, for the state directory (default: /etc/axiscomp/axiscomp.toml).
     #[arg(long)]
     pub config: Option<PathBuf>,
 }
@@ -52,17 +53,19 @@ pub struct MapArgs {
     /// line.
     #[arg(long)]
     pub twin: bool,
-    /// The twin's seed and axis length (mm; the follower's travel is the axis').
+    /// The twin's seed.
     #[arg(long, default_value_t = 2026)]
     pub seed: u64,
+    /// The twin's axis length (mm; the follower's travel is the axis').
     #[arg(long, default_value_t = 1000.0)]
     pub length_mm: f64,
-    /// The carriage's step (mm), passes over the travel, frames averaged each side of a
-    /// handover.
+    /// The carriage's step between stops (mm).
     #[arg(long, default_value_t = 3.75)]
     pub step_mm: f64,
+    /// Passes over the travel.
     #[arg(long, default_value_t = 4)]
     pub passes: usize,
+    /// Frames averaged each side of a handover.
     #[arg(long, default_value_t = 1000)]
     pub frames: usize,
     /// The follower's screw lead (mm).
@@ -86,6 +89,7 @@ pub struct ShowArgs {
     /// Write the map as CSV every --step-mm.
     #[arg(long)]
     pub csv: Option<PathBuf>,
+    /// The CSV's spacing (mm).
     #[arg(long, default_value_t = 1.0)]
     pub step_mm: f64,
 }

@@ -22,6 +22,7 @@ pub enum Command {
     },
     /// The 6×6 sensitivity table, singular values, condition number and Cramér–Rao bound.
     Jacobian {
+        /// Layout file (default: configs/optics/reference.toml).
         #[arg(long)]
         layout: Option<PathBuf>,
         /// Nominal travel D (mm).

@@ -21,6 +21,7 @@ pub struct StatusArgs {
     /// The control socket (default: from the configuration).
     #[arg(long)]
     pub socket: Option<PathBuf>,
+    /// The service's configuration (default: /etc/axiscomp/axiscomp.toml), for the socket.
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Print the snapshot as JSON.
