@@ -472,6 +472,23 @@ fn overlays_read_only_and_no_service_render() {
         "{out:?}"
     );
     let _ = now;
+    // A confirmation whose text wraps over many rows still shows its y / n line (the
+    // override of an implausible calibration, at 80×24).
+    let (mut app, _) = mid_run_app(&fx, t0, true);
+    app.calibrate.pending = Some(axiscomp::service::calibration::Summary {
+        source: "/var/lib/axiscomp/poses/other-head.csv".into(),
+        concerns: vec![
+            "at the carriage's current position it reads dx -166.6 µm, dy -321.8 µm, ex +209.9 arcsec, ey -1929.8 arcsec, ez +107.9 arcsec (plausible: within ±100 µm and ±100 arcsec): the pose set was probably made with another head".into(),
+            "the model fit's residual RMS is X3 12.00 µm (plausible: up to 5.0 µm, a few times a PSD's noise): the fit does not describe its poses".into(),
+        ],
+        ..Default::default()
+    });
+    app.handle_key(key(KeyCode::Char('3')));
+    app.handle_key(key(KeyCode::Char('A')));
+    let screen = text(&render(&app, 80, 24));
+    assert!(screen.contains("OVERRIDE"), "{screen}");
+    assert!(screen.contains(" y  yes     n  no"), "{screen}");
+    app.handle_key(key(KeyCode::Char('n')));
     // A viewer: read-only, operator keys refused with a message.
     let mut viewer = App::new(opts(true), t0);
     viewer.handle_connected(

@@ -173,10 +173,8 @@ fn render_input(frame: &mut Frame, input: &Input, theme: Theme) {
         Span::raw(shown),
         Span::styled("█", theme.dim()),
     ]));
-    lines.push(Line::styled("Enter takes it, Esc cancels", theme.dim()));
-    // Room for the wrapped explanation.
-    let h = lines.len() as u16 + 4;
-    warning_popup(frame, title, lines, 72, h, theme);
+    let footer = Line::styled("Enter takes it, Esc cancels", theme.dim());
+    warning_popup(frame, title, lines, footer, 72, theme);
 }
 
 /// A centred, bordered popup in the warning colour over whatever is below it.
@@ -184,18 +182,30 @@ fn warning_popup<'a>(
     frame: &mut Frame,
     title: impl Into<Line<'a>>,
     lines: Vec<Line<'a>>,
+    footer: Line<'a>,
     width: u16,
-    height: u16,
     theme: Theme,
 ) {
-    let area = centred(frame.area(), width, height);
+    let screen = frame.area();
+    let width = width.min(screen.width);
+    let inner_w = width.saturating_sub(2).max(1) as usize;
+    // Rows the body takes once wrapped (word wrapping may take a row more per line than the
+    // width suggests; one spare row covers the usual case).
+    let body_rows: usize = lines
+        .iter()
+        .map(|l| l.width().max(1).div_ceil(inner_w))
+        .sum::<usize>()
+        + 1;
+    let height = (body_rows as u16 + 3).min(screen.height);
+    let area = centred(screen, width, height);
     frame.render_widget(Clear, area);
-    frame.render_widget(
-        Paragraph::new(lines)
-            .wrap(Wrap { trim: false })
-            .block(Block::bordered().title(title).border_style(theme.warn())),
-        area,
-    );
+    let block = Block::bordered().title(title).border_style(theme.warn());
+    let inner = block.inner(area);
+    frame.render_widget(block, area);
+    // The footer (the keys that answer the popup) always has the last row.
+    let [body, foot] = Layout::vertical([Constraint::Min(0), Constraint::Length(1)]).areas(inner);
+    frame.render_widget(Paragraph::new(lines).wrap(Wrap { trim: false }), body);
+    frame.render_widget(Paragraph::new(footer), foot);
 }
 
 fn render_tabs(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
@@ -415,15 +425,13 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
             ))],
         ),
     };
-    lines.push(Line::raw(""));
-    lines.push(Line::from(vec![
+    let footer = Line::from(vec![
         Span::styled(" y ", theme.selected()),
         Span::raw(" yes    "),
         Span::styled(" n ", theme.selected()),
         Span::raw(" no"),
-    ]));
-    let h = lines.len() as u16 + 2;
-    warning_popup(frame, title, lines, 70, h, theme);
+    ]);
+    warning_popup(frame, title, lines, footer, 70, theme);
 }
 
 // ---------- formatting shared by the screens ----------
