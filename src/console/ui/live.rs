@@ -46,6 +46,46 @@ pub fn psd_row(frame: &mut Frame, area: Rect, snap: Option<&Snapshot>, theme: Th
     }
 }
 
+/// Why the snapshot has no live errors, in the order an engineer would check.
+pub fn why_no_errors(snap: Option<&Snapshot>) -> String {
+    let Some(s) = snap else {
+        return "no live errors: no snapshot from the service yet".into();
+    };
+    let io = &s.links.io;
+    let Some(p) = s.psd.as_ref().filter(|_| io.state == "up") else {
+        let detail = io
+            .detail
+            .as_deref()
+            .map(|d| format!(" ({d})"))
+            .unwrap_or_default();
+        return format!(
+            "no live errors: no frames from the I/O module at {}: link {}{detail}",
+            io.peer, io.state
+        );
+    };
+    let dark: Vec<String> = (0..3)
+        .filter(|&k| p.spots_um[k].is_none())
+        .map(|k| format!("PSD{}", k + 1))
+        .collect();
+    if !dark.is_empty() {
+        return format!(
+            "no live errors: no spot on {} (beam blocked, head knocked, or the follower away from the spot)",
+            dark.join(", ")
+        );
+    }
+    if !p.valid {
+        return format!(
+            "no live errors: the newest frame is {:.0} ms old (the I/O module stalls)",
+            p.age_ms
+        );
+    }
+    if !s.tracking.valid {
+        return "no live errors: PSD2's stitch is not referenced: home the follower (screen 2, h)"
+            .into();
+    }
+    "no live errors yet: the averaging window is filling".into()
+}
+
 pub(super) fn errors(
     frame: &mut Frame,
     area: Rect,
@@ -56,10 +96,7 @@ pub(super) fn errors(
     let live = snap.and_then(|s| s.live.as_ref());
     let mut lines = Vec::new();
     match live {
-        None => lines.push(Line::styled(
-            "no live errors (beam blocked, or no frames yet)",
-            theme.warn(),
-        )),
+        None => lines.push(Line::styled(why_no_errors(snap), theme.warn())),
         Some(l) => {
             for k in 0..6 {
                 let (unit, dec) = if k < 3 { ("µm", 3) } else { ("″", 2) };
@@ -263,4 +300,52 @@ fn state_compact(frame: &mut Frame, area: Rect, snap: Option<&Snapshot>, theme: 
         None => vec![Line::styled("no snapshot yet", theme.dim())],
     };
     frame.render_widget(Paragraph::new(lines).block(panel("Follower, links")), area);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::why_no_errors;
+    use crate::service::snapshot::{PsdView, Snapshot};
+
+    #[test]
+    fn live_says_why_it_has_no_errors() {
+        assert_eq!(
+            why_no_errors(None),
+            "no live errors: no snapshot from the service yet"
+        );
+        let mut s = Snapshot::default();
+        s.links.io.peer = "192.168.1.20:502".into();
+        s.links.io.state = "down".into();
+        s.links.io.detail = Some("connection refused".into());
+        assert_eq!(
+            why_no_errors(Some(&s)),
+            "no live errors: no frames from the I/O module at 192.168.1.20:502: link down (connection refused)"
+        );
+        s.links.io.state = "up".into();
+        s.links.io.detail = None;
+        s.psd = Some(PsdView {
+            spots_um: [Some([0.0; 2]), None, None],
+            ..PsdView::default()
+        });
+        assert!(
+            why_no_errors(Some(&s))
+                .starts_with("no live errors: no spot on PSD2, PSD3 (beam blocked"),
+            "{}",
+            why_no_errors(Some(&s))
+        );
+        s.psd = Some(PsdView {
+            spots_um: [Some([0.0; 2]); 3],
+            valid: false,
+            age_ms: 430.0,
+            ..PsdView::default()
+        });
+        assert_eq!(
+            why_no_errors(Some(&s)),
+            "no live errors: the newest frame is 430 ms old (the I/O module stalls)"
+        );
+        s.psd.as_mut().unwrap().valid = true;
+        assert!(why_no_errors(Some(&s)).contains("home the follower"));
+        s.tracking.valid = true;
+        assert!(why_no_errors(Some(&s)).contains("window is filling"));
+    }
 }
