@@ -37,6 +37,10 @@ const EXCEPTIONS_PERSIST: Duration = Duration::from_secs(1);
 /// the `drive-absent` alarm.
 const DRIVE_ABSENT_AFTER: Duration = Duration::from_secs(5);
 
+/// The acceleration the run's ETA assumes (mm/s²): a machine tool's axis at measuring feed
+/// is at speed within a millimetre or two, so the dwells and the feed set the time.
+const ETA_ACCEL_MM_S2: f64 = 500.0;
+
 /// The I/O link as the snapshot shows it: the state's name; the detail says why it is not up,
 /// or names the last exception of the last minute while up.
 fn link_view(
@@ -1063,14 +1067,23 @@ impl Core {
         )
     }
 
+    /// The run's state for `run_status`: while running, the plan's machine time (`plan_s`)
+    /// and what is left of it (`left_s`), for the ETA.
     fn run_status(&self) -> serde_json::Value {
         match (&self.run, self.pipeline.run_progress()) {
-            (Some(r), Some((done, total))) => serde_json::json!({
-                "run_id": r.id.0, "state": "running", "captures": done, "expected": total,
-                "missing": self.pipeline.run_missing().map(|m| m.len()).unwrap_or(0),
-                "program": r.program,
-                "paused": self.pipeline.paused(),
-            }),
+            (Some(r), Some((done, total))) => {
+                // The plan's motion and dwell for what is left (a make-up pass adds to it).
+                let plan_s = r.plan.motion_time_s(ETA_ACCEL_MM_S2);
+                let left_s = plan_s * total.saturating_sub(done) as f64 / total.max(1) as f64;
+                serde_json::json!({
+                    "run_id": r.id.0, "state": "running", "captures": done, "expected": total,
+                    "missing": self.pipeline.run_missing().map(|m| m.len()).unwrap_or(0),
+                    "program": r.program,
+                    "paused": self.pipeline.paused(),
+                    "plan_s": plan_s,
+                    "left_s": left_s,
+                })
+            }
             _ => match self
                 .store
                 .list_runs()
@@ -1350,10 +1363,17 @@ impl Core {
                     action,
                     FollowerAction::Jog | FollowerAction::Move | FollowerAction::Home
                 ) {
-                    // A manual move is not a measured handover: the stitch must be re-zeroed.
-                    self.pipeline.invalidate_stitch(
-                        "the follower was moved by hand: zero again before measuring",
-                    );
+                    // A commanded move is not a measured handover: the stitch must be
+                    // re-zeroed. Said as what it was (a jog, a move, a homing) and by whom.
+                    let what = match action {
+                        FollowerAction::Jog => "jogged",
+                        FollowerAction::Move => "moved to a position",
+                        _ => "homed",
+                    };
+                    self.pipeline.invalidate_stitch(&format!(
+                        "the follower was {what} by {}'s request: zero again before measuring",
+                        c.peer.user
+                    ));
                 }
                 tokio::spawn(async move {
                     let r = match (action, mm) {

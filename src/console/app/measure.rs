@@ -167,6 +167,9 @@ pub struct RunProgress {
     /// The captures so far as the service evaluates them (`run_result` of this run), for the
     /// live plot.
     pub live: Option<RunResult>,
+    /// The plan's machine time left (s) as the service said it, and when.
+    pub left_s: Option<f64>,
+    left_at: Option<Instant>,
     first_seen: Instant,
     first_captures: usize,
     last_change: Instant,
@@ -181,6 +184,8 @@ impl RunProgress {
             captures,
             expected: None,
             missing: None,
+            left_s: None,
+            left_at: None,
             program: None,
             notes: None,
             paused: None,
@@ -218,9 +223,21 @@ impl RunProgress {
         self.now.saturating_duration_since(self.first_seen)
     }
 
-    /// Time left at the pace of the captures seen so far; `None` before two captures were
-    /// seen to come in, or when the run is not running.
+    /// Time left: the plan's motion and dwell for the captures still to come (from the
+    /// service), else at the pace of the captures seen so far; `None` before two captures
+    /// were seen to come in, or when the run is not running.
     pub fn eta(&self) -> Option<Duration> {
+        if !self.running() {
+            return None;
+        }
+        // The plan's motion and dwell for what is left, as the service last said, less the
+        // time since it said so.
+        if let (Some(left), Some(at)) = (self.left_s, self.left_at) {
+            return Some(
+                Duration::from_secs_f64(left.max(0.0))
+                    .saturating_sub(self.now.saturating_duration_since(at)),
+            );
+        }
         let expected = self.expected?;
         let seen = self.captures.checked_sub(self.first_captures)?;
         if !self.running() || seen == 0 {
@@ -257,6 +274,8 @@ impl App {
             r.expected = Some(e as usize);
         }
         r.missing = v["missing"].as_u64().map(|m| m as usize);
+        r.left_s = v["left_s"].as_f64();
+        r.left_at = r.left_s.map(|_| now);
         if let Some(p) = v["program"].as_str() {
             r.program = Some(p.to_string());
         }

@@ -205,6 +205,17 @@ fn start_confirms_then_sends_the_plan_and_progress_gives_an_eta() {
     a.tick(t0 + Duration::from_secs(12));
     // 2 s per capture, 15 to go, 2 s since the last: 28 s.
     assert_eq!(a.run.as_ref().unwrap().eta(), Some(Duration::from_secs(28)));
+    // Once the service says what is left of the plan's motion and dwell, that is the ETA.
+    a.apply_run_status(
+        &serde_json::json!({"run_id": 4, "state": "running", "captures": 5, "expected": 20,
+            "plan_s": 82.0, "left_s": 61.5}),
+        t0 + Duration::from_secs(12),
+    );
+    a.tick(t0 + Duration::from_secs(14));
+    assert_eq!(
+        a.run.as_ref().unwrap().eta(),
+        Some(Duration::from_millis(59_500))
+    );
     // The run ends: the console asks how.
     let out = a.handle_snapshot(Snapshot::default(), t0 + Duration::from_secs(50));
     let [
