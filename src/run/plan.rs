@@ -276,6 +276,34 @@ impl Plan {
         2 * self.targets.len() * self.spec.runs as usize
     }
 
+    /// Where the plan departs from ISO 230-2 without being invalid, as sentences (empty: it
+    /// follows the standard). Shown before a run starts and in the run's reply.
+    pub fn warnings(&self) -> Vec<String> {
+        self.departures()
+            .into_iter()
+            .map(|(_, full)| full)
+            .collect()
+    }
+
+    /// [`Plan::warnings`] in a few words each (a console at 80 columns).
+    pub fn warnings_brief(&self) -> Vec<String> {
+        self.departures().into_iter().map(|(b, _)| b).collect()
+    }
+
+    fn departures(&self) -> Vec<(String, String)> {
+        let mut w = Vec::new();
+        if self.spec.runs < 5 {
+            w.push((
+                format!("ISO 230-2 asks for 5 runs, not {}", self.spec.runs),
+                format!(
+                    "{} runs: ISO 230-2 asks for 5 bidirectional runs; the figures (R, E, A) of fewer runs are not comparable with a full test",
+                    self.spec.runs
+                ),
+            ));
+        }
+        w
+    }
+
     /// Motion time plus dwell time of the whole cycle (s), for a trapezoidal profile with
     /// acceleration `accel` (mm/s²): the floor for the run's wall time.
     pub fn motion_time_s(&self, accel_mm_s2: f64) -> f64 {
@@ -371,6 +399,26 @@ mod tests {
         })
         .unwrap_err();
         assert_eq!(e.field, "runs");
+    }
+
+    #[test]
+    fn fewer_than_five_runs_warn() {
+        let spec = |runs| PlanSpec {
+            runs,
+            ..PlanSpec::default()
+        };
+        assert_eq!(Plan::new(spec(5)).unwrap().warnings(), Vec::<String>::new());
+        let w = Plan::new(spec(3)).unwrap().warnings();
+        assert_eq!(w.len(), 1);
+        assert!(
+            w[0].starts_with("3 runs: ISO 230-2 asks for 5 bidirectional runs;"),
+            "{}",
+            w[0]
+        );
+        assert_eq!(
+            Plan::new(spec(3)).unwrap().warnings_brief(),
+            ["ISO 230-2 asks for 5 runs, not 3"]
+        );
     }
 
     #[test]

@@ -1055,6 +1055,7 @@ impl Core {
             .set_run_state(id, RunState::Running)
             .map_err(|e| e.to_string())?;
         let expected = plan.capture_count();
+        let warnings = plan.warnings();
         self.begin_run(id, plan, dialect, BTreeSet::new(), "");
         let program = self
             .run
@@ -1063,6 +1064,7 @@ impl Core {
             .unwrap_or_default();
         Ok(
             serde_json::json!({"run_id": id.0, "captures_expected": expected, "program": program,
+            "warnings": warnings,
             "cnc": match self.cnc { CncMode::Twin(a) => format!("sent to the twin at {a}"), CncMode::Manual => "load the program on the CNC and start it".into() }}),
         )
     }

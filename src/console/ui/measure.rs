@@ -86,6 +86,14 @@ fn plan(frame: &mut Frame, area: Rect, app: &App, wide: bool, theme: Theme) {
                 },
                 theme.ok(),
             ));
+            let warnings = if wide {
+                p.warnings()
+            } else {
+                p.warnings_brief()
+            };
+            for w in warnings {
+                lines.push(Line::styled(format!("⚠ {w}"), theme.warn()));
+            }
             lines.push(Line::styled(
                 fitting("targets (mm):", &p.targets, inner_w),
                 theme.dim(),
