@@ -331,7 +331,7 @@ fn render_help(frame: &mut Frame, app: &App, theme: Theme) {
 }
 
 fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
-    let (title, mut lines) = match c {
+    let (title, lines) = match c {
         Confirm::Quit => (
             " Quit? ",
             vec![
