@@ -234,6 +234,8 @@ impl App {
                     purpose: InputFor::AlignTarget,
                     text: psd,
                 });
+                // The PSD's number is a start to type on, not a suggestion to replace.
+                self.input_fresh = false;
                 Vec::new()
             }
             'a' => {

@@ -282,6 +282,9 @@ pub struct App {
     pub snapshot: Option<Snapshot>,
     pub last_snapshot: Option<Instant>,
     pub overlay: Overlay,
+    /// The input box shows its suggested text selected: the first character typed replaces
+    /// it, Backspace clears it (until any key was pressed in the box).
+    pub input_fresh: bool,
     pub message: Option<Message>,
     pub plan: PlanForm,
     pub jog_step_mm: f64,
@@ -324,6 +327,7 @@ impl App {
             snapshot: None,
             last_snapshot: None,
             overlay: Overlay::None,
+            input_fresh: true,
             message: None,
             plan: PlanForm {
                 spec: PlanSpec::default(),
@@ -621,6 +625,8 @@ impl App {
             Overlay::Input(_) => return self.input_key(key),
             Overlay::None => {}
         }
+        // The next input box opens with its suggestion selected.
+        self.input_fresh = true;
         if self.screen == Screen::Measure && self.plan.editing.is_some() {
             self.edit_key(key);
             return Vec::new();
@@ -662,13 +668,23 @@ impl App {
         let Overlay::Input(input) = &mut self.overlay else {
             return Vec::new();
         };
+        let fresh = std::mem::replace(&mut self.input_fresh, false);
+        if key.modifiers.contains(KeyModifiers::CONTROL) && key.code == KeyCode::Char('u') {
+            input.text.clear();
+            return Vec::new();
+        }
         match (key.code, key_char(&key)) {
             (KeyCode::Esc, _) => {
                 self.overlay = Overlay::None;
                 self.say(Level::Info, "cancelled");
             }
+            (KeyCode::Backspace, _) if fresh => input.text.clear(),
             (KeyCode::Backspace, _) => {
                 input.text.pop();
+            }
+            (_, Some(c)) if fresh && !c.is_control() => {
+                input.text.clear();
+                input.text.push(c);
             }
             (KeyCode::Enter, _) => {
                 let input = input.clone();

@@ -627,3 +627,33 @@ fn align_span_and_target_lines_are_parsed_with_errors_in_words() {
     assert!(parse_target("2 1").is_err());
     assert!(parse_target("2 nan 1").is_err());
 }
+
+#[test]
+fn a_suggested_path_is_selected_typing_replaces_it_and_ctrl_u_clears() {
+    let (mut a, _) = app();
+    a.handle_key(ch('3'));
+    a.calibrate.fit_path = Some("/var/lib/axiscomp/poses-old.csv".into());
+    a.handle_key(ch('f'));
+    let text = |a: &App| match &a.overlay {
+        Overlay::Input(i) => i.text.clone(),
+        o => panic!("{o:?}"),
+    };
+    assert_eq!(text(&a), "/var/lib/axiscomp/poses-old.csv");
+    assert!(a.input_fresh);
+    // The first character replaces the suggestion; then typing appends.
+    a.handle_key(ch('/'));
+    a.handle_key(ch('t'));
+    assert_eq!(text(&a), "/t");
+    a.handle_key(key(KeyCode::Backspace));
+    assert_eq!(text(&a), "/");
+    // Ctrl-U clears what was typed.
+    a.handle_key(ch('x'));
+    a.handle_key(KeyEvent::new(KeyCode::Char('u'), KeyModifiers::CONTROL));
+    assert_eq!(text(&a), "");
+    // Esc, and the box opens selected again: Backspace clears the suggestion at once.
+    a.handle_key(key(KeyCode::Esc));
+    a.handle_key(ch('f'));
+    assert!(a.input_fresh);
+    a.handle_key(key(KeyCode::Backspace));
+    assert_eq!(text(&a), "");
+}

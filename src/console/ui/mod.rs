@@ -114,11 +114,11 @@ pub fn render(frame: &mut Frame, app: &App) {
         Overlay::None => {}
         Overlay::Help => render_help(frame, app, theme),
         Overlay::Confirm(c) => render_confirm(frame, c, app, theme),
-        Overlay::Input(i) => render_input(frame, i, theme),
+        Overlay::Input(i) => render_input(frame, i, app.input_fresh, theme),
     }
 }
 
-fn render_input(frame: &mut Frame, input: &Input, theme: Theme) {
+fn render_input(frame: &mut Frame, input: &Input, selected: bool, theme: Theme) {
     let (title, about) = match &input.purpose {
         InputFor::PublishAxis { table_id, axis } => (
             " Publish? ".to_string(),
@@ -168,12 +168,25 @@ fn render_input(frame: &mut Frame, input: &Input, theme: Theme) {
     let w = 64usize;
     let chars: Vec<char> = input.text.chars().collect();
     let shown: String = chars[chars.len().saturating_sub(w)..].iter().collect();
+    // A suggestion is shown selected: typing replaces it.
+    let selected = selected && !shown.is_empty();
     lines.push(Line::from(vec![
         Span::styled("> ", theme.accent()),
-        Span::raw(shown),
+        if selected {
+            Span::styled(shown, theme.selected())
+        } else {
+            Span::raw(shown)
+        },
         Span::styled("█", theme.dim()),
     ]));
-    let footer = Line::styled("Enter takes it, Esc cancels", theme.dim());
+    let footer = Line::styled(
+        if selected {
+            "typing replaces it, Enter takes it, Esc cancels"
+        } else {
+            "Enter takes it, Ctrl-U clears, Esc cancels"
+        },
+        theme.dim(),
+    );
     warning_popup(frame, title, lines, footer, 72, theme);
 }
 
