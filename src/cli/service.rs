@@ -128,6 +128,16 @@ fn resource(r: &Resource) -> String {
 }
 
 pub fn check(a: ServeArgs) -> Result<()> {
+    use axiscomp::config::kind::{self, FileKind};
+    if let Some(path) = a.config.as_deref() {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| InputError(format!("{}: cannot read it: {e}", path.display())))?;
+        let k = kind::detect(&text).unwrap_or(FileKind::Service);
+        println!("{}: {}", path.display(), k.describe());
+        if k != FileKind::Service {
+            return check_other(path, &text, k);
+        }
+    }
     let settings = load_settings(a.config.as_deref())?;
     let p = service::prepare(&settings).map_err(service_error)?;
     println!("configuration: {}", settings.sources.join(" + "));
@@ -202,6 +212,61 @@ pub fn check(a: ServeArgs) -> Result<()> {
         None => println!("PLC pull server: off"),
     }
     println!("control socket: {}", settings.service.socket.display());
+    println!("ok");
+    Ok(())
+}
+
+/// `check` of a file that is not the service's configuration: read it with its own reader.
+fn check_other(path: &Path, text: &str, k: axiscomp::config::kind::FileKind) -> Result<()> {
+    use axiscomp::config::kind::FileKind;
+    let label = path.display().to_string();
+    match k {
+        FileKind::Service => unreachable!("the service's configuration is checked by check"),
+        FileKind::Twin => {
+            let (layout, spec) = axiscomp::sim::config::parse(text, &label)?;
+            println!(
+                "twin: seed {}, axis {:.0} mm, layout {} ({}), I/O module on {}",
+                spec.plant.seed,
+                spec.plant.axis.length_mm,
+                layout.name,
+                layout.hash(),
+                spec.io_bind
+            );
+        }
+        FileKind::IoMap => {
+            let m = axiscomp::acquire::map::IoMap::parse(text, &label)?;
+            println!(
+                "I/O map: {}, unit {}, {} registers from {}",
+                m.name,
+                m.unit_id,
+                m.block.count(),
+                m.block.start()
+            );
+        }
+        FileKind::CncMap => {
+            let m = axiscomp::plc::map::CncMap::parse(text, &label)?;
+            println!(
+                "CNC map: {}, unit {}, up to {} points",
+                m.name, m.unit_id, m.limits.max_points
+            );
+        }
+        FileKind::Layout => {
+            let l = axiscomp::optics::Layout::parse(text, &label)?;
+            println!(
+                "layout: {} ({}), {} elements",
+                l.name,
+                l.hash(),
+                l.elements.len()
+            );
+        }
+        FileKind::Calibration => {
+            let c = axiscomp::calibrate::CalibrationFile::parse(text, &label)?;
+            println!(
+                "calibration: {} poses, made {}",
+                c.meta.poses, c.meta.created
+            );
+        }
+    }
     println!("ok");
     Ok(())
 }

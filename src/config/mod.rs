@@ -19,6 +19,8 @@ use crate::modbus::LinkConfig;
 use crate::run::{CaptureSettings, Dialect};
 use crate::track::{Strategy, TrackSettings};
 
+pub mod kind;
+
 /// The built-in defaults (the lowest layer).
 pub const DEFAULTS: &str = include_str!("defaults.toml");
 /// The system-wide file, read when it exists.
@@ -28,7 +30,7 @@ pub const ENV_PREFIX: &str = "AXISCOMP";
 
 /// A configuration error: where, which key, what is wrong and what to do.
 #[derive(Debug, Error, Clone, PartialEq)]
-#[error("config {origin}: {key}: {problem}")]
+#[error("config {origin}: {}{problem}", if key.is_empty() { String::new() } else { format!("{key}: ") })]
 pub struct ConfigError {
     /// The file (with line when known), "the environment" or "built-in defaults".
     pub origin: String,

@@ -362,7 +362,10 @@ mod tests {
             "sim.toml",
         )
         .unwrap_err();
-        assert!(e.to_string().contains("unknown field `colour`"), "{e}");
+        assert!(
+            e.to_string().contains("in [control]: unknown key `colour`"),
+            "{e}"
+        );
         let e = parse(
             &text.replace("transport = \"cannelloni\"", "transport = \"usb\""),
             "sim.toml",

@@ -442,10 +442,38 @@ fn malformed_config_and_map_exit_2_naming_key_and_file() {
     let o = run(&["check", "--config", unknown.to_str().unwrap()], "");
     assert_eq!(o.status.code(), Some(2));
     assert!(
-        stderr(&o).contains("unknown.toml") && stderr(&o).contains("unknown field `node`"),
+        stderr(&o).contains("unknown.toml: line 2 in [follower]: unknown key `node`"),
         "{}",
         stderr(&o)
     );
+    // A typo gets the nearest key; no empty key between colons.
+    let typo = dir.write("typo.toml", "[io]\nadress = \"127.0.0.1:502\"\n");
+    let o = run(&["check", "--config", typo.to_str().unwrap()], "");
+    assert_eq!(o.status.code(), Some(2));
+    let e = stderr(&o);
+    assert!(
+        e.contains("typo.toml: line 2 in [io]: unknown key `adress`: did you mean `address`?"),
+        "{e}"
+    );
+    assert!(!e.contains(": :"), "{e}");
+    // check says which kind of file it got, and reads the other kinds with their readers.
+    for (file, kind) in [
+        ("configs/sim.toml", "the digital twin's configuration"),
+        ("plc-maps/io/generic.toml", "an I/O module's register map"),
+        (
+            "plc-maps/cnc/generic.toml",
+            "a CNC's compensation-table map",
+        ),
+        ("configs/optics/reference.toml", "an optical head layout"),
+    ] {
+        let o = run(&["check", "--config", file], "");
+        assert!(o.status.success(), "{file}: {}", stderr(&o));
+        let out = crate::helpers::stdout(&o);
+        assert!(
+            out.starts_with(&format!("{file}: {kind}")) && out.ends_with("ok\n"),
+            "{out}"
+        );
+    }
 
     let o = run(&["serve", "--config", bad.to_str().unwrap()], "");
     assert_eq!(
