@@ -43,6 +43,19 @@ pub struct CaptureSettings {
     pub timeout: Duration,
 }
 
+impl CaptureSettings {
+    /// The settings as a run's configuration snapshot records them (units in the names).
+    pub fn to_json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "rest_tolerance_mm": self.rest_tolerance_mm,
+            "settle_s": self.settle.as_secs_f64(),
+            "target_tolerance_mm": self.target_tolerance_mm,
+            "frames": self.frames,
+            "timeout_s": self.timeout.as_secs_f64(),
+        })
+    }
+}
+
 impl Default for CaptureSettings {
     fn default() -> Self {
         CaptureSettings {
@@ -558,11 +571,14 @@ impl RunMachine {
             && now.saturating_duration_since(t) > self.settings.timeout
         {
             let missing = self.missing();
+            let next = missing
+                .first()
+                .map(|k| format!(", the next {}", k.describe(&self.plan)))
+                .unwrap_or_default();
             self.actions.push_back(RunAction::Failed(format!(
-                "no capture for {:?}; {} captures missing, next {:?}",
-                self.settings.timeout,
+                "no capture for {:.0} s; {} captures missing{next}",
+                self.settings.timeout.as_secs_f64(),
                 missing.len(),
-                missing.first()
             )));
             self.last_progress = Some(now);
         }

@@ -39,6 +39,16 @@ impl Dialect {
         })
     }
 
+    /// The name [`Dialect::parse`] reads.
+    pub fn name(self) -> &'static str {
+        match self {
+            Dialect::Iso => "iso",
+            Dialect::Siemens => "siemens",
+            Dialect::Heidenhain => "heidenhain",
+            Dialect::LinuxCnc => "linuxcnc",
+        }
+    }
+
     /// The usual file extension.
     pub fn extension(self) -> &'static str {
         match self {

@@ -231,6 +231,8 @@ enum CoreEvent {
     Delivered(Result<u32, String>),
     /// The twin CNC's state.
     Cnc(serde_json::Value),
+    /// The follower drive was (or could not be) enabled again after its heartbeat came back.
+    ReEnabled(Result<(), String>),
     /// A calibration fit ended; the reply owed to its request.
     Fitted(
         oneshot::Sender<Result<serde_json::Value, String>>,
@@ -573,6 +575,22 @@ impl Core {
                         let _ = drive.quick_stop().await;
                     });
                 }
+                Output::ReEnable => {
+                    let drive = self.drive.clone();
+                    let tx = self.events_tx.clone();
+                    tokio::spawn(async move {
+                        // Quick stop leaves the drive in switch on disabled; a drive that
+                        // faulted meanwhile needs its fault reset first.
+                        let r = match drive.enable().await {
+                            Ok(()) => Ok(()),
+                            Err(_) => match drive.fault_reset().await {
+                                Ok(()) => drive.enable().await,
+                                Err(e) => Err(e),
+                            },
+                        };
+                        let _ = tx.send(CoreEvent::ReEnabled(r.map_err(|e| e.to_string())));
+                    });
+                }
                 Output::Handover(r) => {
                     let run = self.run.as_ref().map(|a| a.id);
                     if let Err(e) = self.store.insert_handover(run, &r) {
@@ -905,6 +923,18 @@ impl Core {
                 self.pipeline.alarms.clear("cnc");
             }
             CoreEvent::Delivered(Err(e)) => self.pipeline.alarms.raise("cnc", e),
+            CoreEvent::ReEnabled(r) => match r {
+                Ok(()) => {
+                    tracing::info!("follower drive enabled again: its heartbeat came back");
+                    self.pipeline.alarms.clear("follower-disabled");
+                }
+                Err(e) => self.pipeline.alarms.raise(
+                    "follower-disabled",
+                    format!(
+                        "the follower drive's heartbeat came back but it could not be enabled again ({e}): enable it on screen 2 or with axiscomp's follower enable request"
+                    ),
+                ),
+            },
             CoreEvent::Fitted(reply, r) => {
                 let measure = &self.pipeline.measure;
                 let v = self.calibrations.fitted(*r, |d| measure.read_with(d));
@@ -1046,7 +1076,7 @@ impl Core {
             .create_run(&NewRun {
                 axis: plan.spec.axis.clone(),
                 plan: serde_json::to_value(&plan).map_err(|e| e.to_string())?,
-                config: serde_json::json!({"capture": format!("{:?}", self.capture), "dialect": format!("{dialect:?}")}),
+                config: serde_json::json!({"capture": self.capture.to_json(), "dialect": dialect.name()}),
                 calibration: self.calibrations.active_id(),
                 notes: notes.unwrap_or_else(|| format!("started by {who}")),
             })

@@ -56,6 +56,11 @@ impl Alarms {
     pub fn list(&self) -> &[Alarm] {
         &self.list
     }
+
+    /// Whether `code` is raised now.
+    pub fn is_active(&self, code: &str) -> bool {
+        self.list.iter().any(|a| a.code == code && a.active)
+    }
 }
 
 /// What the pipeline asks of its driver.
@@ -65,6 +70,9 @@ pub enum Output {
     Follower(FollowerCommand),
     /// Stop the follower now (its drive is lost).
     QuickStop,
+    /// Enable the follower drive again: its heartbeat came back after a loss that stopped it
+    /// (a glitch of the bus or of a loaded host must not end an unattended run).
+    ReEnable,
     /// Keep this handover record.
     Handover(HandoverRecord),
     /// Store this capture of the active run.
@@ -103,6 +111,8 @@ pub struct Pipeline {
     no_spot_since: [Option<Instant>; 3],
     /// Why the active run is paused.
     paused: Option<String>,
+    /// The follower was quick-stopped for a lost heartbeat (re-enabled when it comes back).
+    stopped_for_heartbeat: bool,
 }
 
 /// A zero reference on its way (see [`Pipeline::begin_zero`]).
@@ -135,6 +145,7 @@ impl Pipeline {
             late_frames: 0,
             zero: None,
             no_spot_since: [None; 3],
+            stopped_for_heartbeat: false,
             paused: None,
         }
     }
@@ -166,8 +177,23 @@ impl Pipeline {
             .collect();
         match (&self.paused, lost.is_empty()) {
             (None, false) => {
+                // PSD2 alone, with its follower not following: the stage, not the beam.
+                let follower_down = self.follower_state().is_none_or(|f| !f.ready);
+                let what = if lost == ["PSD2"] && follower_down {
+                    let state = self
+                        .drive
+                        .as_ref()
+                        .and_then(|d| d.state)
+                        .map(|s| s.to_string())
+                        .unwrap_or_else(|| "unknown".into());
+                    format!(
+                        "the follower drive is not following (state {state}): enable and home it on screen 2"
+                    )
+                } else {
+                    "clear the beam or realign the head (axiscomp align)".to_string()
+                };
                 let msg = format!(
-                    "{} {} no spot: the run is paused; clear the beam or realign the head (axiscomp align), and it resumes at the next missing capture",
+                    "{} {} no spot: the run is paused; {what}, and it resumes at the next missing capture",
                     lost.join(", "),
                     if lost.len() == 1 { "has" } else { "have" }
                 );
@@ -382,8 +408,14 @@ impl Pipeline {
                     format!("the follower drive's heartbeat stopped ({peer}): follower stopped"),
                 );
                 self.outputs.push_back(Output::QuickStop);
+                self.stopped_for_heartbeat = true;
             }
-            Event::HeartbeatResumed => self.alarms.clear("heartbeat-lost"),
+            Event::HeartbeatResumed => {
+                self.alarms.clear("heartbeat-lost");
+                if std::mem::take(&mut self.stopped_for_heartbeat) {
+                    self.outputs.push_back(Output::ReEnable);
+                }
+            }
             Event::Emcy(emcy) => {
                 if emcy.is_reset() {
                     self.alarms.clear("drive-fault");
@@ -523,5 +555,47 @@ impl Pipeline {
             run.handle_at_target(code, now);
             self.drain_run();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::decouple::{Method, SolveOptions, Source};
+    use crate::optics::Layout;
+
+    fn pipeline() -> Pipeline {
+        let decoupler = Decoupler {
+            source: Source::Simulated(Layout::reference()),
+            method: Method::Nonlinear,
+            sigma_mm: [1e-3; 6],
+            options: SolveOptions::default(),
+        };
+        Pipeline::new(
+            TrackSettings::default(),
+            decoupler,
+            Duration::from_millis(200),
+        )
+    }
+
+    fn outputs(p: &mut Pipeline) -> Vec<Output> {
+        std::iter::from_fn(|| p.poll_output()).collect()
+    }
+
+    /// A lost heartbeat stops the follower; when it comes back the drive is enabled again
+    /// (once), so a glitch does not leave an unattended run with a dead follower.
+    #[test]
+    fn the_follower_is_enabled_again_when_its_heartbeat_comes_back() {
+        let mut p = pipeline();
+        p.handle_drive_event(&Event::HeartbeatResumed, "can0");
+        assert!(outputs(&mut p).is_empty(), "nothing was stopped");
+        p.handle_drive_event(&Event::HeartbeatLost, "can0");
+        assert!(matches!(outputs(&mut p)[..], [Output::QuickStop]));
+        assert!(p.alarms.is_active("heartbeat-lost"));
+        p.handle_drive_event(&Event::HeartbeatResumed, "can0");
+        assert!(matches!(outputs(&mut p)[..], [Output::ReEnable]));
+        assert!(!p.alarms.is_active("heartbeat-lost"));
+        p.handle_drive_event(&Event::HeartbeatResumed, "can0");
+        assert!(outputs(&mut p).is_empty(), "enabled once");
     }
 }

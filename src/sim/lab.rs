@@ -536,6 +536,9 @@ impl Lab {
                 Output::QuickStop => {
                     self.master.submit(Command::QuickStop, now);
                 }
+                Output::ReEnable => {
+                    self.master.submit(Command::Enable, now);
+                }
                 Output::Handover(r) => self.handovers.push(r),
                 Output::Captured(c) => self.captures.push(TrueCapture {
                     capture: c,

@@ -293,6 +293,12 @@ async fn heartbeat_loss_raises_an_alarm_and_stops_the_follower() {
                 .all(|a| a.code != "heartbeat-lost" || !a.active)
     })
     .await;
+    // The quick stop left the drive disabled: the service enables it again by itself (an
+    // unattended run must not end on a bus glitch).
+    rig.wait_for(10, "the follower enabled again", |s| {
+        s.follower.state == "Operation enabled"
+    })
+    .await;
     rig.stop().await;
 }
 
