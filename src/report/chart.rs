@@ -1,6 +1,7 @@
-//! A chart's drawing as primitives in a box (origin top-left, y down, points), shared by the
-//! PDF layout and the SVG of the HTML report: title above, the plot area with ticks and axis
-//! labels, and the legend **below** the plot area so it never covers data.
+//! A chart drawn in a box (origin top-left, y down, points) on a `Canvas`: the PDF page
+//! (`layout`) or an SVG document (the HTML and Markdown reports), from one piece of code.
+//! Title above, the plot area with ticks and axis labels, and the legend **below** the plot
+//! area so it never covers data.
 
 use super::doc::{Chart, colour};
 use super::pdf::{Font, text_width};
@@ -14,27 +15,35 @@ pub enum Anchor {
     End,
 }
 
-/// One drawing primitive.
-#[derive(Clone, Debug, PartialEq)]
-pub enum Prim {
-    Line {
-        pts: Vec<(f64, f64)>,
-        rgb: (u8, u8, u8),
-        width: f64,
-        dashed: bool,
-    },
+/// Where a chart is drawn: the PDF page or an SVG document. Coordinates are the chart box's
+/// (origin top-left, y down, points).
+pub trait Canvas {
+    /// An open polyline.
+    fn line(&mut self, pts: &[(f64, f64)], rgb: (u8, u8, u8), width: f64, dashed: bool);
     /// A small filled square centred at (x, y).
-    Marker { x: f64, y: f64, rgb: (u8, u8, u8) },
+    fn marker(&mut self, x: f64, y: f64, rgb: (u8, u8, u8));
     /// Text with its baseline at y; `up` turns it to read upwards.
-    Text {
-        x: f64,
-        y: f64,
-        text: String,
-        size: f64,
-        bold: bool,
-        anchor: Anchor,
-        up: bool,
-    },
+    fn text(&mut self, at: (f64, f64), text: &str, style: TextStyle);
+}
+
+/// How a chart's text is set.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TextStyle {
+    pub size: f64,
+    pub bold: bool,
+    pub anchor: Anchor,
+    pub up: bool,
+}
+
+impl TextStyle {
+    fn plain(size: f64, anchor: Anchor) -> TextStyle {
+        TextStyle {
+            size,
+            bold: false,
+            anchor,
+            up: false,
+        }
+    }
 }
 
 const TICK_SIZE: f64 = 7.0;
@@ -118,27 +127,16 @@ pub fn height(chart: &Chart, w: f64, plot_h: f64) -> f64 {
     16.0 + plot_h + 30.0 + 12.0 * legend_rows(chart, w - 50.0).len() as f64
 }
 
-/// Draw `chart` into a box `w` wide whose plot area is `plot_h` high.
-pub fn draw(chart: &Chart, w: f64, plot_h: f64) -> Vec<Prim> {
-    let mut out = Vec::new();
-    let text = |x, y, t: &str, size, bold, anchor, up| Prim::Text {
-        x,
-        y,
-        text: t.to_string(),
-        size,
-        bold,
-        anchor,
-        up,
-    };
-    out.push(text(
-        0.0,
-        10.0,
+/// Draw `chart` on `c`, in a box `w` wide whose plot area is `plot_h` high.
+pub fn draw(chart: &Chart, w: f64, plot_h: f64, c: &mut impl Canvas) {
+    c.text(
+        (0.0, 10.0),
         &chart.title,
-        TITLE_SIZE,
-        true,
-        Anchor::Start,
-        false,
-    ));
+        TextStyle {
+            bold: true,
+            ..TextStyle::plain(TITLE_SIZE, Anchor::Start)
+        },
+    );
     let (left, top) = (50.0, 16.0);
     let (pw, ph) = (w - left - 8.0, plot_h);
     let (x0, x1) = range(
@@ -161,94 +159,63 @@ pub fn draw(chart: &Chart, w: f64, plot_h: f64) -> Vec<Prim> {
     let (xd, yd) = (tick_decimals(&xt), tick_decimals(&yt));
     for &t in &yt {
         let y = sy(t);
-        out.push(Prim::Line {
-            pts: vec![(left, y), (left + pw, y)],
-            rgb: GRID,
-            width: 0.4,
-            dashed: false,
-        });
-        out.push(text(
-            left - 3.0,
-            y + 2.5,
+        c.line(&[(left, y), (left + pw, y)], GRID, 0.4, false);
+        c.text(
+            (left - 3.0, y + 2.5),
             &tick_label(t, yd),
-            TICK_SIZE,
-            false,
-            Anchor::End,
-            false,
-        ));
+            TextStyle::plain(TICK_SIZE, Anchor::End),
+        );
     }
     for &t in &xt {
         let x = sx(t);
-        out.push(Prim::Line {
-            pts: vec![(x, top), (x, top + ph)],
-            rgb: GRID,
-            width: 0.4,
-            dashed: false,
-        });
-        out.push(text(
-            x,
-            top + ph + 9.0,
+        c.line(&[(x, top), (x, top + ph)], GRID, 0.4, false);
+        c.text(
+            (x, top + ph + 9.0),
             &tick_label(t, xd),
-            TICK_SIZE,
-            false,
-            Anchor::Middle,
-            false,
-        ));
+            TextStyle::plain(TICK_SIZE, Anchor::Middle),
+        );
     }
     if y0 < 0.0 && y1 > 0.0 {
-        out.push(Prim::Line {
-            pts: vec![(left, sy(0.0)), (left + pw, sy(0.0))],
-            rgb: (150, 150, 150),
-            width: 0.6,
-            dashed: false,
-        });
+        c.line(
+            &[(left, sy(0.0)), (left + pw, sy(0.0))],
+            (150, 150, 150),
+            0.6,
+            false,
+        );
     }
-    out.push(Prim::Line {
-        pts: vec![
+    c.line(
+        &[
             (left, top),
             (left + pw, top),
             (left + pw, top + ph),
             (left, top + ph),
             (left, top),
         ],
-        rgb: AXIS,
-        width: 0.6,
-        dashed: false,
-    });
-    out.push(text(
-        left + pw / 2.0,
-        top + ph + 20.0,
+        AXIS,
+        0.6,
+        false,
+    );
+    c.text(
+        (left + pw / 2.0, top + ph + 20.0),
         &chart.x_label,
-        TICK_SIZE,
-        false,
-        Anchor::Middle,
-        false,
-    ));
-    out.push(text(
-        10.0,
-        top + ph / 2.0,
+        TextStyle::plain(TICK_SIZE, Anchor::Middle),
+    );
+    c.text(
+        (10.0, top + ph / 2.0),
         &chart.y_label,
-        TICK_SIZE,
-        false,
-        Anchor::Middle,
-        true,
-    ));
+        TextStyle {
+            up: true,
+            ..TextStyle::plain(TICK_SIZE, Anchor::Middle)
+        },
+    );
 
     for l in &chart.lines {
         let rgb = colour(l.colour);
-        out.push(Prim::Line {
-            pts: l.points.iter().map(|&(x, y)| (sx(x), sy(y))).collect(),
-            rgb,
-            width: 1.1,
-            dashed: l.dashed,
-        });
+        let pts: Vec<(f64, f64)> = l.points.iter().map(|&(x, y)| (sx(x), sy(y))).collect();
+        c.line(&pts, rgb, 1.1, l.dashed);
         if l.markers {
-            for &(x, y) in &l.points {
-                out.push(Prim::Marker {
-                    x: sx(x),
-                    y: sy(y),
-                    rgb,
-                });
+            for &(x, y) in &pts {
+                c.marker(x, y, rgb);
             }
         }
     }
@@ -259,102 +226,82 @@ pub fn draw(chart: &Chart, w: f64, plot_h: f64) -> Vec<Prim> {
             let l = &chart.lines[i];
             let rgb = colour(l.colour);
             let lx = left + x;
-            out.push(Prim::Line {
-                pts: vec![(lx, y - 2.5), (lx + 18.0, y - 2.5)],
-                rgb,
-                width: 1.1,
-                dashed: l.dashed,
-            });
+            c.line(&[(lx, y - 2.5), (lx + 18.0, y - 2.5)], rgb, 1.1, l.dashed);
             if l.markers {
-                out.push(Prim::Marker {
-                    x: lx + 9.0,
-                    y: y - 2.5,
-                    rgb,
-                });
+                c.marker(lx + 9.0, y - 2.5, rgb);
             }
-            out.push(text(
-                lx + 22.0,
-                y,
+            c.text(
+                (lx + 22.0, y),
                 &l.label,
-                LEGEND_SIZE,
-                false,
-                Anchor::Start,
-                false,
-            ));
+                TextStyle::plain(LEGEND_SIZE, Anchor::Start),
+            );
         }
         y += 12.0;
     }
-    out
+}
+
+/// An SVG document being drawn.
+struct Svg(String);
+
+fn hex((r, g, b): (u8, u8, u8)) -> String {
+    format!("#{r:02x}{g:02x}{b:02x}")
+}
+
+impl Canvas for Svg {
+    fn line(&mut self, pts: &[(f64, f64)], rgb: (u8, u8, u8), width: f64, dashed: bool) {
+        let d: Vec<String> = pts.iter().map(|(x, y)| format!("{x:.1},{y:.1}")).collect();
+        let _ = writeln!(
+            self.0,
+            "<polyline points=\"{}\" fill=\"none\" stroke=\"{}\" stroke-width=\"{width}\"{}/>",
+            d.join(" "),
+            hex(rgb),
+            if dashed {
+                " stroke-dasharray=\"3 2\""
+            } else {
+                ""
+            }
+        );
+    }
+    fn marker(&mut self, x: f64, y: f64, rgb: (u8, u8, u8)) {
+        let _ = writeln!(
+            self.0,
+            "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"3\" height=\"3\" fill=\"{}\"/>",
+            x - 1.5,
+            y - 1.5,
+            hex(rgb)
+        );
+    }
+    fn text(&mut self, (x, y): (f64, f64), text: &str, st: TextStyle) {
+        let a = match st.anchor {
+            Anchor::Start => "start",
+            Anchor::Middle => "middle",
+            Anchor::End => "end",
+        };
+        let rot = if st.up {
+            format!(" transform=\"rotate(-90 {x:.1} {y:.1})\"")
+        } else {
+            String::new()
+        };
+        let _ = writeln!(
+            self.0,
+            "<text x=\"{x:.1}\" y=\"{y:.1}\" font-size=\"{}\" text-anchor=\"{a}\"{}{rot}>{}</text>",
+            st.size,
+            if st.bold { " font-weight=\"bold\"" } else { "" },
+            super::text::html(text)
+        );
+    }
 }
 
 /// The chart as a standalone SVG document `w` points wide.
 pub fn svg(chart: &Chart, w: f64, plot_h: f64) -> String {
     let h = height(chart, w, plot_h);
-    let mut s = format!(
+    let mut s = Svg(format!(
         "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w:.0}\" height=\"{h:.0}\" \
          viewBox=\"0 0 {w:.0} {h:.0}\" font-family=\"Helvetica, Arial, sans-serif\">\n"
-    );
-    let hex = |(r, g, b): (u8, u8, u8)| format!("#{r:02x}{g:02x}{b:02x}");
-    for p in draw(chart, w, plot_h) {
-        match p {
-            Prim::Line {
-                pts,
-                rgb,
-                width,
-                dashed,
-            } => {
-                let d: Vec<String> = pts.iter().map(|(x, y)| format!("{x:.1},{y:.1}")).collect();
-                let _ = writeln!(
-                    s,
-                    "<polyline points=\"{}\" fill=\"none\" stroke=\"{}\" stroke-width=\"{width}\"{}/>",
-                    d.join(" "),
-                    hex(rgb),
-                    if dashed {
-                        " stroke-dasharray=\"3 2\""
-                    } else {
-                        ""
-                    }
-                );
-            }
-            Prim::Marker { x, y, rgb } => {
-                let _ = writeln!(
-                    s,
-                    "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"3\" height=\"3\" fill=\"{}\"/>",
-                    x - 1.5,
-                    y - 1.5,
-                    hex(rgb)
-                );
-            }
-            Prim::Text {
-                x,
-                y,
-                text,
-                size,
-                bold,
-                anchor,
-                up,
-            } => {
-                let a = match anchor {
-                    Anchor::Start => "start",
-                    Anchor::Middle => "middle",
-                    Anchor::End => "end",
-                };
-                let rot = if up {
-                    format!(" transform=\"rotate(-90 {x:.1} {y:.1})\"")
-                } else {
-                    String::new()
-                };
-                let _ = writeln!(
-                    s,
-                    "<text x=\"{x:.1}\" y=\"{y:.1}\" font-size=\"{size}\" text-anchor=\"{a}\"{}{rot}>{}</text>",
-                    if bold { " font-weight=\"bold\"" } else { "" },
-                    super::text::html(&text)
-                );
-            }
-        }
-    }
-    s.push_str("</svg>\n");
-    s
+    ));
+    draw(chart, w, plot_h, &mut s);
+    s.0.push_str("</svg>\n");
+    s.0
 }
 
 #[cfg(test)]

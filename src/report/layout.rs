@@ -2,7 +2,7 @@
 //! kept with what follows, tables whose column widths fit their content and whose heading row
 //! repeats after a page break, charts drawn as vector paths, and the signature block.
 
-use super::chart::{self, Anchor, Prim};
+use super::chart::{self, Anchor, TextStyle};
 use super::doc::{Block, Chart, Document, Table};
 use super::pdf::{self, Font, PAGE_H, PAGE_W, Page, text_width};
 
@@ -170,47 +170,38 @@ fn table(f: &mut Flow, t: &Table) {
     f.y += 6.0;
 }
 
-/// Draw chart primitives with the chart's top-left at (x, y).
-fn draw_prims(page: &mut Page, prims: &[Prim], x: f64, y: f64) {
-    for p in prims {
-        match p {
-            Prim::Line {
-                pts,
-                rgb,
-                width,
-                dashed,
-            } => {
-                page.stroke_style(*rgb, *width, *dashed);
-                let moved: Vec<(f64, f64)> = pts.iter().map(|(a, b)| (a + x, b + y)).collect();
-                page.polyline(&moved);
-            }
-            Prim::Marker { x: mx, y: my, rgb } => {
-                page.fill(*rgb);
-                page.rect(mx + x - 1.6, my + y - 1.6, 3.2, 3.2, true);
-                page.fill((0, 0, 0));
-            }
-            Prim::Text {
-                x: tx,
-                y: ty,
-                text,
-                size,
-                bold,
-                anchor,
-                up,
-            } => {
-                let font = if *bold { Font::Bold } else { Font::Regular };
-                let w = text_width(text, font, *size);
-                let shift = match anchor {
-                    Anchor::Start => 0.0,
-                    Anchor::Middle => w / 2.0,
-                    Anchor::End => w,
-                };
-                if *up {
-                    page.text_up(tx + x, ty + y + shift, text, font, *size);
-                } else {
-                    page.text(tx + x - shift, ty + y, text, font, *size);
-                }
-            }
+/// A chart drawn on a page with its box's top-left at `at`.
+struct OnPage<'a> {
+    page: &'a mut Page,
+    at: (f64, f64),
+}
+
+impl chart::Canvas for OnPage<'_> {
+    fn line(&mut self, pts: &[(f64, f64)], rgb: (u8, u8, u8), width: f64, dashed: bool) {
+        self.page.stroke_style(rgb, width, dashed);
+        let (x, y) = self.at;
+        let moved: Vec<(f64, f64)> = pts.iter().map(|(a, b)| (a + x, b + y)).collect();
+        self.page.polyline(&moved);
+    }
+    fn marker(&mut self, mx: f64, my: f64, rgb: (u8, u8, u8)) {
+        let (x, y) = self.at;
+        self.page.fill(rgb);
+        self.page.rect(mx + x - 1.6, my + y - 1.6, 3.2, 3.2, true);
+        self.page.fill((0, 0, 0));
+    }
+    fn text(&mut self, (tx, ty): (f64, f64), text: &str, st: TextStyle) {
+        let (x, y) = self.at;
+        let font = if st.bold { Font::Bold } else { Font::Regular };
+        let shift = match st.anchor {
+            Anchor::Start => 0.0,
+            Anchor::Middle => text_width(text, font, st.size) / 2.0,
+            Anchor::End => text_width(text, font, st.size),
+        };
+        if st.up {
+            self.page
+                .text_up(tx + x, ty + y + shift, text, font, st.size);
+        } else {
+            self.page.text(tx + x - shift, ty + y, text, font, st.size);
         }
     }
 }
@@ -219,9 +210,8 @@ fn chart_block(f: &mut Flow, c: &Chart) {
     let h = chart::height(c, TEXT_W, CHART_PLOT_H);
     let note_lines = wrap(&c.note, Font::Regular, 7.5, TEXT_W).len() as f64;
     f.need(h + note_lines * 10.5 + 8.0);
-    let prims = chart::draw(c, TEXT_W, CHART_PLOT_H);
-    let y = f.y + 4.0;
-    draw_prims(f.page(), &prims, MARGIN, y);
+    let at = (MARGIN, f.y + 4.0);
+    chart::draw(c, TEXT_W, CHART_PLOT_H, &mut OnPage { page: f.page(), at });
     f.y += h + 2.0;
     if !c.note.is_empty() {
         paragraph(f, &c.note, Font::Regular, 7.5);

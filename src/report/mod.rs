@@ -319,20 +319,10 @@ pub fn validate_series(dof: Dof, series: &[Series]) -> Result<(), ReportError> {
 /// written, in the order written.
 pub fn write_run_report(dir: &Path, report: &RunReport) -> Result<Vec<PathBuf>, ReportError> {
     report.validate()?;
-    std::fs::create_dir_all(dir).map_err(|source| ReportError::Write {
-        path: dir.display().to_string(),
-        source,
-    })?;
+    create_dir(dir)?;
     let mut written = Vec::new();
-    let mut write_text = |name: &str, body: &str| -> Result<(), ReportError> {
-        let path = dir.join(name);
-        std::fs::write(&path, body).map_err(|source| ReportError::Write {
-            path: path.display().to_string(),
-            source,
-        })?;
-        written.push(path);
-        Ok(())
-    };
+    let mut write_text =
+        |name: &str, body: &str| write_file(&mut written, dir, name, body.as_bytes());
 
     let mut svgs = html::Svgs::default();
     if !report.dofs.is_empty() {
@@ -373,6 +363,29 @@ pub fn write_run_report(dir: &Path, report: &RunReport) -> Result<Vec<PathBuf>, 
     Ok(written)
 }
 
+fn create_dir(dir: &Path) -> Result<(), ReportError> {
+    std::fs::create_dir_all(dir).map_err(|source| ReportError::Write {
+        path: dir.display().to_string(),
+        source,
+    })
+}
+
+/// Write `dir/name` and add its path to `written`.
+fn write_file(
+    written: &mut Vec<PathBuf>,
+    dir: &Path,
+    name: &str,
+    body: &[u8],
+) -> Result<(), ReportError> {
+    let path = dir.join(name);
+    std::fs::write(&path, body).map_err(|source| ReportError::Write {
+        path: path.display().to_string(),
+        source,
+    })?;
+    written.push(path);
+    Ok(())
+}
+
 /// The formats of an acceptance report.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Format {
@@ -404,20 +417,9 @@ pub fn write_acceptance(
     formats: &[Format],
     generated_us: i64,
 ) -> Result<Vec<PathBuf>, ReportError> {
-    std::fs::create_dir_all(dir).map_err(|source| ReportError::Write {
-        path: dir.display().to_string(),
-        source,
-    })?;
+    create_dir(dir)?;
     let mut written = Vec::new();
-    let mut write = |name: &str, body: &[u8]| -> Result<(), ReportError> {
-        let path = dir.join(name);
-        std::fs::write(&path, body).map_err(|source| ReportError::Write {
-            path: path.display().to_string(),
-            source,
-        })?;
-        written.push(path);
-        Ok(())
-    };
+    let mut write = |name: &str, body: &[u8]| write_file(&mut written, dir, name, body);
     for f in formats {
         match f {
             Format::Html => write("acceptance.html", render::html(doc).as_bytes())?,
