@@ -10,6 +10,8 @@ const MARGIN: f64 = 50.0;
 const BOTTOM: f64 = PAGE_H - 56.0;
 const BODY: f64 = 9.0;
 const CELL: f64 = 8.0;
+/// Notes under tables and charts.
+const NOTE: f64 = 7.5;
 const ROW_H: f64 = 11.5;
 const TEXT_W: f64 = PAGE_W - 2.0 * MARGIN;
 const CHART_PLOT_H: f64 = 150.0;
@@ -151,10 +153,20 @@ fn table(f: &mut Flow, t: &Table) {
         let y = f.y + 3.5;
         rule(f, y, 0.6, 90);
     };
-    f.need(ROW_H * 3.0);
+    // The note stays on the page of the last row.
+    let note_h = t.note.as_ref().map_or(0.0, |n| {
+        wrap(n, Font::Regular, NOTE, TEXT_W).len() as f64 * (NOTE + 3.0) + 8.0
+    });
+    // A short table is kept whole; a long one starts with a few rows.
+    if t.rows.len() <= 12 {
+        f.need(ROW_H * (t.rows.len() + 1) as f64 + 8.0 + note_h);
+    } else {
+        f.need(ROW_H * 3.0);
+    }
     head(f);
-    for row in &t.rows {
-        if f.y + ROW_H > BOTTOM {
+    for (i, row) in t.rows.iter().enumerate() {
+        let last = i + 1 == t.rows.len();
+        if f.y + ROW_H + if last { note_h } else { 0.0 } > BOTTOM {
             f.new_page();
             head(f);
         }
@@ -165,7 +177,7 @@ fn table(f: &mut Flow, t: &Table) {
     rule(f, y, 0.4, 160);
     f.y += 4.0;
     if let Some(note) = &t.note {
-        paragraph(f, note, Font::Regular, 7.5);
+        paragraph(f, note, Font::Regular, NOTE);
     }
     f.y += 6.0;
 }
@@ -208,13 +220,13 @@ impl chart::Canvas for OnPage<'_> {
 
 fn chart_block(f: &mut Flow, c: &Chart) {
     let h = chart::height(c, TEXT_W, CHART_PLOT_H);
-    let note_lines = wrap(&c.note, Font::Regular, 7.5, TEXT_W).len() as f64;
+    let note_lines = wrap(&c.note, Font::Regular, NOTE, TEXT_W).len() as f64;
     f.need(h + note_lines * 10.5 + 8.0);
     let at = (MARGIN, f.y + 4.0);
     chart::draw(c, TEXT_W, CHART_PLOT_H, &mut OnPage { page: f.page(), at });
     f.y += h + 2.0;
     if !c.note.is_empty() {
-        paragraph(f, &c.note, Font::Regular, 7.5);
+        paragraph(f, &c.note, Font::Regular, NOTE);
     }
     f.y += 8.0;
 }
@@ -265,7 +277,8 @@ fn pages(doc: &Document) -> Vec<Page> {
                 f.y += 2.0;
             }
             Block::Subheading(s) => {
-                f.need(50.0);
+                // With room for a short table under it (the table is kept whole).
+                f.need(180.0);
                 f.y += 4.0;
                 paragraph(&mut f, s, Font::Bold, 9.5);
             }
