@@ -10,6 +10,7 @@ mod evaluate;
 mod export;
 mod follower;
 mod optics;
+mod report;
 mod run;
 mod service;
 mod table;
@@ -61,8 +62,9 @@ enum Command {
     /// ISO 230-2 measurement runs on the running service.
     #[command(subcommand)]
     Run(run::Command),
-    /// Write a run's report (plots, ISO figures, HTML and Markdown) from the store.
-    Report(run::ReportArgs),
+    /// Write a run's acceptance report (HTML, Markdown, PDF) from the store, optionally
+    /// against a second run (before/after).
+    Report(report::ReportArgs),
     /// Export a run's compensation table for a controller.
     Export(export::ExportArgs),
     /// Beam alignment on the running service: read the spots at each end of the travel, enter
@@ -147,7 +149,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Check(a) => service::check(a),
         Command::Sim(a) => service::sim(a),
         Command::Run(c) => run::run(c),
-        Command::Report(a) => run::report(a),
+        Command::Report(a) => report::report(a),
         Command::Export(a) => export::run(a),
         Command::Table(c) => table::run(c),
         Command::Align(c) => align::run(c),

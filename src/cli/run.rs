@@ -1,13 +1,11 @@
-//! `axiscomp run start|status|abort` (through the running service) and `axiscomp report` (from
-//! the store); `axiscomp export` is in `export.rs`.
+//! `axiscomp run start|status|abort` (through the running service), and where
+//! the store is for `axiscomp report` (`report.rs`) and `axiscomp export` (`export.rs`).
 
 use super::InputError;
 use anyhow::{Context, Result};
-use axiscomp::evaluate::{EvalOptions, evaluate_captures};
-use axiscomp::report::{RunMeta, write_run_report};
 use axiscomp::run::PlanSpec;
 use axiscomp::service::control::{Client, Request};
-use axiscomp::store::{RunId, Store};
+use axiscomp::store::Store;
 use clap::Subcommand;
 use std::path::PathBuf;
 
@@ -135,6 +133,7 @@ pub struct StoreArgs {
     /// The store (default: axiscomp.db in the configured state directory).
     #[arg(long)]
     pub db: Option<PathBuf>,
+    /// The configuration (state directory; for reports also the machine and tolerances).
     #[arg(long)]
     pub config: Option<PathBuf>,
 }
@@ -155,110 +154,4 @@ pub(super) fn open_store(a: &StoreArgs) -> Result<Store> {
         .into());
     }
     Ok(Store::open_read_only(&path)?)
-}
-
-#[derive(clap::Args, Debug)]
-pub struct ReportArgs {
-    #[command(flatten)]
-    pub store: StoreArgs,
-    /// Directory for the report (HTML, Markdown, SVG and PNG plots).
-    #[arg(long, required_unless_present = "json")]
-    pub out: Option<PathBuf>,
-    /// Print the ISO figures and the uncertainty budget of every DOF and point as JSON (µm,
-    /// arcsec; standard u per term, U expanded with k = 2).
-    #[arg(long)]
-    pub json: bool,
-    /// The follower stage's specification, ±µm along its axis and ±µm vertical straightness
-    /// (e.g. 4,2), for the budget's follower term until a follower map is in use; without it
-    /// the term is stated as unknown.
-    #[arg(long, value_delimiter = ',', value_name = "ALONG_UM,VERTICAL_UM")]
-    pub follower_spec_um: Option<Vec<f64>>,
-}
-
-/// `axiscomp report --run ID (--out DIR | --json)`.
-pub fn report(a: ReportArgs) -> Result<()> {
-    use axiscomp::evaluate::uncertainty::{self, BudgetInputs, FollowerInput};
-    let store = open_store(&a.store)?;
-    let id = RunId(a.store.run);
-    let rec = store.run(id)?;
-    let captures = store.captures(id)?;
-    let eval = evaluate_captures(&captures, &EvalOptions::default())?;
-    let mut report =
-        axiscomp::report::runs::run_report(RunMeta::from_record(&rec), &captures, &eval);
-    let handovers: Vec<_> = store
-        .handovers(Some(id))?
-        .into_iter()
-        .map(|h| h.record)
-        .collect();
-    let follower = match a.follower_spec_um.as_deref() {
-        Some(&[along, vertical]) if along >= 0.0 && vertical >= 0.0 => {
-            FollowerInput::Specification {
-                positioning_mm: along * 1e-3,
-                straightness_mm: vertical * 1e-3,
-            }
-        }
-        Some(v) => {
-            let given: Vec<String> = v.iter().map(ToString::to_string).collect();
-            return Err(InputError(format!(
-                "--follower-spec-um {}: give two non-negative numbers, µm along and µm vertical (e.g. 4,2)",
-                given.join(",")
-            ))
-            .into());
-        }
-        None => FollowerInput::Unstated,
-    };
-    // The head's sensitivities to PSD2 from the layout: first order, as the stored run does
-    // not carry its decoupler.
-    let layout = super::load_layout(None)?;
-    let decoupler = axiscomp::decouple::Decoupler {
-        source: axiscomp::decouple::Source::Simulated(layout),
-        method: axiscomp::decouple::Method::Linear,
-        sigma_mm: [1e-3; 6],
-        options: axiscomp::decouple::SolveOptions::default(),
-    };
-    let mid = eval.positions_mm.iter().sum::<f64>() / eval.positions_mm.len().max(1) as f64;
-    let reference_mm = rec
-        .plan
-        .get("reference_mm")
-        .and_then(serde_json::Value::as_f64)
-        .or_else(|| eval.positions_mm.first().copied())
-        .unwrap_or(0.0);
-    let inputs = BudgetInputs {
-        reference_mm,
-        psd2_sensitivity: uncertainty::psd2_sensitivity(&decoupler, mid)
-            .context("the head's sensitivities to PSD2 from the layout")?,
-        follower,
-        calibration: None,
-        thermal: None,
-        drift_range: None,
-    };
-    let budget = uncertainty::budget(
-        &eval,
-        &uncertainty::stitched(&captures, &handovers),
-        &inputs,
-    );
-    axiscomp::report::runs::add_budget(&mut report, &budget);
-    if let Some(out) = &a.out {
-        let files = write_run_report(out, &report)?;
-        if !a.json {
-            for f in files {
-                println!("{}", f.display());
-            }
-        }
-    }
-    if a.json {
-        let json = serde_json::json!({
-            "run": id.0,
-            "axis": rec.axis,
-            "figures": report.dofs.iter().map(|d| serde_json::json!({
-                "dof": d.dof.name(),
-                "figures": d.figures.iter().map(|f| serde_json::json!({
-                    "name": f.name, "value": f.value, "unit": f.unit,
-                })).collect::<Vec<_>>(),
-            })).collect::<Vec<_>>(),
-            "budget": budget.to_user_json(),
-        });
-        println!("{}", serde_json::to_string_pretty(&json)?);
-    }
-    Ok(())
 }

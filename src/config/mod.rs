@@ -60,6 +60,8 @@ pub struct RawHead {
     pub calibration: String,
     pub noise_um: f64,
     pub live_window_ms: u64,
+    /// The head's serial number (for reports).
+    pub serial: String,
 }
 
 /// `[io]`
@@ -217,6 +219,9 @@ pub struct RawConfig {
     pub hexapod: crate::hexapod::config::RawHexapod,
     /// `[comp.<controller>]`: the controllers' settings for `axiscomp export`.
     pub comp: crate::comp::settings::RawComp,
+    /// `[machine]` and `[acceptance]`: the acceptance report's machine and tolerances.
+    pub machine: crate::report::settings::RawMachine,
+    pub acceptance: crate::report::settings::RawAcceptance,
 }
 
 /// Where a file, map or layout comes from: a path, or the copy built into the binary.
@@ -246,6 +251,8 @@ pub struct HeadSettings {
     pub calibration: Option<PathBuf>,
     pub noise_mm: f64,
     pub live_window: Duration,
+    /// The head's serial number; empty when not configured.
+    pub serial: String,
 }
 
 /// `[io]`, validated.
@@ -364,6 +371,10 @@ pub struct Settings {
     /// `[hexapod]`: the calibration hexapod (`hexapod::config`).
     pub hexapod: crate::hexapod::config::HexapodSettings,
     pub comp: crate::comp::settings::CompSettings,
+    /// `[machine]`: the machine under test (for acceptance reports).
+    pub machine: crate::report::settings::MachineSettings,
+    /// `[acceptance]`: the tolerances acceptance reports judge against.
+    pub acceptance: crate::report::settings::AcceptanceSettings,
     /// The files that were read, in layer order (for `check` and the logs).
     pub sources: Vec<String>,
 }
@@ -644,6 +655,7 @@ fn validate(
         calibration: (!h.calibration.is_empty()).then(|| PathBuf::from(&h.calibration)),
         noise_mm: v.positive("head.noise_um", h.noise_um)? * 1e-3,
         live_window: v.ms("head.live_window_ms", h.live_window_ms, 10)?,
+        serial: h.serial.trim().to_string(),
     };
     let i = &raw.io;
     let unit = u8::try_from(i.unit).map_err(|_| {
@@ -907,6 +919,8 @@ fn validate(
     let plc = plc_settings(&v, &raw.plc)?;
     let hexapod = crate::hexapod::config::validate(&raw.hexapod, origin)?;
     let comp = crate::comp::settings::validate(&raw.comp).map_err(|(k, p)| v.err(&k, p))?;
+    let (machine, acceptance) = crate::report::settings::validate(&raw.machine, &raw.acceptance)
+        .map_err(|(k, p)| v.err(&k, p))?;
     Ok(Settings {
         service,
         head,
@@ -920,6 +934,8 @@ fn validate(
         plc,
         hexapod,
         comp,
+        machine,
+        acceptance,
         sources,
     })
 }

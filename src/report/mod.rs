@@ -14,10 +14,18 @@
 //!   style, no scripts, no external resources), a Markdown report that references the PNGs by
 //!   relative path, and the SVG and PNG files.
 
+pub mod acceptance;
+pub mod chart;
+pub mod doc;
 mod html;
+pub mod layout;
 mod markdown;
+pub mod pdf;
 pub mod plot;
+pub mod render;
 pub mod runs;
+pub mod settings;
+pub mod source;
 mod text;
 #[cfg(test)]
 mod xml_check;
@@ -311,20 +319,10 @@ pub fn validate_series(dof: Dof, series: &[Series]) -> Result<(), ReportError> {
 /// written, in the order written.
 pub fn write_run_report(dir: &Path, report: &RunReport) -> Result<Vec<PathBuf>, ReportError> {
     report.validate()?;
-    std::fs::create_dir_all(dir).map_err(|source| ReportError::Write {
-        path: dir.display().to_string(),
-        source,
-    })?;
+    create_dir(dir)?;
     let mut written = Vec::new();
-    let mut write_text = |name: &str, body: &str| -> Result<(), ReportError> {
-        let path = dir.join(name);
-        std::fs::write(&path, body).map_err(|source| ReportError::Write {
-            path: path.display().to_string(),
-            source,
-        })?;
-        written.push(path);
-        Ok(())
-    };
+    let mut write_text =
+        |name: &str, body: &str| write_file(&mut written, dir, name, body.as_bytes());
 
     let mut svgs = html::Svgs::default();
     if !report.dofs.is_empty() {
@@ -361,6 +359,90 @@ pub fn write_run_report(dir: &Path, report: &RunReport) -> Result<Vec<PathBuf>, 
         let path = dir.join(text::comparison_file(c.dof, "png"));
         plot::comparison_png(c, &path)?;
         written.push(path);
+    }
+    Ok(written)
+}
+
+fn create_dir(dir: &Path) -> Result<(), ReportError> {
+    std::fs::create_dir_all(dir).map_err(|source| ReportError::Write {
+        path: dir.display().to_string(),
+        source,
+    })
+}
+
+/// Write `dir/name` and add its path to `written`.
+fn write_file(
+    written: &mut Vec<PathBuf>,
+    dir: &Path,
+    name: &str,
+    body: &[u8],
+) -> Result<(), ReportError> {
+    let path = dir.join(name);
+    std::fs::write(&path, body).map_err(|source| ReportError::Write {
+        path: path.display().to_string(),
+        source,
+    })?;
+    written.push(path);
+    Ok(())
+}
+
+/// The formats of an acceptance report.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Format {
+    Html,
+    Markdown,
+    Pdf,
+}
+
+impl Format {
+    pub const ALL: [Format; 3] = [Format::Html, Format::Markdown, Format::Pdf];
+
+    /// "html", "md" or "pdf".
+    pub fn parse(s: &str) -> Option<Format> {
+        match s {
+            "html" => Some(Format::Html),
+            "md" | "markdown" => Some(Format::Markdown),
+            "pdf" => Some(Format::Pdf),
+            _ => None,
+        }
+    }
+}
+
+/// Write an acceptance document into `dir` (created when missing): `acceptance.html`,
+/// `acceptance.md` with its charts as `chart-<n>.svg`, and `acceptance.pdf`, as `formats`
+/// ask. Returns the paths written.
+pub fn write_acceptance(
+    dir: &Path,
+    doc: &doc::Document,
+    formats: &[Format],
+    generated_us: i64,
+) -> Result<Vec<PathBuf>, ReportError> {
+    create_dir(dir)?;
+    let mut written = Vec::new();
+    let mut write = |name: &str, body: &[u8]| write_file(&mut written, dir, name, body);
+    for f in formats {
+        match f {
+            Format::Html => write("acceptance.html", render::html(doc).as_bytes())?,
+            Format::Markdown => {
+                write("acceptance.md", render::markdown(doc).as_bytes())?;
+                for (name, svg) in render::chart_svgs(doc) {
+                    write(&name, svg.as_bytes())?;
+                }
+            }
+            Format::Pdf => {
+                let secs = generated_us.div_euclid(1_000_000);
+                let stamp: String = crate::util::time::rfc3339(secs)
+                    .chars()
+                    .filter(char::is_ascii_digit)
+                    .collect();
+                let info = pdf::Info {
+                    title: doc.title.clone(),
+                    subject: doc.subtitle.clone(),
+                    creation_date: format!("D:{stamp}Z"),
+                };
+                write("acceptance.pdf", &layout::pdf(doc, &info))?;
+            }
+        }
     }
     Ok(written)
 }

@@ -20,6 +20,7 @@ mod hexapod;
 mod links;
 mod modbus;
 mod plc;
+mod report;
 mod resume;
 mod service;
 mod socketcan;

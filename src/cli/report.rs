@@ -1,0 +1,205 @@
+//! `axiscomp report`: a run's acceptance report (HTML, Markdown, PDF) from the store, without
+//! the service, optionally against a second run (before/after); `--json` prints the ISO figures
+//! and the uncertainty budget; `--format raw` writes the per-error plots and tables as before.
+
+use super::InputError;
+use super::run::{StoreArgs, open_store};
+use anyhow::{Context, Result};
+use axiscomp::evaluate::uncertainty::{self, Budget, BudgetInputs, FollowerInput};
+use axiscomp::report::source::{RunData, follower_map, run_data};
+use axiscomp::report::{Format, RunMeta, acceptance, write_acceptance, write_run_report};
+use axiscomp::store::{RunId, Store};
+use std::path::PathBuf;
+
+#[derive(clap::Args, Debug)]
+pub struct ReportArgs {
+    #[command(flatten)]
+    pub store: StoreArgs,
+    /// A second run to compare with (before/after: the earlier run is "before").
+    #[arg(long, value_name = "RUN")]
+    pub compare: Option<i64>,
+    /// Directory for the report.
+    #[arg(long, required_unless_present = "json")]
+    pub out: Option<PathBuf>,
+    /// Formats, comma-separated: html, md, pdf (default: all three), or raw (the per-error
+    /// plots, SVG and PNG, with report.html and report.md of the figures).
+    #[arg(long, value_delimiter = ',', value_name = "html|md|pdf|raw")]
+    pub format: Vec<String>,
+    /// The operator to name on the report (default: who started the run, from the audit log).
+    #[arg(long)]
+    pub operator: Option<String>,
+    /// Print the ISO figures and the uncertainty budget of every DOF and point as JSON (µm,
+    /// arcsec; standard u per term, U expanded with k = 2).
+    #[arg(long)]
+    pub json: bool,
+    /// The follower stage's specification, ±µm along its axis and ±µm vertical straightness
+    /// (e.g. 4,2), for the budget's follower term until a follower map is in use; without it
+    /// the term is stated as unknown.
+    #[arg(long, value_delimiter = ',', value_name = "ALONG_UM,VERTICAL_UM")]
+    pub follower_spec_um: Option<Vec<f64>>,
+}
+
+fn follower_input(spec: Option<&[f64]>) -> Result<FollowerInput> {
+    Ok(match spec {
+        Some(&[along, vertical]) if along >= 0.0 && vertical >= 0.0 => {
+            FollowerInput::Specification {
+                positioning_mm: along * 1e-3,
+                straightness_mm: vertical * 1e-3,
+            }
+        }
+        Some(v) => {
+            let given: Vec<String> = v.iter().map(ToString::to_string).collect();
+            return Err(InputError(format!(
+                "--follower-spec-um {}: give two non-negative numbers, µm along and µm vertical (e.g. 4,2)",
+                given.join(",")
+            ))
+            .into());
+        }
+        None => FollowerInput::Unstated,
+    })
+}
+
+/// The run's uncertainty budget. The head's sensitivities to PSD2 come from the layout: first
+/// order, as the stored run does not carry its decoupler.
+fn budget(store: &Store, run: &RunData, follower: FollowerInput) -> Result<Budget> {
+    let handovers: Vec<_> = store
+        .handovers(Some(run.record.id))?
+        .into_iter()
+        .map(|h| h.record)
+        .collect();
+    let layout = super::load_layout(None)?;
+    let decoupler = axiscomp::decouple::Decoupler {
+        source: axiscomp::decouple::Source::Simulated(layout),
+        method: axiscomp::decouple::Method::Linear,
+        sigma_mm: [1e-3; 6],
+        options: axiscomp::decouple::SolveOptions::default(),
+    };
+    let eval = &run.eval;
+    let mid = eval.positions_mm.iter().sum::<f64>() / eval.positions_mm.len().max(1) as f64;
+    let reference_mm = run
+        .plan
+        .as_ref()
+        .map(|p| p.reference_mm)
+        .or_else(|| eval.positions_mm.first().copied())
+        .unwrap_or(0.0);
+    let inputs = BudgetInputs {
+        reference_mm,
+        psd2_sensitivity: uncertainty::psd2_sensitivity(&decoupler, mid)
+            .context("the head's sensitivities to PSD2 from the layout")?,
+        follower,
+        calibration: None,
+        thermal: None,
+        drift_range: None,
+    };
+    Ok(uncertainty::budget(
+        eval,
+        &uncertainty::stitched(&run.captures, &handovers),
+        &inputs,
+    ))
+}
+
+fn formats(given: &[String]) -> Result<(Vec<Format>, bool)> {
+    if given.is_empty() {
+        return Ok((Format::ALL.to_vec(), false));
+    }
+    let mut out = Vec::new();
+    let mut raw = false;
+    for f in given {
+        match (f.as_str(), Format::parse(f)) {
+            ("raw", _) => raw = true,
+            (_, Some(f)) => out.push(f),
+            (other, None) => {
+                return Err(InputError(format!(
+                    "--format {other}: use html, md, pdf or raw (comma-separated)"
+                ))
+                .into());
+            }
+        }
+    }
+    out.sort();
+    out.dedup();
+    Ok((out, raw))
+}
+
+/// `axiscomp report --run N [--compare M] [--format …] (--out DIR | --json)`.
+pub fn report(a: ReportArgs) -> Result<()> {
+    let (formats, raw) = formats(&a.format)?;
+    let settings = super::service::settings(a.store.config.as_deref())?;
+    let store = open_store(&a.store)?;
+    let alpha = settings.machine.expansion_um_per_m_k;
+    let follower = follower_input(a.follower_spec_um.as_deref())?;
+    let mut run = run_data(&store, RunId(a.store.run), alpha)?;
+    run.budget = Some(budget(&store, &run, follower.clone())?);
+    let compare = match a.compare {
+        Some(m) if m == a.store.run => {
+            return Err(InputError(format!(
+                "--compare {m}: that is the run reported; give another run"
+            ))
+            .into());
+        }
+        Some(m) => {
+            let mut c = run_data(&store, RunId(m), alpha)?;
+            c.budget = Some(budget(&store, &c, follower)?);
+            if c.record.axis != run.record.axis {
+                return Err(InputError(format!(
+                    "--compare {m}: run {m} measured axis {}, run {} axis {}: compare runs of one axis",
+                    c.record.axis, a.store.run, run.record.axis
+                ))
+                .into());
+            }
+            Some(c)
+        }
+        None => None,
+    };
+    let generated_us = axiscomp::store::now_us();
+    if let Some(out) = &a.out {
+        let map = follower_map(&store)?;
+        let doc = acceptance::document(&acceptance::Acceptance {
+            machine: &settings.machine,
+            head_serial: &settings.head.serial,
+            tolerances: &settings.acceptance,
+            follower_map: map.as_ref(),
+            run: &run,
+            compare: compare.as_ref(),
+            operator: a.operator.as_deref(),
+            generated_us,
+        });
+        let mut files = write_acceptance(out, &doc, &formats, generated_us)?;
+        if raw {
+            let mut report = axiscomp::report::runs::run_report(
+                RunMeta::from_record(&run.record),
+                &run.captures,
+                &run.eval,
+            );
+            if let Some(b) = &run.budget {
+                axiscomp::report::runs::add_budget(&mut report, b);
+            }
+            files.extend(write_run_report(out, &report)?);
+        }
+        if !a.json {
+            for f in files {
+                println!("{}", f.display());
+            }
+        }
+    }
+    if a.json {
+        let report = axiscomp::report::runs::run_report(
+            RunMeta::from_record(&run.record),
+            &run.captures,
+            &run.eval,
+        );
+        let json = serde_json::json!({
+            "run": run.record.id.0,
+            "axis": run.record.axis,
+            "figures": report.dofs.iter().map(|d| serde_json::json!({
+                "dof": d.dof.name(),
+                "figures": d.figures.iter().map(|f| serde_json::json!({
+                    "name": f.name, "value": f.value, "unit": f.unit,
+                })).collect::<Vec<_>>(),
+            })).collect::<Vec<_>>(),
+            "budget": run.budget.as_ref().map(Budget::to_user_json),
+        });
+        println!("{}", serde_json::to_string_pretty(&json)?);
+    }
+    Ok(())
+}
