@@ -16,6 +16,7 @@
 //! The decisions (stored format, the next sequence, the status verdict) are plain functions
 //! with unit tests; the task only does the I/O. The protocol is `plc-maps/README.md`.
 
+use super::composition::{self, Base};
 use super::control::{Command, Request};
 use super::shutdown::Shutdown;
 use crate::comp::{self, AxisMapping, CompTable, MachineAxis, TableKind, TableSpec};
@@ -26,8 +27,8 @@ use crate::plc::table::{self as ptable, RawHeader, Reject, TableDirection};
 use crate::plc::{self, CncMap, PlcStatus, PlcTable, PublishOutcome, PullServer, StatusCode};
 use crate::run::Direction;
 use crate::store::{
-    Publication, PublicationOutcome, PublicationRecord, RunId, RunState, Store, StoreError,
-    TableEntry, TableId, TableRecord, now_us,
+    Publication, PublicationOutcome, PublicationRecord, RunId, RunState, RunTables, Store,
+    StoreError, TableEntry, TableId, TableRecord, now_us,
 };
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
@@ -71,9 +72,13 @@ pub struct StoredTable {
     pub down_mm: Option<Vec<f64>>,
     /// Where the values are zero (mm).
     pub reference_mm: f64,
-    /// The table as measured (`comp::CompTable`), before fitting to the PLC's grid.
+    /// The table as measured (`comp::CompTable`), before fitting to the PLC's grid; for a
+    /// composed table, the residual the run measured.
     #[serde(default)]
     pub measured: serde_json::Value,
+    /// Composed (issue 15): the table active during the run, which these values include.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub base: Option<Base>,
 }
 
 fn direction_name(d: TableDirection) -> &'static str {
@@ -95,7 +100,7 @@ fn direction_from_name(s: &str) -> Option<TableDirection> {
     })
 }
 
-fn kind_from_name(s: &str) -> Option<TableKind> {
+pub(super) fn kind_from_name(s: &str) -> Option<TableKind> {
     Some(match s {
         "positioning" => TableKind::Positioning,
         "straightness" => TableKind::Straightness,
@@ -120,6 +125,15 @@ impl StoredTable {
             down_mm: t.down_mm.clone(),
             reference_mm: measured.reference_mm,
             measured: serde_json::to_value(measured).unwrap_or_default(),
+            base: None,
+        }
+    }
+
+    /// What the values are: "composed: …", or "measured" (with why nothing was composed).
+    pub fn composition(&self) -> String {
+        match &self.base {
+            Some(b) => format!("composed: {}", b.describe()),
+            None => "measured".into(),
         }
     }
 
@@ -233,6 +247,9 @@ pub struct TableView {
     pub values_um: Vec<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub down_um: Option<Vec<f64>>,
+    /// "measured", or "composed: table N (sequence S, CRC …) + the residual measured by run R".
+    #[serde(default)]
+    pub composition: String,
 }
 
 fn table_view(r: &TableRecord, pubs: &[PublicationRecord]) -> TableView {
@@ -267,6 +284,7 @@ fn table_view(r: &TableRecord, pubs: &[PublicationRecord]) -> TableView {
             .map(PublicationView::from),
         values_um: s.as_ref().map_or_else(Vec::new, |s| um(&s.values_mm)),
         down_um: s.as_ref().and_then(|s| s.down_mm.as_deref().map(um)),
+        composition: s.as_ref().map(StoredTable::composition).unwrap_or_default(),
     }
 }
 
@@ -534,6 +552,9 @@ pub fn generate(
         chosen.extend(set.straightness);
     }
     let generated_us = now_us();
+    // Issue 15: what the PLC applied while the run ran; a table of a kind it applied is the
+    // residual on top of that table, so it is composed with it.
+    let during = store.run_tables(rec.id).map_err(|e| e.to_string())?;
     chosen
         .iter()
         .map(|c| {
@@ -543,9 +564,40 @@ pub fn generate(
                     c.name, map.file
                 )
             };
-            let t = PlcTable::from_comp(c, map, build.step_mm).map_err(|e| fail(e.to_string()))?;
+            let active = during
+                .as_ref()
+                .filter(|d| d.known)
+                .and_then(|d| d.find(c.kind.name(), c.comp_axis.letter()));
+            let (t, base) = match active {
+                None => (
+                    PlcTable::from_comp(c, map, build.step_mm).map_err(|e| fail(e.to_string()))?,
+                    None,
+                ),
+                Some(a) => {
+                    let cannot = |why: String| {
+                        format!(
+                            "run {run_id} was measured while the PLC applied {} {} sequence {} (CRC 0x{:08X}): {} cannot be composed with it ({why}); nothing was stored",
+                            a.kind, a.axis, a.sequence, a.crc, c.name
+                        )
+                    };
+                    let id = a
+                        .table
+                        .ok_or_else(|| cannot("that table is not in the store".into()))?;
+                    let base_rec = store.table(id).map_err(|e| cannot(e.to_string()))?;
+                    let base = StoredTable::from_record(&base_rec).map_err(cannot)?;
+                    let t = composition::compose_stored(&base, c).map_err(cannot)?;
+                    (
+                        t,
+                        Some(Base {
+                            active: a.clone(),
+                            run_id,
+                        }),
+                    )
+                }
+            };
             let enc = ptable::encode(&t, map, 1).map_err(|e| fail(e.to_string()))?;
-            let stored = StoredTable::new(map, &t, c);
+            let mut stored = StoredTable::new(map, &t, c);
+            stored.base = base;
             let entry = TableEntry {
                 kind: t.kind.name().into(),
                 axis: t.axis.letter().into(),
@@ -600,6 +652,8 @@ pub struct Tables {
     store: Store,
     link: Option<Link>,
     pull: Option<PullServer>,
+    /// Runs created from this time on get their active tables recorded (µs since the epoch).
+    started_us: i64,
 }
 
 impl std::fmt::Debug for Tables {
@@ -638,6 +692,7 @@ impl Tables {
             store,
             link,
             pull,
+            started_us: now_us(),
         };
         t.restore_pull();
         Ok(t)
@@ -693,8 +748,12 @@ impl Tables {
             .map(|a| format!("{} pulled from {a}", self.map.name))
     }
 
-    /// Serve requests until shutdown; a publish in progress is finished first.
+    /// Serve requests until shutdown; a publish in progress is finished first. Once a second,
+    /// new runs get the tables active in the PLC recorded (read when the task first sees them,
+    /// within a second of their start).
     pub async fn run(mut self, mut commands: mpsc::Receiver<Command>, mut shutdown: Shutdown) {
+        let mut tick = tokio::time::interval(std::time::Duration::from_secs(1));
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             tokio::select! {
                 _ = shutdown.recv() => break,
@@ -702,7 +761,92 @@ impl Tables {
                     Some(c) => self.handle(c).await,
                     None => break,
                 },
+                _ = tick.tick() => self.record_new_runs().await,
             }
+        }
+    }
+
+    /// What the PLC applies now (issue 15): read back (push) or its acknowledgement (pull),
+    /// against the store's publications; "none" when no PLC is configured.
+    pub async fn read_active(&mut self) -> RunTables {
+        let unix_us = now_us();
+        let unknown = |source: String| RunTables {
+            unix_us,
+            known: false,
+            source,
+            tables: Vec::new(),
+        };
+        let (tables, pubs) = match (self.store.tables(), self.store.publications(None)) {
+            (Ok(t), Ok(p)) => (t, p),
+            (Err(e), _) | (_, Err(e)) => return unknown(e.to_string()),
+        };
+        if let (Some(link), Some(target)) = (&self.link, self.push_target()) {
+            match plc::read_table(link, &self.map).await {
+                Ok(rb) => {
+                    let reject = rb.table.as_ref().err();
+                    composition::active_tables(
+                        &rb.status,
+                        Some((&rb.header, reject)),
+                        &tables,
+                        &pubs,
+                        &target,
+                        unix_us,
+                    )
+                }
+                Err(e) => unknown(format!("cannot read the PLC at {}: {e}", link.addr())),
+            }
+        } else if let (Some(pull), Some(target)) = (&self.pull, self.pull_target()) {
+            let st = pull.acks().borrow().status;
+            composition::active_tables(&st, None, &tables, &pubs, &target, unix_us)
+        } else {
+            RunTables {
+                unix_us,
+                known: true,
+                source: "no PLC configured".into(),
+                tables: Vec::new(),
+            }
+        }
+    }
+
+    /// Read what the PLC applies and record it as the tables active during run `run`.
+    pub async fn record_run_tables(&mut self, run: RunId) -> Result<RunTables, String> {
+        let active = self.read_active().await;
+        self.store
+            .record_run_tables(run, &active)
+            .map_err(|e| e.to_string())?;
+        tracing::info!(run = run.0, tables = %active.summary(), "tables active during the run recorded");
+        Ok(active)
+    }
+
+    async fn record_new_runs(&mut self) {
+        let runs = match self.store.runs_without_tables(self.started_us) {
+            Ok(r) => r,
+            Err(e) => {
+                tracing::warn!("cannot list new runs: {e}");
+                return;
+            }
+        };
+        for r in runs {
+            if let Err(e) = self.record_run_tables(r).await {
+                tracing::warn!(run = r.0, "tables active during the run not recorded: {e}");
+            }
+        }
+    }
+
+    /// Answer one table request from `who` (what the control socket's commands come to).
+    pub async fn request(
+        &mut self,
+        request: &Request,
+        who: &str,
+    ) -> Result<serde_json::Value, String> {
+        match request {
+            Request::TableList { limit } => self.list(limit.unwrap_or(50)),
+            Request::TableGenerate { run_id } => self.generate(*run_id),
+            Request::TablePublish { table_id, confirm } => {
+                self.publish(*table_id, *confirm, who).await
+            }
+            Request::TableStatus => self.status().await,
+            _ => Err("internal: not a table request".into()),
         }
     }
 
@@ -718,15 +862,7 @@ impl Tables {
     async fn handle(&mut self, c: Command) {
         tracing::info!(user = %c.peer.user, uid = c.peer.uid, request = ?c.request, "control request");
         self.audit(&c);
-        let r = match &c.request {
-            Request::TableList { limit } => self.list(limit.unwrap_or(50)),
-            Request::TableGenerate { run_id } => self.generate(*run_id),
-            Request::TablePublish { table_id, confirm } => {
-                self.publish(*table_id, *confirm, &c.peer.user).await
-            }
-            Request::TableStatus => self.status().await,
-            _ => Err("internal: not a table request".into()),
-        };
+        let r = self.request(&c.request, &c.peer.user).await;
         let _ = c.reply.send(r);
     }
 
@@ -791,6 +927,19 @@ impl Tables {
                 stored.map, rec.entry.crc, self.map.file, enc.crc
             ));
         }
+        // Issue 15: never the residual alone, never on a base the PLC no longer applies.
+        let during = match rec.entry.source_run {
+            Some(r) => self.store.run_tables(r).map_err(|e| e.to_string())?,
+            None => None,
+        };
+        let now = self.read_active().await;
+        composition::publishable(
+            rec.id,
+            &stored,
+            rec.entry.source_run.map(|r| r.0),
+            during.as_ref(),
+            &now,
+        )?;
         let store_max = self
             .store
             .publications(None)
