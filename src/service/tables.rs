@@ -381,6 +381,78 @@ pub struct StatusView {
     pub table_id: Option<i64>,
     /// "matches table N" and how that was established, what differs, or "PLC empty".
     pub message: String,
+    /// Every table the PLC applies, one per kind and axis (issue 15), with what is known of it.
+    #[serde(default)]
+    pub active: Vec<ActiveView>,
+    /// Where `active` comes from, or why it is unknown.
+    #[serde(default)]
+    pub active_source: String,
+}
+
+/// A table the PLC applies: which stored table, its sequence and CRC, when it was published
+/// and from which run, and its values (µm) for a diff against another table of its kind.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ActiveView {
+    pub kind: String,
+    pub axis: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub table_id: Option<i64>,
+    pub sequence: u32,
+    pub crc: String,
+    /// True when the PLC's staging area was read back with this sequence and CRC; else known
+    /// from the store's record of what the PLC accepted.
+    pub read_back: bool,
+    /// When the PLC accepted it (µs since the epoch), when recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub published_us: Option<i64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source_run: Option<i64>,
+    #[serde(default)]
+    pub composition: String,
+    #[serde(default)]
+    pub values_um: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub down_um: Option<Vec<f64>>,
+}
+
+/// The views of `active`, filled in from the store's tables and publications.
+pub fn active_views(
+    active: &RunTables,
+    tables: &[TableRecord],
+    pubs: &[PublicationRecord],
+) -> Vec<ActiveView> {
+    active
+        .tables
+        .iter()
+        .map(|a| {
+            let rec = a.table.and_then(|id| tables.iter().find(|t| t.id == id));
+            let stored = rec.and_then(|r| StoredTable::from_record(r).ok());
+            ActiveView {
+                kind: a.kind.clone(),
+                axis: a.axis.clone(),
+                table_id: a.table.map(|t| t.0),
+                sequence: a.sequence,
+                crc: format!("0x{:08X}", a.crc),
+                read_back: a.read_back,
+                published_us: pubs
+                    .iter()
+                    .rev()
+                    .find(|p| {
+                        Some(p.publication.table) == a.table
+                            && p.publication.sequence == a.sequence
+                            && p.publication.outcome == PublicationOutcome::Accepted
+                    })
+                    .map(|p| p.publication.unix_us),
+                source_run: rec.and_then(|r| r.entry.source_run.map(|x| x.0)),
+                composition: stored
+                    .as_ref()
+                    .map(StoredTable::composition)
+                    .unwrap_or_default(),
+                values_um: stored.as_ref().map_or_else(Vec::new, |s| um(&s.values_mm)),
+                down_um: stored.as_ref().and_then(|s| s.down_mm.as_deref().map(um)),
+            }
+        })
+        .collect()
 }
 
 // ---------- decisions ----------
@@ -850,6 +922,24 @@ impl Tables {
         }
     }
 
+    /// An audit entry for what a request did (the request itself is audited as it arrives).
+    fn audit_outcome(&mut self, who: &str, action: &str, details: serde_json::Value) {
+        let entry = crate::store::AuditEntry {
+            unix_us: now_us(),
+            who: crate::store::Actor {
+                uid: None,
+                user: (!who.is_empty()).then(|| who.to_string()),
+                pid: None,
+            },
+            role: "service".into(),
+            action: action.into(),
+            details,
+        };
+        if let Err(e) = self.store.audit(&entry) {
+            tracing::error!("audit entry not stored: {e}");
+        }
+    }
+
     fn audit(&mut self, c: &Command) {
         let Some(entry) = c.audit_entry() else {
             return;
@@ -887,6 +977,15 @@ impl Tables {
             views.push(table_view(&rec, &[]));
         }
         tracing::info!(run = run_id, tables = ?views.iter().map(|v| v.id).collect::<Vec<_>>(), "tables generated");
+        self.audit_outcome(
+            "",
+            "tables_generated",
+            serde_json::json!({
+                "run_id": run_id,
+                "table_ids": views.iter().map(|v| v.id).collect::<Vec<_>>(),
+                "compositions": views.iter().map(|v| v.composition.clone()).collect::<Vec<_>>(),
+            }),
+        );
         Ok(serde_json::json!({ "run_id": run_id, "map": self.map.name, "tables": views }))
     }
 
@@ -1018,6 +1117,17 @@ impl Tables {
             Err(e) => ("failed", None, e.to_string(), e.commit_sent()),
         };
         tracing::info!(table = table_id, sequence, result = res, %message, "publish done");
+        // The audit log names the object (issue 15): which table, as which sequence, and what
+        // came of it.
+        self.audit_outcome(
+            who,
+            "table_published",
+            serde_json::json!({
+                "table_id": table_id, "kind": stored.kind, "axis": stored.axis.to_string(),
+                "sequence": sequence, "crc": format!("0x{:08X}", rec.entry.crc),
+                "target": target, "result": res, "composition": stored.composition(),
+            }),
+        );
         let v = PublishView {
             table_id,
             target,
@@ -1047,6 +1157,14 @@ impl Tables {
                 &pubs,
                 &target,
             );
+            let active = composition::active_tables(
+                &rb.status,
+                Some((&rb.header, reject)),
+                &tables,
+                &pubs,
+                &target,
+                now_us(),
+            );
             StatusView {
                 source: format!("read back from {target}"),
                 plc: PlcStatusView::from(&rb.status),
@@ -1071,10 +1189,13 @@ impl Tables {
                 verdict: verdict.into(),
                 table_id: id.map(|t| t.0),
                 message,
+                active: active_views(&active, &tables, &pubs),
+                active_source: active.source,
             }
         } else if let (Some(pull), Some(target)) = (&self.pull, self.pull_target()) {
             let st = pull.acks().borrow().status;
             let (verdict, id, message) = verdict(&st, None, &tables, &pubs, &target);
+            let active = composition::active_tables(&st, None, &tables, &pubs, &target, now_us());
             StatusView {
                 source: format!(
                     "the PLC's acknowledgement on {target} (published sequence {})",
@@ -1085,6 +1206,8 @@ impl Tables {
                 verdict: verdict.into(),
                 table_id: id.map(|t| t.0),
                 message,
+                active: active_views(&active, &tables, &pubs),
+                active_source: active.source,
             }
         } else {
             return Err(

@@ -22,6 +22,7 @@
 mod alignments;
 mod follower;
 mod records;
+mod run_list;
 mod run_tables;
 pub mod schema;
 
@@ -32,6 +33,7 @@ pub use records::{
     Publication, PublicationOutcome, PublicationRecord, RunId, RunRecord, RunState, StoredHandover,
     TableEntry, TableId, TableRecord,
 };
+pub use run_list::{RunSummary, iso_utc};
 pub use run_tables::{ActiveTable, RunTables};
 
 use rusqlite::{Connection, ErrorCode, OpenFlags, TransactionBehavior};

@@ -354,6 +354,46 @@ fn re_measuring_an_aged_axis_under_its_tables_and_publishing_the_composed_tables
         "grew {grew:.2} µm, wear {want:.2} µm"
     );
 
+    // `axiscomp export --run N` on the store (no service) composes the same way and says so.
+    let db = b.store.path().display().to_string();
+    let export = |run: RunId, file: &str| {
+        let out = b._dir.path(file);
+        let o = crate::helpers::run(
+            &[
+                "export",
+                "--db",
+                &db,
+                "--run",
+                &run.0.to_string(),
+                "--format",
+                "csv",
+                "--bidirectional",
+                "--out",
+                &out.display().to_string(),
+            ],
+            "",
+        );
+        assert!(o.status.success(), "{}", crate::helpers::stderr(&o));
+        (
+            std::fs::read_to_string(&out).expect("exported"),
+            crate::helpers::stderr(&o),
+        )
+    };
+    let (csv, said) = export(run3, "aged.csv");
+    let line = format!("composed: table {} (sequence", commissioning[0]["id"]);
+    assert!(
+        csv.lines()
+            .take(3)
+            .any(|l| l.starts_with(&format!("# {line}")))
+            && said.contains(&line),
+        "{said}\n{csv}"
+    );
+    let (csv, said) = export(run1, "commissioning.csv");
+    assert!(
+        !csv.contains("composed") && !said.contains("composed"),
+        "{csv}"
+    );
+
     b.publish_all(&composed);
     let (_run4, m4) = b.run(Pass::After, "maintenance verification");
     let t_after = truth(&m4);
@@ -400,4 +440,48 @@ fn re_measuring_an_aged_axis_under_its_tables_and_publishing_the_composed_tables
         .expect_err("a base the PLC no longer holds is refused");
     eprintln!("refused: {e}");
     assert!(e.contains("its base is not what the PLC holds"), "{e}");
+
+    // Found later: `run list` on the store alone, and the audit log naming its objects.
+    let o = crate::helpers::run(&["run", "list", "--db", &db, "--json"], "");
+    assert!(o.status.success(), "{}", crate::helpers::stderr(&o));
+    let runs: serde_json::Value =
+        serde_json::from_str(&crate::helpers::stdout(&o)).expect("run list JSON");
+    let runs = runs.as_array().expect("runs");
+    assert_eq!(runs.len(), 4);
+    let r3 = &runs[2];
+    assert_eq!(r3["notes"], "maintenance re-measure");
+    assert_eq!(
+        (r3["start_mm"].as_f64(), r3["end_mm"].as_f64()),
+        (Some(0.0), Some(LENGTH_MM))
+    );
+    assert_eq!(r3["plan"], "6 targets, 2 runs, 2 s dwell, 3000 mm/min");
+    assert_eq!(r3["state"], "finished");
+    let date = r3["date"].as_str().unwrap_or_default();
+    assert!(
+        date.len() == 20 && date.as_bytes()[10] == b'T' && date.ends_with('Z'),
+        "{date}"
+    );
+    let active = r3["tables_active"].as_str().unwrap_or_default();
+    assert!(
+        active.contains(&format!(
+            "table {} (positioning X, sequence 1)",
+            commissioning[0]["id"]
+        )),
+        "{active}"
+    );
+    assert_eq!(runs[0]["tables_active"], "none");
+    let o = crate::helpers::run(&["run", "list", "--db", &db], "");
+    let text = crate::helpers::stdout(&o);
+    assert!(text.contains(&format!("run 3    {date}")), "{text}");
+    let audit = b.store.audit_entries(100).expect("audit");
+    let published: Vec<_> = audit
+        .iter()
+        .filter(|a| a.entry.action == "table_published")
+        .collect();
+    assert!(
+        published.iter().any(|a| a.entry.details["sequence"] == 4
+            && a.entry.details["table_id"] == composed[0]["id"]
+            && a.entry.details["result"] == "committed"),
+        "{published:?}"
+    );
 }
