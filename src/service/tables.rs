@@ -100,7 +100,7 @@ fn direction_from_name(s: &str) -> Option<TableDirection> {
     })
 }
 
-pub(super) fn kind_from_name(s: &str) -> Option<TableKind> {
+pub(crate) fn kind_from_name(s: &str) -> Option<TableKind> {
     Some(match s {
         "positioning" => TableKind::Positioning,
         "straightness" => TableKind::Straightness,

@@ -159,11 +159,30 @@ fn active_for<'a>(p: &'a PublishState, t: &TableView) -> Option<&'a ActiveView> 
     }
 }
 
-/// The PLC's values for `t`'s kind and axis when they can be set against `t` point by point.
+/// The PLC's values for `t`'s kind and axis when they can be set against `t` point by point:
+/// the active table of that kind and axis; from a service that does not list them, the
+/// staging area when it holds that kind and axis.
 fn plc_values<'a>(p: &'a PublishState, t: &TableView) -> Option<&'a [f64]> {
-    active_for(p, t)
-        .filter(|a| a.values_um.len() == t.values_um.len() && !a.values_um.is_empty())
-        .map(|a| a.values_um.as_slice())
+    let same = |v: &'a [f64]| (v.len() == t.values_um.len() && !v.is_empty()).then_some(v);
+    if let Some(a) = active_for(p, t) {
+        return same(&a.values_um);
+    }
+    match &p.status {
+        Some(Ok(StatusView {
+            staged: Some(s),
+            active_source,
+            ..
+        })) if active_source.is_empty() && staged_is(s, t) => same(&s.values_um),
+        _ => None,
+    }
+}
+
+/// Whether the staging area holds a table of `t`'s kind acting on `t`'s axis.
+fn staged_is(s: &crate::service::tables::StagedView, t: &TableView) -> bool {
+    use crate::plc::table::{axis_code, kind_code};
+    let kind = crate::service::tables::kind_from_name(&t.kind).map(kind_code);
+    let axis = crate::comp::MachineAxis::from_letter(&t.axis).map(axis_code);
+    kind == Some(s.kind) && axis == Some(s.axis)
 }
 
 /// Rounded to 2 decimals, never "-0.00".
@@ -233,6 +252,10 @@ fn values(frame: &mut Frame, area: Rect, p: &PublishState, wide: bool, theme: Th
         None => format!("sequence {}", a.sequence),
     });
     let summary = match (theirs, &p.status) {
+        (Some(_), _) if held.is_none() && differing == 0 => Line::styled(
+            format!("the PLC's staging area equals table {} (±0.05 µm)", t.id),
+            theme.ok(),
+        ),
         (Some(_), _) if differing == 0 => Line::styled(
             format!(
                 "the PLC's {} {} ({held_name}) equals table {} (±0.05 µm)",
@@ -241,7 +264,11 @@ fn values(frame: &mut Frame, area: Rect, p: &PublishState, wide: bool, theme: Th
             theme.ok(),
         ),
         (Some(_), _) => Line::styled(
-            format!("{differing} of {n} points differ from {held_name}, by up to {worst:.2} µm"),
+            if held.is_some() {
+                format!("{differing} of {n} points differ from {held_name}, by up to {worst:.2} µm")
+            } else {
+                format!("{differing} of {n} points differ, by up to {worst:.2} µm")
+            },
             theme.warn(),
         ),
         (None, Some(Ok(_))) => Line::styled(
