@@ -248,6 +248,7 @@ pub fn publishable(
 mod tests {
     use super::*;
     use crate::plc::StatusCode;
+    use crate::service::tables::tests::header;
     use crate::store::{Publication, TableEntry};
 
     fn status(active: u32) -> PlcStatus {
@@ -286,21 +287,6 @@ mod tests {
                 outcome: PublicationOutcome::Accepted,
                 unix_us: 0,
             },
-        }
-    }
-
-    fn header(sequence: u32, crc: u32) -> RawHeader {
-        RawHeader {
-            kind: 1,
-            axis: 1,
-            base_axis: 1,
-            direction: 3,
-            points: 11,
-            unit: 100,
-            start_mm: 0.0,
-            interval_mm: 10.0,
-            sequence,
-            crc,
         }
     }
 

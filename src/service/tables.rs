@@ -1219,7 +1219,7 @@ impl Tables {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::plc::table::RejectCode;
 
@@ -1282,7 +1282,7 @@ mod tests {
         }
     }
 
-    fn header(sequence: u32, crc: u32) -> RawHeader {
+    pub(crate) fn header(sequence: u32, crc: u32) -> RawHeader {
         RawHeader {
             kind: 1,
             axis: 2,

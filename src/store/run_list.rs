@@ -7,25 +7,7 @@ use serde::{Deserialize, Serialize};
 
 /// "2026-11-25T17:39:03Z": ISO 8601, UTC, to the second, from µs since the Unix epoch.
 pub fn iso_utc(unix_us: i64) -> String {
-    let secs = unix_us.div_euclid(1_000_000);
-    let days = secs.div_euclid(86_400);
-    let s = secs.rem_euclid(86_400);
-    // Days since 1970-01-01 to the civil date (H. Hinnant's algorithm).
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z.rem_euclid(146_097);
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = doy - (153 * mp + 2) / 5 + 1;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 };
-    let y = yoe + era * 400 + i64::from(m <= 2);
-    format!(
-        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z",
-        s / 3600,
-        (s % 3600) / 60,
-        s % 60
-    )
+    crate::util::time::rfc3339(unix_us.div_euclid(1_000_000))
 }
 
 /// One run as `run list` shows it.
