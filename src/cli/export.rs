@@ -1,6 +1,11 @@
 //! `axiscomp export`: a stored run's compensation table for a controller. The controller's
 //! settings come from `[comp.<controller>]`; the flags below override them. Thin over
 //! `axiscomp::comp`.
+//!
+//! A run taken under compensation (issue 15: the tables active in the PLC are recorded with
+//! the run) measured the residual only: the exported table is then the active table plus
+//! that residual, on the active table's grid, and the file's header (where the format has
+//! comments; JSON a `composition` key) and the command's output say so.
 
 use super::InputError;
 use super::run::{StoreArgs, open_store};
@@ -372,6 +377,8 @@ pub fn run(a: ExportArgs) -> Result<()> {
             .get(1)
             .ok_or_else(|| InputError("no vertical straightness table".into()))?,
     };
+    let (composed, composition) = compose_with_active(&store, id, table)?;
+    let table = composed.as_ref().unwrap_or(table);
     let o = Overrides {
         machine_axis: a.machine_axis.clone(),
         units: a.units.clone(),
@@ -385,7 +392,11 @@ pub fn run(a: ExportArgs) -> Result<()> {
         Ok(c) => InputError(c.to_string()).into(),
         Err(e) => e,
     })?;
-    std::fs::write(&a.out, &r.text).with_context(|| format!("writing {}", a.out.display()))?;
+    let text = match &composition {
+        Some(line) => mark_composed(&r.text, a.format, line),
+        None => r.text.clone(),
+    };
+    std::fs::write(&a.out, &text).with_context(|| format!("writing {}", a.out.display()))?;
     let name = a
         .format
         .to_possible_value()
@@ -397,8 +408,81 @@ pub fn run(a: ExportArgs) -> Result<()> {
         std::fs::write(&p, text).with_context(|| format!("writing {}", p.display()))?;
         eprintln!("wrote {}", p.display());
     }
+    if let Some(line) = &composition {
+        eprintln!("{line}");
+    }
     for n in &r.notes {
         eprintln!("{n}");
     }
     Ok(())
+}
+
+/// When run `id` ran with a table of `table`'s kind active: that table plus `table` (the
+/// residual), and the line that says so.
+fn compose_with_active(
+    store: &axiscomp::store::Store,
+    id: RunId,
+    table: &CompTable,
+) -> Result<(Option<CompTable>, Option<String>)> {
+    use axiscomp::service::composition::{Base, grid_table};
+    use axiscomp::service::tables::StoredTable;
+    let Some(during) = store.run_tables(id)? else {
+        return Ok((None, None));
+    };
+    let Some(a) = during
+        .known
+        .then(|| during.find(table.kind.name(), table.comp_axis.letter()))
+        .flatten()
+    else {
+        return Ok((None, None));
+    };
+    let cannot = |why: String| {
+        anyhow::anyhow!(
+            "run {id} was measured while the PLC applied {} {} sequence {}: it saw only the residual, and {} cannot be composed with that table ({why})",
+            a.kind,
+            a.axis,
+            a.sequence,
+            table.name
+        )
+    };
+    let base_id = a
+        .table
+        .ok_or_else(|| cannot("it is not in the store".into()))?;
+    let base = StoredTable::from_record(&store.table(base_id)?).map_err(cannot)?;
+    let composed = comp::table::compose(&grid_table(&base).map_err(cannot)?, table)
+        .map_err(|e| cannot(e.to_string()))?;
+    let line = format!(
+        "composed: {}",
+        Base {
+            active: a.clone(),
+            run_id: id.0,
+        }
+        .describe()
+    );
+    Ok((Some(composed), Some(line)))
+}
+
+/// `text` with `line` in its header: after the first comment line (`;` or `#`), as a JSON
+/// key, or unchanged where the format has no comments.
+fn mark_composed(text: &str, format: Format, line: &str) -> String {
+    if format == Format::Json {
+        let key = format!(
+            "  \"composition\": {},\n",
+            serde_json::to_string(line).unwrap_or_default()
+        );
+        return match text.find("{\n") {
+            Some(i) => format!("{}{key}{}", &text[..i + 2], &text[i + 2..]),
+            None => text.to_string(),
+        };
+    }
+    let mut out = String::with_capacity(text.len() + line.len() + 4);
+    let mut done = false;
+    for l in text.split_inclusive('\n') {
+        out.push_str(l);
+        if !done && let Some(marker) = [";", "#"].into_iter().find(|m| l.starts_with(m)) {
+            out.push_str(&format!("{marker} {line}\n"));
+            done = true;
+        }
+    }
+    out
 }

@@ -1,5 +1,6 @@
-//! `axiscomp run start|status|abort` (through the running service), and where
-//! the store is for `axiscomp report` (`report.rs`) and `axiscomp export` (`export.rs`).
+//! `axiscomp run start|status|abort` (through the running service), `axiscomp run list` (from
+//! the store), and where the store is for `axiscomp report` (`report.rs`) and `axiscomp export`
+//! (`export.rs`).
 
 use super::InputError;
 use anyhow::{Context, Result};
@@ -12,11 +13,27 @@ use std::path::PathBuf;
 #[derive(Subcommand, Debug)]
 pub enum Command {
     /// Start an ISO 230-2 run on the running service.
-    Start(StartArgs),
+    Start(Box<StartArgs>),
     /// The active (or last) run's progress.
     Status(Where),
     /// Stop the active run (its captures stay stored).
     Abort(Where),
+    /// Every stored run with its date, axis, range, plan, notes, operator, calibration, the
+    /// tables active while it ran and its state (from the store; no service needed).
+    List(ListArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct ListArgs {
+    /// The store (default: axiscomp.db in the configured state directory).
+    #[arg(long)]
+    pub db: Option<PathBuf>,
+    /// The configuration naming the state directory.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// One JSON array of runs instead of the table.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// How to reach the service.
@@ -57,6 +74,10 @@ pub struct StartArgs {
     /// Program dialect: iso, siemens, heidenhain, linuxcnc (default: the configuration's).
     #[arg(long)]
     pub dialect: Option<String>,
+    /// Notes kept with the run (why it was measured, the machine's state): `run list` shows
+    /// them.
+    #[arg(long)]
+    pub notes: Option<String>,
 }
 
 pub fn run(c: Command) -> Result<()> {
@@ -100,12 +121,13 @@ pub fn run(c: Command) -> Result<()> {
                 Request::RunStart {
                     plan: spec,
                     dialect: a.dialect,
-                    notes: None,
+                    notes: a.notes,
                 },
             )
         }
         Command::Status(w) => (w, Request::RunStatus),
         Command::Abort(w) => (w, Request::RunAbort),
+        Command::List(a) => return list(&a),
     };
     let socket = match at.socket {
         Some(s) => s,
@@ -139,9 +161,14 @@ pub struct StoreArgs {
 }
 
 pub(super) fn open_store(a: &StoreArgs) -> Result<Store> {
-    let path = match &a.db {
+    open_store_at(a.db.as_ref(), a.config.as_ref())
+}
+
+/// The store at `db`, or in the state directory `config` names, read-only.
+fn open_store_at(db: Option<&PathBuf>, config: Option<&PathBuf>) -> Result<Store> {
+    let path = match db {
         Some(p) => p.clone(),
-        None => super::service::settings(a.config.as_deref())?
+        None => super::service::settings(config.map(PathBuf::as_path))?
             .service
             .state_dir
             .join("axiscomp.db"),
@@ -154,4 +181,43 @@ pub(super) fn open_store(a: &StoreArgs) -> Result<Store> {
         .into());
     }
     Ok(Store::open_read_only(&path)?)
+}
+
+/// `axiscomp run list`.
+fn list(a: &ListArgs) -> Result<()> {
+    let store = open_store_at(a.db.as_ref(), a.config.as_ref())?;
+    let runs = store.run_summaries()?;
+    super::stdout_closes_quietly();
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&runs)?);
+        return Ok(());
+    }
+    if runs.is_empty() {
+        println!("no runs stored: start one with axiscomp run start");
+        return Ok(());
+    }
+    for r in &runs {
+        let range = match (r.start_mm, r.end_mm) {
+            (Some(a), Some(b)) => format!("{a}..{b} mm"),
+            _ => "range unknown".into(),
+        };
+        println!(
+            "run {:<4} {}  {} {}  {}  {} captures  {}",
+            r.id, r.date, r.axis, range, r.plan, r.captures, r.state
+        );
+        let mut who = Vec::new();
+        if let Some(o) = &r.operator {
+            who.push(format!("operator {o}"));
+        }
+        who.push(match r.calibration {
+            Some(c) => format!("calibration {c}"),
+            None => "no stored calibration".into(),
+        });
+        who.push(format!("tables active: {}", r.tables_active));
+        println!("         {}", who.join("; "));
+        if !r.notes.is_empty() {
+            println!("         notes: {}", r.notes);
+        }
+    }
+    Ok(())
 }

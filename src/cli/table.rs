@@ -161,6 +161,31 @@ pub fn run(c: Command) -> Result<()> {
                     s.plc.active_sequence,
                     s.source
                 );
+                if !s.active_source.is_empty() {
+                    println!("active tables ({}):", s.active_source);
+                }
+                for a in &s.active {
+                    println!(
+                        "  {} {} {}: sequence {}, CRC {}, published {}, from run {}{}{}",
+                        a.table_id.map_or_else(
+                            || "a table not in the store".into(),
+                            |i| format!("table {i}")
+                        ),
+                        a.kind,
+                        a.axis,
+                        a.sequence,
+                        a.crc,
+                        a.published_us
+                            .map_or_else(|| "(not recorded)".into(), axiscomp::store::iso_utc),
+                        a.source_run.map_or_else(|| "-".into(), |r| r.to_string()),
+                        if a.read_back { ", read back" } else { "" },
+                        if a.composition.starts_with("composed") {
+                            format!("; {}", a.composition)
+                        } else {
+                            String::new()
+                        }
+                    );
+                }
                 if let Some(st) = s.staged.as_ref().filter(|st| st.sequence != 0) {
                     println!(
                         "staging area: sequence {}, {} points, CRC {}{}",
@@ -200,4 +225,7 @@ fn print_table(t: &TableView) {
             .map(|p| format!(", last published: {} as sequence {}", p.result, p.sequence))
             .unwrap_or_default()
     );
+    if t.composition.starts_with("composed") {
+        println!("           {}", t.composition);
+    }
 }

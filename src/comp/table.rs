@@ -441,6 +441,86 @@ pub fn fit_grid(
     })
 }
 
+/// A table measured under compensation, composed with the table that was active (issue 15).
+///
+/// A run taken while `base` was applied sees only what `base` left: the residual. The table
+/// the axis needs is `base + residual`, on `base`'s grid (the grid the controller already
+/// holds): the residual is interpolated at `base`'s positions (end values held, as
+/// `resample`). Both are zero at their reference points; when those differ the residual's
+/// value at `base`'s reference is subtracted, so the sum is zero where `base` is. Single
+/// profiles without backlash stay single; otherwise both directions are composed, each with
+/// its own profile (`reverse` for a single one with backlash). Refused when the two tables do
+/// not compensate the same thing (kind, name, axes).
+pub fn compose(base: &CompTable, residual: &CompTable) -> Result<CompTable, CompError> {
+    if base.kind != residual.kind
+        || base.name != residual.name
+        || base.base_axis != residual.base_axis
+        || base.comp_axis != residual.comp_axis
+    {
+        return Err(CompError::Unsupported {
+            format: "composition",
+            problem: format!(
+                "the active table is {} {} (acting on {} along {}) and the measured residual {} {} (acting on {} along {}): they do not compensate the same error",
+                base.kind.name(),
+                base.name,
+                base.comp_axis,
+                base.base_axis,
+                residual.kind.name(),
+                residual.name,
+                residual.comp_axis,
+                residual.base_axis
+            ),
+        });
+    }
+    if base.positions_mm.is_empty() || residual.positions_mm.is_empty() {
+        return Err(CompError::Unsupported {
+            format: "composition",
+            problem: "a table without points cannot be composed".into(),
+        });
+    }
+    let at = |t: &CompTable, v: &[f64], x: f64| interpolate(&t.positions_mm, v, x);
+    let r_up = residual.primary().to_vec();
+    let r_down = residual.reverse();
+    // Zero the residual where the base is zero.
+    let shift = at(residual, &r_up, base.reference_mm);
+    let add = |b: &[f64], r: &[f64]| -> Vec<f64> {
+        base.positions_mm
+            .iter()
+            .zip(b)
+            .map(|(&x, &bv)| bv + at(residual, r, x) - shift)
+            .collect()
+    };
+    let single = |t: &CompTable| {
+        matches!(
+            t.values,
+            TableValues::Single {
+                backlash_mm: None,
+                ..
+            }
+        )
+    };
+    let values = if single(base) && single(residual) {
+        TableValues::Single {
+            values: add(base.primary(), &r_up),
+            backlash_mm: None,
+        }
+    } else {
+        TableValues::Bidirectional {
+            up: add(base.primary(), &r_up),
+            down: add(&base.reverse(), &r_down),
+        }
+    };
+    Ok(CompTable {
+        kind: base.kind,
+        name: base.name.clone(),
+        base_axis: base.base_axis,
+        comp_axis: base.comp_axis,
+        reference_mm: base.reference_mm,
+        positions_mm: base.positions_mm.clone(),
+        values,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -521,5 +601,41 @@ mod tests {
             )
             .is_err()
         );
+    }
+
+    #[test]
+    fn a_residual_composes_onto_the_active_tables_grid() {
+        // The active table on a 0, 50, 100 mm grid; the residual measured at 0, 30, 60, 90.
+        let base = table(vec![0.0, 50.0, 100.0], vec![0.0, 0.010, 0.004], 0.0);
+        let mut residual = table(
+            vec![0.0, 30.0, 60.0, 90.0],
+            vec![0.0, 0.003, 0.006, -0.003],
+            0.0,
+        );
+        residual.values = TableValues::Single {
+            values: vec![0.0, 0.003, 0.006, -0.003],
+            backlash_mm: Some(0.002),
+        };
+        let c = compose(&base, &residual).unwrap();
+        assert_eq!(c.positions_mm, vec![0.0, 50.0, 100.0]);
+        // At 50 mm the residual is 0.003 + (20/30)·0.003 = 0.005; at 100 mm held at −0.003.
+        let TableValues::Bidirectional { up, down } = &c.values else {
+            panic!("a residual with backlash makes both directions: {c:?}");
+        };
+        let want_up = [0.0, 0.015, 0.001];
+        for (u, w) in up.iter().zip(want_up) {
+            assert!((u - w).abs() < 1e-12, "{up:?}");
+        }
+        for (d, w) in down.iter().zip(want_up) {
+            assert!((d - (w + 0.002)).abs() < 1e-12, "{down:?}");
+        }
+        // Single profiles stay single; another error is refused.
+        let plain = table(vec![0.0, 100.0], vec![0.0, 0.002], 0.0);
+        let c = compose(&base, &plain).unwrap();
+        assert_eq!(c.primary(), &[0.0, 0.011, 0.006][..]);
+        let mut other = plain.clone();
+        other.name = "EXY".into();
+        let e = compose(&base, &other).unwrap_err().to_string();
+        assert!(e.contains("do not compensate the same error"), "{e}");
     }
 }

@@ -6,6 +6,7 @@
 
 pub mod align;
 pub mod calibration;
+pub mod composition;
 pub mod control;
 mod core;
 pub mod follower;

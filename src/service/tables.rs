@@ -16,6 +16,7 @@
 //! The decisions (stored format, the next sequence, the status verdict) are plain functions
 //! with unit tests; the task only does the I/O. The protocol is `plc-maps/README.md`.
 
+use super::composition::{self, Base};
 use super::control::{Command, Request};
 use super::shutdown::Shutdown;
 use crate::comp::{self, AxisMapping, CompTable, MachineAxis, TableKind, TableSpec};
@@ -26,8 +27,8 @@ use crate::plc::table::{self as ptable, RawHeader, Reject, TableDirection};
 use crate::plc::{self, CncMap, PlcStatus, PlcTable, PublishOutcome, PullServer, StatusCode};
 use crate::run::Direction;
 use crate::store::{
-    Publication, PublicationOutcome, PublicationRecord, RunId, RunState, Store, StoreError,
-    TableEntry, TableId, TableRecord, now_us,
+    Publication, PublicationOutcome, PublicationRecord, RunId, RunState, RunTables, Store,
+    StoreError, TableEntry, TableId, TableRecord, now_us,
 };
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
@@ -71,9 +72,13 @@ pub struct StoredTable {
     pub down_mm: Option<Vec<f64>>,
     /// Where the values are zero (mm).
     pub reference_mm: f64,
-    /// The table as measured (`comp::CompTable`), before fitting to the PLC's grid.
+    /// The table as measured (`comp::CompTable`), before fitting to the PLC's grid; for a
+    /// composed table, the residual the run measured.
     #[serde(default)]
     pub measured: serde_json::Value,
+    /// Composed (issue 15): the table active during the run, which these values include.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub base: Option<Base>,
 }
 
 fn direction_name(d: TableDirection) -> &'static str {
@@ -95,7 +100,7 @@ fn direction_from_name(s: &str) -> Option<TableDirection> {
     })
 }
 
-fn kind_from_name(s: &str) -> Option<TableKind> {
+pub(crate) fn kind_from_name(s: &str) -> Option<TableKind> {
     Some(match s {
         "positioning" => TableKind::Positioning,
         "straightness" => TableKind::Straightness,
@@ -120,6 +125,15 @@ impl StoredTable {
             down_mm: t.down_mm.clone(),
             reference_mm: measured.reference_mm,
             measured: serde_json::to_value(measured).unwrap_or_default(),
+            base: None,
+        }
+    }
+
+    /// What the values are: "composed: …", or "measured" (with why nothing was composed).
+    pub fn composition(&self) -> String {
+        match &self.base {
+            Some(b) => format!("composed: {}", b.describe()),
+            None => "measured".into(),
         }
     }
 
@@ -233,6 +247,9 @@ pub struct TableView {
     pub values_um: Vec<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub down_um: Option<Vec<f64>>,
+    /// "measured", or "composed: table N (sequence S, CRC …) + the residual measured by run R".
+    #[serde(default)]
+    pub composition: String,
 }
 
 fn table_view(r: &TableRecord, pubs: &[PublicationRecord]) -> TableView {
@@ -267,6 +284,7 @@ fn table_view(r: &TableRecord, pubs: &[PublicationRecord]) -> TableView {
             .map(PublicationView::from),
         values_um: s.as_ref().map_or_else(Vec::new, |s| um(&s.values_mm)),
         down_um: s.as_ref().and_then(|s| s.down_mm.as_deref().map(um)),
+        composition: s.as_ref().map(StoredTable::composition).unwrap_or_default(),
     }
 }
 
@@ -363,6 +381,78 @@ pub struct StatusView {
     pub table_id: Option<i64>,
     /// "matches table N" and how that was established, what differs, or "PLC empty".
     pub message: String,
+    /// Every table the PLC applies, one per kind and axis (issue 15), with what is known of it.
+    #[serde(default)]
+    pub active: Vec<ActiveView>,
+    /// Where `active` comes from, or why it is unknown.
+    #[serde(default)]
+    pub active_source: String,
+}
+
+/// A table the PLC applies: which stored table, its sequence and CRC, when it was published
+/// and from which run, and its values (µm) for a diff against another table of its kind.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ActiveView {
+    pub kind: String,
+    pub axis: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub table_id: Option<i64>,
+    pub sequence: u32,
+    pub crc: String,
+    /// True when the PLC's staging area was read back with this sequence and CRC; else known
+    /// from the store's record of what the PLC accepted.
+    pub read_back: bool,
+    /// When the PLC accepted it (µs since the epoch), when recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub published_us: Option<i64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source_run: Option<i64>,
+    #[serde(default)]
+    pub composition: String,
+    #[serde(default)]
+    pub values_um: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub down_um: Option<Vec<f64>>,
+}
+
+/// The views of `active`, filled in from the store's tables and publications.
+pub fn active_views(
+    active: &RunTables,
+    tables: &[TableRecord],
+    pubs: &[PublicationRecord],
+) -> Vec<ActiveView> {
+    active
+        .tables
+        .iter()
+        .map(|a| {
+            let rec = a.table.and_then(|id| tables.iter().find(|t| t.id == id));
+            let stored = rec.and_then(|r| StoredTable::from_record(r).ok());
+            ActiveView {
+                kind: a.kind.clone(),
+                axis: a.axis.clone(),
+                table_id: a.table.map(|t| t.0),
+                sequence: a.sequence,
+                crc: format!("0x{:08X}", a.crc),
+                read_back: a.read_back,
+                published_us: pubs
+                    .iter()
+                    .rev()
+                    .find(|p| {
+                        Some(p.publication.table) == a.table
+                            && p.publication.sequence == a.sequence
+                            && p.publication.outcome == PublicationOutcome::Accepted
+                    })
+                    .map(|p| p.publication.unix_us),
+                source_run: rec.and_then(|r| r.entry.source_run.map(|x| x.0)),
+                composition: stored
+                    .as_ref()
+                    .map(StoredTable::composition)
+                    .unwrap_or_default(),
+                values_um: stored.as_ref().map_or_else(Vec::new, |s| um(&s.values_mm)),
+                down_um: stored.as_ref().and_then(|s| s.down_mm.as_deref().map(um)),
+            }
+        })
+        .collect()
 }
 
 // ---------- decisions ----------
@@ -534,6 +624,9 @@ pub fn generate(
         chosen.extend(set.straightness);
     }
     let generated_us = now_us();
+    // Issue 15: what the PLC applied while the run ran; a table of a kind it applied is the
+    // residual on top of that table, so it is composed with it.
+    let during = store.run_tables(rec.id).map_err(|e| e.to_string())?;
     chosen
         .iter()
         .map(|c| {
@@ -543,9 +636,40 @@ pub fn generate(
                     c.name, map.file
                 )
             };
-            let t = PlcTable::from_comp(c, map, build.step_mm).map_err(|e| fail(e.to_string()))?;
+            let active = during
+                .as_ref()
+                .filter(|d| d.known)
+                .and_then(|d| d.find(c.kind.name(), c.comp_axis.letter()));
+            let (t, base) = match active {
+                None => (
+                    PlcTable::from_comp(c, map, build.step_mm).map_err(|e| fail(e.to_string()))?,
+                    None,
+                ),
+                Some(a) => {
+                    let cannot = |why: String| {
+                        format!(
+                            "run {run_id} was measured while the PLC applied {} {} sequence {} (CRC 0x{:08X}): {} cannot be composed with it ({why}); nothing was stored",
+                            a.kind, a.axis, a.sequence, a.crc, c.name
+                        )
+                    };
+                    let id = a
+                        .table
+                        .ok_or_else(|| cannot("that table is not in the store".into()))?;
+                    let base_rec = store.table(id).map_err(|e| cannot(e.to_string()))?;
+                    let base = StoredTable::from_record(&base_rec).map_err(cannot)?;
+                    let t = composition::compose_stored(&base, c).map_err(cannot)?;
+                    (
+                        t,
+                        Some(Base {
+                            active: a.clone(),
+                            run_id,
+                        }),
+                    )
+                }
+            };
             let enc = ptable::encode(&t, map, 1).map_err(|e| fail(e.to_string()))?;
-            let stored = StoredTable::new(map, &t, c);
+            let mut stored = StoredTable::new(map, &t, c);
+            stored.base = base;
             let entry = TableEntry {
                 kind: t.kind.name().into(),
                 axis: t.axis.letter().into(),
@@ -600,6 +724,8 @@ pub struct Tables {
     store: Store,
     link: Option<Link>,
     pull: Option<PullServer>,
+    /// Runs created from this time on get their active tables recorded (µs since the epoch).
+    started_us: i64,
 }
 
 impl std::fmt::Debug for Tables {
@@ -638,6 +764,7 @@ impl Tables {
             store,
             link,
             pull,
+            started_us: now_us(),
         };
         t.restore_pull();
         Ok(t)
@@ -693,8 +820,12 @@ impl Tables {
             .map(|a| format!("{} pulled from {a}", self.map.name))
     }
 
-    /// Serve requests until shutdown; a publish in progress is finished first.
+    /// Serve requests until shutdown; a publish in progress is finished first. Once a second,
+    /// new runs get the tables active in the PLC recorded (read when the task first sees them,
+    /// within a second of their start).
     pub async fn run(mut self, mut commands: mpsc::Receiver<Command>, mut shutdown: Shutdown) {
+        let mut tick = tokio::time::interval(std::time::Duration::from_secs(1));
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             tokio::select! {
                 _ = shutdown.recv() => break,
@@ -702,7 +833,110 @@ impl Tables {
                     Some(c) => self.handle(c).await,
                     None => break,
                 },
+                _ = tick.tick() => self.record_new_runs().await,
             }
+        }
+    }
+
+    /// What the PLC applies now (issue 15): read back (push) or its acknowledgement (pull),
+    /// against the store's publications; "none" when no PLC is configured.
+    pub async fn read_active(&mut self) -> RunTables {
+        let unix_us = now_us();
+        let unknown = |source: String| RunTables {
+            unix_us,
+            known: false,
+            source,
+            tables: Vec::new(),
+        };
+        let (tables, pubs) = match (self.store.tables(), self.store.publications(None)) {
+            (Ok(t), Ok(p)) => (t, p),
+            (Err(e), _) | (_, Err(e)) => return unknown(e.to_string()),
+        };
+        if let (Some(link), Some(target)) = (&self.link, self.push_target()) {
+            match plc::read_table(link, &self.map).await {
+                Ok(rb) => {
+                    let reject = rb.table.as_ref().err();
+                    composition::active_tables(
+                        &rb.status,
+                        Some((&rb.header, reject)),
+                        &tables,
+                        &pubs,
+                        &target,
+                        unix_us,
+                    )
+                }
+                Err(e) => unknown(format!("cannot read the PLC at {}: {e}", link.addr())),
+            }
+        } else if let (Some(pull), Some(target)) = (&self.pull, self.pull_target()) {
+            let st = pull.acks().borrow().status;
+            composition::active_tables(&st, None, &tables, &pubs, &target, unix_us)
+        } else {
+            RunTables {
+                unix_us,
+                known: true,
+                source: "no PLC configured".into(),
+                tables: Vec::new(),
+            }
+        }
+    }
+
+    /// Read what the PLC applies and record it as the tables active during run `run`.
+    pub async fn record_run_tables(&mut self, run: RunId) -> Result<RunTables, String> {
+        let active = self.read_active().await;
+        self.store
+            .record_run_tables(run, &active)
+            .map_err(|e| e.to_string())?;
+        tracing::info!(run = run.0, tables = %active.summary(), "tables active during the run recorded");
+        Ok(active)
+    }
+
+    async fn record_new_runs(&mut self) {
+        let runs = match self.store.runs_without_tables(self.started_us) {
+            Ok(r) => r,
+            Err(e) => {
+                tracing::warn!("cannot list new runs: {e}");
+                return;
+            }
+        };
+        for r in runs {
+            if let Err(e) = self.record_run_tables(r).await {
+                tracing::warn!(run = r.0, "tables active during the run not recorded: {e}");
+            }
+        }
+    }
+
+    /// Answer one table request from `who` (what the control socket's commands come to).
+    pub async fn request(
+        &mut self,
+        request: &Request,
+        who: &str,
+    ) -> Result<serde_json::Value, String> {
+        match request {
+            Request::TableList { limit } => self.list(limit.unwrap_or(50)),
+            Request::TableGenerate { run_id } => self.generate(*run_id),
+            Request::TablePublish { table_id, confirm } => {
+                self.publish(*table_id, *confirm, who).await
+            }
+            Request::TableStatus => self.status().await,
+            _ => Err("internal: not a table request".into()),
+        }
+    }
+
+    /// An audit entry for what a request did (the request itself is audited as it arrives).
+    fn audit_outcome(&mut self, who: &str, action: &str, details: serde_json::Value) {
+        let entry = crate::store::AuditEntry {
+            unix_us: now_us(),
+            who: crate::store::Actor {
+                uid: None,
+                user: (!who.is_empty()).then(|| who.to_string()),
+                pid: None,
+            },
+            role: "service".into(),
+            action: action.into(),
+            details,
+        };
+        if let Err(e) = self.store.audit(&entry) {
+            tracing::error!("audit entry not stored: {e}");
         }
     }
 
@@ -718,15 +952,7 @@ impl Tables {
     async fn handle(&mut self, c: Command) {
         tracing::info!(user = %c.peer.user, uid = c.peer.uid, request = ?c.request, "control request");
         self.audit(&c);
-        let r = match &c.request {
-            Request::TableList { limit } => self.list(limit.unwrap_or(50)),
-            Request::TableGenerate { run_id } => self.generate(*run_id),
-            Request::TablePublish { table_id, confirm } => {
-                self.publish(*table_id, *confirm, &c.peer.user).await
-            }
-            Request::TableStatus => self.status().await,
-            _ => Err("internal: not a table request".into()),
-        };
+        let r = self.request(&c.request, &c.peer.user).await;
         let _ = c.reply.send(r);
     }
 
@@ -751,6 +977,15 @@ impl Tables {
             views.push(table_view(&rec, &[]));
         }
         tracing::info!(run = run_id, tables = ?views.iter().map(|v| v.id).collect::<Vec<_>>(), "tables generated");
+        self.audit_outcome(
+            "",
+            "tables_generated",
+            serde_json::json!({
+                "run_id": run_id,
+                "table_ids": views.iter().map(|v| v.id).collect::<Vec<_>>(),
+                "compositions": views.iter().map(|v| v.composition.clone()).collect::<Vec<_>>(),
+            }),
+        );
         Ok(serde_json::json!({ "run_id": run_id, "map": self.map.name, "tables": views }))
     }
 
@@ -791,6 +1026,19 @@ impl Tables {
                 stored.map, rec.entry.crc, self.map.file, enc.crc
             ));
         }
+        // Issue 15: never the residual alone, never on a base the PLC no longer applies.
+        let during = match rec.entry.source_run {
+            Some(r) => self.store.run_tables(r).map_err(|e| e.to_string())?,
+            None => None,
+        };
+        let now = self.read_active().await;
+        composition::publishable(
+            rec.id,
+            &stored,
+            rec.entry.source_run.map(|r| r.0),
+            during.as_ref(),
+            &now,
+        )?;
         let store_max = self
             .store
             .publications(None)
@@ -869,6 +1117,17 @@ impl Tables {
             Err(e) => ("failed", None, e.to_string(), e.commit_sent()),
         };
         tracing::info!(table = table_id, sequence, result = res, %message, "publish done");
+        // The audit log names the object (issue 15): which table, as which sequence, and what
+        // came of it.
+        self.audit_outcome(
+            who,
+            "table_published",
+            serde_json::json!({
+                "table_id": table_id, "kind": stored.kind, "axis": stored.axis.to_string(),
+                "sequence": sequence, "crc": format!("0x{:08X}", rec.entry.crc),
+                "target": target, "result": res, "composition": stored.composition(),
+            }),
+        );
         let v = PublishView {
             table_id,
             target,
@@ -898,6 +1157,14 @@ impl Tables {
                 &pubs,
                 &target,
             );
+            let active = composition::active_tables(
+                &rb.status,
+                Some((&rb.header, reject)),
+                &tables,
+                &pubs,
+                &target,
+                now_us(),
+            );
             StatusView {
                 source: format!("read back from {target}"),
                 plc: PlcStatusView::from(&rb.status),
@@ -922,10 +1189,13 @@ impl Tables {
                 verdict: verdict.into(),
                 table_id: id.map(|t| t.0),
                 message,
+                active: active_views(&active, &tables, &pubs),
+                active_source: active.source,
             }
         } else if let (Some(pull), Some(target)) = (&self.pull, self.pull_target()) {
             let st = pull.acks().borrow().status;
             let (verdict, id, message) = verdict(&st, None, &tables, &pubs, &target);
+            let active = composition::active_tables(&st, None, &tables, &pubs, &target, now_us());
             StatusView {
                 source: format!(
                     "the PLC's acknowledgement on {target} (published sequence {})",
@@ -936,6 +1206,8 @@ impl Tables {
                 verdict: verdict.into(),
                 table_id: id.map(|t| t.0),
                 message,
+                active: active_views(&active, &tables, &pubs),
+                active_source: active.source,
             }
         } else {
             return Err(
@@ -947,7 +1219,7 @@ impl Tables {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::plc::table::RejectCode;
 
@@ -1010,7 +1282,7 @@ mod tests {
         }
     }
 
-    fn header(sequence: u32, crc: u32) -> RawHeader {
+    pub(crate) fn header(sequence: u32, crc: u32) -> RawHeader {
         RawHeader {
             kind: 1,
             axis: 2,

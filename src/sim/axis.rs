@@ -5,11 +5,85 @@
 //! harmonics) scaled to a stated peak; positioning adds the ball-screw's periodic error,
 //! backlash (the carriage lags the command by half the backlash in the direction it last moved)
 //! and a thermal drift that lengthens the axis over time.
+//!
+//! The axis can age (issue 15, [`Wear`]): wear of the screw and nut adds positioning error
+//! where the axis works most and more backlash, and a steady thermal offset changes the scale.
+//! It is set from the configuration (`[twin.axis] wear_*`) and changed while the twin runs
+//! ([`AxisProfile::set_wear`]), so a maintenance re-measurement has something to find.
 
 use super::Rng;
 use crate::units::Errors6;
 use std::f64::consts::PI;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
+
+/// What years of use add to the axis (issue 15). All zero: as commissioned.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Wear {
+    /// Peak of the positioning wear (µm): `p·sin²(π·u)` over the travel u ∈ [0, 1], worn
+    /// most mid-travel where the axis works most, nothing at the ends.
+    pub positioning_um: f64,
+    /// Backlash added to the axis' own (µm).
+    pub backlash_um: f64,
+    /// A steady thermal offset (µm at the end of the travel, growing linearly from 0): the
+    /// screw running warmer than when the axis was commissioned.
+    pub thermal_um: f64,
+}
+
+impl Wear {
+    /// Its positioning error (mm) at `u` of the travel, moving in `dir`.
+    fn dy_mm(&self, u: f64, dir: Direction) -> f64 {
+        let s = (PI * u).sin();
+        let half = 0.5 * self.backlash_um;
+        let b = match dir {
+            Direction::Up => -half,
+            Direction::Down => half,
+        };
+        (self.positioning_um * s * s + self.thermal_um * u + b) * 1e-3
+    }
+}
+
+/// The wear in force, shared by the clones of a profile (the plant's and whoever ages it).
+#[derive(Clone)]
+struct WearCell(Arc<[AtomicU64; 3]>);
+
+impl WearCell {
+    fn new(w: Wear) -> Self {
+        let c = WearCell(Arc::new(std::array::from_fn(|_| AtomicU64::new(0))));
+        c.set(w);
+        c
+    }
+    fn set(&self, w: Wear) {
+        for (a, v) in self
+            .0
+            .iter()
+            .zip([w.positioning_um, w.backlash_um, w.thermal_um])
+        {
+            a.store(v.to_bits(), Ordering::Relaxed);
+        }
+    }
+    fn get(&self) -> Wear {
+        let v = |k: usize| f64::from_bits(self.0[k].load(Ordering::Relaxed));
+        Wear {
+            positioning_um: v(0),
+            backlash_um: v(1),
+            thermal_um: v(2),
+        }
+    }
+}
+
+impl PartialEq for WearCell {
+    fn eq(&self, other: &Self) -> bool {
+        self.get() == other.get()
+    }
+}
+
+impl std::fmt::Debug for WearCell {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        self.get().fmt(f)
+    }
+}
 
 /// How large the twin's axis errors are. Peaks are the largest |value| over the travel.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -30,6 +104,8 @@ pub struct AxisSpec {
     pub roll_arcsec: f64,
     /// Thermal growth of the positioning scale (µm per metre per hour).
     pub thermal_um_per_m_per_h: f64,
+    /// Ageing at the start (issue 15); changed later with `AxisProfile::set_wear`.
+    pub wear: Wear,
 }
 
 impl Default for AxisSpec {
@@ -44,6 +120,7 @@ impl Default for AxisSpec {
             pitch_yaw_arcsec: 8.0,
             roll_arcsec: 4.0,
             thermal_um_per_m_per_h: 0.0,
+            wear: Wear::default(),
         }
     }
 }
@@ -115,6 +192,7 @@ pub struct AxisProfile {
     pub spec: AxisSpec,
     shapes: [Shape; 6],
     periodic_phase: f64,
+    wear: WearCell,
 }
 
 impl AxisProfile {
@@ -133,7 +211,26 @@ impl AxisProfile {
             spec: *spec,
             shapes: std::array::from_fn(|k| Shape::random(rng, peaks[k])),
             periodic_phase: rng.uniform(0.0, 2.0 * PI),
+            wear: WearCell::new(spec.wear),
         }
+    }
+
+    /// Age the axis: `w` replaces the wear in force (for every clone of this profile, so the
+    /// running plant's axis ages at once).
+    pub fn set_wear(&self, w: Wear) {
+        self.wear.set(w);
+    }
+
+    /// The wear in force.
+    pub fn wear(&self) -> Wear {
+        self.wear.get()
+    }
+
+    /// The positioning error (mm) the wear in force adds at nominal position `d`, moving in
+    /// `dir` (what a re-measurement should find on top of the commissioned axis).
+    pub fn wear_dy(&self, d: f64, dir: Direction) -> f64 {
+        let u = (d / self.spec.length_mm.max(1e-9)).clamp(-0.1, 1.1);
+        self.wear.get().dy_mm(u, dir)
     }
 
     /// A perfect axis of the given length.
@@ -147,6 +244,7 @@ impl AxisProfile {
             pitch_yaw_arcsec: 0.0,
             roll_arcsec: 0.0,
             thermal_um_per_m_per_h: 0.0,
+            wear: Wear::default(),
             ..AxisSpec::default()
         };
         AxisProfile::random(&spec, &mut Rng::new(0))
@@ -168,6 +266,7 @@ impl AxisProfile {
             Direction::Down => half,
         };
         e[1] += self.spec.thermal_um_per_m_per_h * um * (d / 1000.0) * hours;
+        e[1] += self.wear.get().dy_mm(u, dir);
         Errors6::from_array(e)
     }
 }
@@ -312,5 +411,50 @@ mod tests {
         assert_eq!(c.direction(), Direction::Up);
         c.move_to(90.0, t0 + Duration::from_secs(3));
         assert_eq!(c.direction(), Direction::Down);
+    }
+
+    #[test]
+    fn wear_adds_positioning_backlash_and_a_thermal_offset() {
+        let spec = AxisSpec::default();
+        let p = AxisProfile::random(&spec, &mut Rng::new(1));
+        let new = |d: f64, dir| p.errors(d, dir, 0.0).to_user();
+        let before: Vec<[f64; 6]> = [0.0, 500.0, 1000.0]
+            .iter()
+            .flat_map(|&d| [new(d, Direction::Up), new(d, Direction::Down)])
+            .collect();
+        let clone = p.clone();
+        clone.set_wear(Wear {
+            positioning_um: 4.0,
+            backlash_um: 2.0,
+            thermal_um: 3.0,
+        });
+        // The plant's copy ages with the one it was handed to.
+        assert_eq!(p.wear().positioning_um, 4.0);
+        let after: Vec<[f64; 6]> = [0.0, 500.0, 1000.0]
+            .iter()
+            .flat_map(|&d| [new(d, Direction::Up), new(d, Direction::Down)])
+            .collect();
+        // dy: −1/+1 µm of backlash at 0; 4 µm of wear and 1.5 µm thermal mid-travel; 3 µm
+        // thermal at the end (sin²(π) = 0). Nothing else moves.
+        let want = [
+            -1.0,
+            1.0,
+            4.0 + 1.5 - 1.0,
+            4.0 + 1.5 + 1.0,
+            3.0 - 1.0,
+            3.0 + 1.0,
+        ];
+        for (k, w) in want.iter().enumerate() {
+            assert!(
+                (after[k][1] - before[k][1] - w).abs() < 1e-9,
+                "{k}: {} {}",
+                after[k][1] - before[k][1],
+                w
+            );
+            for dof in [0, 2, 3, 4, 5] {
+                assert_eq!(after[k][dof], before[k][dof]);
+            }
+        }
+        assert!((p.wear_dy(500.0, Direction::Down) * 1e3 - 6.5).abs() < 1e-9);
     }
 }

@@ -68,6 +68,13 @@ struct RawAxis {
     pitch_yaw_arcsec: f64,
     roll_arcsec: f64,
     thermal_um_per_m_per_h: f64,
+    /// Ageing (issue 15): see `sim::axis::Wear`.
+    #[serde(default)]
+    wear_positioning_um: f64,
+    #[serde(default)]
+    wear_backlash_um: f64,
+    #[serde(default)]
+    wear_thermal_um: f64,
 }
 
 #[derive(Debug, Deserialize)]
@@ -200,6 +207,13 @@ pub fn parse_all(
             Err(bad(key, format!("{v} must be zero or positive")))
         }
     };
+    let finite = |key: &str, v: f64| -> Result<f64, SimError> {
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            Err(bad(key, format!("{v} must be a number of µm")))
+        }
+    };
     let t = &raw.twin;
     let layout = match t.layout.as_str() {
         "builtin" | "builtin:reference" => Layout::reference(),
@@ -225,6 +239,11 @@ pub fn parse_all(
             pitch_yaw_arcsec: non_neg("twin.axis.pitch_yaw_arcsec", a.pitch_yaw_arcsec)?,
             roll_arcsec: non_neg("twin.axis.roll_arcsec", a.roll_arcsec)?,
             thermal_um_per_m_per_h: a.thermal_um_per_m_per_h,
+            wear: super::axis::Wear {
+                positioning_um: finite("twin.axis.wear_positioning_um", a.wear_positioning_um)?,
+                backlash_um: non_neg("twin.axis.wear_backlash_um", a.wear_backlash_um)?,
+                thermal_um: finite("twin.axis.wear_thermal_um", a.wear_thermal_um)?,
+            },
         },
         install: InstallSpec {
             offset_mm: non_neg("twin.head.install_offset_mm", h.install_offset_mm)?,

@@ -22,6 +22,8 @@
 mod alignments;
 mod follower;
 mod records;
+mod run_list;
+mod run_tables;
 pub mod schema;
 
 pub use alignments::{AlignmentRecord, NewAlignment};
@@ -31,6 +33,8 @@ pub use records::{
     Publication, PublicationOutcome, PublicationRecord, RunId, RunRecord, RunState, StoredHandover,
     TableEntry, TableId, TableRecord,
 };
+pub use run_list::{RunSummary, iso_utc};
+pub use run_tables::{ActiveTable, RunTables};
 
 use rusqlite::{Connection, ErrorCode, OpenFlags, TransactionBehavior};
 use std::path::{Path, PathBuf};

@@ -12,7 +12,7 @@ use std::collections::BTreeSet;
 use std::fmt;
 
 /// SQLite's extended code for a foreign-key violation.
-const CONSTRAINT_FOREIGNKEY: i32 = 787;
+pub(super) const CONSTRAINT_FOREIGNKEY: i32 = 787;
 
 macro_rules! id_type {
     ($(#[$m:meta])* $name:ident) => {

@@ -19,7 +19,7 @@ pub const APPLICATION_ID: i32 = 0x4158_4353;
 pub const LATEST: i64 = MIGRATIONS.len() as i64;
 
 /// Forward migrations; `MIGRATIONS[i]` goes from version `i` to `i + 1`.
-pub const MIGRATIONS: &[&str] = &[V1, V2, V3_FOLLOWER_MAPS];
+pub const MIGRATIONS: &[&str] = &[V1, V2, V3_FOLLOWER_MAPS, V4_RUN_TABLES];
 
 /// Version 1: the first schema.
 const V1: &str = r#"
@@ -192,6 +192,29 @@ CREATE TABLE follower_maps (
 CREATE UNIQUE INDEX follower_maps_in_use ON follower_maps (in_use) WHERE in_use = 1;
 "#;
 
+/// Version 4: the compensation tables active in the PLC while a run ran (issue 15), read when
+/// the run started: one row per run saying where they were read and whether they are known,
+/// and one row per active table (its kind and acting axis, sequence and CRC, the stored table
+/// when the store has it, and whether the PLC's staging area confirmed it by reading back).
+const V4_RUN_TABLES: &str = r#"
+CREATE TABLE run_tables_read (
+    run_id   INTEGER PRIMARY KEY REFERENCES runs (id),
+    unix_us  INTEGER NOT NULL,
+    known    INTEGER NOT NULL CHECK (known IN (0, 1)),  -- 0: the PLC could not be read
+    source   TEXT    NOT NULL                            -- where, or why they are unknown
+) STRICT;
+CREATE TABLE run_tables (
+    run_id    INTEGER NOT NULL REFERENCES run_tables_read (run_id),
+    kind      TEXT    NOT NULL CHECK (kind <> ''),
+    axis      TEXT    NOT NULL CHECK (axis <> ''),
+    table_id  INTEGER REFERENCES tables (id),
+    sequence  INTEGER NOT NULL CHECK (sequence > 0),
+    crc       INTEGER NOT NULL CHECK (crc BETWEEN 0 AND 4294967295),
+    read_back INTEGER NOT NULL CHECK (read_back IN (0, 1)),
+    PRIMARY KEY (run_id, kind, axis)
+) STRICT;
+"#;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -200,6 +223,6 @@ mod tests {
     fn application_id_literal_matches_the_constant() {
         // The pragma cannot take a bound parameter, so V1 spells the number out.
         assert!(V1.contains(&format!("PRAGMA application_id = {APPLICATION_ID};")));
-        assert_eq!(LATEST, 3);
+        assert_eq!(LATEST, 4);
     }
 }

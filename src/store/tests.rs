@@ -722,3 +722,74 @@ fn a_reader_sees_each_commit_while_the_writer_goes_on() {
     writer.join().unwrap();
     assert_eq!(reader.captures(run).unwrap().len(), N as usize);
 }
+
+#[test]
+fn the_tables_active_during_a_run_are_recorded_once() {
+    let db = TempDb::new("run-tables");
+    let mut store = Store::open(&db.path).unwrap();
+    let before = store.create_run(&new_run()).unwrap();
+    let t = store
+        .insert_table(&TableEntry {
+            kind: "positioning".into(),
+            axis: "Y".into(),
+            direction: None,
+            generated_us: 0,
+            source_run: Some(before),
+            values: json!({}),
+            crc: 0xAA97_89CE,
+        })
+        .unwrap();
+    let run = store.create_run(&new_run()).unwrap();
+    assert_eq!(store.run_tables(run).unwrap(), None);
+    // Planned and running runs without a record are the tables task's to read.
+    assert_eq!(store.runs_without_tables(0).unwrap(), [before, run]);
+    let active = RunTables {
+        unix_us: 1_700_000_000_000_000,
+        known: true,
+        source: "generic at 127.0.0.1:1502: sequence 4 read back".into(),
+        tables: vec![ActiveTable {
+            kind: "positioning".into(),
+            axis: "Y".into(),
+            table: Some(t),
+            sequence: 4,
+            crc: 0xAA97_89CE,
+            read_back: true,
+        }],
+    };
+    store.record_run_tables(run, &active).unwrap();
+    assert_eq!(store.run_tables(run).unwrap().as_ref(), Some(&active));
+    assert_eq!(
+        active.summary(),
+        format!("table {t} (positioning Y, sequence 4)")
+    );
+    assert_eq!(store.runs_without_tables(0).unwrap(), [before]);
+    // Once only; a run or table that does not exist is named.
+    let again = store
+        .record_run_tables(run, &active)
+        .unwrap_err()
+        .to_string();
+    assert!(again.contains("has them recorded already"), "{again}");
+    assert!(matches!(
+        store.record_run_tables(RunId(99), &active),
+        Err(StoreError::NoSuchRun(RunId(99)))
+    ));
+    let mut ghost = active.clone();
+    ghost.tables[0].table = Some(TableId(77));
+    assert!(matches!(
+        store.record_run_tables(before, &ghost),
+        Err(StoreError::NoSuchTable(TableId(77)))
+    ));
+    // The failed record left nothing behind.
+    assert_eq!(store.run_tables(before).unwrap(), None);
+    let unknown = RunTables {
+        known: false,
+        source: "cannot read the PLC at 127.0.0.1:1502: timed out".into(),
+        tables: Vec::new(),
+        ..active
+    };
+    store.record_run_tables(before, &unknown).unwrap();
+    assert_eq!(
+        store.run_tables(before).unwrap().unwrap().summary(),
+        "unknown (cannot read the PLC at 127.0.0.1:1502: timed out)"
+    );
+}

@@ -18,6 +18,7 @@ mod follower;
 mod fuzz;
 mod hexapod;
 mod links;
+mod maintenance;
 mod modbus;
 mod plc;
 mod report;

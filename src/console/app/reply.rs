@@ -119,7 +119,23 @@ impl App {
                             .collect()
                     })
                     .unwrap_or_default();
-                let text = format!("run {run}: tables {} generated", ids.join(", "));
+                // Issue 15: say when they are the active tables plus the run's residual.
+                let composed = v["tables"].as_array().is_some_and(|a| {
+                    a.iter().any(|t| {
+                        t["composition"]
+                            .as_str()
+                            .is_some_and(|c| c.starts_with("composed"))
+                    })
+                });
+                let text = format!(
+                    "run {run}: tables {} generated{}",
+                    ids.join(", "),
+                    if composed {
+                        ", composed: the active tables plus the residual"
+                    } else {
+                        ""
+                    }
+                );
                 self.log(Level::Info, format!("✓ {text}"));
                 self.say(Level::Info, text);
                 // The newest first: select the first generated.

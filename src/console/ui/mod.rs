@@ -486,6 +486,13 @@ pub fn clock_utc(unix_us: i64) -> String {
     format!("{:02}:{:02}:{:02}", s / 3600, (s % 3600) / 60, s % 60)
 }
 
+/// "2026-11-25 17:39" (UTC) from µs since the epoch: the date a run or table is found by.
+pub fn date_utc(unix_us: i64) -> String {
+    let t = crate::store::iso_utc(unix_us);
+    // "2026-11-25T17:39:03Z" → "2026-11-25 17:39".
+    format!("{} {}", &t[..10], &t[11..16])
+}
+
 /// A titled, bordered block.
 pub fn panel(title: &str) -> Block<'_> {
     Block::bordered().title(format!(" {title} "))

@@ -2,9 +2,9 @@
 //! holds (`table_status`, its staging area read back) point by point, generating tables from a
 //! finished run, and publishing with the axis name typed, the handshake's outcome shown.
 
-use super::{TALL, Theme, WIDE, clock_utc, panel};
+use super::{TALL, Theme, WIDE, clock_utc, date_utc, panel};
 use crate::console::app::{App, PublishState};
-use crate::service::tables::{StatusView, TableView};
+use crate::service::tables::{ActiveView, StatusView, TableView};
 use ratatui::Frame;
 use ratatui::layout::{Constraint, Layout, Rect};
 use ratatui::style::Color;
@@ -149,16 +149,40 @@ fn tables(frame: &mut Frame, area: Rect, app: &App, wide: bool, theme: Theme) {
     frame.render_widget(Paragraph::new(lines).block(panel(&title)), area);
 }
 
-/// The PLC's values when they can be set against `t` point by point.
-fn plc_values<'a>(p: &'a PublishState, t: &TableView) -> Option<&'a [f64]> {
+/// The table the PLC applies for `t`'s kind and axis (issue 15: not the one staging area).
+fn active_for<'a>(p: &'a PublishState, t: &TableView) -> Option<&'a ActiveView> {
     match &p.status {
-        Some(Ok(StatusView {
-            staged: Some(s), ..
-        })) if s.values_um.len() == t.values_um.len() && !s.values_um.is_empty() => {
-            Some(&s.values_um)
+        Some(Ok(StatusView { active, .. })) => {
+            active.iter().find(|a| a.kind == t.kind && a.axis == t.axis)
         }
         _ => None,
     }
+}
+
+/// The PLC's values for `t`'s kind and axis when they can be set against `t` point by point:
+/// the active table of that kind and axis; from a service that does not list them, the
+/// staging area when it holds that kind and axis.
+fn plc_values<'a>(p: &'a PublishState, t: &TableView) -> Option<&'a [f64]> {
+    let same = |v: &'a [f64]| (v.len() == t.values_um.len() && !v.is_empty()).then_some(v);
+    if let Some(a) = active_for(p, t) {
+        return same(&a.values_um);
+    }
+    match &p.status {
+        Some(Ok(StatusView {
+            staged: Some(s),
+            active_source,
+            ..
+        })) if active_source.is_empty() && staged_is(s, t) => same(&s.values_um),
+        _ => None,
+    }
+}
+
+/// Whether the staging area holds a table of `t`'s kind acting on `t`'s axis.
+fn staged_is(s: &crate::service::tables::StagedView, t: &TableView) -> bool {
+    use crate::plc::table::{axis_code, kind_code};
+    let kind = crate::service::tables::kind_from_name(&t.kind).map(kind_code);
+    let axis = crate::comp::MachineAxis::from_letter(&t.axis).map(axis_code);
+    kind == Some(s.kind) && axis == Some(s.axis)
 }
 
 /// Rounded to 2 decimals, never "-0.00".
@@ -222,23 +246,40 @@ fn values(frame: &mut Frame, area: Rect, p: &PublishState, wide: bool, theme: Th
             Span::styled(diff, style),
         ]));
     }
+    let held = active_for(p, t);
+    let held_name = held.map_or_else(String::new, |a| match a.table_id {
+        Some(id) => format!("table {id}"),
+        None => format!("sequence {}", a.sequence),
+    });
     let summary = match (theirs, &p.status) {
-        (Some(_), _) if differing == 0 => Line::styled(
+        (Some(_), _) if held.is_none() && differing == 0 => Line::styled(
             format!("the PLC's staging area equals table {} (±0.05 µm)", t.id),
             theme.ok(),
         ),
+        (Some(_), _) if differing == 0 => Line::styled(
+            format!(
+                "the PLC's {} {} ({held_name}) equals table {} (±0.05 µm)",
+                t.kind, t.axis, t.id
+            ),
+            theme.ok(),
+        ),
         (Some(_), _) => Line::styled(
-            format!("{differing} of {n} points differ, by up to {worst:.2} µm"),
+            if held.is_some() {
+                format!("{differing} of {n} points differ from {held_name}, by up to {worst:.2} µm")
+            } else {
+                format!("{differing} of {n} points differ, by up to {worst:.2} µm")
+            },
             theme.warn(),
         ),
-        (None, Some(Ok(s))) => Line::styled(
-            match &s.staged {
-                Some(st) if !st.values_um.is_empty() => format!(
-                    "the PLC holds {} points, table {} has {n}: no diff",
-                    st.values_um.len(),
+        (None, Some(Ok(_))) => Line::styled(
+            match held {
+                Some(a) if !a.values_um.is_empty() => format!(
+                    "the PLC's {held_name} has {} points, table {} has {n}: no diff",
+                    a.values_um.len(),
                     t.id
                 ),
-                _ => "the PLC's values were not read back".into(),
+                Some(_) => format!("the PLC applies {held_name}, not in the store: no diff"),
+                None => format!("the PLC applies no {} table for {}", t.kind, t.axis),
             },
             theme.dim(),
         ),
@@ -347,7 +388,30 @@ fn plc(frame: &mut Frame, area: Rect, p: &PublishState, theme: Theme) {
                 }
             }
             lines.push(Line::styled(s.source.clone(), theme.dim()));
+            for a in &s.active {
+                lines.push(Line::raw(format!(
+                    "active: {} {} {} seq {} {}{}{}",
+                    a.table_id
+                        .map_or_else(|| "(not stored)".into(), |i| format!("table {i}")),
+                    a.kind,
+                    a.axis,
+                    a.sequence,
+                    a.published_us.map(date_utc).unwrap_or_default(),
+                    a.source_run
+                        .map(|r| format!(" run {r}"))
+                        .unwrap_or_default(),
+                    if a.read_back { " (read back)" } else { "" }
+                )));
+            }
         }
+    }
+    if let Some(t) = p.selected_table()
+        && t.composition.starts_with("composed")
+    {
+        lines.push(Line::styled(
+            format!("table {}: {}", t.id, t.composition),
+            theme.accent(),
+        ));
     }
     lines.push(Line::raw(""));
     if let Some(run) = p.generating {

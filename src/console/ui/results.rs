@@ -2,7 +2,7 @@
 //! ISO 230-2 / 230-1 figures, and a before/after comparison with a second run. Everything is
 //! the service's evaluation (`runs`, `run_result`); nothing is computed here.
 
-use super::{TALL, Theme, WIDE, chart, clock_utc, panel};
+use super::{TALL, Theme, WIDE, chart, date_utc, panel};
 use crate::console::app::{App, ResultsView};
 use crate::service::results::{DofView, RunResult};
 use ratatui::Frame;
@@ -87,19 +87,24 @@ fn runs(frame: &mut Frame, area: Rect, r: &ResultsView, wide: bool, theme: Theme
         } else {
             " "
         };
+        // The date, so a run is found years later (issue 15), at 80 columns too.
         let text = if wide {
             format!(
-                "{mark} run {:<3} {} {:<8} {:>3} captures  {} UTC",
+                "{mark} run {:<3} {} {:<8} {:>3} captures {}",
                 run.id,
                 run.axis,
                 run.state,
                 run.captures,
-                clock_utc(run.created_us)
+                date_utc(run.created_us)
             )
         } else {
             format!(
-                "{mark} run {:<3} {} {:<8} {:>3}",
-                run.id, run.axis, run.state, run.captures
+                "{mark}{:>3} {} {:<8} {:>3} {}",
+                run.id,
+                run.axis,
+                run.state,
+                run.captures,
+                date_utc(run.created_us)
             )
         };
         let style = if i == r.selected {
