@@ -62,6 +62,7 @@ pub enum Table {
 pub struct ExportArgs {
     #[command(flatten)]
     pub store: StoreArgs,
+    /// The controller's file format.
     #[arg(long, value_enum)]
     pub format: Format,
     /// Which table (the head's transverse x or vertical z straightness, or positioning).

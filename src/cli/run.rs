@@ -42,6 +42,7 @@ pub struct Where {
     /// The control socket (default: from the configuration).
     #[arg(long)]
     pub socket: Option<PathBuf>,
+    /// The service's configuration (default: /etc/axiscomp/axiscomp.toml), for the socket.
     #[arg(long)]
     pub config: Option<PathBuf>,
 }
@@ -53,22 +54,31 @@ pub struct StartArgs {
     /// The plan as a TOML file (the fields below); flags override it.
     #[arg(long)]
     pub plan: Option<PathBuf>,
+    /// The machine axis: X, Y or Z.
     #[arg(long)]
     pub axis: Option<String>,
+    /// The first target (mm).
     #[arg(long)]
     pub start_mm: Option<f64>,
+    /// The last target (mm).
     #[arg(long)]
     pub end_mm: Option<f64>,
+    /// Targets (ISO 230-2: at least five, and five per metre).
     #[arg(long)]
     pub targets: Option<usize>,
+    /// Bidirectional runs (ISO 230-2: five).
     #[arg(long)]
     pub runs: Option<u32>,
+    /// How far beyond the end targets the axis reverses (mm).
     #[arg(long)]
     pub overrun_mm: Option<f64>,
+    /// Dwell at each target (s).
     #[arg(long)]
     pub dwell_s: Option<f64>,
+    /// Feed between targets (mm/min).
     #[arg(long)]
     pub feed_mm_min: Option<f64>,
+    /// Ball-screw lead (mm) for non-uniform target spacing; 0 spaces them evenly.
     #[arg(long)]
     pub lead_mm: Option<f64>,
     /// Program dialect: iso, siemens, heidenhain, linuxcnc (default: the configuration's).

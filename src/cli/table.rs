@@ -30,6 +30,7 @@ pub struct Common {
     /// The control socket (default: from the configuration).
     #[arg(long)]
     pub socket: Option<PathBuf>,
+    /// The service's configuration (default: /etc/axiscomp/axiscomp.toml), for the socket.
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Print the service's reply as JSON.

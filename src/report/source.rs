@@ -130,13 +130,41 @@ fn operator(store: &Store, r: &RunRecord) -> Result<Option<String>, StoreError> 
         .and_then(|e| e.who.user))
 }
 
-/// The tables active during the run.
-///
-/// Hook: when runs record the tables active in the PLC as they start (issue 15, "tables that
-/// compose"), return those as `ActiveTables::Recorded` here; until then the publication log
-/// is the best the store knows.
+/// The tables active during the run: as recorded when it started (read from the PLC), or,
+/// for a run made before runs recorded them or when the PLC could not be read, inferred from
+/// the publication log.
 fn active_tables(store: &Store, r: &RunRecord) -> Result<ActiveTables, StoreError> {
     let tables = store.tables()?;
+    if let Some(rt) = store.run_tables(r.id)?
+        && rt.known
+    {
+        let publications = store.publications(None)?;
+        let recorded = rt
+            .tables
+            .iter()
+            .map(|a| {
+                let id = a.table.map_or(0, |t| t.0);
+                let stored = tables.iter().find(|t| t.id.0 == id);
+                let published_us = publications
+                    .iter()
+                    .map(|p| &p.publication)
+                    .filter(|p| p.table.0 == id && p.sequence == a.sequence)
+                    .map(|p| p.unix_us)
+                    .max()
+                    .unwrap_or(rt.unix_us);
+                ActiveTable {
+                    table_id: id,
+                    kind: a.kind.clone(),
+                    axis: a.axis.clone(),
+                    sequence: a.sequence,
+                    published_us,
+                    source_run: stored.and_then(|t| t.entry.source_run.map(|r| r.0)),
+                    crc: a.crc,
+                }
+            })
+            .collect();
+        return Ok(ActiveTables::Recorded(recorded));
+    }
     let mut latest: Vec<ActiveTable> = Vec::new();
     for p in store.publications(None)? {
         let p = p.publication;
