@@ -308,6 +308,7 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
         let r = session::run(
             &hx,
             &mut rx,
+            &mut axiscomp::hexapod::bench::Stay,
             &plan,
             &a.out,
             &layout,

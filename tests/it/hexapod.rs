@@ -10,7 +10,7 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-fn spec() -> TwinHexapodSpec {
+pub(crate) fn spec() -> TwinHexapodSpec {
     TwinHexapodSpec {
         gcs: Some(SocketAddr::from(([127, 0, 0, 1], 0))),
         xps: Some(SocketAddr::from(([127, 0, 0, 1], 0))),
@@ -27,7 +27,7 @@ async fn servers() -> HexapodServers {
         .expect("twin hexapod")
 }
 
-async fn driver(s: &HexapodServers, kind: Driver) -> Hexapod {
+pub(crate) async fn driver(s: &HexapodServers, kind: Driver) -> Hexapod {
     let addr = match kind {
         Driver::PiGcs => s.gcs,
         Driver::NewportXps => s.xps,
@@ -222,6 +222,7 @@ async fn stop_halts_a_move() {
 use crate::helpers::{TempDir, link_config};
 use axiscomp::acquire::{AcquireConfig, Acquisition, IoMap};
 use axiscomp::calibrate::CalibrateOptions;
+use axiscomp::hexapod::bench::{Bench, Stay};
 use axiscomp::hexapod::plan::{PlanError, PlanSpec, PosePlan};
 use axiscomp::hexapod::procedure::{
     PoseStore, ProcedureError, RunOptions, RunProgress, RunReport, fit_and_judge, never_stop, run,
@@ -232,16 +233,16 @@ use axiscomp::sim::iomodule::IoModule;
 use axiscomp::sim::plant::{Plant, PlantSpec};
 use axiscomp::units::DOF_NAMES;
 
-struct Rig {
-    plant: Arc<Plant>,
+pub(crate) struct Rig {
+    pub(crate) plant: Arc<Plant>,
     _io: IoModule,
-    acq: Acquisition,
-    servers: HexapodServers,
+    pub(crate) acq: Acquisition,
+    pub(crate) servers: HexapodServers,
 }
 
 /// The twin's head with installation errors (±0.5 mm, ±0.2°, 1 % PSD gain) on the hexapod,
 /// read through the I/O module over Modbus at 1 kHz.
-async fn rig(seed: u64) -> Rig {
+pub(crate) async fn rig(seed: u64) -> Rig {
     let plant = Arc::new(
         Plant::new(
             &Layout::reference(),
@@ -276,10 +277,23 @@ async fn rig(seed: u64) -> Rig {
     }
 }
 
-/// Run `plan` on the rig with quick settings (5 ms settle, 20 frames).
+/// Run `plan` on the rig with quick settings (5 ms settle, 20 frames), the carriage and the
+/// follower staying where they are.
 async fn take(
     h: &mut Hexapod,
     r: &Rig,
+    plan: &PosePlan,
+    store: &mut PoseStore,
+    on: &mut (dyn FnMut(&RunProgress) + Send),
+) -> Result<RunReport, ProcedureError> {
+    take_on(h, r, &mut Stay, plan, store, on).await
+}
+
+/// `take` with `bench` bringing the carriage and the follower to each station.
+pub(crate) async fn take_on(
+    h: &mut Hexapod,
+    r: &Rig,
+    bench: &mut impl Bench,
     plan: &PosePlan,
     store: &mut PoseStore,
     on: &mut (dyn FnMut(&RunProgress) + Send),
@@ -289,6 +303,7 @@ async fn take(
     run(
         h,
         &mut rx,
+        bench,
         plan,
         &spec().workspace,
         store,
@@ -299,7 +314,7 @@ async fn take(
     .await
 }
 
-fn quick() -> RunOptions {
+pub(crate) fn quick() -> RunOptions {
     RunOptions {
         settle: Duration::from_millis(5),
         frames: 20,

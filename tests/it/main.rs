@@ -17,6 +17,7 @@ mod evaluate;
 mod follower;
 mod fuzz;
 mod hexapod;
+mod hexapod_along;
 mod links;
 mod modbus;
 mod plc;
