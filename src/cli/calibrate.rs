@@ -355,8 +355,8 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
     let bound = j.calibration.crlb(&layout)?;
     print!("{}", j.calibration.report(Some(&bound)));
     println!(
-        "held out: {} poses, {} frames decoupled one by one against the reached poses",
-        j.holdout_poses, j.frames
+        "held out: {} poses, {} frames decoupled one by one against the reached poses ({} untraceable, left out)",
+        j.holdout_poses, j.frames, j.untraceable
     );
     println!(
         "  {:<24}{}",

@@ -149,6 +149,17 @@ impl PosePlan {
         Ok(())
     }
 
+    /// The positions (travel, follower) the plan visits, in order of first visit.
+    pub fn stations(&self) -> Vec<(f64, f64)> {
+        let mut at: Vec<(f64, f64)> = Vec::new();
+        for p in &self.poses {
+            if !at.contains(&(p.travel_mm, p.follower_mm)) {
+                at.push((p.travel_mm, p.follower_mm));
+            }
+        }
+        at
+    }
+
     /// The one bench position (travel, follower) of every pose, or the first pose elsewhere:
     /// the carriage and the follower stay where the operator put them for the whole run.
     pub fn station(&self) -> Result<(f64, f64), PlanError> {
@@ -327,6 +338,7 @@ mod tests {
         let back = PosePlan::parse(&plan.to_csv(), "plan.csv").expect("parse");
         assert_eq!(back.poses.len(), 5);
         assert_eq!(back.poses[2].travel_mm, 0.0);
+        assert_eq!(back.stations(), vec![(0.0, 0.0), (100.0, 100.0)]);
         assert_eq!(back.poses[3].travel_mm, 100.0);
         assert_eq!(
             back.station().expect_err("two stations").to_string(),

@@ -104,6 +104,10 @@ pub struct RunView {
     /// poses, the single-frame Cramér–Rao bound, and their ratio, per DOF.
     pub holdout_poses: usize,
     pub holdout_frames: usize,
+    /// Held-out frames the calibration could not decouple, left out of the judgement.
+    pub untraceable: usize,
+    /// Positions along the travel (carriage, follower; mm) the plan visits.
+    pub stations: usize,
     pub holdout_rms: Option<[f64; 6]>,
     pub crlb: Option<[f64; 6]>,
     pub ratio: Option<[f64; 6]>,
@@ -227,6 +231,7 @@ impl HexapodRuns {
             controller: self.settings.driver.map(|d| d.name()).unwrap_or("").into(),
             plan: plan.clone().unwrap_or_default(),
             poses: total,
+            stations: pose_plan.stations().len(),
             out: out.display().to_string(),
             done: stored,
             total,
@@ -285,6 +290,7 @@ impl HexapodRuns {
                     v.eta_s = None;
                     v.holdout_poses = j.holdout_poses;
                     v.holdout_frames = j.frames;
+                    v.untraceable = j.untraceable;
                     v.holdout_rms = Some(user(j.holdout_rms));
                     v.crlb = Some(user(j.crlb));
                     v.ratio = Some(j.ratio());

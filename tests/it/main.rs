@@ -18,6 +18,7 @@ mod follower;
 mod fuzz;
 mod hexapod;
 mod hexapod_along;
+mod hexapod_service;
 mod links;
 mod modbus;
 mod plc;
