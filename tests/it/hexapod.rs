@@ -225,7 +225,8 @@ use axiscomp::calibrate::CalibrateOptions;
 use axiscomp::hexapod::bench::{Bench, Stay};
 use axiscomp::hexapod::plan::{PlanError, PlanSpec, PosePlan};
 use axiscomp::hexapod::procedure::{
-    PoseStore, ProcedureError, RunOptions, RunProgress, RunReport, fit_and_judge, never_stop, run,
+    Judgement, PoseStore, ProcedureError, RunOptions, RunProgress, RunReport, fit_and_judge,
+    never_stop, run,
 };
 use axiscomp::optics::Layout;
 use axiscomp::sim::InstallSpec;
@@ -314,6 +315,31 @@ pub(crate) async fn take_on(
     .await
 }
 
+/// Fit and judge `store` with the default options on the reference layout.
+pub(crate) fn judge(store: &PoseStore) -> Result<Judgement, ProcedureError> {
+    fit_and_judge(
+        store,
+        &Layout::reference(),
+        &CalibrateOptions::default(),
+        &mut |_, _| {},
+    )
+}
+
+/// Every DOF's single-frame hold-out within `limit` × the Cramér–Rao bound.
+pub(crate) fn assert_within(j: &Judgement, limit: f64) {
+    let ratio = j.ratio();
+    for k in 0..6 {
+        assert!(
+            ratio[k] <= limit,
+            "{}: hold-out {:.3e} is {:.3}× the bound {:.3e}",
+            DOF_NAMES[k],
+            j.holdout_rms[k],
+            ratio[k],
+            j.crlb[k]
+        );
+    }
+}
+
 pub(crate) fn quick() -> RunOptions {
     RunOptions {
         settle: Duration::from_millis(5),
@@ -356,26 +382,10 @@ async fn the_procedure_calibrates_the_twins_head() {
     }
     assert!(last[1].abs() > 0.5, "a pose far out along y: {last:?}");
 
-    let j = fit_and_judge(
-        &store,
-        &Layout::reference(),
-        &CalibrateOptions::default(),
-        &mut |_, _| {},
-    )
-    .expect("fit");
+    let j = judge(&store).expect("fit");
     assert_eq!(j.holdout_poses, 24);
     assert_eq!(j.frames, 24 * 20);
-    let ratio = j.ratio();
-    for k in 0..6 {
-        assert!(
-            ratio[k] <= 1.15,
-            "{}: hold-out {:.3e} is {:.3}× the bound {:.3e}",
-            DOF_NAMES[k],
-            j.holdout_rms[k],
-            ratio[k],
-            j.crlb[k]
-        );
-    }
+    assert_within(&j, 1.15);
     // The frame noise is the twin's 1 µm (plus the I/O module's quantisation).
     for s in j.sigma_frame_mm {
         assert!((0.9e-3..1.3e-3).contains(&s), "σ {s}");
@@ -472,8 +482,9 @@ async fn a_plan_outside_the_workspace_is_refused_before_any_move() {
 
 use crate::helpers::{run as run_bin, stderr};
 
-/// `axiscomp calibrate run` refuses a plan pose outside `[hexapod] workspace` before it
-/// connects to anything, and `axiscomp check` names a bad `[hexapod]` key.
+/// `axiscomp calibrate run` refuses a plan pose outside `[hexapod] workspace`, and a plan at
+/// several positions, before it connects to anything, and `axiscomp check` names a bad
+/// `[hexapod]` key.
 #[test]
 fn the_command_line_checks_plan_and_config_first() {
     let dir = TempDir::new("hexapod-cli");
@@ -502,6 +513,31 @@ fn the_command_line_checks_plan_and_config_first() {
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
     assert!(
         stderr(&o).contains("pose 2 of the plan: Y = 1.5 is outside the hexapod's workspace (-1 to 1); no pose was moved to"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!out.exists(), "nothing stored");
+    // A plan at two positions: the command line moves neither the carriage nor the follower.
+    let along = dir.write(
+        "along.csv",
+        "x_mm,y_mm,z_mm,u_deg,v_deg,w_deg,travel_mm,follower_mm\n0,0,0,0,0,0,0,0\n0,0.5,0,0,0,0,100,100\n",
+    );
+    let o = run_bin(
+        &[
+            "calibrate",
+            "run",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--plan",
+            along.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        "",
+    );
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("pose 2 of the plan is at travel 100 mm with the follower at 100 mm, pose 1 at 0 mm and 0 mm: nothing here moves the carriage and the follower (the service does, with [cnc] mode = \"twin\")"),
         "{}",
         stderr(&o)
     );

@@ -6,12 +6,12 @@
 //! fatal, until there are too many.
 
 use crate::helpers::TempDir;
-use crate::hexapod::{driver, rig, take_on};
+use crate::hexapod::{assert_within, driver, judge, rig, take_on};
 use axiscomp::calibrate::{CalibrateOptions, calibrate_along};
 use axiscomp::hexapod::Driver;
 use axiscomp::hexapod::bench::Bench;
 use axiscomp::hexapod::plan::{PlanSpec, PosePlan};
-use axiscomp::hexapod::procedure::{PoseStore, ProcedureError, fit_and_judge};
+use axiscomp::hexapod::procedure::{PoseStore, ProcedureError};
 use axiscomp::optics::Layout;
 use axiscomp::sim::hexapod_servers::HexapodFault;
 use axiscomp::sim::plant::Plant;
@@ -82,26 +82,10 @@ async fn the_procedure_calibrates_along_the_travel_with_an_offset_per_station() 
         assert_eq!((p.travel_mm, p.follower_mm), stations()[i * 3 / 150]);
     }
 
-    let j = fit_and_judge(
-        &store,
-        &Layout::reference(),
-        &CalibrateOptions::default(),
-        &mut |_, _| {},
-    )
-    .expect("fit");
+    let j = judge(&store).expect("fit");
     assert_eq!(j.holdout_poses, 30);
     assert_eq!((j.frames, j.untraceable), (30 * 20, 0));
-    let ratio = j.ratio();
-    for k in 0..6 {
-        assert!(
-            ratio[k] <= 1.15,
-            "{}: hold-out {:.3e} is {:.3}× the bound {:.3e}",
-            DOF_NAMES[k],
-            j.holdout_rms[k],
-            ratio[k],
-            j.crlb[k]
-        );
-    }
+    assert_within(&j, 1.15);
     assert_eq!(j.stations.len(), 3);
     for (s, at) in j.stations.iter().zip(&bench.visits) {
         assert_eq!((s.travel_mm, s.follower_mm), *at);
@@ -143,13 +127,7 @@ async fn the_procedure_calibrates_along_the_travel_with_an_offset_per_station() 
     let garbage = format!("{held},1000000,0,0,0,0,0\n");
     append(&frames, &garbage);
     let again = PoseStore::open(&dir.path("run"), &plan).expect("reopen");
-    let j1 = fit_and_judge(
-        &again,
-        &Layout::reference(),
-        &CalibrateOptions::default(),
-        &mut |_, _| {},
-    )
-    .expect("one untraceable frame is skipped");
+    let j1 = judge(&again).expect("one untraceable frame is skipped");
     assert_eq!((j1.frames, j1.untraceable), (600, 1));
     // The same judgement otherwise (the reopened store's poses are rounded as written).
     for (k, name) in DOF_NAMES.iter().enumerate() {
@@ -159,13 +137,7 @@ async fn the_procedure_calibrates_along_the_travel_with_an_offset_per_station() 
     // More than 2 % of them refuses the judgement, saying why.
     append(&frames, &garbage.repeat(12));
     let again = PoseStore::open(&dir.path("run"), &plan).expect("reopen");
-    let e = fit_and_judge(
-        &again,
-        &Layout::reference(),
-        &CalibrateOptions::default(),
-        &mut |_, _| {},
-    )
-    .expect_err("too many");
+    let e = judge(&again).expect_err("too many");
     assert!(
         matches!(
             e,
