@@ -15,7 +15,7 @@
 //! Stations: the plan's poses may stand at several positions along the travel (DESIGN §3:
 //! the follower window along the travel). Before the first pose at a station — and at the
 //! first pose after a resume — the bench (`super::bench`) brings the carriage and the
-//! follower there. The fit gives each station after the first its own offset (the carriage's
+//! follower there (a plan at one position runs where they are). The fit gives each station after the first its own offset (the carriage's
 //! and the follower's own errors there, `calibrate::Stations`), and the judgement compares
 //! each held-out frame with the reached pose plus its station's offset. A held-out frame the
 //! calibrated model cannot decouple (a spot near a PSD's edge, a trace that fails) is left
@@ -464,7 +464,10 @@ pub async fn run(
     progress: &mut (dyn FnMut(&RunProgress) + Send),
 ) -> Result<RunReport, ProcedureError> {
     plan.check(workspace)?;
-    if !bench.moves() {
+    // A plan at one position runs where the operator put the carriage and the follower, as
+    // before stations existed; the bench moves them only between stations.
+    let moving = plan.stations().len() > 1;
+    if moving && !bench.moves() {
         plan.station()?;
     }
     let mut stop = stop.clone();
@@ -488,7 +491,7 @@ pub async fn run(
         }
         let t0 = Instant::now();
         let here = (plan.poses[i].travel_mm, plan.poses[i].follower_mm);
-        if bench.moves() && station != Some(here) {
+        if moving && station != Some(here) {
             tracing::info!(
                 pose = index,
                 travel_mm = here.0,
