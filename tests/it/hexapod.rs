@@ -492,56 +492,38 @@ fn the_command_line_checks_plan_and_config_first() {
         "svc.toml",
         "[hexapod]\ndriver = \"newport-xps\"\naddress = \"127.0.0.1:9\"\nworkspace = [1.0, 1.0, 1.0, 1.0, 1.0, 1.0]\n",
     );
-    let plan = dir.write(
+    let out = dir.path("run");
+    // `calibrate run` with `plan` (CSV text): refused with `refusal`, nothing stored.
+    let refused = |name: &str, plan: &str, refusal: &str| {
+        let plan = dir.write(name, plan);
+        let o = run_bin(
+            &[
+                "calibrate",
+                "run",
+                "--config",
+                cfg.to_str().unwrap(),
+                "--plan",
+                plan.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+            ],
+            "",
+        );
+        assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+        assert!(stderr(&o).contains(refusal), "{}", stderr(&o));
+        assert!(!out.exists(), "nothing stored");
+    };
+    refused(
         "plan.csv",
         "x_mm,y_mm,z_mm,u_deg,v_deg,w_deg\n0,0,0,0,0,0\n0,1.5,0,0,0,0\n",
+        "pose 2 of the plan: Y = 1.5 is outside the hexapod's workspace (-1 to 1); no pose was moved to",
     );
-    let out = dir.path("run");
-    let o = run_bin(
-        &[
-            "calibrate",
-            "run",
-            "--config",
-            cfg.to_str().unwrap(),
-            "--plan",
-            plan.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ],
-        "",
-    );
-    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
-    assert!(
-        stderr(&o).contains("pose 2 of the plan: Y = 1.5 is outside the hexapod's workspace (-1 to 1); no pose was moved to"),
-        "{}",
-        stderr(&o)
-    );
-    assert!(!out.exists(), "nothing stored");
     // A plan at two positions: the command line moves neither the carriage nor the follower.
-    let along = dir.write(
+    refused(
         "along.csv",
         "x_mm,y_mm,z_mm,u_deg,v_deg,w_deg,travel_mm,follower_mm\n0,0,0,0,0,0,0,0\n0,0.5,0,0,0,0,100,100\n",
+        "pose 2 of the plan is at travel 100 mm with the follower at 100 mm, pose 1 at 0 mm and 0 mm: nothing here moves the carriage and the follower (the service does, with [cnc] mode = \"twin\")",
     );
-    let o = run_bin(
-        &[
-            "calibrate",
-            "run",
-            "--config",
-            cfg.to_str().unwrap(),
-            "--plan",
-            along.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ],
-        "",
-    );
-    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
-    assert!(
-        stderr(&o).contains("pose 2 of the plan is at travel 100 mm with the follower at 100 mm, pose 1 at 0 mm and 0 mm: nothing here moves the carriage and the follower (the service does, with [cnc] mode = \"twin\")"),
-        "{}",
-        stderr(&o)
-    );
-    assert!(!out.exists(), "nothing stored");
 
     let bad = dir.write("bad.toml", "[hexapod]\ndriver = \"hxp\"\n");
     let o = run_bin(&["check", "--config", bad.to_str().unwrap()], "");
