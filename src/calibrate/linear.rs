@@ -6,8 +6,10 @@
 //! Readings taken at different travel or follower positions are first brought to one
 //! reference position with the nominal model's zero-error readings (X2 moves 1:1 with D − d).
 //! β itself stays fixed, as in the paper: it is exact only near the travel it was fitted at.
+//! Poses at several stations on the axis under test (`super::Stations`) get one reading
+//! offset per station after the first: `R = [E 1 S]·B` with S the stations' indicators.
 
-use super::{CalError, PoseSample};
+use super::{CalError, PoseSample, Stations};
 use crate::decouple::{self, Linear};
 use crate::optics::{Layout, Pose};
 use crate::units::{DOF_NAMES, Errors6};
@@ -75,15 +77,26 @@ impl<'a> TravelShift<'a> {
 
 /// Fit β and offset to `samples`.
 pub fn fit_linear(samples: &[PoseSample], nominal: &Layout) -> Result<LinearFit, CalError> {
+    Ok(fit_linear_stations(samples, nominal, &Stations::of(samples, false))?.0)
+}
+
+/// Fit β, the offset and each station's reading offset (mm; zero at the first) to `samples`.
+pub fn fit_linear_stations(
+    samples: &[PoseSample],
+    nominal: &Layout,
+    stations: &Stations,
+) -> Result<(LinearFit, Vec<Vector6<f64>>), CalError> {
     let n = samples.len();
-    if n < 7 {
-        return Err(CalError::TooFewPoses { n, needed: 7 });
+    let ns = stations.len().max(1);
+    let cols = 6 + ns;
+    if n < cols {
+        return Err(CalError::TooFewPoses { n, needed: cols });
     }
     let ref_travel = samples.iter().map(|s| s.pose.travel).sum::<f64>() / n as f64;
     let ref_follower = samples.iter().map(|s| s.pose.follower).sum::<f64>() / n as f64;
     let mut shift = TravelShift::new(nominal, ref_travel, ref_follower)?;
 
-    let mut a = DMatrix::<f64>::zeros(n, 7);
+    let mut a = DMatrix::<f64>::zeros(n, cols);
     let mut r = DMatrix::<f64>::zeros(n, 6);
     for (i, s) in samples.iter().enumerate() {
         let e = s.pose.errors.to_array();
@@ -91,14 +104,18 @@ pub fn fit_linear(samples: &[PoseSample], nominal: &Layout) -> Result<LinearFit,
             a[(i, k)] = e[k];
         }
         a[(i, 6)] = 1.0;
+        match stations.of.get(i) {
+            Some(&st) if st > 0 => a[(i, 6 + st)] = 1.0,
+            _ => {}
+        }
         let y = s.readings - shift.shift(s.pose.travel, s.pose.follower)?;
         for k in 0..6 {
             r[(i, k)] = y[k];
         }
     }
     // Scale each column to unit RMS so translations (mm) and rotations (rad) weigh alike.
-    let mut scale = [1.0; 7];
-    for (k, sc) in scale.iter_mut().enumerate().take(6) {
+    let mut scale = vec![1.0; cols];
+    for (k, sc) in scale.iter_mut().enumerate().filter(|(k, _)| *k != 6) {
         let rms = (a.column(k).norm_squared() / n as f64).sqrt();
         *sc = if rms > 0.0 { rms } else { 1.0 };
         a.column_mut(k).scale_mut(1.0 / *sc);
@@ -108,7 +125,7 @@ pub fn fit_linear(samples: &[PoseSample], nominal: &Layout) -> Result<LinearFit,
     sv.sort_by(|x, y| y.total_cmp(x));
     let tol = LINEAR_RCOND * sv[0];
     let rank = sv.iter().filter(|&&s| s > tol).count();
-    if rank < 7 {
+    if rank < cols {
         let v_t = svd
             .v_t
             .as_ref()
@@ -126,12 +143,19 @@ pub fn fit_linear(samples: &[PoseSample], nominal: &Layout) -> Result<LinearFit,
             .enumerate()
             .max_by(|x, y| x.1.abs().total_cmp(&y.1.abs()))
             .ok_or(CalError::Internal("empty SVD"))?;
-        let weakest = if kmax < 6 {
-            DOF_NAMES[kmax].to_string()
-        } else {
-            "the offset".to_string()
+        let weakest = match kmax {
+            0..6 => DOF_NAMES[kmax].to_string(),
+            6 => "the offset".to_string(),
+            k => {
+                let (t, f) = stations.at[k - 6];
+                format!("the offset at travel {t} mm (follower {f} mm)")
+            }
         };
-        return Err(CalError::LowRank { rank, weakest });
+        return Err(CalError::LowRank {
+            rank,
+            needed: cols,
+            weakest,
+        });
     }
     let b = svd
         .solve(&r, tol)
@@ -144,20 +168,29 @@ pub fn fit_linear(samples: &[PoseSample], nominal: &Layout) -> Result<LinearFit,
         }
         offset[ch] = b[(6, ch)];
     }
+    let station_offsets = (0..ns)
+        .map(|st| match st {
+            0 => Vector6::zeros(),
+            _ => Vector6::from_fn(|ch, _| b[(6 + st, ch)] / scale[6 + st]),
+        })
+        .collect();
     let resid = &r - &a * &b;
     let residual_rms =
         std::array::from_fn(|ch| (resid.column(ch).norm_squared() / n as f64).sqrt());
     let (_, condition_number) = decouple::conditioning(&decouple::to_user_units(&beta));
-    Ok(LinearFit {
-        beta,
-        offset,
-        ref_travel,
-        ref_follower,
-        rank,
-        singular_values: sv,
-        residual_rms,
-        condition_number,
-    })
+    Ok((
+        LinearFit {
+            beta,
+            offset,
+            ref_travel,
+            ref_follower,
+            rank,
+            singular_values: sv,
+            residual_rms,
+            condition_number,
+        },
+        station_offsets,
+    ))
 }
 
 #[cfg(test)]

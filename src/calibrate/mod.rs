@@ -9,6 +9,17 @@
 //! the beams' directions relative to the travel are seen only over the hexapod's ±2 mm, far
 //! too short a lever to extrapolate to hundreds of millimetres (`axiscomp demo --bench-mm 0`
 //! shows it).
+//!
+//! Poses taken on the axis under test itself (the hexapod on the carriage, DESIGN §3) differ
+//! between positions along the travel by what the calibration cannot know: the carriage's own
+//! six errors there (what the run will measure) and the follower's own positioning and
+//! vertical errors (PSD2's offset along X2 and Y2). With `station_offsets` each position
+//! (each distinct travel and follower pair, a *station*) after the first gets its own unknown
+//! offset: six DOFs in the model fit (the two PSD2 offsets act on X2 and Y2 as dy and a
+//! roll/straightness pair do, so six DOFs span them), six reading offsets in the linear fit;
+//! the hold-outs are judged against the pose plus its station's offset. The first station's
+//! offset is the installation's (as with one position). What stations cannot give is the
+//! beams' direction relative to the travel: it is a straightness slope, which the offsets take.
 
 pub mod file;
 pub mod linear;
@@ -17,14 +28,15 @@ pub mod plausible;
 pub mod poses;
 
 pub use file::CalibrationFile;
-pub use linear::{LINEAR_RCOND, LinearFit, fit_linear};
-pub use model::{ModelFit, ModelFitOptions, fit_model};
+pub use linear::{LINEAR_RCOND, LinearFit, fit_linear, fit_linear_stations};
+pub use model::{ModelFit, ModelFitOptions, fit_model, fit_model_stations};
 pub use poses::{PoseSample, parse_pose_csv, write_pose_csv};
 
 use crate::decouple::{self, DecoupleError, Decoupler, Method, SolveOptions, Source};
 use crate::optics::{Installation, Layout, Pose};
 use crate::units::{DOF_NAMES, DOF_TO_USER, DOF_UNITS, Errors6, MM_PER_UM, READING_NAMES};
 use crate::util::csv::CsvError;
+use nalgebra::Vector6;
 use std::fmt;
 use thiserror::Error;
 
@@ -38,9 +50,13 @@ pub enum CalError {
     #[error("{n} poses are too few: this fit needs at least {needed}")]
     TooFewPoses { n: usize, needed: usize },
     #[error(
-        "the pose set does not determine β (rank {rank} of 7): {weakest} is not excited; add poses that move it"
+        "the pose set does not determine β (rank {rank} of {needed}): {weakest} is not excited; add poses that move it"
     )]
-    LowRank { rank: usize, weakest: String },
+    LowRank {
+        rank: usize,
+        needed: usize,
+        weakest: String,
+    },
     #[error("model fit failed: {problem}")]
     ModelFit { problem: String },
     #[error("decoupling during calibration failed: {0}")]
@@ -68,11 +84,112 @@ pub fn split_holdout(samples: &[PoseSample], every: usize) -> (Vec<PoseSample>, 
 
 /// RMS per DOF (internal units) of decoupled minus known errors over `samples`.
 pub fn holdout_rms(dec: &Decoupler, samples: &[PoseSample]) -> Result<[f64; 6], CalError> {
+    holdout_rms_at(dec, samples, &[])
+}
+
+/// The stations of a pose set: each distinct (travel, follower) pair in order of first
+/// appearance, and each sample's station.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Stations {
+    pub at: Vec<(f64, f64)>,
+    pub of: Vec<usize>,
+}
+
+impl Stations {
+    /// The stations of `samples`; all one station unless `separate`.
+    pub fn of(samples: &[PoseSample], separate: bool) -> Stations {
+        let mut at: Vec<(f64, f64)> = Vec::new();
+        let of = samples
+            .iter()
+            .map(|s| {
+                let key = (s.pose.travel, s.pose.follower);
+                if !separate {
+                    if at.is_empty() {
+                        at.push(key);
+                    }
+                    return 0;
+                }
+                match at.iter().position(|k| *k == key) {
+                    Some(i) => i,
+                    None => {
+                        at.push(key);
+                        at.len() - 1
+                    }
+                }
+            })
+            .collect();
+        Stations { at, of }
+    }
+
+    pub fn len(&self) -> usize {
+        self.at.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.at.is_empty()
+    }
+}
+
+/// One station's fitted offset (zero at the first station).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StationOffset {
+    pub travel_mm: f64,
+    pub follower_mm: f64,
+    /// Six-DOF offset of the model fit (internal units), when the model was fitted.
+    pub errors: Option<Errors6>,
+    /// Reading offset of the linear fit (mm).
+    pub readings: Vector6<f64>,
+}
+
+impl StationOffset {
+    /// The offset of the station at (travel, follower) in `offsets`, if it is one of them.
+    pub fn find(offsets: &[StationOffset], travel: f64, follower: f64) -> Option<&StationOffset> {
+        offsets
+            .iter()
+            .find(|o| o.travel_mm == travel && o.follower_mm == follower)
+    }
+}
+
+/// `errors + offset`, DOF by DOF (the carriage's error and the hexapod's pose add, as the
+/// twin adds them).
+pub fn add_errors(a: &Errors6, b: &Errors6) -> Errors6 {
+    let (a, b) = (a.to_array(), b.to_array());
+    Errors6::from_array(std::array::from_fn(|k| a[k] + b[k]))
+}
+
+/// The known errors at a sample with its station's offset, and the readings with the linear
+/// offset removed (for the linear decoupler, `linear`).
+fn with_station(
+    s: &PoseSample,
+    offsets: &[StationOffset],
+    linear: bool,
+) -> (Errors6, Vector6<f64>) {
+    match StationOffset::find(offsets, s.pose.travel, s.pose.follower) {
+        None => (s.pose.errors, s.readings),
+        Some(o) if linear => (s.pose.errors, s.readings - o.readings),
+        Some(o) => (
+            o.errors
+                .map(|e| add_errors(&s.pose.errors, &e))
+                .unwrap_or(s.pose.errors),
+            s.readings,
+        ),
+    }
+}
+
+/// `holdout_rms` with each sample judged against its station's offset (`offsets`; none: the
+/// poses as they are).
+pub fn holdout_rms_at(
+    dec: &Decoupler,
+    samples: &[PoseSample],
+    offsets: &[StationOffset],
+) -> Result<[f64; 6], CalError> {
+    let linear = matches!(dec.source, Source::Linear { .. });
     let mut ss = [0.0; 6];
     for s in samples {
-        let est = dec.decouple(&s.readings, s.pose.travel, s.pose.follower)?;
+        let (truth, readings) = with_station(s, offsets, linear);
+        let est = dec.decouple(&readings, s.pose.travel, s.pose.follower)?;
         let d = est.errors.to_array();
-        let t = s.pose.errors.to_array();
+        let t = truth.to_array();
         for k in 0..6 {
             ss[k] += (d[k] - t[k]).powi(2);
         }
@@ -123,6 +240,10 @@ pub struct CalibrateOptions {
     /// Also fit the installation errors (model-based calibration).
     pub model: bool,
     pub model_options: ModelFitOptions,
+    /// Give each position along the travel after the first its own offset (poses taken on
+    /// the axis under test, whose errors there are unknown); off for a bench whose positions
+    /// are exact.
+    pub station_offsets: bool,
 }
 
 impl Default for CalibrateOptions {
@@ -131,6 +252,7 @@ impl Default for CalibrateOptions {
             holdout_every: 5,
             model: true,
             model_options: ModelFitOptions::default(),
+            station_offsets: false,
         }
     }
 }
@@ -147,21 +269,51 @@ pub fn calibrate(
     opts: &CalibrateOptions,
     on_iter: &mut dyn FnMut(u32, f64),
 ) -> Result<Calibration, CalError> {
+    Ok(calibrate_along(samples, nominal, opts, on_iter)?.0)
+}
+
+/// `calibrate`, also giving each station's fitted offset (one, zero, without
+/// `station_offsets`).
+pub fn calibrate_along(
+    samples: &[PoseSample],
+    nominal: &Layout,
+    opts: &CalibrateOptions,
+    on_iter: &mut dyn FnMut(u32, f64),
+) -> Result<(Calibration, Vec<StationOffset>), CalError> {
     let (fit_set, hold_set) = if opts.holdout_every == 0 {
         (samples.to_vec(), Vec::new())
     } else {
         split_holdout(samples, opts.holdout_every)
     };
-    let linear = fit_linear(&fit_set, nominal)?;
+    let stations = Stations::of(&fit_set, opts.station_offsets);
+    let (linear, lin_offsets) = fit_linear_stations(&fit_set, nominal, &stations)?;
     let model = if opts.model {
-        Some(fit_model(&fit_set, nominal, &opts.model_options, on_iter)?)
+        Some(fit_model_stations(
+            &fit_set,
+            nominal,
+            &stations,
+            &opts.model_options,
+            on_iter,
+        )?)
     } else {
         None
     };
+    let offsets: Vec<StationOffset> = stations
+        .at
+        .iter()
+        .enumerate()
+        .map(|(i, &(travel_mm, follower_mm))| StationOffset {
+            travel_mm,
+            follower_mm,
+            errors: model.as_ref().map(|m| m.station_errors[i]),
+            readings: lin_offsets[i],
+        })
+        .collect();
     // Noise estimate from the best model's residuals, corrected for the fitted parameters.
+    let extra = 6.0 * (stations.len().max(1) - 1) as f64;
     let (resid, params_per_channel) = match &model {
-        Some(m) => (m.residual_rms, m.params.len() as f64 / 6.0),
-        None => (linear.residual_rms, 7.0),
+        Some(m) => (m.residual_rms, (m.params.len() as f64 + extra) / 6.0),
+        None => (linear.residual_rms, 7.0 + extra / 6.0),
     };
     let n = fit_set.len() as f64;
     let dof_corr = (n / (n - params_per_channel).max(1.0)).sqrt();
@@ -178,10 +330,11 @@ pub fn calibrate(
         sigma_mm,
         options: SolveOptions::default(),
     };
+    // A held-out pose at a station the fit did not see has no offset: it is judged as it is.
     let linear_holdout_rms = if hold_set.is_empty() {
         None
     } else {
-        Some(holdout_rms(&lin_dec, &hold_set)?)
+        Some(holdout_rms_at(&lin_dec, &hold_set, &offsets)?)
     };
     let model = match model {
         Some(m) => {
@@ -194,7 +347,7 @@ pub fn calibrate(
             let holdout = if hold_set.is_empty() {
                 None
             } else {
-                Some(holdout_rms(&dec, &hold_set)?)
+                Some(holdout_rms_at(&dec, &hold_set, &offsets)?)
             };
             Some(ModelPart {
                 install: m.install,
@@ -217,7 +370,7 @@ pub fn calibrate(
         .iter()
         .map(|s| s.pose.travel)
         .fold(f64::NEG_INFINITY, f64::max);
-    Ok(Calibration {
+    let cal = Calibration {
         created: crate::util::time::now_rfc3339(),
         layout_name: nominal.name.clone(),
         layout_hash: nominal.hash(),
@@ -229,7 +382,8 @@ pub fn calibrate(
         linear,
         linear_holdout_rms,
         model,
-    })
+    };
+    Ok((cal, offsets))
 }
 
 impl Calibration {

@@ -9,11 +9,16 @@
 //! cannot separate at nominal instead of letting them wander. Jacobian by forward differences.
 //! Stops when the relative cost decrease falls below `tol`; fails (`CalError::ModelFit`) when no
 //! step lowers the cost from the start or the damping runs away.
+//!
+//! Poses at several stations on the axis under test (`super::Stations`) add six unknowns per
+//! station after the first: the pose there is the hexapod's plus the station's offset (the
+//! carriage's own errors, the follower's), with no prior (nothing is known of them).
 
-use super::{CalError, PoseSample};
+use super::{CalError, PoseSample, Stations, add_errors};
 use crate::decouple::model_readings;
-use crate::optics::Layout;
 use crate::optics::install::{InstallParam, Installation, observable_params};
+use crate::optics::{Layout, Pose};
+use crate::units::Errors6;
 use nalgebra::{DMatrix, DVector};
 
 /// Settings of the model fit.
@@ -61,6 +66,8 @@ pub struct ModelFit {
     pub converged: bool,
     /// Residual RMS per reading channel (mm).
     pub residual_rms: [f64; 6],
+    /// Each station's offset (zero at the first).
+    pub station_errors: Vec<Errors6>,
 }
 
 fn prior_of(p: InstallParam, o: &ModelFitOptions) -> f64 {
@@ -81,13 +88,45 @@ fn step_of(p: InstallParam) -> f64 {
 
 struct Problem<'a> {
     samples: &'a [PoseSample],
+    stations: &'a Stations,
     nominal: &'a Layout,
     params: Vec<(usize, InstallParam)>,
     prior: Vec<f64>,
     noise: f64,
 }
 
+/// Forward-difference step of a station offset's DOF `k` (mm, rad).
+fn station_step(k: usize) -> f64 {
+    if k < 3 { 1e-6 } else { 1e-8 }
+}
+
 impl Problem<'_> {
+    /// Installation parameters, then six per station after the first.
+    fn unknowns(&self) -> usize {
+        self.params.len() + 6 * (self.stations.len().max(1) - 1)
+    }
+
+    /// The offset of station `st` in `theta`.
+    fn station(&self, theta: &DVector<f64>, st: usize) -> Errors6 {
+        match st {
+            0 => Errors6::ZERO,
+            _ => {
+                let o = self.params.len() + 6 * (st - 1);
+                Errors6::from_array(std::array::from_fn(|k| theta[o + k]))
+            }
+        }
+    }
+
+    /// The pose of sample `i` with its station's offset.
+    fn pose(&self, theta: &DVector<f64>, i: usize) -> Pose {
+        let s = &self.samples[i];
+        let st = self.stations.of.get(i).copied().unwrap_or(0);
+        Pose {
+            errors: add_errors(&s.pose.errors, &self.station(theta, st)),
+            ..s.pose
+        }
+    }
+
     fn install(&self, theta: &DVector<f64>) -> Installation {
         let mut inst = Installation::none(self.nominal);
         for (k, (el, p)) in self.params.iter().enumerate() {
@@ -105,7 +144,7 @@ impl Problem<'_> {
         let layout = self.install(theta).apply(self.nominal);
         let mut out = DVector::zeros(self.rows());
         for (i, s) in self.samples.iter().enumerate() {
-            let f = model_readings(&layout, &s.pose).ok()?;
+            let f = model_readings(&layout, &self.pose(theta, i)).ok()?;
             for k in 0..6 {
                 out[6 * i + k] = (f[k] - s.readings[k]) / self.noise;
             }
@@ -118,13 +157,28 @@ impl Problem<'_> {
     }
 
     fn jacobian(&self, theta: &DVector<f64>, r0: &DVector<f64>) -> Option<DMatrix<f64>> {
-        let mut j = DMatrix::zeros(self.rows(), self.params.len());
+        let mut j = DMatrix::zeros(self.rows(), self.unknowns());
         for (k, (_, p)) in self.params.iter().enumerate() {
             let h = step_of(*p);
             let mut t = theta.clone();
             t[k] += h;
             let r = self.residuals(&t)?;
             j.set_column(k, &((r - r0) / h));
+        }
+        // A station's offset moves only its own poses' readings: trace those alone.
+        let layout = self.install(theta).apply(self.nominal);
+        for k in self.params.len()..self.unknowns() {
+            let st = 1 + (k - self.params.len()) / 6;
+            let h = station_step((k - self.params.len()) % 6);
+            let mut t = theta.clone();
+            t[k] += h;
+            for i in (0..self.samples.len()).filter(|&i| self.stations.of.get(i) == Some(&st)) {
+                let f = model_readings(&layout, &self.pose(&t, i)).ok()?;
+                for ch in 0..6 {
+                    let r = (f[ch] - self.samples[i].readings[ch]) / self.noise;
+                    j[(6 * i + ch, k)] = (r - r0[6 * i + ch]) / h;
+                }
+            }
         }
         Some(j)
     }
@@ -137,9 +191,26 @@ pub fn fit_model(
     opts: &ModelFitOptions,
     on_iter: &mut dyn FnMut(u32, f64),
 ) -> Result<ModelFit, CalError> {
+    fit_model_stations(
+        samples,
+        nominal,
+        &Stations::of(samples, false),
+        opts,
+        on_iter,
+    )
+}
+
+/// Fit the installation errors and each station's offset to `samples`.
+pub fn fit_model_stations(
+    samples: &[PoseSample],
+    nominal: &Layout,
+    stations: &Stations,
+    opts: &ModelFitOptions,
+    on_iter: &mut dyn FnMut(u32, f64),
+) -> Result<ModelFit, CalError> {
     let params = observable_params(nominal);
     let prior: Vec<f64> = params.iter().map(|(_, p)| prior_of(*p, opts)).collect();
-    let needed = params.len().div_ceil(6) + 1;
+    let needed = (params.len() + 6 * (stations.len().max(1) - 1)).div_ceil(6) + 1;
     if samples.len() < needed {
         return Err(CalError::TooFewPoses {
             n: samples.len(),
@@ -148,12 +219,13 @@ pub fn fit_model(
     }
     let prob = Problem {
         samples,
+        stations,
         nominal,
         params,
         prior,
         noise: opts.noise_mm,
     };
-    let np = prob.params.len();
+    let np = prob.unknowns();
     let mut theta = DVector::zeros(np);
     let mut r = prob.residuals(&theta).ok_or_else(|| CalError::ModelFit {
         problem: "the nominal model cannot trace some calibration poses".into(),
@@ -229,7 +301,9 @@ pub fn fit_model(
     let param_sd: Vec<f64> = match jtj.cholesky() {
         Some(ch) => {
             let inv = ch.inverse();
-            (0..np).map(|k| inv[(k, k)].max(0.0).sqrt()).collect()
+            (0..prob.params.len())
+                .map(|k| inv[(k, k)].max(0.0).sqrt())
+                .collect()
         }
         None => prob.prior.clone(),
     };
@@ -243,9 +317,13 @@ pub fn fit_model(
         let ss: f64 = (0..n).map(|i| r[6 * i + k].powi(2)).sum();
         (ss / n as f64).sqrt() * opts.noise_mm
     });
+    let station_errors = (0..stations.len().max(1))
+        .map(|st| prob.station(&theta, st))
+        .collect();
     Ok(ModelFit {
         install,
         layout,
+        station_errors,
         params: prob.params,
         param_sd,
         well_determined,

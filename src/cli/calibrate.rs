@@ -332,6 +332,7 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
         let r = session::run(
             &hx,
             &mut rx,
+            &mut axiscomp::hexapod::bench::Stay,
             &plan,
             &a.out,
             &layout,
@@ -378,8 +379,8 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
     let bound = j.calibration.crlb(&layout)?;
     print!("{}", j.calibration.report(Some(&bound)));
     println!(
-        "held out: {} poses, {} frames decoupled one by one against the reached poses",
-        j.holdout_poses, j.frames
+        "held out: {} poses, {} frames decoupled one by one against the reached poses ({} untraceable, left out)",
+        j.holdout_poses, j.frames, j.untraceable
     );
     println!(
         "  {:<24}{}",

@@ -10,6 +10,7 @@
 //!   coordinate systems, move and wait in position, read the reached pose, stop, reconnect;
 //! - `plan`: the pose plan (generated over the operating window, or read from a CSV file) and
 //!   its workspace check before the first move;
+//! - `bench`: what moves the carriage and the follower to the plan's stations;
 //! - `procedure`: the calibration run, resumable from its pose file;
 //! - `session`: connect, run or resume, fit, judge and write the files (CLI and service);
 //! - `config`: `[hexapod]`.
@@ -19,6 +20,7 @@
 //! with its origin at the moving module's reference point, so a pose is the six errors
 //! `(dx, dy, dz, ex, ey, ez)` the head should read (small angles: U, V, W about x, y, z).
 
+pub mod bench;
 pub mod config;
 pub mod driver;
 mod exchange;

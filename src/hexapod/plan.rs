@@ -66,7 +66,7 @@ pub enum PlanError {
     #[error("the plan has no poses")]
     Empty,
     #[error(
-        "pose {index} of the plan is at travel {travel_mm} mm with the follower at {follower_mm} mm, pose 1 at {first_travel_mm} mm and {first_follower_mm} mm: the procedure does not move the carriage or the follower between poses; give a plan at one position and bring the carriage and the follower there first"
+        "pose {index} of the plan is at travel {travel_mm} mm with the follower at {follower_mm} mm, pose 1 at {first_travel_mm} mm and {first_follower_mm} mm: nothing here moves the carriage and the follower (the service does, with [cnc] mode = \"twin\"); give a plan at one position and bring the carriage and the follower there first"
     )]
     Stations {
         index: usize,
@@ -103,7 +103,7 @@ pub const PLAN_COLUMNS: [&str; 8] = [
 
 impl PosePlan {
     /// A plan covering `spec`'s window: Halton points (bases 2, 3, 5, 7, 11, 13; the first
-    /// point skipped, it is the corner), cycling through the stations.
+    /// point skipped, it is the corner), in one block per station.
     pub fn generate(spec: &PlanSpec) -> PosePlan {
         const BASES: [u64; 6] = [2, 3, 5, 7, 11, 13];
         let h = spec.half_range.to_array();
@@ -117,7 +117,9 @@ impl PosePlan {
                 let e = Errors6::from_array(std::array::from_fn(|k| {
                     h[k] * (2.0 * radical_inverse(i as u64 + 1, BASES[k]) - 1.0)
                 }));
-                let (travel_mm, follower_mm) = stations[i % stations.len()];
+                // One block of consecutive poses per station: the carriage and the follower
+                // move once per station.
+                let (travel_mm, follower_mm) = stations[i * stations.len() / spec.poses];
                 PlanPose {
                     pose: HexPose::from_errors(&e),
                     travel_mm,
@@ -145,6 +147,17 @@ impl PosePlan {
             }
         }
         Ok(())
+    }
+
+    /// The positions (travel, follower) the plan visits, in order of first visit.
+    pub fn stations(&self) -> Vec<(f64, f64)> {
+        let mut at: Vec<(f64, f64)> = Vec::new();
+        for p in &self.poses {
+            if !at.contains(&(p.travel_mm, p.follower_mm)) {
+                at.push((p.travel_mm, p.follower_mm));
+            }
+        }
+        at
     }
 
     /// The one bench position (travel, follower) of every pose, or the first pose elsewhere:
@@ -324,10 +337,12 @@ mod tests {
         });
         let back = PosePlan::parse(&plan.to_csv(), "plan.csv").expect("parse");
         assert_eq!(back.poses.len(), 5);
-        assert_eq!(back.poses[1].travel_mm, 100.0);
+        assert_eq!(back.poses[2].travel_mm, 0.0);
+        assert_eq!(back.stations(), vec![(0.0, 0.0), (100.0, 100.0)]);
+        assert_eq!(back.poses[3].travel_mm, 100.0);
         assert_eq!(
             back.station().expect_err("two stations").to_string(),
-            "pose 2 of the plan is at travel 100 mm with the follower at 100 mm, pose 1 at 0 mm and 0 mm: the procedure does not move the carriage or the follower between poses; give a plan at one position and bring the carriage and the follower there first"
+            "pose 4 of the plan is at travel 100 mm with the follower at 100 mm, pose 1 at 0 mm and 0 mm: nothing here moves the carriage and the follower (the service does, with [cnc] mode = \"twin\"); give a plan at one position and bring the carriage and the follower there first"
         );
         assert_eq!(
             PosePlan::generate(&PlanSpec::default()).station(),

@@ -11,10 +11,22 @@
 //! compared with the Cramér–Rao bound of single frames (the calibrated model's Jacobian at
 //! each held-out pose, the frame noise measured at the poses). Averaging many frames per pose
 //! keeps the calibration's own error well below one frame's noise.
+//!
+//! Stations: the plan's poses may stand at several positions along the travel (DESIGN §3:
+//! the follower window along the travel). Before the first pose at a station — and at the
+//! first pose after a resume — the bench (`super::bench`) brings the carriage and the
+//! follower there (a plan at one position runs where they are). The fit gives each station after the first its own offset (the carriage's
+//! and the follower's own errors there, `calibrate::Stations`), and the judgement compares
+//! each held-out frame with the reached pose plus its station's offset. A held-out frame the
+//! calibrated model cannot decouple (a spot near a PSD's edge, a trace that fails) is left
+//! out and counted; more than `MAX_UNTRACEABLE` of them refuses the judgement.
 
+use super::bench::Bench;
 use super::plan::{PlanError, PosePlan};
 use super::{HexPose, Hexapod, HexapodError, Workspace};
-use crate::calibrate::{self, CalError, CalibrateOptions, Calibration, PoseSample};
+use crate::calibrate::{
+    self, CalError, CalibrateOptions, Calibration, PoseSample, StationOffset, add_errors,
+};
 use crate::decouple;
 use crate::optics::{Layout, Pose};
 use crate::units::{MM_PER_UM, readings_from_um, readings_to_um};
@@ -48,7 +60,30 @@ pub enum ProcedureError {
         "stopped by the operator before pose {index} of {total}; the poses taken so far are stored: start again to resume"
     )]
     Stopped { index: usize, total: usize },
+    #[error(
+        "pose {index} of {total}: the carriage and the follower did not reach travel {travel_mm} mm and {follower_mm} mm ({problem}); the poses taken so far are stored: run again to resume"
+    )]
+    Bench {
+        index: usize,
+        total: usize,
+        travel_mm: f64,
+        follower_mm: f64,
+        problem: String,
+    },
+    #[error(
+        "{untraceable} of {frames} held-out frames cannot be decoupled with the new calibration (first at pose {first_pose}: {first}), more than {limit_percent:.0} %: the fit does not hold over the plan's window; check the PSDs' spots at the plan's extremes or narrow the plan"
+    )]
+    Untraceable {
+        untraceable: usize,
+        frames: usize,
+        first_pose: usize,
+        first: String,
+        limit_percent: f64,
+    },
 }
+
+/// The largest share of held-out frames the judgement leaves out as untraceable.
+pub const MAX_UNTRACEABLE: f64 = 0.02;
 
 /// The operator's stop: once `true`, the run halts the hexapod and ends before the next pose.
 pub type StopSignal = tokio::sync::watch::Receiver<bool>;
@@ -402,13 +437,25 @@ async fn average(
     })
 }
 
-/// Run (or resume) the plan: workspace check first, then every pose not yet stored.
-/// (The controller, the frames, the plan and its limits, the store, how to take a pose, the
-/// operator's stop and the progress report are each their own: no struct would group them.)
+/// Resolves once the operator's stop is set.
+async fn stopped(stop: &mut StopSignal) {
+    while !*stop.borrow_and_update() {
+        if stop.changed().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    }
+}
+
+/// Run (or resume) the plan: workspace check first, then every pose not yet stored, the
+/// bench bringing the carriage and the follower to each pose's station first.
+/// (The controller, the frames, the bench, the plan and its limits, the store, how to take a
+/// pose, the operator's stop and the progress report are each their own: no struct would
+/// group them.)
 #[allow(clippy::too_many_arguments)]
 pub async fn run(
     hexapod: &mut Hexapod,
     frames: &mut impl FrameSource,
+    bench: &mut impl Bench,
     plan: &PosePlan,
     workspace: &Workspace,
     store: &mut PoseStore,
@@ -417,6 +464,12 @@ pub async fn run(
     progress: &mut (dyn FnMut(&RunProgress) + Send),
 ) -> Result<RunReport, ProcedureError> {
     plan.check(workspace)?;
+    // A plan at one position runs where the operator put the carriage and the follower, as
+    // before stations existed; the bench moves them only between stations.
+    let moving = plan.stations().len() > 1;
+    if moving && !bench.moves() {
+        plan.station()?;
+    }
     let mut stop = stop.clone();
     let start = Instant::now();
     let total = plan.poses.len();
@@ -429,6 +482,7 @@ pub async fn run(
     let mut reconnects = 0;
     let mut machine = Duration::ZERO;
     let mut prepared = false;
+    let mut station: Option<(f64, f64)> = None;
     let mut i = resumed_from;
     while i < total {
         let index = i + 1;
@@ -436,6 +490,32 @@ pub async fn run(
             return Err(ProcedureError::Stopped { index, total });
         }
         let t0 = Instant::now();
+        let here = (plan.poses[i].travel_mm, plan.poses[i].follower_mm);
+        if moving && station != Some(here) {
+            tracing::info!(
+                pose = index,
+                travel_mm = here.0,
+                follower_mm = here.1,
+                "hexapod calibration: to the next station"
+            );
+            let moved = tokio::select! {
+                r = bench.go_to(here.0, here.1) => Some(r),
+                () = stopped(&mut stop) => None,
+            };
+            match moved {
+                None => return Err(ProcedureError::Stopped { index, total }),
+                Some(Err(problem)) => {
+                    return Err(ProcedureError::Bench {
+                        index,
+                        total,
+                        travel_mm: here.0,
+                        follower_mm: here.1,
+                        problem,
+                    });
+                }
+                Some(Ok(())) => station = Some(here),
+            }
+        }
         let step = async {
             if !prepared {
                 hexapod.initialize().await?;
@@ -443,16 +523,9 @@ pub async fn run(
             }
             hexapod.move_to(plan.poses[i].pose).await
         };
-        let stopped = async {
-            while !*stop.borrow_and_update() {
-                if stop.changed().await.is_err() {
-                    std::future::pending::<()>().await;
-                }
-            }
-        };
         let outcome = tokio::select! {
             r = step => Some(r),
-            () = stopped => None,
+            () = stopped(&mut stop) => None,
         };
         let Some(outcome) = outcome else {
             // Halt the platform where it is; this pose is taken again on resume.
@@ -520,9 +593,13 @@ pub async fn run(
 #[derive(Clone, Debug)]
 pub struct Judgement {
     pub calibration: Calibration,
+    /// Each station's fitted offset (zero at the first; one station: just that).
+    pub stations: Vec<StationOffset>,
     /// Frames decoupled, over how many held-out poses.
     pub frames: usize,
     pub holdout_poses: usize,
+    /// Held-out frames the calibration could not decouple, left out of the RMS.
+    pub untraceable: usize,
     /// Frame noise per channel (mm), pooled over the poses.
     pub sigma_frame_mm: [f64; 6],
     /// RMS per DOF (internal units) of single frames against the reached pose.
@@ -537,8 +614,9 @@ impl Judgement {
     }
 }
 
-/// Fit the stored poses (linear and model, every `opts.holdout_every`-th held out) and judge
-/// the calibration frame by frame on the held-out poses.
+/// Fit the stored poses (linear and model, every `opts.holdout_every`-th held out, each
+/// station after the first with its own offset) and judge the calibration frame by frame on
+/// the held-out poses, each against its reached pose plus its station's offset.
 pub fn fit_and_judge(
     store: &PoseStore,
     layout: &Layout,
@@ -546,8 +624,13 @@ pub fn fit_and_judge(
     on_iter: &mut dyn FnMut(u32, f64),
 ) -> Result<Judgement, ProcedureError> {
     let samples: Vec<PoseSample> = store.poses.iter().map(StoredPose::sample).collect();
-    let cal = calibrate::calibrate(&samples, layout, opts, on_iter)?;
+    let opts = CalibrateOptions {
+        station_offsets: true,
+        ..*opts
+    };
+    let (cal, stations) = calibrate::calibrate_along(&samples, layout, &opts, on_iter)?;
     let dec = cal.decoupler(layout)?;
+    let linear = cal.model.is_none();
     let every = opts.holdout_every.max(2);
     let held: std::collections::BTreeMap<usize, &StoredPose> = store
         .poses
@@ -556,6 +639,25 @@ pub fn fit_and_judge(
         .filter(|(i, _)| opts.holdout_every > 0 && i % every == every - 1)
         .map(|(_, p)| (p.index, p))
         .collect();
+    // The pose the head was at: the reached pose plus its station's offset (model), and the
+    // station's reading offset (linear β).
+    let at = |p: &StoredPose| -> (Pose, Vector6<f64>) {
+        let s = p.sample();
+        match StationOffset::find(&stations, s.pose.travel, s.pose.follower) {
+            Some(o) if !linear => (
+                Pose {
+                    errors: o
+                        .errors
+                        .map(|e| add_errors(&s.pose.errors, &e))
+                        .unwrap_or(s.pose.errors),
+                    ..s.pose
+                },
+                Vector6::zeros(),
+            ),
+            Some(o) => (s.pose, o.readings),
+            None => (s.pose, Vector6::zeros()),
+        }
+    };
     // Frame noise: pooled per-pose variance.
     let mut pooled = [0.0; 6];
     for p in &store.poses {
@@ -567,8 +669,7 @@ pub fn fit_and_judge(
     let model_layout = cal.model.as_ref().map(|m| &m.layout).unwrap_or(layout);
     let mut var = [0.0; 6];
     for p in held.values() {
-        let s = p.sample();
-        let j = decouple::jacobian(model_layout, &s.pose).map_err(CalError::from)?;
+        let j = decouple::jacobian(model_layout, &at(p).0).map_err(CalError::from)?;
         let c = decouple::covariance(&j, &sigma)
             .ok_or(CalError::Decouple(decouple::DecoupleError::Singular))?;
         for k in 0..6 {
@@ -577,25 +678,52 @@ pub fn fit_and_judge(
     }
     let crlb = var.map(|v| (v / held.len().max(1) as f64).sqrt());
     let mut ss = [0.0; 6];
-    let mut n = 0;
+    let (mut n, mut untraceable) = (0, 0);
+    let mut first: Option<(usize, String)> = None;
     for (index, r) in store.frames()? {
         let Some(p) = held.get(&index) else {
             continue;
         };
-        let s = p.sample();
-        let est = dec
-            .decouple(&r, s.pose.travel, s.pose.follower)
-            .map_err(CalError::from)?;
-        let (e, t) = (est.errors.to_array(), s.pose.errors.to_array());
-        for k in 0..6 {
-            ss[k] += (e[k] - t[k]).powi(2);
+        let (pose, offset) = at(p);
+        match dec.decouple(&(r - offset), pose.travel, pose.follower) {
+            Ok(est) => {
+                let (e, t) = (est.errors.to_array(), pose.errors.to_array());
+                for k in 0..6 {
+                    ss[k] += (e[k] - t[k]).powi(2);
+                }
+                n += 1;
+            }
+            Err(e) => {
+                untraceable += 1;
+                first.get_or_insert((index, e.to_string()));
+            }
         }
-        n += 1;
+    }
+    let frames = n + untraceable;
+    if untraceable > 0 {
+        tracing::warn!(
+            untraceable,
+            frames,
+            "held-out frames the calibration cannot decouple are left out of the judgement"
+        );
+    }
+    if let Some((first_pose, first)) =
+        first.filter(|_| untraceable as f64 > MAX_UNTRACEABLE * frames as f64 || n == 0)
+    {
+        return Err(ProcedureError::Untraceable {
+            untraceable,
+            frames,
+            first_pose,
+            first,
+            limit_percent: MAX_UNTRACEABLE * 100.0,
+        });
     }
     Ok(Judgement {
         calibration: cal,
+        stations,
         frames: n,
         holdout_poses: held.len(),
+        untraceable,
         sigma_frame_mm: sigma,
         holdout_rms: ss.map(|x| (x / n.max(1) as f64).sqrt()),
         crlb,

@@ -5,6 +5,7 @@
 //! is the one place that strings it together, so the command line and the service cannot
 //! drift apart.
 
+use super::bench::Bench;
 use super::config::HexapodSettings;
 use super::plan::PosePlan;
 use super::procedure::{
@@ -48,12 +49,15 @@ pub fn driver(hx: &HexapodSettings) -> Result<Driver, String> {
     })
 }
 
-/// Run (or resume) `plan` into `out` with the head read from `frames`, then fit and judge.
-/// The plan is checked against the workspace before anything connects.
+/// Run (or resume) `plan` into `out` with the head read from `frames`, the bench bringing
+/// the carriage and the follower to each station, then fit and judge. The plan is checked
+/// against the workspace (and, where the bench cannot move, for one station) before anything
+/// connects.
 #[allow(clippy::too_many_arguments)]
 pub async fn run(
     hx: &HexapodSettings,
     frames: &mut impl FrameSource,
+    bench: &mut impl Bench,
     plan: &PosePlan,
     out: &Path,
     layout: &Layout,
@@ -66,7 +70,9 @@ pub async fn run(
         problem,
     })?;
     plan.check(&hx.workspace)?;
-    plan.station()?;
+    if !bench.moves() {
+        plan.station()?;
+    }
     let mut store = PoseStore::open(out, plan)?;
     if !store.poses.is_empty() {
         events(SessionEvent::Resuming {
@@ -92,6 +98,7 @@ pub async fn run(
     let report = procedure::run(
         &mut h,
         frames,
+        bench,
         plan,
         &hx.workspace,
         &mut store,

@@ -262,7 +262,7 @@ fn forward_watch<T: Clone + Send + Sync + 'static>(
 }
 
 /// Send one JSON request to the twin's control socket and read its reply.
-async fn twin_request(
+pub(super) async fn twin_request(
     addr: std::net::SocketAddr,
     req: serde_json::Value,
 ) -> Result<serde_json::Value, String> {
@@ -1040,6 +1040,9 @@ impl Core {
         if let Some(r) = &self.run {
             return Err(format!("run {} is under way: abort it first", r.id.0));
         }
+        if self.hexapod.active() {
+            return Err("a hexapod calibration run is under way (it moves the head): stop it with hexapod_stop or let it finish, then start the run".into());
+        }
         let plan = Plan::new(spec).map_err(|e| e.to_string())?;
         if plan.spec.overrun_mm <= self.capture.target_tolerance_mm {
             return Err(format!(
@@ -1367,9 +1370,18 @@ impl Core {
             }
             Request::CalibrationReject => Self::reply(c.reply, self.calibrations.reject()),
             Request::HexapodStart { plan, poses, out } => {
-                let r = match self.run {
-                    Some(_) => Err("a run is under way: calibrate between runs".into()),
-                    None => (self.hexapod).start(plan, poses, out, self.acquisition.subscribe()),
+                let r = match &self.run {
+                    Some(r) => Err(format!(
+                        "measurement run {} is under way: the hexapod would move the head under it; abort it or let it finish, then calibrate",
+                        r.id.0
+                    )),
+                    None => self.hexapod.start(
+                        plan,
+                        poses,
+                        out,
+                        self.acquisition.subscribe(),
+                        super::hexapod_run::ServiceBench::new(&self.cnc, self.drive.clone()),
+                    ),
                 };
                 if r.is_ok() {
                     self.pipeline.invalidate_stitch(

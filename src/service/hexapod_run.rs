@@ -6,9 +6,17 @@
 //! before the next pose. Every pose is stored as it is taken in the run directory, so starting
 //! again with the same plan resumes at the next pose (after a controller fault, a stop, a
 //! crash). The fitted calibration then waits for accept or reject like any other.
+//!
+//! A plan at several positions along the travel runs when the service drives the twin's CNC
+//! (`[cnc] mode = "twin"`): [`ServiceBench`] moves the carriage there through the twin's
+//! control socket and the follower through the service's own drive. With a CNC the service
+//! does not drive, such a plan is refused before any move.
 
 use super::calibration::{Pending, Summary};
 use crate::acquire::Frame;
+use crate::canopen::DriveHandle;
+use crate::config::CncMode;
+use crate::hexapod::bench::Bench;
 use crate::hexapod::config::HexapodSettings;
 use crate::hexapod::plan::{PlanSpec, PosePlan};
 use crate::hexapod::procedure::{PoseStore, ProcedureError};
@@ -16,9 +24,53 @@ use crate::hexapod::session::{self, SessionEvent};
 use crate::optics::Layout;
 use crate::units::DOF_TO_USER;
 use serde::{Deserialize, Serialize};
+use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 use tokio::sync::{broadcast, watch};
+
+/// The service's bench: the twin's carriage through its control socket (none with a CNC the
+/// service does not drive), the follower through the service's drive.
+pub struct ServiceBench {
+    twin: Option<SocketAddr>,
+    drive: DriveHandle,
+}
+
+impl ServiceBench {
+    pub fn new(cnc: &CncMode, drive: DriveHandle) -> ServiceBench {
+        let twin = match cnc {
+            CncMode::Twin(a) => Some(*a),
+            CncMode::Manual => None,
+        };
+        ServiceBench { twin, drive }
+    }
+}
+
+impl Bench for ServiceBench {
+    fn moves(&self) -> bool {
+        self.twin.is_some()
+    }
+
+    async fn go_to(&mut self, travel_mm: f64, follower_mm: f64) -> Result<(), String> {
+        let addr = self
+            .twin
+            .ok_or("the service does not drive this CNC ([cnc] mode is manual)")?;
+        let r =
+            super::core::twin_request(addr, serde_json::json!({"cmd": "move", "mm": travel_mm}))
+                .await?;
+        // The twin answers a wait within its request timeout: sleep through the move first.
+        let secs = r["duration_s"].as_f64().unwrap_or(0.0);
+        if secs.is_finite() && secs > 0.0 {
+            tokio::time::sleep(Duration::from_secs_f64(secs)).await;
+        }
+        super::core::twin_request(addr, serde_json::json!({"cmd": "wait"})).await?;
+        self.drive
+            .move_to(follower_mm)
+            .await
+            .map_err(|e| format!("the follower to {follower_mm} mm: {e}"))
+    }
+}
 
 /// Fewest poses a generated plan may have.
 pub const MIN_POSES: usize = 20;
@@ -52,6 +104,10 @@ pub struct RunView {
     /// poses, the single-frame Cramér–Rao bound, and their ratio, per DOF.
     pub holdout_poses: usize,
     pub holdout_frames: usize,
+    /// Held-out frames the calibration could not decouple, left out of the judgement.
+    pub untraceable: usize,
+    /// Positions along the travel (carriage, follower; mm) the plan visits.
+    pub stations: usize,
     pub holdout_rms: Option<[f64; 6]>,
     pub crlb: Option<[f64; 6]>,
     pub ratio: Option<[f64; 6]>,
@@ -145,6 +201,7 @@ impl HexapodRuns {
         poses: Option<usize>,
         out: Option<String>,
         frames: broadcast::Receiver<Frame>,
+        bench: ServiceBench,
     ) -> Result<serde_json::Value, String> {
         if self.active() {
             return Err("a hexapod run is under way: stop it (or wait) first".into());
@@ -153,7 +210,10 @@ impl HexapodRuns {
         let pose_plan = plan_for(plan.as_deref(), poses)?;
         pose_plan
             .check(&self.settings.workspace)
-            .and_then(|()| pose_plan.station().map(|_| ()))
+            .and_then(|()| match bench.moves() {
+                true => Ok(()),
+                false => pose_plan.station().map(|_| ()),
+            })
             .map_err(|e| e.to_string())?;
         let out = out
             .filter(|o| !o.trim().is_empty())
@@ -171,6 +231,7 @@ impl HexapodRuns {
             controller: self.settings.driver.map(|d| d.name()).unwrap_or("").into(),
             plan: plan.clone().unwrap_or_default(),
             poses: total,
+            stations: pose_plan.stations().len(),
             out: out.display().to_string(),
             done: stored,
             total,
@@ -181,11 +242,12 @@ impl HexapodRuns {
         let (view, finished) = (self.view.clone(), self.finished.clone());
         let dir = out.clone();
         tokio::spawn(async move {
-            let mut frames = frames;
+            let (mut frames, mut bench) = (frames, bench);
             let ev_view = view.clone();
             let r = session::run(
                 &hx,
                 &mut frames,
+                &mut bench,
                 &pose_plan,
                 &dir,
                 &layout,
@@ -228,6 +290,7 @@ impl HexapodRuns {
                     v.eta_s = None;
                     v.holdout_poses = j.holdout_poses;
                     v.holdout_frames = j.frames;
+                    v.untraceable = j.untraceable;
                     v.holdout_rms = Some(user(j.holdout_rms));
                     v.crlb = Some(user(j.crlb));
                     v.ratio = Some(j.ratio());

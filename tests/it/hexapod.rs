@@ -10,7 +10,7 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-fn spec() -> TwinHexapodSpec {
+pub(crate) fn spec() -> TwinHexapodSpec {
     TwinHexapodSpec {
         gcs: Some(SocketAddr::from(([127, 0, 0, 1], 0))),
         xps: Some(SocketAddr::from(([127, 0, 0, 1], 0))),
@@ -27,7 +27,7 @@ async fn servers() -> HexapodServers {
         .expect("twin hexapod")
 }
 
-async fn driver(s: &HexapodServers, kind: Driver) -> Hexapod {
+pub(crate) async fn driver(s: &HexapodServers, kind: Driver) -> Hexapod {
     let addr = match kind {
         Driver::PiGcs => s.gcs,
         Driver::NewportXps => s.xps,
@@ -222,9 +222,11 @@ async fn stop_halts_a_move() {
 use crate::helpers::{TempDir, link_config};
 use axiscomp::acquire::{AcquireConfig, Acquisition, IoMap};
 use axiscomp::calibrate::CalibrateOptions;
+use axiscomp::hexapod::bench::{Bench, Stay};
 use axiscomp::hexapod::plan::{PlanError, PlanSpec, PosePlan};
 use axiscomp::hexapod::procedure::{
-    PoseStore, ProcedureError, RunOptions, RunProgress, RunReport, fit_and_judge, never_stop, run,
+    Judgement, PoseStore, ProcedureError, RunOptions, RunProgress, RunReport, fit_and_judge,
+    never_stop, run,
 };
 use axiscomp::optics::Layout;
 use axiscomp::sim::InstallSpec;
@@ -232,16 +234,16 @@ use axiscomp::sim::iomodule::IoModule;
 use axiscomp::sim::plant::{Plant, PlantSpec};
 use axiscomp::units::DOF_NAMES;
 
-struct Rig {
-    plant: Arc<Plant>,
+pub(crate) struct Rig {
+    pub(crate) plant: Arc<Plant>,
     _io: IoModule,
-    acq: Acquisition,
-    servers: HexapodServers,
+    pub(crate) acq: Acquisition,
+    pub(crate) servers: HexapodServers,
 }
 
 /// The twin's head with installation errors (±0.5 mm, ±0.2°, 1 % PSD gain) on the hexapod,
 /// read through the I/O module over Modbus at 1 kHz.
-async fn rig(seed: u64) -> Rig {
+pub(crate) async fn rig(seed: u64) -> Rig {
     let plant = Arc::new(
         Plant::new(
             &Layout::reference(),
@@ -276,10 +278,23 @@ async fn rig(seed: u64) -> Rig {
     }
 }
 
-/// Run `plan` on the rig with quick settings (5 ms settle, 20 frames).
+/// Run `plan` on the rig with quick settings (5 ms settle, 20 frames), the carriage and the
+/// follower staying where they are.
 async fn take(
     h: &mut Hexapod,
     r: &Rig,
+    plan: &PosePlan,
+    store: &mut PoseStore,
+    on: &mut (dyn FnMut(&RunProgress) + Send),
+) -> Result<RunReport, ProcedureError> {
+    take_on(h, r, &mut Stay, plan, store, on).await
+}
+
+/// `take` with `bench` bringing the carriage and the follower to each station.
+pub(crate) async fn take_on(
+    h: &mut Hexapod,
+    r: &Rig,
+    bench: &mut impl Bench,
     plan: &PosePlan,
     store: &mut PoseStore,
     on: &mut (dyn FnMut(&RunProgress) + Send),
@@ -289,6 +304,7 @@ async fn take(
     run(
         h,
         &mut rx,
+        bench,
         plan,
         &spec().workspace,
         store,
@@ -299,7 +315,32 @@ async fn take(
     .await
 }
 
-fn quick() -> RunOptions {
+/// Fit and judge `store` with the default options on the reference layout.
+pub(crate) fn judge(store: &PoseStore) -> Result<Judgement, ProcedureError> {
+    fit_and_judge(
+        store,
+        &Layout::reference(),
+        &CalibrateOptions::default(),
+        &mut |_, _| {},
+    )
+}
+
+/// Every DOF's single-frame hold-out within `limit` × the Cramér–Rao bound.
+pub(crate) fn assert_within(j: &Judgement, limit: f64) {
+    let ratio = j.ratio();
+    for k in 0..6 {
+        assert!(
+            ratio[k] <= limit,
+            "{}: hold-out {:.3e} is {:.3}× the bound {:.3e}",
+            DOF_NAMES[k],
+            j.holdout_rms[k],
+            ratio[k],
+            j.crlb[k]
+        );
+    }
+}
+
+pub(crate) fn quick() -> RunOptions {
     RunOptions {
         settle: Duration::from_millis(5),
         frames: 20,
@@ -341,26 +382,10 @@ async fn the_procedure_calibrates_the_twins_head() {
     }
     assert!(last[1].abs() > 0.5, "a pose far out along y: {last:?}");
 
-    let j = fit_and_judge(
-        &store,
-        &Layout::reference(),
-        &CalibrateOptions::default(),
-        &mut |_, _| {},
-    )
-    .expect("fit");
+    let j = judge(&store).expect("fit");
     assert_eq!(j.holdout_poses, 24);
     assert_eq!(j.frames, 24 * 20);
-    let ratio = j.ratio();
-    for k in 0..6 {
-        assert!(
-            ratio[k] <= 1.15,
-            "{}: hold-out {:.3e} is {:.3}× the bound {:.3e}",
-            DOF_NAMES[k],
-            j.holdout_rms[k],
-            ratio[k],
-            j.crlb[k]
-        );
-    }
+    assert_within(&j, 1.15);
     // The frame noise is the twin's 1 µm (plus the I/O module's quantisation).
     for s in j.sigma_frame_mm {
         assert!((0.9e-3..1.3e-3).contains(&s), "σ {s}");
@@ -457,8 +482,9 @@ async fn a_plan_outside_the_workspace_is_refused_before_any_move() {
 
 use crate::helpers::{run as run_bin, stderr};
 
-/// `axiscomp calibrate run` refuses a plan pose outside `[hexapod] workspace` before it
-/// connects to anything, and `axiscomp check` names a bad `[hexapod]` key.
+/// `axiscomp calibrate run` refuses a plan pose outside `[hexapod] workspace`, and a plan at
+/// several positions, before it connects to anything, and `axiscomp check` names a bad
+/// `[hexapod]` key.
 #[test]
 fn the_command_line_checks_plan_and_config_first() {
     let dir = TempDir::new("hexapod-cli");
@@ -466,31 +492,38 @@ fn the_command_line_checks_plan_and_config_first() {
         "svc.toml",
         "[hexapod]\ndriver = \"newport-xps\"\naddress = \"127.0.0.1:9\"\nworkspace = [1.0, 1.0, 1.0, 1.0, 1.0, 1.0]\n",
     );
-    let plan = dir.write(
+    let out = dir.path("run");
+    // `calibrate run` with `plan` (CSV text): refused with `refusal`, nothing stored.
+    let refused = |name: &str, plan: &str, refusal: &str| {
+        let plan = dir.write(name, plan);
+        let o = run_bin(
+            &[
+                "calibrate",
+                "run",
+                "--config",
+                cfg.to_str().unwrap(),
+                "--plan",
+                plan.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+            ],
+            "",
+        );
+        assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+        assert!(stderr(&o).contains(refusal), "{}", stderr(&o));
+        assert!(!out.exists(), "nothing stored");
+    };
+    refused(
         "plan.csv",
         "x_mm,y_mm,z_mm,u_deg,v_deg,w_deg\n0,0,0,0,0,0\n0,1.5,0,0,0,0\n",
+        "pose 2 of the plan: Y = 1.5 is outside the hexapod's workspace (-1 to 1); no pose was moved to",
     );
-    let out = dir.path("run");
-    let o = run_bin(
-        &[
-            "calibrate",
-            "run",
-            "--config",
-            cfg.to_str().unwrap(),
-            "--plan",
-            plan.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ],
-        "",
+    // A plan at two positions: the command line moves neither the carriage nor the follower.
+    refused(
+        "along.csv",
+        "x_mm,y_mm,z_mm,u_deg,v_deg,w_deg,travel_mm,follower_mm\n0,0,0,0,0,0,0,0\n0,0.5,0,0,0,0,100,100\n",
+        "pose 2 of the plan is at travel 100 mm with the follower at 100 mm, pose 1 at 0 mm and 0 mm: nothing here moves the carriage and the follower (the service does, with [cnc] mode = \"twin\")",
     );
-    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
-    assert!(
-        stderr(&o).contains("pose 2 of the plan: Y = 1.5 is outside the hexapod's workspace (-1 to 1); no pose was moved to"),
-        "{}",
-        stderr(&o)
-    );
-    assert!(!out.exists(), "nothing stored");
 
     let bad = dir.write("bad.toml", "[hexapod]\ndriver = \"hxp\"\n");
     let o = run_bin(&["check", "--config", bad.to_str().unwrap()], "");

@@ -17,6 +17,8 @@ mod evaluate;
 mod follower;
 mod fuzz;
 mod hexapod;
+mod hexapod_along;
+mod hexapod_service;
 mod links;
 mod maintenance;
 mod modbus;
