@@ -251,7 +251,7 @@ mod help_tests {
     fn every_command_and_flag_has_help() {
         fn walk(c: &clap::Command, path: &str, missing: &mut Vec<String>) {
             let here = format!("{path} {}", c.get_name());
-            if c.get_about().is_none() && path != "" {
+            if c.get_about().is_none() && !path.is_empty() {
                 missing.push(format!("{here}: the command has no help"));
             }
             for a in c.get_arguments() {
