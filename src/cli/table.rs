@@ -153,15 +153,27 @@ pub fn run(c: Command) -> Result<()> {
             let s: StatusView = serde_json::from_value(v).map_err(parse)?;
             if !at.json {
                 println!("{}", s.message);
-                println!(
-                    "PLC: ready {}, status {} for sequence {}, error code {}, active sequence {} ({})",
-                    s.plc.ready,
-                    s.plc.status,
-                    s.plc.status_sequence,
-                    s.plc.error_code,
-                    s.plc.active_sequence,
-                    s.source
-                );
+                let ready = if s.plc.ready == 1 {
+                    "ready"
+                } else {
+                    "not ready"
+                };
+                if s.plc.active_sequence == 0 {
+                    println!("PLC: {ready}, empty: no table applied yet ({})", s.source);
+                } else {
+                    println!(
+                        "PLC: {ready}, active sequence {}; last commit: {} sequence {}{} ({})",
+                        s.plc.active_sequence,
+                        s.plc.status,
+                        s.plc.status_sequence,
+                        if s.plc.error_code != 0 {
+                            format!(", error code {}", s.plc.error_code)
+                        } else {
+                            String::new()
+                        },
+                        s.source
+                    );
+                }
                 if !s.active_source.is_empty() {
                     println!("active tables ({}):", s.active_source);
                 }

@@ -54,6 +54,17 @@ impl StatusCode {
             StatusCode::Other(c) => c,
         }
     }
+    /// The status in a word ("idle", "busy", "accepted", "rejected", or "code N").
+    pub fn words(self) -> String {
+        match self {
+            StatusCode::Idle => "idle".into(),
+            StatusCode::Busy => "busy".into(),
+            StatusCode::Accepted => "accepted".into(),
+            StatusCode::Rejected => "rejected".into(),
+            StatusCode::Other(c) => format!("code {c}"),
+        }
+    }
+
     pub fn from_code(c: u16) -> Self {
         match c {
             0 => StatusCode::Idle,
@@ -132,14 +143,29 @@ impl fmt::Display for PlcStatus {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
             f,
-            "ready {}, heartbeat {}, status {:?} for sequence {}, error code {}, active sequence {}",
-            self.ready,
-            self.heartbeat,
-            self.status,
-            self.status_sequence,
-            self.error_code,
-            self.active_sequence
-        )
+            "{}, heartbeat {}, ",
+            if self.is_ready() {
+                "ready"
+            } else {
+                "not ready"
+            },
+            self.heartbeat
+        )?;
+        match self.status {
+            StatusCode::Idle if self.status_sequence == 0 => write!(f, "idle")?,
+            StatusCode::Rejected => write!(
+                f,
+                "rejected sequence {} ({})",
+                self.status_sequence,
+                table::RejectCode::from_code(self.error_code)
+            )?,
+            st => write!(f, "{} sequence {}", st.words(), self.status_sequence)?,
+        }
+        if self.active_sequence == 0 {
+            write!(f, ", empty (no table applied)")
+        } else {
+            write!(f, ", active sequence {}", self.active_sequence)
+        }
     }
 }
 

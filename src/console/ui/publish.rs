@@ -371,10 +371,19 @@ fn plc(frame: &mut Frame, area: Rect, p: &PublishState, theme: Theme) {
                 _ => theme.warn(),
             };
             lines.push(Line::styled(s.message.clone(), style));
-            lines.push(Line::raw(format!(
-                "active sequence {}, status {} (seq {}), ready {}",
-                s.plc.active_sequence, s.plc.status, s.plc.status_sequence, s.plc.ready
-            )));
+            let ready = if s.plc.ready == 1 {
+                "ready"
+            } else {
+                "NOT READY"
+            };
+            lines.push(Line::raw(if s.plc.active_sequence == 0 {
+                format!("PLC {ready}, empty: no table applied yet")
+            } else {
+                format!(
+                    "PLC {ready}, active sequence {}; last commit: {} sequence {}",
+                    s.plc.active_sequence, s.plc.status, s.plc.status_sequence
+                )
+            }));
             if let Some(st) = &s.staged {
                 lines.push(Line::raw(format!(
                     "staged: sequence {}, CRC {}, {} points",
