@@ -582,15 +582,20 @@ impl Core {
                         continue;
                     };
                     match self.store.insert_capture(run.id, &c) {
-                        Ok(true) => tracing::info!(
-                            run = run.id.0,
-                            pass = c.run,
-                            target = c.target_index,
-                            direction = c.direction.sign(),
-                            "captured"
-                        ),
+                        Ok(true) => {
+                            tracing::info!(
+                                run = run.id.0,
+                                pass = c.run,
+                                target = c.target_index,
+                                direction = c.direction.sign(),
+                                "captured"
+                            );
+                            // The store takes writes again (a full disk freed, a lock gone).
+                            self.pipeline.alarms.clear("store");
+                        }
                         Ok(false) => {
-                            tracing::info!("capture {} was already stored", TargetKey::of(&c))
+                            tracing::info!("capture {} was already stored", TargetKey::of(&c));
+                            self.pipeline.alarms.clear("store");
                         }
                         Err(e) => self.pipeline.alarms.raise(
                             "store",
