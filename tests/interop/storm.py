@@ -113,7 +113,7 @@ def main():
     ap.add_argument("--hold-max", type=float, default=2.5)
     ap.add_argument("--gap-max", type=float, default=2.5)
     ap.add_argument("--recovery-timeout", type=float, default=60.0)
-    ap.add_argument("--budget", type=float, default=420.0,
+    ap.add_argument("--budget", type=float, default=900.0,
                     help="seconds from run start to finished, storm included")
     ap.add_argument("--run-args", required=True)
     ap.add_argument("--db", required=True)
