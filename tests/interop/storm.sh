@@ -50,10 +50,13 @@ sock="$work/control.sock"
 state="$work/state"
 pidfile="$work/serve.pid"
 mkdir -p "$state"
+# The service (its pid in $pidfile: storm.py restarts it) and the twin stopped before the state
+# directory's file system is unmounted, whatever failed before.
 storm_cleanup() {
   [ -f "$pidfile" ] && kill "$(cat "$pidfile")" 2>/dev/null
-  [ -f "$pidfile" ] && sleep 0.5
-  mountpoint -q "$state" 2>/dev/null && umount "$state"
+  [ -n "$sim" ] && kill "$sim" 2>/dev/null
+  sleep 0.5
+  if mountpoint -q "$state" 2>/dev/null; then umount "$state" || umount -l "$state" || true; fi
   harness_cleanup
 }
 trap storm_cleanup EXIT
