@@ -8,8 +8,11 @@
 # window, SETTLE_S = 1 s after it resumed) then, the service stopped (SIGSTOP), libmodbus for
 # WINDOW_S seconds (blocks/s). Fine slices keep the two under the same load on a shared
 # machine (a neighbour's compile moves both alike). Prints frames/s, blocks/s and their ratio
-# per run, and the ratio of the totals. The service reads with configs/twin-service.toml's
-# io.pipeline (4 reads in flight; AXISCOMP__IO__PIPELINE=1 for one at a time).
+# per run, and the ratio of the totals.
+# Like with like: libmodbus has one request in flight (its API waits for each reply), so the
+# service reads with PIPELINE=1 by default (io.pipeline); PIPELINE=4 is the twin's setting
+# (configs/twin-service.toml), a different client: the module answers the queued requests
+# together, which libmodbus cannot ask for, so that ratio is not a comparison of decoders.
 #
 # libmodbus is never a build dependency: the bench fetches the Debian packages (libmodbus5,
 # libmodbus-dev) with `apt-get download` into a temporary directory and unpacks them there
@@ -17,6 +20,7 @@
 # include/modbus/modbus.h and lib/.../libmodbus.so*).
 #   bash benches/acquire_ratio.sh                 # from the repository root
 #   RUNS=5 SLICES=10 bash benches/acquire_ratio.sh
+#   PIPELINE=4 bash benches/acquire_ratio.sh      # the twin's setting: 4 reads in flight
 #   AXISCOMP_BIN=/tmp/old/axiscomp bash benches/acquire_ratio.sh   # another build
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -24,6 +28,7 @@ runs=${RUNS:-3}
 slices=${SLICES:-5}
 window=${WINDOW_S:-3}
 settle=${SETTLE_S:-1}
+pipeline=${PIPELINE:-1}
 command -v gcc >/dev/null || { echo "acquire_ratio.sh: gcc not found" >&2; exit 1; }
 command -v python3 >/dev/null || { echo "acquire_ratio.sh: python3 not found" >&2; exit 1; }
 
@@ -42,6 +47,8 @@ twin_configs "$work"
 bin="$work/axiscomp"
 cp "$built" "$bin"
 sed -i 's/^rate_hz = .*/rate_hz = 0.0/' "$work/service.toml"
+sed -i "s/^pipeline = .*/pipeline = $pipeline/" "$work/service.toml"
+grep -q "^pipeline = $pipeline\$" "$work/service.toml" || fail "no io.pipeline in the twin's service config"
 # A binary from before io.pipeline (the "before" of a before/after) refuses the key: drop it.
 checked=$("$bin" check --config "$work/service.toml" 2>&1 || true)
 if grep -q 'unknown field `pipeline`' <<<"$checked"; then
@@ -91,6 +98,7 @@ print((s.get("psd") or {}).get("seq", 0), s["unix_us"], s["links"]["io"]["state"
 }
 
 echo "acquire_ratio.sh: twin I/O module 127.0.0.1:$io, block: input registers $start..$((start + count - 1)) of unit $unit; $lm_version"
+echo "acquire_ratio.sh: the service unthrottled (io.rate_hz = 0) with io.pipeline = $pipeline, libmodbus one request in flight"
 echo "acquire_ratio.sh: $runs runs of $slices slices, each slice $window s of the service then $window s of libmodbus"
 RUST_LOG=warn "$bin" serve --config "$work/service.toml" >"$work/serve.log" 2>&1 & svc=$!
 st=""

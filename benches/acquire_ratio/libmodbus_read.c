@@ -41,7 +41,10 @@ int main(int argc, char **argv) {
             if (modbus_read_input_registers(ctx, start, count, regs) == count) {
                 blocks++;
             } else {
+                /* A late reply (a timeout) would answer the next request: drop what is
+                 * pending, as libmodbus's manual advises, so one error stays one. */
                 errors++;
+                modbus_flush(ctx);
             }
         }
         t = now();

@@ -390,10 +390,14 @@ pub fn sim(a: SimArgs) -> Result<()> {
                     },
                 )
                 .await
+                .map(std::sync::Arc::new)
                 .with_context(|| format!("the twin's PLC on {}", p.bind))?,
             ),
             None => None,
         };
+        if let Some(p) = &plc {
+            twin.attach_plc(p.clone());
+        }
         println!(
             "twin up: I/O module on {}, control on {}{}",
             twin.io.local_addr(),

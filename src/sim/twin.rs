@@ -7,7 +7,9 @@
 //! - `{"cmd":"wait"}` → waits until the carriage is at rest
 //! - `{"cmd":"truth"}` → `{"ok":true,"truth":{...}}` (user units)
 //! - `{"cmd":"block","psd":2,"on":true}` (PSD 1..3)
-//! - `{"cmd":"io","action":"stop"|"restart"}`, `{"cmd":"io","delay_ms":50}`
+//! - `{"cmd":"io","action":"stop"|"restart"}`, `{"cmd":"io","delay_ms":50}` (a hung module:
+//!   a delay longer than the client waits), `{"cmd":"io","exception":6}` (every request answered
+//!   with that exception code; 0 to stop)
 //! - `{"cmd":"drive","fault":34321}`, `{"cmd":"drive","heartbeat":false}`
 //! - `{"cmd":"program","dialect":"linuxcnc","axis":"X","text":"..."}`: run a part program on
 //!   the twin's CNC (replacing one that runs); `{"cmd":"cnc"}` → its state;
@@ -16,6 +18,11 @@
 //! - `{"cmd":"mount"}` → how the head is mounted (`yaw_urad`, `pitch_urad`, `x_mm`, `z_mm`);
 //!   `{"cmd":"turn","screw":"yaw","turns":1.25}` turns a mount screw (clockwise positive) as a
 //!   technician does; `{"cmd":"knock","yaw_urad":3000}` (any of the four) knocks the head
+//! - `{"cmd":"plc"}` → the twin PLC's status, its active table per head axis (sequence, the
+//!   points) and every commit it saw; with any of `"reject_next":256`, `"ignore_next":true`,
+//!   `"corrupt_next":3` (payload register), `"silent_after":2` with `"down_ms":1500`,
+//!   `"ready":false`, `"freeze_heartbeat":true` it injects that fault first (DESIGN §6's
+//!   table protocol faults; only once `axiscomp sim` has started its PLC)
 //! - `{"cmd":"target"}` → what the alignment target in front of each PSD shows (mm, to 0.5 mm;
 //!   `null` where no beam reaches it)
 
@@ -97,6 +104,7 @@ pub struct Twin {
     cnc_task: Arc<std::sync::Mutex<Option<JoinHandle<()>>>>,
     drive_task: JoinHandle<Result<(), CanError>>,
     control: Option<(SocketAddr, JoinHandle<()>)>,
+    plc: Arc<std::sync::Mutex<Option<Arc<super::plc::TwinPlc>>>>,
 }
 
 impl Drop for Twin {
@@ -187,6 +195,7 @@ impl Twin {
             cnc_task: Arc::new(std::sync::Mutex::new(None)),
             drive_task,
             control: None,
+            plc: Arc::default(),
         };
         if let Some(bind) = spec.control {
             let listener = TcpListener::bind(bind)
@@ -201,6 +210,7 @@ impl Twin {
                 io: twin.io.server().clone(),
                 cnc: twin.cnc.clone(),
                 cnc_task: twin.cnc_task.clone(),
+                plc: twin.plc.clone(),
             };
             let task = tokio::spawn(serve_control(listener, ctx));
             twin.control = Some((addr, task));
@@ -211,6 +221,11 @@ impl Twin {
     /// The control socket's address.
     pub fn control_addr(&self) -> Option<SocketAddr> {
         self.control.as_ref().map(|(a, _)| *a)
+    }
+
+    /// Put the twin's PLC (started on the same plant) under the control socket's `plc` command.
+    pub fn attach_plc(&self, plc: Arc<super::plc::TwinPlc>) {
+        *self.plc.lock().unwrap_or_else(|p| p.into_inner()) = Some(plc);
     }
 
     /// Run a part program on the twin's CNC, replacing one that runs.
@@ -233,6 +248,7 @@ struct Ctx {
     io: crate::modbus::ServerHandle,
     cnc: Arc<std::sync::Mutex<CncState>>,
     cnc_task: Arc<std::sync::Mutex<Option<JoinHandle<()>>>>,
+    plc: Arc<std::sync::Mutex<Option<Arc<super::plc::TwinPlc>>>>,
 }
 
 /// Parse `text` and run it on a fresh CNC task (aborting the one that runs).
@@ -362,6 +378,16 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
                 ctx.io
                     .set_delay(Duration::from_secs_f64(ms.max(0.0) / 1000.0));
             }
+            if let Some(code) = num("exception") {
+                if !(0.0..=255.0).contains(&code) {
+                    return Err(format!(
+                        "exception {code}: use a code 1..255, or 0 for none"
+                    ));
+                }
+                let code = code as u8;
+                ctx.io
+                    .set_exception((code != 0).then(|| crate::modbus::Exception::from_code(code)));
+            }
             match v.get("action").and_then(|a| a.as_str()) {
                 Some("stop") => ctx.io.stop().await,
                 Some("restart") => ctx.io.restart().await.map_err(|e| e.to_string())?,
@@ -433,6 +459,10 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
             ctx.plant.knock(by);
             Ok(serde_json::json!({"ok": true}))
         }
+        "plc" => {
+            let plc = ctx.plc.lock().unwrap_or_else(|p| p.into_inner()).clone();
+            plc_command(plc.as_deref().ok_or("the twin runs no PLC")?, v)
+        }
         "target" => {
             let t = ctx.plant.target_readings(Instant::now());
             let view: Vec<serde_json::Value> = t
@@ -445,7 +475,69 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
             Ok(serde_json::json!({"ok": true, "targets": view}))
         }
         other => Err(format!(
-            "unknown cmd \"{other}\": use move, wait, truth, block, io, drive, program, cnc, mount, turn, knock or target"
+            "unknown cmd \"{other}\": use move, wait, truth, block, io, drive, program, cnc, mount, turn, knock, plc or target"
         )),
     }
+}
+
+/// The control socket's `plc` command: inject the faults named in `v`, then report.
+fn plc_command(
+    plc: &super::plc::TwinPlc,
+    v: &serde_json::Value,
+) -> Result<serde_json::Value, String> {
+    use super::plc::CommitResult;
+    let num = |k: &str| v.get(k).and_then(|x| x.as_f64());
+    let flag = |k: &str| v.get(k).and_then(|x| x.as_bool());
+    if let Some(code) = num("reject_next") {
+        plc.reject_next(code as u16);
+    }
+    if flag("ignore_next") == Some(true) {
+        plc.ignore_next_commit();
+    }
+    if let Some(k) = num("corrupt_next") {
+        plc.corrupt_next_commit(k as usize);
+    }
+    if let Some(n) = num("silent_after") {
+        let down = Duration::from_secs_f64(num("down_ms").unwrap_or(1000.0).max(0.0) / 1000.0);
+        plc.go_silent_after_writes(n as u64, down);
+    }
+    if let Some(ready) = flag("ready") {
+        plc.set_ready(ready);
+    }
+    if let Some(frozen) = flag("freeze_heartbeat") {
+        plc.freeze_heartbeat(frozen);
+    }
+    let st = plc.status();
+    let active: Vec<serde_json::Value> = plc
+        .active_tables()
+        .iter()
+        .map(|a| match a {
+            // The payload's CRC-32 as the protocol carries it (the store's `crc` column).
+            Some((seq, t)) => serde_json::json!({
+                "sequence": seq, "start_mm": t.start_mm, "interval_mm": t.interval_mm,
+                "points": t.values_mm.len(),
+                "crc": crate::plc::table::encode(t, plc.map(), *seq)
+                    .map(|e| format!("0x{:08X}", e.crc))
+                    .unwrap_or_else(|e| e.to_string()),
+            }),
+            None => serde_json::Value::Null,
+        })
+        .collect();
+    let commits: Vec<serde_json::Value> = plc
+        .commits()
+        .iter()
+        .map(|c| {
+            let result = match &c.result {
+                CommitResult::Accepted => "accepted".to_string(),
+                CommitResult::Rejected(r) => format!("rejected: {r}"),
+                CommitResult::Ignored => "ignored".to_string(),
+            };
+            serde_json::json!({"sequence": c.sequence, "result": result})
+        })
+        .collect();
+    Ok(serde_json::json!({"ok": true, "plc": {
+        "ready": st.ready, "active_sequence": st.active_sequence,
+        "status_sequence": st.status_sequence, "error_code": st.error_code,
+        "active": active, "commits": commits,
+    }}))
 }

@@ -85,6 +85,28 @@ async fn wait_snapshot(
     false
 }
 
+/// Align the short plan's travel (the pre-run check wants it) and start the run: its reply.
+async fn align_and_start(
+    socket: &Path,
+    twin: &axiscomp::sim::twin::Twin,
+    log: &[PathBuf],
+) -> serde_json::Value {
+    let travel = axiscomp::run::Plan::new(short_plan())
+        .expect("plan")
+        .travel_mm();
+    crate::helpers::align_service(socket, twin, travel).await;
+    ask(
+        socket,
+        &Request::RunStart {
+            plan: short_plan(),
+            dialect: Some("linuxcnc".into()),
+            notes: None,
+        },
+    )
+    .await
+    .unwrap_or_else(|| fail(log, "run_start was not answered".into()))
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {
     let _machine = crate::helpers::exclusive().await;
@@ -111,21 +133,7 @@ async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {
             "the service did not come up with the stitch referenced within 60 s".into(),
         );
     }
-    // The pre-run check wants the plan's travel aligned.
-    let travel = axiscomp::run::Plan::new(short_plan())
-        .expect("plan")
-        .travel_mm();
-    crate::helpers::align_service(&socket, &twin, travel).await;
-    let started = ask(
-        &socket,
-        &Request::RunStart {
-            plan: short_plan(),
-            dialect: Some("linuxcnc".into()),
-            notes: None,
-        },
-    )
-    .await
-    .unwrap_or_else(|| fail(&log, "run_start was not answered".into()));
+    let started = align_and_start(&socket, &twin, &log).await;
     let run = RunId(started["run_id"].as_i64().unwrap_or(0));
     let expected = started["captures_expected"].as_u64().unwrap_or(0);
     assert_eq!(expected, 20, "{started}");
@@ -234,4 +242,95 @@ async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {
             );
         }
     }
+}
+
+/// A store that refuses writes for a while (another process holds it locked past the busy
+/// timeout, as a full disk refuses them): the capture is not stored, the `store` alarm says so,
+/// and once a later capture is stored the alarm clears (the fault storm found it staying up
+/// after the disk had room again); no capture is stored twice.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_store_refusing_writes_mid_run_raises_the_store_alarm_and_clears_it() {
+    let _machine = crate::helpers::exclusive().await;
+    let dir = TempDir::new("store-outage");
+    let (twin, _, config, socket) = twin_and_config(
+        RigOptions {
+            service_toml: FAST.into(),
+            twin_cnc: true,
+            ..RigOptions::default()
+        },
+        &dir,
+    )
+    .await;
+    let log = [dir.path("serve.log")];
+    let mut child = serve(&config, &log[0]);
+    let ready = |s: &axiscomp::service::snapshot::Snapshot| {
+        s.follower.homed && s.tracking.valid && s.tracking.at_rest
+    };
+    if !wait_snapshot(&socket, 60, ready).await {
+        let _ = child.kill();
+        fail(&log, "the service did not come up within 60 s".into());
+    }
+    let started = align_and_start(&socket, &twin, &log).await;
+    let run = RunId(started["run_id"].as_i64().unwrap_or(0));
+    let captures = |n: u64| {
+        let socket = socket.clone();
+        async move {
+            ask(&socket, &Request::RunStatus)
+                .await
+                .and_then(|s| s["captures"].as_u64())
+                .is_some_and(|c| c >= n)
+        }
+    };
+    let end = Instant::now() + Duration::from_secs(60);
+    while !captures(2).await {
+        if Instant::now() > end {
+            let _ = child.kill();
+            fail(&log, "no 2 captures within 60 s".into());
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    // Another writer holds the store: the service's writes wait the 5 s busy timeout and fail.
+    let store_path = dir.path("state").join("axiscomp.db");
+    let blocker = rusqlite::Connection::open(&store_path).expect("open the store");
+    blocker
+        .execute_batch("BEGIN EXCLUSIVE")
+        .expect("lock the store");
+    let alarm = |active: bool| {
+        move |s: &axiscomp::service::snapshot::Snapshot| {
+            s.alarms
+                .iter()
+                .any(|a| a.code == "store" && a.active && a.text.contains("capture not stored"))
+                == active
+        }
+    };
+    // Held until a capture has failed (the run may be waiting for the carriage's pass).
+    let raised = wait_snapshot(&socket, 150, alarm(true)).await;
+    blocker.execute_batch("COMMIT").expect("unlock the store");
+    drop(blocker);
+    if !raised {
+        let _ = child.kill();
+        fail(&log, "no store alarm while the store was locked".into());
+    }
+    if !wait_snapshot(&socket, 60, alarm(false)).await {
+        let _ = child.kill();
+        fail(
+            &log,
+            "the store alarm stayed up after the store took writes again".into(),
+        );
+    }
+    // Whether the run then finishes is resume's other test; here: nothing stored twice.
+    let _ = child.kill();
+    let _ = child.wait();
+    drop(twin);
+    let store = Store::open_read_only(&store_path).expect("store");
+    let mut count: BTreeMap<TargetKey, usize> = BTreeMap::new();
+    for c in store.captures(run).expect("captures") {
+        *count.entry(TargetKey::of(&c)).or_default() += 1;
+    }
+    let twice: Vec<_> = count.iter().filter(|(_, n)| **n != 1).collect();
+    assert!(
+        !count.is_empty() && twice.is_empty(),
+        "{} captures stored, more than once {twice:?}",
+        count.len()
+    );
 }
