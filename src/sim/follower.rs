@@ -219,6 +219,22 @@ mod tests {
     }
 
     #[test]
+    fn the_stage_turns_only_after_going_back_by_the_turn_distance() {
+        let mut anchor = 0.0;
+        let mut m = Motion::Up;
+        for d in [1.0, 2.0, 2.0 - 0.4e-3, 2.0 - 0.2e-3] {
+            m = motion_after(m, &mut anchor, d);
+            assert_eq!(m, Motion::Up, "at {d}");
+        }
+        assert_eq!(anchor, 2.0);
+        m = motion_after(m, &mut anchor, 2.0 - 0.6e-3);
+        assert_eq!((m, anchor), (Motion::Down, 2.0 - 0.6e-3));
+        m = motion_after(m, &mut anchor, 1.5);
+        m = motion_after(m, &mut anchor, 1.5 + 0.3e-3);
+        assert_eq!((m, anchor), (Motion::Down, 1.5));
+    }
+
+    #[test]
     fn the_certificate_is_the_true_map_within_its_noise() {
         let m = FollowerModel::new(FollowerSpec::default(), 200.0, &mut Rng::new(9));
         let text = m.certificate(&mut Rng::new(10));
