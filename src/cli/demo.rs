@@ -34,6 +34,7 @@ use axiscomp::sim::axis::AxisSpec;
 use axiscomp::sim::closed_loop::{
     self, BudgetSpec, Figures, LoopResult, LoopSpec, Measured, Pass, Step, TruePoint,
 };
+use axiscomp::sim::follower_cal::Mapping;
 use axiscomp::sim::lab::LabSpec;
 use axiscomp::sim::plant::{MountSpec, Plant, PlantSpec};
 use axiscomp::sim::study::{StudyResult, StudySpec, study_head};
@@ -80,6 +81,13 @@ pub struct Args {
     /// for this long (s of machine time; 0: none), for the budget's environmental term.
     #[arg(long, default_value_t = 60)]
     pub drift_check_s: u64,
+    /// Passes of the follower's stop-and-go self-calibration before the first run (0: leave
+    /// the follower unmapped; the budget then states its specification).
+    #[arg(long, default_value_t = 4)]
+    pub map_passes: usize,
+    /// Frames averaged on each side of a self-calibration handover.
+    #[arg(long, default_value_t = 1000)]
+    pub map_frames: usize,
     /// Where the report goes.
     #[arg(long, default_value = "demo-out")]
     pub out: PathBuf,
@@ -180,20 +188,29 @@ pub fn run(a: Args) -> Result<()> {
         plan.spec.dwell_s,
         plan.capture_count()
     );
+    let span = axiscomp::sim::lab::plan_span(&plan);
+    let follower = (a.map_passes > 0).then(|| {
+        let mut m = Mapping::over(span);
+        m.cal.passes = a.map_passes;
+        m.cal.average_frames = a.map_frames;
+        m
+    });
     let spec = LoopSpec {
         lab: LabSpec::standard(plant.clone(), Some(decoupler))?,
         plan,
+        follower,
         dialect: Dialect::LinuxCnc,
         mode: CaptureMode::Stability,
         positioning: PositioningMode::Bidirectional,
         straightness_line: ReferenceLine::LeastSquares,
         map: CncMap::generic()?,
         step_mm: Some(a.step_mm),
-        zero_window: Duration::from_millis(500),
+        // Two seconds at the reference: every point is relative to the zero, so its noise (0.09″
+        // of roll over 0.5 s) would be common to all of them.
+        zero_window: Duration::from_secs(2),
         align_rounds: 8,
         budget,
     };
-    let span = axiscomp::sim::lab::plan_span(&spec.plan);
     println!(
         "head mounted by eye (within ±{}° and ±{} mm of the axis); alignment from the spots at {:.0} and {:.0} mm, a spot at least {:.1} mm inside its PSD's edge",
         plant.mount.angle_deg, plant.mount.offset_mm, span.0, span.1, 1.0
@@ -202,12 +219,28 @@ pub fn run(a: Args) -> Result<()> {
     let expected = spec.plan.capture_count() as u64;
     let mut bar: Option<Progress> = None;
     let wall = std::time::Instant::now();
+    let mut mapping: Option<Progress> = None;
     let result = closed_loop::run(&spec, |s| match s {
         Step::Aligning(r) => {
             rounds += 1;
             print_round(rounds, &r);
         }
+        Step::Mapping { stop, stops } => {
+            let b = mapping.get_or_insert_with(|| {
+                if let Some(m) = &spec.follower {
+                    println!(
+                        "\nthe follower's map: {} stop-and-go passes over {:.0} to {:.0} mm, {:.2} mm steps, {} frames a side; its certificate; a level at both ends for the vertical line",
+                        m.cal.passes, m.cal.from_mm, m.cal.to_mm, m.cal.step_mm, m.cal.average_frames
+                    );
+                }
+                Progress::new("follower self-calibration, stops", stops as u64)
+            });
+            b.set(stop as u64);
+        }
         Step::Ready(pass) => {
+            if let Some(b) = mapping.take() {
+                b.finish("done");
+            }
             if pass == Pass::After {
                 println!("\n== 4. verify: the same cycle on the compensated axis");
             }
@@ -237,6 +270,17 @@ pub fn run(a: Args) -> Result<()> {
         }
     })?;
     print_mount(&result);
+    if let Some(m) = &result.follower {
+        println!(
+            "\nthe follower's map ({:.1} min of machine time: {} steps, {} skipped; in use for both runs):",
+            m.machine_time.as_secs_f64() / 60.0,
+            m.run.steps.len(),
+            m.run.skipped
+        );
+        for l in m.map.summary() {
+            println!("  {l}");
+        }
+    }
     println!(
         "\n{} + {} captures in {:.0} s of machine time ({:.1} s here)",
         result.before.run.captures.len(),
@@ -544,6 +588,11 @@ fn summary_json(
             "straightness_um": f.straightness_um,
             "strategy": format!("{:?}", spec.lab.tracking.strategy).to_lowercase(),
             "uncertainty": r.before.budget.inputs.follower.describe(),
+            "map": r.follower.as_ref().map(|m| serde_json::json!({
+                "machine_time_s": m.machine_time.as_secs_f64(),
+                "steps": m.run.steps.len(),
+                "terms": m.map.summary(),
+            })),
         },
         "figures": figures,
         "points": pts,

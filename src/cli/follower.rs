@@ -171,9 +171,15 @@ fn map(a: MapArgs) -> Result<()> {
         lead_mm: a.lead_mm,
         ..MapSettings::default()
     };
-    let out = axiscomp::sim::follower_cal::map_twin(plant, &cal, certificate, &settings, |i, n| {
-        eprint!("\rstop {i} of {n}");
-    })
+    let level = Some(axiscomp::sim::follower_cal::LevelSpec::default());
+    let out = axiscomp::sim::follower_cal::map_twin(
+        plant,
+        &cal,
+        certificate,
+        &settings,
+        level,
+        |i, n| eprint!("\rstop {i} of {n}"),
+    )
     .map_err(|e| match e {
         axiscomp::sim::follower_cal::MapTwinError::Lab(axiscomp::sim::lab::LabError::Setup(s)) => {
             anyhow::Error::from(InputError(s.to_string()))

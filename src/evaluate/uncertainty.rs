@@ -158,6 +158,48 @@ impl FollowerInput {
         }
     }
 
+    /// From a follower error map in use: its standard uncertainties every `step_mm` over its
+    /// span, in carriage coordinates (the encoder reads `encoder_offset_mm` more than the
+    /// carriage's nominal position), each combined in quadrature with the map's uncertainty
+    /// at `reference_mm`: a measured error is relative to the zero reference, so it carries
+    /// the map's error at the point and at the reference.
+    pub fn of_map(
+        map: &crate::follower::FollowerMap,
+        encoder_offset_mm: f64,
+        reference_mm: f64,
+        step_mm: f64,
+        source: String,
+    ) -> FollowerInput {
+        use crate::follower::Direction;
+        let u = |x: f64| {
+            let (up, down) = (map.point(x, Direction::Up), map.point(x, Direction::Down));
+            (
+                up.along_u_um.max(down.along_u_um) * 1e-3,
+                up.vertical_u_um * 1e-3,
+            )
+        };
+        let (lo, hi) = map.span();
+        if !(lo.is_finite() && hi.is_finite() && step_mm > 0.0) {
+            return FollowerInput::Unstated;
+        }
+        let (ra, rv) = u(reference_mm + encoder_offset_mm);
+        let n = ((hi - lo) / step_mm).ceil() as usize;
+        let (mut positions_mm, mut along_mm, mut vertical_mm) = (vec![], vec![], vec![]);
+        for k in 0..=n {
+            let x = (lo + k as f64 * step_mm).min(hi);
+            let (a, v) = u(x);
+            positions_mm.push(x - encoder_offset_mm);
+            along_mm.push(a.hypot(ra));
+            vertical_mm.push(v.hypot(rv));
+        }
+        FollowerInput::Map {
+            source,
+            positions_mm,
+            along_mm,
+            vertical_mm,
+        }
+    }
+
     /// Where the term comes from, for the report.
     pub fn describe(&self) -> String {
         match self {

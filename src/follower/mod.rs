@@ -220,6 +220,24 @@ pub struct FollowerMap {
     /// PSD2's vertical jump per mm of follower step the end-point line took (mm/mm): PSD2's
     /// in-plane tilt and the follower's inclination together (not applied).
     pub vertical_slope: f64,
+    /// The vertical map's line from an outside reference (the self-calibration cannot see
+    /// it): applied on top of the straightness, with its uncertainty. `None`: the vertical
+    /// map is relative to its end-point line, and the line is an unmapped error.
+    #[serde(default)]
+    pub vertical_line: Option<VerticalLine>,
+}
+
+/// The follower's vertical line (its inclination to the head's model of its axis) from an
+/// outside reference: `slope·(x − origin)` is added to the vertical map.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct VerticalLine {
+    /// Encoder position where the line is zero (the vertical map's first point, mm).
+    pub origin_mm: f64,
+    /// The line's slope (mm/mm) and its standard uncertainty.
+    pub slope: f64,
+    pub u_slope: f64,
+    /// Where it came from (the instrument and what it read).
+    pub source: String,
 }
 
 /// The map at one position and direction, per PSD2 axis: the correction (PSD2's true position
@@ -271,7 +289,7 @@ impl FollowerMap {
             var += (r.u_mm / 2.0).powi(2);
         }
         let vp = &self.vertical_positions_mm;
-        let (v, vu) = if vp.is_empty() {
+        let (mut v, mut vu) = if vp.is_empty() {
             (0.0, 0.0)
         } else {
             (
@@ -279,6 +297,10 @@ impl FollowerMap {
                 crate::util::interpolate(vp, &self.vertical_u_mm, x),
             )
         };
+        if let Some(l) = &self.vertical_line {
+            v += l.slope * (x - l.origin_mm);
+            vu = vu.hypot(l.u_slope * (x - l.origin_mm));
+        }
         (along, var.sqrt(), v, vu)
     }
 
@@ -414,11 +436,19 @@ impl FollowerMap {
             out.push("vertical straightness: not mapped (run the self-calibration)".into());
         } else {
             out.push(format!(
-                "vertical straightness (to the end-point line): {:.2} µm range over {} points, u ≤ {:.2} µm, from the self-calibration; the line's {:.1} µm/m (PSD2's tilt and the follower's inclination) is not mapped",
+                "vertical straightness (to the end-point line): {:.2} µm range over {} points, u ≤ {:.2} µm, from the self-calibration; PSD2's jump took a line of {:.1} µm/m (PSD2's tilt and the follower's inclination), not applied",
                 range(&self.vertical_mm),
                 self.vertical_mm.len(),
                 max_u(&self.vertical_u_mm),
                 self.vertical_slope * 1e6
+            ));
+        }
+        if let Some(l) = &self.vertical_line {
+            out.push(format!(
+                "vertical line: {:+.2} µm/m, u {:.2} µm/m, from {}",
+                l.slope * 1e6,
+                l.u_slope * 1e6,
+                l.source
             ));
         }
         if let Some(s) = &self.self_calibration {
@@ -504,6 +534,7 @@ pub fn build(
         vertical_mm: Vec::new(),
         vertical_u_mm: Vec::new(),
         vertical_slope: 0.0,
+        vertical_line: None,
     };
     if let Some(v) = vertical {
         map.vertical_positions_mm = v.positions;

@@ -139,3 +139,27 @@ fn a_certificate_alone_maps_the_along_axis_only() {
         Err(MapError::Empty)
     ));
 }
+
+/// An outside reference's line is added to the vertical map, its uncertainty growing with the
+/// distance from its origin.
+#[test]
+fn a_referenced_line_adds_to_the_vertical_map() {
+    let steps: Vec<Step> = Vec::new();
+    let cert = Certificate::parse(
+        "position_mm,error_um,direction,uncertainty_um\n0,0,+,0.2\n100,1,+,0.2\n",
+        "c.csv",
+    )
+    .unwrap();
+    let mut map = build(&steps, Some(&cert), &MapSettings::default()).unwrap();
+    let before = map.point(60.0, Direction::Up);
+    map.vertical_line = Some(VerticalLine {
+        origin_mm: 10.0,
+        slope: 2e-6,
+        u_slope: 0.5e-6,
+        source: "a level".into(),
+    });
+    let after = map.point(60.0, Direction::Up);
+    assert!((after.vertical_um - before.vertical_um - 0.1).abs() < 1e-9);
+    assert!((after.vertical_u_um - 0.025).abs() < 1e-9);
+    assert_eq!(after.along_um, before.along_um);
+}

@@ -18,6 +18,7 @@
 //! Time is simulated in the measuring steps (a 1000 mm cycle takes seconds, not minutes);
 //! publishing is real Modbus TCP traffic on a small Tokio runtime of its own.
 
+use super::follower_cal::{Mapping, TwinMap, map_on_lab};
 use super::lab::{AlignRound, Lab, LabError, LabRun, LabSpec, Progress, plan_span};
 use super::plant::{PlantSpec, Truth};
 use super::plc::{TwinPlc, TwinPlcConfig, TwinPlcError};
@@ -79,6 +80,8 @@ pub enum LoopError {
     Sensitivity(crate::decouple::DecoupleError),
     #[error("the drift check: the head gave no live reading at the reference")]
     Drift,
+    #[error("mapping the follower: {0}")]
+    Mapping(#[from] super::follower_cal::MapTwinError),
 }
 
 /// Which measuring run.
@@ -104,6 +107,8 @@ impl std::fmt::Display for Pass {
 pub enum Step {
     /// A round of beam alignment over the plan's travel (before the first pass).
     Aligning(Box<AlignRound>),
+    /// Mapping the follower (before the first pass): stop `stop` of `stops`.
+    Mapping { stop: usize, stops: usize },
     /// Follower up and homed, the zero reference taken, for a pass.
     Ready(Pass),
     /// About once per simulated second during a run.
@@ -138,6 +143,11 @@ pub struct LoopSpec {
     pub align_rounds: usize,
     /// What the uncertainty budget is told beside the captures.
     pub budget: BudgetSpec,
+    /// Map the follower after the alignment, before the first pass, and apply the map in
+    /// tracking (`None`: the follower's own errors stay in the measurement; the budget
+    /// states them from `budget.follower`). With a map the budget states the map's
+    /// uncertainty instead.
+    pub follower: Option<Mapping>,
 }
 
 /// The budget's inputs that are not in the captures.
@@ -294,6 +304,8 @@ pub struct LoopResult {
     pub after: Measured,
     /// How the head was mounted at the start and after the alignment (the twin's truth).
     pub mount: [crate::align::Mount; 2],
+    /// The follower's map, when the loop made one, with its machine time.
+    pub follower: Option<TwinMap>,
 }
 
 /// The figures the loop is judged by (mm and rad, the crate's internal units).
@@ -348,6 +360,7 @@ pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, Lo
         source,
     })?;
     let mount_at_start = lab.plant.mount();
+    let follower = prepare(&mut lab, spec, &mut step)?;
     let before = measure(&mut lab, spec, Pass::Before, &mut step)?;
     let mount_aligned = lab.plant.mount();
     let tables = build_tables(
@@ -368,12 +381,45 @@ pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, Lo
         published,
         after,
         mount: [mount_at_start, mount_aligned],
+        follower,
     })
 }
 
-/// Bring up (the first time), move to the reference, zero (and the drift check when asked
-/// for), run the cycle, evaluate, and make the uncertainty budget. One pass of [`run`], for
-/// tests that need a measured run judged by the truth without the compensation.
+/// Before the first pass: bring the lab up, align the head over the plan's travel (when
+/// asked for), and map the follower (when asked for: the map is then in use in tracking).
+pub fn prepare(
+    lab: &mut Lab,
+    spec: &LoopSpec,
+    step: &mut impl FnMut(Step),
+) -> Result<Option<TwinMap>, LoopError> {
+    let lab_err = |source| LoopError::Lab {
+        pass: Pass::Before,
+        source,
+    };
+    lab.bring_up().map_err(lab_err)?;
+    if spec.align_rounds > 0 {
+        lab.align(plan_span(&spec.plan), spec.align_rounds, |r| {
+            step(Step::Aligning(Box::new(r.clone())))
+        })
+        .map_err(lab_err)?;
+    }
+    let Some(m) = &spec.follower else {
+        return Ok(None);
+    };
+    let mapped = map_on_lab(
+        lab,
+        m,
+        &spec.lab.decoupler,
+        spec.lab.live_window,
+        |stop, stops| step(Step::Mapping { stop, stops }),
+    )?;
+    Ok(Some(mapped))
+}
+
+/// Move to the reference, zero (and the drift check when asked for), run the cycle,
+/// evaluate, and make the uncertainty budget. One pass of [`run`] (after [`prepare`]), for
+/// tests that need a measured run judged by the truth without the compensation. With a
+/// follower map in use in the lab's tracker, the budget states the map's uncertainty.
 pub fn measure(
     lab: &mut Lab,
     spec: &LoopSpec,
@@ -381,21 +427,17 @@ pub fn measure(
     step: &mut impl FnMut(Step),
 ) -> Result<Measured, LoopError> {
     let lab_err = |source| LoopError::Lab { pass, source };
-    if pass == Pass::Before {
-        lab.bring_up().map_err(lab_err)?;
-        if spec.align_rounds > 0 {
-            lab.align(plan_span(&spec.plan), spec.align_rounds, |r| {
-                step(Step::Aligning(Box::new(r.clone())))
-            })
-            .map_err(lab_err)?;
-        }
-    }
     // Before the zero: the check may traverse the travel.
     lab.pre_run_check(&spec.plan).map_err(lab_err)?;
     let reference = spec.plan.reference_mm;
     lab.move_carriage(reference).map_err(lab_err)?;
     lab.zero(reference, spec.zero_window).map_err(lab_err)?;
     let zero_truth = lab.truth();
+    // Where the follower's encoder stands with the carriage at the reference.
+    let encoder_offset = lab
+        .drive_status()
+        .position_mm
+        .map_or(0.0, |e| e - reference);
     let drift_range = match spec.budget.drift_check {
         Some(d) => Some(drift_check(lab, reference, d).map_err(|e| match e {
             Some(source) => lab_err(source),
@@ -420,7 +462,10 @@ pub fn measure(
         reference_mm: reference,
         psd2_sensitivity: psd2_sensitivity(&spec.lab.decoupler, mid)
             .map_err(LoopError::Sensitivity)?,
-        follower: b.follower.clone(),
+        follower: match lab.pipeline.tracker.map() {
+            Some(m) => FollowerInput::of_map(m, encoder_offset, reference, 2.5, map_source(m)),
+            None => b.follower.clone(),
+        },
         calibration: b.calibration.clone(),
         thermal: b.thermal,
         drift_range,
@@ -434,6 +479,24 @@ pub fn measure(
         zero_truth,
         drift_range,
     })
+}
+
+/// What the budget says the follower map is made of.
+fn map_source(m: &crate::follower::FollowerMap) -> String {
+    let s = &m.sources;
+    let mut out = format!(
+        "long-wavelength positioning from the {}, screw-periodic and reversal from the {}, vertical straightness from the {}",
+        s.long, s.periodic, s.vertical
+    );
+    match &m.vertical_line {
+        Some(l) => out.push_str(&format!(
+            ", its line from a level ({:+.2} ± {:.2} µm/m)",
+            l.slope * 1e6,
+            l.u_slope * 1e6
+        )),
+        None => out.push_str(", its line not referenced"),
+    }
+    out
 }
 
 /// ISO 230-2's drift check: the head reads the carriage at rest at `reference` for `d`; the

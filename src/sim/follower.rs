@@ -79,6 +79,28 @@ pub struct FollowerModel {
 /// bend over a few hundred mm, whatever the travel.
 const LONG_MIN_MM: f64 = 100.0;
 
+/// The stage's reversal error switches once its encoder has gone this far back from its
+/// furthest point (mm): a servo's settling back-step smaller than that stays in the stage's
+/// play (the tracker judges a turn by the same distance).
+pub const TURN_MM: f64 = 0.5e-3;
+
+/// The direction after the encoder moved to `d`, from the direction `now` and the furthest
+/// point `anchor` in it (updated).
+pub fn motion_after(now: Motion, anchor: &mut f64, d: f64) -> Motion {
+    let (further, turned) = match now {
+        Motion::Up => (d > *anchor, d < *anchor - TURN_MM),
+        Motion::Down => (d < *anchor, d > *anchor + TURN_MM),
+    };
+    if further || turned {
+        *anchor = d;
+    }
+    match (now, turned) {
+        (m, false) => m,
+        (Motion::Up, true) => Motion::Down,
+        (Motion::Down, true) => Motion::Up,
+    }
+}
+
 /// The noise (µm, one standard deviation) of the twin's certificate, and its spacing (mm).
 pub const CERTIFICATE_NOISE_UM: f64 = 0.2;
 pub const CERTIFICATE_STEP_MM: f64 = 10.0;
@@ -194,6 +216,22 @@ mod tests {
         );
         // The periodic term repeats with the screw's lead.
         assert!((a.periodic(12.0) - a.periodic(17.0)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn the_stage_turns_only_after_going_back_by_the_turn_distance() {
+        let mut anchor = 0.0;
+        let mut m = Motion::Up;
+        for d in [1.0, 2.0, 2.0 - 0.4e-3, 2.0 - 0.2e-3] {
+            m = motion_after(m, &mut anchor, d);
+            assert_eq!(m, Motion::Up, "at {d}");
+        }
+        assert_eq!(anchor, 2.0);
+        m = motion_after(m, &mut anchor, 2.0 - 0.6e-3);
+        assert_eq!((m, anchor), (Motion::Down, 2.0 - 0.6e-3));
+        m = motion_after(m, &mut anchor, 1.5);
+        m = motion_after(m, &mut anchor, 1.5 + 0.3e-3);
+        assert_eq!((m, anchor), (Motion::Down, 1.5));
     }
 
     #[test]

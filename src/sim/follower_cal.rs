@@ -10,8 +10,9 @@
 //! along the travel. The steps feed `follower::build`.
 
 use super::lab::{Lab, LabError};
-use crate::follower::Step;
+use crate::follower::{FollowerMap, Step, VerticalLine};
 use crate::track::Strategy;
+use std::sync::Arc;
 use std::time::Duration;
 
 /// How the self-calibration runs.
@@ -180,42 +181,193 @@ fn encoder(lab: &Lab) -> Result<f64, LabError> {
         })
 }
 
-/// Why mapping the twin's follower failed.
-#[derive(Debug, thiserror::Error)]
-pub enum MapTwinError {
-    #[error(transparent)]
-    Lab(#[from] LabError),
-    #[error(transparent)]
-    Map(#[from] crate::follower::MapError),
+/// The outside reference of the vertical map's line: a precision electronic level on the
+/// carriage, read at both ends of the span beside the head's roll. A level reads roll against
+/// gravity, so the difference of its two readings is the axis' true change of roll; what the
+/// head reads beyond it over the same travel is the follower's vertical line (1.38″ per µm).
+/// The twin's level reads the axis' true roll with `sd_rad` of noise per reading (a level of
+/// 1 µrad resolution and repeatability, 0.2″).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LevelSpec {
+    /// Standard deviation of one reading (rad).
+    pub sd_rad: f64,
+    /// Readings at each end, each beside one window of the head's live roll.
+    pub readings: usize,
 }
 
-/// What mapping the twin's follower gave.
-#[derive(Debug)]
-pub struct TwinMap {
-    pub map: crate::follower::FollowerMap,
-    pub run: CalRun,
-    /// The twin's certificate (CSV) when it was the one used.
-    pub certificate_text: Option<String>,
+impl Default for LevelSpec {
+    fn default() -> Self {
+        LevelSpec {
+            sd_rad: 1e-6,
+            readings: 20,
+        }
+    }
 }
 
-/// Map the follower of a twin (`plant`, the reference head decoupled by its nominal layout):
-/// bring the lab up, run the self-calibration over `cal`'s span, and build the map with
-/// `certificate`, or with the twin's own certificate (its noise drawn from `plant.seed`) when
-/// `None`.
-pub fn map_twin(
-    plant: super::plant::PlantSpec,
-    cal: &CalSpec,
-    certificate: Option<crate::follower::Certificate>,
-    settings: &crate::follower::MapSettings,
+/// The level and the head's roll (mean over the readings, rad) at one end, the encoder there
+/// (mm), and the variance of the two means.
+struct EndReading {
+    head: f64,
+    level: f64,
+    encoder: f64,
+    var_head: f64,
+}
+
+fn read_end(
+    lab: &mut Lab,
+    level: &LevelSpec,
+    window: Duration,
+    rng: &mut super::Rng,
+) -> Result<EndReading, LabError> {
+    let n = level.readings.max(1);
+    let (mut head, mut lvl, mut var) = (0.0, 0.0, 0.0);
+    for _ in 0..n {
+        // Each reading a fresh window of the head's live mean.
+        lab.advance(window + Duration::from_millis(50))?;
+        let live = lab
+            .pipeline
+            .measure
+            .live()
+            .ok_or_else(|| LabError::BringUp {
+                what: "level reference",
+                why: "the head gave no live roll".into(),
+            })?;
+        head += live.errors.ey;
+        var += live.sd.ey * live.sd.ey;
+        lvl += lab.truth().errors.ey + rng.gauss(level.sd_rad);
+    }
+    let nf = n as f64;
+    Ok(EndReading {
+        head: head / nf,
+        level: lvl / nf,
+        encoder: encoder(lab)?,
+        var_head: var / (nf * nf),
+    })
+}
+
+/// Reference the vertical map's line with a level (`LevelSpec`): with `map` applied in
+/// tracking (its line left out), zero the head at the span's start and read its roll beside
+/// the level's there and at the span's end. `decoupler` gives the roll's sensitivity to
+/// PSD2's Y, `window` is the head's live window. The tracker keeps the map with its line.
+pub fn reference_line(
+    lab: &mut Lab,
+    map: &FollowerMap,
+    span: (f64, f64),
+    level: &LevelSpec,
+    decoupler: &crate::decouple::Decoupler,
+    window: Duration,
+) -> Result<VerticalLine, LabError> {
+    let mut rng = super::Rng::new(lab.plant.spec.seed).fork(17);
+    let mut free = map.clone();
+    free.vertical_line = None;
+    lab.pipeline.tracker.set_map(Some(Arc::new(free)));
+    lab.move_carriage(span.0)?;
+    lab.zero(span.0, window)?;
+    let a = read_end(lab, level, window, &mut rng)?;
+    lab.move_carriage(span.1)?;
+    let b = read_end(lab, level, window, &mut rng)?;
+    // The roll's sensitivity to PSD2's Y (rad per mm) where the head reads at the far end.
+    let bad = |why: String| LabError::BringUp {
+        what: "level reference",
+        why,
+    };
+    let frame = lab
+        .pipeline
+        .last_frame
+        .and_then(|f| f.readings())
+        .ok_or_else(|| bad("no frame with all three spots".into()))?;
+    let stitch = lab.pipeline.tracker.stitch();
+    let mut r = frame;
+    r[3] += stitch.vertical_mm;
+    let h = 1e-3;
+    let e0 = decoupler
+        .decouple(&r, span.1, stitch.follower_mm)
+        .map_err(|e| bad(e.to_string()))?;
+    r[3] += h;
+    let e1 = decoupler
+        .decouple(&r, span.1, stitch.follower_mm)
+        .map_err(|e| bad(e.to_string()))?;
+    let g = (e1.errors.ey - e0.errors.ey) / h;
+    let moved = b.encoder - a.encoder;
+    if g.abs() < 1e-9 || moved.abs() < 1.0 {
+        return Err(bad(format!(
+            "the roll does not depend on PSD2's Y ({g:e} rad/mm) or the span is too short ({moved:.1} mm)"
+        )));
+    }
+    // Y2 is corrected by the map's vertical: a line λ·(x − x0) adds λ·moved to it at the far
+    // end, and g·λ·moved to the roll.
+    let excess = (b.head - a.head) - (b.level - a.level);
+    let slope = -excess / (g * moved);
+    let n = level.readings.max(1) as f64;
+    let var_level = 2.0 * level.sd_rad * level.sd_rad / n;
+    let u_slope = (var_level + a.var_head + b.var_head).sqrt() / (g.abs() * moved.abs());
+    let origin_mm = map
+        .vertical_positions_mm
+        .first()
+        .copied()
+        .unwrap_or(a.encoder);
+    let line = VerticalLine {
+        origin_mm,
+        slope,
+        u_slope,
+        source: format!(
+            "a level ({:.2}″ a reading, {} readings at each end) against the head's roll at {:.0} and {:.0} mm: the axis' roll changed by {:+.2}″, the head read {:+.2}″",
+            level.sd_rad / crate::units::RAD_PER_ARCSEC,
+            level.readings,
+            span.0,
+            span.1,
+            (b.level - a.level) / crate::units::RAD_PER_ARCSEC,
+            (b.head - a.head) / crate::units::RAD_PER_ARCSEC
+        ),
+    };
+    let mut full = map.clone();
+    full.vertical_line = Some(line.clone());
+    lab.pipeline.tracker.set_map(Some(Arc::new(full)));
+    Ok(line)
+}
+
+/// How to map a follower on the lab: the stop-and-go passes, the fit, the certificate (the
+/// twin's own when `None`) and the level for the vertical line (none: the line is left out).
+#[derive(Clone, Debug)]
+pub struct Mapping {
+    pub cal: CalSpec,
+    pub settings: crate::follower::MapSettings,
+    pub certificate: Option<crate::follower::Certificate>,
+    pub level: Option<LevelSpec>,
+}
+
+impl Mapping {
+    /// The default procedure over `span` (mm): four passes of 1000 frames a side, the twin's
+    /// certificate, the level.
+    pub fn over(span: (f64, f64)) -> Mapping {
+        Mapping {
+            cal: CalSpec {
+                from_mm: span.0,
+                to_mm: span.1,
+                ..CalSpec::default()
+            },
+            settings: crate::follower::MapSettings::default(),
+            certificate: None,
+            level: Some(LevelSpec::default()),
+        }
+    }
+}
+
+/// Map the follower of the lab's twin (brought up) and put the map in use in its tracker:
+/// the self-calibration, the map from its steps and the certificate, the level's line.
+/// `decoupler` and `window` as for [`reference_line`].
+pub fn map_on_lab(
+    lab: &mut Lab,
+    m: &Mapping,
+    decoupler: &crate::decouple::Decoupler,
+    window: Duration,
     progress: impl FnMut(usize, usize),
 ) -> Result<TwinMap, MapTwinError> {
-    let seed = plant.seed;
-    let spec = super::lab::LabSpec::standard(plant, None)?;
-    let mut lab = Lab::new(&spec)?;
-    lab.bring_up()?;
-    let run = self_calibrate(&mut lab, cal, progress)?;
-    let (certificate, certificate_text) = match certificate {
-        Some(c) => (c, None),
+    let started = lab.now();
+    let seed = lab.plant.spec.seed;
+    let run = self_calibrate(lab, &m.cal, progress)?;
+    let (certificate, certificate_text) = match &m.certificate {
+        Some(c) => (c.clone(), None),
         None => {
             let text = lab
                 .plant
@@ -226,13 +378,64 @@ pub fn map_twin(
             (c, Some(text))
         }
     };
-    let mut map = crate::follower::build(&run.steps, Some(&certificate), settings)?;
-    if let Some(s) = map.self_calibration.as_mut() {
-        s.machine_time_s = Some(run.machine_time.as_secs_f64());
+    let mut map = crate::follower::build(&run.steps, Some(&certificate), &m.settings)?;
+    if let Some(level) = &m.level {
+        let span = (m.cal.from_mm, m.cal.to_mm);
+        map.vertical_line = Some(reference_line(lab, &map, span, level, decoupler, window)?);
     }
+    let machine_time = lab.now() - started;
+    if let Some(s) = map.self_calibration.as_mut() {
+        s.machine_time_s = Some(machine_time.as_secs_f64());
+    }
+    lab.pipeline.tracker.set_map(Some(Arc::new(map.clone())));
     Ok(TwinMap {
         map,
         run,
         certificate_text,
+        machine_time,
     })
+}
+
+/// Why mapping the twin's follower failed.
+#[derive(Debug, thiserror::Error)]
+pub enum MapTwinError {
+    #[error(transparent)]
+    Lab(#[from] LabError),
+    #[error(transparent)]
+    Map(#[from] crate::follower::MapError),
+}
+
+/// What mapping the twin's follower gave.
+#[derive(Clone, Debug)]
+pub struct TwinMap {
+    pub map: crate::follower::FollowerMap,
+    pub run: CalRun,
+    /// The twin's certificate (CSV) when it was the one used.
+    pub certificate_text: Option<String>,
+    /// Machine time of the whole mapping (passes and level).
+    pub machine_time: Duration,
+}
+
+/// Map the follower of a twin (`plant`, the reference head decoupled by its nominal layout):
+/// bring the lab up and run [`map_on_lab`] over `cal`'s span, with `certificate`, or with
+/// the twin's own certificate (its noise drawn from `plant.seed`) when `None`, and the level
+/// when `level` is given.
+pub fn map_twin(
+    plant: super::plant::PlantSpec,
+    cal: &CalSpec,
+    certificate: Option<crate::follower::Certificate>,
+    settings: &crate::follower::MapSettings,
+    level: Option<LevelSpec>,
+    progress: impl FnMut(usize, usize),
+) -> Result<TwinMap, MapTwinError> {
+    let spec = super::lab::LabSpec::standard(plant, None)?;
+    let mut lab = Lab::new(&spec)?;
+    lab.bring_up()?;
+    let m = Mapping {
+        cal: *cal,
+        settings: *settings,
+        certificate,
+        level,
+    };
+    map_on_lab(&mut lab, &m, &spec.decoupler, spec.live_window, progress)
 }

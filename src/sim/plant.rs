@@ -155,6 +155,8 @@ struct State {
     compensation: Compensation,
     follower_encoder: f64,
     follower_motion: Motion,
+    /// The furthest encoder position in the current direction (the turning point).
+    follower_anchor: f64,
     blocked: [bool; 3],
     mount: Mount,
     /// Events still to happen, in time order.
@@ -219,6 +221,7 @@ impl Plant {
                 compensation: Compensation::default(),
                 follower_encoder: 0.0,
                 follower_motion: Motion::Up,
+                follower_anchor: 0.0,
                 blocked: [false; 3],
                 mount,
                 scheduled: Vec::new(),
@@ -290,14 +293,10 @@ impl Plant {
 
     /// Set the follower's encoder position (mm), as its drive moves it.
     pub fn set_follower_encoder(&self, d: f64) {
-        let mut s = self.lock();
-        if d != s.follower_encoder {
-            s.follower_motion = if d > s.follower_encoder {
-                Motion::Up
-            } else {
-                Motion::Down
-            };
-        }
+        let mut guard = self.lock();
+        let s = &mut *guard;
+        s.follower_motion =
+            super::follower::motion_after(s.follower_motion, &mut s.follower_anchor, d);
         s.follower_encoder = d;
     }
 

@@ -1136,6 +1136,7 @@ mod tests {
             vertical_mm: xs.iter().map(|&x| fv(x)).collect(),
             vertical_u_mm: vec![0.2e-3; xs.len()],
             vertical_slope: 0.0,
+            vertical_line: None,
         };
         let (mut b, mut tr) = referenced(Strategy::Encoder);
         tr.set_map(Some(Arc::new(map)));
