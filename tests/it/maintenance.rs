@@ -66,6 +66,8 @@ fn loop_spec() -> LoopSpec {
         step_mm: Some(2.0),
         zero_window: Duration::from_millis(500),
         align_rounds: 0,
+        // The twin's follower has no errors of its own here: nothing to map.
+        follower: None,
     }
 }
 
@@ -83,7 +85,8 @@ struct Bench {
 impl Bench {
     fn new() -> Bench {
         let spec = loop_spec();
-        let lab = Lab::new(&spec.lab).expect("lab");
+        let mut lab = Lab::new(&spec.lab).expect("lab");
+        closed_loop::prepare(&mut lab, &spec, &mut |_| {}).expect("the lab brought up");
         let dir = crate::helpers::TempDir::new("maintenance");
         let db = dir.path("axiscomp.db");
         let store = Store::open(&db).expect("store");
