@@ -224,7 +224,7 @@ fn encoder_following_over_100_mm_in_one_move_matches_the_truth() {
 /// the tables (unmapped, the truth after was E 5.76 µm, M 5.51 µm on 1000 mm).
 #[test]
 fn the_closed_loop_cuts_positioning_and_straightness_to_a_tenth() {
-    closed_loop_case(200.0, 6, 2, 2.0, 2, 100);
+    closed_loop_case(200.0, 6, 2, 2.0, 2, 300);
 }
 
 /// The same at full size: 1000 mm, 11 targets, 5 bidirectional runs, the follower mapped by
