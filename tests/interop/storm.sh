@@ -53,8 +53,8 @@ mkdir -p "$state"
 # The service (its pid in $pidfile: storm.py restarts it) and the twin stopped before the state
 # directory's file system is unmounted, whatever failed before.
 storm_cleanup() {
-  [ -f "$pidfile" ] && kill "$(cat "$pidfile")" 2>/dev/null
-  [ -n "$sim" ] && kill "$sim" 2>/dev/null
+  if [ -f "$pidfile" ]; then kill "$(cat "$pidfile")" 2>/dev/null || true; fi
+  if [ -n "$sim" ]; then kill "$sim" 2>/dev/null || true; fi
   sleep 0.5
   if mountpoint -q "$state" 2>/dev/null; then umount "$state" || umount -l "$state" || true; fi
   harness_cleanup

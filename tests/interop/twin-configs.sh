@@ -120,9 +120,11 @@ harness() {
   work=$(mktemp -d)
   sim=""
   svc=""
+  # Never fails (it runs under set -e from an EXIT trap: a failing kill of a process that is
+  # already gone would turn a passed script's exit status into 1).
   harness_cleanup() {
-    [ -n "$svc" ] && kill "$svc" 2>/dev/null
-    [ -n "$sim" ] && kill "$sim" 2>/dev/null
+    if [ -n "$svc" ]; then kill "$svc" 2>/dev/null || true; fi
+    if [ -n "$sim" ]; then kill "$sim" 2>/dev/null || true; fi
     wait 2>/dev/null || true
     if [ -n "${KEEP:-}" ]; then echo "$harness_name: kept $work" >&2; else rm -rf "$work"; fi
   }
