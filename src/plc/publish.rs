@@ -116,14 +116,14 @@ pub enum PublishError {
         status_sequence: u32,
         active_sequence: u32,
     },
-    #[error("the PLC was not ready within {waited:?}: {why}; nothing was written")]
+    #[error("the PLC was not ready within {:.1} s: {why}; nothing was written", waited.as_secs_f64())]
     NotReady {
         waited: Duration,
         why: String,
         last: Option<PlcStatus>,
     },
     #[error(
-        "the PLC's heartbeat stayed at {heartbeat} for {waited:?}: its program is not running; nothing was written"
+        "the PLC's heartbeat stayed at {heartbeat} for {:.1} s: its program is not running; nothing was written", waited.as_secs_f64()
     )]
     NotAlive { heartbeat: u16, waited: Duration },
     #[error("{step}: {error}; {}", if *.commit_sent {
@@ -147,7 +147,8 @@ pub enum PublishError {
         read: u16,
     },
     #[error(
-        "no echo of sequence {sequence} within {waited:?} after the commit ({}); the PLC may still apply it: read its active sequence before publishing again",
+        "no echo of sequence {sequence} within {:.1} s after the commit ({}); the PLC may still apply it: read its active sequence before publishing again",
+        waited.as_secs_f64(),
         match last { Some(s) => s.to_string(), None => "its status could not be read".into() }
     )]
     NoEcho {
