@@ -8,6 +8,7 @@ use axiscomp::run::program::CaptureMode;
 use axiscomp::run::{Dialect, Plan, TargetKey};
 use axiscomp::sim::InstallSpec;
 use axiscomp::sim::axis::AxisSpec;
+use axiscomp::sim::follower::FollowerSpec;
 use axiscomp::sim::lab::{Lab, LabError, LabRun, LabSpec, plan_span};
 use axiscomp::sim::plant::{MountSpec, Plant, PlantEvent, PlantSpec, Truth};
 use std::collections::BTreeSet;
@@ -111,6 +112,25 @@ fn worst_positioning_um(run: &LabRun, at_zero: &Truth) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// The same with the follower stage's own along-axis error taken out (µm): the twin knows
+/// where PSD2 really is against its encoder. The head reads the stage's error change since
+/// the run's first capture (at the reference, where the stitch is re-referenced) as
+/// positioning, with the opposite sign. What is left is the head's own: alignment and noise.
+fn worst_positioning_without_follower_um(run: &LabRun) -> f64 {
+    let own = |t: &Truth| t.follower_true - t.follower_encoder;
+    let Some(first) = run.captures.first() else {
+        return 0.0;
+    };
+    run.captures
+        .iter()
+        .map(|c| {
+            let truth = c.truth.errors.dy - first.truth.errors.dy;
+            let follower = own(&c.truth) - own(&first.truth);
+            (c.capture.errors.dy - first.capture.errors.dy - truth + follower).abs() * 1e3
+        })
+        .fold(0.0, f64::max)
+}
+
 /// Align, zero at the plan's reference, measure; returns the run, the truth at the zero and
 /// the rounds the alignment took.
 fn aligned_run(lab: &mut Lab, plan: &Plan, what: &str) -> (LabRun, Truth, usize) {
@@ -130,8 +150,8 @@ fn aligned_run(lab: &mut Lab, plan: &Plan, what: &str) -> (LabRun, Truth, usize)
 
 /// Must show 1: 50 seeds × 500, 1000 and 2000 mm, each head mounted by eye. Aligned, every
 /// run completes with every capture once, at rest on its target, the beam within 400 µrad of
-/// the travel and the positioning within 6 µm of the truth (the twin's follower errs by up to
-/// 4 µm along its axis). Not aligned, the pre-run check refuses (or, for a
+/// the travel and the positioning within 1 µm of the truth beside the unmapped follower's own
+/// error (which the twin knows). Not aligned, the pre-run check refuses (or, for a
 /// mount that happens to be good enough, the run completes): never a run failing half-way.
 #[test]
 #[ignore = "300 labs on long axes: run optimised by .ci/run"]
@@ -146,6 +166,7 @@ fn fifty_seeds_on_500_1000_2000_mm_axes_align_and_complete_or_are_refused() {
         let (mut refused, mut lucky, mut rounds_max) = (0, 0, 0);
         let mut worst_angle_urad = 0.0_f64;
         let mut worst_dy_um = 0.0_f64;
+        let mut worst_own_um = 0.0_f64;
         for seed in 1..=50u64 {
             let what = format!("seed {seed}, {length} mm");
             let mut raw = lab(seed, length, Some(MountSpec::by_eye()));
@@ -176,15 +197,25 @@ fn fifty_seeds_on_500_1000_2000_mm_axes_align_and_complete_or_are_refused() {
             );
             worst_angle_urad = worst_angle_urad.max(angle * 1e6);
             assert_complete(&run, &plan, &what);
-            // Within the follower's own positioning error (4 µm peak in the twin, mapped by
-            // issue 14) and the noise.
+            // Unmapped (these labs do not map their follower: issue 14 does), the head reads
+            // the stage's own along-axis error as positioning: within its span in the twin
+            // (long shape ±4 µm, screw ±1 µm, reversal 1 µm: 11 µm). Taken out, the head is
+            // within its noise of the truth.
             let dy = worst_positioning_um(&run, &at_zero);
-            assert!(dy < 6.0, "{what}: positioning {dy:.1} µm from the truth");
+            let spec = FollowerSpec::default();
+            let span = 2.0 * (spec.positioning_um + spec.periodic_um) + spec.reversal_um;
+            assert!(dy < span, "{what}: positioning {dy:.1} µm from the truth");
             worst_dy_um = worst_dy_um.max(dy);
+            let own = worst_positioning_without_follower_um(&run);
+            assert!(
+                own < 1.0,
+                "{what}: positioning {own:.2} µm from the truth beside the follower's own error"
+            );
+            worst_own_um = worst_own_um.max(own);
             assert!(lab.pauses.is_empty(), "{what}: {:?}", lab.pauses);
         }
         summary.push(format!(
-            "{length} mm: 50/50 aligned and complete (at most {rounds_max} rounds, beam within {worst_angle_urad:.0} µrad of the travel, positioning at most {worst_dy_um:.1} µm from the truth); not aligned: {refused} refused, {lucky} good enough as mounted"
+            "{length} mm: 50/50 aligned and complete (at most {rounds_max} rounds, beam within {worst_angle_urad:.0} µrad of the travel, positioning at most {worst_dy_um:.1} µm from the truth, {worst_own_um:.2} µm beside the unmapped follower's own error); not aligned: {refused} refused, {lucky} good enough as mounted"
         ));
     }
     eprintln!("{}", summary.join("\n"));
