@@ -151,7 +151,7 @@ pub fn run(a: Args) -> Result<()> {
     print_holdout(&r, &study);
     let decoupler = r.calibration.decoupler(&layout)?;
     let mut budget = BudgetSpec::of_plant(&plant);
-    budget.calibration = calibration_u(&r);
+    budget.calibration = r.calibration_u();
     budget.drift_check = (a.drift_check_s > 0).then(|| Duration::from_secs(a.drift_check_s));
 
     let a_spec = plant.axis;
@@ -387,30 +387,29 @@ fn print_holdout(r: &StudyResult, spec: &StudySpec) {
          reference read at home; linear cal: calibrated β and offset (fixed over travel); model cal: the\n\
          calibrated installation errors with Gauss–Newton on the model at each travel; ratio = model / bound."
     );
+    if let (Some(m), Some((u, _))) = (&r.model_averaged, r.calibration_u()) {
+        println!(
+            "the same poses, each the mean of {} frames (as a bench dwells), the model's error against the bound:",
+            r.averaged_frames
+        );
+        for k in 0..6 {
+            let s = DOF_TO_USER[k];
+            let (h, b) = (m.to_array()[k] * s, r.crlb_averaged.to_array()[k] * s);
+            println!(
+                "{:<4}{:<7}{h:>12.3}{b:>12.3}{:>9.3}   the calibration's u in the budget {:.3}",
+                DOF_NAMES[k],
+                DOF_UNITS[k],
+                h / b,
+                u[k] * s
+            );
+        }
+    }
 }
 
 /// The ISO figures of the twin's truth at each run's captures.
 struct Truths {
     before: Figures,
     after: Figures,
-}
-
-/// The calibration's own standard uncertainty per DOF (internal units): what the hold-out
-/// error h adds to the noise bound b, h² − b², and what N hold-out poses cannot rule out: the
-/// mean of N squared errors is known to √(2/N)·b², so `u² = max(0, h² − b²) + √(2/N)·b²`.
-fn calibration_u(r: &StudyResult) -> Option<([f64; 6], String)> {
-    let (h, b) = (r.model.as_ref()?.to_array(), r.crlb.to_array());
-    let resolution = (2.0 / r.holdout_poses.max(1) as f64).sqrt();
-    Some((
-        std::array::from_fn(|k| {
-            let b2 = b[k] * b[k];
-            ((h[k] * h[k] - b2).max(0.0) + resolution * b2).sqrt()
-        }),
-        format!(
-            "the model calibration's hold-out error h beyond the Cramér–Rao bound b, √(max(0, h² − b²) + √(2/N)·b²), N = {} poses",
-            r.holdout_poses
-        ),
-    ))
 }
 
 /// The same figures computed from the twin's truth at a run's captures.

@@ -12,7 +12,7 @@
 //! |---|---|---|
 //! | PSD noise | `√(Σ_j sd_j²/f_j) / n` | each capture's frame scatter sd over its f frames, n runs |
 //! | repeatability | `s/√n` | the run-to-run scatter s (ISO 230-2's s) of the n runs |
-//! | calibration | `u_cal` per DOF | the calibration record: `√(max(0, h² − b²) + √(2/N)·b²)`, h the hold-out RMS over N poses, b the Cramér–Rao bound: what the fit adds beyond noise, and what N poses cannot rule out |
+//! | calibration | `u_cal` per DOF | the calibration record: `√(max(0, h² − b²) + √(2/N)·b²)`, h the hold-out RMS over N poses, each the mean of many frames (a bench's dwell), b the Cramér–Rao bound of such a mean: what the fit adds beyond noise, and what N poses cannot rule out |
 //! | follower map | `√((S_x·u_along)² + (S_y·u_vert)²)` | the follower's own errors at the point ([`FollowerInput`]), through PSD2's sensitivities S |
 //! | stitching | `√(mean_j(S_x²·v_x,j + S_y²·v_y,j))` | the overlap handovers' accumulated variance v at each capture (a random walk) |
 //! | misalignment | `L·(1 − cos φ)/√12` (dy only) | φ the beam's angle to the travel, from the measured straightness slopes: the cosine error lies between 0 and L(1 − cos φ) (rectangular) |
