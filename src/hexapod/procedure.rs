@@ -580,6 +580,24 @@ pub async fn run(
             elapsed: start.elapsed(),
         });
     }
+    // Back to the zero pose, where the head measures: the last pose may stand millimetres
+    // off, and the calibration is judged (and its plausibility read) at the head's home.
+    if prepared {
+        let home = tokio::select! {
+            r = hexapod.move_to(HexPose::default()) => Some(r),
+            () = stopped(&mut stop) => None,
+        };
+        match home {
+            Some(Ok(_)) => tokio::time::sleep(opts.settle).await,
+            Some(Err(e)) => tracing::warn!(
+                error = %e,
+                "the hexapod did not return to its zero pose after the last pose: move it there before accepting the calibration"
+            ),
+            None => {
+                let _ = hexapod.stop().await;
+            }
+        }
+    }
     Ok(RunReport {
         taken: total - resumed_from,
         resumed_from,

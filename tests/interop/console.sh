@@ -46,7 +46,7 @@ fail() {
 
 # The twin and the service on free loopback ports, the twin's CNC running the programs.
 source tests/interop/twin-configs.sh
-twin_configs "$work"
+TWIN_HEXAPOD_PORTS=free twin_configs "$work"
 # Handovers and captures quicker than in production so the short plan takes well under a
 # minute.
 cat >> "$work/service.toml" <<EOF
@@ -282,8 +282,9 @@ keys 7
 expect 10 "Alarms (UTC, newest first)" "This console's requests" "Audit log" "run_start X 0.0–8.0 mm, 5 targets, 2 runs"
 
 echo "console.sh: Calibrate, a hexapod run started from the console and followed to the fit"
-# The twin serves its PI controller on 127.0.0.1:50000, where twin-service.toml's [hexapod]
-# points. A 40-pose plan over the operating window (±100 µm, ±2 mm positioning, ±60″).
+# The twin serves its PI controller on a free port, where service.toml's [hexapod] points
+# (twin_configs with TWIN_HEXAPOD_PORTS=free). A 40-pose plan over the operating window
+# (±100 µm, ±1 mm positioning, ±60″).
 python3 - "$work/plan.csv" <<'PY2'
 import random, sys
 r = random.Random(17)
@@ -291,7 +292,7 @@ with open(sys.argv[1], "w") as f:
     f.write("x_mm,y_mm,z_mm,u_deg,v_deg,w_deg\n")
     for _ in range(40):
         a = 60 / 3600
-        f.write(",".join(f"{v:.7f}" for v in (r.uniform(-0.1, 0.1), r.uniform(-2, 2),
+        f.write(",".join(f"{v:.7f}" for v in (r.uniform(-0.1, 0.1), r.uniform(-1, 1),
                 r.uniform(-0.1, 0.1), r.uniform(-a, a), r.uniform(-a, a), r.uniform(-a, a))) + "\n")
 PY2
 keys 3

@@ -33,6 +33,20 @@ mode = "twin"
 twin = "127.0.0.1:$ctl"
 EOF
   twin_ctl="127.0.0.1:$ctl"
+  # TWIN_HEXAPOD_PORTS=free: the twin's hexapod controllers on free ports too (two scripts
+  # running at once would otherwise share 50000 and 5001, and one drive the other's platform).
+  if [ "${TWIN_HEXAPOD_PORTS:-}" = free ]; then
+    local gcs xps
+    read -r gcs xps < <(python3 -c '
+import socket
+s = [socket.socket() for _ in range(2)]
+for x in s:
+    x.bind(("127.0.0.1", 0))
+print(*(x.getsockname()[1] for x in s))')
+    sed -i -e "s#^gcs_listen = \"127.0.0.1:50000\"#gcs_listen = \"127.0.0.1:$gcs\"#" \
+        -e "s#^xps_listen = \"127.0.0.1:5001\"#xps_listen = \"127.0.0.1:$xps\"#" "$dir/sim.toml"
+    sed -i -e "s#^address = \"127.0.0.1:50000\"#address = \"127.0.0.1:$gcs\"#" "$dir/service.toml"
+  fi
 }
 
 # twin_cmd JSON: one request to the twin's control socket (after twin_configs); prints the
