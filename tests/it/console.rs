@@ -424,6 +424,30 @@ fn the_screens_show_the_twin_data_they_are_given() {
     for sum in p.sums_v {
         assert!(live.contains(&format!("{sum:.2} V")), "SUM {sum}:\n{live}");
     }
+    // Align names the follower's error map in use, and says when there is none.
+    let mut align = rest_app(&fx, t0, false);
+    align.screen = Screen::Align;
+    let t = text(&render(&align, 80, 24));
+    assert!(t.contains("no follower map (follower import)"), "{t}");
+    let mut snap = fx.rest.clone();
+    let src = axiscomp::follower::Source::Certificate;
+    snap.tracking.follower_map = Some(axiscomp::service::follower::FollowerMapView {
+        id: 3,
+        name: "stage-7".into(),
+        source: "certificate".into(),
+        created: "2026-11-20T08:15:00Z".into(),
+        sources: axiscomp::follower::Sources {
+            long: src,
+            periodic: src,
+            reversal: src,
+            vertical: src,
+        },
+    });
+    align.handle_snapshot(snap, t0);
+    let t = text(&render(&align, 80, 24));
+    // (wrapped at 80 columns after the date)
+    assert!(t.contains("map stage-7, 2026-11-20,"), "{t}");
+    assert!(t.contains("certificate"), "{t}");
     let mut done = results_app(&fx, t0, false);
     done.screen = Screen::Results;
     let res = text(&render(&done, 160, 48));

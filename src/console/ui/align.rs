@@ -140,6 +140,20 @@ fn follower_lines(app: &App, snap: Option<&Snapshot>, theme: Theme) -> Vec<Line<
         } else {
             Line::styled("no zero reference (z sets it here)", theme.warn())
         });
+        // The follower's own error map in use (issue 14): without one, the stage's errors
+        // (µm along, roll from its straightness) enter the six.
+        lines.push(match &s.tracking.follower_map {
+            Some(m) => Line::styled(
+                format!(
+                    "map {}, {}, {}",
+                    m.name,
+                    m.created.get(..10).unwrap_or(&m.created),
+                    m.source
+                ),
+                theme.ok(),
+            ),
+            None => Line::styled("no follower map (follower import)", theme.warn()),
+        });
     }
     lines.push(Line::raw(format!("jog step {} mm", app.jog_step_mm)));
     lines.push(Line::styled("h home  j/k jog −/+  [ ] step", theme.dim()));
@@ -149,7 +163,7 @@ fn follower_lines(app: &App, snap: Option<&Snapshot>, theme: Theme) -> Vec<Line<
     ));
     if app.read_only() {
         lines.push(Line::styled(
-            "read-only (viewer): these keys are disabled",
+            "read-only (viewer): keys disabled",
             theme.warn(),
         ));
     }
