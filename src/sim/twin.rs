@@ -25,8 +25,13 @@
 //!   table protocol faults; only once `axiscomp sim` has started its PLC)
 //! - `{"cmd":"target"}` → what the alignment target in front of each PSD shows (mm, to 0.5 mm;
 //!   `null` where no beam reaches it)
+//! - `{"cmd":"age","positioning_um":6,"backlash_um":3,"thermal_um":5}` ages the axis while the
+//!   twin runs (issue 15: years of wear for a maintenance re-measurement; `sim::axis::Wear`):
+//!   the fields given replace the wear in force, the others keep theirs (each 0..=100 µm);
+//!   `{"cmd":"age"}` → the wear in force
 
 use super::SimError;
+use super::axis::Wear;
 use super::drive::{TwinDriveConfig, TwinDriveHandle, spawn_twin_drive};
 use super::iomodule::{IoModule, IoModuleConfig};
 use super::plant::{Plant, PlantSpec, Truth};
@@ -474,10 +479,45 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
                 .collect();
             Ok(serde_json::json!({"ok": true, "targets": view}))
         }
+        "age" => {
+            let wear = wear_from(v, ctx.plant.axis.wear())?;
+            ctx.plant.axis.set_wear(wear);
+            Ok(serde_json::json!({"ok": true, "wear": {
+                "positioning_um": wear.positioning_um,
+                "backlash_um": wear.backlash_um,
+                "thermal_um": wear.thermal_um,
+            }}))
+        }
         other => Err(format!(
-            "unknown cmd \"{other}\": use move, wait, truth, block, io, drive, program, cnc, mount, turn, knock, plc or target"
+            "unknown cmd \"{other}\": use move, wait, truth, block, io, drive, program, cnc, mount, turn, knock, plc, target or age"
         )),
     }
+}
+
+/// Largest wear (µm) the `age` command takes for each term: years of use add a few µm to tens
+/// of µm; more is a broken axis, not an aged one (and most likely a typing error).
+pub const WEAR_MAX_UM: f64 = 100.0;
+
+/// The `age` command's wear: `now` with the fields `v` gives replaced, each a number of µm in
+/// 0..=[`WEAR_MAX_UM`]; an error names the field and what it takes.
+pub fn wear_from(v: &serde_json::Value, now: Wear) -> Result<Wear, String> {
+    let field = |k: &str, cur: f64| -> Result<f64, String> {
+        let Some(x) = v.get(k) else { return Ok(cur) };
+        let um = x
+            .as_f64()
+            .ok_or_else(|| format!("age \"{k}\" is {x}: give a number of µm"))?;
+        if !um.is_finite() || !(0.0..=WEAR_MAX_UM).contains(&um) {
+            return Err(format!(
+                "age \"{k}\" is {um} µm: give 0 to {WEAR_MAX_UM:.0} µm"
+            ));
+        }
+        Ok(um)
+    };
+    Ok(Wear {
+        positioning_um: field("positioning_um", now.positioning_um)?,
+        backlash_um: field("backlash_um", now.backlash_um)?,
+        thermal_um: field("thermal_um", now.thermal_um)?,
+    })
 }
 
 /// The control socket's `plc` command: inject the faults named in `v`, then report.
@@ -540,4 +580,40 @@ fn plc_command(
         "status_sequence": st.status_sequence, "error_code": st.error_code,
         "active": active, "commits": commits,
     }}))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn age_replaces_the_fields_given_and_names_a_bad_one() {
+        let now = Wear {
+            positioning_um: 1.0,
+            backlash_um: 2.0,
+            thermal_um: 3.0,
+        };
+        let v = serde_json::json!({"cmd": "age", "positioning_um": 6, "thermal_um": 5.5});
+        assert_eq!(
+            wear_from(&v, now),
+            Ok(Wear {
+                positioning_um: 6.0,
+                backlash_um: 2.0,
+                thermal_um: 5.5,
+            })
+        );
+        assert_eq!(wear_from(&serde_json::json!({"cmd": "age"}), now), Ok(now));
+        assert_eq!(
+            wear_from(&serde_json::json!({"backlash_um": -1}), now),
+            Err("age \"backlash_um\" is -1 µm: give 0 to 100 µm".to_string())
+        );
+        assert_eq!(
+            wear_from(&serde_json::json!({"thermal_um": 250.0}), now),
+            Err("age \"thermal_um\" is 250 µm: give 0 to 100 µm".to_string())
+        );
+        assert_eq!(
+            wear_from(&serde_json::json!({"positioning_um": "6"}), now),
+            Err("age \"positioning_um\" is \"6\": give a number of µm".to_string())
+        );
+    }
 }

@@ -9,7 +9,13 @@
 # Measure (its travel inside the alignment: the service's pre-run check lets it start), start,
 # progress, the finished run's results, the audit log on Events, quit (the terminal given back,
 # exit status 0), then NO_COLOR. Exits non-zero on the first screen that does not show what it
-# should, printing that screen. Then the Calibrate screen (issue 17): a hexapod calibration of
+# should, printing that screen. Then the maintenance story (issue 15, must-show 4): the
+# commissioning run's tables generated and published on Publish (the PLC's status words and
+# active tables checked on screen), the twin's axis aged through its control socket, the plan
+# measured again on Measure (under the active tables), the commissioning run found on Results
+# by the date its row shows and compared (b) with the re-measurement, whose tables Publish
+# shows composed of the active table and the residual; the positioning one published, the PLC
+# then applying its sequence. Then the Calibrate screen (issue 17): a hexapod calibration of
 # 40 poses started by keys against the twin's PI controller, followed to its fit and accepted.
 # Needs tmux and python3 (.ci/run installs tmux).
 #   bash tests/interop/console.sh            # from anywhere in the repository
@@ -276,10 +282,158 @@ keys 5
 expect 15 "X finished, 20 captures" "dy positioning (µm)" "Figures (←→ error)" "A (accuracy)" "R (repeatability)"
 keys Right
 expect 5 "dz vertical straightness (µm)" "straight LS"
+# The commissioning run's date as its row on the run list shows it: what a maintenance
+# engineer finds it by years later.
+run1_row=$(screen | grep -oE '▶ *[0-9]+ X finished +[0-9]+ [0-9]{4}-[0-9]{2}-[0-9]{2} [0-9]{2}:[0-9]{2}' | head -1)
+[ -n "$run1_row" ] || fail "the run list shows no finished run with its date"
+run1=$(sed -E 's/^▶ *([0-9]+) .*/\1/' <<<"$run1_row")
+run1_date=$(grep -oE '[0-9]{4}-[0-9]{2}-[0-9]{2} [0-9]{2}:[0-9]{2}$' <<<"$run1_row")
+echo "console.sh: the commissioning run is run $run1 of $run1_date"
 
 echo "console.sh: Events, the audit log"
 keys 7
 expect 10 "Alarms (UTC, newest first)" "This console's requests" "Audit log" "run_start X 0.0–8.0 mm, 5 targets, 2 runs"
+
+echo "console.sh: maintenance (issue 15, must-show 4): the commissioning run's tables published"
+# selected: the text the pane shows highlighted (reverse video), one line per row.
+selected() {
+  "${tmx[@]}" capture-pane -e -p -t console | python3 -c '
+import re, sys
+for row in sys.stdin.read().splitlines():
+    rev, out = False, []
+    for part in re.split(r"(\x1b\[[0-9;]*m)", row):
+        if part.startswith("\x1b["):
+            ps = [int(x) if x else 0 for x in part[2:-1].split(";")]
+            i = 0
+            while i < len(ps):
+                if ps[i] in (38, 48):
+                    i += 3 if ps[i + 1:i + 2] == [5] else 5
+                    continue
+                if ps[i] in (0, 27):
+                    rev = False
+                elif ps[i] == 7:
+                    rev = True
+                i += 1
+        elif rev:
+            out.append(part)
+    if out:
+        print("".join(out))'
+}
+# generate RUN: on the Publish screen, g, RUN picked from the list, Enter; prints the ids of
+# the tables generated, the positioning one first (the status bar's "run N: tables 4 EXX,
+# 5 EYX, 6 EZX generated").
+generate() {
+  keys g
+  expect 10 "Generate tables from which run?" "run $1 "
+  for _ in $(seq 1 6); do
+    selected | grep -qE "^run $1 " && break
+    keys Down
+  done
+  selected | grep -qE "^run $1 " || fail "run $1 could not be picked to generate tables from"
+  keys Enter
+  expect 30 "run $1: tables"
+  screen | grep -oE "run $1: tables [0-9A-Z ,]+" | head -1 | grep -oE '[0-9]+ [A-Z]{3}' | cut -d' ' -f1 \
+    | paste -sd' ' || true
+}
+# publish ID: select table ID on the Publish screen, p, its axis name typed as the box asks;
+# prints the sequence the PLC committed it as.
+publish() {
+  local ax
+  for _ in $(seq 1 12); do
+    screen | grep -qE "Table $1 [A-Z]+ axis" && break
+    keys Down
+  done
+  ax=$(screen | grep -oE "Table $1 [A-Z]+ axis [A-Z]" | grep -oE '[A-Z]$') \
+    || fail "table $1 could not be selected"
+  keys p
+  expect 5 "Type the axis name \"$ax\""
+  keys -l "$ax"
+  keys Enter
+  expect 30 "table $1 committed as sequence"
+  screen | grep -oE "table $1 committed as sequence [0-9]+" | head -1 | grep -oE '[0-9]+$'
+}
+keys 6
+expect 10 "Tables (map"
+ids=$(generate "$run1")
+[ -n "$ids" ] || fail "no table ids in the status bar after generating from run $run1"
+seq=""
+for id in $ids; do seq=$(publish "$id"); done
+# The PLC's status words as the screen reads them back: ready, the last sequence active and
+# accepted; every table of the run active, the positioning one named with its date and run.
+expect 10 "PLC ready, active sequence $seq;" "commit: accepted sequence $seq" \
+  "active: table ${ids%% *} positioning X seq"
+pos1=$(screen | grep -oE "active: table [0-9]+ positioning X seq [0-9]+" | head -1) || true
+screen | grep -A1 -F "$pos1" | tail -1 | grep -qE "[0-9]{4}-[0-9]{2}-[0-9]{2} [0-9]{2}:[0-9]{2} run $run1" \
+  || fail "the active positioning table's date and source run are not on screen"
+echo "console.sh: run $run1's tables $(echo $ids) published, the PLC at sequence $seq; $pos1"
+plc_active=$(twin '{"cmd":"plc"}' | python3 -c '
+import json, sys
+print(" ".join(str(a["sequence"]) for a in json.load(sys.stdin)["plc"]["active"] if a))')
+[ "$(tr ' ' '\n' <<<"$plc_active" | sort -n | tr '\n' ' ')" = "$(seq -s ' ' 1 "$seq") " ] \
+  || fail "the twin's PLC applies sequences $plc_active, not 1..$seq"
+
+echo "console.sh: the axis ages (the twin's control socket), re-measured from the Measure screen"
+twin '{"cmd":"age","positioning_um":6,"backlash_um":3,"thermal_um":5}' >/dev/null
+# Years pass: at least the minute the run list dates runs by, so that the date finds the
+# commissioning run alone.
+while [ "$(date -u '+%F %H:%M')" = "$run1_date" ]; do sleep 1; done
+keys 4
+# The last plan of the axis is still there: start it again.
+expect 5 "targets (mm): 0.0 2.0 4.0 6.0 8.0"
+keys s
+expect 5 "Start the run?" "Axis X, 0 to 8 mm, 5 targets, 2 bidirectional runs"
+keys y
+expect 15 "running" "/20"
+run2=$(screen | grep -oE 'run [0-9]+ running' | head -1 | grep -oE '[0-9]+') || true
+[ -n "$run2" ] && [ "$run2" != "$run1" ] || fail "no new run on the Measure screen"
+expect 150 "run $run2 finished: its results are on screen 5"
+
+echo "console.sh: Results, the commissioning run found by its date ($run1_date) and compared"
+keys 5
+expect 10 "run $run2 X finished, 20 captures" "$run1_date"
+[ "$(screen | grep -cF "$run1_date")" = 1 ] || fail "not one run dated $run1_date"
+for _ in $(seq 1 8); do
+  selected | grep -qF "$run1_date" && break
+  keys Down
+done
+row=$(selected | grep -F "$run1_date") || fail "no row dated $run1_date could be selected"
+grep -qE "^ *$run1 X finished" <<<"$row" || fail "the row dated $run1_date is not run $run1: $row"
+keys b
+expect 10 "comparing with run $run1 (before)" "before: run $run1"
+grep -qE "^b *$run1 X finished" <<<"$(selected)" || fail "run $run1's row is not marked b"
+keys Left
+expect 5 "dy positioning (µm) + − ·before" "B̄ mean rev."
+# The re-measurement ran under the commissioning tables: its mean reversal is the backlash
+# the ageing added (3 µm: x↑ − x↓ = −3 µm), where the commissioning run saw the axis' own.
+rev=$(screen | grep -oE 'B̄ mean rev\. +[-+0-9.]+ +[-+0-9.]+' | head -1) || true
+rev_before=$(awk '{print $(NF - 1)}' <<<"$rev")
+rev_after=$(awk '{print $NF}' <<<"$rev")
+echo "console.sh: mean reversal B̄ before $rev_before µm (run $run1), after $rev_after µm (run $run2; the ageing added -3 µm)"
+python3 -c 'import sys; sys.exit(0 if abs(float(sys.argv[1]) + 3) <= 1.5 else 1)' "$rev_after" \
+  || fail "run $run2's mean reversal $rev_after µm is not the ageing's -3 µm (±1.5)"
+
+echo "console.sh: Publish, the re-measurement's tables composed with the active ones, published"
+keys 6
+expect 10 "Tables (map"
+ids2=$(generate "$run2")
+[ -n "$ids2" ] || fail "no table ids in the status bar after generating from run $run2"
+pos2=${ids2%% *}
+for _ in $(seq 1 12); do
+  screen | grep -qE "Table $pos2 EXX axis" && break
+  keys Down
+done
+# The values panel says what the table is made of: the active positioning table, its
+# sequence and CRC, and the residual measured by run 2 (wrapped at 80 columns).
+base=$(sed -E 's/active: table ([0-9]+) positioning X seq ([0-9]+)/\1 \2/' <<<"$pos1")
+composition=$(screen | sed -n '/┌ Table '"$pos2"' EXX/,/└/p' | awk -F'│' '{print $2}' | tr -s ' \n' '  ')
+grep -qF "composed: table ${base% *} (sequence ${base#* }, CRC 0x" <<<"$composition" \
+  && grep -qF "+ the residual measured by run $run2" <<<"$composition" \
+  || fail "table $pos2 does not say it is composed of table ${base% *} (sequence ${base#* }) and run $run2"
+echo "console.sh: table $pos2: $(grep -oE 'composed: .*run [0-9]+' <<<"$composition")"
+seq2=$(publish "$pos2")
+expect 10 "PLC ready, active sequence $seq2;" "commit: accepted sequence $seq2" \
+  "active: table $pos2 positioning X seq $seq2"
+echo "console.sh: table $pos2 active in the PLC as sequence $seq2 (was sequence ${base#* })"
 
 echo "console.sh: Calibrate, a hexapod run started from the console and followed to the fit"
 # The twin serves its PI controller on a free port, where service.toml's [hexapod] points

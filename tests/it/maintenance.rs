@@ -488,3 +488,64 @@ fn re_measuring_an_aged_axis_under_its_tables_and_publishing_the_composed_tables
         "{published:?}"
     );
 }
+
+/// The twin's control socket ages the axis while it runs (`{"cmd":"age",…}`): the wear given
+/// is in force at once (the positioning error the plant adds mid-travel against the `Wear`
+/// formula worked by hand), and a bad value is refused naming its field, the wear unchanged.
+#[tokio::test]
+async fn the_twin_ages_its_axis_through_its_control_socket() {
+    use axiscomp::sim::axis::Direction as Moving;
+    use axiscomp::sim::twin::{Twin, TwinCan, TwinSpec};
+    use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+    let twin = Twin::start(
+        &axiscomp::optics::Layout::reference(),
+        TwinSpec {
+            plant: PlantSpec::default(),
+            io_bind: "127.0.0.1:0".parse().expect("addr"),
+            io_map: axiscomp::acquire::IoMap::generic().expect("generic map"),
+            can: TwinCan::Memory(axiscomp::can::memory::MemoryBus::new(64)),
+            drive: Default::default(),
+            control: Some("127.0.0.1:0".parse().expect("addr")),
+        },
+    )
+    .await
+    .expect("twin");
+    let addr = twin.control_addr().expect("a control socket");
+    let s = tokio::net::TcpStream::connect(addr).await.expect("connect");
+    let (rd, mut wr) = s.into_split();
+    let mut lines = BufReader::new(rd).lines();
+    let mut ask = async |req: &str| -> serde_json::Value {
+        wr.write_all(format!("{req}\n").as_bytes())
+            .await
+            .expect("send");
+        let line = lines.next_line().await.expect("read").expect("a reply");
+        serde_json::from_str(&line).expect("JSON reply")
+    };
+    let axis = &twin.plant.axis;
+    assert_eq!(axis.wear(), Wear::default());
+    let r = ask(r#"{"cmd":"age","positioning_um":6,"backlash_um":3,"thermal_um":5}"#).await;
+    assert_eq!(r["ok"], true, "{r}");
+    assert_eq!(r["wear"]["backlash_um"], 3.0);
+    // Mid-travel of 1000 mm: 6·sin²(π/2) + 5·0.5 ∓ 3/2 = 7.0 µm up, 10.0 µm down.
+    assert!((axis.wear_dy(500.0, Moving::Up) * 1e3 - 7.0).abs() < 1e-9);
+    assert!((axis.wear_dy(500.0, Moving::Down) * 1e3 - 10.0).abs() < 1e-9);
+    // At 0 only the backlash's half.
+    assert!((axis.wear_dy(0.0, Moving::Up) * 1e3 + 1.5).abs() < 1e-9);
+    let r = ask(r#"{"cmd":"age","backlash_um":-2}"#).await;
+    assert_eq!(r["ok"], false);
+    assert_eq!(r["error"], "age \"backlash_um\" is -2 µm: give 0 to 100 µm");
+    let r = ask(r#"{"cmd":"age","thermal_um":1e3}"#).await;
+    assert_eq!(
+        r["error"],
+        "age \"thermal_um\" is 1000 µm: give 0 to 100 µm"
+    );
+    assert_eq!(axis.wear().backlash_um, 3.0);
+    assert_eq!(axis.wear().thermal_um, 5.0);
+    // Only the field given changes; the bare command reports the wear in force.
+    ask(r#"{"cmd":"age","thermal_um":0}"#).await;
+    let r = ask(r#"{"cmd":"age"}"#).await;
+    assert_eq!(
+        r["wear"],
+        serde_json::json!({"positioning_um": 6.0, "backlash_um": 3.0, "thermal_um": 0.0})
+    );
+}

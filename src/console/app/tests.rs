@@ -299,6 +299,56 @@ fn publish_sends_confirm_only_after_the_axis_name_is_typed() {
     );
 }
 
+/// Issue 15 at 80×24: the run picker dates the runs, and a composed table says in full what
+/// it is made of (the base table, its sequence and CRC, the residual's run) beside its values.
+#[test]
+fn publish_at_80x24_dates_the_runs_and_shows_a_tables_composition_in_full() {
+    let (mut a, t0) = app();
+    let out = a.handle_key(ch('6'));
+    let Action::Send { id, .. } = &out[0] else {
+        panic!("{out:?}")
+    };
+    let composition =
+        "composed: table 1 (sequence 1, CRC 0x0904CFD5) + the residual measured by run 2";
+    a.handle_reply(
+        *id,
+        Ok(serde_json::json!({"map": "m", "tables": [{"id": 4, "name": "EXX", "kind": "positioning",
+            "axis": "X", "base_axis": "X", "direction": "both", "points": 5, "start_mm": 0.0,
+            "interval_mm": 2.0, "min_um": 0.0, "max_um": 3.5, "crc": "0x1", "map": "m",
+            "source_run": 2, "generated_us": 0, "values_um": [0.0, -0.2, 1.4, 3.5, 3.1],
+            "composition": composition}]})),
+        t0,
+    );
+    let text = screen_text(&a);
+    // The panel's rows, borders off, joined: the whole composition, word for word.
+    let values: Vec<String> = text
+        .lines()
+        .filter_map(|l| l.split('│').nth(1).map(|c| c.trim().to_string()))
+        .collect();
+    assert!(values.join(" ").contains(composition), "{text}");
+    for v in ["+1.40", "+3.50", "+3.10"] {
+        assert!(text.contains(v), "the values still shown: {v}\n{text}");
+    }
+    // g: the finished runs with their date (2026-11-25 17:39:03 UTC), not the time alone.
+    let out = a.handle_key(ch('g'));
+    let (id, request) = sent(&out);
+    assert_eq!(request, Request::Runs { limit: None });
+    a.handle_reply(
+        id,
+        Ok(
+            serde_json::json!({"runs": [{"id": 2, "axis": "X", "state": "finished",
+            "created_us": 1_795_628_343_000_000i64, "updated_us": 0, "captures": 20,
+            "notes": ""}]}),
+        ),
+        t0,
+    );
+    let text = screen_text(&a);
+    assert!(
+        text.contains("run 2    X   20 captures  2026-11-25 17:39"),
+        "{text}"
+    );
+}
+
 #[test]
 fn calibrate_fit_asks_then_accept_asks_and_a_viewer_cannot() {
     let (mut a, t0) = app();

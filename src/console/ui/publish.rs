@@ -2,7 +2,7 @@
 //! holds (`table_status`, its staging area read back) point by point, generating tables from a
 //! finished run, and publishing with the axis name typed, the handshake's outcome shown.
 
-use super::{TALL, Theme, WIDE, clock_utc, date_utc, panel};
+use super::{TALL, Theme, WIDE, date_utc, panel};
 use crate::console::app::{App, PublishState};
 use crate::service::tables::{ActiveView, StatusView, TableView};
 use ratatui::Frame;
@@ -77,7 +77,7 @@ fn tables(frame: &mut Frame, area: Rect, app: &App, wide: bool, theme: Theme) {
                 r.id,
                 r.axis,
                 r.captures,
-                clock_utc(r.created_us)
+                date_utc(r.created_us)
             );
             lines.push(if i == pick {
                 Line::styled(line, theme.selected())
@@ -200,6 +200,13 @@ fn values(frame: &mut Frame, area: Rect, p: &PublishState, wide: bool, theme: Th
         return;
     };
     let theirs = plc_values(p, t);
+    // A composed table says what it is made of (issue 15) here, beside its values, where
+    // there is room at 80×24 too: wrapped to the panel.
+    let composed = if t.composition.starts_with("composed") {
+        wrap(&t.composition, area.width.saturating_sub(2) as usize)
+    } else {
+        Vec::new()
+    };
     let mut lines = vec![Line::styled(
         format!(
             "{:>8}  {:>8}  {:>8}  {:>6}",
@@ -207,7 +214,7 @@ fn values(frame: &mut Frame, area: Rect, p: &PublishState, wide: bool, theme: Th
         ),
         theme.dim(),
     )];
-    let rows = (area.height as usize).saturating_sub(4);
+    let rows = (area.height as usize).saturating_sub(4 + composed.len());
     let n = t.values_um.len();
     // Every point when they fit, else evenly spaced ones (the last always).
     let step = n.div_ceil(rows.max(1)).max(1);
@@ -286,6 +293,9 @@ fn values(frame: &mut Frame, area: Rect, p: &PublishState, wide: bool, theme: Th
         _ => Line::styled("the PLC's values unknown", theme.dim()),
     };
     lines.insert(0, summary);
+    for (k, c) in composed.into_iter().enumerate() {
+        lines.insert(1 + k, Line::styled(c, theme.accent()));
+    }
     let title = format!(
         "Table {} {} axis {}, {} pts{}",
         t.id,
@@ -299,6 +309,28 @@ fn values(frame: &mut Frame, area: Rect, p: &PublishState, wide: bool, theme: Th
         }
     );
     frame.render_widget(Paragraph::new(lines).block(panel(&title)), area);
+}
+
+/// `text` in lines of at most `w` columns, broken at spaces (a longer word cut).
+fn wrap(text: &str, w: usize) -> Vec<String> {
+    let w = w.max(1);
+    let mut out: Vec<String> = Vec::new();
+    let mut line = String::new();
+    for word in text.split_whitespace() {
+        let word: String = word.chars().take(w).collect();
+        let (lw, ww) = (line.chars().count(), word.chars().count());
+        if lw > 0 && lw + 1 + ww > w {
+            out.push(std::mem::take(&mut line));
+        }
+        if !line.is_empty() {
+            line.push(' ');
+        }
+        line.push_str(&word);
+    }
+    if !line.is_empty() {
+        out.push(line);
+    }
+    out
 }
 
 /// The selected table's values against position, and the PLC's.
@@ -413,14 +445,6 @@ fn plc(frame: &mut Frame, area: Rect, p: &PublishState, theme: Theme) {
                 )));
             }
         }
-    }
-    if let Some(t) = p.selected_table()
-        && t.composition.starts_with("composed")
-    {
-        lines.push(Line::styled(
-            format!("table {}: {}", t.id, t.composition),
-            theme.accent(),
-        ));
     }
     lines.push(Line::raw(""));
     if let Some(run) = p.generating {
