@@ -1367,7 +1367,10 @@ impl Core {
                 results::run_result(&self.store, run_id)
                     .and_then(|r| serde_json::to_value(r).map_err(|e| format!("run result: {e}"))),
             ),
-            Request::Calibration => Self::reply(c.reply, Ok(self.calibrations.status())),
+            Request::Calibration => {
+                self.take_hexapod_fit();
+                Self::reply(c.reply, Ok(self.calibrations.status()))
+            }
             Request::CalibrationFit { poses } => self.calibration_fit(poses, c.reply),
             Request::CalibrationAccept { force } => {
                 let r = self.calibration_accept(force);
@@ -1395,7 +1398,13 @@ impl Core {
                 }
                 Self::reply(c.reply, r);
             }
-            Request::HexapodStatus => Self::reply(c.reply, Ok(self.hexapod.status())),
+            Request::HexapodStatus => {
+                // A run that reads "done" has its calibration waiting by the time anyone
+                // asks (the tick that takes it may not have come yet).
+                let status = self.hexapod.status();
+                self.take_hexapod_fit();
+                Self::reply(c.reply, Ok(status))
+            }
             Request::HexapodStop => Self::reply(c.reply, self.hexapod.stop()),
             Request::RunAbort => {
                 if self.pipeline.abort_run() {
@@ -1450,12 +1459,17 @@ impl Core {
         }
     }
 
-    fn on_tick(&mut self) {
-        let now = Instant::now();
+    /// A finished hexapod run's calibration, made pending (once).
+    fn take_hexapod_fit(&mut self) {
         if let Some(p) = self.hexapod.take_finished() {
             let measure = &self.pipeline.measure;
             let _ = self.calibrations.fitted(Ok(p), |d| measure.read_with(d));
         }
+    }
+
+    fn on_tick(&mut self) {
+        let now = Instant::now();
+        self.take_hexapod_fit();
         if let Some(z) = self.pipeline.zero_ready(now)
             && let Some(reply) = self.zero_reply.take()
         {

@@ -61,7 +61,7 @@ pub struct Measure {
     frame_cov: Matrix6<f64>,
     nominal: Option<f64>,
     zero: Option<Zero>,
-    /// The newest frame's readings (mm, PSD2 stitched), travel and follower position: what a
+    /// The newest frame's readings (mm, PSD2 as read), travel and follower position: what a
     /// calibration waiting to be accepted is judged on.
     last_input: Option<(Vector6<f64>, f64, f64)>,
 }
@@ -162,14 +162,16 @@ impl Measure {
         let Some(mut r) = frame.readings() else {
             return Ok(None);
         };
+        let follower = stitch.follower_mm;
+        let travel = self.nominal.unwrap_or(follower + r[2]);
+        // The spots as they are, for judging a calibration: every frame with its spots, the
+        // stitch valid or not (a hexapod run breaks it), without the stitch's vertical steps.
+        self.last_input = Some((r, travel, follower));
         if !stitch.valid {
             return Ok(None);
         }
         r[3] += stitch.vertical_mm;
-        let follower = stitch.follower_mm;
-        let travel = self.nominal.unwrap_or(follower + r[2]);
         let var = [0.0, 0.0, stitch.variance[0], stitch.variance[1], 0.0, 0.0];
-        self.last_input = Some((r, travel, follower));
         let (est, stitch_cov) =
             self.decoupler
                 .decouple_cached(&r, travel, follower, &var, &mut self.beta)?;
