@@ -1100,33 +1100,18 @@ fn shift_json(v: &mut serde_json::Value, shift: i64) {
 /// calibration waits for accept, which puts it in use.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn calibrate_screen_runs_the_hexapod_through_the_service() {
-    use axiscomp::hexapod::Workspace;
     use axiscomp::hexapod::plan::{PlanSpec, PosePlan};
-    use axiscomp::sim::hexapod_servers::{HexapodFault, TwinHexapodSpec, gcs_error_text, start};
-    let port = crate::helpers::free_port();
+    use axiscomp::sim::hexapod_servers::{HexapodFault, gcs_error_text};
     let dir = crate::helpers::TempDir::new("console-hexapod");
     let out = dir.path("run");
-    let rig = ServiceRig::start(RigOptions {
-        service_toml: format!(
-            "{FAST}\n[hexapod]\ndriver = \"pi-gcs\"\naddress = \"127.0.0.1:{port}\"\n\
-             settle_ms = 20\nframes = 20\nstable_um = 5.0\n"
-        ),
-        ..RigOptions::default()
-    })
-    .await;
-    let servers = start(
-        TwinHexapodSpec {
-            gcs: Some(std::net::SocketAddr::from(([127, 0, 0, 1], port))),
-            xps: None,
-            workspace: Workspace::symmetric([10.0, 10.0, 5.0, 7.0, 7.0, 7.0]),
-            speed_mm_s: 50.0,
-            speed_deg_s: 10.0,
-            ..TwinHexapodSpec::default()
+    let (rig, servers) = crate::helpers::hexapod_rig(
+        RigOptions {
+            service_toml: FAST.into(),
+            ..RigOptions::default()
         },
-        rig.twin.plant.hexapod.clone(),
+        "settle_ms = 20\nframes = 20\nstable_um = 5.0\n",
     )
-    .await
-    .expect("twin hexapod");
+    .await;
     let plan = PosePlan::generate(&PlanSpec {
         poses: 40,
         ..PlanSpec::default()

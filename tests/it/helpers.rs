@@ -424,6 +424,34 @@ pub fn heavy() -> tokio::sync::RwLockReadGuard<'static, ()> {
     MACHINE.blocking_read()
 }
 
+/// A rig whose service drives the twin's hexapod (its platform under the twin's head) over PI
+/// GCS on a free port, quick moves: `hexapod_toml` is added to the service's `[hexapod]`.
+pub async fn hexapod_rig(
+    mut opts: RigOptions,
+    hexapod_toml: &str,
+) -> (ServiceRig, axiscomp::sim::hexapod_servers::HexapodServers) {
+    use axiscomp::sim::hexapod_servers::{TwinHexapodSpec, start};
+    let port = free_port();
+    opts.service_toml.push_str(&format!(
+        "\n[hexapod]\ndriver = \"pi-gcs\"\naddress = \"127.0.0.1:{port}\"\n{hexapod_toml}"
+    ));
+    let rig = ServiceRig::start(opts).await;
+    let servers = start(
+        TwinHexapodSpec {
+            gcs: Some(SocketAddr::from(([127, 0, 0, 1], port))),
+            xps: None,
+            workspace: axiscomp::hexapod::Workspace::symmetric([10.0, 10.0, 5.0, 7.0, 7.0, 7.0]),
+            speed_mm_s: 50.0,
+            speed_deg_s: 10.0,
+            ..TwinHexapodSpec::default()
+        },
+        rig.twin.plant.hexapod.clone(),
+    )
+    .await
+    .expect("twin hexapod");
+    (rig, servers)
+}
+
 pub struct ServiceRig {
     pub twin: axiscomp::sim::twin::Twin,
     /// The twin's PLC (`RigOptions::twin_plc`).

@@ -3,11 +3,9 @@
 //! follower (its own drive over CANopen) to each station of the plan; a measurement run is
 //! refused while a hexapod run is under way, and a hexapod run while a measurement run is.
 
-use crate::helpers::{RigOptions, ServiceRig, TempDir, free_port};
-use axiscomp::hexapod::Workspace;
+use crate::helpers::{RigOptions, TempDir, hexapod_rig};
 use axiscomp::hexapod::plan::{PlanSpec, PosePlan};
 use axiscomp::service::control::Request;
-use axiscomp::sim::hexapod_servers::{TwinHexapodSpec, start};
 use std::time::{Duration, Instant};
 
 const FAST: &str = "[tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n\n\
@@ -57,30 +55,16 @@ async fn the_service_calibrates_along_the_travel_and_keeps_runs_apart() {
         ),
     };
     let last = stations[stations.len() - 1].0;
-    let port = free_port();
     let dir = TempDir::new("hexapod-service");
-    let rig = ServiceRig::start(RigOptions {
-        service_toml: format!(
-            "{FAST}\n[hexapod]\ndriver = \"pi-gcs\"\naddress = \"127.0.0.1:{port}\"\n\
-             {quick}stable_um = 5.0\n"
-        ),
-        twin_cnc: true,
-        ..RigOptions::default()
-    })
-    .await;
-    let _servers = start(
-        TwinHexapodSpec {
-            gcs: Some(std::net::SocketAddr::from(([127, 0, 0, 1], port))),
-            xps: None,
-            workspace: Workspace::symmetric([10.0, 10.0, 5.0, 7.0, 7.0, 7.0]),
-            speed_mm_s: 50.0,
-            speed_deg_s: 10.0,
-            ..TwinHexapodSpec::default()
+    let (rig, _servers) = hexapod_rig(
+        RigOptions {
+            service_toml: FAST.into(),
+            twin_cnc: true,
+            ..RigOptions::default()
         },
-        rig.twin.plant.hexapod.clone(),
+        &format!("{quick}stable_um = 5.0\n"),
     )
-    .await
-    .expect("twin hexapod");
+    .await;
     let plan = PosePlan::generate(&PlanSpec {
         poses,
         stations: stations.clone(),
