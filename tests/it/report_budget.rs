@@ -1,0 +1,562 @@
+//! Issue 14: a stored run's uncertainty budget (ISO/TR 230-9) in `axiscomp report`, from what
+//! the run recorded when it started — the follower map it used (read back by id), the
+//! calibration's term, the drift check, the temperature inputs, PSD2's sensitivities — checked
+//! value by value against an independent root-sum-square of those inputs; a run stored
+//! before runs recorded them still reports, naming the terms "not recorded".
+
+use crate::helpers::{TempDir, bin, stderr, stdout};
+use axiscomp::evaluate::axis::synthetic_capture;
+use axiscomp::evaluate::recorded::{
+    KEY, RecordedBudget, RecordedCalibration, RecordedDrift, RecordedMap, RecordedThermal, Stated,
+};
+use axiscomp::follower::{self, Certificate, MapSettings};
+use axiscomp::run::{Direction, Plan, PlanSpec};
+use axiscomp::store::{NewRun, RunId, RunState, Store};
+use axiscomp::track::{HandoverKind, HandoverRecord};
+use axiscomp::units::{DOF_NAMES, DOF_TO_USER, Errors6};
+use std::path::PathBuf;
+
+/// The follower's certificate: standard uncertainty 0.2 µm up to 100 mm, rising to 0.6 µm at
+/// 500 mm (one direction applies to both).
+const CERT: &str = "position_mm,error_um,direction,uncertainty_um\n\
+    0,0.0,+,0.2\n100,0.5,+,0.2\n200,0.8,+,0.3\n300,1.0,+,0.4\n400,0.9,+,0.5\n500,0.7,+,0.6\n";
+
+/// Certificate u (µm) at encoder position x, linear between its points.
+fn cert_u(x: f64) -> f64 {
+    let p = [0.0, 100.0, 200.0, 300.0, 400.0, 500.0];
+    let u = [0.2, 0.2, 0.3, 0.4, 0.5, 0.6];
+    let i = p.iter().rposition(|&q| q <= x).expect("inside").min(4);
+    u[i] + (u[i + 1] - u[i]) * (x - p[i]) / (p[i + 1] - p[i])
+}
+
+/// The encoder read this much more than the carriage when the run started (mm).
+const ENCODER_OFFSET_MM: f64 = 2.5;
+/// Recorded: the calibration's u (µm, arcsec), the drift check's range (µm, arcsec), PSD2's
+/// sensitivities (internal units per mm of X2 and of Y2), temperature inputs.
+const CAL_U: [f64; 6] = [0.30, 0.50, 0.20, 0.05, 0.40, 0.06];
+const DRIFT: [f64; 6] = [1.2, 2.0, 0.8, 0.3, 0.6, 0.2];
+const SENS: [[f64; 2]; 6] = [
+    [0.5, 0.0],
+    [1.0, 0.0],
+    [0.0, 0.02],
+    [0.0, 0.0],
+    [0.0, 1.0 / 150.0],
+    [1e-4, 0.0],
+];
+const ALPHA: f64 = 11.5;
+const U_ALPHA: f64 = 0.58;
+const U_T: f64 = 0.1;
+const MATERIAL_C: f64 = 20.2;
+/// An overlap handover before the run's captures, its variance (mm², along and vertical).
+const STITCH_VAR: [f64; 2] = [0.04e-6, 0.09e-6];
+
+const RUNS: u32 = 3;
+/// Run-to-run offsets of every DOF (user units) and the frame scatter of every capture.
+const OFFSETS: [f64; 3] = [-0.3, 0.1, 0.2];
+const FRAME_SD: f64 = 0.5;
+const FRAMES: u32 = 200;
+
+fn plan() -> Plan {
+    Plan::new(PlanSpec {
+        axis: "X".into(),
+        start_mm: 0.0,
+        end_mm: 400.0,
+        targets: 5,
+        runs: RUNS,
+        overrun_mm: 5.0,
+        dwell_s: 2.0,
+        feed_mm_min: 2000.0,
+        lead_mm: 0.0,
+        reference_mm: None,
+    })
+    .expect("plan")
+}
+
+/// The value of DOF `k` (user units) at target `t`, run `r`, direction `d`: the run offsets
+/// scaled per DOF and direction (so every cell has its own s), a reversal in dy, a 20 µm/m
+/// line in dz (the beam's slope).
+fn value(k: usize, t: usize, x: f64, r: usize, d: Direction) -> f64 {
+    let up = d == Direction::Up;
+    let scale = (1.0 + 0.3 * k as f64) * if up { 1.0 } else { 1.5 } * (1.0 + 0.1 * t as f64);
+    let base = match k {
+        1 if up => 1.0,
+        1 => -1.0,
+        2 => 20.0 * x / 1000.0,
+        _ => 0.0,
+    };
+    base + scale * OFFSETS[r]
+}
+
+/// A store with run 1 (`config` as its configuration) over `plan()`, captures of known
+/// scatter, an overlap handover before them; and `maps` follower maps from the certificate,
+/// the last in use. Returns the store's path and the maps' ids.
+fn store(
+    dir: &TempDir,
+    config: impl FnOnce(&[i64]) -> serde_json::Value,
+    maps: usize,
+) -> (PathBuf, Vec<i64>) {
+    let path = dir.path("axiscomp.db");
+    let mut s = Store::open(&path).expect("store");
+    let cert = Certificate::parse(CERT, "stage.csv").expect("certificate");
+    let map = follower::build(&[], Some(&cert), &MapSettings::default()).expect("map");
+    let ids: Vec<i64> = (0..maps)
+        .map(|i| {
+            s.insert_follower_map(&map, &format!("stage-{}.csv", i + 1), true)
+                .expect("map")
+        })
+        .collect();
+    let plan = plan();
+    let id = s
+        .create_run(&NewRun {
+            axis: "X".into(),
+            plan: serde_json::to_value(&plan).expect("plan json"),
+            config: config(&ids),
+            calibration: None,
+            notes: "budget".into(),
+        })
+        .expect("run");
+    s.insert_handover(
+        Some(id),
+        &HandoverRecord {
+            unix_us: 1_000,
+            kind: HandoverKind::Overlap,
+            before: [0.0; 2],
+            after: [0.0; 2],
+            n_before: 100,
+            n_after: 100,
+            frame_sd: [1e-3; 2],
+            encoder_before: 0.0,
+            encoder_after: 3.0,
+            delta: [3.0, 0.0],
+            variance: STITCH_VAR,
+        },
+    )
+    .expect("handover");
+    let mut at = 2_000;
+    for (t, &x) in plan.targets.iter().enumerate() {
+        for r in 0..RUNS as usize {
+            for d in [Direction::Up, Direction::Down] {
+                let e: [f64; 6] = std::array::from_fn(|k| value(k, t, x, r, d));
+                let mut c = synthetic_capture(
+                    t as u32,
+                    x,
+                    r as u32 + 1,
+                    d,
+                    Errors6::from_user(e),
+                    Errors6::from_user([0.05; 6]),
+                );
+                c.frame_sd = Errors6::from_user([FRAME_SD; 6]);
+                c.frames = FRAMES;
+                c.material_c = Some(MATERIAL_C);
+                c.unix_us = at;
+                at += 1_000;
+                s.insert_capture(id, &c).expect("capture");
+            }
+        }
+    }
+    s.set_run_state(id, RunState::Running).expect("state");
+    s.set_run_state(id, RunState::Finished).expect("state");
+    (path, ids)
+}
+
+fn recorded(map_id: i64) -> RecordedBudget {
+    RecordedBudget {
+        follower_map: Stated::Stated(RecordedMap {
+            id: map_id,
+            name: "stage-1.csv".into(),
+            source: "certificate".into(),
+            created: "2026-02-01T08:00:00Z".into(),
+            encoder_offset_mm: Some(ENCODER_OFFSET_MM),
+        }),
+        follower_spec_um: None,
+        calibration: Stated::Stated(RecordedCalibration {
+            id: None,
+            u_um_arcsec: CAL_U,
+            source: "the bench's hold-out".into(),
+        }),
+        drift: Stated::Stated(RecordedDrift {
+            range_um_arcsec: DRIFT,
+            duration_s: Some(600.0),
+        }),
+        thermal: Stated::Stated(RecordedThermal {
+            alpha_um_per_m_k: ALPHA,
+            u_alpha_um_per_m_k: U_ALPHA,
+            u_temperature_k: U_T,
+        }),
+        psd2_sensitivity: Some(SENS),
+    }
+}
+
+/// `axiscomp report --run 1 --json` on `db`, with `extra` arguments.
+fn report_json(db: &std::path::Path, extra: &[&str]) -> serde_json::Value {
+    let mut args = vec![
+        "report",
+        "--db",
+        db.to_str().expect("path"),
+        "--run",
+        "1",
+        "--json",
+    ];
+    args.extend_from_slice(extra);
+    let o = bin().args(&args).output().expect("run axiscomp");
+    assert!(o.status.success(), "{}{}", stdout(&o), stderr(&o));
+    serde_json::from_str(&stdout(&o)).expect("json")
+}
+
+/// Mean and sample standard deviation.
+fn mean_sd(x: &[f64]) -> (f64, f64) {
+    let n = x.len() as f64;
+    let m = x.iter().sum::<f64>() / n;
+    (
+        m,
+        (x.iter().map(|v| (v - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt(),
+    )
+}
+
+/// Every term of one DOF at one target and direction (`None`: the mean), user units, by hand
+/// from the recorded inputs (ISO/TR 230-9: each contributor's standard uncertainty).
+fn expected(k: usize, t: usize, x: f64, dir: Option<Direction>) -> Vec<(&'static str, f64)> {
+    let user = DOF_TO_USER[k];
+    let n = RUNS as f64;
+    let cell = |d: Direction| {
+        let v: Vec<f64> = (0..RUNS as usize).map(|r| value(k, t, x, r, d)).collect();
+        let s = mean_sd(&v).1;
+        // Frame scatter over FRAMES frames, n captures, mean of n.
+        let noise = (n * FRAME_SD * FRAME_SD / FRAMES as f64).sqrt() / n;
+        (noise, s)
+    };
+    let (noise, repeat) = match dir {
+        Some(d) => {
+            let (noise, s) = cell(d);
+            (noise, s / n.sqrt())
+        }
+        None => {
+            let (nu, su) = cell(Direction::Up);
+            let (nd, sd) = cell(Direction::Down);
+            (
+                (nu * nu + nd * nd).sqrt() / 2.0,
+                (su * su / n + sd * sd / n).sqrt() / 2.0,
+            )
+        }
+    };
+    // Follower: the map's u at the point and at the zero reference (0 mm), encoder = carriage
+    // + offset, through PSD2's sensitivities (mm → the DOF's internal unit → user).
+    let along_mm = cert_u(x + ENCODER_OFFSET_MM).hypot(cert_u(ENCODER_OFFSET_MM)) * 1e-3;
+    let follower = SENS[k][0] * along_mm * user;
+    let stitching =
+        (SENS[k][0].powi(2) * STITCH_VAR[0] + SENS[k][1].powi(2) * STITCH_VAR[1]).sqrt() * user;
+    let l = x; // from the zero reference at 0 mm
+    // The beam's angle to the travel from the straightness slopes: dz rises 20 µm/m.
+    let phi = 20e-6f64.atan();
+    let (misalignment, t_temp, t_coef) = if k == 1 {
+        (
+            // 1 − cos φ as 2·sin²(φ/2): at 20 µrad the difference cancels to 1e-7.
+            l * 2.0 * (phi / 2.0).sin().powi(2) / 12f64.sqrt() * 1e3,
+            ALPHA * U_T * l * 1e-3,
+            U_ALPHA * (MATERIAL_C - 20.0) * l * 1e-3,
+        )
+    } else {
+        (0.0, 0.0, 0.0)
+    };
+    vec![
+        ("PSD noise", noise),
+        ("repeatability", repeat),
+        ("calibration", CAL_U[k]),
+        ("follower map", follower),
+        ("stitching", stitching),
+        ("misalignment", misalignment),
+        ("thermal, temperature", t_temp),
+        ("thermal, coefficient", t_coef),
+        ("environmental variation", DRIFT[k] / (2.0 * 3f64.sqrt())),
+    ]
+}
+
+fn close(got: f64, want: f64, what: &str) {
+    assert!(
+        (got - want).abs() <= 1e-9 * want.abs().max(1e-6),
+        "{what}: report {got:e}, by hand {want:e}"
+    );
+}
+
+/// A stored run with a follower map and a calibration term recorded: the report's budget,
+/// every term and U at every point of every DOF, equals the root-sum-square of the recorded
+/// inputs computed here; each term's source names where it came from; `--json` carries the
+/// record; the instrument section names the run's map and that another map is in use now.
+#[test]
+fn the_report_states_the_budget_the_run_recorded() {
+    let dir = TempDir::new("report-budget");
+    let (db, maps) = store(
+        &dir,
+        |ids| serde_json::json!({"dialect": "iso", KEY: recorded(ids[0]).to_json()}),
+        2,
+    );
+    let j = report_json(&db, &[]);
+    let b = &j["budget"];
+    assert_eq!(b["k"], 2.0);
+    let plan = plan();
+    let mut checked = 0;
+    for (k, d) in b["dofs"].as_array().expect("dofs").iter().enumerate() {
+        assert_eq!(d["dof"], DOF_NAMES[k]);
+        for p in d["points"].as_array().expect("points") {
+            let x = p["target_mm"].as_f64().expect("target");
+            let t = plan
+                .targets
+                .iter()
+                .position(|&q| (q - x).abs() < 1e-9)
+                .expect("a target");
+            let dir = match p["direction"].as_str().expect("direction") {
+                "+" => Some(Direction::Up),
+                "-" => Some(Direction::Down),
+                _ => None,
+            };
+            let terms = expected(k, t, x, dir);
+            let what = |name: &str| format!("{} at {x} mm {:?}: {name}", DOF_NAMES[k], dir);
+            for (name, want) in &terms {
+                let got = p["terms"][name]
+                    .as_f64()
+                    .unwrap_or_else(|| panic!("{name}"));
+                close(got, *want, &what(name));
+            }
+            let u = terms.iter().map(|(_, v)| v * v).sum::<f64>().sqrt();
+            close(p["u"].as_f64().expect("u"), u, &what("u"));
+            close(p["U"].as_f64().expect("U"), 2.0 * u, &what("U"));
+            checked += 1;
+        }
+        // Every term is stated, and says where it came from.
+        let sources: Vec<&str> = d["terms"]
+            .as_array()
+            .expect("terms")
+            .iter()
+            .map(|t| t["source"].as_str().expect("source"))
+            .collect();
+        assert!(
+            sources
+                .iter()
+                .all(|s| !s.contains("not stated") && !s.contains("not recorded")),
+            "{sources:?}"
+        );
+        assert!(
+            sources[2].contains("recorded with the run: the bench's hold-out"),
+            "{}",
+            sources[2]
+        );
+        assert!(
+            sources[3].contains(&format!(
+                "follower error map id {} \"stage-1.csv\"",
+                maps[0]
+            )) && sources[3].contains("+2.500 mm"),
+            "{}",
+            sources[3]
+        );
+        assert!(
+            sources[8].contains("drift check") && sources[8].contains("600 s"),
+            "{}",
+            sources[8]
+        );
+        assert!(
+            sources[6].contains("11.50") && sources[6].contains("+0.20 K"),
+            "{}",
+            sources[6]
+        );
+    }
+    assert_eq!(
+        checked,
+        6 * 5 * 3,
+        "every DOF, target and direction and the mean"
+    );
+    // The record itself, as the run stored it.
+    assert_eq!(j["budget_inputs"]["follower_map"]["stated"]["id"], maps[0]);
+    assert_eq!(
+        j["budget_inputs"]["calibration"]["stated"]["u_um_arcsec"][4],
+        0.4
+    );
+
+    // The acceptance report: the map the run used, and that it differs from the one in use.
+    let out = dir.path("acc");
+    let o = bin()
+        .args([
+            "report",
+            "--db",
+            db.to_str().expect("p"),
+            "--run",
+            "1",
+            "--format",
+            "md",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .expect("report");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let md = std::fs::read_to_string(out.join("acceptance.md")).expect("md");
+    let line = |label: &str| {
+        md.lines()
+            .find(|l| l.starts_with(&format!("| **{label}**")))
+            .unwrap_or_else(|| panic!("{label} in\n{md}"))
+            .to_string()
+    };
+    let map = line("Follower map");
+    assert!(
+        map.contains(&format!("id {} \"stage-1.csv\" (certificate), made 2026-02-01 08:00:00 UTC; in use when the run started", maps[0]))
+            && map.contains(&format!("the map in use now differs: id {} \"stage-2.csv\"", maps[1])),
+        "{map}"
+    );
+    assert!(line("Budget inputs").contains("recorded with the run"));
+    // The budget table: dy's calibration and drift terms as recorded, k = 2 stated.
+    assert!(md.contains("Budget per ISO/TR 230-9 (k = 2)"), "{md}");
+    let row = md
+        .lines()
+        .find(|l| l.starts_with("| calibration |"))
+        .expect("calibration row");
+    assert_eq!(
+        row,
+        "| calibration | 0.300 | 0.500 | 0.200 | 0.050 | 0.400 | 0.060 |"
+    );
+    let row = md
+        .lines()
+        .find(|l| l.starts_with("| environmental variation | "))
+        .expect("drift row");
+    assert!(
+        row.starts_with("| environmental variation | 0.346 | 0.577 |"),
+        "{row}"
+    );
+}
+
+/// A run stored before runs recorded their budget's inputs: it still reports; the follower,
+/// calibration, temperature and drift terms are not in u and are named "not recorded" in
+/// the JSON and in the acceptance report; `--follower-spec-um` stands in for the map.
+#[test]
+fn an_old_run_reports_its_terms_as_not_recorded() {
+    let dir = TempDir::new("report-budget-old");
+    let (db, _) = store(
+        &dir,
+        |_| serde_json::json!({"capture": {"stable_window_s": 0.5}, "dialect": "iso"}),
+        1,
+    );
+    let j = report_json(&db, &[]);
+    assert!(
+        j["budget_inputs"]["not_recorded"]
+            .as_str()
+            .is_some_and(|s| s.starts_with("not recorded")),
+        "{}",
+        j["budget_inputs"]
+    );
+    for d in j["budget"]["dofs"].as_array().expect("dofs") {
+        for t in d["terms"].as_array().expect("terms") {
+            let name = t["name"].as_str().expect("name");
+            let source = t["source"].as_str().expect("source");
+            let unrecorded = matches!(
+                name,
+                "calibration"
+                    | "follower map"
+                    | "thermal, temperature"
+                    | "thermal, coefficient"
+                    | "environmental variation"
+            );
+            assert_eq!(
+                source.starts_with("not recorded"),
+                unrecorded,
+                "{name}: {source}"
+            );
+            if unrecorded {
+                assert_eq!(t["largest_u"], 0.0, "{name}");
+            }
+        }
+        // u is noise, repeatability, stitching and misalignment alone.
+        for p in d["points"].as_array().expect("points") {
+            let terms = &p["terms"];
+            let u = ["PSD noise", "repeatability", "stitching", "misalignment"]
+                .iter()
+                .map(|n| terms[n].as_f64().expect("term").powi(2))
+                .sum::<f64>()
+                .sqrt();
+            close(
+                p["u"].as_f64().expect("u"),
+                u,
+                "u without the unrecorded terms",
+            );
+        }
+    }
+    // The follower's specification stands in for the unrecorded map: ±4 µm → 4/√3 µm of dy.
+    let j = report_json(&db, &["--follower-spec-um", "4,2"]);
+    let dy = &j["budget"]["dofs"][1];
+    let f = dy["terms"][3]["largest_u"].as_f64().expect("follower");
+    assert!(f > 0.0, "the specification is used: {f}");
+    assert!(
+        dy["terms"][3]["source"]
+            .as_str()
+            .is_some_and(|s| s.contains("specification, ±4.0 µm")),
+        "{}",
+        dy["terms"][3]
+    );
+
+    let out = dir.path("acc");
+    let o = bin()
+        .args([
+            "report",
+            "--db",
+            db.to_str().expect("p"),
+            "--run",
+            "1",
+            "--format",
+            "md",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .expect("report");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let md = std::fs::read_to_string(out.join("acceptance.md")).expect("md");
+    assert!(
+        md.lines()
+            .any(|l| l.starts_with("| **Follower map** | not recorded with the run")),
+        "{md}"
+    );
+    assert!(
+        md.contains("| **Budget inputs** | not recorded: the run was stored before"),
+        "{md}"
+    );
+    assert!(
+        md.contains("| calibration | – | – | – | – | – | – |"),
+        "{md}"
+    );
+    assert!(
+        md.lines()
+            .any(|l| l.starts_with("| calibration | √(") && l.contains("| not recorded")),
+        "{md}"
+    );
+}
+
+/// A run whose record says a term is not stated: the report says so, with the reason the run
+/// gave; a recorded map no longer in the store is named.
+#[test]
+fn a_term_the_run_could_not_state_is_named_with_its_reason() {
+    let dir = TempDir::new("report-budget-unstated");
+    let (db, _) = store(
+        &dir,
+        |_| {
+            let mut r = recorded(99);
+            r.calibration = Stated::NotStated("the calibration has no hold-out error".into());
+            r.drift = Stated::NotStated("the service runs no drift check".into());
+            serde_json::json!({ KEY: r.to_json() })
+        },
+        1,
+    );
+    let j = report_json(&db, &[]);
+    let terms = &j["budget"]["dofs"][1]["terms"];
+    let source = |i: usize| terms[i]["source"].as_str().expect("source").to_string();
+    assert_eq!(
+        source(2),
+        "not stated: the calibration has no hold-out error"
+    );
+    assert_eq!(source(8), "not stated: the service runs no drift check");
+    assert!(
+        source(3).contains("follower map id 99 \"stage-1.csv\", which is no longer in the store"),
+        "{}",
+        source(3)
+    );
+    for i in [2, 3, 8] {
+        assert_eq!(terms[i]["largest_u"], 0.0, "{}", source(i));
+    }
+    let _ = RunId(1);
+}
