@@ -1041,27 +1041,23 @@ fn budget_tables(bu: &Budget, b: &mut Vec<Block>) {
              (its source below says why)."
         )),
     }));
+    // Where each term comes from: label and value pairs, which wrap (a table cell is cut).
     let sources = bu.sources();
-    b.push(Block::Table(Table {
-        columns: vec![
-            Column::text("Component"),
-            Column::text("Formula"),
-            Column::text("Source"),
-        ],
-        rows: Component::ALL
+    b.push(Block::Paragraph(
+        "Where each component comes from (its formula, then its source; S: PSD2's sensitivity \
+         of the DOF, L: the distance from the zero reference, n: runs, φ: the beam's angle to \
+         the travel, α: the scale's expansion coefficient):"
+            .into(),
+    ));
+    b.push(Block::Fields(
+        Component::ALL
             .iter()
             .map(|c| {
-                vec![
+                (
                     c.name().to_string(),
-                    c.formula().to_string(),
-                    sources[c.index()].clone(),
-                ]
+                    format!("{} — {}", c.formula(), sources[c.index()]),
+                )
             })
             .collect(),
-        note: Some(
-            "S: PSD2's sensitivity of the DOF; L: the distance from the zero reference; n: \
-             runs; φ: the beam's angle to the travel; α: the scale's expansion coefficient."
-                .into(),
-        ),
-    }));
+    ));
 }

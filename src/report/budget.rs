@@ -72,11 +72,15 @@ fn follower_term(
             Ok(rec) => {
                 let offset = m.encoder_offset_mm.unwrap_or(0.0);
                 let at = match m.encoder_offset_mm {
-                    Some(o) => format!("the encoder read {o:+.3} mm more than the carriage"),
+                    Some(o) => format!(
+                        "the follower's encoder read {:.3} mm {} than the carriage when the run started",
+                        o.abs(),
+                        if o < 0.0 { "less" } else { "more" }
+                    ),
                     None => "the encoder taken to read the carriage's position".into(),
                 };
                 let words = format!(
-                    "follower error map id {} \"{}\" ({}), the run's: {}; u at the point and at the zero reference, {at}",
+                    "id {} \"{}\" ({}), the run's: {}; u at the point and at the zero reference, {at}",
                     rec.id,
                     rec.name,
                     rec.source,

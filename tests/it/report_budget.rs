@@ -342,9 +342,9 @@ fn the_report_states_the_budget_the_run_recorded() {
         );
         assert!(
             sources[3].contains(&format!(
-                "follower error map id {} \"stage-1.csv\"",
+                "follower error map: id {} \"stage-1.csv\"",
                 maps[0]
-            )) && sources[3].contains("+2.500 mm"),
+            )) && sources[3].contains("encoder read 2.500 mm more than the carriage"),
             "{}",
             sources[3]
         );
@@ -522,7 +522,7 @@ fn an_old_run_reports_its_terms_as_not_recorded() {
     );
     assert!(
         md.lines()
-            .any(|l| l.starts_with("| calibration | √(") && l.contains("| not recorded")),
+            .any(|l| l.starts_with("| **calibration** | √(") && l.contains("— not recorded")),
         "{md}"
     );
 }
@@ -729,6 +729,9 @@ fn a_lab_run_stored_with_its_record_reports_the_labs_own_budget() {
     axiscomp::report::budget::record_lab_run(&mut store, id, &m.budget.inputs, Some(&mapped.map))
         .expect("record");
     drop(store);
+    if let Ok(keep) = std::env::var("REPORT_KEEP") {
+        let _ = std::fs::copy(&db, std::path::Path::new(&keep).join("lab-budget.db"));
+    }
 
     let j = report_json(&db, &[]);
     let mut compared = 0;
