@@ -21,8 +21,9 @@ use std::path::PathBuf;
 const CERT: &str = "position_mm,error_um,direction,uncertainty_um\n\
     0,0.0,+,0.2\n100,0.5,+,0.2\n200,0.8,+,0.3\n300,1.0,+,0.4\n400,0.9,+,0.5\n500,0.7,+,0.6\n";
 
-/// Certificate u (µm) at encoder position x, linear between its points.
+/// Certificate u (µm) at encoder position x, linear between its points, held beyond them.
 fn cert_u(x: f64) -> f64 {
+    let x = x.clamp(0.0, 500.0);
     let p = [0.0, 100.0, 200.0, 300.0, 400.0, 500.0];
     let u = [0.2, 0.2, 0.3, 0.4, 0.5, 0.6];
     let i = p.iter().rposition(|&q| q <= x).expect("inside").min(4);
@@ -787,4 +788,107 @@ fn a_lab_run_stored_with_its_record_reports_the_labs_own_budget() {
     let dy = &j["budget"]["dofs"][1]["terms"];
     assert!(dy[3]["largest_u"].as_f64().expect("follower") > 0.0);
     assert!(dy[8]["largest_u"].as_f64().expect("drift") > 0.0);
+}
+
+/// End to end: a run the service measured on the twin (its CNC running the part program)
+/// with a follower map in use; `axiscomp report` states the follower term from the map the
+/// run recorded — S·√(u(x)² + u(ref)²) with the certificate's 0.2 µm — and says why the
+/// calibration and drift terms are not stated.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_service_run_reports_the_follower_map_it_used() {
+    use crate::helpers::{RigOptions, ServiceRig, short_plan};
+    use axiscomp::service::control::Request;
+    use std::time::{Duration, Instant};
+    let rig = ServiceRig::start(RigOptions {
+        service_toml: "[align]\ncheck_before_run = false\n\n\
+                       [tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n\n\
+                       [capture]\nframes = 100\nsettle_ms = 200\n"
+            .into(),
+        twin_cnc: true,
+        ..RigOptions::default()
+    })
+    .await;
+    let cert = Certificate::parse(CERT, "stage.csv").expect("certificate");
+    let map = follower::build(&[], Some(&cert), &MapSettings::default()).expect("map");
+    let map_id = Store::open(&rig.store)
+        .expect("store")
+        .insert_follower_map(&map, "stage.csv", false)
+        .expect("map");
+    rig.request(Request::FollowerMap { id: Some(map_id) })
+        .await
+        .expect("map in use");
+    rig.request(Request::Zero).await.expect("zero");
+    let started = rig
+        .request(Request::RunStart {
+            plan: short_plan(),
+            dialect: None,
+            notes: None,
+        })
+        .await
+        .expect("the run starts");
+    let id = started["run_id"].as_i64().expect("run id");
+    let t0 = Instant::now();
+    loop {
+        let st = rig.request(Request::RunStatus).await.expect("run status");
+        match st["state"].as_str() {
+            Some("running") => {}
+            Some("finished") => break,
+            _ => panic!("the run ended so: {st}"),
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(240),
+            "not finished: {st}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let run = Store::open_read_only(&rig.store)
+        .expect("store")
+        .run(RunId(id))
+        .expect("run");
+    let r = &run.config[KEY];
+    let offset = r["follower_map"]["stated"]["encoder_offset_mm"]
+        .as_f64()
+        .expect("the carriage was measured at the start");
+    let s_dy = r["psd2_sensitivity"][1][0].as_f64().expect("sensitivity");
+    let o = bin()
+        .args(["report", "--db", rig.store.to_str().expect("path"), "--run"])
+        .arg(id.to_string())
+        .arg("--json")
+        .output()
+        .expect("report");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j: serde_json::Value = serde_json::from_str(&stdout(&o)).expect("json");
+    let dy = &j["budget"]["dofs"][1];
+    let source = dy["terms"][3]["source"].as_str().expect("source");
+    assert!(
+        source.contains(&format!(
+            "id {map_id} \"stage.csv\" (certificate), the run's"
+        )),
+        "{source}"
+    );
+    for p in dy["points"].as_array().expect("points") {
+        let x = p["target_mm"].as_f64().expect("target");
+        let want = s_dy * cert_u(x + offset).hypot(cert_u(offset));
+        close(
+            p["terms"]["follower map"].as_f64().expect("term"),
+            want,
+            "dy follower",
+        );
+    }
+    let says = |i: usize| {
+        dy["terms"][i]["source"]
+            .as_str()
+            .unwrap_or_default()
+            .to_string()
+    };
+    assert!(
+        says(2).starts_with("not stated: no calibration"),
+        "{}",
+        says(2)
+    );
+    assert!(
+        says(8).starts_with("not stated: the service runs no drift check"),
+        "{}",
+        says(8)
+    );
 }
