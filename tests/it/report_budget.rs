@@ -90,11 +90,13 @@ fn value(k: usize, t: usize, x: f64, r: usize, d: Direction) -> f64 {
 
 /// A store with run 1 (`config` as its configuration) over `plan()`, captures of known
 /// scatter, an overlap handover before them; and `maps` follower maps from the certificate,
-/// the last in use. Returns the store's path and the maps' ids.
+/// the last in use; the run's calibration `calibration` (a file's text), stored. Returns the
+/// store's path and the maps' ids.
 fn store(
     dir: &TempDir,
     config: impl FnOnce(&[i64]) -> serde_json::Value,
     maps: usize,
+    calibration: Option<&str>,
 ) -> (PathBuf, Vec<i64>) {
     let path = dir.path("axiscomp.db");
     let mut s = Store::open(&path).expect("store");
@@ -106,13 +108,14 @@ fn store(
                 .expect("map")
         })
         .collect();
+    let calibration = calibration.map(|text| s.insert_calibration(text).expect("calibration"));
     let plan = plan();
     let id = s
         .create_run(&NewRun {
             axis: "X".into(),
             plan: serde_json::to_value(&plan).expect("plan json"),
             config: config(&ids),
-            calibration: None,
+            calibration,
             notes: "budget".into(),
         })
         .expect("run");
@@ -290,6 +293,7 @@ fn the_report_states_the_budget_the_run_recorded() {
         &dir,
         |ids| serde_json::json!({"dialect": "iso", KEY: recorded(ids[0]).to_json()}),
         2,
+        None,
     );
     let j = report_json(&db, &[]);
     let b = &j["budget"];
@@ -433,6 +437,7 @@ fn an_old_run_reports_its_terms_as_not_recorded() {
         &dir,
         |_| serde_json::json!({"capture": {"stable_window_s": 0.5}, "dialect": "iso"}),
         1,
+        None,
     );
     let j = report_json(&db, &[]);
     assert!(
@@ -528,6 +533,74 @@ fn an_old_run_reports_its_terms_as_not_recorded() {
     );
 }
 
+/// A calibration file with a diagonal β (µm per µm / arcsec) and a hold-out: the bound of one
+/// reading is σ_k/β_kk = (0.5, 2, 0.5, 0.25, 4, 0.25) by hand.
+fn calibration_text() -> String {
+    use axiscomp::calibrate::file::{CalibrationFile, FORMAT, LinearSection, Meta};
+    let diag = [2.0, 1.0, 2.0, 4.0, 0.5, 4.0];
+    CalibrationFile {
+        meta: Meta {
+            format: FORMAT,
+            created: "2026-03-01T10:00:00Z".into(),
+            layout: "reference".into(),
+            layout_hash: "0".into(),
+            poses: 250,
+            fit_poses: 200,
+            holdout_poses: 50,
+            travel_mm: [0.0, 0.0],
+            noise_um: [1.0, 2.0, 1.0, 1.0, 2.0, 1.0],
+        },
+        linear: LinearSection {
+            rank: 6,
+            rcond: 1e-12,
+            condition_number: 8.0,
+            ref_travel_mm: 0.0,
+            ref_follower_mm: 0.0,
+            residual_rms_um: [1.0; 6],
+            holdout_rms: Some([0.6, 1.0, 0.5, 0.5, 5.0, 0.2]),
+            singular_values: diag.to_vec(),
+            offset_um: [0.0; 6],
+            beta: std::array::from_fn(|r| {
+                std::array::from_fn(|k| if r == k { diag[k] } else { 0.0 })
+            }),
+        },
+        model: None,
+    }
+    .to_toml()
+}
+
+/// A run stored before runs recorded their budget's inputs, but with its calibration in the
+/// store: the calibration term follows from the stored file, u² = max(0, h² − b²) + √(2/N)·b²
+/// with N = 50 hold-out poses (√(2/N) = 0.2): 0.16, 0.8, 0.05, 0.2, 12.2, 0.0125 (µm², ″²).
+#[test]
+fn an_old_run_with_a_stored_calibration_states_its_term_from_the_file() {
+    let dir = TempDir::new("report-budget-old-cal");
+    let text = calibration_text();
+    let (db, _) = store(&dir, |_| serde_json::json!({}), 1, Some(&text));
+    let j = report_json(&db, &[]);
+    let want = [0.16f64, 0.8, 0.05, 0.2, 12.2, 0.0125].map(f64::sqrt);
+    for (k, d) in j["budget"]["dofs"]
+        .as_array()
+        .expect("dofs")
+        .iter()
+        .enumerate()
+    {
+        let t = &d["terms"][2];
+        close(t["largest_u"].as_f64().expect("u"), want[k], DOF_NAMES[k]);
+        let source = t["source"].as_str().expect("source");
+        assert!(
+            source.starts_with("calibration id 1 (the run's; the run did not record its term, made now from the stored file): the linear fit's hold-out error h"),
+            "{source}"
+        );
+        // The other unrecorded terms stay unrecorded.
+        assert!(
+            d["terms"][3]["source"]
+                .as_str()
+                .is_some_and(|s| s.starts_with("not recorded"))
+        );
+    }
+}
+
 /// A run whose record says a term is not stated: the report says so, with the reason the run
 /// gave; a recorded map no longer in the store is named.
 #[test]
@@ -542,6 +615,7 @@ fn a_term_the_run_could_not_state_is_named_with_its_reason() {
             serde_json::json!({ KEY: r.to_json() })
         },
         1,
+        None,
     );
     let j = report_json(&db, &[]);
     let terms = &j["budget"]["dofs"][1]["terms"];
@@ -559,7 +633,6 @@ fn a_term_the_run_could_not_state_is_named_with_its_reason() {
     for i in [2, 3, 8] {
         assert_eq!(terms[i]["largest_u"], 0.0, "{}", source(i));
     }
-    let _ = RunId(1);
 }
 
 /// The service records the budget's inputs when it starts a run: the follower map in use (its
