@@ -93,7 +93,89 @@ fn dof_internal(v: &[f64; 6]) -> [f64; 6] {
     std::array::from_fn(|k| v[k] / DOF_TO_USER[k])
 }
 
+/// A calibration's own term in an uncertainty budget (ISO/TR 230-9), per DOF in user units
+/// (µm, arcsec), from its hold-out poses: see [`CalibrationFile::budget_term`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct BudgetTerm {
+    /// The standard uncertainty per DOF.
+    pub u: [f64; 6],
+    /// The hold-out RMS error h per DOF of the fit the head decouples with.
+    pub holdout: [f64; 6],
+    /// The Cramér–Rao bound b per DOF of one pose's reading.
+    pub bound: [f64; 6],
+    /// Hold-out poses N.
+    pub poses: usize,
+    /// "model" or "linear": the fit h is of (the one the head decouples with).
+    pub fit: &'static str,
+}
+
+impl BudgetTerm {
+    /// The formula and its inputs, in words.
+    pub fn words(&self) -> String {
+        format!(
+            "the {} fit's hold-out error h beyond the Cramér–Rao bound b of one pose's reading \
+             (the fit's residual noise through its β), √(max(0, h² − b²) + √(2/N)·b²), N = {} poses",
+            self.fit, self.poses
+        )
+    }
+}
+
 impl CalibrationFile {
+    /// The calibration's own standard uncertainty per DOF, as the budget states it (the same
+    /// formula as the demo's calibration study, [`crate::evaluate::uncertainty::calibration_u`]):
+    /// h the hold-out RMS of the fit the head decouples with (the model when fitted, else the
+    /// linear β), b the Cramér–Rao bound of one hold-out pose's reading — the readings as the
+    /// pose set holds them (a bench's dwell mean or one frame), their noise σ per channel from
+    /// the fit's residuals (`meta.noise_um`), through the calibrated β:
+    /// `b = √diag((βᵀ·Σ⁻¹·β)⁻¹)`, Σ = diag(σ²) — and N the hold-out poses;
+    /// `u² = max(0, h² − b²) + √(2/N)·b²`. `Err`: why the term cannot be stated (no hold-out
+    /// poses, a singular β).
+    pub fn budget_term(&self) -> Result<BudgetTerm, String> {
+        let model = self.model.as_ref().and_then(|m| m.holdout_rms);
+        let (holdout, fit) = match (model, self.linear.holdout_rms) {
+            (Some(h), _) => (h, "model"),
+            (None, Some(h)) if self.model.is_none() => (h, "linear"),
+            _ => {
+                return Err(
+                    "the calibration has no hold-out error (fitted with every pose, none held \
+                     out): its own error cannot be told from the noise"
+                        .into(),
+                );
+            }
+        };
+        let poses = self.meta.holdout_poses;
+        if poses == 0 {
+            return Err("the calibration names no hold-out poses".into());
+        }
+        let mut beta = Matrix6::zeros();
+        for r in 0..6 {
+            for k in 0..6 {
+                beta[(r, k)] = self.linear.beta[r][k];
+            }
+        }
+        let all_finite = holdout
+            .iter()
+            .chain(&self.meta.noise_um)
+            .all(|x| x.is_finite())
+            && beta.iter().all(|x| x.is_finite());
+        if !all_finite {
+            return Err("the calibration's hold-out, noise or β has a non-finite value".into());
+        }
+        // β in µm per (µm | arcsec) and σ in µm: the covariance is in µm² and arcsec².
+        let cov = crate::decouple::covariance(&beta, &self.meta.noise_um).ok_or_else(|| {
+            "the calibration's β with its noise gives no bound (singular, or a noise of zero)"
+                .to_string()
+        })?;
+        let bound: [f64; 6] = std::array::from_fn(|k| cov[(k, k)].max(0.0).sqrt());
+        Ok(BudgetTerm {
+            u: crate::evaluate::uncertainty::calibration_u(&holdout, &bound, poses),
+            holdout,
+            bound,
+            poses,
+            fit,
+        })
+    }
+
     /// The stored form of a calibration.
     pub fn from_calibration(c: &Calibration, nominal: &Layout) -> Self {
         let beta_user = crate::decouple::to_user_units(&c.linear.beta);
@@ -294,5 +376,75 @@ impl CalibrationFile {
             problem: format!("cannot read it: {e}"),
         })?;
         Self::parse(&text, &label)?.to_calibration(nominal, &label)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A calibration with a diagonal β (µm per µm / arcsec): the bound of one reading is then
+    /// σ_k/β_kk for each DOF, by hand.
+    fn file(holdout: Option<[f64; 6]>, model_holdout: Option<[f64; 6]>) -> CalibrationFile {
+        let diag = [2.0, 1.0, 2.0, 4.0, 0.5, 4.0];
+        CalibrationFile {
+            meta: Meta {
+                format: FORMAT,
+                created: "2026-03-01T10:00:00Z".into(),
+                layout: "reference".into(),
+                layout_hash: "0".into(),
+                poses: 250,
+                fit_poses: 200,
+                holdout_poses: 50,
+                travel_mm: [0.0, 0.0],
+                noise_um: [1.0, 2.0, 1.0, 1.0, 2.0, 1.0],
+            },
+            linear: LinearSection {
+                rank: 6,
+                rcond: 1e-12,
+                condition_number: 8.0,
+                ref_travel_mm: 0.0,
+                ref_follower_mm: 0.0,
+                residual_rms_um: [1.0; 6],
+                holdout_rms: holdout,
+                singular_values: diag.to_vec(),
+                offset_um: [0.0; 6],
+                beta: std::array::from_fn(|r| {
+                    std::array::from_fn(|k| if r == k { diag[k] } else { 0.0 })
+                }),
+            },
+            model: model_holdout.map(|h| ModelSection {
+                iterations: 5,
+                converged: true,
+                fitted_params: 12,
+                well_determined: 12,
+                residual_rms_um: [1.0; 6],
+                holdout_rms: Some(h),
+                install: BTreeMap::new(),
+            }),
+        }
+    }
+
+    /// b = σ/β = (0.5, 2, 0.5, 0.25, 4, 0.25); N = 50, so √(2/N) = 0.2;
+    /// u² = max(0, h² − b²) + 0.2·b²: h = 0.6 → 0.11 + 0.05 = 0.16 (u = 0.4); h = 1 below
+    /// b = 2 → 0.8; h = b = 0.5 → 0.05; 0.1875 + 0.0125 = 0.2; 9 + 3.2 = 12.2; 0.0125.
+    #[test]
+    fn the_budget_term_is_the_hold_out_beyond_the_bound() {
+        let h = [0.6, 1.0, 0.5, 0.5, 5.0, 0.2];
+        let t = file(Some(h), None).budget_term().expect("a hold-out");
+        let want = [0.16f64, 0.8, 0.05, 0.2, 12.2, 0.0125].map(f64::sqrt);
+        for (k, (got, want)) in t.u.iter().zip(want).enumerate() {
+            assert!((got - want).abs() < 1e-12, "dof {k}: {got} vs {want}");
+        }
+        assert_eq!(t.bound, [0.5, 2.0, 0.5, 0.25, 4.0, 0.25]);
+        assert_eq!((t.fit, t.poses), ("linear", 50));
+        assert!(t.words().contains("N = 50 poses"), "{}", t.words());
+        // The model's hold-out, when fitted, is the one the head decouples with.
+        let t = file(Some([9.0; 6]), Some(h)).budget_term().expect("model");
+        assert_eq!(t.fit, "model");
+        assert!((t.u[0] - 0.4).abs() < 1e-12);
+        // No hold-out: not stated, and why.
+        let e = file(None, None).budget_term().unwrap_err();
+        assert!(e.contains("no hold-out"), "{e}");
     }
 }

@@ -5,7 +5,9 @@
 use super::InputError;
 use super::run::{StoreArgs, open_store};
 use anyhow::{Context, Result};
-use axiscomp::evaluate::uncertainty::{self, Budget, BudgetInputs, FollowerInput};
+use axiscomp::evaluate::recorded::Recorded;
+use axiscomp::evaluate::uncertainty::{self, Budget, FollowerInput};
+use axiscomp::report::budget::{Fallbacks, run_budget};
 use axiscomp::report::source::{RunData, follower_map, run_data};
 use axiscomp::report::{Format, RunMeta, acceptance, write_acceptance, write_run_report};
 use axiscomp::store::{RunId, Store};
@@ -33,14 +35,15 @@ pub struct ReportArgs {
     #[arg(long)]
     pub json: bool,
     /// The follower stage's specification, ±µm along its axis and ±µm vertical straightness
-    /// (e.g. 4,2), for the budget's follower term until a follower map is in use; without it
-    /// the term is stated as unknown.
+    /// (e.g. 4,2), for the budget's follower term of a run that used no follower map (the map
+    /// a run used, recorded when it started, comes first); without either the term is not
+    /// stated, and the report says why.
     #[arg(long, value_delimiter = ',', value_name = "ALONG_UM,VERTICAL_UM")]
     pub follower_spec_um: Option<Vec<f64>>,
 }
 
-fn follower_input(spec: Option<&[f64]>) -> Result<FollowerInput> {
-    Ok(match spec {
+fn follower_input(spec: Option<&[f64]>) -> Result<Option<FollowerInput>> {
+    Ok(Some(match spec {
         Some(&[along, vertical]) if along >= 0.0 && vertical >= 0.0 => {
             FollowerInput::Specification {
                 positioning_mm: along * 1e-3,
@@ -55,18 +58,13 @@ fn follower_input(spec: Option<&[f64]>) -> Result<FollowerInput> {
             ))
             .into());
         }
-        None => FollowerInput::Unstated,
-    })
+        None => return Ok(None),
+    }))
 }
 
-/// The run's uncertainty budget. The head's sensitivities to PSD2 come from the layout: first
-/// order, as the stored run does not carry its decoupler.
-fn budget(store: &Store, run: &RunData, follower: FollowerInput) -> Result<Budget> {
-    let handovers: Vec<_> = store
-        .handovers(Some(run.record.id))?
-        .into_iter()
-        .map(|h| h.record)
-        .collect();
+/// PSD2's sensitivities from the layout, first order at mid-travel: for a run that did not
+/// record its own decoupling's.
+fn layout_sensitivity(run: &RunData) -> Result<[[f64; 2]; 6]> {
     let layout = super::load_layout(None)?;
     let decoupler = axiscomp::decouple::Decoupler {
         source: axiscomp::decouple::Source::Simulated(layout),
@@ -74,28 +72,19 @@ fn budget(store: &Store, run: &RunData, follower: FollowerInput) -> Result<Budge
         sigma_mm: [1e-3; 6],
         options: axiscomp::decouple::SolveOptions::default(),
     };
-    let eval = &run.eval;
-    let mid = eval.positions_mm.iter().sum::<f64>() / eval.positions_mm.len().max(1) as f64;
-    let reference_mm = run
-        .plan
-        .as_ref()
-        .map(|p| p.reference_mm)
-        .or_else(|| eval.positions_mm.first().copied())
-        .unwrap_or(0.0);
-    let inputs = BudgetInputs {
-        reference_mm,
-        psd2_sensitivity: uncertainty::psd2_sensitivity(&decoupler, mid)
-            .context("the head's sensitivities to PSD2 from the layout")?,
-        follower,
-        calibration: None,
-        thermal: None,
-        drift_range: None,
+    let p = &run.eval.positions_mm;
+    let mid = p.iter().sum::<f64>() / p.len().max(1) as f64;
+    uncertainty::psd2_sensitivity(&decoupler, mid)
+        .context("the head's sensitivities to PSD2 from the layout")
+}
+
+/// The run's uncertainty budget, from what it recorded (see `report::budget`).
+fn budget(store: &Store, run: &RunData, follower_spec: Option<&FollowerInput>) -> Result<Budget> {
+    let fb = Fallbacks {
+        psd2_sensitivity: layout_sensitivity(run)?,
+        follower_spec: follower_spec.cloned(),
     };
-    Ok(uncertainty::budget(
-        eval,
-        &uncertainty::stitched(&run.captures, &handovers),
-        &inputs,
-    ))
+    Ok(run_budget(store, run, &fb)?)
 }
 
 fn formats(given: &[String]) -> Result<(Vec<Format>, bool)> {
@@ -129,7 +118,7 @@ pub fn report(a: ReportArgs) -> Result<()> {
     let alpha = settings.machine.expansion_um_per_m_k;
     let follower = follower_input(a.follower_spec_um.as_deref())?;
     let mut run = run_data(&store, RunId(a.store.run), alpha)?;
-    run.budget = Some(budget(&store, &run, follower.clone())?);
+    run.budget = Some(budget(&store, &run, follower.as_ref())?);
     let compare = match a.compare {
         Some(m) if m == a.store.run => {
             return Err(InputError(format!(
@@ -139,7 +128,7 @@ pub fn report(a: ReportArgs) -> Result<()> {
         }
         Some(m) => {
             let mut c = run_data(&store, RunId(m), alpha)?;
-            c.budget = Some(budget(&store, &c, follower)?);
+            c.budget = Some(budget(&store, &c, follower.as_ref())?);
             if c.record.axis != run.record.axis {
                 return Err(InputError(format!(
                     "--compare {m}: run {m} measured axis {}, run {} axis {}: compare runs of one axis",
@@ -198,6 +187,10 @@ pub fn report(a: ReportArgs) -> Result<()> {
                 })).collect::<Vec<_>>(),
             })).collect::<Vec<_>>(),
             "budget": run.budget.as_ref().map(Budget::to_user_json),
+            "budget_inputs": match &run.recorded {
+                Recorded::Yes(r) => r.to_json(),
+                other => serde_json::json!({ "not_recorded": other.missing() }),
+            },
         });
         println!("{}", serde_json::to_string_pretty(&json)?);
     }

@@ -17,6 +17,7 @@ pub mod group;
 pub mod input;
 pub mod iso230_1;
 pub mod iso230_2;
+pub mod recorded;
 pub mod uncertainty;
 
 pub use axis::{

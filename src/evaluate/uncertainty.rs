@@ -311,6 +311,23 @@ pub struct Budget {
     pub inputs: BudgetInputs,
     /// Per DOF, target and direction (up, down, mean).
     pub points: Vec<PointBudget>,
+    /// Where a term comes from, in words, when the inputs alone cannot say it (a stored
+    /// run's term "not recorded", a calibration's term "not stated" and why): replaces
+    /// [`Budget::sources`]' own wording for that component.
+    pub notes: Vec<(Component, String)>,
+}
+
+/// The calibration's standard uncertainty per DOF from its hold-out: `h` the hold-out RMS
+/// error over `n` poses, `b` the Cramér–Rao bound of one such pose's reading (both per DOF,
+/// any one unit per DOF). What the fit's error adds to the noise, `h² − b²`, and what `n`
+/// poses cannot rule out (the mean of `n` squared errors is known to `√(2/n)·b²`):
+/// `u² = max(0, h² − b²) + √(2/n)·b²`.
+pub fn calibration_u(h: &[f64; 6], b: &[f64; 6], n: usize) -> [f64; 6] {
+    let resolution = (2.0 / n.max(1) as f64).sqrt();
+    std::array::from_fn(|k| {
+        let b2 = b[k] * b[k];
+        ((h[k] * h[k] - b2).max(0.0) + resolution * b2).sqrt()
+    })
 }
 
 impl Budget {
@@ -340,10 +357,38 @@ impl Budget {
         (terms, uc, big)
     }
 
+    /// The budget with `words` as the source of `component` (see [`Budget::notes`]).
+    pub fn with_source(mut self, component: Component, words: String) -> Budget {
+        self.notes.retain(|(c, _)| *c != component);
+        self.notes.push((component, words));
+        self
+    }
+
+    /// The words given for `component`'s source, if any.
+    fn note(&self, component: Component) -> Option<&str> {
+        self.notes
+            .iter()
+            .find(|(c, _)| *c == component)
+            .map(|(_, w)| w.as_str())
+    }
+
+    /// Whether `component` was stated (false: its term is zero because nothing is known).
+    pub fn stated(&self, component: Component) -> bool {
+        let i = &self.inputs;
+        match component {
+            Component::Calibration => i.calibration.is_some(),
+            Component::Follower => i.follower != FollowerInput::Unstated,
+            Component::ThermalTemperature | Component::ThermalCoefficient => i.thermal.is_some(),
+            Component::Environment => i.drift_range.is_some(),
+            _ => true,
+        }
+    }
+
     /// Where each term comes from (one line per component).
     pub fn sources(&self) -> [String; COMPONENTS] {
         let i = &self.inputs;
         Component::ALL.map(|c| match c {
+            c if self.note(c).is_some() => self.note(c).unwrap_or_default().to_string(),
             Component::Noise => "each capture's frame scatter over its frames".into(),
             Component::Repeatability => "the runs' scatter s (ISO 230-2)".into(),
             Component::Calibration => match &i.calibration {
@@ -542,6 +587,7 @@ pub fn budget(
         k: K,
         inputs: inputs.clone(),
         points,
+        notes: Vec::new(),
     }
 }
 

@@ -10,6 +10,8 @@ use super::source::{ActiveTables, FollowerMapInfo, RunData};
 use super::text::{date, fixed};
 use super::{Dof, text::arrow};
 use crate::evaluate::iso230_1::{DirectionalStraightness, ReferenceLine, fit_line};
+use crate::evaluate::recorded::{Recorded, Stated};
+use crate::evaluate::uncertainty::{Budget, COMPONENTS, Component};
 use crate::run::Direction;
 
 /// Everything the report is made from.
@@ -178,6 +180,8 @@ fn instrument(a: &Acceptance, b: &mut Vec<Block>) {
             or_not_configured(a.head_serial, "head.serial")
         ),
     )];
+    let recorded = a.run.recorded.budget();
+    let recorded_cal = recorded.and_then(|r| r.calibration.value());
     match &a.run.calibration {
         Some(c) => {
             let s = &c.summary;
@@ -201,28 +205,82 @@ fn instrument(a: &Acceptance, b: &mut Vec<Block>) {
         }
         None => rows.push((
             "Calibration".into(),
-            "none: decoupled with the layout's own model".into(),
+            match recorded_cal {
+                Some(_) => {
+                    "not in the store; the run recorded its term for the uncertainty budget".into()
+                }
+                None => "none: decoupled with the layout's own model".into(),
+            },
         )),
     }
+    rows.push(("Follower map".into(), follower_map_text(a)));
     rows.push((
-        "Follower map".into(),
-        match a.follower_map {
-            Some(m) if m.created_us <= a.run.record.created_us => format!(
-                "id {} \"{}\" ({}), made {}; in use now (the store does not record the map per run)",
-                m.id,
-                m.name,
-                m.source,
-                when(m.created_us)
-            ),
-            Some(m) => format!(
-                "none known for this run: the map in use now (id {}) was made {}, after the run",
-                m.id,
-                when(m.created_us)
-            ),
-            None => "none in use".into(),
+        "Budget inputs".into(),
+        match &a.run.recorded {
+            Recorded::Yes(_) => "recorded with the run when it started (follower map, \
+                                 calibration term, drift check, temperature inputs)"
+                .into(),
+            other => other.missing().unwrap_or_default(),
         },
     ));
     b.push(Block::Fields(rows));
+}
+
+/// A stored map's RFC 3339 date as the report shows dates.
+fn rfc_when(created: &str) -> String {
+    created.replace('T', " ").replace('Z', " UTC")
+}
+
+/// The follower map the run used (as it recorded it), against the one in use now.
+fn follower_map_text(a: &Acceptance) -> String {
+    let now = a.follower_map;
+    let now_text = |m: &FollowerMapInfo| {
+        format!(
+            "id {} \"{}\" ({}), made {}",
+            m.id,
+            m.name,
+            m.source,
+            when(m.created_us)
+        )
+    };
+    match a.run.recorded.budget().map(|r| &r.follower_map) {
+        Some(Stated::Stated(m)) => {
+            let used = format!(
+                "id {} \"{}\" ({}), made {}; in use when the run started",
+                m.id,
+                m.name,
+                m.source,
+                rfc_when(&m.created)
+            );
+            match now {
+                Some(n) if n.id == m.id => format!("{used}, and still in use"),
+                Some(n) => format!("{used}; the map in use now differs: {}", now_text(n)),
+                None => format!("{used}; no map is in use now"),
+            }
+        }
+        Some(Stated::NotStated(why)) => {
+            let none = format!("none in use when the run started ({why})");
+            match now {
+                Some(n) => format!("{none}; in use now: {}", now_text(n)),
+                None => none,
+            }
+        }
+        None => {
+            let not = "not recorded with the run (stored before runs recorded it)";
+            match now {
+                Some(m) if m.created_us <= a.run.record.created_us => format!(
+                    "{not}; the map in use now, {}, existed when the run was made",
+                    now_text(m)
+                ),
+                Some(m) => format!(
+                    "{not}; the map in use now (id {}) was made {}, after the run",
+                    m.id,
+                    when(m.created_us)
+                ),
+                None => format!("{not}; none in use now"),
+            }
+        }
+    }
 }
 
 fn plan(r: &RunData, b: &mut Vec<Block>) {
@@ -926,4 +984,80 @@ fn uncertainty(r: &RunData, b: &mut Vec<Block>) {
                 .into(),
         ),
     }));
+    if let Some(bu) = &r.budget {
+        budget_tables(bu, b);
+    }
+}
+
+/// A budget term in its DOF's unit to 0.001.
+fn val3(dof: Dof, internal: f64) -> String {
+    fixed(dof.to_user(internal), 3).replace('-', "−")
+}
+
+/// The budget per DOF: each component's largest standard uncertainty, the combined u and U,
+/// then where each component comes from, in words.
+fn budget_tables(bu: &Budget, b: &mut Vec<Block>) {
+    let k = k_text(bu.k);
+    b.push(Block::Subheading(format!(
+        "Budget per ISO/TR 230-9 (k = {k})"
+    )));
+    let largest: Vec<_> = Dof::ALL.iter().map(|d| bu.largest(d.index())).collect();
+    let mut rows: Vec<Vec<String>> = Component::ALL
+        .iter()
+        .map(|&c| {
+            let mut row = vec![c.name().to_string()];
+            for (dof, l) in Dof::ALL.iter().zip(&largest) {
+                row.push(if bu.stated(c) {
+                    val3(*dof, l.0[c.index()])
+                } else {
+                    "–".into()
+                });
+            }
+            row
+        })
+        .collect();
+    let mut total = |label: String, pick: fn(&([f64; COMPONENTS], f64, f64)) -> f64| {
+        let mut row = vec![label];
+        for (dof, l) in Dof::ALL.iter().zip(&largest) {
+            row.push(val3(*dof, pick(l)));
+        }
+        rows.push(row);
+    };
+    total("combined standard uncertainty u".into(), |l| l.1);
+    total(format!("expanded uncertainty U (k = {k})"), |l| l.2);
+    let mut columns = vec![Column::text("Component")];
+    columns.extend(
+        Dof::ALL
+            .iter()
+            .map(|d| Column::number(&format!("{} ({})", d.name(), d.unit()))),
+    );
+    b.push(Block::Table(Table {
+        columns,
+        rows,
+        note: Some(format!(
+            "Standard uncertainties (k = 1) of each component, the largest over the DOF's \
+             points (every target, each direction and their mean); u = √(Σ terms²) and \
+             U = {k}·u, largest over the points. –: not stated or not recorded, so not in u \
+             (its source below says why)."
+        )),
+    }));
+    // Where each term comes from: label and value pairs, which wrap (a table cell is cut).
+    let sources = bu.sources();
+    b.push(Block::Paragraph(
+        "Where each component comes from (its formula, then its source; S: PSD2's sensitivity \
+         of the DOF, L: the distance from the zero reference, n: runs, φ: the beam's angle to \
+         the travel, α: the scale's expansion coefficient):"
+            .into(),
+    ));
+    b.push(Block::Fields(
+        Component::ALL
+            .iter()
+            .map(|c| {
+                (
+                    c.name().to_string(),
+                    format!("{} — {}", c.formula(), sources[c.index()]),
+                )
+            })
+            .collect(),
+    ));
 }

@@ -15,6 +15,7 @@
 //!   relative path, and the SVG and PNG files.
 
 pub mod acceptance;
+pub mod budget;
 pub mod chart;
 pub mod doc;
 mod html;

@@ -38,11 +38,23 @@ pub fn winansi(s: &str) -> Vec<u8> {
         }
         out.extend_from_slice(w);
     };
-    for c in s.chars() {
+    let mut chars = s.chars().peekable();
+    while let Some(c) = chars.next() {
         match c {
             '↑' => word(&mut out, b"up"),
             '↓' => word(&mut out, b"down"),
+            // "√n" reads "sqrt n", "√(2/N)" "sqrt(2/N)".
+            '√' if chars.peek().is_some_and(|n| n.is_alphanumeric()) => word(&mut out, b"sqrt "),
             '√' => word(&mut out, b"sqrt"),
+            // The Greek letters of the uncertainty budget's formulas, as words.
+            'Σ' => word(&mut out, b"sum"),
+            'Δ' => word(&mut out, b"delta "),
+            'α' => word(&mut out, b"alpha"),
+            'β' => word(&mut out, b"beta"),
+            'φ' => word(&mut out, b"phi"),
+            'ρ' => word(&mut out, b"rho"),
+            'σ' => word(&mut out, b"sigma"),
+            'μ' => out.push(0xB5),
             '−' => out.push(b'-'),
             '≤' => out.extend_from_slice(b"<="),
             '≥' => out.extend_from_slice(b">="),
@@ -340,6 +352,11 @@ mod tests {
         assert_eq!(winansi("E↓ −3"), b"E down -3".to_vec());
         assert_eq!(winansi("(↑ first)"), b"(up first)".to_vec());
         assert_eq!(winansi("A  accuracy"), b"A  accuracy".to_vec());
+        // The budget's formulas: no Greek letter becomes '?'.
+        assert_eq!(
+            winansi("u(α)·|ΔT|·L, √(Σ sd²), cos φ, s/√n"),
+            b"u(alpha)\xB7|delta T|\xB7L, sqrt(sum sd\xB2), cos phi, s/sqrt n".to_vec()
+        );
         assert_eq!(literal(b"a(b)\\\xB5"), "(a\\(b\\)\\\\\\265)");
     }
 

@@ -3,6 +3,7 @@
 //! the follower map and the compensation tables active while it ran.
 
 use crate::evaluate::axis::{AxisEvaluation, EvalOptions, ThermalConfig, evaluate_captures};
+use crate::evaluate::recorded::Recorded;
 use crate::evaluate::uncertainty::Budget;
 use crate::run::{Capture, Plan};
 use crate::store::{CalibrationRecord, PublicationOutcome, RunId, RunRecord, Store, StoreError};
@@ -63,6 +64,9 @@ pub struct RunData {
     /// Who started the run (from the audit log), when known.
     pub operator: Option<String>,
     pub tables: ActiveTables,
+    /// What the run recorded of its budget's inputs when it started (the follower map it
+    /// used among them).
+    pub recorded: Recorded,
 }
 
 /// Read run `id` and evaluate it; positioning is normalised to 20 °C with
@@ -102,6 +106,7 @@ pub fn run_data(
     };
     let operator = operator(store, &record)?;
     let tables = active_tables(store, &record)?;
+    let recorded = Recorded::of_config(&record.config);
     Ok(RunData {
         record,
         plan,
@@ -111,6 +116,7 @@ pub fn run_data(
         calibration,
         operator,
         tables,
+        recorded,
     })
 }
 

@@ -11,6 +11,7 @@
 use crate::calibrate::plausible::{self, Limits};
 use crate::calibrate::{self, CalError, CalibrateOptions, Calibration, CalibrationFile};
 use crate::decouple::Decoupler;
+use crate::evaluate::recorded::{RecordedCalibration, Stated};
 use crate::optics::Layout;
 use crate::store::CalibrationId;
 use crate::units::{DOF_TO_USER, Errors6};
@@ -162,17 +163,51 @@ pub struct Calibrations {
     layout: Layout,
     active_id: Option<CalibrationId>,
     active: Option<Summary>,
+    /// The calibration in use's own term in a run's uncertainty budget.
+    budget_term: Stated<RecordedCalibration>,
     pending: Option<Pending>,
     fitting: bool,
+}
+
+/// `c`'s own term in a run's uncertainty budget (`CalibrationFile::budget_term`), named by
+/// `what` (its store id or file).
+fn budget_term(
+    c: &Calibration,
+    layout: &Layout,
+    id: Option<CalibrationId>,
+    what: &str,
+) -> Stated<RecordedCalibration> {
+    match CalibrationFile::from_calibration(c, layout).budget_term() {
+        Ok(t) => Stated::Stated(RecordedCalibration {
+            id: id.map(|i| i.0),
+            u_um_arcsec: t.u,
+            source: format!("{what} (made {}): {}", c.created, t.words()),
+        }),
+        Err(why) => Stated::NotStated(format!("{what}: {why}")),
+    }
 }
 
 impl Calibrations {
     /// In use: `configured` (the configuration's file, `source`), or the nominal layout.
     pub fn new(layout: Layout, configured: Option<&Calibration>, source: &str) -> Calibrations {
+        let budget_term = match configured {
+            Some(c) => budget_term(
+                c,
+                &layout,
+                None,
+                &format!("the configured calibration {source}"),
+            ),
+            None => Stated::NotStated(
+                "no calibration: the head decouples with its layout's nominal model, whose own \
+                 error is not known"
+                    .into(),
+            ),
+        };
         Calibrations {
             layout,
             active_id: None,
             active: configured.map(|c| Summary::of(c, source)),
+            budget_term,
             pending: None,
             fitting: false,
         }
@@ -186,6 +221,11 @@ impl Calibrations {
     /// The stored calibration in use, when it came from the store.
     pub fn active_id(&self) -> Option<CalibrationId> {
         self.active_id
+    }
+
+    /// The calibration in use's own term in a run's uncertainty budget, or why there is none.
+    pub fn budget_term(&self) -> &Stated<RecordedCalibration> {
+        &self.budget_term
     }
 
     /// A fit may start (one at a time).
@@ -254,6 +294,12 @@ impl Calibrations {
 
     /// `p` was stored as `id` and is in use now.
     pub fn accepted(&mut self, id: CalibrationId, p: Pending) {
+        self.budget_term = budget_term(
+            &p.calibration,
+            &self.layout,
+            Some(id),
+            &format!("calibration id {}", id.0),
+        );
         self.active_id = Some(id);
         self.active = Some(p.summary);
     }

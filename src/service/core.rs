@@ -1079,12 +1079,22 @@ impl Core {
         {
             return Err("the twin's CNC runs iso or linuxcnc programs".into());
         }
+        let budget = super::run_budget::record(
+            &super::run_budget::AtStart {
+                calibrations: &self.calibrations,
+                follower_map: self.follower_map.as_ref(),
+                encoder_mm: self.drive_status.position_mm,
+                carriage_mm: self.pipeline.measure.position(),
+                decoupler: self.pipeline.measure.decoupler(),
+            },
+            &plan,
+        );
         let id = self
             .store
             .create_run(&NewRun {
                 axis: plan.spec.axis.clone(),
                 plan: serde_json::to_value(&plan).map_err(|e| e.to_string())?,
-                config: serde_json::json!({"capture": self.capture.to_json(), "dialect": dialect.name()}),
+                config: serde_json::json!({"capture": self.capture.to_json(), "dialect": dialect.name(), "budget": budget.to_json()}),
                 calibration: self.calibrations.active_id(),
                 notes: notes.unwrap_or_else(|| format!("started by {who}")),
             })

@@ -134,6 +134,11 @@ impl Measure {
         self.zero = None;
     }
 
+    /// The decoupling in use.
+    pub fn decoupler(&self) -> &Decoupler {
+        &self.decoupler
+    }
+
     /// Decouple with `decoupler` from now on (an accepted calibration). The averaging window
     /// restarts and the zero reference is forgotten: both were in the old decoupling's terms.
     pub fn set_decoupler(&mut self, decoupler: Decoupler) {

@@ -16,6 +16,7 @@ pub mod notify;
 pub mod peer;
 pub mod pipeline;
 pub mod results;
+mod run_budget;
 pub mod shutdown;
 pub mod snapshot;
 pub mod tables;

@@ -90,12 +90,8 @@ impl StudyResult {
             self.model_averaged.as_ref()?.to_array(),
             self.crlb_averaged.to_array(),
         );
-        let resolution = (2.0 / self.holdout_poses.max(1) as f64).sqrt();
         Some((
-            std::array::from_fn(|k| {
-                let b2 = b[k] * b[k];
-                ((h[k] * h[k] - b2).max(0.0) + resolution * b2).sqrt()
-            }),
+            crate::evaluate::uncertainty::calibration_u(&h, &b, self.holdout_poses),
             format!(
                 "the model calibration's hold-out error h beyond the Cramér–Rao bound b, √(max(0, h² − b²) + √(2/N)·b²), N = {} poses, each the mean of {} frames",
                 self.holdout_poses, self.averaged_frames

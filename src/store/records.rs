@@ -670,6 +670,50 @@ impl Store {
         Ok(())
     }
 
+    /// Set `key` of a run's configuration snapshot (an object) to `value`, keeping the rest;
+    /// `updated` is not stamped (the run's dates are its measurement's). For what a run's
+    /// record gains after it was created (the lab's budget inputs, known once it has run).
+    pub fn set_run_config_key(
+        &mut self,
+        id: RunId,
+        key: &str,
+        value: serde_json::Value,
+    ) -> Result<(), StoreError> {
+        let what = "change a run's configuration";
+        let path = self.label();
+        let fail = |e| super::classify(&path, what, e);
+        let tx = self.conn.transaction().map_err(fail)?;
+        let text: String = tx
+            .query_row("SELECT config_json FROM runs WHERE id = ?1", [id.0], |r| {
+                r.get(0)
+            })
+            .optional()
+            .map_err(fail)?
+            .ok_or(StoreError::NoSuchRun(id))?;
+        let mut config: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| StoreError::Invalid {
+                what: "run configuration",
+                problem: e.to_string(),
+            })?;
+        match config.as_object_mut() {
+            Some(o) => {
+                o.insert(key.to_string(), value);
+            }
+            None => {
+                return Err(StoreError::Invalid {
+                    what: "run configuration",
+                    problem: format!("run {} has a configuration that is not an object", id.0),
+                });
+            }
+        }
+        tx.execute(
+            "UPDATE runs SET config_json = ?2 WHERE id = ?1",
+            params![id.0, json_text("run configuration", &config)?],
+        )
+        .map_err(fail)?;
+        tx.commit().map_err(fail)
+    }
+
     // ----- captures
 
     /// Store a capture of run `run`: `Ok(true)` when stored, `Ok(false)` when a capture with the

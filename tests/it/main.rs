@@ -24,6 +24,7 @@ mod maintenance;
 mod modbus;
 mod plc;
 mod report;
+mod report_budget;
 mod resume;
 mod service;
 mod socketcan;
