@@ -632,6 +632,14 @@ fn write_out(dir: &Path, spec: &LoopSpec, r: &LoopResult, truth: &Truths) -> Res
         } else {
             &r.after
         };
+        // What the run's budget was made of, with the follower map it applied, so that
+        // `axiscomp report` on this store states the same budget.
+        axiscomp::report::budget::record_lab_run(
+            &mut store,
+            id,
+            &m.budget.inputs,
+            r.follower.as_ref().map(|f| &f.map),
+        )?;
         let mut report = run_report(RunMeta::from_record(&rec), caps, &m.eval);
         add_budget(&mut report, &m.budget);
         if pass == "after" {

@@ -60,6 +60,7 @@ pub struct RawHead {
     pub calibration: String,
     pub noise_um: f64,
     pub live_window_ms: u64,
+    pub zero_window_ms: u64,
     /// The head's serial number (for reports).
     pub serial: String,
 }
@@ -144,6 +145,7 @@ pub struct RawTracking {
     pub vertical_sd_um: f64,
     pub vertical_sd_um_per_m: f64,
     pub move_timeout_ms: u64,
+    pub approach_um: f64,
 }
 
 /// `[cnc]`
@@ -251,6 +253,8 @@ pub struct HeadSettings {
     pub calibration: Option<PathBuf>,
     pub noise_mm: f64,
     pub live_window: Duration,
+    /// A zero reference averages this long (every frame of it, not the live window).
+    pub zero_window: Duration,
     /// The head's serial number; empty when not configured.
     pub serial: String,
 }
@@ -655,6 +659,7 @@ fn validate(
         calibration: (!h.calibration.is_empty()).then(|| PathBuf::from(&h.calibration)),
         noise_mm: v.positive("head.noise_um", h.noise_um)? * 1e-3,
         live_window: v.ms("head.live_window_ms", h.live_window_ms, 10)?,
+        zero_window: v.ms("head.zero_window_ms", h.zero_window_ms, 10)?,
         serial: h.serial.trim().to_string(),
     };
     let i = &raw.io;
@@ -867,6 +872,7 @@ fn validate(
             .non_negative("tracking.vertical_sd_um_per_m", t.vertical_sd_um_per_m)?
             * 1e-6,
         move_timeout: v.ms("tracking.move_timeout_ms", t.move_timeout_ms, 1)?,
+        approach_mm: approach_mm(&v, t.approach_um)?,
     };
     let c = &raw.cnc;
     let cnc = CncSettings {
@@ -938,6 +944,20 @@ fn validate(
         acceptance,
         sources,
     })
+}
+
+/// `tracking.approach_um`: the follower's final approach from below (mm): 0 (none), or 5 to
+/// 100 µm (more than the stage's reversal switch and a drive's overshoot on a short move, less
+/// than a spot's rest tolerance could hide).
+fn approach_mm(v: &V, um: f64) -> Result<f64, ConfigError> {
+    if um == 0.0 || (5.0..=100.0).contains(&um) {
+        Ok(um * 1e-3)
+    } else {
+        Err(v.err(
+            "tracking.approach_um",
+            format!("{um} µm is out of range: use 0 (no approach) or 5 to 100 µm"),
+        ))
+    }
 }
 
 /// `io.pipeline`: block reads in flight when unthrottled (modbus::pipelined).

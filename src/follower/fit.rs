@@ -12,11 +12,18 @@
 //! fixed in space and only the follower moves). So the map is the follower's straightness
 //! relative to its end-point line; the line itself is not mapped.
 //!
+//! With a level's readings at stations along the travel (`LevelStation`: the true vertical at
+//! a station up to one common constant, from the head's roll beside a level's), the vertical
+//! fit is anchored by them instead: `v` is zero at the first position only, each station
+//! observes `v(x) + k` (one unknown constant `k`), and the steps as before. The stations fix
+//! the line and pin the steps' random walk between them, so the map is the follower's whole
+//! vertical relative to its first position, with its uncertainty from both.
+//!
 //! Both solve the normal equations by Cholesky; a singular system (a gap in the steps, too
 //! few of them) is an error naming what is missing. Standard uncertainties come from the
 //! stated step variances, scaled by √χ²_red when the residuals say they were optimistic.
 
-use super::{Direction, Estimate, MapError, MapSettings, Periodic, Step};
+use super::{Direction, Estimate, LevelStation, MapError, MapSettings, Periodic, Step};
 use nalgebra::{DMatrix, DVector};
 
 pub(super) struct AlongFit {
@@ -225,7 +232,11 @@ fn weights(nodes: &[f64], x: f64) -> [(usize, f64); 2] {
     [(k - 1, 1.0 - t), (k, t)]
 }
 
-pub(super) fn vertical(steps: &[Step], s: &MapSettings) -> Result<VerticalFit, MapError> {
+pub(super) fn vertical(
+    steps: &[Step],
+    stations: &[LevelStation],
+    s: &MapSettings,
+) -> Result<VerticalFit, MapError> {
     let nodes = nodes(steps, s.merge_mm.max(1e-6));
     if nodes.len() < 4 {
         return Err(MapError::TooFewSteps {
@@ -233,43 +244,83 @@ pub(super) fn vertical(steps: &[Step], s: &MapSettings) -> Result<VerticalFit, M
             needed: 3,
         });
     }
-    // Unknowns: v at nodes 1..N−2 (the first and last are 0: the end-point line), then the
-    // line's slope c (PSD2's jump per mm of follower step that is not straightness).
+    // Unknowns: v at the nodes but the first (zero) and, without stations, the last (zero:
+    // the end-point line); the slope c (PSD2's jump per mm of follower step that is not
+    // straightness); with stations, their common constant k.
     let last = nodes.len() - 1;
-    let p = last;
-    let rows: Vec<(Vec<f64>, f64, f64)> = steps
+    let referenced = stations.len() >= 2;
+    let free = if referenced { last } else { last - 1 };
+    let p = free + 1 + usize::from(referenced);
+    let slope = free;
+    let column = |i: usize| (i > 0 && (referenced || i < last)).then(|| i - 1);
+    let mut rows: Vec<(Vec<f64>, f64, f64)> = steps
         .iter()
         .map(|st| {
             let mut a = vec![0.0; p];
             for (sign, x) in [(1.0, st.to_mm), (-1.0, st.from_mm)] {
                 for (i, w) in weights(&nodes, x) {
-                    if i > 0 && i < last {
-                        a[i - 1] += sign * w;
+                    if let Some(c) = column(i) {
+                        a[c] += sign * w;
                     }
                 }
             }
-            a[p - 1] = st.to_mm - st.from_mm;
+            a[slope] = st.to_mm - st.from_mm;
             (a, st.vertical_mm, weight(st.variance[1]))
         })
         .collect();
-    let (x, cov, chi2) = solve(
-        &rows,
-        "vertical",
-        "every visited position must be linked to both ends by steps (passes over the whole travel)",
-    )?;
+    let hint = "every visited position must be linked to both ends by steps (passes over the whole travel)";
+    let n_steps = rows.len();
+    let node_list = &nodes;
+    let station_rows = |scale: f64| {
+        stations.iter().map(move |st| {
+            let mut a = vec![0.0; p];
+            for (i, w) in weights(node_list, st.position_mm) {
+                if let Some(c) = column(i) {
+                    a[c] += w;
+                }
+            }
+            a[p - 1] = 1.0;
+            (a, st.value_mm, weight(st.variance_mm2 * scale))
+        })
+    };
+    if referenced {
+        rows.extend(station_rows(1.0));
+    }
+    let (mut x, mut cov, mut chi2) = solve(&rows, "vertical", hint)?;
+    if referenced {
+        // The stations' own consistency with the steps (their residuals against their stated
+        // variances; one degree of freedom goes to k): stations that scatter more than stated
+        // (the head's reading beside the level has errors of its own) are weighted by what they
+        // show, and the fit taken again.
+        let resid: f64 = rows[n_steps..]
+            .iter()
+            .map(|(a, y, w)| {
+                let r = y - a.iter().zip(x.iter()).map(|(ai, xi)| ai * xi).sum::<f64>();
+                w * r * r
+            })
+            .sum();
+        let birge = resid / (stations.len() - 1) as f64;
+        if birge > 1.0 {
+            rows.truncate(n_steps);
+            rows.extend(station_rows(birge));
+            (x, cov, chi2) = solve(&rows, "vertical", hint)?;
+        }
+    }
     let mut values = vec![0.0];
     let mut u = vec![0.0];
-    for i in 0..last - 1 {
+    for i in 0..free {
         values.push(x[i]);
         u.push(cov[(i, i)].max(0.0).sqrt());
     }
-    values.push(0.0);
-    u.push(0.0);
+    if !referenced {
+        values.push(0.0);
+        u.push(0.0);
+    }
     Ok(VerticalFit {
         positions: nodes,
         values,
         u,
-        slope: x[p - 1],
+        slope: x[slope],
         chi2,
     })
 }

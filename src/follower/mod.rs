@@ -22,6 +22,12 @@
 //!   the straightness relative to the end-point line over the calibrated travel: the line —
 //!   the follower's inclination to PSD2's u axis — reads the same at a handover as PSD2's
 //!   in-plane tilt, which the head's model already carries, so no handover can measure it.
+//!   A level on the carriage gives what the steps cannot: read beside the head's roll at
+//!   stations along the travel (`LevelStation`, every 100 mm or so), each station is the
+//!   follower's true vertical there up to one common constant. Fitted together with the
+//!   steps ([`build_referenced`]), the stations fix the line and pin the steps' random walk
+//!   between them: over 2 m the vertical's u falls from about 0.25 µm mid-travel (steps and
+//!   a line from the two ends) to under 0.1 µm.
 //!
 //! Sans-I/O: [`build`] takes the steps (from the tracker's handover records or the lab) and an
 //! optional certificate and returns the map; [`FollowerMap::correction`] is what the tracker
@@ -213,7 +219,8 @@ pub struct FollowerMap {
     /// The certificate's own mean reversal (mm), a cross-check of the self-calibration's.
     pub certificate_reversal_mm: Option<f64>,
     /// Vertical straightness (mm, PSD2 above the end-point line) at `vertical_positions_mm`,
-    /// zero at both ends, with its standard uncertainty.
+    /// zero at both ends, with its standard uncertainty; with a level's stations
+    /// (`vertical_reference`), PSD2's whole vertical relative to the first position.
     pub vertical_positions_mm: Vec<f64>,
     pub vertical_mm: Vec<f64>,
     pub vertical_u_mm: Vec<f64>,
@@ -225,6 +232,29 @@ pub struct FollowerMap {
     /// map is relative to its end-point line, and the line is an unmapped error.
     #[serde(default)]
     pub vertical_line: Option<VerticalLine>,
+    /// A level's stations the vertical map was fitted with (its line and shape, not only the
+    /// steps'): then `vertical_mm` is the whole vertical and no line is added.
+    #[serde(default)]
+    pub vertical_reference: Option<VerticalReference>,
+}
+
+/// One station of a level along the follower's travel: the follower's true vertical there
+/// (mm) up to a constant common to all stations — the head's roll read beside a level's,
+/// turned into PSD2's vertical — and its variance (mm²).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LevelStation {
+    /// The follower's encoder position at the station (mm).
+    pub position_mm: f64,
+    pub value_mm: f64,
+    pub variance_mm2: f64,
+}
+
+/// The level's stations a vertical map was fitted with, and what they were.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct VerticalReference {
+    pub stations: Vec<LevelStation>,
+    /// The instrument and how it was read.
+    pub source: String,
 }
 
 /// The follower's vertical line (its inclination to the head's model of its axis) from an
@@ -297,7 +327,7 @@ impl FollowerMap {
                 crate::util::interpolate(vp, &self.vertical_u_mm, x),
             )
         };
-        if let Some(l) = &self.vertical_line {
+        if let (Some(l), None) = (&self.vertical_line, &self.vertical_reference) {
             v += l.slope * (x - l.origin_mm);
             vu = vu.hypot(l.u_slope * (x - l.origin_mm));
         }
@@ -434,6 +464,15 @@ impl FollowerMap {
         }
         if self.vertical_mm.is_empty() {
             out.push("vertical straightness: not mapped (run the self-calibration)".into());
+        } else if let Some(r) = &self.vertical_reference {
+            out.push(format!(
+                "vertical (to the first point): {:.2} µm range over {} points, u ≤ {:.2} µm, from the self-calibration's steps and {} level stations ({})",
+                range(&self.vertical_mm),
+                self.vertical_mm.len(),
+                max_u(&self.vertical_u_mm),
+                r.stations.len(),
+                r.source
+            ));
         } else {
             out.push(format!(
                 "vertical straightness (to the end-point line): {:.2} µm range over {} points, u ≤ {:.2} µm, from the self-calibration; PSD2's jump took a line of {:.1} µm/m (PSD2's tilt and the follower's inclination), not applied",
@@ -443,7 +482,7 @@ impl FollowerMap {
                 self.vertical_slope * 1e6
             ));
         }
-        if let Some(l) = &self.vertical_line {
+        if let (Some(l), None) = (&self.vertical_line, &self.vertical_reference) {
             out.push(format!(
                 "vertical line: {:+.2} µm/m, u {:.2} µm/m, from {}",
                 l.slope * 1e6,
@@ -474,6 +513,17 @@ pub fn build(
     certificate: Option<&Certificate>,
     settings: &MapSettings,
 ) -> Result<FollowerMap, MapError> {
+    build_referenced(steps, certificate, settings, None)
+}
+
+/// [`build`] with a level's stations (at least two) for the vertical map: its line and shape
+/// from the stations and the steps together (see `fit`).
+pub fn build_referenced(
+    steps: &[Step],
+    certificate: Option<&Certificate>,
+    settings: &MapSettings,
+    reference: Option<&VerticalReference>,
+) -> Result<FollowerMap, MapError> {
     if steps.is_empty() && certificate.is_none() {
         return Err(MapError::Empty);
     }
@@ -485,7 +535,8 @@ pub fn build(
     let vertical = if steps.is_empty() {
         None
     } else {
-        Some(fit::vertical(steps, settings)?)
+        let stations = reference.map_or(&[][..], |r| &r.stations[..]);
+        Some(fit::vertical(steps, stations, settings)?)
     };
     let periodic = along.as_ref().map(|a| a.periodic);
     let reversal = along.as_ref().and_then(|a| a.reversal);
@@ -535,6 +586,9 @@ pub fn build(
         vertical_u_mm: Vec::new(),
         vertical_slope: 0.0,
         vertical_line: None,
+        vertical_reference: reference
+            .filter(|r| r.stations.len() >= 2 && !steps.is_empty())
+            .cloned(),
     };
     if let Some(v) = vertical {
         map.vertical_positions_mm = v.positions;

@@ -151,7 +151,7 @@ pub(super) struct Core {
     watchdog: bool,
     /// The reply owed to a zero request, answered once the window has refilled.
     zero_reply: Option<oneshot::Sender<Result<serde_json::Value, String>>>,
-    live_window: Duration,
+    zero_window: Duration,
     ready_sent: bool,
     started: Instant,
     /// The follower target the tracker wants (the follower task sends the latest).
@@ -337,7 +337,7 @@ impl Core {
             home_on_start: s.follower.home_on_start,
             watchdog: s.service.watchdog,
             zero_reply: None,
-            live_window: s.head.live_window,
+            zero_window: s.head.zero_window,
             ready_sent: false,
             started: Instant::now(),
             follow: watch::channel(None).0,
@@ -1345,7 +1345,7 @@ impl Core {
                 Self::reply(c.reply, Ok(serde_json::json!({"zeroed": false})));
             }
             Request::Zero => {
-                if !self.pipeline.begin_zero(Instant::now(), self.live_window) {
+                if !self.pipeline.begin_zero(Instant::now(), self.zero_window) {
                     return Self::reply(
                         c.reply,
                         Err("the follower's position is not known yet: is the drive up?".into()),

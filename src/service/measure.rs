@@ -3,6 +3,9 @@
 //! per-frame noise covariance divided by the frames averaged, plus the stitching uncertainty
 //! carried through β, plus the zero reference's own uncertainty when one is set.
 //!
+//! A zero reference averages every frame from when it was asked for (`start_zero`) to when
+//! it is taken (`set_zero`), not only the live window: its noise is in every later reading.
+//!
 //! The nominal travel D comes from whoever knows it (the run plan, the CNC); without it D is
 //! estimated as PSD2's position plus the spot's offset on it, which is good enough for β but
 //! leaves positioning undefined (`LiveErrors::nominal` is `None`). Pure logic; time is an
@@ -51,6 +54,13 @@ struct Sample {
     stitch_var: [f64; 2],
 }
 
+/// The frames averaged for a zero reference: their sum and count.
+#[derive(Clone, Copy, Debug, Default)]
+struct ZeroAverage {
+    sum: Vector6<f64>,
+    n: usize,
+}
+
 /// The live pipeline.
 #[derive(Debug)]
 pub struct Measure {
@@ -61,6 +71,8 @@ pub struct Measure {
     frame_cov: Matrix6<f64>,
     nominal: Option<f64>,
     zero: Option<Zero>,
+    /// The frames since a zero reference was asked for, while it is on its way.
+    zero_average: Option<ZeroAverage>,
     /// The newest frame's readings (mm, PSD2 as read), travel and follower position: what a
     /// calibration waiting to be accepted is judged on.
     last_input: Option<(Vector6<f64>, f64, f64)>,
@@ -77,6 +89,7 @@ impl Measure {
             frame_cov: Matrix6::zeros(),
             nominal: None,
             zero: None,
+            zero_average: None,
             last_input: None,
         }
     }
@@ -85,6 +98,9 @@ impl Measure {
     pub fn set_nominal(&mut self, nominal: Option<f64>) {
         if nominal != self.nominal {
             self.samples.clear();
+            if let Some(a) = self.zero_average.as_mut() {
+                *a = ZeroAverage::default();
+            }
         }
         self.nominal = nominal;
     }
@@ -107,19 +123,38 @@ impl Measure {
             .map(|s| s.travel + s.errors[1])
     }
 
-    /// Drop the averaging window (the carriage moved, the stitch changed).
+    /// Drop the averaging window (the carriage moved, the stitch changed); a zero reference
+    /// on its way starts its average again.
     pub fn restart(&mut self) {
         self.samples.clear();
+        if let Some(a) = self.zero_average.as_mut() {
+            *a = ZeroAverage::default();
+        }
     }
 
-    /// Take the current live mean as the zero reference of all six errors.
+    /// A zero reference is asked for: forget the one in force and average every frame from
+    /// now until [`Measure::set_zero`].
+    pub fn start_zero(&mut self) {
+        self.zero = None;
+        self.zero_average = Some(ZeroAverage::default());
+    }
+
+    /// Take the zero reference of all six errors: the mean of the frames since
+    /// [`Measure::start_zero`] when they are more than the live window holds, else the live
+    /// mean.
     pub fn set_zero(&mut self) -> Option<Errors6> {
         self.zero = None;
+        let average = self.zero_average.take();
         let live = self.live()?;
-        let cov = self.window_cov()?;
-        let e = live.errors.to_vector();
+        let (e, cov) = match average {
+            Some(a) if a.n > live.frames => {
+                let cov = self.cov_of_mean(a.n)?;
+                (a.sum / a.n as f64, cov)
+            }
+            _ => (live.errors.to_vector(), self.window_cov()?),
+        };
         self.zero = Some(Zero { errors: e, cov });
-        Some(live.errors)
+        Some(Errors6::from_vector(&e))
     }
 
     /// The six errors `other` reads from the newest frame's spots (no zero reference), when a
@@ -146,6 +181,7 @@ impl Measure {
         self.beta = BetaCache::default();
         self.samples.clear();
         self.zero = None;
+        self.zero_average = self.zero_average.map(|_| ZeroAverage::default());
     }
 
     /// Feed one frame with PSD2's stitched position. Invalid frames (a PSD without its spot)
@@ -181,6 +217,10 @@ impl Measure {
             self.decoupler
                 .decouple_cached(&r, travel, follower, &var, &mut self.beta)?;
         self.frame_cov = est.cov;
+        if let Some(a) = self.zero_average.as_mut() {
+            a.sum += est.errors.to_vector();
+            a.n += 1;
+        }
         self.samples.push_back(Sample {
             at: now,
             errors: est.errors.to_vector(),
@@ -214,8 +254,14 @@ impl Measure {
 
     /// Covariance of the window's mean: noise / n plus the stitching variance through β.
     fn window_cov(&self) -> Option<Matrix6<f64>> {
+        self.cov_of_mean(self.samples.len())
+    }
+
+    /// Covariance of a mean of `n` frames like the newest: noise / n plus the stitching
+    /// variance through β.
+    fn cov_of_mean(&self, n: usize) -> Option<Matrix6<f64>> {
         let last = self.samples.back()?;
-        let n = self.samples.len() as f64;
+        let n = n.max(1) as f64;
         let var = [0.0, 0.0, last.stitch_var[0], last.stitch_var[1], 0.0, 0.0];
         let stitch = self
             .decoupler
@@ -361,5 +407,66 @@ mod tests {
         assert_eq!(m.live().unwrap().frames, 1);
         assert!(m.set_zero().is_some());
         assert!(m.live().unwrap().zeroed);
+    }
+
+    /// A zero reference averages every frame since it was asked for, not the live window's
+    /// last quarter second: with 1000 frames its noise is √(1000/125) ≈ 2.8 times less, and
+    /// its stated covariance says so.
+    #[test]
+    fn the_zero_averages_every_frame_since_it_was_asked_for() {
+        let layout = Layout::reference();
+        let dec = Decoupler {
+            source: Source::Simulated(layout.clone()),
+            method: Method::Linear,
+            sigma_mm: [1e-3; 6],
+            options: SolveOptions::default(),
+        };
+        let mut m = Measure::new(dec, Duration::from_millis(250));
+        m.set_nominal(Some(0.0));
+        let pose = Pose::new(Errors6::ZERO, 0.0, 0.0);
+        let mut rng = Rng::new(9);
+        let t0 = Instant::now();
+        m.start_zero();
+        let mut sum = Vector6::zeros();
+        let mut last_window = VecDeque::new();
+        for i in 0..1000u64 {
+            let t = t0 + Duration::from_millis(2 * i);
+            let f = frame_at(&layout, &pose, &mut rng, t, 1e-3);
+            let e = m
+                .handle_frame(&f, &stitch(0.0, 0.0), t)
+                .unwrap()
+                .unwrap()
+                .errors
+                .to_vector();
+            sum += e;
+            last_window.push_back(e);
+            if last_window.len() > 125 {
+                last_window.pop_front();
+            }
+        }
+        let live = m.live().unwrap();
+        assert_eq!(live.frames, 126);
+        let z = m.set_zero().unwrap().to_vector();
+        let mean = sum / 1000.0;
+        assert!((z - mean).norm() < 1e-12, "{z} against {mean}");
+        // The stated uncertainty of the zero: the frame covariance over 1000, so a live mean
+        // of the next window reads its own noise and the zero's, 1/125 + 1/1000.
+        let t = t0 + Duration::from_millis(2000);
+        let f = frame_at(&layout, &pose, &mut rng, t, 1e-3);
+        m.handle_frame(&f, &stitch(0.0, 0.0), t).unwrap();
+        let sd = m.live().unwrap().sd.to_user();
+        // One frame after the window moved on: 126 frames in it and the zero's 1000.
+        let dy_frame = 1.2137;
+        let want = dy_frame * (1.0 / 126.0 + 1.0 / 1000.0_f64).sqrt();
+        assert!(
+            (sd[1] - want).abs() < 2e-3,
+            "dy sd {} µm, want {want}",
+            sd[1]
+        );
+        // Without a zero asked for, the live window is the zero.
+        m.clear_zero();
+        let live = m.live().unwrap();
+        let z = m.set_zero().unwrap();
+        assert_eq!(z, live.errors);
     }
 }

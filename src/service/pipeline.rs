@@ -470,8 +470,8 @@ impl Pipeline {
         self.referenced_once = true;
         self.rereference_on_spot = false;
         self.alarms.clear("stitch-broken");
-        self.measure.clear_zero();
         self.measure.restart();
+        self.measure.start_zero();
         true
     }
 

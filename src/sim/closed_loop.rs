@@ -488,13 +488,17 @@ fn map_source(m: &crate::follower::FollowerMap) -> String {
         "long-wavelength positioning from the {}, screw-periodic and reversal from the {}, vertical straightness from the {}",
         s.long, s.periodic, s.vertical
     );
-    match &m.vertical_line {
-        Some(l) => out.push_str(&format!(
+    match (&m.vertical_reference, &m.vertical_line) {
+        (Some(r), _) => out.push_str(&format!(
+            ", its line and shape referenced by {} level stations",
+            r.stations.len()
+        )),
+        (None, Some(l)) => out.push_str(&format!(
             ", its line from a level ({:+.2} ± {:.2} µm/m)",
             l.slope * 1e6,
             l.u_slope * 1e6
         )),
-        None => out.push_str(", its line not referenced"),
+        (None, None) => out.push_str(", its line not referenced"),
     }
     out
 }

@@ -10,7 +10,7 @@
 //! along the travel. The steps feed `follower::build`.
 
 use super::lab::{Lab, LabError};
-use crate::follower::{FollowerMap, Step, VerticalLine};
+use crate::follower::{FollowerMap, LevelStation, Step, VerticalReference};
 use crate::track::Strategy;
 use std::sync::Arc;
 use std::time::Duration;
@@ -80,6 +80,9 @@ pub fn self_calibrate(
     s.average_frames = spec.average_frames.max(10);
     s.edge_mm = s.edge_mm.max(spec.step_mm + 0.45);
     s.handover_mm = s.handover_mm.min(spec.step_mm * 0.5);
+    // No final approach: the passes measure the reversal, so each step ends in its own
+    // direction.
+    s.approach_mm = 0.0;
     lab.pipeline.tracker.set_settings(s);
     let result = passes(lab, spec, &mut progress);
     lab.pipeline.tracker.set_settings(saved);
@@ -181,18 +184,22 @@ fn encoder(lab: &Lab) -> Result<f64, LabError> {
         })
 }
 
-/// The outside reference of the vertical map's line: a precision electronic level on the
-/// carriage, read at both ends of the span beside the head's roll. A level reads roll against
-/// gravity, so the difference of its two readings is the axis' true change of roll; what the
-/// head reads beyond it over the same travel is the follower's vertical line (1.38″ per µm).
+/// The outside reference of the vertical map: a precision electronic level on the carriage,
+/// read at stations along the span beside the head's roll. A level reads roll against
+/// gravity, so at each station the difference of the head's roll and the level's is the
+/// follower's vertical error there (1.38″ per µm) up to a constant: the stations fix the
+/// map's line, which no handover can see, and pin the random walk of the steps between them.
 /// The twin's level reads the axis' true roll with `sd_rad` of noise per reading (a level of
 /// 1 µrad resolution and repeatability, 0.2″).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LevelSpec {
     /// Standard deviation of one reading (rad).
     pub sd_rad: f64,
-    /// Readings at each end, each beside one window of the head's live roll.
+    /// Readings at each station, each beside one window of the head's live roll.
     pub readings: usize,
+    /// Stations at most this far apart over the span, both ends included (mm; at least 2
+    /// stations).
+    pub station_mm: f64,
 }
 
 impl Default for LevelSpec {
@@ -200,27 +207,40 @@ impl Default for LevelSpec {
         LevelSpec {
             sd_rad: 1e-6,
             readings: 20,
+            station_mm: 100.0,
         }
     }
 }
 
-/// The level and the head's roll (mean over the readings, rad) at one end, the encoder there
-/// (mm), and the variance of the two means.
-struct EndReading {
-    head: f64,
-    level: f64,
-    encoder: f64,
-    var_head: f64,
+impl LevelSpec {
+    /// The stations over `span` (mm): evenly spaced, both ends included.
+    pub fn stations(&self, span: (f64, f64)) -> Vec<f64> {
+        let len = (span.1 - span.0).max(0.0);
+        let n = ((len / self.station_mm.max(1.0)).ceil() as usize).max(1);
+        (0..=n)
+            .map(|k| span.0 + len * k as f64 / n as f64)
+            .collect()
+    }
 }
 
-fn read_end(
+/// The head's roll minus the level's at one station (mean over the readings, rad), the
+/// variance of that mean from the readings' own scatter (rad²; the head's noise and the
+/// level's, not the stitch's: the map's error at the station is what is measured), and the
+/// encoder there (mm).
+struct StationReading {
+    excess: f64,
+    var_excess: f64,
+    encoder: f64,
+}
+
+fn read_station(
     lab: &mut Lab,
     level: &LevelSpec,
     window: Duration,
     rng: &mut super::Rng,
-) -> Result<EndReading, LabError> {
-    let n = level.readings.max(1);
-    let (mut head, mut lvl, mut var) = (0.0, 0.0, 0.0);
+) -> Result<StationReading, LabError> {
+    let n = level.readings.max(2);
+    let mut d = Vec::with_capacity(n);
     for _ in 0..n {
         // Each reading a fresh window of the head's live mean.
         lab.advance(window + Duration::from_millis(50))?;
@@ -232,41 +252,26 @@ fn read_end(
                 what: "level reference",
                 why: "the head gave no live roll".into(),
             })?;
-        head += live.errors.ey;
-        var += live.sd.ey * live.sd.ey;
-        lvl += lab.truth().errors.ey + rng.gauss(level.sd_rad);
+        d.push(live.errors.ey - (lab.truth().errors.ey + rng.gauss(level.sd_rad)));
     }
     let nf = n as f64;
-    Ok(EndReading {
-        head: head / nf,
-        level: lvl / nf,
+    let mean = d.iter().sum::<f64>() / nf;
+    let scatter = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (nf - 1.0);
+    Ok(StationReading {
+        excess: mean,
+        // Never less than the level's own noise says.
+        var_excess: scatter.max(level.sd_rad * level.sd_rad) / nf,
         encoder: encoder(lab)?,
-        var_head: var / (nf * nf),
     })
 }
 
-/// Reference the vertical map's line with a level (`LevelSpec`): with `map` applied in
-/// tracking (its line left out), zero the head at the span's start and read its roll beside
-/// the level's there and at the span's end. `decoupler` gives the roll's sensitivity to
-/// PSD2's Y, `window` is the head's live window. The tracker keeps the map with its line.
-pub fn reference_line(
-    lab: &mut Lab,
-    map: &FollowerMap,
-    span: (f64, f64),
-    level: &LevelSpec,
+/// The roll's sensitivity to PSD2's Y (rad per mm) where the head reads now, at carriage
+/// position `travel_mm`.
+fn roll_per_y2(
+    lab: &Lab,
     decoupler: &crate::decouple::Decoupler,
-    window: Duration,
-) -> Result<VerticalLine, LabError> {
-    let mut rng = super::Rng::new(lab.plant.spec.seed).fork(17);
-    let mut free = map.clone();
-    free.vertical_line = None;
-    lab.pipeline.tracker.set_map(Some(Arc::new(free)));
-    lab.move_carriage(span.0)?;
-    lab.zero(span.0, window)?;
-    let a = read_end(lab, level, window, &mut rng)?;
-    lab.move_carriage(span.1)?;
-    let b = read_end(lab, level, window, &mut rng)?;
-    // The roll's sensitivity to PSD2's Y (rad per mm) where the head reads at the far end.
+    travel_mm: f64,
+) -> Result<f64, LabError> {
     let bad = |why: String| LabError::BringUp {
         what: "level reference",
         why,
@@ -281,49 +286,80 @@ pub fn reference_line(
     r[3] += stitch.vertical_mm;
     let h = 1e-3;
     let e0 = decoupler
-        .decouple(&r, span.1, stitch.follower_mm)
+        .decouple(&r, travel_mm, stitch.follower_mm)
         .map_err(|e| bad(e.to_string()))?;
     r[3] += h;
     let e1 = decoupler
-        .decouple(&r, span.1, stitch.follower_mm)
+        .decouple(&r, travel_mm, stitch.follower_mm)
         .map_err(|e| bad(e.to_string()))?;
     let g = (e1.errors.ey - e0.errors.ey) / h;
-    let moved = b.encoder - a.encoder;
-    if g.abs() < 1e-9 || moved.abs() < 1.0 {
+    if g.abs() < 1e-9 {
         return Err(bad(format!(
-            "the roll does not depend on PSD2's Y ({g:e} rad/mm) or the span is too short ({moved:.1} mm)"
+            "the roll does not depend on PSD2's Y ({g:e} rad/mm)"
         )));
     }
-    // Y2 is corrected by the map's vertical: a line λ·(x − x0) adds λ·moved to it at the far
-    // end, and g·λ·moved to the roll.
-    let excess = (b.head - a.head) - (b.level - a.level);
-    let slope = -excess / (g * moved);
-    let n = level.readings.max(1) as f64;
-    let var_level = 2.0 * level.sd_rad * level.sd_rad / n;
-    let u_slope = (var_level + a.var_head + b.var_head).sqrt() / (g.abs() * moved.abs());
-    let origin_mm = map
-        .vertical_positions_mm
-        .first()
-        .copied()
-        .unwrap_or(a.encoder);
-    let line = VerticalLine {
-        origin_mm,
-        slope,
-        u_slope,
+    Ok(g)
+}
+
+/// Read the level's stations over `span` (`LevelSpec`): with `map` applied in tracking (its
+/// own reference left out), zero the head at the span's start and read its roll beside the
+/// level's at every station. Each station gives the follower's true vertical there up to a
+/// common constant: the map's vertical minus what the head read beyond the level, through the
+/// roll's sensitivity to PSD2's Y (`decoupler`; `window` is the head's live window). The
+/// tracker is left with `map` as it was.
+pub fn reference_level(
+    lab: &mut Lab,
+    map: &FollowerMap,
+    span: (f64, f64),
+    level: &LevelSpec,
+    decoupler: &crate::decouple::Decoupler,
+    window: Duration,
+) -> Result<VerticalReference, LabError> {
+    let mut rng = super::Rng::new(lab.plant.spec.seed).fork(17);
+    let mut free = map.clone();
+    free.vertical_line = None;
+    free.vertical_reference = None;
+    let free = Arc::new(free);
+    lab.pipeline.tracker.set_map(Some(free.clone()));
+    let at = level.stations(span);
+    let mut stations = Vec::with_capacity(at.len());
+    let mut moved = 0.0f64;
+    for (k, &x) in at.iter().enumerate() {
+        lab.move_carriage(x)?;
+        if k == 0 {
+            lab.zero(x, window)?;
+        }
+        let r = read_station(lab, level, window, &mut rng)?;
+        let g = roll_per_y2(lab, decoupler, x)?;
+        let m = free.correction(r.encoder, crate::follower::Direction::Up)[1];
+        moved = moved.max((x - at[0]).abs());
+        stations.push(LevelStation {
+            position_mm: r.encoder,
+            value_mm: m - r.excess / g,
+            variance_mm2: r.var_excess / (g * g),
+        });
+    }
+    lab.pipeline.tracker.set_map(Some(Arc::new(map.clone())));
+    if stations.len() < 2 || moved < 1.0 {
+        return Err(LabError::BringUp {
+            what: "level reference",
+            why: format!(
+                "{} stations over {moved:.1} mm: the span is too short for a level's reference",
+                stations.len()
+            ),
+        });
+    }
+    Ok(VerticalReference {
         source: format!(
-            "a level ({:.2}″ a reading, {} readings at each end) against the head's roll at {:.0} and {:.0} mm: the axis' roll changed by {:+.2}″, the head read {:+.2}″",
+            "a level ({:.2}″ a reading, {} readings at each of {} stations {:.0} to {:.0} mm)",
             level.sd_rad / crate::units::RAD_PER_ARCSEC,
             level.readings,
+            stations.len(),
             span.0,
             span.1,
-            (b.level - a.level) / crate::units::RAD_PER_ARCSEC,
-            (b.head - a.head) / crate::units::RAD_PER_ARCSEC
         ),
-    };
-    let mut full = map.clone();
-    full.vertical_line = Some(line.clone());
-    lab.pipeline.tracker.set_map(Some(Arc::new(full)));
-    Ok(line)
+        stations,
+    })
 }
 
 /// How to map a follower on the lab: the stop-and-go passes, the fit, the certificate (the
@@ -380,8 +416,16 @@ pub fn map_on_lab(
     };
     let mut map = crate::follower::build(&run.steps, Some(&certificate), &m.settings)?;
     if let Some(level) = &m.level {
+        // The level's stations read with the steps' map in tracking, then the vertical fitted
+        // again with them.
         let span = (m.cal.from_mm, m.cal.to_mm);
-        map.vertical_line = Some(reference_line(lab, &map, span, level, decoupler, window)?);
+        let reference = reference_level(lab, &map, span, level, decoupler, window)?;
+        map = crate::follower::build_referenced(
+            &run.steps,
+            Some(&certificate),
+            &m.settings,
+            Some(&reference),
+        )?;
     }
     let machine_time = lab.now() - started;
     if let Some(s) = map.self_calibration.as_mut() {

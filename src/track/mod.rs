@@ -79,6 +79,12 @@ pub struct TrackSettings {
     pub vertical_sd_per_mm: f64,
     /// A follower move that has not finished after this long is abandoned.
     pub move_timeout: Duration,
+    /// Every follower move ends with an approach from below over this distance (mm; 0: none):
+    /// to `target − approach_mm`, then up to the target. The stage's reversal then always
+    /// stands in the "up" state at rest, whatever the drive did between two samples of its
+    /// encoder (a servo's overshoot and return between SYNCs is invisible to the master, and
+    /// would leave the stage turned while its samples say it did not).
+    pub approach_mm: f64,
 }
 
 impl Default for TrackSettings {
@@ -100,6 +106,7 @@ impl Default for TrackSettings {
             vertical_sd_mm: 0.2e-3,
             vertical_sd_per_mm: 3e-6,
             move_timeout: Duration::from_secs(10),
+            approach_mm: 0.02,
         }
     }
 }
@@ -202,6 +209,8 @@ enum Phase {
     /// An overlap handover's follower step is under way.
     Moving {
         target: f64,
+        /// The approach point below the target, while the follower still goes there.
+        via: Option<f64>,
         since: Instant,
         reached_at: Option<Instant>,
     },
@@ -210,6 +219,16 @@ enum Phase {
     Following { encoder_start: f64 },
     /// Overlap: averaging frames after the step.
     After { since: Instant },
+    /// The carriage stopped after the follower followed it: the follower's final approach
+    /// from below (`via`, then back to `target`) before the step is taken from the encoder
+    /// (overlap: from `encoder_start`), or, in the encoder strategy (`encoder_start` none),
+    /// before following goes on.
+    Approach {
+        encoder_start: Option<f64>,
+        via: Option<f64>,
+        target: f64,
+        since: Instant,
+    },
 }
 
 /// Running mean and variance (Welford).
@@ -272,6 +291,8 @@ pub struct Tracker {
     /// The direction the follower last moved in, and the turning point it is judged from.
     motion: Direction,
     motion_anchor: Option<f64>,
+    /// The follower has followed the carriage since its last final approach.
+    followed: bool,
     /// The map's correction at the reference, at `stitch_encoder`, and where the follower
     /// left the stitched position (mm: along, vertical).
     ref_corr: [f64; 2],
@@ -310,6 +331,7 @@ impl Tracker {
             map: None,
             motion: Direction::Up,
             motion_anchor: None,
+            followed: false,
             ref_corr: [0.0; 2],
             stitch_corr: [0.0; 2],
             before_corr: [0.0; 2],
@@ -512,7 +534,11 @@ impl Tracker {
     fn in_flight_from(&self) -> Option<f64> {
         match self.phase {
             Phase::Moving { .. } | Phase::After { .. } => Some(self.encoder_before),
-            Phase::Following { encoder_start } => Some(encoder_start),
+            Phase::Following { encoder_start }
+            | Phase::Approach {
+                encoder_start: Some(encoder_start),
+                ..
+            } => Some(encoder_start),
             _ => None,
         }
     }
@@ -565,40 +591,143 @@ impl Tracker {
                 .handle_follower(at, state.position_mm, state.target_reached);
         }
         self.follower = Some(state);
-        if let Phase::Moving {
-            target,
-            since,
-            reached_at,
-        } = self.phase.clone()
-        {
-            if !state.ready {
-                self.events.push_back(TrackEvent::FollowerProblem(
-                    "the follower is not ready".into(),
-                ));
-                self.finish_encoder_step(now);
-                return;
-            }
-            if state.target_reached && (state.position_mm - target).abs() < 0.01 {
-                if reached_at.is_none() {
-                    tracing::debug!(
-                        position_mm = state.position_mm,
-                        target_mm = target,
-                        "follower at target"
-                    );
-                    self.phase = Phase::Moving {
-                        target,
-                        since,
-                        reached_at: Some(now),
-                    };
+        match self.phase.clone() {
+            Phase::Moving {
+                target,
+                via,
+                since,
+                reached_at,
+            } => {
+                if !state.ready {
+                    self.events.push_back(TrackEvent::FollowerProblem(
+                        "the follower is not ready".into(),
+                    ));
+                    self.finish_encoder_step(now);
+                    return;
                 }
-            } else if now.saturating_duration_since(since) > self.settings.move_timeout {
-                self.events.push_back(TrackEvent::FollowerProblem(format!(
-                    "the follower did not reach {target:.3} mm in {:?}",
-                    self.settings.move_timeout
-                )));
-                self.finish_encoder_step(now);
+                if let Some(v) = via {
+                    if self.reached(&state, v) {
+                        self.commands.push_back(FollowerCommand::MoveTo(target));
+                        self.phase = Phase::Moving {
+                            target,
+                            via: None,
+                            since,
+                            reached_at: None,
+                        };
+                    } else if self.timed_out(since, v, now) {
+                        self.finish_encoder_step(now);
+                    }
+                } else if self.reached(&state, target) {
+                    if reached_at.is_none() {
+                        tracing::debug!(
+                            position_mm = state.position_mm,
+                            target_mm = target,
+                            "follower at target"
+                        );
+                        self.approached();
+                        self.phase = Phase::Moving {
+                            target,
+                            via: None,
+                            since,
+                            reached_at: Some(now),
+                        };
+                    }
+                } else if self.timed_out(since, target, now) {
+                    self.finish_encoder_step(now);
+                }
             }
+            Phase::Approach {
+                encoder_start,
+                via,
+                target,
+                since,
+            } => {
+                let done = |tr: &mut Tracker| match encoder_start {
+                    Some(start) => {
+                        tr.encoder_before = start;
+                        tr.finish_encoder_step(now);
+                    }
+                    None => tr.phase = Phase::Watch,
+                };
+                if !state.ready {
+                    done(self);
+                    return;
+                }
+                match via {
+                    Some(v) if self.reached(&state, v) => {
+                        self.commands.push_back(FollowerCommand::MoveTo(target));
+                        self.phase = Phase::Approach {
+                            encoder_start,
+                            via: None,
+                            target,
+                            since,
+                        };
+                    }
+                    None if self.reached(&state, target) => {
+                        self.approached();
+                        done(self);
+                    }
+                    _ if self.timed_out(since, via.unwrap_or(target), now) => done(self),
+                    _ => {}
+                }
+            }
+            _ => {}
         }
+    }
+
+    /// The follower reports its target reached, at `target` (within 10 µm, or within a
+    /// quarter of the approach when that is shorter, so that the approach point and the
+    /// target are told apart).
+    fn reached(&self, state: &FollowerState, target: f64) -> bool {
+        let tol = match self.settings.approach_mm {
+            a if a > 0.0 => (a / 4.0).min(0.01),
+            _ => 0.01,
+        };
+        state.target_reached && (state.position_mm - target).abs() < tol
+    }
+
+    /// A move begun at `since` towards `target` has not finished in time (said as an event).
+    fn timed_out(&mut self, since: Instant, target: f64, now: Instant) -> bool {
+        let late = now.saturating_duration_since(since) > self.settings.move_timeout;
+        if late {
+            self.events.push_back(TrackEvent::FollowerProblem(format!(
+                "the follower did not reach {target:.3} mm in {:.1} s",
+                self.settings.move_timeout.as_secs_f64()
+            )));
+        }
+        late
+    }
+
+    /// The follower ended a move by its approach from below: the stage stands in its "up"
+    /// state, whatever the samples showed on the way.
+    fn approached(&mut self) {
+        if self.settings.approach_mm > 0.0 {
+            self.motion = Direction::Up;
+            self.motion_anchor = self.follower.map(|f| f.position_mm);
+        }
+    }
+
+    /// Begin the final approach to where the follower stands (`target`, mm): down to the
+    /// approach point, then up. Without an approach configured, at once what follows it.
+    fn begin_approach(&mut self, encoder_start: Option<f64>, target: f64, now: Instant) {
+        let a = self.settings.approach_mm;
+        if a <= 0.0 {
+            match encoder_start {
+                Some(start) => {
+                    self.encoder_before = start;
+                    self.finish_encoder_step(now);
+                }
+                None => self.phase = Phase::Watch,
+            }
+            return;
+        }
+        self.commands.push_back(FollowerCommand::MoveTo(target - a));
+        self.phase = Phase::Approach {
+            encoder_start,
+            via: Some(target - a),
+            target,
+            since: now,
+        };
     }
 
     /// A frame from the I/O module.
@@ -643,7 +772,7 @@ impl Tracker {
         }
         self.carriage.handle_frame(now, p[0]);
         match self.settings.strategy {
-            Strategy::Encoder => self.follow_step(p, f, now),
+            Strategy::Encoder => self.track_encoder(p, f, now),
             Strategy::Overlap => self.track_overlap(p, f, now),
         }
     }
@@ -685,10 +814,32 @@ impl Tracker {
                 at: now,
             });
             self.last_follow_cmd = Some(now);
+            self.followed = true;
             if self.settings.strategy == Strategy::Encoder {
                 // In this strategy a "handover" is one follow step.
                 self.handovers += 1;
             }
+        }
+    }
+
+    /// The encoder strategy: follow, and once the carriage has come to rest after the
+    /// follower followed it, the follower's final approach.
+    fn track_encoder(&mut self, p: [f64; 2], f: FollowerState, now: Instant) {
+        if let Phase::Approach { .. } = self.phase {
+            if p[0].abs() <= self.settings.follow_band_mm {
+                return;
+            }
+            // The carriage moves on: follow again, the approach at its next stop.
+            self.phase = Phase::Watch;
+        }
+        self.follow_step(p, f, now);
+        if self.followed
+            && self.at_rest(now)
+            && p[0].abs() <= self.settings.follow_band_mm
+            && f.target_reached
+        {
+            self.followed = false;
+            self.begin_approach(None, f.position_mm, now);
         }
     }
 
@@ -743,11 +894,18 @@ impl Tracker {
             Phase::Following { encoder_start } => {
                 self.follow_step(p, f, now);
                 if self.at_rest(now) && p[0].abs() <= s.follow_band_mm && f.target_reached {
-                    self.encoder_before = encoder_start;
-                    self.finish_encoder_step(now);
+                    self.begin_approach(Some(encoder_start), f.position_mm, now);
                 }
             }
-            Phase::Moving { .. } => {}
+            Phase::Approach {
+                encoder_start: Some(encoder_start),
+                ..
+            } if p[0].abs() >= s.edge_mm => {
+                // The carriage moves on: follow again, the approach at its next stop.
+                self.phase = Phase::Following { encoder_start };
+                self.follow_step(p, f, now);
+            }
+            Phase::Moving { .. } | Phase::Approach { .. } => {}
             Phase::After { .. } => {
                 self.after.push(p);
                 if self.after.n >= s.average_frames {
@@ -778,9 +936,14 @@ impl Tracker {
             self.encoder_before = f.position_mm;
             self.before_corr = self.corr(f.position_mm);
         }
-        self.commands.push_back(FollowerCommand::MoveTo(target));
+        // By the approach point below the target when one is configured.
+        let a = self.settings.approach_mm;
+        let via = (a > 0.0).then_some(target - a);
+        self.commands
+            .push_back(FollowerCommand::MoveTo(via.unwrap_or(target)));
         self.phase = Phase::Moving {
             target,
+            via,
             since: now,
             reached_at: None,
         };
@@ -927,6 +1090,8 @@ mod tests {
         target: Option<f64>,
         rng: Rng,
         seq: u64,
+        /// Every absolute move commanded (mm).
+        moves: Vec<f64>,
     }
 
     fn fu(d: f64) -> f64 {
@@ -947,6 +1112,7 @@ mod tests {
                 target: None,
                 rng: Rng::new(3),
                 seq: 0,
+                moves: Vec::new(),
             }
         }
 
@@ -981,7 +1147,10 @@ mod tests {
             tr.handle_frame(&f, self.now);
             while let Some(c) = tr.poll_command() {
                 self.target = Some(match c {
-                    FollowerCommand::MoveTo(t) => t,
+                    FollowerCommand::MoveTo(t) => {
+                        self.moves.push(t);
+                        t
+                    }
                     FollowerCommand::Follow { target_mm, .. } => target_mm,
                 });
             }
@@ -1087,6 +1256,60 @@ mod tests {
         assert!(s.variance[0].sqrt() >= tr.settings().encoder_sd_mm);
     }
 
+    /// The carriage runs 20 mm down and stops: the follower follows it by its encoder, then
+    /// ends with its approach from below (20 µm down, then up to where it stood), so the
+    /// tracker knows the stage stands in its "up" state whatever its samples showed on the way
+    /// down; the step is taken from the encoder once the approach is over. Without an
+    /// approach configured, the follower stays where following left it.
+    #[test]
+    fn following_ends_with_an_approach_from_below() {
+        for approach in [0.02, 0.0] {
+            let (mut b, mut tr) = referenced(Strategy::Overlap);
+            let mut s = *tr.settings();
+            s.approach_mm = approach;
+            tr.set_settings(s);
+            for _ in 0..2000 {
+                b.carriage -= 10.0 * 0.002;
+                b.step(&mut tr);
+            }
+            assert_eq!(tr.motion(), Direction::Down);
+            b.run(&mut tr, 3000);
+            let mut records = Vec::new();
+            while let Some(e) = tr.poll_event() {
+                if let TrackEvent::Handover(r) = e {
+                    records.push(r);
+                }
+            }
+            let last = records.last().expect("a handover");
+            assert_eq!(last.kind, HandoverKind::Encoder);
+            assert!(!tr.handing_over());
+            if approach > 0.0 {
+                // The last two moves: the approach point 20 µm below, then the target, where
+                // the encoder step ends.
+                let n = b.moves.len();
+                assert!(n >= 2, "{:?}", b.moves);
+                let (via, target) = (b.moves[n - 2], b.moves[n - 1]);
+                assert!((target - via - 0.02).abs() < 1e-9, "{via} then {target}");
+                assert_eq!(last.encoder_after, target);
+                assert_eq!(b.enc, target);
+                assert_eq!(tr.motion(), Direction::Up);
+            } else {
+                // No move beyond following (whose last targets may step back: the state is then
+                // whatever the samples say).
+                assert!(b.moves.is_empty(), "{:?}", b.moves);
+            }
+            // PSD2 is where the carriage put the spot, within the encoder step's uncertainty.
+            let st = tr.stitch();
+            let spot = b.carriage - (b.enc + fu(b.enc));
+            let psd2 = st.follower_mm + fu(0.0);
+            assert!(
+                (psd2 + spot - b.carriage).abs() < 5.0 * st.variance[0].sqrt(),
+                "{psd2} + {spot} against {}",
+                b.carriage
+            );
+        }
+    }
+
     #[test]
     fn encoder_strategy_follows_continuously() {
         let (mut b, mut tr) = referenced(Strategy::Encoder);
@@ -1137,6 +1360,7 @@ mod tests {
             vertical_u_mm: vec![0.2e-3; xs.len()],
             vertical_slope: 0.0,
             vertical_line: None,
+            vertical_reference: None,
         };
         let (mut b, mut tr) = referenced(Strategy::Encoder);
         tr.set_map(Some(Arc::new(map)));

@@ -8,7 +8,7 @@ use axiscomp::run::Dialect;
 use axiscomp::run::program::CaptureMode;
 use axiscomp::sim::Rng;
 use axiscomp::sim::follower::Motion;
-use axiscomp::sim::follower_cal::{CalSpec, LevelSpec, reference_line, self_calibrate};
+use axiscomp::sim::follower_cal::{CalSpec, LevelSpec, reference_level, self_calibrate};
 use axiscomp::sim::lab::{Lab, LabSpec, plan_span};
 use axiscomp::sim::plant::PlantSpec;
 use std::sync::Arc;
@@ -58,7 +58,16 @@ fn compare(lab: &Lab, map: &FollowerMap) -> Compared {
     let m = &lab.plant.follower;
     let vp = &map.vertical_positions_mm;
     let (x0, x1) = (vp[0], vp[vp.len() - 1]);
-    let line = |x: f64| m.vertical(x0) + (m.vertical(x1) - m.vertical(x0)) * (x - x0) / (x1 - x0);
+    // Without a level the map is the straightness to its end-point line; with the level's
+    // stations, the whole vertical relative to its first point.
+    let referenced = map.vertical_reference.is_some();
+    let line = |x: f64| {
+        if referenced {
+            m.vertical(x0)
+        } else {
+            m.vertical(x0) + (m.vertical(x1) - m.vertical(x0)) * (x - x0) / (x1 - x0)
+        }
+    };
     let vertical = vp
         .iter()
         .enumerate()
@@ -116,7 +125,7 @@ fn map_follower(
     let cert = Certificate::parse(&cert_text, "twin-certificate.csv").expect("certificate");
     let mut map = follower::build(&run.steps, Some(&cert), &MapSettings::default()).expect("map");
     if let Some(spec) = level {
-        let line = reference_line(
+        let reference = reference_level(
             lab,
             &map,
             span,
@@ -124,8 +133,14 @@ fn map_follower(
             &spec.decoupler,
             spec.live_window,
         )
-        .expect("the level's line");
-        map.vertical_line = Some(line);
+        .expect("the level's stations");
+        map = follower::build_referenced(
+            &run.steps,
+            Some(&cert),
+            &MapSettings::default(),
+            Some(&reference),
+        )
+        .expect("map with the level");
     }
     if let Some(s) = map.self_calibration.as_mut() {
         s.machine_time_s = Some(run.machine_time.as_secs_f64());
@@ -479,4 +494,51 @@ fn the_followers_map_alone_over_1000_mm_two_light_passes() {
     };
     let map = map_follower(&mut lab, (-2.0, 1002.0), cal, None);
     check_map(&lab, &map);
+}
+
+#[test]
+#[ignore = "scratch"]
+fn scratch_map_env() {
+    let seed: u64 = std::env::var("SEED").unwrap().parse().unwrap();
+    let len: f64 = std::env::var("LEN").unwrap().parse().unwrap();
+    let (mut lab, spec) = lab_and_spec(seed, len);
+    let plan = crate::lab::plan(len, 11, 2, 6000.0);
+    let span = plan_span(&plan);
+    let map = map_follower(&mut lab, span, CalSpec::default(), Some(&spec));
+    let r = map.vertical_reference.clone().unwrap();
+    let m = &lab.plant.follower;
+    let s0 = r.stations[0];
+    for st in &r.stations {
+        eprintln!(
+            "station at {:8.2}: y−y0 {:+.4} truth {:+.4} diff {:+.4} um sd {:.4}",
+            st.position_mm,
+            (st.value_mm - s0.value_mm) * 1e3,
+            (m.vertical(st.position_mm) - m.vertical(s0.position_mm)) * 1e3,
+            ((st.value_mm - s0.value_mm)
+                - (m.vertical(st.position_mm) - m.vertical(s0.position_mm)))
+                * 1e3,
+            st.variance_mm2.sqrt() * 1e3
+        );
+    }
+    let c = compare(&lab, &map);
+    for &(x, err, u) in c.vertical.iter().step_by(10) {
+        eprintln!("  vertical at {x:8.2} mm: map − truth {err:+.3} µm, u {u:.3} µm");
+    }
+    let m = &lab.plant.follower;
+    let vp = &map.vertical_positions_mm;
+    let (x0, x1) = (vp[0], vp[vp.len() - 1]);
+    // with the line: absolute vertical relative to x0
+    for (i, &x) in vp.iter().enumerate().step_by(10) {
+        let p = map.point(x, Direction::Up);
+        let p0 = map.point(x0, Direction::Up);
+        let truth = (m.vertical(x) - m.vertical(x0)) * 1e3;
+        eprintln!(
+            "  with line at {x:8.2}: map {:+.3} truth {truth:+.3} diff {:+.3} u {:.3}",
+            p.vertical_um - p0.vertical_um,
+            p.vertical_um - p0.vertical_um - truth,
+            p.vertical_u_um
+        );
+        let _ = i;
+    }
+    let _ = x1;
 }
