@@ -15,6 +15,7 @@ mod console;
 mod decoupling;
 mod evaluate;
 mod follower;
+mod follower_selfcal;
 mod fuzz;
 mod hexapod;
 mod hexapod_along;
