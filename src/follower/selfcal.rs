@@ -144,6 +144,11 @@ impl Plan {
         &self.spec
     }
 
+    /// Stops in each pass: a step per `step_mm` of the span and two per probe.
+    pub fn stops_per_pass(&self) -> usize {
+        self.stops.len() / self.spec.passes.max(1)
+    }
+
     /// The approach: the lead-in point, then the start (mm).
     pub fn approach(&self) -> [f64; 2] {
         [self.spec.from_mm + LEAD_IN_MM, self.spec.from_mm]
@@ -469,4 +474,3 @@ impl Collector {
 pub fn long_degree(span_mm: f64) -> usize {
     ((span_mm / 80.0).round() as usize).clamp(2, MapSettings::default().long_degree)
 }
-

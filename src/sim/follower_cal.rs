@@ -394,6 +394,7 @@ pub fn map_on_lab(
     Ok(TwinMap {
         map,
         run,
+        certificate,
         certificate_text,
         machine_time,
     })
@@ -413,6 +414,8 @@ pub enum MapTwinError {
 pub struct TwinMap {
     pub map: crate::follower::FollowerMap,
     pub run: CalRun,
+    /// The certificate the map was built with (kept with it in the store).
+    pub certificate: crate::follower::Certificate,
     /// The twin's certificate (CSV) when it was the one used.
     pub certificate_text: Option<String>,
     /// Machine time of the whole mapping (passes and level).
