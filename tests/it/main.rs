@@ -16,6 +16,7 @@ mod decoupling;
 mod evaluate;
 mod follower;
 mod follower_selfcal;
+mod follower_service;
 mod fuzz;
 mod hexapod;
 mod hexapod_along;
