@@ -180,23 +180,22 @@ fn render_lower(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
             Layout::horizontal([Constraint::Percentage(50), Constraint::Percentage(50)])
                 .areas(area);
         render_alignment(frame, left, app, theme);
-        render_follower_map(frame, right, app, theme);
+        render_follower_map(frame, right, app, "", theme);
         return;
     }
     match app.follower.panel {
         AlignPanel::Beam => render_alignment(frame, area, app, theme),
-        AlignPanel::Follower => render_follower_map(frame, area, app, theme),
+        AlignPanel::Follower => render_follower_map(frame, area, app, "  v alignment", theme),
     }
 }
 
-fn render_follower_map(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
+fn render_follower_map(frame: &mut Frame, area: Rect, app: &App, more: &str, theme: Theme) {
     let width = area.width.saturating_sub(2) as usize;
+    let title = format!("Follower map: i certificate  m map / stop{more}");
     frame.render_widget(
         Paragraph::new(follower_map_lines(app, width, theme))
             .wrap(Wrap { trim: true })
-            .block(panel(
-                "Follower map: i certificate  m map / stop  v alignment",
-            )),
+            .block(panel(&title)),
         area,
     );
 }
