@@ -293,3 +293,145 @@ fn a_mapping_interrupted_by_a_restart_is_said_so() {
     // Once said, the next start is a clean one.
     assert!(FollowerMapping::new(cfg).view().is_none());
 }
+
+/// `axiscomp follower import|map` on the command line: the certificate through the running
+/// service (applied at once) and into the store when no service answers; the mapping started
+/// detached, its status, stopped.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_command_line_imports_and_maps_through_the_service() {
+    use crate::helpers::{run, stderr, stdout};
+    let rig = ServiceRig::start(RigOptions {
+        service_toml: SERVICE.into(),
+        twin_cnc: true,
+        ..RigOptions::default()
+    })
+    .await;
+    let dir = TempDir::new("follower-cli-service");
+    let cert = dir.write(
+        "stage.csv",
+        "position_mm,error_um,direction,uncertainty_um\n0,0,+,0.2\n20,1.0,+,0.2\n40,2.0,+,0.2\n",
+    );
+    let sock = rig.socket.display().to_string();
+    let cli = |args: Vec<String>| {
+        tokio::task::spawn_blocking(move || {
+            let a: Vec<&str> = args.iter().map(String::as_str).collect();
+            run(&a, "")
+        })
+    };
+    let args = |a: &[&str]| a.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+    let o = cli(args(&[
+        "follower",
+        "import",
+        &cert.display().to_string(),
+        "--socket",
+        &sock,
+    ]))
+    .await
+    .unwrap();
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(
+        out.contains(&format!("stored by the running service ({sock})"))
+            && out.contains("take the zero again"),
+        "{out}"
+    );
+    rig.wait_for(10, "the certificate's map in use", |s| {
+        s.tracking
+            .follower_map
+            .as_ref()
+            .is_some_and(|m| m.source == "certificate")
+    })
+    .await;
+    // No service at the socket: the store directly, said so.
+    let cfg = dir.write(
+        "axiscomp.toml",
+        &format!(
+            "[service]\nstate_dir = \"{}\"\n",
+            dir.path("state").display()
+        ),
+    );
+    std::fs::create_dir_all(dir.path("state")).unwrap();
+    let none = dir.path("none.sock").display().to_string();
+    let o = cli(args(&[
+        "follower",
+        "import",
+        &cert.display().to_string(),
+        "--socket",
+        &none,
+        "--config",
+        &cfg.display().to_string(),
+    ]))
+    .await
+    .unwrap();
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(
+        out.contains(&format!(
+            "no service answers at {none}: the certificate goes into the store directly"
+        )) && out.contains("in use from the service's next start"),
+        "{out}"
+    );
+    // The mapping, detached; its status; stopped.
+    let o = cli(args(&[
+        "follower",
+        "map",
+        "--socket",
+        &sock,
+        "--from-mm",
+        "0",
+        "--to-mm",
+        "40",
+        "--passes",
+        "1",
+        "--probe-every",
+        "4",
+        "--frames",
+        "200",
+        "--detach",
+    ]))
+    .await
+    .unwrap();
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let out = stdout(&o);
+    assert!(
+        out.contains("follower mapping approaching: stop 0 of 14")
+            && out.contains("dwell 2.1 s at each stop")
+            && out.contains("follow it with: axiscomp follower map --status"),
+        "{out}"
+    );
+    let o = cli(args(&["follower", "map", "--status", "--socket", &sock]))
+        .await
+        .unwrap();
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(stdout(&o).contains(" of 14, "), "{}", stdout(&o));
+    // A second start is refused: input to fix, exit 2.
+    let o = cli(args(&[
+        "follower",
+        "map",
+        "--socket",
+        &sock,
+        "--from-mm",
+        "0",
+        "--to-mm",
+        "40",
+    ]))
+    .await
+    .unwrap();
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("a follower mapping is under way"),
+        "{}",
+        stderr(&o)
+    );
+    let o = cli(args(&["follower", "map", "--stop", "--socket", &sock]))
+        .await
+        .unwrap();
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("follower mapping stopped:")
+            && stdout(&o).contains("no map was stored"),
+        "{}",
+        stdout(&o)
+    );
+    rig.stop().await;
+}
