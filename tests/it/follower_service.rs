@@ -435,3 +435,99 @@ async fn the_command_line_imports_and_maps_through_the_service() {
     );
     rig.stop().await;
 }
+
+/// With a CNC the service does not drive (`[cnc] mode = "manual"`): the program is written for
+/// the operator, the carriage goes through its stops (here the test is the CNC), the mapping
+/// ends by itself once every planned stop was seen; `follower_map_finish` with no steps fails
+/// in words and leaves the map in use.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn with_a_manual_cnc_the_mapping_ends_when_every_stop_was_seen() {
+    use axiscomp::follower::selfcal::{Plan, Spec};
+    let rig = ServiceRig::start(RigOptions {
+        service_toml: SERVICE.into(),
+        ..RigOptions::default()
+    })
+    .await;
+    let req = MappingRequest {
+        from_mm: Some(0.0),
+        to_mm: Some(15.0),
+        passes: Some(3),
+        probe_every: Some(0),
+        frames: Some(100),
+        dialect: Some("heidenhain".into()),
+        ..MappingRequest::default()
+    };
+    let v = rig
+        .request(Request::FollowerMapStart(req))
+        .await
+        .expect("start");
+    assert_eq!(v["cnc"], "load the program on the CNC and start it", "{v}");
+    assert_eq!(
+        (v["stops_planned"].as_u64(), v["dwell_s"].as_f64()),
+        (Some(12), Some(1.6))
+    );
+    let program = std::fs::read_to_string(v["program"].as_str().unwrap()).unwrap();
+    assert!(
+        program.starts_with("0 BEGIN PGM AXISCOMP MM\n")
+            && program.matches("CYCL DEF 9.1 DWELL 1.600").count() == 14,
+        "{program}"
+    );
+    // The operator's CNC: the lead-in, the start, then every stop with its dwell.
+    let plan = Plan::new(Spec {
+        from_mm: 0.0,
+        to_mm: 15.0,
+        step_mm: 3.75,
+        passes: 3,
+        probe_every: 0,
+    })
+    .unwrap();
+    for x in plan.positions() {
+        rig.twin.move_and_wait(x).await;
+        tokio::time::sleep(Duration::from_secs_f64(1.6)).await;
+    }
+    let s = rig
+        .wait_for(20, "the mapping ended", |s| {
+            s.follower_mapping.as_ref().is_some_and(|m| !m.active())
+        })
+        .await;
+    let m = s.follower_mapping.expect("view");
+    eprintln!("{m:#?}");
+    assert_eq!(m.state, "done", "{m:#?}");
+    assert_eq!((m.stops_done, m.out_of_plan), (12, 0), "{m:#?}");
+    let id = m.map_id.expect("map");
+    // Finished by hand before any stop: no steps, no map, the map in use kept.
+    rig.request(Request::FollowerMapStart(MappingRequest {
+        from_mm: Some(0.0),
+        to_mm: Some(15.0),
+        passes: Some(3),
+        ..MappingRequest::default()
+    }))
+    .await
+    .expect("start again");
+    let e = rig
+        .request(Request::FollowerMapFinish)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("finished by root, but no map was built")
+            && e.contains("the map in use is unchanged"),
+        "{e}"
+    );
+    let s = rig
+        .wait_for(10, "the failure in the snapshot", |s| {
+            s.follower_mapping
+                .as_ref()
+                .is_some_and(|m| m.state == "failed")
+        })
+        .await;
+    assert_eq!(s.tracking.follower_map.map(|m| m.id), Some(id));
+    assert!(
+        s.alarms
+            .iter()
+            .any(|a| a.code == "mapping-failed" && a.active),
+        "{:?}",
+        s.alarms
+    );
+    rig.stop().await;
+}
