@@ -864,6 +864,15 @@ fn align_imports_a_certificate_maps_the_follower_and_shows_progress_at_80x24() {
         t.contains("vertical straightness (to the end-point line): 1.33 µm range"),
         "{t}"
     );
+    // The help fits 80×24 with every key of the screen and the global ones.
+    a.handle_key(ch('?'));
+    let t = screen_text(&a);
+    assert!(
+        t.contains("panel: follower map / beam alignment")
+            && t.contains("any key closes this help"),
+        "{t}"
+    );
+    a.handle_key(ch('x'));
     // v: back to the beam alignment.
     a.handle_key(ch('v'));
     assert!(screen_text(&a).contains("Beam alignment over the travel"));
