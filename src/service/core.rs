@@ -1359,13 +1359,9 @@ impl Core {
                 Self::reply(c.reply, r);
             }
             Request::FollowerMapStart(mapping) => {
-                let busy = match (&self.run, self.hexapod.active()) {
-                    (Some(r), _) => Some(format!(
-                        "measurement run {} is under way (it moves the carriage): abort it with run_abort or let it finish, then map the follower",
-                        r.id.0
-                    )),
-                    (None, true) => Some("a hexapod calibration run is under way (it moves the head): stop it with hexapod_stop or let it finish, then map the follower".into()),
-                    (None, false) => None,
+                let busy = super::follower_map::Busy {
+                    run: self.run.as_ref().map(|r| r.id.0),
+                    hexapod: self.hexapod.active(),
                 };
                 let who = c.peer.user.clone();
                 let r = self.with_mapping(|m, ctx| m.start(mapping, &who, busy, ctx));

@@ -201,6 +201,26 @@ fn twin_addr(cnc: &CncMode) -> Option<SocketAddr> {
     }
 }
 
+/// What else moves the machine now: a measurement run (its id), a hexapod run.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Busy {
+    pub run: Option<i64>,
+    pub hexapod: bool,
+}
+
+impl Busy {
+    /// Why a mapping cannot start now, naming what runs and how to end it.
+    fn refusal(self) -> Option<String> {
+        match (self.run, self.hexapod) {
+            (Some(id), _) => Some(format!(
+                "measurement run {id} is under way (it moves the carriage): abort it with run_abort or let it finish, then map the follower"
+            )),
+            (None, true) => Some("a hexapod calibration run is under way (it moves the head): stop it with hexapod_stop or let it finish, then map the follower".into()),
+            (None, false) => None,
+        }
+    }
+}
+
 /// The collection's context in the core: the tracker and alarms, the store, the map view.
 pub(super) struct Ctx<'a> {
     pub pipeline: &'a mut Pipeline,
@@ -292,19 +312,19 @@ impl FollowerMapping {
         }
     }
 
-    /// `follower_map_start`: refused while `busy` (a run, a hexapod run) says why; else the
-    /// plan, its program written (and sent to the twin's CNC), the collection started.
+    /// `follower_map_start`: refused while a run or a hexapod run is `busy`; else the plan,
+    /// its program written (and sent to the twin's CNC), the collection started.
     pub(super) fn start(
         &mut self,
         req: MappingRequest,
         who: &str,
-        busy: Option<String>,
+        busy: Busy,
         ctx: Ctx<'_>,
     ) -> Result<serde_json::Value, String> {
         if self.active.is_some() {
             return Err("a follower mapping is under way: stop it (follower_map_stop) or let it finish first".into());
         }
-        if let Some(why) = busy {
+        if let Some(why) = busy.refusal() {
             return Err(why);
         }
         let axis = req.axis.clone().unwrap_or_else(|| "X".into());
