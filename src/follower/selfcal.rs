@@ -11,9 +11,9 @@
 //! and forth once, so the follower reverses (the reversal error) all along the travel. Each
 //! stop after the start is one follower handover with the spot fixed in space.
 //!
-//! **The collection.** Before the start the tracker follows as it always does (the approach
-//! may come from anywhere, so a long move must be followed with the usual margin to PSD2's
-//! edge); the lead-in's last leg, a move of −[`LEAD_IN_MM`] followed by the encoder, arms the
+//! **The collection.** Before the start the tracker follows as it usually does, with the
+//! overlap strategy (the approach may come from anywhere, so a long move must be followed
+//! with the usual margin to PSD2's edge); the lead-in's last leg, a move of −[`LEAD_IN_MM`] followed by the encoder, arms the
 //! collector, and from then on the tracker runs with the procedure's settings
 //! ([`Collector::tracking`]: overlap, the procedure's averaging, an edge beyond one step) and
 //! every handover record is one stop: an optical one is kept as a [`Step`], an encoder-kind
@@ -438,16 +438,18 @@ impl Collector {
         self.plan.time_from(done, timing)
     }
 
-    /// The tracker's settings now, from the service's own `base`: `base` during the approach;
-    /// from the start the overlap strategy, `average_frames` a side, a handover at half a
-    /// step and an edge beyond one step (the spot rests a step off centre at each stop).
+    /// The tracker's settings now, from the service's own `base`, always with the overlap
+    /// strategy (only it records a handover per follower step): during the approach `base`'s
+    /// own edge and averaging (a long move is followed with the usual margin); from the start
+    /// `average_frames` a side, a handover at half a step and an edge beyond one step (the
+    /// spot rests a step off centre at each stop).
     pub fn tracking(&self, base: &TrackSettings, average_frames: usize) -> TrackSettings {
-        if !self.progress.armed {
-            return *base;
-        }
-        let step = self.plan.spec.step_mm;
         let mut s = *base;
         s.strategy = Strategy::Overlap;
+        if !self.progress.armed {
+            return s;
+        }
+        let step = self.plan.spec.step_mm;
         s.average_frames = average_frames.max(10);
         s.edge_mm = s.edge_mm.max(step + 0.45);
         s.handover_mm = s.handover_mm.min(step * 0.5);

@@ -394,6 +394,7 @@ impl Core {
             store: &mut self.store,
             shown: &mut self.follower_map,
             live_window: self.live_window,
+            frames_per_s: self.acquisition.stats().frames_per_s,
         };
         f(&mut self.follower_mapping, ctx)
     }

@@ -227,6 +227,8 @@ pub(super) struct Ctx<'a> {
     pub store: &'a mut Store,
     pub shown: &'a mut Option<FollowerMapView>,
     pub live_window: Duration,
+    /// PSD frames per second over the last second.
+    pub frames_per_s: f64,
 }
 
 impl FollowerMapping {
@@ -294,13 +296,34 @@ impl FollowerMapping {
         }
     }
 
-    fn timing(&self, frames: usize, feed_mm_min: f64, base: &TrackSettings) -> Timing {
+    /// The frame rate the dwell assumes (Hz), and why: the configured rate (at 0, as fast as
+    /// the module answers: 200 assumed), or the rate the frames come at now when that is
+    /// lower (a loaded host, a slow module) — a window of frames takes as long as they take.
+    fn frame_rate(&self, now_hz: f64) -> (f64, Option<String>) {
+        let configured = if self.cfg.frame_rate_hz > 0.0 {
+            self.cfg.frame_rate_hz
+        } else {
+            200.0
+        };
+        if now_hz.is_finite() && now_hz >= 10.0 && now_hz < 0.95 * configured {
+            let why = format!(
+                "frames come at {now_hz:.0} Hz now, not the {configured:.0} Hz configured: the dwell assumes {now_hz:.0} Hz"
+            );
+            (now_hz, Some(why))
+        } else {
+            (configured, None)
+        }
+    }
+
+    fn timing(
+        &self,
+        rate_hz: f64,
+        frames: usize,
+        feed_mm_min: f64,
+        base: &TrackSettings,
+    ) -> Timing {
         Timing {
-            frame_rate_hz: if self.cfg.frame_rate_hz > 0.0 {
-                self.cfg.frame_rate_hz
-            } else {
-                200.0
-            },
+            frame_rate_hz: rate_hz,
             average_frames: frames,
             rest: base.rest_time,
             settle: base.settle,
@@ -410,7 +433,8 @@ impl FollowerMapping {
             }
         };
         let base = *ctx.pipeline.tracker.settings();
-        let timing = self.timing(frames, feed, &base);
+        let (rate_hz, slow) = self.frame_rate(ctx.frames_per_s);
+        let timing = self.timing(rate_hz, frames, feed, &base);
         let dwell = timing.dwell_s(spec.step_mm);
         let now = Instant::now();
         let started_us = crate::store::now_us();
@@ -467,6 +491,10 @@ impl FollowerMapping {
             None => "load the program on the CNC and start it".to_string(),
         };
         let collector = Collector::new(plan, now);
+        // The overlap strategy from now on (the approach's records arm the collection).
+        ctx.pipeline
+            .tracker
+            .set_settings(collector.tracking(&base, frames));
         let progress = collector.progress();
         let view = MappingView {
             state: "approaching".into(),
@@ -479,7 +507,10 @@ impl FollowerMapping {
             stops_planned: progress.stops_planned,
             left_s: collector.left_s(&timing),
             dwell_s: dwell,
-            dwell: timing.dwell_text(spec.step_mm),
+            dwell: match &slow {
+                Some(why) => format!("{} ({why})", timing.dwell_text(spec.step_mm)),
+                None => timing.dwell_text(spec.step_mm),
+            },
             program: file.display().to_string(),
             cnc: cnc.clone(),
             certificate: cert_text,

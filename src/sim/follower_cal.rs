@@ -98,8 +98,11 @@ fn passes(
 ) -> Result<CalRun, LabError> {
     let base = *lab.pipeline.tracker.settings();
     let mut c = Collector::new(plan, lab.now());
-    // To the start through the lead-in point, followed as the tracker always follows; then
-    // every stop a handover, with the procedure's settings.
+    // To the start through the lead-in point, followed as the tracker usually follows (in
+    // the overlap strategy); then every stop a handover, with the procedure's settings.
+    lab.pipeline
+        .tracker
+        .set_settings(c.tracking(&base, average_frames));
     for x in c.plan().approach() {
         lab.move_carriage(x)?;
         settle(lab)?;

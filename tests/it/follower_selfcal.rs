@@ -168,8 +168,15 @@ fn the_collector_arms_on_the_lead_in_and_keeps_optical_steps() {
         strategy: Strategy::Encoder,
         ..TrackSettings::default()
     };
-    // Before the start: the service's own settings.
-    assert_eq!(c.tracking(&base, 300), base);
+    // Before the start: the service's own settings, with the overlap strategy (an encoder
+    // strategy records no handovers).
+    assert_eq!(
+        c.tracking(&base, 300),
+        TrackSettings {
+            strategy: Strategy::Overlap,
+            ..base
+        }
+    );
     assert_eq!(c.progress().stops_planned, 18);
     let time = timing();
     let whole = c.left_s(&time);

@@ -94,7 +94,9 @@ async fn the_service_maps_the_twins_follower_through_the_control_api() {
         .expect("mapping start");
     eprintln!("{}", serde_json::to_string_pretty(&started).unwrap());
     assert_eq!(started["stops_planned"], 14, "{started}");
-    assert_eq!(started["dwell_s"], 2.1, "{started}");
+    // 2.1 s at the configured 500 Hz; longer when the frames come slower now (a loaded host).
+    let dwell = started["dwell_s"].as_f64().expect("dwell");
+    assert!(dwell >= 2.1, "{started}");
     assert!(
         started["certificate"]
             .as_str()
@@ -103,7 +105,8 @@ async fn the_service_maps_the_twins_follower_through_the_control_api() {
     );
     let program = std::fs::read_to_string(started["program"].as_str().expect("program"))
         .expect("the program in the state directory");
-    assert_eq!(program.matches("G04 P2100").count(), 16, "{program}");
+    let g04 = format!("G04 P{:.0}", dwell * 1000.0);
+    assert_eq!(program.matches(&g04).count(), 16, "{program}");
     // Under way: a run and a hexapod run are refused, naming the mapping and how to end it.
     let e = rig
         .request(Request::RunStart {
@@ -395,7 +398,7 @@ async fn the_command_line_imports_and_maps_through_the_service() {
     let out = stdout(&o);
     assert!(
         out.contains("follower mapping approaching: stop 0 of 14")
-            && out.contains("dwell 2.1 s at each stop")
+            && out.contains(" s at each stop: rest detection 0.30 s")
             && out.contains("follow it with: axiscomp follower map --status"),
         "{out}"
     );
@@ -462,14 +465,14 @@ async fn with_a_manual_cnc_the_mapping_ends_when_every_stop_was_seen() {
         .await
         .expect("start");
     assert_eq!(v["cnc"], "load the program on the CNC and start it", "{v}");
-    assert_eq!(
-        (v["stops_planned"].as_u64(), v["dwell_s"].as_f64()),
-        (Some(12), Some(1.6))
-    );
+    assert_eq!(v["stops_planned"].as_u64(), Some(12), "{v}");
+    // 1.6 s at the configured 500 Hz; longer when the frames come slower now.
+    let dwell = v["dwell_s"].as_f64().expect("dwell");
+    assert!(dwell >= 1.6, "{v}");
     let program = std::fs::read_to_string(v["program"].as_str().unwrap()).unwrap();
+    let cycl = format!("CYCL DEF 9.1 DWELL {dwell:.3}");
     assert!(
-        program.starts_with("0 BEGIN PGM AXISCOMP MM\n")
-            && program.matches("CYCL DEF 9.1 DWELL 1.600").count() == 14,
+        program.starts_with("0 BEGIN PGM AXISCOMP MM\n") && program.matches(&cycl).count() == 14,
         "{program}"
     );
     // The operator's CNC: the lead-in, the start, then every stop with its dwell.
@@ -483,7 +486,7 @@ async fn with_a_manual_cnc_the_mapping_ends_when_every_stop_was_seen() {
     .unwrap();
     for x in plan.positions() {
         rig.twin.move_and_wait(x).await;
-        tokio::time::sleep(Duration::from_secs_f64(1.6)).await;
+        tokio::time::sleep(Duration::from_secs_f64(dwell)).await;
     }
     let s = rig
         .wait_for(20, "the mapping ended", |s| {
