@@ -36,6 +36,7 @@
 
 pub mod certificate;
 mod fit;
+pub mod selfcal;
 
 pub use certificate::{Certificate, CertificateError, CertificatePoint};
 
@@ -597,43 +598,121 @@ pub fn build_referenced(
         map.vertical_slope = v.slope;
     }
     if let Some(c) = certificate {
-        let mut xs: Vec<f64> = c.up.iter().chain(&c.down).map(|p| p.position_mm).collect();
-        xs.sort_by(f64::total_cmp);
-        xs.dedup();
-        if c.bidirectional() {
-            let revs: Vec<f64> = xs
-                .iter()
-                .map(|&x| c.at(x, Direction::Down).0 - c.at(x, Direction::Up).0)
-                .collect();
-            map.certificate_reversal_mm = Some(revs.iter().sum::<f64>() / revs.len() as f64);
-        }
-        for &x in &xs {
-            let per = periodic.map_or(0.0, |p| p.at(x).0);
-            let (eu, uu) = c.at(x, Direction::Up);
-            let (ed, ud) = c.at(x, Direction::Down);
-            let (up, down, u) = match reversal {
-                // The self-calibration's reversal applies (`correction` adds it): the long
-                // shape is the mean of the two directions with the reversal out.
-                Some(r) => {
-                    let half = r.value_mm / 2.0;
-                    let (long, u) = if c.bidirectional() {
-                        (((eu + half) + (ed - half)) / 2.0, uu.hypot(ud) / 2.0)
-                    } else if c.up.is_empty() {
-                        (ed - half, ud)
-                    } else {
-                        (eu + half, uu)
-                    };
-                    (long - per, long - per, u)
-                }
-                None => (eu - per, ed - per, uu.max(ud)),
-            };
-            map.long_positions_mm.push(x);
-            map.long_up_mm.push(up);
-            map.long_down_mm.push(down);
-            map.long_u_mm.push(u);
-        }
+        apply_certificate(&mut map, c);
     }
     Ok(map)
+}
+
+/// Put the certificate's long-wavelength shape into `map` (its periodic term and reversal,
+/// when the self-calibration gave them, taken out first: `correction` adds them), with the
+/// certificate's own mean reversal as a cross-check.
+fn apply_certificate(map: &mut FollowerMap, c: &Certificate) {
+    let (periodic, reversal) = (map.periodic, map.reversal);
+    map.long_positions_mm.clear();
+    map.long_up_mm.clear();
+    map.long_down_mm.clear();
+    map.long_u_mm.clear();
+    map.certificate_reversal_mm = None;
+    let mut xs: Vec<f64> = c.up.iter().chain(&c.down).map(|p| p.position_mm).collect();
+    xs.sort_by(f64::total_cmp);
+    xs.dedup();
+    if c.bidirectional() {
+        let revs: Vec<f64> = xs
+            .iter()
+            .map(|&x| c.at(x, Direction::Down).0 - c.at(x, Direction::Up).0)
+            .collect();
+        map.certificate_reversal_mm = Some(revs.iter().sum::<f64>() / revs.len() as f64);
+    }
+    for &x in &xs {
+        let per = periodic.map_or(0.0, |p| p.at(x).0);
+        let (eu, uu) = c.at(x, Direction::Up);
+        let (ed, ud) = c.at(x, Direction::Down);
+        let (up, down, u) = match reversal {
+            // The self-calibration's reversal applies (`correction` adds it): the long
+            // shape is the mean of the two directions with the reversal out.
+            Some(r) => {
+                let half = r.value_mm / 2.0;
+                let (long, u) = if c.bidirectional() {
+                    (((eu + half) + (ed - half)) / 2.0, uu.hypot(ud) / 2.0)
+                } else if c.up.is_empty() {
+                    (ed - half, ud)
+                } else {
+                    (eu + half, uu)
+                };
+                (long - per, long - per, u)
+            }
+            None => (eu - per, ed - per, uu.max(ud)),
+        };
+        map.long_positions_mm.push(x);
+        map.long_up_mm.push(up);
+        map.long_down_mm.push(down);
+        map.long_u_mm.push(u);
+    }
+}
+
+impl FollowerMap {
+    /// This map with `certificate` as its length reference: the long-wavelength shape from
+    /// the certificate (replacing any the map had), the self-calibration's terms (periodic,
+    /// reversal, vertical, its line) kept. How a certificate imported after a
+    /// self-calibration joins it (the steps are not kept, the fitted terms are).
+    pub fn with_certificate(&self, certificate: &Certificate) -> FollowerMap {
+        let mut map = self.clone();
+        map.sources.long = Source::Certificate;
+        map.sources.reversal = match (map.reversal, certificate.bidirectional()) {
+            (Some(_), _) => Source::SelfCalibration,
+            (None, true) => Source::Certificate,
+            (None, false) => Source::None,
+        };
+        map.certificate_name = Some(certificate.name.clone());
+        apply_certificate(&mut map, certificate);
+        map
+    }
+}
+
+/// The key of the certificate's points in a stored map's TOML (see [`stored_toml`]).
+const CERTIFICATE_KEY: &str = "certificate";
+
+/// A map as the store keeps it: the map's TOML ([`FollowerMap::to_toml`]) with the
+/// certificate it was built from in a `[certificate]` table, so that a later
+/// self-calibration combines with it. [`FollowerMap::from_toml`] reads it too (the table is
+/// ignored), and maps stored before the table existed read back with no certificate.
+pub fn stored_toml(map: &FollowerMap, certificate: Option<&Certificate>) -> String {
+    let mut text = map.to_toml();
+    if let Some(c) = certificate {
+        #[derive(Serialize)]
+        struct Wrap<'a> {
+            certificate: &'a Certificate,
+        }
+        match toml::to_string(&Wrap { certificate: c }) {
+            Ok(t) => {
+                if !text.ends_with('\n') {
+                    text.push('\n');
+                }
+                text.push_str(&t);
+            }
+            Err(e) => text.push_str(&format!("# the certificate could not be written: {e}\n")),
+        }
+    }
+    text
+}
+
+/// Read a map written by [`stored_toml`] (or [`FollowerMap::to_toml`]): the map and its
+/// certificate, when it has one. `file` names it in errors.
+pub fn from_stored_toml(
+    text: &str,
+    file: &str,
+) -> Result<(FollowerMap, Option<Certificate>), MapError> {
+    let bad = |e: toml::de::Error| MapError::File {
+        file: file.to_string(),
+        problem: format!("not a follower map: {}", e.message()),
+    };
+    let mut table: toml::Table = toml::from_str(text).map_err(bad)?;
+    let certificate = match table.remove(CERTIFICATE_KEY) {
+        Some(v) => Some(v.try_into::<Certificate>().map_err(bad)?),
+        None => None,
+    };
+    let map: FollowerMap = toml::Value::Table(table).try_into().map_err(bad)?;
+    Ok((map, certificate))
 }
 
 #[cfg(test)]

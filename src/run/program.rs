@@ -255,6 +255,42 @@ pub fn generate_settled(
     Ok(out)
 }
 
+/// A program that visits `stops` in order on `axis` at `feed_mm_min`, dwelling `dwell_s` at
+/// each: the follower's stop-and-go self-calibration (`follower::selfcal`), whose stops are
+/// follower handovers, not captures. A stop's comment, when it has one, goes before it.
+pub fn generate_stops(
+    axis: &str,
+    stops: &[(f64, Option<String>)],
+    feed_mm_min: f64,
+    dwell_s: f64,
+    title: &str,
+    dialect: Dialect,
+) -> String {
+    let mut out = String::new();
+    let mut w = Writer {
+        dialect,
+        out: &mut out,
+        n: 0,
+    };
+    w.header(title);
+    for (x, comment) in stops {
+        if let Some(c) = comment {
+            w.comment(c);
+        }
+        w.move_to(
+            axis,
+            &Step {
+                position_mm: *x,
+                target: None,
+            },
+            feed_mm_min,
+        );
+        w.dwell(dwell_s);
+    }
+    w.footer();
+    out
+}
+
 struct Writer<'a> {
     dialect: Dialect,
     out: &'a mut String,
@@ -486,6 +522,27 @@ mod tests {
         assert!(text.starts_with(
             "(axiscomp ISO 230-2 X 0.000 to 100.000 mm, 5 targets, 2 runs, dwell 1.5 s, make-up)"
         ));
+    }
+
+    #[test]
+    fn a_stop_and_go_program_dwells_at_every_stop() {
+        let stops = vec![
+            (12.0, Some("lead-in".to_string())),
+            (0.0, None),
+            (3.75, Some("pass 1 (up)".to_string())),
+        ];
+        let cnc = generate_stops("X", &stops, 1000.0, 2.1, "follower map", Dialect::LinuxCnc);
+        assert_eq!(
+            cnc,
+            "(follower map)\nG21 G90 G94 G17\n(lead-in)\nG1 X12.0000 F1000\nG4 P2.100\nG1 X0.0000 F1000\nG4 P2.100\n(pass 1 up)\nG1 X3.7500 F1000\nG4 P2.100\nM2\n"
+        );
+        let iso = generate_stops("Y", &stops, 1000.0, 2.1, "follower map", Dialect::Iso);
+        assert_eq!(iso.matches("G04 P2100\n").count(), 3);
+        assert!(iso.contains("(PASS 1 UP)\nG01 Y3.7500 F1000\n"), "{iso}");
+        let hh = generate_stops("X", &stops, 1000.0, 2.1, "m", Dialect::Heidenhain);
+        assert_eq!(hh.matches("CYCL DEF 9.1 DWELL 2.100").count(), 3);
+        let sie = generate_stops("X", &stops, 1000.0, 2.1, "m", Dialect::Siemens);
+        assert!(sie.contains(" G4 F2.100\n") && sie.ends_with(" M30\n"));
     }
 
     #[test]

@@ -172,6 +172,20 @@ pub enum Request {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         id: Option<i64>,
     },
+    /// Import the follower encoder's calibration certificate (`path` on the service's host,
+    /// or its `csv` text): stored with its map and, unless `keep_current`, applied at once
+    /// (joined with the self-calibration of the map in use when it has one).
+    FollowerCertificate(super::follower::CertificateImport),
+    /// Map the follower by the stop-and-go self-calibration (`service::follower_map`): its
+    /// part program to the CNC; at the end the map stored and put in use.
+    FollowerMapStart(super::follower_map::MappingRequest),
+    /// Where the follower mapping is (`service::follower_map::MappingView`).
+    FollowerMapStatus,
+    /// Stop the follower mapping: nothing is stored.
+    FollowerMapStop,
+    /// Build the follower map now from the steps so far (with a CNC the service does not
+    /// drive, or when enough is enough).
+    FollowerMapFinish,
 }
 
 impl Request {
@@ -188,7 +202,8 @@ impl Request {
             | Request::HexapodStatus
             | Request::TableList { .. }
             | Request::TableStatus
-            | Request::FollowerMap { id: None } => Role::Viewer,
+            | Request::FollowerMap { id: None }
+            | Request::FollowerMapStatus => Role::Viewer,
             _ => Role::Operator,
         }
     }
@@ -713,6 +728,48 @@ mod tests {
         let e = serde_json::from_str::<Request>(r#"{"cmd":"follower","action":"jog","mn":1}"#);
         assert!(e.unwrap_err().to_string().contains("unknown field `mn`"));
         assert!(serde_json::from_str::<Request>(r#"{"cmd":"launch"}"#).is_err());
+        let r: Request = serde_json::from_str(
+            r#"{"cmd":"follower_map_start","from_mm":0,"to_mm":60,"passes":2}"#,
+        )
+        .unwrap();
+        let Request::FollowerMapStart(mapping) = &r else {
+            panic!("{r:?}")
+        };
+        assert_eq!(
+            (
+                mapping.from_mm,
+                mapping.to_mm,
+                mapping.passes,
+                mapping.frames
+            ),
+            (Some(0.0), Some(60.0), Some(2), None)
+        );
+        assert_eq!(r.needs(), Role::Operator);
+        let r: Request = serde_json::from_str(r#"{"cmd":"follower_map_start"}"#).unwrap();
+        assert_eq!(r, Request::FollowerMapStart(Default::default()));
+        let e = serde_json::from_str::<Request>(r#"{"cmd":"follower_map_start","form_mm":0}"#);
+        assert!(
+            e.unwrap_err()
+                .to_string()
+                .contains("unknown field `form_mm`")
+        );
+        let r: Request = serde_json::from_str(r#"{"cmd":"follower_map_status"}"#).unwrap();
+        assert_eq!(r.needs(), Role::Viewer);
+        let r: Request =
+            serde_json::from_str(r#"{"cmd":"follower_certificate","path":"/tmp/c.csv"}"#).unwrap();
+        assert_eq!(
+            r,
+            Request::FollowerCertificate(crate::service::follower::CertificateImport {
+                path: Some("/tmp/c.csv".into()),
+                ..Default::default()
+            })
+        );
+        // Serialised back flat, as the command line sends it.
+        assert_eq!(
+            serde_json::to_value(&r).unwrap(),
+            serde_json::json!({"cmd": "follower_certificate", "path": "/tmp/c.csv", "keep_current": false})
+        );
+        assert_eq!(r.needs(), Role::Operator);
     }
 
     #[tokio::test]

@@ -177,6 +177,7 @@ pub(super) struct Core {
     last_cnc_poll: Instant,
     calibrations: super::calibration::Calibrations,
     hexapod: super::hexapod_run::HexapodRuns,
+    follower_mapping: super::follower_map::FollowerMapping,
 }
 
 /// A make-up pass is sent for a missing capture at most this many times before the run fails.
@@ -369,7 +370,33 @@ impl Core {
                 p.layout.clone(),
                 &s.service.state_dir,
             ),
+            follower_mapping: super::follower_map::FollowerMapping::new(
+                super::follower_map::MappingConfig {
+                    cnc: s.cnc.mode.clone(),
+                    dialect: s.cnc.dialect,
+                    state_dir: s.service.state_dir.clone(),
+                    frame_rate_hz: s.io.acquire.rate_hz,
+                    follower_velocity_mm_s: s.follower.drive.profile.velocity_mm_s,
+                    follower_accel_mm_s2: s.follower.drive.profile.accel_mm_s2,
+                    sync: s.follower.drive.sync_period,
+                },
+            ),
         }
+    }
+
+    /// The follower mapping with what it works on (`service::follower_map`).
+    fn with_mapping<R>(
+        &mut self,
+        f: impl FnOnce(&mut super::follower_map::FollowerMapping, super::follower_map::Ctx<'_>) -> R,
+    ) -> R {
+        let ctx = super::follower_map::Ctx {
+            pipeline: &mut self.pipeline,
+            store: &mut self.store,
+            shown: &mut self.follower_map,
+            zero_window: self.zero_window,
+            frames_per_s: self.acquisition.stats().frames_per_s,
+        };
+        f(&mut self.follower_mapping, ctx)
     }
 
     pub(super) async fn run(
@@ -592,6 +619,7 @@ impl Core {
                     });
                 }
                 Output::Handover(r) => {
+                    self.follower_mapping.handle_record(&r, &mut self.pipeline);
                     let run = self.run.as_ref().map(|a| a.id);
                     if let Err(e) = self.store.insert_handover(run, &r) {
                         self.pipeline
@@ -1048,6 +1076,9 @@ impl Core {
         if self.hexapod.active() {
             return Err("a hexapod calibration run is under way (it moves the head): stop it with hexapod_stop or let it finish, then start the run".into());
         }
+        if let Some(why) = self.follower_mapping.refusal("start the run") {
+            return Err(why);
+        }
         let plan = Plan::new(spec).map_err(|e| e.to_string())?;
         if plan.spec.overrun_mm <= self.capture.target_tolerance_mm {
             return Err(format!(
@@ -1332,6 +1363,32 @@ impl Core {
                 let r = super::follower::request(store, tracker, &mut self.follower_map, id);
                 Self::reply(c.reply, r);
             }
+            Request::FollowerCertificate(req) => {
+                let (store, tracker) = (&mut self.store, &mut self.pipeline.tracker);
+                let shown = &mut self.follower_map;
+                let r = super::follower::import_certificate(store, tracker, shown, req);
+                Self::reply(c.reply, r);
+            }
+            Request::FollowerMapStart(mapping) => {
+                let busy = super::follower_map::Busy {
+                    run: self.run.as_ref().map(|r| r.id.0),
+                    hexapod: self.hexapod.active(),
+                };
+                let who = c.peer.user.clone();
+                let r = self.with_mapping(|m, ctx| m.start(mapping, &who, busy, ctx));
+                Self::reply(c.reply, r);
+            }
+            Request::FollowerMapStatus => Self::reply(c.reply, Ok(self.follower_mapping.status())),
+            Request::FollowerMapStop => {
+                let who = c.peer.user.clone();
+                let r = self.with_mapping(|m, ctx| m.stop(&who, ctx));
+                Self::reply(c.reply, r);
+            }
+            Request::FollowerMapFinish => {
+                let who = c.peer.user.clone();
+                let r = self.with_mapping(|m, ctx| m.finish(&who, ctx));
+                Self::reply(c.reply, r);
+            }
             Request::AlignClear => {
                 self.align.clear();
                 Self::reply(c.reply, Ok(serde_json::json!({"stations": 0})));
@@ -1388,12 +1445,14 @@ impl Core {
             }
             Request::CalibrationReject => Self::reply(c.reply, self.calibrations.reject()),
             Request::HexapodStart { plan, poses, out } => {
-                let r = match &self.run {
-                    Some(r) => Err(format!(
+                let mapping = self.follower_mapping.refusal("calibrate");
+                let r = match (&self.run, mapping) {
+                    (Some(r), _) => Err(format!(
                         "measurement run {} is under way: the hexapod would move the head under it; abort it or let it finish, then calibrate",
                         r.id.0
                     )),
-                    None => self.hexapod.start(
+                    (None, Some(why)) => Err(why),
+                    (None, None) => self.hexapod.start(
                         plan,
                         poses,
                         out,
@@ -1480,6 +1539,7 @@ impl Core {
     fn on_tick(&mut self) {
         let now = Instant::now();
         self.take_hexapod_fit();
+        self.with_mapping(|m, ctx| m.tick(now, ctx));
         if let Some(z) = self.pipeline.zero_ready(now)
             && let Some(reply) = self.zero_reply.take()
         {
@@ -1622,6 +1682,7 @@ impl Core {
                     paused: p.paused().map(str::to_string),
                 }
             }),
+            follower_mapping: self.follower_mapping.view(),
         }
     }
 }

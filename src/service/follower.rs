@@ -1,8 +1,11 @@
 //! The follower error map in the service: the map in use is loaded from the store at start
-//! and applied to the tracker; the control API shows it (`follower_map`) or puts another
-//! stored map in use (`follower_map` with `id`, operators only); the snapshot names it.
+//! and applied to the tracker; the control API shows it (`follower_map`), puts another
+//! stored map in use (`follower_map` with `id`, operators only) or imports the encoder's
+//! certificate (`follower_certificate`: stored and applied at once, joined with the
+//! self-calibration of the map in use when it has one); the snapshot names it. The
+//! stop-and-go self-calibration itself is `follower_map` (the module beside this one).
 
-use crate::follower::{FollowerMap, Sources};
+use crate::follower::{Certificate, FollowerMap, MapSettings, Sources};
 use crate::store::{FollowerMapRecord, Store};
 use crate::track::Tracker;
 use serde::{Deserialize, Serialize};
@@ -21,7 +24,7 @@ pub struct FollowerMapView {
     pub sources: Sources,
 }
 
-fn view(r: &FollowerMapRecord) -> FollowerMapView {
+pub(super) fn view(r: &FollowerMapRecord) -> FollowerMapView {
     FollowerMapView {
         id: r.id,
         name: r.name.clone(),
@@ -79,5 +82,101 @@ pub(super) fn request(
         "in_use": in_use.map(view),
         "summary": in_use.map(|m| m.map.summary()),
         "maps": list,
+    }))
+}
+
+/// Where a certificate to import comes from: a file on the service's host, or its text.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CertificateImport {
+    /// A CSV file on the service's host.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub path: Option<String>,
+    /// The CSV text itself (the command line sends the file it read).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub csv: Option<String>,
+    /// The name errors and the store give it (default: the path's file name).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
+    /// Store it without putting it in use.
+    #[serde(default)]
+    pub keep_current: bool,
+}
+
+/// The map a certificate makes in `store`: joined with the self-calibration of the map in
+/// use when it has one (its periodic term, reversal and vertical kept, the certificate's long
+/// shape in place of any other), else the certificate's alone; its name, and the map it
+/// joined.
+pub fn certificate_map(
+    store: &Store,
+    cert: &Certificate,
+) -> Result<(FollowerMap, String, Option<i64>), String> {
+    let in_use = store.follower_map_in_use().map_err(|e| e.to_string())?;
+    Ok(match in_use.filter(|r| r.map.self_calibration.is_some()) {
+        Some(r) => (
+            r.map.with_certificate(cert),
+            format!("{} with the self-calibration of map {}", cert.name, r.id),
+            Some(r.id),
+        ),
+        None => (
+            crate::follower::build(&[], Some(cert), &MapSettings::default())
+                .map_err(|e| e.to_string())?,
+            cert.name.clone(),
+            None,
+        ),
+    })
+}
+
+/// Read and parse the certificate `path` on the service's host; errors name the file and,
+/// for a bad row, the line.
+pub(super) fn read_certificate(path: &str) -> Result<Certificate, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        format!("certificate {path}: cannot read it ({e}); give a CSV on the service's host")
+    })?;
+    Certificate::parse(&text, path).map_err(|e| e.to_string())
+}
+
+/// `follower_certificate`: parse the certificate, make it a map ([`certificate_map`]), store
+/// it with its points and, unless `keep_current`, put it in use in the tracker at once.
+pub(super) fn import_certificate(
+    store: &mut Store,
+    tracker: &mut Tracker,
+    shown: &mut Option<FollowerMapView>,
+    req: CertificateImport,
+) -> Result<serde_json::Value, String> {
+    let cert = match (&req.csv, &req.path) {
+        (Some(text), _) => {
+            let name = req.name.clone().unwrap_or_else(|| "certificate".into());
+            Certificate::parse(text, &name).map_err(|e| e.to_string())?
+        }
+        (None, Some(path)) => {
+            let mut c = read_certificate(path)?;
+            if let Some(n) = &req.name {
+                c.name = n.clone();
+            }
+            c
+        }
+        (None, None) => {
+            return Err("follower_certificate needs \"path\" (a CSV on the service's host) or \"csv\" (its text)".into());
+        }
+    };
+    let (map, name, joined) = certificate_map(store, &cert)?;
+    let use_it = !req.keep_current;
+    let id = store
+        .insert_follower_map_with(&map, Some(&cert), &name, use_it)
+        .map_err(|e| format!("the certificate's map was not stored: {e}"))?;
+    if use_it {
+        let r = store.follower_map(id).map_err(|e| e.to_string())?;
+        tracker.set_map(Some(Arc::new(r.map.clone())));
+        *shown = Some(view(&r));
+        tracing::info!(id, %name, "follower map from a certificate in use");
+    }
+    Ok(serde_json::json!({
+        "id": id,
+        "name": name,
+        "in_use": use_it,
+        "joined_with": joined,
+        "summary": map.summary(),
+        "zero": if use_it { "the map applies from now on: take the zero again before measuring" } else { "stored; the map in use is unchanged" },
     }))
 }

@@ -21,6 +21,10 @@ pub struct Snapshot {
     /// The active run, if any.
     #[serde(default)]
     pub run: Option<RunView>,
+    /// The follower's stop-and-go mapping: under way, or how the last one since the service
+    /// started ended.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub follower_mapping: Option<super::follower_map::MappingView>,
 }
 
 /// A measurement run in progress.

@@ -1,17 +1,18 @@
 //! The follower's stop-and-go self-calibration on the virtual-time lab, through the lab's
 //! public interface only (the carriage, the clock, the service's tracker).
 //!
-//! The carriage steps `step_mm` at a time over the span and rests; the tracker (overlap
-//! strategy, `average_frames` per side) hands over while the spot is fixed in space; each
-//! handover's optical displacement, along and vertical, with its variance, is read from the
-//! stitch's increments and becomes a [`Step`] of the follower from the encoder position
-//! before to the one after. Passes alternate up and down; every `probe_every` stops the
-//! carriage steps back and forth once, so the follower reverses (the reversal error) all
-//! along the travel. The steps feed `follower::build`.
+//! The plan and the collection are the product's own (`follower::selfcal`, which the service
+//! runs as a part program): the carriage comes to the start through the lead-in point, then
+//! steps over the span and rests; the tracker (overlap strategy, `average_frames` per side)
+//! hands over while the spot is fixed in space; each stop's displacement, along and vertical,
+//! with its variance, is read from the stitch's increments as the tracker's handover record
+//! (the lab keeps the records to itself) and goes to the collector, which keeps the optical
+//! steps for `follower::build`.
 
 use super::lab::{Lab, LabError};
+use crate::follower::selfcal::{Collector, Plan, Spec};
 use crate::follower::{FollowerMap, LevelStation, Step, VerticalReference};
-use crate::track::Strategy;
+use crate::track::{HandoverKind, HandoverRecord};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -34,13 +35,27 @@ pub struct CalSpec {
 
 impl Default for CalSpec {
     fn default() -> Self {
+        let s = Spec::default();
         CalSpec {
-            from_mm: 0.0,
-            to_mm: 1000.0,
-            step_mm: 3.75,
-            passes: 4,
+            from_mm: s.from_mm,
+            to_mm: s.to_mm,
+            step_mm: s.step_mm,
+            passes: s.passes,
             average_frames: 1000,
-            probe_every: 13,
+            probe_every: s.probe_every,
+        }
+    }
+}
+
+impl CalSpec {
+    /// The procedure's plan of stops.
+    pub fn spec(&self) -> Spec {
+        Spec {
+            from_mm: self.from_mm,
+            to_mm: self.to_mm,
+            step_mm: self.step_mm,
+            passes: self.passes,
+            probe_every: self.probe_every,
         }
     }
 }
@@ -67,61 +82,37 @@ pub fn self_calibrate(
     spec: &CalSpec,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<CalRun, LabError> {
-    let bad = |why: String| LabError::Setup(super::SimError::Input(why));
-    if !(spec.step_mm > 0.5 && spec.step_mm <= 4.0) || spec.to_mm <= spec.from_mm + spec.step_mm {
-        return Err(bad(format!(
-            "self-calibration: a step of {} mm over {} to {} mm: give a step of 0.5 to 4 mm and a span of several steps",
-            spec.step_mm, spec.from_mm, spec.to_mm
-        )));
-    }
+    let plan = Plan::new(spec.spec())
+        .map_err(|e| LabError::Setup(super::SimError::Input(e.to_string())))?;
     let saved = *lab.pipeline.tracker.settings();
-    let mut s = saved;
-    s.strategy = Strategy::Overlap;
-    s.average_frames = spec.average_frames.max(10);
-    s.edge_mm = s.edge_mm.max(spec.step_mm + 0.45);
-    s.handover_mm = s.handover_mm.min(spec.step_mm * 0.5);
-    // No final approach: the passes measure the reversal, so each step ends in its own
-    // direction.
-    s.approach_mm = 0.0;
-    lab.pipeline.tracker.set_settings(s);
-    let result = passes(lab, spec, &mut progress);
+    let result = passes(lab, plan, spec.average_frames, &mut progress);
     lab.pipeline.tracker.set_settings(saved);
     result
 }
 
 fn passes(
     lab: &mut Lab,
-    spec: &CalSpec,
+    plan: Plan,
+    average_frames: usize,
     progress: &mut impl FnMut(usize, usize),
 ) -> Result<CalRun, LabError> {
-    let started = lab.now();
-    let n = ((spec.to_mm - spec.from_mm) / spec.step_mm).floor() as usize;
-    let mut targets = Vec::new();
-    for p in 0..spec.passes {
-        for k in 1..=n {
-            let (x, back) = if p % 2 == 0 {
-                let x = spec.from_mm + k as f64 * spec.step_mm;
-                (x, x - spec.step_mm)
-            } else {
-                let x = spec.from_mm + (n - k) as f64 * spec.step_mm;
-                (x, x + spec.step_mm)
-            };
-            targets.push(x);
-            if spec.probe_every > 0 && k % spec.probe_every == 0 && k < n {
-                targets.push(back);
-                targets.push(x);
-            }
-        }
+    let base = *lab.pipeline.tracker.settings();
+    let mut c = Collector::new(plan, lab.now());
+    // To the start through the lead-in point, followed as the tracker usually follows (in
+    // the overlap strategy); then every stop a handover, with the procedure's settings.
+    lab.pipeline
+        .tracker
+        .set_settings(c.tracking(&base, average_frames));
+    for x in c.plan().approach() {
+        lab.move_carriage(x)?;
+        settle(lab)?;
     }
-    // To the start, followed by the encoder; then every stop a handover.
-    lab.move_carriage(spec.from_mm)?;
-    settle(lab)?;
-    let mut run = CalRun {
-        steps: Vec::new(),
-        skipped: 0,
-        machine_time: Duration::ZERO,
-    };
-    for (i, &x) in targets.iter().enumerate() {
+    c.arm();
+    lab.pipeline
+        .tracker
+        .set_settings(c.tracking(&base, average_frames));
+    let stops = c.plan().stops().to_vec();
+    for (i, &x) in stops.iter().enumerate() {
         let before = lab.pipeline.tracker.stitch();
         let from = encoder(lab)?;
         lab.move_carriage(x)?;
@@ -137,27 +128,39 @@ fn passes(
         settle(lab)?;
         let after = lab.pipeline.tracker.stitch();
         let to = encoder(lab)?;
-        let var = [
+        let variance = [
             after.variance[0] - before.variance[0],
             after.variance[1] - before.variance[1],
         ];
-        if var[0] > OPTICAL_VAR_LIMIT || to == from {
-            run.skipped += 1;
-        } else {
-            run.steps.push(Step {
-                from_mm: from,
-                to_mm: to,
-                along_mm: after.follower_mm - before.follower_mm,
-                vertical_mm: after.vertical_mm - before.vertical_mm,
-                variance: var,
-            });
-        }
+        c.handle_record(&HandoverRecord {
+            unix_us: 0,
+            kind: if variance[0] > OPTICAL_VAR_LIMIT {
+                HandoverKind::Encoder
+            } else {
+                HandoverKind::Overlap
+            },
+            before: [0.0; 2],
+            after: [0.0; 2],
+            n_before: 0,
+            n_after: 0,
+            frame_sd: [0.0; 2],
+            encoder_before: from,
+            encoder_after: to,
+            delta: [
+                after.follower_mm - before.follower_mm,
+                after.vertical_mm - before.vertical_mm,
+            ],
+            variance,
+        });
         if i % 20 == 0 {
-            progress(i, targets.len());
+            progress(i, stops.len());
         }
     }
-    run.machine_time = lab.now() - started;
-    Ok(run)
+    Ok(CalRun {
+        steps: c.steps().to_vec(),
+        skipped: c.progress().skipped,
+        machine_time: c.elapsed(lab.now()),
+    })
 }
 
 /// Wait until no handover is under way or about to start (the spot centred, at rest).
@@ -435,6 +438,7 @@ pub fn map_on_lab(
     Ok(TwinMap {
         map,
         run,
+        certificate,
         certificate_text,
         machine_time,
     })
@@ -454,6 +458,8 @@ pub enum MapTwinError {
 pub struct TwinMap {
     pub map: crate::follower::FollowerMap,
     pub run: CalRun,
+    /// The certificate the map was built with (kept with it in the store).
+    pub certificate: crate::follower::Certificate,
     /// The twin's certificate (CSV) when it was the one used.
     pub certificate_text: Option<String>,
     /// Machine time of the whole mapping (passes and level).

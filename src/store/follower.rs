@@ -1,8 +1,9 @@
 //! Follower error maps (`follower::FollowerMap`): stored whole as TOML with their source and
-//! date; at most one is in use (the tracker applies it).
+//! date, and with the certificate they were built from (`follower::stored_toml`: a later
+//! self-calibration combines with it); at most one is in use (the tracker applies it).
 
 use super::{Store, StoreError, now_us};
-use crate::follower::{FollowerMap, Source};
+use crate::follower::{Certificate, FollowerMap, Source};
 use rusqlite::{OptionalExtension, params};
 
 /// A stored follower map.
@@ -16,6 +17,8 @@ pub struct FollowerMapRecord {
     pub name: String,
     pub in_use: bool,
     pub map: FollowerMap,
+    /// The certificate the map was built from (none for maps stored before it was kept).
+    pub certificate: Option<Certificate>,
 }
 
 /// What a map is made from, as the store names it.
@@ -37,6 +40,18 @@ impl Store {
         name: &str,
         use_it: bool,
     ) -> Result<i64, StoreError> {
+        self.insert_follower_map_with(map, None, name, use_it)
+    }
+
+    /// Store a follower map and the certificate it was built from, named `name`; with
+    /// `use_it` it becomes the map in use.
+    pub fn insert_follower_map_with(
+        &mut self,
+        map: &FollowerMap,
+        certificate: Option<&Certificate>,
+        name: &str,
+        use_it: bool,
+    ) -> Result<i64, StoreError> {
         let what = "store a follower map";
         let label = self.label();
         let fail = |e| super::classify(&label, what, e);
@@ -48,7 +63,13 @@ impl Store {
         tx.execute(
             "INSERT INTO follower_maps (created_us, source, name, map_toml, in_use) \
              VALUES (?1, ?2, ?3, ?4, ?5)",
-            params![now_us(), source_of(map), name, map.to_toml(), use_it as i64],
+            params![
+                now_us(),
+                source_of(map),
+                name,
+                crate::follower::stored_toml(map, certificate),
+                use_it as i64
+            ],
         )
         .map_err(fail)?;
         let id = tx.last_insert_rowid();
@@ -127,8 +148,9 @@ impl Store {
             .map_err(|e| self.fail(what, e))?;
         raws.into_iter()
             .map(|(id, created_us, source, name, in_use, text)| {
-                let map = FollowerMap::from_toml(&text, &format!("follower map {id}"))
-                    .map_err(|e| self.decode(what, e))?;
+                let (map, certificate) =
+                    crate::follower::from_stored_toml(&text, &format!("follower map {id}"))
+                        .map_err(|e| self.decode(what, e))?;
                 Ok(FollowerMapRecord {
                     id,
                     created_us,
@@ -136,6 +158,7 @@ impl Store {
                     name,
                     in_use: in_use == 1,
                     map,
+                    certificate,
                 })
             })
             .collect()
@@ -159,11 +182,14 @@ mod tests {
         )
         .unwrap();
         let map = build(&[], Some(&cert), &MapSettings::default()).unwrap();
-        let a = store.insert_follower_map(&map, "c.csv", true).unwrap();
+        let a = store
+            .insert_follower_map_with(&map, Some(&cert), "c.csv", true)
+            .unwrap();
         let b = store.insert_follower_map(&map, "c2.csv", true).unwrap();
         let in_use = store.follower_map_in_use().unwrap().unwrap();
         assert_eq!((in_use.id, in_use.source.as_str()), (b, "certificate"));
-        assert_eq!(in_use.map, map);
+        assert_eq!((&in_use.map, &in_use.certificate), (&map, &None));
+        assert_eq!(store.follower_map(a).unwrap().certificate, Some(cert));
         store.use_follower_map(a).unwrap();
         assert_eq!(store.follower_map_in_use().unwrap().unwrap().id, a);
         assert_eq!(store.follower_maps().unwrap().len(), 2);

@@ -15,6 +15,8 @@ mod console;
 mod decoupling;
 mod evaluate;
 mod follower;
+mod follower_selfcal;
+mod follower_service;
 mod fuzz;
 mod hexapod;
 mod hexapod_along;

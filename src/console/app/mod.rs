@@ -11,6 +11,7 @@
 
 mod align;
 mod calibrate;
+mod follower_map;
 mod measure;
 mod publish;
 mod reply;
@@ -20,6 +21,7 @@ mod tests;
 
 pub use align::{AdviceView, AlignProc, StationSpot, StationView};
 pub use calibrate::{CalSummary, CalibrateState, HexapodView};
+pub use follower_map::{AlignPanel, FollowerPanel, parse_mapping};
 pub use measure::{Field, PlanForm, RunProgress};
 pub use publish::PublishState;
 pub use results::ResultsView;
@@ -125,6 +127,10 @@ pub enum Confirm {
     /// Start a hexapod calibration run: the plan CSV on the service's host ("" for the
     /// default plan).
     HexapodStart(String),
+    /// Map the follower by the stop-and-go self-calibration.
+    MapStart(crate::service::follower_map::MappingRequest),
+    /// Stop the follower mapping under way.
+    MapStop,
 }
 
 /// What a line typed into the input box is for.
@@ -142,6 +148,10 @@ pub enum InputFor {
     AlignSpan,
     /// What the alignment target shows where a spot is off its PSD: "PSD X Y" (mm).
     AlignTarget,
+    /// The follower encoder's certificate CSV on the service's host.
+    CertificatePath,
+    /// The follower mapping: "FROM TO [PASSES [FRAMES]]".
+    Mapping,
 }
 
 /// A line being typed (Enter takes it, Esc drops it).
@@ -217,6 +227,9 @@ enum Pending {
     /// The advice over this span (mm).
     AlignAdvice((f64, f64)),
     AlignClear,
+    Certificate,
+    MapStart,
+    MapStop,
     Other(String),
 }
 
@@ -299,6 +312,8 @@ pub struct App {
     pub calibrate: CalibrateState,
     /// The beam alignment on the Align screen.
     pub align: AlignProc,
+    /// The follower error map on the Align screen.
+    pub follower: FollowerPanel,
     /// Where the part program was last saved, or why not.
     pub saved: Option<Result<String, String>>,
     pub log: VecDeque<LogLine>,
@@ -346,6 +361,7 @@ impl App {
             publish: PublishState::default(),
             calibrate: CalibrateState::default(),
             align: AlignProc::default(),
+            follower: FollowerPanel::default(),
             saved: None,
             log: VecDeque::new(),
             now,
@@ -602,6 +618,7 @@ impl App {
             }
         }
         self.snapshot = Some(s);
+        self.observe_mapping();
         out
     }
 
@@ -757,6 +774,9 @@ impl App {
                 }
             }
             InputFor::AlignSpan | InputFor::AlignTarget => self.align_input(&input.purpose, &text),
+            InputFor::CertificatePath | InputFor::Mapping => {
+                self.follower_map_input(&input.purpose, &text)
+            }
         }
     }
 
@@ -816,6 +836,7 @@ impl App {
                 vec![self.send(Request::CalibrationFit { poses: path }, Pending::Fit)]
             }
             Confirm::HexapodStart(plan) => self.hexapod_start(plan),
+            c @ (Confirm::MapStart(_) | Confirm::MapStop) => self.follower_map_confirmed(c),
             Confirm::Accept(force) => {
                 self.log(
                     Level::Info,
@@ -849,15 +870,16 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
             ("h", "home the follower"),
             ("j / k", "jog the follower − / + one step"),
             ("[ / ]", "jog step ÷10 / ×10"),
-            ("z", "zero here (errors and stitching)"),
-            ("c", "clear the zero"),
-            ("x", "stop the follower"),
-            ("r", "reset a drive fault and enable"),
+            ("z / c", "zero here (errors, stitching) / clear it"),
+            ("x / r", "stop the follower / reset a fault, enable"),
             ("s", "type the alignment span (from to, mm)"),
             ("n / f", "read the spots at the near / far end"),
             ("t", "type what a PSD's target shows (no spot)"),
             ("a", "advice: the check, the screws to turn"),
             ("e", "erase the stations read (after turning)"),
+            ("i", "import the follower's certificate CSV"),
+            ("m", "map the follower (asks) / stop the mapping"),
+            ("v", "panel: follower map / beam alignment"),
         ],
         Screen::Measure => &[
             ("↑ / ↓", "select a plan field"),

@@ -271,6 +271,16 @@ impl App {
                 self.log(Level::Info, "✓ stations cleared");
                 self.say(Level::Info, "stations cleared: read both ends again (n, f)");
             }
+            Pending::Certificate => self.apply_certificate(&v),
+            Pending::MapStart => self.apply_mapping_started(&v),
+            Pending::MapStop => {
+                let text = v["error"]
+                    .as_str()
+                    .unwrap_or("follower mapping stopped")
+                    .to_string();
+                self.log(Level::Info, format!("✓ {text}"));
+                self.say(Level::Info, text);
+            }
             Pending::Other(what) => {
                 let detail = if v.is_null() {
                     String::new()

@@ -707,3 +707,187 @@ fn a_suggested_path_is_selected_typing_replaces_it_and_ctrl_u_clears() {
     a.handle_key(key(KeyCode::Backspace));
     assert_eq!(text(&a), "");
 }
+
+/// The follower map on the Align screen at 80×24 (issue 14): `i` imports a certificate by its
+/// path on the service's host, `m` types the span, passes and frames and asks, then the
+/// mapping's progress and time left come from the snapshots, `m` again asks to stop it, and
+/// the map made is summarised; `v` switches back to the beam alignment.
+#[test]
+fn align_imports_a_certificate_maps_the_follower_and_shows_progress_at_80x24() {
+    use crate::service::follower::CertificateImport;
+    use crate::service::follower_map::{MappingRequest, MappingView};
+    let (mut a, t0) = app();
+    a.handle_key(ch('2'));
+    assert_eq!(a.follower.panel, AlignPanel::Beam);
+    // The certificate.
+    a.handle_key(ch('i'));
+    assert!(matches!(&a.overlay, Overlay::Input(i) if i.purpose == InputFor::CertificatePath));
+    assert!(screen_text(&a).contains("Import the follower's certificate"));
+    for c in "/var/lib/axiscomp/stage-7.csv".chars() {
+        a.handle_key(ch(c));
+    }
+    let (id, r) = sent(&a.handle_key(key(KeyCode::Enter)));
+    assert_eq!(
+        r,
+        Request::FollowerCertificate(CertificateImport {
+            path: Some("/var/lib/axiscomp/stage-7.csv".into()),
+            ..CertificateImport::default()
+        })
+    );
+    a.handle_reply(
+        id,
+        Ok(serde_json::json!({"id": 3, "name": "stage-7.csv", "in_use": true,
+            "summary": ["span 0.0 to 400.0 mm", "long-wavelength positioning: 3.18 µm range, u ≤ 0.14 µm, from the certificate stage-7.csv"]})),
+        t0,
+    );
+    let m = a
+        .message
+        .as_ref()
+        .map(|m| m.text.clone())
+        .unwrap_or_default();
+    assert_eq!(
+        m,
+        "certificate imported: map 3 in use; take the zero again (z)"
+    );
+    let t = screen_text(&a);
+    assert!(
+        t.contains("Follower map: i certificate  m map / stop  v alignment"),
+        "{t}"
+    );
+    assert!(t.contains("map 3 (stage-7.csv):"), "{t}");
+    assert!(
+        t.contains("long-wavelength positioning: 3.18 µm range"),
+        "{t}"
+    );
+    // The mapping: the span typed (the alignment's by default), then asked.
+    a.handle_key(ch('m'));
+    assert!(
+        matches!(&a.overlay, Overlay::Input(i) if i.purpose == InputFor::Mapping && i.text == "-5 1005 4 1000"),
+        "{:?}",
+        a.overlay
+    );
+    type_line(&mut a, "0 400 2 500");
+    let want = MappingRequest {
+        from_mm: Some(0.0),
+        to_mm: Some(400.0),
+        passes: Some(2),
+        frames: Some(500),
+        ..MappingRequest::default()
+    };
+    assert_eq!(a.overlay, Overlay::Confirm(Confirm::MapStart(want.clone())));
+    let t = screen_text(&a);
+    assert!(t.contains("Map the follower?"), "{t}");
+    assert!(
+        t.contains("Stop-and-go over 0–400 mm in 3.75 mm steps:"),
+        "{t}"
+    );
+    assert!(t.contains("2 passes, 500 frames a side."), "{t}");
+    let (id, r) = sent(&a.handle_key(ch('y')));
+    assert_eq!(r, Request::FollowerMapStart(want));
+    a.handle_reply(
+        id,
+        Ok(
+            serde_json::json!({"state": "approaching", "stops_planned": 226, "dwell_s": 3.1,
+            "cnc": "sent to the twin's CNC at 127.0.0.1:5099"}),
+        ),
+        t0,
+    );
+    assert!(a.message.as_ref().is_some_and(|m| m.text
+        == "follower mapping started: 226 stops, dwell 3.1 s; sent to the twin's CNC at 127.0.0.1:5099"));
+    // Progress from the snapshot.
+    let view = MappingView {
+        state: "mapping".into(),
+        axis: "X".into(),
+        from_mm: 0.0,
+        to_mm: 400.0,
+        step_mm: 3.75,
+        passes: 2,
+        frames: 500,
+        stops_done: 57,
+        stops_planned: 226,
+        steps_kept: 56,
+        skipped: 1,
+        elapsed_s: 201.0,
+        left_s: 612.0,
+        dwell_s: 3.1,
+        cnc: "sent to the twin's CNC at 127.0.0.1:5099".into(),
+        ..MappingView::default()
+    };
+    a.handle_snapshot(
+        Snapshot {
+            follower_mapping: Some(view.clone()),
+            ..Snapshot::default()
+        },
+        t0,
+    );
+    assert_eq!(a.follower.panel, AlignPanel::Follower);
+    let t = screen_text(&a);
+    assert!(
+        t.contains("mapping stop 57 of 226 ███░░░░░░░ 56 kept, 1 skipped"),
+        "{t}"
+    );
+    assert!(
+        t.contains("3.4 min of machine time, 10.2 min left; dwell 3.1 s a stop"),
+        "{t}"
+    );
+    // m now asks to stop it.
+    a.handle_key(ch('m'));
+    assert_eq!(a.overlay, Overlay::Confirm(Confirm::MapStop));
+    assert!(screen_text(&a).contains("Stop the follower mapping?"));
+    let (_, r) = sent(&a.handle_key(ch('y')));
+    assert_eq!(r, Request::FollowerMapStop);
+    // It ended (done here): said, and the map made summarised.
+    a.handle_snapshot(
+        Snapshot {
+            follower_mapping: Some(MappingView {
+                state: "done".into(),
+                stops_done: 226,
+                steps_kept: 224,
+                left_s: 0.0,
+                map_id: Some(4),
+                summary: vec![
+                    "span -10.0 to 1010.0 mm".into(),
+                    "vertical straightness (to the end-point line): 1.33 µm range over 108 points, u ≤ 0.16 µm, from the self-calibration; PSD2's jump took a line of 7.0 µm/m".into(),
+                ],
+                ..view
+            }),
+            ..Snapshot::default()
+        },
+        t0,
+    );
+    assert!(a.message.as_ref().is_some_and(
+        |m| m.text == "follower mapped: map 4 in use (224 steps), the zero taken again"
+    ));
+    let t = screen_text(&a);
+    assert!(t.contains("map 4 made and in use:"), "{t}");
+    assert!(
+        t.contains("vertical straightness (to the end-point line): 1.33 µm range"),
+        "{t}"
+    );
+    // The help fits 80×24 with every key of the screen and the global ones.
+    a.handle_key(ch('?'));
+    let t = screen_text(&a);
+    assert!(
+        t.contains("panel: follower map / beam alignment")
+            && t.contains("any key closes this help"),
+        "{t}"
+    );
+    a.handle_key(ch('x'));
+    // v: back to the beam alignment.
+    a.handle_key(ch('v'));
+    assert!(screen_text(&a).contains("Beam alignment over the travel"));
+    // A bad mapping line is said in words, the box stays.
+    a.handle_key(ch('m'));
+    type_line(&mut a, "400 0");
+    assert!(matches!(&a.overlay, Overlay::Input(_)));
+    assert!(
+        a.message
+            .as_ref()
+            .is_some_and(|m| m.text == "span 400–0 mm: the near end must be below the far end")
+    );
+    assert!(
+        parse_mapping("0 400 two")
+            .unwrap_err()
+            .contains("e.g. 0 400 2 500")
+    );
+}

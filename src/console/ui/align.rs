@@ -1,10 +1,13 @@
 //! Align: is the beam on each PSD, how far from centre is the spot, the follower's jog,
-//! home and the zero reference, and the beam alignment over the travel (stations, the check,
-//! the screws to turn, the beam's angle). At 80×24 the PSD plots give way to the alignment.
+//! home and the zero reference, the beam alignment over the travel (stations, the check,
+//! the screws to turn, the beam's angle), and the follower's error map (the map in use, its
+//! stop-and-go mapping's progress, the summary of the map made). At 80×24 the PSD plots give
+//! way to the alignment, and the alignment and the follower map take turns (`v`); from 120
+//! columns they are side by side.
 
 use super::live::psd_row;
-use super::{TALL, Theme, panel};
-use crate::console::app::{App, StationSpot};
+use super::{TALL, Theme, WIDE, bar, panel};
+use crate::console::app::{AlignPanel, App, StationSpot};
 use crate::service::snapshot::Snapshot;
 use ratatui::Frame;
 use ratatui::layout::{Constraint, Layout, Rect};
@@ -29,12 +32,12 @@ pub fn render(frame: &mut Frame, area: Rect, app: &App) {
         ])
         .areas(area);
         psd_row(frame, top, snap, theme);
-        render_alignment(frame, aligning, app, theme);
+        render_lower(frame, aligning, app, theme);
         bottom
     } else {
         let [bottom, aligning] =
             Layout::vertical([Constraint::Length(10), Constraint::Min(6)]).areas(area);
-        render_alignment(frame, aligning, app, theme);
+        render_lower(frame, aligning, app, theme);
         bottom
     };
     let [hints, follower] =
@@ -170,6 +173,149 @@ fn follower_lines(app: &App, snap: Option<&Snapshot>, theme: Theme) -> Vec<Line<
     lines
 }
 
+/// The beam alignment and the follower map: side by side when wide, else the one chosen.
+fn render_lower(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
+    if area.width >= WIDE {
+        let [left, right] =
+            Layout::horizontal([Constraint::Percentage(50), Constraint::Percentage(50)])
+                .areas(area);
+        render_alignment(frame, left, app, theme);
+        render_follower_map(frame, right, app, "", theme);
+        return;
+    }
+    match app.follower.panel {
+        AlignPanel::Beam => render_alignment(frame, area, app, theme),
+        AlignPanel::Follower => render_follower_map(frame, area, app, "  v alignment", theme),
+    }
+}
+
+fn render_follower_map(frame: &mut Frame, area: Rect, app: &App, more: &str, theme: Theme) {
+    let width = area.width.saturating_sub(2) as usize;
+    let title = format!("Follower map: i certificate  m map / stop{more}");
+    frame.render_widget(
+        Paragraph::new(follower_map_lines(app, width, theme))
+            .wrap(Wrap { trim: true })
+            .block(panel(&title)),
+        area,
+    );
+}
+
+/// `text` cut to `width` characters, "…" marking the cut.
+fn fit(text: &str, width: usize) -> String {
+    if text.chars().count() <= width {
+        return text.to_string();
+    }
+    let mut out: String = text.chars().take(width.saturating_sub(1)).collect();
+    out.push('…');
+    out
+}
+
+fn minutes(s: f64) -> String {
+    if s < 90.0 {
+        format!("{s:.0} s")
+    } else if s < 5400.0 {
+        format!("{:.1} min", s / 60.0)
+    } else {
+        format!("{:.1} h", s / 3600.0)
+    }
+}
+
+/// The map in use, then the mapping (progress, time, its outcome) or the certificate last
+/// imported: the status lines cut to the panel's width, the summary wrapped.
+pub fn follower_map_lines(app: &App, width: usize, theme: Theme) -> Vec<Line<'static>> {
+    let mut lines = Vec::new();
+    let snap = app.snapshot.as_ref();
+    lines.push(match snap.and_then(|s| s.tracking.follower_map.as_ref()) {
+        Some(m) => Line::styled(
+            fit(
+                &format!(
+                    "in use: map {} {}, {}, {}",
+                    m.id,
+                    m.name,
+                    m.created.get(..10).unwrap_or(&m.created),
+                    m.source
+                ),
+                width,
+            ),
+            theme.ok(),
+        ),
+        None => Line::styled(
+            "no map in use: i imports the certificate, m maps the follower",
+            theme.warn(),
+        ),
+    });
+    let summary = |lines: &mut Vec<Line<'static>>, title: String, summary: &[String]| {
+        lines.push(Line::styled(fit(&title, width), theme.bold()));
+        // Wrapped: the summary comes last, so what the panel cannot hold is its end.
+        lines.extend(summary.iter().map(|l| Line::raw(l.clone())));
+    };
+    match app.mapping() {
+        Some(m) if m.state == "interrupted" => {
+            lines.push(Line::styled(
+                fit(m.error.as_deref().unwrap_or("interrupted"), width),
+                theme.warn(),
+            ));
+        }
+        Some(m) => {
+            let frac = m.stops_done as f64 / m.stops_planned.max(1) as f64;
+            lines.push(Line::from(vec![
+                Span::styled(format!("{} ", m.state), theme.bold()),
+                Span::raw(format!(
+                    "stop {} of {} {} {} kept, {} skipped",
+                    m.stops_done,
+                    m.stops_planned,
+                    bar(frac, 10),
+                    m.steps_kept,
+                    m.skipped
+                )),
+            ]));
+            lines.push(Line::raw(fit(
+                &format!(
+                    "{} of machine time, {} left; dwell {:.1} s a stop",
+                    minutes(m.elapsed_s),
+                    minutes(m.left_s),
+                    m.dwell_s
+                ),
+                width,
+            )));
+            lines.push(Line::styled(
+                fit(
+                    &format!(
+                        "{} {:.1}–{:.1} mm by {} mm, {} passes, {} frames a side; {}",
+                        m.axis, m.from_mm, m.to_mm, m.step_mm, m.passes, m.frames, m.cnc
+                    ),
+                    width,
+                ),
+                theme.dim(),
+            ));
+            if m.out_of_plan > 0 {
+                lines.push(Line::styled(
+                    fit(
+                        &format!(
+                            "{} steps not the plan's moves: is the CNC running this program?",
+                            m.out_of_plan
+                        ),
+                        width,
+                    ),
+                    theme.warn(),
+                ));
+            }
+            if let Some(e) = &m.error {
+                lines.push(Line::styled(fit(e, width), theme.warn()));
+            }
+            if let Some(id) = m.map_id {
+                summary(&mut lines, format!("map {id} made and in use:"), &m.summary);
+            }
+        }
+        None => {
+            if let Some((title, s)) = &app.follower.imported {
+                summary(&mut lines, format!("{title}:"), s);
+            }
+        }
+    }
+    lines
+}
+
 fn render_alignment(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
     frame.render_widget(
         Paragraph::new(alignment_lines(app, theme))
@@ -252,7 +398,7 @@ pub fn alignment_lines(app: &App, theme: Theme) -> Vec<Line<'static>> {
         ));
     }
     lines.push(Line::styled(
-        format!("span {from}–{to} mm (s)  n/f read near/far  t target  a advice  e erase"),
+        format!("span {from}–{to} mm (s)  n/f read near/far  t target  a advice  e erase  v map"),
         theme.dim(),
     ));
     lines

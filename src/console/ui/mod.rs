@@ -161,6 +161,18 @@ fn render_input(frame: &mut Frame, input: &Input, selected: bool, theme: Theme) 
                 "The PSD with no spot and what its target shows, X and Y in mm (e.g. 2 1.5 -0.5):",
             )],
         ),
+        InputFor::CertificatePath => (
+            " Import the follower's certificate ".to_string(),
+            vec![Line::raw(
+                "Path of the certificate CSV on the service's host (position_mm,error_um,direction,uncertainty_um):",
+            )],
+        ),
+        InputFor::Mapping => (
+            " Map the follower ".to_string(),
+            vec![Line::raw(
+                "The span in mm, then passes and frames a side (e.g. 0 400 2 500):",
+            )],
+        ),
     };
     let mut lines = about;
     lines.push(Line::raw(""));
@@ -430,6 +442,31 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
             }
             (" Accept the calibration? ", lines)
         }
+        Confirm::MapStart(m) => (
+            " Map the follower? ",
+            vec![
+                Line::raw(format!(
+                    "Stop-and-go over {}–{} mm in {} mm steps:",
+                    m.from_mm.unwrap_or(f64::NAN),
+                    m.to_mm.unwrap_or(f64::NAN),
+                    m.step_mm.unwrap_or(3.75)
+                )),
+                Line::raw(format!(
+                    "{} passes, {} frames a side.",
+                    m.passes.unwrap_or(4),
+                    m.frames.unwrap_or(1000)
+                )),
+                Line::raw(
+                    "The part program goes to the CNC (load it on a CNC the service does not drive). At the end the map is stored and put in use, and the zero taken again.",
+                ),
+            ],
+        ),
+        Confirm::MapStop => (
+            " Stop the follower mapping? ",
+            vec![Line::raw(
+                "Its steps are discarded and nothing is stored; the map in use stays.",
+            )],
+        ),
         Confirm::AbortRun(id) => (
             " Abort the run? ",
             vec![Line::raw(format!(
