@@ -335,6 +335,15 @@ impl FollowerMap {
         (along, var.sqrt(), v, vu)
     }
 
+    /// The coverage factor of the vertical map as a whole: every point within this many of
+    /// its standard uncertainties at once, at 95 % (`util::simultaneous_k` over the points
+    /// whose u is stated; `None` without a vertical map). A k = 2 interval holds one point at
+    /// 95 %; a curve of a few hundred correlated points needs about 3.7 to hold them all.
+    pub fn vertical_band_k(&self) -> Option<f64> {
+        let n = self.vertical_u_mm.iter().filter(|&&u| u > 0.0).count();
+        (n > 0).then(|| crate::util::simultaneous_k(n, 0.95))
+    }
+
     /// The map at encoder position `x` (mm) after a motion in `dir`, in µm, with each PSD2
     /// axis' standard uncertainty and source.
     pub fn point(&self, x: f64, dir: Direction) -> MapPoint {
@@ -463,11 +472,15 @@ impl FollowerMap {
             }
             (None, None) => out.push("reversal: not mapped".into()),
         }
+        let band = self
+            .vertical_band_k()
+            .map(|k| format!(" (the whole curve within {k:.2} u at once, 95 %)"))
+            .unwrap_or_default();
         if self.vertical_mm.is_empty() {
             out.push("vertical straightness: not mapped (run the self-calibration)".into());
         } else if let Some(r) = &self.vertical_reference {
             out.push(format!(
-                "vertical (to the first point): {:.2} µm range over {} points, u ≤ {:.2} µm, from the self-calibration's steps and {} level stations ({})",
+                "vertical (to the first point): {:.2} µm range over {} points, u ≤ {:.2} µm{band}, from the self-calibration's steps and {} level stations ({})",
                 range(&self.vertical_mm),
                 self.vertical_mm.len(),
                 max_u(&self.vertical_u_mm),
@@ -476,7 +489,7 @@ impl FollowerMap {
             ));
         } else {
             out.push(format!(
-                "vertical straightness (to the end-point line): {:.2} µm range over {} points, u ≤ {:.2} µm, from the self-calibration; PSD2's jump took a line of {:.1} µm/m (PSD2's tilt and the follower's inclination), not applied",
+                "vertical straightness (to the end-point line): {:.2} µm range over {} points, u ≤ {:.2} µm{band}, from the self-calibration; PSD2's jump took a line of {:.1} µm/m (PSD2's tilt and the follower's inclination), not applied",
                 range(&self.vertical_mm),
                 self.vertical_mm.len(),
                 max_u(&self.vertical_u_mm),

@@ -93,3 +93,104 @@ pub fn interpolate(positions: &[f64], values: &[f64], x: f64) -> f64 {
     let t = (x - p0) / (p1 - p0);
     values[k - 1] + t * (values[k] - values[k - 1])
 }
+
+/// The standard normal distribution's quantile Φ⁻¹(p) for 0 < p < 1 (NaN outside), by
+/// Acklam's rational approximation (relative error below 1.2e-9: far below what a coverage
+/// factor needs).
+pub fn normal_quantile(p: f64) -> f64 {
+    const A: [f64; 6] = [
+        -3.969683028665376e1,
+        2.209460984245205e2,
+        -2.759285104469687e2,
+        1.38357751867269e2,
+        -3.066479806614716e1,
+        2.506628277459239,
+    ];
+    const B: [f64; 5] = [
+        -5.447609879822406e1,
+        1.615858368580409e2,
+        -1.556989798598866e2,
+        6.680131188771972e1,
+        -1.328068155288572e1,
+    ];
+    const C: [f64; 6] = [
+        -7.784894002430293e-3,
+        -3.223964580411365e-1,
+        -2.400758277161838,
+        -2.549732539343734,
+        4.374664141464968,
+        2.938163982698783,
+    ];
+    const D: [f64; 4] = [
+        7.784695709041462e-3,
+        3.224671290700398e-1,
+        2.445134137142996,
+        3.754408661907416,
+    ];
+    const LOW: f64 = 0.02425;
+    if !(p > 0.0 && p < 1.0) {
+        return f64::NAN;
+    }
+    let tail = |q: f64| {
+        (((((C[0] * q + C[1]) * q + C[2]) * q + C[3]) * q + C[4]) * q + C[5])
+            / ((((D[0] * q + D[1]) * q + D[2]) * q + D[3]) * q + 1.0)
+    };
+    if p < LOW {
+        tail((-2.0 * p.ln()).sqrt())
+    } else if p > 1.0 - LOW {
+        -tail((-2.0 * (1.0 - p).ln()).sqrt())
+    } else {
+        let q = p - 0.5;
+        let r = q * q;
+        (((((A[0] * r + A[1]) * r + A[2]) * r + A[3]) * r + A[4]) * r + A[5]) * q
+            / (((((B[0] * r + B[1]) * r + B[2]) * r + B[3]) * r + B[4]) * r + 1.0)
+    }
+}
+
+/// The coverage factor that holds `n` normal errors, each against its own standard
+/// uncertainty, all at once with probability `level` (Šidák: each at `level^(1/n)`; true for
+/// any correlation between them, and close when they are independent).
+pub fn simultaneous_k(n: usize, level: f64) -> f64 {
+    let each = level.powf(1.0 / n.max(1) as f64);
+    normal_quantile(0.5 + each / 2.0)
+}
+
+#[cfg(test)]
+mod stats_tests {
+    use super::*;
+
+    /// Against Python's statistics.NormalDist().inv_cdf.
+    #[test]
+    fn the_normal_quantile_matches_an_independent_implementation() {
+        for (p, want) in [
+            (0.5, 0.0),
+            (0.9, 1.2815515655446008),
+            (0.975, 1.9599639845400536),
+            (0.995, 2.5758293035489),
+            (0.999907, 3.7373093852766632),
+            (1e-6, -4.753424308822899),
+            (0.02425, -1.9729610513118845),
+        ] {
+            let got = normal_quantile(p);
+            assert!(
+                (got - want).abs() <= 1e-8 * want.abs().max(1.0),
+                "p {p}: {got} against {want}"
+            );
+        }
+        assert!(normal_quantile(0.0).is_nan() && normal_quantile(1.0).is_nan());
+        assert!(normal_quantile(f64::NAN).is_nan());
+    }
+
+    /// Šidák's k against Python's inv_cdf(1 − (1 − 0.95^(1/n))/2).
+    #[test]
+    fn the_simultaneous_factor_grows_with_the_points() {
+        for (n, want) in [
+            (1, 1.9599639845400536),
+            (54, 3.3051001037085923),
+            (267, 3.7291965675041787),
+        ] {
+            let got = simultaneous_k(n, 0.95);
+            assert!((got - want).abs() < 1e-8, "n {n}: {got} against {want}");
+        }
+    }
+}
