@@ -245,10 +245,10 @@ fn import(a: ImportArgs) -> Result<()> {
     }
     let path = db_path(&a.db)?;
     let mut store = Store::open(&path)?;
-    let (map, name, joined) =
+    let (stored, name, joined) =
         axiscomp::service::follower::certificate_map(&store, &cert).map_err(anyhow::Error::msg)?;
-    let id = store.insert_follower_map_with(&map, Some(&cert), &name, !a.keep_current)?;
-    print_map(id, &name, &map);
+    let id = store.insert_stored_follower_map(&stored, &name, !a.keep_current)?;
+    print_map(id, &name, &stored.map);
     if let Some(j) = joined {
         println!("joined with the self-calibration of map {j} (the map in use)");
     }
@@ -487,7 +487,15 @@ fn map_twin(a: MapArgs) -> Result<()> {
         (None, None) => format!("self-calibration on the twin (seed {})", a.seed),
     };
     let mut store = Store::open(&db)?;
-    let id = store.insert_follower_map_with(&out.map, Some(&out.certificate), &name, true)?;
+    let stored = axiscomp::follower::StoredMap {
+        map: out.map.clone(),
+        certificate: Some(out.certificate.clone()),
+        steps: Some(axiscomp::follower::StoredSteps {
+            settings,
+            steps: out.run.steps.clone(),
+        }),
+    };
+    let id = store.insert_stored_follower_map(&stored, &name, true)?;
     print_map(id, &name, &out.map);
     println!(
         "{} steps in {:.1} min of machine time; in use from the service's next start",
@@ -527,7 +535,12 @@ fn show(a: ShowArgs) -> Result<()> {
     };
     print_map(rec.id, &rec.name, &rec.map);
     if let Some(p) = &a.toml {
-        let text = axiscomp::follower::stored_toml(&rec.map, rec.certificate.as_ref());
+        let text = axiscomp::follower::StoredMap {
+            map: rec.map.clone(),
+            certificate: rec.certificate.clone(),
+            steps: rec.steps.clone(),
+        }
+        .to_toml();
         std::fs::write(p, text).with_context(|| format!("writing {}", p.display()))?;
         println!("written: {}", p.display());
     }
