@@ -18,11 +18,15 @@ use thiserror::Error;
 /// Why a station could not be read.
 #[derive(Clone, Debug, Error, PartialEq)]
 pub enum LevelError {
-    #[error("the station has {head} readings of the head and {level} of the level: it needs two of the head and one of the level at least")]
+    #[error(
+        "the station has {head} readings of the head and {level} of the level: it needs two of the head and one of the level at least"
+    )]
     TooFew { head: usize, level: usize },
     #[error("the head's reading could not be decoupled: {0}")]
     Decouple(String),
-    #[error("the roll does not depend on PSD2's Y ({0:e} rad/mm): the head cannot see the follower's vertical")]
+    #[error(
+        "the roll does not depend on PSD2's Y ({0:e} rad/mm): the head cannot see the follower's vertical"
+    )]
     Insensitive(f64),
 }
 
@@ -65,8 +69,8 @@ pub fn excess(head: &[f64], level: &[f64], level_sd_rad: f64) -> Result<(f64, f6
         return Ok((m, scatter(&d, m).max(sd2) / n));
     }
     let (mh, ml) = (mean(head), mean(level));
-    let var = scatter(head, mh) / head.len() as f64
-        + scatter(level, ml).max(sd2) / level.len() as f64;
+    let var =
+        scatter(head, mh) / head.len() as f64 + scatter(level, ml).max(sd2) / level.len() as f64;
     Ok((mh - ml, var))
 }
 
@@ -115,7 +119,10 @@ mod tests {
 
     #[test]
     fn stations_span_evenly_with_both_ends() {
-        assert_eq!(stations((0.0, 80.0), 20.0), vec![0.0, 20.0, 40.0, 60.0, 80.0]);
+        assert_eq!(
+            stations((0.0, 80.0), 20.0),
+            vec![0.0, 20.0, 40.0, 60.0, 80.0]
+        );
         assert_eq!(stations((10.0, 95.0), 40.0).len(), 4);
         assert_eq!(stations((5.0, 5.0), 100.0), vec![5.0, 5.0]);
     }

@@ -85,9 +85,9 @@ impl StoredSteps {
             long_degree: raw.long_degree,
             merge_mm: raw.merge_mm,
         };
-        if !(settings.lead_mm.is_finite() && settings.lead_mm > 0.0)
-            || !(settings.merge_mm.is_finite() && settings.merge_mm >= 0.0)
-        {
+        let lead_ok = settings.lead_mm.is_finite() && settings.lead_mm > 0.0;
+        let merge_ok = settings.merge_mm.is_finite() && settings.merge_mm >= 0.0;
+        if !(lead_ok && merge_ok) {
             return Err(bad(format!(
                 "lead_mm {} and merge_mm {}: give a positive lead and a merge of 0 or more",
                 settings.lead_mm, settings.merge_mm
@@ -221,7 +221,10 @@ mod tests {
             steps: Some(s.clone()),
         };
         let text = stored.to_toml();
-        assert!(text.contains(&format!("columns = \"{STEP_COLUMNS}\"")), "{text}");
+        assert!(
+            text.contains(&format!("columns = \"{STEP_COLUMNS}\"")),
+            "{text}"
+        );
         let back = StoredMap::from_toml(&text, "map 1").unwrap();
         assert_eq!(back, stored);
         let bits = |v: &StoredSteps| {
@@ -267,7 +270,9 @@ mod tests {
         );
         assert!(text.contains(&first), "{text}");
         let broken = text.replacen(&first, "1,2,x,4,5,6", 1);
-        let e = StoredMap::from_toml(&broken, "map 7").unwrap_err().to_string();
+        let e = StoredMap::from_toml(&broken, "map 7")
+            .unwrap_err()
+            .to_string();
         assert!(
             e.starts_with("map 7: self_calibration_steps: row 1:") && e.contains("1,2,x,4,5,6"),
             "{e}"

@@ -175,7 +175,9 @@ pub struct Busy {
 impl Busy {
     fn refusal(self) -> Option<String> {
         if let Some(id) = self.run {
-            return Some(format!("measurement run {id} is under way (it moves the carriage): abort it with run_abort or let it finish, then read the level's stations"));
+            return Some(format!(
+                "measurement run {id} is under way (it moves the carriage): abort it with run_abort or let it finish, then read the level's stations"
+            ));
         }
         if self.hexapod {
             return Some("a hexapod calibration run is under way (it moves the head): stop it with hexapod_stop or let it finish, then read the level's stations".into());
@@ -334,7 +336,9 @@ impl FollowerLevel {
             ),
             LevelSource::Twin(a) => (
                 "twin".into(),
-                format!("the twin's electronic level at {a} (a simulated instrument, {sd:.2}″ a reading stated)"),
+                format!(
+                    "the twin's electronic level at {a} (a simulated instrument, {sd:.2}″ a reading stated)"
+                ),
             ),
         }
     }
@@ -509,8 +513,7 @@ impl FollowerLevel {
             .enumerate()
             .map(|(k, &x)| (x, Some(format!("station {} of {n}", k + 1))))
             .collect();
-        let text =
-            crate::run::program::generate_stops(&axis, &stops, feed, dwell, &title, dialect);
+        let text = crate::run::program::generate_stops(&axis, &stops, feed, dwell, &title, dialect);
         let dir = self.cfg.state_dir.join("follower-maps");
         let file = dir.join(format!("level-{started_us}.{}", dialect.extension()));
         std::fs::create_dir_all(&dir)
@@ -603,7 +606,9 @@ impl FollowerLevel {
     fn typed(&mut self, v: &serde_json::Value, who: &str) -> Result<serde_json::Value, String> {
         let x = typed_reading(v)?;
         let Some(a) = self.active.as_mut() else {
-            return Err("no level stations are under way: start them first (follower_level_start)".into());
+            return Err(
+                "no level stations are under way: start them first (follower_level_start)".into(),
+            );
         };
         if matches!(self.cfg.source, LevelSource::Twin(_)) {
             return Err("the level is the twin's ([follower] level = \"twin\"): its readings are taken by the service".into());
@@ -655,10 +660,10 @@ impl FollowerLevel {
                 }
             });
         }
-        if let Err(why) = self.read(now, ctx.pipeline) {
-            if let Some(v) = self.view.as_mut() {
-                v.error = Some(why);
-            }
+        if let Err(why) = self.read(now, ctx.pipeline)
+            && let Some(v) = self.view.as_mut()
+        {
+            v.error = Some(why);
         }
         self.complete();
         self.refresh(now);
@@ -769,7 +774,9 @@ impl FollowerLevel {
             stitch.vertical_mm,
         )
         .map_err(|e| fail(e.to_string()))?;
-        let m = a.applied.correction(encoder, crate::follower::Direction::Up)[1];
+        let m = a
+            .applied
+            .correction(encoder, crate::follower::Direction::Up)[1];
         r.fixed = Some((encoder, m, g));
         Ok(())
     }
@@ -907,9 +914,7 @@ impl FollowerLevel {
                 }
             }
             Event::Level { visit, k, roll } => {
-                let Some(r) = a.reading.as_mut().filter(|r| r.visit == visit) else {
-                    return None;
-                };
+                let r = a.reading.as_mut().filter(|r| r.visit == visit)?;
                 match roll {
                     Ok(x) => {
                         if let Some(slot) = r.level.get_mut(k) {
@@ -1131,7 +1136,10 @@ mod tests {
             run: Some(4),
             ..Busy::default()
         };
-        assert!(b.refusal().is_some_and(|e| e.contains("measurement run 4") && e.contains("run_abort")));
+        assert!(
+            b.refusal()
+                .is_some_and(|e| e.contains("measurement run 4") && e.contains("run_abort"))
+        );
         let b = Busy {
             mapping: true,
             ..Busy::default()

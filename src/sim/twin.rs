@@ -500,11 +500,7 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
         }
         "level" => {
             let sd = ctx.plant.spec.level_sd_rad;
-            let noise = ctx
-                .level_rng
-                .lock()
-                .map(|mut r| r.gauss(sd))
-                .unwrap_or(0.0);
+            let noise = ctx.level_rng.lock().map(|mut r| r.gauss(sd)).unwrap_or(0.0);
             let roll = ctx.plant.truth(Instant::now()).errors.ey + noise;
             let arcsec = |rad: f64| rad / crate::units::RAD_PER_ARCSEC;
             Ok(serde_json::json!({"ok": true, "level": {
