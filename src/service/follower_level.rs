@@ -236,9 +236,22 @@ struct Active {
     visit: u64,
     started: Instant,
     grace: Duration,
+    /// How the program moves the carriage, its dwell (s), and whether the missed stations
+    /// were sent again.
+    program: Program,
+    dwell_s: f64,
+    again: bool,
     twin_programs_at_send: Option<u32>,
     cnc_done_at: Option<Instant>,
     last_cnc_poll: Option<Instant>,
+}
+
+/// How the stations' programs move the carriage.
+#[derive(Clone, Debug)]
+struct Program {
+    axis: String,
+    dialect: Dialect,
+    feed: f64,
 }
 
 /// The service's level stations: at most one at a time, and the last one's outcome.
@@ -513,29 +526,13 @@ impl FollowerLevel {
             .enumerate()
             .map(|(k, &x)| (x, Some(format!("station {} of {n}", k + 1))))
             .collect();
-        let text = crate::run::program::generate_stops(&axis, &stops, feed, dwell, &title, dialect);
-        let dir = self.cfg.state_dir.join("follower-maps");
-        let file = dir.join(format!("level-{started_us}.{}", dialect.extension()));
-        std::fs::create_dir_all(&dir)
-            .and_then(|()| std::fs::write(&file, &text))
-            .map_err(|e| format!("cannot write the program {}: {e}", file.display()))?;
-        let cnc = match twin {
-            Some(addr) => {
-                let req = serde_json::json!({"cmd": "program", "dialect": if dialect == Dialect::LinuxCnc { "linuxcnc" } else { "iso" }, "axis": axis, "text": text});
-                let tx = self.tx.clone();
-                tokio::spawn(async move {
-                    let r = match super::core::twin_request(addr, req).await {
-                        Ok(_) => super::core::twin_request(addr, serde_json::json!({"cmd": "cnc"}))
-                            .await
-                            .map(|v| v["cnc"]["programs"].as_u64().unwrap_or(0) as u32),
-                        Err(e) => Err(e),
-                    };
-                    let _ = tx.send(Event::Delivered(r));
-                });
-                format!("sent to the twin's CNC at {addr}")
-            }
-            None => "load the program on the CNC and start it (or bring the carriage to each station and let it rest)".into(),
+        let prog = Program {
+            axis: axis.clone(),
+            dialect,
+            feed,
         };
+        let (file, cnc) =
+            self.program(&prog, &stops, dwell, &title, &format!("level-{started_us}"))?;
         let (level, instrument) = self.instrument();
         let view = LevelView {
             state: "stations".into(),
@@ -593,12 +590,108 @@ impl FollowerLevel {
             visit: 0,
             started: Instant::now(),
             grace: Duration::from_secs_f64(dwell) + Duration::from_secs(2),
+            program: prog,
+            dwell_s: dwell,
+            again: false,
             twin_programs_at_send: None,
             cnc_done_at: None,
             last_cnc_poll: None,
         });
         self.refresh(Instant::now());
         Ok(self.status())
+    }
+
+    /// The stations' part program written to the state directory (`name`) and, with the twin's
+    /// CNC, sent to it: the file and where it went.
+    fn program(
+        &self,
+        p: &Program,
+        stops: &[(f64, Option<String>)],
+        dwell: f64,
+        title: &str,
+        name: &str,
+    ) -> Result<(PathBuf, String), String> {
+        let text =
+            crate::run::program::generate_stops(&p.axis, stops, p.feed, dwell, title, p.dialect);
+        let dir = self.cfg.state_dir.join("follower-maps");
+        let file = dir.join(format!("{name}.{}", p.dialect.extension()));
+        std::fs::create_dir_all(&dir)
+            .and_then(|()| std::fs::write(&file, &text))
+            .map_err(|e| format!("cannot write the program {}: {e}", file.display()))?;
+        let cnc = match twin_addr(&self.cfg.cnc) {
+            Some(addr) => {
+                let dialect = if p.dialect == Dialect::LinuxCnc {
+                    "linuxcnc"
+                } else {
+                    "iso"
+                };
+                let req = serde_json::json!({"cmd": "program", "dialect": dialect, "axis": p.axis, "text": text});
+                let tx = self.tx.clone();
+                tokio::spawn(async move {
+                    let r = match super::core::twin_request(addr, req).await {
+                        Ok(_) => super::core::twin_request(addr, serde_json::json!({"cmd": "cnc"}))
+                            .await
+                            .map(|v| v["cnc"]["programs"].as_u64().unwrap_or(0) as u32),
+                        Err(e) => Err(e),
+                    };
+                    let _ = tx.send(Event::Delivered(r));
+                });
+                format!("sent to the twin's CNC at {addr}")
+            }
+            None => "load the program on the CNC and start it (or bring the carriage to each station and let it rest)".into(),
+        };
+        Ok((file, cnc))
+    }
+
+    /// The twin's program ended with stations missed (a loaded host, a reading the carriage
+    /// left): once, the missed ones again with twice the dwell. `false`: not sent (already
+    /// done once, or the program could not be written).
+    fn again(&mut self, now: Instant) -> bool {
+        let Some(a) = self.active.as_ref().filter(|a| !a.again) else {
+            return false;
+        };
+        let missed: Vec<(f64, Option<String>)> = a
+            .stations
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| a.taken[*k].is_none())
+            .map(|(k, &x)| (x, Some(format!("station {} again", k + 1))))
+            .collect();
+        let dwell = a.dwell_s * 2.0;
+        let title = format!(
+            "axiscomp follower level stations {}: {} missed stations again, dwell {dwell:.1} s",
+            a.program.axis,
+            missed.len()
+        );
+        let name = format!("level-again-{}", crate::store::now_us());
+        let r = self.program(&a.program.clone(), &missed, dwell, &title, &name);
+        let Some(a) = self.active.as_mut() else {
+            return false;
+        };
+        a.again = true;
+        let Ok((file, cnc)) = r else {
+            return false;
+        };
+        let at: Vec<String> = missed.iter().map(|(x, _)| format!("{x:.1}")).collect();
+        tracing::warn!(
+            "follower level: the stations at {} mm were missed; sent again with a dwell of {dwell:.1} s",
+            at.join(", ")
+        );
+        a.dwell_s = dwell;
+        a.grace = Duration::from_secs_f64(dwell) + Duration::from_secs(2);
+        a.cnc_done_at = None;
+        a.twin_programs_at_send = None;
+        a.last_cnc_poll = Some(now);
+        if let Some(v) = self.view.as_mut() {
+            v.dwell_s = dwell;
+            v.program = file.display().to_string();
+            v.cnc = cnc;
+            v.error = Some(format!(
+                "the stations at {} mm were missed (the carriage did not rest there long enough): sent again with a dwell of {dwell:.1} s",
+                at.join(", ")
+            ));
+        }
+        true
     }
 
     /// `follower_level_reading`: the operator's reading at the station being read or waiting
@@ -677,7 +770,7 @@ impl FollowerLevel {
             && a.reading.is_none();
         if all {
             self.finish_with(now, "every station taken", ctx);
-        } else if ended {
+        } else if ended && !self.again(now) {
             self.finish_with(now, "the program ended", ctx);
         }
     }
@@ -732,7 +825,8 @@ impl FollowerLevel {
         let k = r.head.len();
         r.head.push(l.errors.ey);
         r.level.push(None);
-        r.next_at = now + window;
+        // On the grid while the ticks keep up; never before a whole fresh window.
+        r.next_at = (r.next_at + window).max(now + self.cfg.live_window);
         if let LevelSource::Twin(addr) = self.cfg.source {
             let (tx, visit) = (self.tx.clone(), r.visit);
             tokio::spawn(async move {

@@ -699,6 +699,9 @@ async fn the_service_reads_the_twins_level_at_stations_and_refits_the_map() {
         }
     }
     let rms_z = (z2 / n.max(1) as f64).sqrt();
+    if let Some(e) = &l.error {
+        eprintln!("the stations' note: {e}");
+    }
     eprintln!(
         "level-referenced {:.1}–{:.1} mm: {planned} stations, {} points, RMS (map − truth)/u {rms_z:.2}, worst |map − truth| {worst_um:.3} µm = {worst_u:.2} u (largest u {max_u:.3} µm); u at mid-span {:?} µm from the steps alone, {:?} µm with the stations; mapped after {mapped_at:.1} s, {:.1} s of wall time so far",
         x0,
