@@ -241,6 +241,10 @@ struct Active {
     program: Program,
     dwell_s: f64,
     again: bool,
+    /// The program ended with stations missed: waiting for the operator to finish with the
+    /// stations taken or to stop (a map from fewer stations than planned is not put in use
+    /// unasked).
+    incomplete: bool,
     twin_programs_at_send: Option<u32>,
     cnc_done_at: Option<Instant>,
     last_cnc_poll: Option<Instant>,
@@ -593,6 +597,7 @@ impl FollowerLevel {
             program: prog,
             dwell_s: dwell,
             again: false,
+            incomplete: false,
             twin_programs_at_send: None,
             cnc_done_at: None,
             last_cnc_poll: None,
@@ -770,8 +775,8 @@ impl FollowerLevel {
             && a.reading.is_none();
         if all {
             self.finish_with(now, "every station taken", ctx);
-        } else if ended && !self.again(now) {
-            self.finish_with(now, "the program ended", ctx);
+        } else if ended && !a.incomplete && !self.again(now) {
+            self.incomplete();
         }
     }
 
@@ -1072,6 +1077,33 @@ impl FollowerLevel {
         }
         tracing::info!("follower level stations stopped by {who}");
         Ok(self.status())
+    }
+
+    /// The program ended with stations missed: say which, and wait for the operator's
+    /// finish (the stations taken) or stop (nothing stored).
+    fn incomplete(&mut self) {
+        let Some(a) = self.active.as_mut() else {
+            return;
+        };
+        a.incomplete = true;
+        let missed: Vec<String> = a
+            .stations
+            .iter()
+            .zip(&a.taken)
+            .filter(|(_, t)| t.is_none())
+            .map(|(x, _)| format!("{x:.1}"))
+            .collect();
+        let taken = a.taken.iter().flatten().count();
+        let msg = format!(
+            "the program ended with the stations at {} mm not taken (the carriage did not rest there long enough): fit the map with the {taken} taken (axiscomp follower level --finish) or stop (axiscomp follower level --stop, nothing stored); the map in use is unchanged until then",
+            missed.join(", ")
+        );
+        tracing::warn!("follower level: {msg}");
+        if let Some(v) = self.view.as_mut() {
+            v.state = "incomplete".into();
+            v.current = None;
+            v.error = Some(msg);
+        }
     }
 
     /// `follower_level_finish`: fit the map now with the stations taken.
