@@ -1,10 +1,11 @@
-//! `axiscomp follower import|map|show`: the follower's error map (`follower`), kept in the
+//! `axiscomp follower import|map|level|show`: the follower's error map (`follower`), kept in the
 //! store (`store::follower`). `import` reads the encoder's calibration certificate (CSV, see
 //! `follower::certificate`) and hands it to the running service, which stores and applies it
 //! at once (with no service running, or `--db`, it goes into the store directly); `map` starts
 //! the stop-and-go self-calibration on the running service (`service::follower_map`: its part
 //! program on the CNC) and follows it to the map, or `--status`, `--stop`, `--finish` it;
-//! `map --twin` runs it on the digital twin's lab instead (`sim::follower_cal`); `show` prints
+//! `map --twin` runs it on the digital twin's lab instead (`sim::follower_cal`); `level` reads a
+//! level at stations and refits the map (`cli::follower_level`); `show` prints
 //! the map in use (or `--id`) and exports it as TOML or CSV. Exit codes: 2 for a bad
 //! certificate, arguments or a refused request, 1 for anything else.
 
@@ -27,6 +28,10 @@ pub enum Command {
     /// program on the CNC; or --twin: on the digital twin's lab), with the certificate for the
     /// length reference, and put the map in use.
     Map(MapArgs),
+    /// Read a level at stations along the follower's map on the running service, and refit
+    /// the map in use with them (its self-calibration's steps + the stations): start, or
+    /// --status, --stop, --finish, or --reading ARCSEC (a level read by hand).
+    Level(super::follower_level::LevelArgs),
     /// The map in use (or --id), every stored map, and exports.
     Show(ShowArgs),
 }
@@ -170,19 +175,20 @@ pub fn run(c: Command) -> Result<()> {
         Command::Import(a) => import(a),
         Command::Map(a) if a.twin => map_twin(a),
         Command::Map(a) => map_on_service(a),
+        Command::Level(a) => super::follower_level::run(a),
         Command::Show(a) => show(a),
     }
 }
 
 /// The control socket: `--socket`, else the configured one.
-fn socket_path(socket: Option<&Path>, config: Option<&Path>) -> Result<PathBuf> {
+pub(super) fn socket_path(socket: Option<&Path>, config: Option<&Path>) -> Result<PathBuf> {
     Ok(match socket {
         Some(s) => s.to_path_buf(),
         None => super::service::settings(config)?.service.socket,
     })
 }
 
-fn runtime() -> Result<tokio::runtime::Runtime> {
+pub(super) fn runtime() -> Result<tokio::runtime::Runtime> {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -190,7 +196,7 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
 }
 
 /// A request the service refused is input to fix (exit code 2).
-fn refused(e: ClientError) -> anyhow::Error {
+pub(super) fn refused(e: ClientError) -> anyhow::Error {
     match e {
         ClientError::Refused(m) => InputError(m).into(),
         e => e.into(),
@@ -245,10 +251,10 @@ fn import(a: ImportArgs) -> Result<()> {
     }
     let path = db_path(&a.db)?;
     let mut store = Store::open(&path)?;
-    let (map, name, joined) =
+    let (stored, name, joined) =
         axiscomp::service::follower::certificate_map(&store, &cert).map_err(anyhow::Error::msg)?;
-    let id = store.insert_follower_map_with(&map, Some(&cert), &name, !a.keep_current)?;
-    print_map(id, &name, &map);
+    let id = store.insert_stored_follower_map(&stored, &name, !a.keep_current)?;
+    print_map(id, &name, &stored.map);
     if let Some(j) = joined {
         println!("joined with the self-calibration of map {j} (the map in use)");
     }
@@ -267,7 +273,7 @@ fn import(a: ImportArgs) -> Result<()> {
 }
 
 /// Seconds as people read them: "45 s", "3.4 min", "1.7 h".
-fn duration_words(s: f64) -> String {
+pub(super) fn duration_words(s: f64) -> String {
     if !s.is_finite() || s < 0.0 {
         "?".into()
     } else if s < 90.0 {
@@ -487,7 +493,15 @@ fn map_twin(a: MapArgs) -> Result<()> {
         (None, None) => format!("self-calibration on the twin (seed {})", a.seed),
     };
     let mut store = Store::open(&db)?;
-    let id = store.insert_follower_map_with(&out.map, Some(&out.certificate), &name, true)?;
+    let stored = axiscomp::follower::StoredMap {
+        map: out.map.clone(),
+        certificate: Some(out.certificate.clone()),
+        steps: Some(axiscomp::follower::StoredSteps {
+            settings,
+            steps: out.run.steps.clone(),
+        }),
+    };
+    let id = store.insert_stored_follower_map(&stored, &name, true)?;
     print_map(id, &name, &out.map);
     println!(
         "{} steps in {:.1} min of machine time; in use from the service's next start",
@@ -527,7 +541,12 @@ fn show(a: ShowArgs) -> Result<()> {
     };
     print_map(rec.id, &rec.name, &rec.map);
     if let Some(p) = &a.toml {
-        let text = axiscomp::follower::stored_toml(&rec.map, rec.certificate.as_ref());
+        let text = axiscomp::follower::StoredMap {
+            map: rec.map.clone(),
+            certificate: rec.certificate.clone(),
+            steps: rec.steps.clone(),
+        }
+        .to_toml();
         std::fs::write(p, text).with_context(|| format!("writing {}", p.display()))?;
         println!("written: {}", p.display());
     }

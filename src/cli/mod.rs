@@ -9,6 +9,7 @@ mod demo;
 mod evaluate;
 mod export;
 mod follower;
+mod follower_level;
 mod optics;
 mod report;
 mod run;

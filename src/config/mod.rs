@@ -123,6 +123,8 @@ pub struct RawFollower {
     pub min_mm: f64,
     pub max_mm: f64,
     pub home_on_start: bool,
+    pub level: String,
+    pub level_sd_arcsec: f64,
 }
 
 /// `[tracking]`
@@ -294,6 +296,20 @@ pub struct FollowerSettings {
     /// The CiA 402 drive, checked by `DriveConfig::validate`.
     pub drive: DriveConfig,
     pub home_on_start: bool,
+    /// Where the level read at the follower's level stations comes from.
+    pub level: LevelSource,
+    /// One level reading's stated standard deviation (rad).
+    pub level_sd_rad: f64,
+}
+
+/// Where the level read beside the head's roll at the follower's level stations comes from
+/// (`service::follower_level`).
+#[derive(Clone, Debug, PartialEq)]
+pub enum LevelSource {
+    /// The operator reads the level and types each reading (console or API).
+    Manual,
+    /// The digital twin's level, asked on its control socket.
+    Twin(SocketAddr),
 }
 
 /// How a run's part program reaches the CNC.
@@ -825,6 +841,18 @@ fn validate(
     let follower = FollowerSettings {
         drive,
         home_on_start: f.home_on_start,
+        level: match f.level.as_str() {
+            "manual" => LevelSource::Manual,
+            "twin" => LevelSource::Twin(v.addr("cnc.twin", &raw.cnc.twin)?),
+            other => {
+                return Err(v.err(
+                    "follower.level",
+                    format!("\"{other}\" is unknown: use manual or twin"),
+                ));
+            }
+        },
+        level_sd_rad: v.positive("follower.level_sd_arcsec", f.level_sd_arcsec)?
+            * crate::units::RAD_PER_ARCSEC,
     };
     let t = &raw.tracking;
     let strategy = match t.strategy.as_str() {

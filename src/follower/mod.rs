@@ -36,9 +36,12 @@
 
 pub mod certificate;
 mod fit;
+pub mod level;
 pub mod selfcal;
+mod stored;
 
 pub use certificate::{Certificate, CertificateError, CertificatePoint};
+pub use stored::{STEP_COLUMNS, StoredMap, StoredSteps};
 
 use crate::track::{HandoverKind, HandoverRecord};
 use serde::{Deserialize, Serialize};
@@ -682,50 +685,25 @@ impl FollowerMap {
     }
 }
 
-/// The key of the certificate's points in a stored map's TOML (see [`stored_toml`]).
-const CERTIFICATE_KEY: &str = "certificate";
-
-/// A map as the store keeps it: the map's TOML ([`FollowerMap::to_toml`]) with the
-/// certificate it was built from in a `[certificate]` table, so that a later
-/// self-calibration combines with it. [`FollowerMap::from_toml`] reads it too (the table is
-/// ignored), and maps stored before the table existed read back with no certificate.
+/// A map as the store keeps it with the certificate it was built from (see
+/// [`StoredMap`], which also keeps the self-calibration's steps).
 pub fn stored_toml(map: &FollowerMap, certificate: Option<&Certificate>) -> String {
-    let mut text = map.to_toml();
-    if let Some(c) = certificate {
-        #[derive(Serialize)]
-        struct Wrap<'a> {
-            certificate: &'a Certificate,
-        }
-        match toml::to_string(&Wrap { certificate: c }) {
-            Ok(t) => {
-                if !text.ends_with('\n') {
-                    text.push('\n');
-                }
-                text.push_str(&t);
-            }
-            Err(e) => text.push_str(&format!("# the certificate could not be written: {e}\n")),
-        }
+    StoredMap {
+        map: map.clone(),
+        certificate: certificate.cloned(),
+        steps: None,
     }
-    text
+    .to_toml()
 }
 
-/// Read a map written by [`stored_toml`] (or [`FollowerMap::to_toml`]): the map and its
-/// certificate, when it has one. `file` names it in errors.
+/// Read a map written by [`stored_toml`] (or [`StoredMap::to_toml`], or
+/// [`FollowerMap::to_toml`]): the map and its certificate, when it has one. `file` names it
+/// in errors.
 pub fn from_stored_toml(
     text: &str,
     file: &str,
 ) -> Result<(FollowerMap, Option<Certificate>), MapError> {
-    let bad = |e: toml::de::Error| MapError::File {
-        file: file.to_string(),
-        problem: format!("not a follower map: {}", e.message()),
-    };
-    let mut table: toml::Table = toml::from_str(text).map_err(bad)?;
-    let certificate = match table.remove(CERTIFICATE_KEY) {
-        Some(v) => Some(v.try_into::<Certificate>().map_err(bad)?),
-        None => None,
-    };
-    let map: FollowerMap = toml::Value::Table(table).try_into().map_err(bad)?;
-    Ok((map, certificate))
+    StoredMap::from_toml(text, file).map(|s| (s.map, s.certificate))
 }
 
 #[cfg(test)]

@@ -186,6 +186,20 @@ pub enum Request {
     /// Build the follower map now from the steps so far (with a CNC the service does not
     /// drive, or when enough is enough).
     FollowerMapFinish,
+    /// Read a level at stations along the follower's map (`service::follower_level`): at the
+    /// end the map refitted with the stations, stored and put in use.
+    FollowerLevelStart(super::follower_level::LevelRequest),
+    /// Where the level stations are (`service::follower_level::LevelView`).
+    FollowerLevelStatus,
+    /// The level's reading (arcsec) at the station being read (`[follower] level = "manual"`).
+    FollowerLevelReading {
+        #[serde(default)]
+        arcsec: serde_json::Value,
+    },
+    /// Stop the level stations: nothing is stored.
+    FollowerLevelStop,
+    /// Fit the map now with the stations taken (two at least).
+    FollowerLevelFinish,
 }
 
 impl Request {
@@ -203,7 +217,8 @@ impl Request {
             | Request::TableList { .. }
             | Request::TableStatus
             | Request::FollowerMap { id: None }
-            | Request::FollowerMapStatus => Role::Viewer,
+            | Request::FollowerMapStatus
+            | Request::FollowerLevelStatus => Role::Viewer,
             _ => Role::Operator,
         }
     }

@@ -178,6 +178,7 @@ pub(super) struct Core {
     calibrations: super::calibration::Calibrations,
     hexapod: super::hexapod_run::HexapodRuns,
     follower_mapping: super::follower_map::FollowerMapping,
+    follower_level: super::follower_level::FollowerLevel,
 }
 
 /// A make-up pass is sent for a missing capture at most this many times before the run fails.
@@ -381,6 +382,18 @@ impl Core {
                     sync: s.follower.drive.sync_period,
                 },
             ),
+            follower_level: super::follower_level::FollowerLevel::new(
+                super::follower_level::LevelConfig {
+                    source: s.follower.level.clone(),
+                    level_sd_rad: s.follower.level_sd_rad,
+                    cnc: s.cnc.mode.clone(),
+                    dialect: s.cnc.dialect,
+                    state_dir: s.service.state_dir.clone(),
+                    frame_rate_hz: s.io.acquire.rate_hz,
+                    live_window: s.head.live_window,
+                    sync: s.follower.drive.sync_period,
+                },
+            ),
         }
     }
 
@@ -397,6 +410,21 @@ impl Core {
             frames_per_s: self.acquisition.stats().frames_per_s,
         };
         f(&mut self.follower_mapping, ctx)
+    }
+
+    /// The follower's level stations with what they work on (`service::follower_level`).
+    fn with_level<R>(
+        &mut self,
+        f: impl FnOnce(&mut super::follower_level::FollowerLevel, super::follower_map::Ctx<'_>) -> R,
+    ) -> R {
+        let ctx = super::follower_map::Ctx {
+            pipeline: &mut self.pipeline,
+            store: &mut self.store,
+            shown: &mut self.follower_map,
+            zero_window: self.zero_window,
+            frames_per_s: self.acquisition.stats().frames_per_s,
+        };
+        f(&mut self.follower_level, ctx)
     }
 
     pub(super) async fn run(
@@ -1079,6 +1107,9 @@ impl Core {
         if let Some(why) = self.follower_mapping.refusal("start the run") {
             return Err(why);
         }
+        if let Some(why) = self.follower_level.refusal("start the run") {
+            return Err(why);
+        }
         let plan = Plan::new(spec).map_err(|e| e.to_string())?;
         if plan.spec.overrun_mm <= self.capture.target_tolerance_mm {
             return Err(format!(
@@ -1369,6 +1400,10 @@ impl Core {
                 let r = super::follower::import_certificate(store, tracker, shown, req);
                 Self::reply(c.reply, r);
             }
+            Request::FollowerMapStart(_) if self.follower_level.active() => {
+                let why = self.follower_level.refusal("map the follower");
+                Self::reply(c.reply, Err(why.unwrap_or_default()));
+            }
             Request::FollowerMapStart(mapping) => {
                 let busy = super::follower_map::Busy {
                     run: self.run.as_ref().map(|r| r.id.0),
@@ -1387,6 +1422,20 @@ impl Core {
             Request::FollowerMapFinish => {
                 let who = c.peer.user.clone();
                 let r = self.with_mapping(|m, ctx| m.finish(&who, ctx));
+                Self::reply(c.reply, r);
+            }
+            Request::FollowerLevelStatus => Self::reply(c.reply, Ok(self.follower_level.status())),
+            req @ (Request::FollowerLevelStart(_)
+            | Request::FollowerLevelReading { .. }
+            | Request::FollowerLevelStop
+            | Request::FollowerLevelFinish) => {
+                let busy = super::follower_level::Busy {
+                    run: self.run.as_ref().map(|r| r.id.0),
+                    hexapod: self.hexapod.active(),
+                    mapping: self.follower_mapping.active(),
+                };
+                let who = c.peer.user.clone();
+                let r = self.with_level(|l, ctx| l.request(req, &who, busy, ctx));
                 Self::reply(c.reply, r);
             }
             Request::AlignClear => {
@@ -1445,7 +1494,10 @@ impl Core {
             }
             Request::CalibrationReject => Self::reply(c.reply, self.calibrations.reject()),
             Request::HexapodStart { plan, poses, out } => {
-                let mapping = self.follower_mapping.refusal("calibrate");
+                let mapping = self
+                    .follower_mapping
+                    .refusal("calibrate")
+                    .or_else(|| self.follower_level.refusal("calibrate"));
                 let r = match (&self.run, mapping) {
                     (Some(r), _) => Err(format!(
                         "measurement run {} is under way: the hexapod would move the head under it; abort it or let it finish, then calibrate",
@@ -1540,6 +1592,7 @@ impl Core {
         let now = Instant::now();
         self.take_hexapod_fit();
         self.with_mapping(|m, ctx| m.tick(now, ctx));
+        self.with_level(|l, ctx| l.tick(now, ctx));
         if let Some(z) = self.pipeline.zero_ready(now)
             && let Some(reply) = self.zero_reply.take()
         {
@@ -1683,6 +1736,7 @@ impl Core {
                 }
             }),
             follower_mapping: self.follower_mapping.view(),
+            follower_level: self.follower_level.view(),
         }
     }
 }

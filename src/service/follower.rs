@@ -5,7 +5,7 @@
 //! self-calibration of the map in use when it has one); the snapshot names it. The
 //! stop-and-go self-calibration itself is `follower_map` (the module beside this one).
 
-use crate::follower::{Certificate, FollowerMap, MapSettings, Sources};
+use crate::follower::{Certificate, FollowerMap, MapSettings, Sources, StoredMap};
 use crate::store::{FollowerMapRecord, Store};
 use crate::track::Tracker;
 use serde::{Deserialize, Serialize};
@@ -105,22 +105,30 @@ pub struct CertificateImport {
 
 /// The map a certificate makes in `store`: joined with the self-calibration of the map in
 /// use when it has one (its periodic term, reversal and vertical kept, the certificate's long
-/// shape in place of any other), else the certificate's alone; its name, and the map it
-/// joined.
+/// shape in place of any other, its steps kept with it), else the certificate's alone; its
+/// name, and the map it joined.
 pub fn certificate_map(
     store: &Store,
     cert: &Certificate,
-) -> Result<(FollowerMap, String, Option<i64>), String> {
+) -> Result<(StoredMap, String, Option<i64>), String> {
     let in_use = store.follower_map_in_use().map_err(|e| e.to_string())?;
     Ok(match in_use.filter(|r| r.map.self_calibration.is_some()) {
         Some(r) => (
-            r.map.with_certificate(cert),
+            StoredMap {
+                map: r.map.with_certificate(cert),
+                certificate: Some(cert.clone()),
+                steps: r.steps,
+            },
             format!("{} with the self-calibration of map {}", cert.name, r.id),
             Some(r.id),
         ),
         None => (
-            crate::follower::build(&[], Some(cert), &MapSettings::default())
-                .map_err(|e| e.to_string())?,
+            StoredMap {
+                map: crate::follower::build(&[], Some(cert), &MapSettings::default())
+                    .map_err(|e| e.to_string())?,
+                certificate: Some(cert.clone()),
+                steps: None,
+            },
             cert.name.clone(),
             None,
         ),
@@ -160,11 +168,12 @@ pub(super) fn import_certificate(
             return Err("follower_certificate needs \"path\" (a CSV on the service's host) or \"csv\" (its text)".into());
         }
     };
-    let (map, name, joined) = certificate_map(store, &cert)?;
+    let (stored, name, joined) = certificate_map(store, &cert)?;
     let use_it = !req.keep_current;
     let id = store
-        .insert_follower_map_with(&map, Some(&cert), &name, use_it)
+        .insert_stored_follower_map(&stored, &name, use_it)
         .map_err(|e| format!("the certificate's map was not stored: {e}"))?;
+    let map = stored.map;
     if use_it {
         let r = store.follower_map(id).map_err(|e| e.to_string())?;
         tracker.set_map(Some(Arc::new(r.map.clone())));

@@ -821,8 +821,17 @@ fn store_map(
             .map(|c| format!(" + {}", c.name))
             .unwrap_or_default()
     );
+    // The steps are kept with the map: a level's stations fit them again later.
+    let stored = crate::follower::StoredMap {
+        map,
+        certificate,
+        steps: Some(crate::follower::StoredSteps {
+            settings: a.settings,
+            steps: a.collector.steps().to_vec(),
+        }),
+    };
     let id = store
-        .insert_follower_map_with(&map, certificate.as_ref(), &name, true)
+        .insert_stored_follower_map(&stored, &name, true)
         .map_err(|e| format!("the map was not stored: {e}"))?;
     store.follower_map(id).map_err(|e| e.to_string())
 }

@@ -10,6 +10,7 @@ pub mod composition;
 pub mod control;
 mod core;
 pub mod follower;
+pub mod follower_level;
 pub mod follower_map;
 pub mod hexapod_run;
 pub mod measure;

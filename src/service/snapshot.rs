@@ -25,6 +25,10 @@ pub struct Snapshot {
     /// started ended.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub follower_mapping: Option<super::follower_map::MappingView>,
+    /// The follower's level stations: under way, or how the last one since the service
+    /// started ended.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub follower_level: Option<super::follower_level::LevelView>,
 }
 
 /// A measurement run in progress.

@@ -54,6 +54,16 @@ struct RawTwin {
     head: RawHead,
     follower: RawFollower,
     carriage: RawCarriage,
+    #[serde(default)]
+    level: Option<RawLevel>,
+}
+
+/// `[twin.level]`: the twin's electronic level on the carriage (the control socket's `level`).
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawLevel {
+    /// One reading's standard deviation (µrad).
+    sd_urad: f64,
 }
 
 #[derive(Debug, Deserialize)]
@@ -268,6 +278,10 @@ pub fn parse_all(
         },
         feed: non_neg("twin.carriage.feed_mm_s", t.carriage.feed_mm_s)?,
         accel: non_neg("twin.carriage.accel_mm_s2", t.carriage.accel_mm_s2)?,
+        level_sd_rad: match &t.level {
+            Some(l) => non_neg("twin.level.sd_urad", l.sd_urad)? * 1e-6,
+            None => PlantSpec::default().level_sd_rad,
+        },
         ..PlantSpec::default()
     };
     let io_map = match raw.io.map.as_str() {

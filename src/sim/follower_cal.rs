@@ -11,7 +11,7 @@
 
 use super::lab::{Lab, LabError};
 use crate::follower::selfcal::{Collector, Plan, Spec};
-use crate::follower::{FollowerMap, LevelStation, Step, VerticalReference};
+use crate::follower::{FollowerMap, Step, VerticalReference};
 use crate::track::{HandoverKind, HandoverRecord};
 use std::sync::Arc;
 use std::time::Duration;
@@ -218,18 +218,14 @@ impl Default for LevelSpec {
 impl LevelSpec {
     /// The stations over `span` (mm): evenly spaced, both ends included.
     pub fn stations(&self, span: (f64, f64)) -> Vec<f64> {
-        let len = (span.1 - span.0).max(0.0);
-        let n = ((len / self.station_mm.max(1.0)).ceil() as usize).max(1);
-        (0..=n)
-            .map(|k| span.0 + len * k as f64 / n as f64)
-            .collect()
+        crate::follower::level::stations(span, self.station_mm)
     }
 }
 
 /// The head's roll minus the level's at one station (mean over the readings, rad), the
-/// variance of that mean from the readings' own scatter (rad²; the head's noise and the
-/// level's, not the stitch's: the map's error at the station is what is measured), and the
-/// encoder there (mm).
+/// variance of that mean (rad², `follower::level::excess`: the head's noise and the level's,
+/// not the stitch's: the map's error at the station is what is measured), and the encoder
+/// there (mm).
 struct StationReading {
     excess: f64,
     var_excess: f64,
@@ -243,7 +239,7 @@ fn read_station(
     rng: &mut super::Rng,
 ) -> Result<StationReading, LabError> {
     let n = level.readings.max(2);
-    let mut d = Vec::with_capacity(n);
+    let (mut head, mut read) = (Vec::with_capacity(n), Vec::with_capacity(n));
     for _ in 0..n {
         // Each reading a fresh window of the head's live mean.
         lab.advance(window + Duration::from_millis(50))?;
@@ -255,21 +251,25 @@ fn read_station(
                 what: "level reference",
                 why: "the head gave no live roll".into(),
             })?;
-        d.push(live.errors.ey - (lab.truth().errors.ey + rng.gauss(level.sd_rad)));
+        head.push(live.errors.ey);
+        read.push(lab.truth().errors.ey + rng.gauss(level.sd_rad));
     }
-    let nf = n as f64;
-    let mean = d.iter().sum::<f64>() / nf;
-    let scatter = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (nf - 1.0);
+    let (excess, var_excess) =
+        crate::follower::level::excess(&head, &read, level.sd_rad).map_err(|e| {
+            LabError::BringUp {
+                what: "level reference",
+                why: e.to_string(),
+            }
+        })?;
     Ok(StationReading {
-        excess: mean,
-        // Never less than the level's own noise says.
-        var_excess: scatter.max(level.sd_rad * level.sd_rad) / nf,
+        excess,
+        var_excess,
         encoder: encoder(lab)?,
     })
 }
 
 /// The roll's sensitivity to PSD2's Y (rad per mm) where the head reads now, at carriage
-/// position `travel_mm`.
+/// position `travel_mm` (`follower::level::roll_per_y2`).
 fn roll_per_y2(
     lab: &Lab,
     decoupler: &crate::decouple::Decoupler,
@@ -285,23 +285,14 @@ fn roll_per_y2(
         .and_then(|f| f.readings())
         .ok_or_else(|| bad("no frame with all three spots".into()))?;
     let stitch = lab.pipeline.tracker.stitch();
-    let mut r = frame;
-    r[3] += stitch.vertical_mm;
-    let h = 1e-3;
-    let e0 = decoupler
-        .decouple(&r, travel_mm, stitch.follower_mm)
-        .map_err(|e| bad(e.to_string()))?;
-    r[3] += h;
-    let e1 = decoupler
-        .decouple(&r, travel_mm, stitch.follower_mm)
-        .map_err(|e| bad(e.to_string()))?;
-    let g = (e1.errors.ey - e0.errors.ey) / h;
-    if g.abs() < 1e-9 {
-        return Err(bad(format!(
-            "the roll does not depend on PSD2's Y ({g:e} rad/mm)"
-        )));
-    }
-    Ok(g)
+    crate::follower::level::roll_per_y2(
+        decoupler,
+        &frame,
+        travel_mm,
+        stitch.follower_mm,
+        stitch.vertical_mm,
+    )
+    .map_err(|e| bad(e.to_string()))
 }
 
 /// Read the level's stations over `span` (`LevelSpec`): with `map` applied in tracking (its
@@ -336,11 +327,13 @@ pub fn reference_level(
         let g = roll_per_y2(lab, decoupler, x)?;
         let m = free.correction(r.encoder, crate::follower::Direction::Up)[1];
         moved = moved.max((x - at[0]).abs());
-        stations.push(LevelStation {
-            position_mm: r.encoder,
-            value_mm: m - r.excess / g,
-            variance_mm2: r.var_excess / (g * g),
-        });
+        stations.push(crate::follower::level::station(
+            r.encoder,
+            m,
+            r.excess,
+            r.var_excess,
+            g,
+        ));
     }
     lab.pipeline.tracker.set_map(Some(Arc::new(map.clone())));
     if stations.len() < 2 || moved < 1.0 {

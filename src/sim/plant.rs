@@ -75,6 +75,9 @@ pub struct PlantSpec {
     /// Carriage feed (mm/s) and acceleration (mm/s²).
     pub feed: f64,
     pub accel: f64,
+    /// The twin's electronic level on the carriage (a simulated instrument, read on the
+    /// control socket's `level` command): the standard deviation of one reading (rad).
+    pub level_sd_rad: f64,
 }
 
 impl Default for PlantSpec {
@@ -91,6 +94,7 @@ impl Default for PlantSpec {
             sum_off_v: 0.02,
             feed: 50.0,
             accel: 500.0,
+            level_sd_rad: 1e-6,
         }
     }
 }

@@ -29,6 +29,11 @@
 //!   twin runs (issue 15: years of wear for a maintenance re-measurement; `sim::axis::Wear`):
 //!   the fields given replace the wear in force, the others keep theirs (each 0..=100 µm);
 //!   `{"cmd":"age"}` → the wear in force
+//! - `{"cmd":"level"}` → the twin's electronic level on the carriage, a simulated instrument:
+//!   `{"ok":true,"level":{"roll_arcsec":…,"sd_arcsec":…,"instrument":"…"}}`, the axis' true
+//!   roll where the carriage is plus `PlantSpec::level_sd_rad` of noise (1 µrad by default) a
+//!   reading, as a precision level reads roll against gravity (the service's follower level
+//!   stations with `[follower] level = "twin"`)
 
 use super::SimError;
 use super::axis::Wear;
@@ -216,6 +221,9 @@ impl Twin {
                 cnc: twin.cnc.clone(),
                 cnc_task: twin.cnc_task.clone(),
                 plc: twin.plc.clone(),
+                level_rng: Arc::new(std::sync::Mutex::new(
+                    super::Rng::new(spec.plant.seed).fork(LEVEL_FORK),
+                )),
             };
             let task = tokio::spawn(serve_control(listener, ctx));
             twin.control = Some((addr, task));
@@ -254,6 +262,8 @@ struct Ctx {
     cnc: Arc<std::sync::Mutex<CncState>>,
     cnc_task: Arc<std::sync::Mutex<Option<JoinHandle<()>>>>,
     plc: Arc<std::sync::Mutex<Option<Arc<super::plc::TwinPlc>>>>,
+    /// The twin level's noise (`level`).
+    level_rng: Arc<std::sync::Mutex<super::Rng>>,
 }
 
 /// Parse `text` and run it on a fresh CNC task (aborting the one that runs).
@@ -488,11 +498,28 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
                 "thermal_um": wear.thermal_um,
             }}))
         }
+        "level" => {
+            let sd = ctx.plant.spec.level_sd_rad;
+            let noise = ctx.level_rng.lock().map(|mut r| r.gauss(sd)).unwrap_or(0.0);
+            let roll = ctx.plant.truth(Instant::now()).errors.ey + noise;
+            let arcsec = |rad: f64| rad / crate::units::RAD_PER_ARCSEC;
+            Ok(serde_json::json!({"ok": true, "level": {
+                "roll_arcsec": arcsec(roll),
+                "sd_arcsec": arcsec(sd),
+                "instrument": format!(
+                    "the twin's electronic level (a simulated instrument: the axis' true roll plus {:.1} µrad of noise a reading)",
+                    sd * 1e6
+                ),
+            }}))
+        }
         other => Err(format!(
-            "unknown cmd \"{other}\": use move, wait, truth, block, io, drive, program, cnc, mount, turn, knock, plc, target or age"
+            "unknown cmd \"{other}\": use move, wait, truth, block, io, drive, program, cnc, mount, turn, knock, plc, target, age or level"
         )),
     }
 }
+
+/// The stream of the twin level's noise (`Rng::fork` of the plant's seed).
+const LEVEL_FORK: u64 = 18;
 
 /// Largest wear (µm) the `age` command takes for each term: years of use add a few µm to tens
 /// of µm; more is a broken axis, not an aged one (and most likely a typing error).

@@ -1,9 +1,10 @@
 //! Follower error maps (`follower::FollowerMap`): stored whole as TOML with their source and
-//! date, and with the certificate they were built from (`follower::stored_toml`: a later
-//! self-calibration combines with it); at most one is in use (the tracker applies it).
+//! date, with the certificate they were built from (a later self-calibration combines with
+//! it) and the self-calibration's steps (a level's stations, or a newer fit, fit them again;
+//! `follower::StoredMap`); at most one is in use (the tracker applies it).
 
 use super::{Store, StoreError, now_us};
-use crate::follower::{Certificate, FollowerMap, Source};
+use crate::follower::{Certificate, FollowerMap, Source, StoredMap, StoredSteps};
 use rusqlite::{OptionalExtension, params};
 
 /// A stored follower map.
@@ -19,6 +20,9 @@ pub struct FollowerMapRecord {
     pub map: FollowerMap,
     /// The certificate the map was built from (none for maps stored before it was kept).
     pub certificate: Option<Certificate>,
+    /// The self-calibration's steps and its fit's settings (none for a map from a
+    /// certificate alone, or stored before the steps were kept: it cannot be fitted again).
+    pub steps: Option<StoredSteps>,
 }
 
 /// What a map is made from, as the store names it.
@@ -52,6 +56,22 @@ impl Store {
         name: &str,
         use_it: bool,
     ) -> Result<i64, StoreError> {
+        let stored = StoredMap {
+            map: map.clone(),
+            certificate: certificate.cloned(),
+            steps: None,
+        };
+        self.insert_stored_follower_map(&stored, name, use_it)
+    }
+
+    /// Store a follower map with its certificate and its self-calibration's steps
+    /// (`follower::StoredMap`), named `name`; with `use_it` it becomes the map in use.
+    pub fn insert_stored_follower_map(
+        &mut self,
+        stored: &StoredMap,
+        name: &str,
+        use_it: bool,
+    ) -> Result<i64, StoreError> {
         let what = "store a follower map";
         let label = self.label();
         let fail = |e| super::classify(&label, what, e);
@@ -65,9 +85,9 @@ impl Store {
              VALUES (?1, ?2, ?3, ?4, ?5)",
             params![
                 now_us(),
-                source_of(map),
+                source_of(&stored.map),
                 name,
-                crate::follower::stored_toml(map, certificate),
+                stored.to_toml(),
                 use_it as i64
             ],
         )
@@ -148,17 +168,17 @@ impl Store {
             .map_err(|e| self.fail(what, e))?;
         raws.into_iter()
             .map(|(id, created_us, source, name, in_use, text)| {
-                let (map, certificate) =
-                    crate::follower::from_stored_toml(&text, &format!("follower map {id}"))
-                        .map_err(|e| self.decode(what, e))?;
+                let s = StoredMap::from_toml(&text, &format!("follower map {id}"))
+                    .map_err(|e| self.decode(what, e))?;
                 Ok(FollowerMapRecord {
                     id,
                     created_us,
                     source,
                     name,
                     in_use: in_use == 1,
-                    map,
-                    certificate,
+                    map: s.map,
+                    certificate: s.certificate,
+                    steps: s.steps,
                 })
             })
             .collect()

@@ -534,3 +534,293 @@ async fn with_a_manual_cnc_the_mapping_ends_when_every_stop_was_seen() {
     );
     rig.stop().await;
 }
+
+/// The level's stations through the service on the twin (`[follower] level = "twin"`): the
+/// follower mapped over 40 mm, then a station every 10 mm read by the twin's level beside the
+/// head, the map fitted again with the stored steps and the stations, stored as a new map and
+/// put in use. Its vertical, relative to its first point, against the twin's true follower
+/// vertical relative to the same point, judged by its u as `follower.rs::check_map` judges the
+/// lab's maps: the RMS of (map − truth)/u at most 2 and no point beyond 5 u (the points are
+/// one correlated curve, all sharing the first station's error). Refusals both ways with a
+/// measurement run, a hexapod run and the mapping while the stations are under way.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_service_reads_the_twins_level_at_stations_and_refits_the_map() {
+    use axiscomp::service::follower_level::LevelRequest;
+    let wall = Instant::now();
+    let rig = ServiceRig::start(RigOptions {
+        service_toml: SERVICE.into(),
+        follower_toml: Some("level = \"twin\"\n".into()),
+        twin_cnc: true,
+        ..RigOptions::default()
+    })
+    .await;
+    // Before any map with steps: refused in words.
+    let e = rig
+        .request(Request::FollowerLevelStart(LevelRequest::default()))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("map the follower first"), "{e}");
+    let cert_text = rig
+        .twin
+        .plant
+        .follower
+        .certificate(&mut axiscomp::sim::Rng::new(5));
+    rig.request(Request::FollowerCertificate(CertificateImport {
+        csv: Some(cert_text),
+        name: Some("twin-stage.csv".into()),
+        ..CertificateImport::default()
+    }))
+    .await
+    .expect("certificate import");
+    rig.request(Request::FollowerMapStart(short_mapping()))
+        .await
+        .expect("mapping start");
+    let s = rig
+        .wait_for(180, "the mapping done", |s| {
+            s.follower_mapping.as_ref().is_some_and(|m| !m.active())
+        })
+        .await;
+    let m = s.follower_mapping.expect("the mapping's view");
+    assert_eq!(m.state, "done", "{m:#?}");
+    let mapped = m.map_id.expect("the mapping's map");
+    let mapped_at = wall.elapsed().as_secs_f64();
+    // The stations: every 10 mm over the map's span.
+    let req = LevelRequest {
+        station_mm: Some(10.0),
+        readings: Some(10),
+        ..LevelRequest::default()
+    };
+    let v = rig
+        .request(Request::FollowerLevelStart(req.clone()))
+        .await
+        .expect("level start");
+    eprintln!("{}", serde_json::to_string_pretty(&v).unwrap());
+    assert_eq!(v["state"], "stations", "{v}");
+    assert_eq!(v["map_from"].as_i64(), Some(mapped), "{v}");
+    let planned = v["stations"].as_array().map_or(0, Vec::len);
+    assert!(planned >= 4, "{v}");
+    // Under way: the others refused, naming the stations and how to end them; a typed
+    // reading refused (the twin's level is read by the service).
+    for (r, what) in [
+        (
+            Request::RunStart {
+                plan: short_plan(),
+                dialect: None,
+                notes: None,
+            },
+            "run",
+        ),
+        (
+            Request::HexapodStart {
+                plan: None,
+                poses: None,
+                out: None,
+            },
+            "hexapod",
+        ),
+        (Request::FollowerMapStart(short_mapping()), "mapping"),
+    ] {
+        let e = rig.request(r).await.unwrap_err().to_string();
+        assert!(
+            e.contains("the follower's level stations are under way")
+                && e.contains("follower_level_stop"),
+            "{what}: {e}"
+        );
+    }
+    let e = rig
+        .request(Request::FollowerLevelStart(req))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("level stations are under way"), "{e}");
+    let e = rig
+        .request(Request::FollowerLevelReading {
+            arcsec: serde_json::json!(1.5),
+        })
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("the level is the twin's"), "{e}");
+    let s = rig
+        .wait_for(180, "the level stations done", |s| {
+            s.follower_level.as_ref().is_some_and(|l| !l.active())
+        })
+        .await;
+    let l = s.follower_level.expect("the stations' view");
+    let status = rig
+        .request(Request::FollowerLevelStatus)
+        .await
+        .expect("status");
+    eprintln!("{}", serde_json::to_string_pretty(&status).unwrap());
+    assert_eq!(l.state, "done", "{l:#?}");
+    assert_eq!(l.taken, planned, "{l:#?}");
+    let id = l.map_id.expect("the map stored");
+    assert_ne!(id, mapped);
+    rig.wait_for(10, "the refitted map in the snapshot", |s| {
+        s.tracking.follower_map.as_ref().map(|v| v.id) == Some(id)
+    })
+    .await;
+    let rec = {
+        let store = axiscomp::store::Store::open_read_only(&rig.store).expect("store");
+        store.follower_map(id).expect("stored map")
+    };
+    assert!(rec.in_use);
+    assert!(
+        rec.name
+            .ends_with(&format!(" + level at {planned} stations")),
+        "{}",
+        rec.name
+    );
+    assert!(rec.steps.is_some(), "the steps are kept with the new map");
+    let map = &rec.map;
+    let reference = map
+        .vertical_reference
+        .as_ref()
+        .expect("the level's stations");
+    assert_eq!(reference.stations.len(), planned);
+    assert!(map.vertical_line.is_none());
+    // The whole vertical, relative to its first point, against the truth.
+    let truth = &rig.twin.plant.follower;
+    let vp = &map.vertical_positions_mm;
+    let x0 = vp[0];
+    let (mut z2, mut worst_u, mut worst_um, mut max_u, mut n) =
+        (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize);
+    for (i, &x) in vp.iter().enumerate() {
+        let err = (map.vertical_mm[i] - (truth.vertical(x) - truth.vertical(x0))) * 1e3;
+        let u = map.vertical_u_mm[i] * 1e3;
+        eprintln!("  vertical at {x:7.2} mm: map − truth {err:+.3} µm, u {u:.3} µm");
+        worst_um = worst_um.max(err.abs());
+        max_u = max_u.max(u);
+        if u > 0.0 {
+            worst_u = worst_u.max(err.abs() / u);
+            z2 += (err / u).powi(2);
+            n += 1;
+        }
+    }
+    let rms_z = (z2 / n.max(1) as f64).sqrt();
+    if let Some(e) = &l.error {
+        eprintln!("the stations' note: {e}");
+    }
+    eprintln!(
+        "level-referenced {:.1}–{:.1} mm: {planned} stations, {} points, RMS (map − truth)/u {rms_z:.2}, worst |map − truth| {worst_um:.3} µm = {worst_u:.2} u (largest u {max_u:.3} µm); u at mid-span {:?} µm from the steps alone, {:?} µm with the stations; mapped after {mapped_at:.1} s, {:.1} s of wall time so far",
+        x0,
+        vp[vp.len() - 1],
+        vp.len(),
+        l.u_mid_steps_um,
+        l.u_mid_level_um,
+        wall.elapsed().as_secs_f64()
+    );
+    assert!(n > 0);
+    assert!(rms_z <= 2.0, "RMS (map − truth)/u {rms_z:.2}");
+    assert!(worst_u <= 5.0, "a point {worst_u:.2} u from the truth");
+    rig.stop().await;
+}
+
+/// A level's reading typed through the API: not a number, beyond the limit, or with no
+/// stations under way, refused in words naming the field and what to do.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bad_level_reading_is_refused_in_words() {
+    use axiscomp::service::follower_level::{LEVEL_LIMIT_ARCSEC, LevelRequest};
+    let rig = ServiceRig::start(RigOptions {
+        service_toml: SERVICE.into(),
+        follower_toml: Some("level = \"manual\"\n".into()),
+        ..RigOptions::default()
+    })
+    .await;
+    let reading = |x: serde_json::Value| Request::FollowerLevelReading { arcsec: x };
+    let e = rig
+        .request(reading(serde_json::json!("NaN")))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("\"arcsec\" is \"NaN\": give the level's reading as a number of arcsec"),
+        "{e}"
+    );
+    let e = rig
+        .request(reading(serde_json::Value::Null))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("follower_level_reading needs \"arcsec\""), "{e}");
+    let e = rig
+        .request(reading(serde_json::json!(LEVEL_LIMIT_ARCSEC + 0.5)))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("\"arcsec\" is 1000.5: give the level's reading within ±1000″"),
+        "{e}"
+    );
+    let e = rig
+        .request(reading(serde_json::json!(2.5)))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("no level stations are under way: start them first"),
+        "{e}"
+    );
+    // Nothing to fit with yet: the start refused, saying to map the follower first.
+    let e = rig
+        .request(Request::FollowerLevelStart(LevelRequest::default()))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("map the follower first"), "{e}");
+    for r in [Request::FollowerLevelStop, Request::FollowerLevelFinish] {
+        let e = rig.request(r).await.unwrap_err().to_string();
+        assert!(e.contains("no level stations are under way"), "{e}");
+    }
+    let v = rig
+        .request(Request::FollowerLevelStatus)
+        .await
+        .expect("status");
+    assert_eq!(v["state"], "idle", "{v}");
+    // The same through the command line: refused, input to fix (exit 2); the status said.
+    use crate::helpers::{run, stderr, stdout};
+    let sock = rig.socket.display().to_string();
+    let cli = |args: Vec<String>| {
+        tokio::task::spawn_blocking(move || {
+            let a: Vec<&str> = args.iter().map(String::as_str).collect();
+            run(&a, "")
+        })
+    };
+    let args = |a: &[&str]| a.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+    let o = cli(args(&[
+        "follower",
+        "level",
+        "--socket",
+        &sock,
+        "--reading",
+        "1200",
+    ]))
+    .await
+    .unwrap();
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("\"arcsec\" is 1200: give the level's reading within ±1000″"),
+        "{}",
+        stderr(&o)
+    );
+    let o = cli(args(&["follower", "level", "--socket", &sock, "--status"]))
+        .await
+        .unwrap();
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("no level stations since the service started"),
+        "{}",
+        stdout(&o)
+    );
+    let o = cli(args(&["follower", "level", "--socket", &sock]))
+        .await
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("map the follower first"),
+        "{}",
+        stderr(&o)
+    );
+    rig.stop().await;
+}

@@ -324,6 +324,9 @@ impl App {
         if let Some(out) = key_char(&key).and_then(|c| self.follower_map_key(c)) {
             return out;
         }
+        if let Some(out) = key_char(&key).and_then(|c| self.follower_level_key(c)) {
+            return out;
+        }
         match key_char(&key) {
             Some('h') => self.follower(FollowerAction::Home, None, "home the follower".into()),
             Some('j') => self.follower(

@@ -24,6 +24,8 @@ pub struct FollowerPanel {
     pub imported: Option<(String, Vec<String>)>,
     /// A mapping was under way in the last snapshot.
     was_active: bool,
+    /// Level stations were under way in the last snapshot.
+    pub(super) level_was_active: bool,
 }
 
 /// Default passes and frames a side offered for a mapping (the service's defaults).

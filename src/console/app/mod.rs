@@ -11,6 +11,7 @@
 
 mod align;
 mod calibrate;
+mod follower_level;
 mod follower_map;
 mod measure;
 mod publish;
@@ -21,6 +22,7 @@ mod tests;
 
 pub use align::{AdviceView, AlignProc, StationSpot, StationView};
 pub use calibrate::{CalSummary, CalibrateState, HexapodView};
+pub use follower_level::parse_level_reading;
 pub use follower_map::{AlignPanel, FollowerPanel, parse_mapping};
 pub use measure::{Field, PlanForm, RunProgress};
 pub use publish::PublishState;
@@ -131,6 +133,10 @@ pub enum Confirm {
     MapStart(crate::service::follower_map::MappingRequest),
     /// Stop the follower mapping under way.
     MapStop,
+    /// Read a level at stations along the map in use's span.
+    LevelStart,
+    /// Stop the level stations under way.
+    LevelStop,
 }
 
 /// What a line typed into the input box is for.
@@ -152,6 +158,8 @@ pub enum InputFor {
     CertificatePath,
     /// The follower mapping: "FROM TO [PASSES [FRAMES]]".
     Mapping,
+    /// The level's reading at the station being read (arcsec).
+    LevelReading,
 }
 
 /// A line being typed (Enter takes it, Esc drops it).
@@ -230,6 +238,9 @@ enum Pending {
     Certificate,
     MapStart,
     MapStop,
+    LevelStart,
+    LevelStop,
+    LevelReading,
     Other(String),
 }
 
@@ -619,6 +630,7 @@ impl App {
         }
         self.snapshot = Some(s);
         self.observe_mapping();
+        self.observe_level();
         out
     }
 
@@ -777,6 +789,7 @@ impl App {
             InputFor::CertificatePath | InputFor::Mapping => {
                 self.follower_map_input(&input.purpose, &text)
             }
+            InputFor::LevelReading => self.follower_level_input(&text),
         }
     }
 
@@ -837,6 +850,7 @@ impl App {
             }
             Confirm::HexapodStart(plan) => self.hexapod_start(plan),
             c @ (Confirm::MapStart(_) | Confirm::MapStop) => self.follower_map_confirmed(c),
+            c @ (Confirm::LevelStart | Confirm::LevelStop) => self.follower_level_confirmed(c),
             Confirm::Accept(force) => {
                 self.log(
                     Level::Info,
@@ -877,8 +891,8 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
             ("t", "type what a PSD's target shows (no spot)"),
             ("a", "advice: the check, the screws to turn"),
             ("e", "erase the stations read (after turning)"),
-            ("i", "import the follower's certificate CSV"),
-            ("m", "map the follower (asks) / stop the mapping"),
+            ("i / m", "follower: certificate CSV / map (asks), stop"),
+            ("l / L", "level stations (asks), its reading / stop"),
             ("v", "panel: follower map / beam alignment"),
         ],
         Screen::Measure => &[

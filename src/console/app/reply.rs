@@ -273,6 +273,9 @@ impl App {
             }
             Pending::Certificate => self.apply_certificate(&v),
             Pending::MapStart => self.apply_mapping_started(&v),
+            p @ (Pending::LevelStart | Pending::LevelStop | Pending::LevelReading) => {
+                self.apply_level(&p, &v)
+            }
             Pending::MapStop => {
                 let text = v["error"]
                     .as_str()

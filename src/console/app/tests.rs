@@ -751,7 +751,7 @@ fn align_imports_a_certificate_maps_the_follower_and_shows_progress_at_80x24() {
     );
     let t = screen_text(&a);
     assert!(
-        t.contains("Follower map: i certificate  m map / stop  v alignment"),
+        t.contains("Follower map: i certificate  m map / stop  l level  v alignment"),
         "{t}"
     );
     assert!(t.contains("map 3 (stage-7.csv):"), "{t}");
@@ -890,4 +890,140 @@ fn align_imports_a_certificate_maps_the_follower_and_shows_progress_at_80x24() {
             .unwrap_err()
             .contains("e.g. 0 400 2 500")
     );
+}
+
+#[test]
+fn align_starts_the_level_stations_takes_a_typed_reading_and_stops_them() {
+    use crate::service::follower_level::{LevelRequest, LevelView, StationView};
+    let (mut a, t0) = app();
+    a.handle_key(ch('2'));
+    // L with nothing under way: said, nothing sent.
+    assert!(a.handle_key(ch('L')).is_empty());
+    assert!(
+        a.message
+            .as_ref()
+            .is_some_and(|m| m.text == "no level stations are under way")
+    );
+    // l asks, then starts them over the map's span.
+    a.handle_key(ch('l'));
+    assert_eq!(a.overlay, Overlay::Confirm(Confirm::LevelStart));
+    assert!(screen_text(&a).contains("Read the level at stations?"));
+    let (id, r) = sent(&a.handle_key(ch('y')));
+    assert_eq!(r, Request::FollowerLevelStart(LevelRequest::default()));
+    a.handle_reply(
+        id,
+        Ok(
+            serde_json::json!({"state": "stations", "stations": [{}, {}, {}], "dwell_s": 25.5,
+            "cnc": "load the program on the CNC and start it"}),
+        ),
+        t0,
+    );
+    assert!(a.message.as_ref().is_some_and(|m| m.text
+        == "level stations started: 3 stations, dwell 25.5 s; load the program on the CNC and start it"));
+    // A station awaits the level's reading: shown, and l opens the box for it.
+    let station = |state: &str| StationView {
+        state: state.into(),
+        ..StationView::default()
+    };
+    let view = LevelView {
+        state: "stations".into(),
+        level: "manual".into(),
+        stations: vec![
+            station("taken"),
+            station("awaiting the level"),
+            station("waiting"),
+        ],
+        taken: 1,
+        current: Some(1),
+        awaiting_reading: Some(1),
+        prompt: "station 2 of 3 at 100.0 mm: read the level and type its reading (arcsec)".into(),
+        elapsed_s: 95.0,
+        ..LevelView::default()
+    };
+    a.handle_snapshot(
+        Snapshot {
+            follower_level: Some(view.clone()),
+            ..Snapshot::default()
+        },
+        t0,
+    );
+    assert_eq!(a.follower.panel, AlignPanel::Follower);
+    let t = screen_text(&a);
+    assert!(t.contains("level stations 1 of 3 stations"), "{t}");
+    assert!(
+        t.contains("station 2 of 3 at 100.0 mm: read the level"),
+        "{t}"
+    );
+    a.handle_key(ch('l'));
+    assert!(
+        matches!(&a.overlay, Overlay::Input(i) if i.purpose == InputFor::LevelReading),
+        "{:?}",
+        a.overlay
+    );
+    assert!(screen_text(&a).contains("The level's reading"));
+    type_line(&mut a, "one");
+    assert!(matches!(&a.overlay, Overlay::Input(_)));
+    assert!(a.message.as_ref().is_some_and(
+        |m| m.text == "level reading \"one\": type the level's reading in arcsec, e.g. -1.25"
+    ));
+    a.handle_key(key(KeyCode::Esc));
+    a.handle_key(ch('l'));
+    for c in "-1.25".chars() {
+        a.handle_key(ch(c));
+    }
+    let (id, r) = sent(&a.handle_key(key(KeyCode::Enter)));
+    assert_eq!(
+        r,
+        Request::FollowerLevelReading {
+            arcsec: serde_json::json!(-1.25)
+        }
+    );
+    a.handle_reply(
+        id,
+        Ok(serde_json::json!({"station": 2, "arcsec": -1.25})),
+        t0,
+    );
+    assert!(
+        a.message
+            .as_ref()
+            .is_some_and(|m| m.text == "the level's reading -1.25″ taken at station 2")
+    );
+    // No reading awaited: l (or L) asks to stop them.
+    a.handle_snapshot(
+        Snapshot {
+            follower_level: Some(LevelView {
+                awaiting_reading: None,
+                ..view.clone()
+            }),
+            ..Snapshot::default()
+        },
+        t0,
+    );
+    a.handle_key(ch('l'));
+    assert_eq!(a.overlay, Overlay::Confirm(Confirm::LevelStop));
+    assert!(screen_text(&a).contains("Stop the level stations?"));
+    let (_, r) = sent(&a.handle_key(ch('y')));
+    assert_eq!(r, Request::FollowerLevelStop);
+    // Done: said, the map made summarised.
+    a.handle_snapshot(
+        Snapshot {
+            follower_level: Some(LevelView {
+                state: "done".into(),
+                taken: 3,
+                map_id: Some(6),
+                summary: vec!["vertical (to the first point): 1.10 µm range".into()],
+                prompt: String::new(),
+                ..view
+            }),
+            ..Snapshot::default()
+        },
+        t0,
+    );
+    assert!(a.message.as_ref().is_some_and(
+        |m| m.text == "level stations done: map 6 in use (3 stations), the zero taken again"
+    ));
+    let t = screen_text(&a);
+    assert!(t.contains("map 6 fitted with the level and in use:"), "{t}");
+    assert_eq!(parse_level_reading(" 0.5″ "), Ok(0.5));
+    assert!(parse_level_reading("NaN").is_err());
 }

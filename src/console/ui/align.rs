@@ -191,7 +191,7 @@ fn render_lower(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
 
 fn render_follower_map(frame: &mut Frame, area: Rect, app: &App, more: &str, theme: Theme) {
     let width = area.width.saturating_sub(2) as usize;
-    let title = format!("Follower map: i certificate  m map / stop{more}");
+    let title = format!("Follower map: i certificate  m map / stop  l level{more}");
     frame.render_widget(
         Paragraph::new(follower_map_lines(app, width, theme))
             .wrap(Wrap { trim: true })
@@ -311,6 +311,47 @@ pub fn follower_map_lines(app: &App, width: usize, theme: Theme) -> Vec<Line<'st
             if let Some((title, s)) = &app.follower.imported {
                 summary(&mut lines, format!("{title}:"), s);
             }
+        }
+    }
+    if let Some(l) = app.level() {
+        let n = l.stations.len();
+        lines.push(Line::from(vec![
+            Span::styled(format!("level {} ", l.state), theme.bold()),
+            Span::raw(fit(
+                &format!(
+                    "{} of {n} stations {} {}",
+                    l.taken,
+                    bar(l.taken as f64 / n.max(1) as f64, 10),
+                    minutes(l.elapsed_s)
+                ),
+                width.saturating_sub(l.state.len() + 7),
+            )),
+        ]));
+        if !l.prompt.is_empty() {
+            let style = if l.awaiting_reading.is_some() {
+                theme.warn()
+            } else {
+                theme.dim()
+            };
+            let more = if l.awaiting_reading.is_some() {
+                " (l)"
+            } else {
+                ""
+            };
+            lines.push(Line::styled(
+                fit(&format!("{}{more}", l.prompt), width),
+                style,
+            ));
+        }
+        if let Some(e) = &l.error {
+            lines.push(Line::styled(fit(e, width), theme.warn()));
+        }
+        if let Some(id) = l.map_id {
+            summary(
+                &mut lines,
+                format!("map {id} fitted with the level and in use:"),
+                &l.summary,
+            );
         }
     }
     lines

@@ -173,6 +173,12 @@ fn render_input(frame: &mut Frame, input: &Input, selected: bool, theme: Theme) 
                 "The span in mm, then passes and frames a side (e.g. 0 400 2 500):",
             )],
         ),
+        InputFor::LevelReading => (
+            " The level's reading ".to_string(),
+            vec![Line::raw(
+                "What the level reads at this station, in arcsec (e.g. -1.25):",
+            )],
+        ),
     };
     let mut lines = about;
     lines.push(Line::raw(""));
@@ -465,6 +471,23 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
             " Stop the follower mapping? ",
             vec![Line::raw(
                 "Its steps are discarded and nothing is stored; the map in use stays.",
+            )],
+        ),
+        Confirm::LevelStart => (
+            " Read the level at stations? ",
+            vec![
+                Line::raw(
+                    "A station every 100 mm over the map in use's span, 20 readings of the head and the level at each.",
+                ),
+                Line::raw(
+                    "The part program goes to the CNC (load it on a CNC the service does not drive). At the end the map is fitted again with the stations, stored, put in use, and the zero taken again.",
+                ),
+            ],
+        ),
+        Confirm::LevelStop => (
+            " Stop the level stations? ",
+            vec![Line::raw(
+                "The stations read are discarded and nothing is stored; the map in use stays.",
             )],
         ),
         Confirm::AbortRun(id) => (
