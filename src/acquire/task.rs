@@ -237,7 +237,7 @@ impl Acquisition {
             read_errors: c.read_errors,
             decode_errors: c.decode_errors,
             last_error: c.last_error,
-            frames_per_s: c.window.rate_hz(Instant::now()),
+            frames_per_s: c.window.rate_hz(crate::util::clock::now()),
             latency_p50: c.window.quantile(0.5),
             latency_p99: c.window.quantile(0.99),
             link: *self.link.state().borrow(),
@@ -273,7 +273,10 @@ impl Outputs {
     ) -> Result<(), AcquireError> {
         let wall = match self.last_stamp {
             Some((last, us)) if last == at => us,
-            _ => unix_us(SystemTime::now() - Instant::now().saturating_duration_since(at)),
+            _ => unix_us(
+                crate::util::clock::wall()
+                    - crate::util::clock::now().saturating_duration_since(at),
+            ),
         };
         self.last_stamp = Some((at, wall));
         let frame = decode::frame(map, block, self.seq, at, wall)?;
@@ -310,9 +313,9 @@ async fn run(link: Link, map: Arc<IoMap>, config: AcquireConfig, mut out: Output
         if let Some(t) = ticker.as_mut() {
             t.tick().await;
         }
-        let sent = Instant::now();
+        let sent = crate::util::clock::now();
         let error = match link.read(map.kind, map.unit_id, map.block).await {
-            Ok(block) => match out.publish(&map, &block, sent, Instant::now()) {
+            Ok(block) => match out.publish(&map, &block, sent, crate::util::clock::now()) {
                 Ok(()) => continue,
                 Err(e) => e,
             },

@@ -405,7 +405,7 @@ mod tests {
     /// standing.
     #[test]
     fn target_track_velocity_jumps_and_quiet() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let ms = |n: u64| t0 + Duration::from_millis(n);
         let period = Duration::from_millis(10);
         let mut tr = TargetTrack::default();
@@ -448,7 +448,7 @@ mod tests {
     /// need no plausibility; a target without velocity goes back to the estimate.
     #[test]
     fn target_track_with_given_velocity() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let ms = |n: u64| t0 + Duration::from_millis(n);
         let period = Duration::from_millis(10);
         let mut tr = TargetTrack::default();

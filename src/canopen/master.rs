@@ -1907,7 +1907,7 @@ mod tests {
 
     impl Rig {
         fn new(cfg: DriveConfig, twin: TwinDriveConfig) -> Rig {
-            let t0 = Instant::now();
+            let t0 = crate::util::clock::now();
             let plant = Arc::new(Mutex::new(f64::NAN));
             let p = plant.clone();
             let d = TwinDrive::new(twin, Box::new(move |mm| *p.lock().unwrap() = mm), t0).unwrap();

@@ -179,7 +179,7 @@ mod tests {
 
     #[test]
     fn boot_up_state_loss_and_resumption() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let ms = |n: u64| t0 + Duration::from_millis(n);
         let mut c = HeartbeatConsumer::new(NodeId::new(1).unwrap(), Duration::from_millis(300));
         // Not watching before the first frame.

@@ -364,7 +364,7 @@ mod tests {
 
     #[test]
     fn sync_producer_keeps_its_grid() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let ms = |n: u64| t0 + Duration::from_millis(n);
         let mut s = SyncProducer::new(Duration::from_millis(10));
         assert!(!s.handle_timeout(t0));
@@ -384,7 +384,7 @@ mod tests {
 
     #[test]
     fn a_quiet_sync_producer_slows_on_its_grid_and_speeds_up_at_once() {
-        let origin = Instant::now();
+        let origin = crate::util::clock::now();
         let ms = |n: u64| origin + Duration::from_millis(n);
         let mut s =
             SyncProducer::with_quiet_period(Duration::from_millis(10), Duration::from_millis(100));
@@ -427,7 +427,7 @@ mod tests {
 
     #[test]
     fn an_aligned_sync_producer_starts_on_the_shared_grid() {
-        let origin = Instant::now();
+        let origin = crate::util::clock::now();
         let us = |n: u64| origin + Duration::from_micros(n);
         let mut s = SyncProducer::new(Duration::from_millis(10));
         s.align_to(origin);

@@ -798,7 +798,7 @@ mod tests {
 
     #[test]
     fn expedited_upload_matches_python_canopen() {
-        let (t0, mut c) = (Instant::now(), client());
+        let (t0, mut c) = (crate::util::clock::now(), client());
         c.upload(ObjAddr::new(0x6064, 0), t0).unwrap();
         // 0x40 = ccs 2 (initiate upload); 64 60 = index 0x6064 LE; 00 = sub; 4 reserved bytes.
         // 0x43 = scs 2, n = 0, e = 1, s = 1: four data bytes C7 CF FF FF = −12345 LE.
@@ -817,7 +817,7 @@ mod tests {
 
     #[test]
     fn expedited_download_matches_python_canopen() {
-        let (t0, mut c) = (Instant::now(), client());
+        let (t0, mut c) = (crate::util::clock::now(), client());
         c.download(ObjAddr::new(0x6040, 0), vec![0x0F, 0x00], t0)
             .unwrap();
         // 0x2B = ccs 1 (initiate download), n = 2 unused (bits 3–2 = 10), e = 1, s = 1.
@@ -852,7 +852,7 @@ mod tests {
     /// A 38-byte VISIBLE_STRING (more than canopen-rs's 32-byte limit), six segments.
     #[test]
     fn segmented_upload_over_32_bytes_matches_python_canopen() {
-        let (t0, mut c) = (Instant::now(), client());
+        let (t0, mut c) = (crate::util::clock::now(), client());
         c.upload(ObjAddr::new(0x1008, 0), t0).unwrap();
         run(
             &mut c,
@@ -888,7 +888,7 @@ mod tests {
     /// 40 bytes written in six segments, byte-for-byte what python-canopen sends.
     #[test]
     fn segmented_download_over_32_bytes_matches_python_canopen() {
-        let (t0, mut c) = (Instant::now(), client());
+        let (t0, mut c) = (crate::util::clock::now(), client());
         let data: Vec<u8> = (0x30..0x30 + 40).collect();
         c.download(ObjAddr::new(0x2000, 0), data, t0).unwrap();
         run(
@@ -923,7 +923,7 @@ mod tests {
 
     #[test]
     fn six_and_zero_byte_downloads_are_segmented() {
-        let (t0, mut c) = (Instant::now(), client());
+        let (t0, mut c) = (crate::util::clock::now(), client());
         c.download(ObjAddr::new(0x2000, 0), b"ABCDEF".to_vec(), t0)
             .unwrap();
         run(
@@ -955,7 +955,7 @@ mod tests {
 
     #[test]
     fn wrong_multiplexer_sends_abort() {
-        let (t0, mut c) = (Instant::now(), client());
+        let (t0, mut c) = (crate::util::clock::now(), client());
         c.upload(ObjAddr::new(0x6064, 0), t0).unwrap();
         sent(&mut c);
         // The response names sub-index 1.
@@ -988,7 +988,7 @@ mod tests {
 
     #[test]
     fn timeout_sends_abort() {
-        let (t0, mut c) = (Instant::now(), client());
+        let (t0, mut c) = (crate::util::clock::now(), client());
         c.upload(ObjAddr::new(0x1008, 0), t0).unwrap();
         sent(&mut c);
         assert_eq!(c.poll_timeout(), Some(t0 + TIMEOUT));
@@ -1009,7 +1009,7 @@ mod tests {
     /// The timeout applies per exchange: each response restarts it.
     #[test]
     fn timeout_restarts_on_each_segment() {
-        let (t0, mut c) = (Instant::now(), client());
+        let (t0, mut c) = (crate::util::clock::now(), client());
         c.upload(ObjAddr::new(0x1008, 0), t0).unwrap();
         let t1 = t0 + Duration::from_millis(400);
         c.handle_frame(&parse("581#4108100026000000"), t1);
@@ -1023,7 +1023,7 @@ mod tests {
 
     #[test]
     fn toggle_error_sends_abort() {
-        let (t0, mut c) = (Instant::now(), client());
+        let (t0, mut c) = (crate::util::clock::now(), client());
         c.upload(ObjAddr::new(0x1008, 0), t0).unwrap();
         c.handle_frame(&parse("581#4108100026000000"), t0);
         sent(&mut c);
@@ -1048,7 +1048,7 @@ mod tests {
 
     #[test]
     fn server_abort_is_typed_with_text() {
-        let (t0, mut c) = (Instant::now(), client());
+        let (t0, mut c) = (crate::util::clock::now(), client());
         c.download(ObjAddr::new(0x6099, 3), vec![1, 0, 0, 0], t0)
             .unwrap();
         sent(&mut c);
@@ -1067,7 +1067,7 @@ mod tests {
 
     #[test]
     fn unexpected_command_and_length_errors() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         // A download confirmation to an upload: command specifier invalid.
         let mut c = client();
         c.upload(ObjAddr::new(0x6041, 0), t0).unwrap();
@@ -1106,7 +1106,7 @@ mod tests {
 
     #[test]
     fn busy_cancel_and_foreign_frames() {
-        let (t0, mut c) = (Instant::now(), client());
+        let (t0, mut c) = (crate::util::clock::now(), client());
         c.upload(ObjAddr::new(0x6041, 0), t0).unwrap();
         assert!(matches!(
             c.upload(ObjAddr::new(0x6064, 0), t0),

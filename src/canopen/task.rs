@@ -63,7 +63,7 @@ struct Inputs {
 fn apply_follow(m: &mut Master, follow: &mut watch::Receiver<Option<FollowTarget>>) {
     let target = *follow.borrow_and_update();
     if let Some((mm, at, vel)) = target
-        && let Err(e) = m.follow_moving(mm, vel, at, Instant::now())
+        && let Err(e) = m.follow_moving(mm, vel, at, crate::util::clock::now())
     {
         tracing::debug!("follow target {mm} mm not taken: {e}");
     }
@@ -131,7 +131,7 @@ async fn drive<T: CanTransport>(
         tokio::select! {
             biased;
             r = bus.recv() => match r {
-                Ok(f) => m.handle_frame(&f, Instant::now()),
+                Ok(f) => m.handle_frame(&f, crate::util::clock::now()),
                 Err(e @ (CanError::Lagged(_) | CanError::Malformed(_))) => {
                     tracing::warn!("CANopen master: {e}")
                 }
@@ -147,14 +147,14 @@ async fn drive<T: CanTransport>(
                     if follow.has_changed().unwrap_or(false) {
                         apply_follow(&mut m, &mut follow);
                     }
-                    let id = m.submit(cmd, Instant::now());
+                    let id = m.submit(cmd, crate::util::clock::now());
                     pending.insert(id, reply);
                 }
                 None => return Ok(()),
             },
             () = &mut timer, if armed.is_some() => {
                 armed = None;
-                m.handle_timeout(Instant::now());
+                m.handle_timeout(crate::util::clock::now());
             }
         }
     }
@@ -226,7 +226,7 @@ impl DriveHandle {
     /// Problems come as [`Event::FollowingEnded`] and in [`DriveStatus::following`]. Refused
     /// at once outside the travel limits or with the link closed.
     pub fn follow(&self, target_mm: f64) -> Result<(), DriveError> {
-        self.follow_at(target_mm, Instant::now())
+        self.follow_at(target_mm, crate::util::clock::now())
     }
     /// As [`follow`](Self::follow), for a target worked out for time `at` (e.g. from a
     /// time-stamped measurement of the carriage).

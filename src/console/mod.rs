@@ -24,7 +24,7 @@ use futures_util::{Stream, StreamExt};
 use ratatui::Terminal;
 use ratatui::backend::Backend;
 use std::path::PathBuf;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use thiserror::Error;
 
 /// What the console is started with.
@@ -82,7 +82,7 @@ pub async fn run(opts: Options) -> Result<(), ConsoleError> {
             jog_step_mm: opts.jog_step_mm,
             color: opts.color,
         },
-        Instant::now(),
+        crate::util::clock::now(),
     );
     let keys = crossterm::event::EventStream::new();
     tokio::select! {
@@ -118,7 +118,7 @@ where
     loop {
         let actions = tokio::select! {
             _ = tick.tick() => {
-                let a = app.tick(Instant::now());
+                let a = app.tick(crate::util::clock::now());
                 draw(terminal, app)?;
                 a
             }
@@ -137,7 +137,7 @@ where
                 None => return Ok(()),
             },
             ev = client.events.recv() => match ev {
-                Some(ev) => app.handle_link_event(ev, Instant::now()),
+                Some(ev) => app.handle_link_event(ev, crate::util::clock::now()),
                 None => return Ok(()),
             },
         };
@@ -146,7 +146,7 @@ where
                 Action::Quit => return Ok(()),
                 Action::Send { id, request } => {
                     if let Err(e) = client.send(id, request).await {
-                        app.handle_reply(id, Err(e), Instant::now());
+                        app.handle_reply(id, Err(e), crate::util::clock::now());
                     }
                 }
                 Action::Save { path, text } => {

@@ -387,7 +387,7 @@ async fn average(
     let n = opts.frames.max(2);
     let mut last = String::new();
     for _ in 0..5 {
-        let since = Instant::now();
+        let since = crate::util::clock::now();
         let mut got = Vec::with_capacity(n);
         let mut invalid = 0;
         while got.len() < n {
@@ -471,7 +471,7 @@ pub async fn run(
         plan.station()?;
     }
     let mut stop = stop.clone();
-    let start = Instant::now();
+    let start = crate::util::clock::now();
     let total = plan.poses.len();
     let resumed_from = store.next_index();
     let fail = |index: usize, source: HexapodError| ProcedureError::Hexapod {
@@ -489,7 +489,7 @@ pub async fn run(
         if *stop.borrow() {
             return Err(ProcedureError::Stopped { index, total });
         }
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let here = (plan.poses[i].travel_mm, plan.poses[i].follower_mm);
         if moving && station != Some(here) {
             tracing::info!(
@@ -553,7 +553,7 @@ pub async fn run(
         prepared = true;
         tokio::time::sleep(opts.settle).await;
         let (mean, sd, window) = average(frames, opts, index).await?;
-        machine += t0.elapsed();
+        machine += crate::util::clock::since(t0);
         let p = &plan.poses[i];
         store.push(
             StoredPose {
@@ -570,14 +570,14 @@ pub async fn run(
         )?;
         i += 1;
         let done = i - resumed_from;
-        let per = start.elapsed().div_f64(done as f64);
+        let per = crate::util::clock::since(start).div_f64(done as f64);
         progress(&RunProgress {
             done: i,
             total,
             eta: Some(per.mul_f64((total - i) as f64)),
             reconnects,
             machine,
-            elapsed: start.elapsed(),
+            elapsed: crate::util::clock::since(start),
         });
     }
     // Back to the zero pose, where the head measures: the last pose may stand millimetres
@@ -602,7 +602,7 @@ pub async fn run(
         taken: total - resumed_from,
         resumed_from,
         machine,
-        wall: start.elapsed(),
+        wall: crate::util::clock::since(start),
         reconnects,
     })
 }

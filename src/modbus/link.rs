@@ -155,19 +155,23 @@ impl fmt::Display for LinkState {
             LinkState::Connected { since } => write!(
                 f,
                 "connected for {:.1} s, no reply yet",
-                since.elapsed().as_secs_f64()
+                crate::util::clock::since(*since).as_secs_f64()
             ),
-            LinkState::Up { since } => write!(f, "up for {:.1} s", since.elapsed().as_secs_f64()),
+            LinkState::Up { since } => write!(
+                f,
+                "up for {:.1} s",
+                crate::util::clock::since(*since).as_secs_f64()
+            ),
             LinkState::Refusing { exception, since } => write!(
                 f,
                 "every reply for {:.1} s is {exception}",
-                since.elapsed().as_secs_f64()
+                crate::util::clock::since(*since).as_secs_f64()
             ),
             LinkState::Down { error, retry_at } => write!(
                 f,
                 "down: {error}; retry in {:.1} s",
                 retry_at
-                    .saturating_duration_since(Instant::now())
+                    .saturating_duration_since(crate::util::clock::now())
                     .as_secs_f64()
             ),
             LinkState::Closed => f.write_str("closed"),
@@ -512,7 +516,7 @@ impl Monitor {
     /// A statistics snapshot.
     pub fn stats(&self) -> LinkStats {
         let c = lock(&self.counters);
-        let now = Instant::now();
+        let now = crate::util::clock::now();
         LinkStats {
             requests: c.requests,
             ok: c.ok,
@@ -708,7 +712,8 @@ impl Redial {
         });
         match open_tcp(cfg).await {
             Ok(stream) => {
-                self.report.connected(Instant::now(), self.connected_before);
+                self.report
+                    .connected(crate::util::clock::now(), self.connected_before);
                 self.connected_before = true;
                 self.attempt = 0;
                 self.retry_at = None;
@@ -720,7 +725,7 @@ impl Redial {
 
     /// The connection is gone after `error`: schedule the next attempt and report it.
     pub(super) fn down(&mut self, error: LinkError) -> LinkError {
-        let retry_at = Instant::now() + self.backoff.next_delay();
+        let retry_at = crate::util::clock::now() + self.backoff.next_delay();
         self.retry_at = Some(retry_at);
         self.report.down(error, retry_at);
         error
@@ -761,7 +766,7 @@ async fn run(cfg: LinkConfig, mut rx: mpsc::Receiver<Call>, mut reporter: Report
         let error = match connect(&cfg).await {
             Ok(ctx) => {
                 attempt = 0;
-                reporter.connected(Instant::now(), connected_before);
+                reporter.connected(crate::util::clock::now(), connected_before);
                 connected_before = true;
                 match serve(&cfg, ctx, &mut rx, &mut reporter, &mut backoff).await {
                     Served::Closed => break,
@@ -770,7 +775,7 @@ async fn run(cfg: LinkConfig, mut rx: mpsc::Receiver<Call>, mut reporter: Report
             }
             Err(e) => e,
         };
-        let retry_at = Instant::now() + backoff.next_delay();
+        let retry_at = crate::util::clock::now() + backoff.next_delay();
         reporter.down(error, retry_at);
         // Fail calls fast while down, so callers see the outage instead of queueing into it.
         let deadline = tokio::time::Instant::from_std(retry_at);
@@ -783,7 +788,7 @@ async fn run(cfg: LinkConfig, mut rx: mpsc::Receiver<Call>, mut reporter: Report
                         return;
                     }
                     Some(call) => {
-                        let now = Instant::now();
+                        let now = crate::util::clock::now();
                         let outcome: Result<Reply, LinkError> = Err(LinkError::Disconnected);
                         lock(&reporter.counters).record(&outcome, now, now);
                         let _ = call.reply.send(outcome);
@@ -807,13 +812,13 @@ async fn serve(
             let _ = ctx.disconnect().await;
             return Served::Closed;
         };
-        let started = Instant::now();
+        let started = crate::util::clock::now();
         ctx.set_slave(Slave(call.unit));
         let outcome = match tokio::time::timeout(cfg.timeout, ctx.call(request(&call.op))).await {
             Err(_) => Err(LinkError::Timeout(cfg.timeout)),
             Ok(r) => check(&call.op, r),
         };
-        reporter.record(&outcome, started, Instant::now());
+        reporter.record(&outcome, started, crate::util::clock::now());
         let fatal = match &outcome {
             Ok(_) => {
                 backoff.reset();
@@ -901,7 +906,7 @@ mod tests {
 
     #[test]
     fn window_rate_and_quantiles() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut w = Window::new(100);
         assert_eq!(w.quantile(0.5), None);
         assert_eq!(w.rate_hz(t0), 0.0);
@@ -929,7 +934,7 @@ mod tests {
     fn the_rate_is_over_the_last_second() {
         // 2 s at 500 Hz, then 1 s at 250 Hz, in a window of 1024 events (about 2 s at
         // 500 Hz): the rate is the last second's 250/s, not a mean over the window.
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut w = Window::new(1024);
         let mut t = t0;
         for _ in 0..1000 {
@@ -957,7 +962,7 @@ mod tests {
         let addr: SocketAddr = "127.0.0.1:502".parse().unwrap();
         let (mut r, m) = Reporter::new(addr, 16);
         let rx = m.state();
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         r.connected(t0, false);
         // A connection is not a reply: connected, not up.
         assert_eq!(*rx.borrow(), LinkState::Connected { since: t0 });

@@ -92,7 +92,7 @@ impl PacedReader {
         let mut out = None;
         if let Some(sent) = self.pending.as_ref().map(|p| p.sent) {
             let collected = self.collect();
-            let now = Instant::now();
+            let now = crate::util::clock::now();
             let outcome = match collected {
                 Ok(None) if now.saturating_duration_since(sent) < self.cfg.timeout => {
                     return None;
@@ -119,7 +119,7 @@ impl PacedReader {
             out = Some(outcome);
         }
         if let Err(e) = self.send() {
-            let now = Instant::now();
+            let now = crate::util::clock::now();
             self.redial.record::<()>(&Err(e), now, now);
             self.fail(e);
             // A reply collected this tick is still good; the send error shows next time.
@@ -157,7 +157,7 @@ impl PacedReader {
         };
         self.tid = self.tid.wrapping_add(1);
         let adu = encode_read(self.tid, self.unit, self.kind, self.range);
-        let sent = Instant::now();
+        let sent = crate::util::clock::now();
         match sock.write(&adu) {
             Ok(n) if n == adu.len() => {}
             // Twelve bytes into an empty send buffer: anything less means the socket is stuck.
@@ -358,7 +358,7 @@ fn recv_stamped(sock: &TcpStream, buf: &mut [u8]) -> io::Result<(usize, Option<S
 
 /// The monotonic instant of a CLOCK_REALTIME time in the recent past.
 fn instant_of(t: SystemTime) -> Instant {
-    let (now, wall) = (Instant::now(), SystemTime::now());
+    let (now, wall) = (crate::util::clock::now(), SystemTime::now());
     match wall.duration_since(t) {
         Ok(ago) => now.checked_sub(ago).unwrap_or(now),
         // Stamped "in the future" (the wall clock stepped back): take now.

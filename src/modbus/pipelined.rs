@@ -104,7 +104,7 @@ impl PipelinedReader {
                 pending: VecDeque::with_capacity(depth),
                 tid: 0,
                 registers: vec![0; range.count() as usize],
-                read_at: Instant::now(),
+                read_at: crate::util::clock::now(),
                 redial,
             },
             monitor,
@@ -135,7 +135,7 @@ impl PipelinedReader {
                 self.connect().await?;
             }
             if let Err(e) = self.top_up().await {
-                let now = Instant::now();
+                let now = crate::util::clock::now();
                 self.redial.record::<()>(&Err(e), now, now);
                 return Err(self.fail(e));
             }
@@ -146,7 +146,7 @@ impl PipelinedReader {
                     return Ok((sent, at));
                 }
                 Err((e, sent)) => {
-                    let now = Instant::now();
+                    let now = crate::util::clock::now();
                     self.redial.record::<()>(&Err(e), sent, now);
                     return Err(if e.drops_connection() {
                         self.fail(e)
@@ -156,7 +156,7 @@ impl PipelinedReader {
                 }
             }
             if let Err(e) = self.fill().await {
-                let now = Instant::now();
+                let now = crate::util::clock::now();
                 let sent = self.pending.front().map_or(now, |p| p.sent);
                 self.redial.record::<()>(&Err(e), sent, now);
                 return Err(self.fail(e));
@@ -198,7 +198,7 @@ impl PipelinedReader {
             self.tx
                 .extend_from_slice(&encode_read(tid, self.unit, self.kind, self.range));
         }
-        let sent = Instant::now();
+        let sent = crate::util::clock::now();
         // At most `MAX_DEPTH` × 12 bytes outstanding: the send buffer never holds them back
         // for long, and a module that stops reading shows as the oldest request's timeout.
         match tokio::time::timeout(self.cfg.timeout, sock.write_all(&self.tx)).await {
@@ -271,7 +271,7 @@ impl PipelinedReader {
                 Ok(0) => return Err(LinkError::Io(io::ErrorKind::UnexpectedEof)),
                 Ok(n) => {
                     self.tail += n;
-                    self.read_at = Instant::now();
+                    self.read_at = crate::util::clock::now();
                     return Ok(());
                 }
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => {}

@@ -275,7 +275,7 @@ impl Inner {
     /// Count a refusal of `peer` and log it, at most every [`REFUSAL_LOG_EVERY`].
     fn refuse(&self, peer: SocketAddr, why: &str) {
         self.refused.fetch_add(1, Ordering::Relaxed);
-        let now = Instant::now();
+        let now = crate::util::clock::now();
         let mut log = self.refusal_log.lock().unwrap_or_else(|p| p.into_inner());
         log.1 += 1;
         if log
@@ -493,7 +493,7 @@ impl Service {
         Service {
             inner,
             peer,
-            last_request: Arc::new(Mutex::new(Instant::now())),
+            last_request: Arc::new(Mutex::new(crate::util::clock::now())),
         }
     }
 }
@@ -610,7 +610,7 @@ impl tokio_modbus::server::Service for Service {
     fn call(&self, req: Self::Request) -> Self::Future {
         let inner = &self.inner;
         inner.requests.fetch_add(1, Ordering::Relaxed);
-        *self.last_request.lock().unwrap_or_else(|p| p.into_inner()) = Instant::now();
+        *self.last_request.lock().unwrap_or_else(|p| p.into_inner()) = crate::util::clock::now();
         let faults = *inner.faults.lock().unwrap_or_else(|p| p.into_inner());
         let result = match faults.exception {
             Some(e) => Err(e),

@@ -675,7 +675,7 @@ pub async fn publish_with(
     timeouts: Timeouts,
     mut on_event: impl FnMut(&Event),
 ) -> Result<PublishOutcome, PublishError> {
-    let mut m = Publisher::for_table(map, table, sequence, timeouts, Instant::now())?;
+    let mut m = Publisher::for_table(map, table, sequence, timeouts, crate::util::clock::now())?;
     loop {
         while let Some(ev) = m.poll_event() {
             on_event(&ev);
@@ -683,7 +683,7 @@ pub async fn publish_with(
                 return r;
             }
         }
-        if let Some(tx) = m.poll_transmit(Instant::now()) {
+        if let Some(tx) = m.poll_transmit(crate::util::clock::now()) {
             let reply = match tx.request {
                 Request::Read { kind, range } => {
                     link.read(kind, tx.unit, range).await.map(Reply::Registers)
@@ -693,15 +693,15 @@ pub async fn publish_with(
                     .await
                     .map(|_| Reply::Written),
             };
-            m.handle_reply(Instant::now(), tx.id, reply);
+            m.handle_reply(crate::util::clock::now(), tx.id, reply);
             continue;
         }
         // Waiting: sleep to the machine's next deadline (a due poll is sent above).
         let at = m
             .poll_timeout()
-            .unwrap_or_else(|| Instant::now() + timeouts.poll);
+            .unwrap_or_else(|| crate::util::clock::now() + timeouts.poll);
         tokio::time::sleep_until(tokio::time::Instant::from_std(at)).await;
-        m.handle_timeout(Instant::now());
+        m.handle_timeout(crate::util::clock::now());
     }
 }
 
@@ -864,7 +864,7 @@ mod tests {
     #[test]
     fn happy_path_exact_requests() {
         let map = map();
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let t = table(256);
         let e = table::encode(&t, &map, 5).unwrap();
         let mut m = Publisher::new(&map, e.clone(), Timeouts::default(), t0);
@@ -917,7 +917,7 @@ mod tests {
     #[test]
     fn read_back_mismatch_never_commits() {
         let map = map();
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut m = Publisher::for_table(&map, &table(256), 6, Timeouts::default(), t0).unwrap();
         let mut plc = FakePlc::new();
         plc.corrupt = Some(300);
@@ -941,7 +941,7 @@ mod tests {
     #[test]
     fn a_rejection_is_reported_with_its_code() {
         let map = map();
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut m = Publisher::for_table(&map, &table(10), 7, Timeouts::default(), t0).unwrap();
         let mut plc = FakePlc::new();
         plc.on_commit = Some(Err(1));
@@ -960,7 +960,7 @@ mod tests {
     #[test]
     fn no_echo_times_out_and_nothing_follows() {
         let map = map();
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let to = Timeouts::default();
         let mut m = Publisher::for_table(&map, &table(10), 8, to, t0).unwrap();
         let mut plc = FakePlc::new();
@@ -983,7 +983,7 @@ mod tests {
     #[test]
     fn a_link_drop_mid_write_never_commits() {
         let map = map();
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut m = Publisher::for_table(&map, &table(256), 9, Timeouts::default(), t0).unwrap();
         let mut plc = FakePlc::new();
         let (log, r, _) = run(&mut plc, &mut m, t0, MS, |_, tx| match &tx.request {
@@ -1015,7 +1015,7 @@ mod tests {
     #[test]
     fn a_frozen_heartbeat_fails_before_writing() {
         let map = map();
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let to = Timeouts::default();
         let mut m = Publisher::for_table(&map, &table(10), 10, to, t0).unwrap();
         let mut plc = FakePlc::new();
@@ -1035,7 +1035,7 @@ mod tests {
     #[test]
     fn not_ready_and_link_errors_while_waiting() {
         let map = map();
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let to = Timeouts::default();
         let mut m = Publisher::for_table(&map, &table(10), 11, to, t0).unwrap();
         let mut plc = FakePlc::new();
@@ -1065,7 +1065,7 @@ mod tests {
     #[test]
     fn a_sequence_the_plc_knows_is_refused() {
         let map = map();
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut m = Publisher::for_table(&map, &table(10), 4, Timeouts::default(), t0).unwrap();
         let mut plc = FakePlc::new();
         let (log, r, _) = run(&mut plc, &mut m, t0, MS, |_, _| None);
@@ -1079,7 +1079,7 @@ mod tests {
     #[test]
     fn late_replies_are_ignored() {
         let map = map();
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut m = Publisher::for_table(&map, &table(10), 13, Timeouts::default(), t0).unwrap();
         let tx = m.poll_transmit(t0).unwrap();
         assert_eq!(m.poll_transmit(t0), None, "one request at a time");

@@ -203,7 +203,7 @@ impl RegisterBank for Bank {
         self.tx.send_replace(PullAck {
             status,
             peer: Some(peer),
-            at: Some(Instant::now()),
+            at: Some(crate::util::clock::now()),
             writes,
         });
         Ok(())

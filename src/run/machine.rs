@@ -701,7 +701,7 @@ mod tests {
     }
 
     fn feed() -> Feed {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         Feed {
             t0,
             now: t0,

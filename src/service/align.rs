@@ -256,7 +256,7 @@ mod tests {
 
     #[test]
     fn a_station_is_the_mean_and_a_missing_spot_waits_for_its_target() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut a = AlignState::default();
         assert!(a.read(0.0).unwrap_err().contains("no frames"));
         for i in 0..300 {

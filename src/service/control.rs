@@ -345,7 +345,7 @@ pub async fn serve(
             accepted = listener.accept() => match accepted {
                 Ok((stream, _)) => {
                     if open.load(Ordering::Relaxed) >= max_connections {
-                        refusals.refused(max_connections, Instant::now());
+                        refusals.refused(max_connections, crate::util::clock::now());
                         // Best effort, never waiting on the refused peer.
                         let msg = error_line(&format!(
                             "the service has {max_connections} control connections open (service.max_connections): close one and retry"

@@ -341,7 +341,7 @@ impl Core {
             zero_reply: None,
             zero_window: s.head.zero_window,
             ready_sent: false,
-            started: Instant::now(),
+            started: crate::util::clock::now(),
             follow: watch::channel(None).0,
             csp_refused: false,
             follow_rearm: false,
@@ -356,7 +356,7 @@ impl Core {
             state_dir: s.service.state_dir.clone(),
             events_tx,
             events_rx: Some(events_rx),
-            last_cnc_poll: Instant::now(),
+            last_cnc_poll: crate::util::clock::now(),
             calibrations: super::calibration::Calibrations::new(
                 p.layout.clone(),
                 p.calibration.as_ref(),
@@ -445,7 +445,7 @@ impl Core {
         ));
         let inputs = self.forward_inputs(commands, shutdown.clone());
         let watchdog = notify::watchdog_period().filter(|_| self.watchdog);
-        let mut last_watchdog = Instant::now();
+        let mut last_watchdog = crate::util::clock::now();
         let mut core_events = self
             .events_rx
             .take()
@@ -484,10 +484,10 @@ impl Core {
                 CoreEvent::Tick => {
                     self.on_tick();
                     if let Some(period) = watchdog
-                        && last_watchdog.elapsed() >= period
+                        && crate::util::clock::since(last_watchdog) >= period
                     {
                         notify::watchdog();
-                        last_watchdog = Instant::now();
+                        last_watchdog = crate::util::clock::now();
                     }
                 }
                 CoreEvent::Closed(what) => {
@@ -588,7 +588,7 @@ impl Core {
         // core reaches late, or with newer ones waiting, is tracked but not decoupled, so the
         // core catches up at once (tracking is cheap, decoupling is not: β is recomputed as
         // the carriage moves).
-        let late = behind > 0 || Instant::now().saturating_duration_since(f.at) > LATE;
+        let late = behind > 0 || crate::util::clock::now().saturating_duration_since(f.at) > LATE;
         self.align.handle_frame(f);
         self.pipeline.handle_frame(f, late);
         self.pump();
@@ -963,7 +963,7 @@ impl Core {
     fn handle_core_event(&mut self, e: CoreEvent) {
         match e {
             CoreEvent::DriveStatus(st) => {
-                self.pipeline.handle_drive_status(&st, Instant::now());
+                self.pipeline.handle_drive_status(&st, crate::util::clock::now());
                 self.try_resume();
                 self.drive_status = *st;
                 self.pump();
@@ -1225,7 +1225,7 @@ impl Core {
             }
             LinkState::Refusing { .. } => {
                 alarms.clear("io-link-down");
-                if let Some((x, d)) = st.refusing_for(Instant::now())
+                if let Some((x, d)) = st.refusing_for(crate::util::clock::now())
                     && d >= EXCEPTIONS_PERSIST
                 {
                     alarms.raise(
@@ -1451,7 +1451,10 @@ impl Core {
                 Self::reply(c.reply, Ok(serde_json::json!({"zeroed": false})));
             }
             Request::Zero => {
-                if !self.pipeline.begin_zero(Instant::now(), self.zero_window) {
+                if !self
+                    .pipeline
+                    .begin_zero(crate::util::clock::now(), self.zero_window)
+                {
                     return Self::reply(
                         c.reply,
                         Err("the follower's position is not known yet: is the drive up?".into()),
@@ -1589,7 +1592,7 @@ impl Core {
     }
 
     fn on_tick(&mut self) {
-        let now = Instant::now();
+        let now = crate::util::clock::now();
         self.take_hexapod_fit();
         self.with_mapping(|m, ctx| m.tick(now, ctx));
         self.with_level(|l, ctx| l.tick(now, ctx));
@@ -1605,7 +1608,9 @@ impl Core {
         if !self.ready_sent {
             let io_up = self.acquisition.link().state().borrow().is_up();
             let drive_up = self.drive_status.state == Some(PowerState::OperationEnabled);
-            if (io_up && drive_up) || self.started.elapsed() > Duration::from_secs(30) {
+            if (io_up && drive_up)
+                || crate::util::clock::since(self.started) > Duration::from_secs(30)
+            {
                 let status = format!(
                     "measuring: I/O module {}, follower drive {}",
                     if io_up { "up" } else { "DOWN" },
@@ -1619,9 +1624,9 @@ impl Core {
         // In twin mode, watch the CNC so a program that ended with captures missing gets a
         // make-up pass.
         if let (Some(_), CncMode::Twin(addr)) = (&self.run, &self.cnc)
-            && self.last_cnc_poll.elapsed() >= Duration::from_secs(1)
+            && crate::util::clock::since(self.last_cnc_poll) >= Duration::from_secs(1)
         {
-            self.last_cnc_poll = Instant::now();
+            self.last_cnc_poll = crate::util::clock::now();
             let (addr, tx) = (*addr, self.events_tx.clone());
             tokio::spawn(async move {
                 if let Ok(v) = twin_request(addr, serde_json::json!({"cmd": "cnc"})).await {
@@ -1651,7 +1656,7 @@ impl Core {
     fn build_snapshot(&self) -> Snapshot {
         let stats = self.acquisition.stats();
         let p = &self.pipeline;
-        let now = Instant::now();
+        let now = crate::util::clock::now();
         let psd = p.last_frame.map(|f| PsdView {
             seq: f.seq,
             spots_um: f.spots.map(|s| s.map(|s| [s.x * 1e3, s.y * 1e3])),
@@ -1715,7 +1720,7 @@ impl Core {
             tracking: TrackingView {
                 strategy: format!("{:?}", stitch.strategy).to_lowercase(),
                 valid: stitch.valid,
-                at_rest: p.tracker.at_rest(Instant::now()),
+                at_rest: p.tracker.at_rest(crate::util::clock::now()),
                 follower_mm: stitch.follower_mm,
                 vertical_um: stitch.vertical_mm * 1e3,
                 sd_um: stitch.variance.map(|v| v.sqrt() * 1e3),
@@ -1871,7 +1876,7 @@ mod tests {
 
     #[test]
     fn the_count_rate_is_over_whole_spans() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let ms = Duration::from_millis;
         let mut r = CountRate::new(Duration::from_secs(1));
         assert_eq!(r.update(t0, 50), 0.0);

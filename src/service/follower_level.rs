@@ -592,7 +592,7 @@ impl FollowerLevel {
             readings,
             reading: None,
             visit: 0,
-            started: Instant::now(),
+            started: crate::util::clock::now(),
             grace: Duration::from_secs_f64(dwell) + Duration::from_secs(2),
             program: prog,
             dwell_s: dwell,
@@ -602,7 +602,7 @@ impl FollowerLevel {
             cnc_done_at: None,
             last_cnc_poll: None,
         });
-        self.refresh(Instant::now());
+        self.refresh(crate::util::clock::now());
         Ok(self.status())
     }
 
@@ -729,7 +729,7 @@ impl FollowerLevel {
             "the level's reading typed by {who}"
         );
         let station = r.station;
-        self.refresh(Instant::now());
+        self.refresh(crate::util::clock::now());
         Ok(serde_json::json!({"station": station + 1, "arcsec": x, "view": self.status()}))
     }
 
@@ -1112,7 +1112,11 @@ impl FollowerLevel {
             return Err("no level stations are under way".into());
         }
         self.stop_twin_program();
-        self.finish_with(Instant::now(), &format!("finished by {who}"), ctx);
+        self.finish_with(
+            crate::util::clock::now(),
+            &format!("finished by {who}"),
+            ctx,
+        );
         let v = self.status();
         match v["state"].as_str() {
             Some("failed") => Err(v["error"].as_str().unwrap_or("failed").to_string()),

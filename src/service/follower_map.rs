@@ -436,7 +436,7 @@ impl FollowerMapping {
         let (rate_hz, slow) = self.frame_rate(ctx.frames_per_s);
         let timing = self.timing(rate_hz, frames, feed, &base);
         let dwell = timing.dwell_s(spec.step_mm);
-        let now = Instant::now();
+        let now = crate::util::clock::now();
         let started_us = crate::store::now_us();
         let started = crate::util::time::rfc3339(started_us.div_euclid(1_000_000));
         let title = format!(
@@ -556,7 +556,7 @@ impl FollowerMapping {
         pipeline
             .tracker
             .set_settings(a.collector.tracking(&a.base, a.frames));
-        self.refresh(Instant::now());
+        self.refresh(crate::util::clock::now());
     }
 
     fn refresh(&mut self, now: Instant) {
@@ -699,7 +699,11 @@ impl FollowerMapping {
             return Err("no follower mapping is under way".into());
         }
         self.stop_twin_program();
-        self.finish_with(Instant::now(), &format!("finished by {who}"), ctx);
+        self.finish_with(
+            crate::util::clock::now(),
+            &format!("finished by {who}"),
+            ctx,
+        );
         let v = self.status();
         match v["state"].as_str() {
             Some("failed") => Err(v["error"].as_str().unwrap_or("failed").to_string()),

@@ -398,7 +398,7 @@ mod tests {
 
     #[test]
     fn carriage_moves_trapezoid() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut c = Carriage::new(0.0, 50.0, 500.0, t0);
         c.move_to(100.0, t0);
         // 0.1 s ramps of 2.5 mm each, 95 mm at 50 mm/s: 2.1 s.

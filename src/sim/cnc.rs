@@ -452,7 +452,7 @@ mod tests {
 
     #[test]
     fn runs_the_cycle_on_the_plant() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let plant = Plant::new(&Layout::reference(), &PlantSpec::default(), t0).unwrap();
         let p = plan();
         let ops = parse(

@@ -1805,7 +1805,7 @@ pub fn spawn_twin_drive<T: CanTransport>(
     config: TwinDriveConfig,
     on_position: impl FnMut(f64) + Send + 'static,
 ) -> Result<(TwinDriveHandle, JoinHandle<Result<(), CanError>>), SimError> {
-    let d = TwinDrive::new(config, Box::new(on_position), Instant::now())?;
+    let d = TwinDrive::new(config, Box::new(on_position), crate::util::clock::now())?;
     let (control, rx) = mpsc::unbounded_channel();
     let (status_tx, status) = watch::channel(d.status());
     let join = tokio::spawn(twin_task(d, transport, rx, status_tx));
@@ -1835,14 +1835,14 @@ async fn twin_task<T: CanTransport>(
         let deadline = d.poll_timeout();
         tokio::select! {
             r = bus.recv() => match r {
-                Ok(f) => d.handle_frame(&f, Instant::now()),
+                Ok(f) => d.handle_frame(&f, crate::util::clock::now()),
                 Err(e @ (CanError::Lagged(_) | CanError::Malformed(_))) => {
                     tracing::warn!("twin drive: {e}")
                 }
                 Err(e) => return Err(e),
             },
             c = control.recv() => {
-                let now = Instant::now();
+                let now = crate::util::clock::now();
                 match c {
                     Some(TwinControl::Fault { code, manufacturer }) => d.inject_fault(code, manufacturer, now),
                     Some(TwinControl::Heartbeat(on)) => d.set_heartbeat(on, now),
@@ -1856,7 +1856,7 @@ async fn twin_task<T: CanTransport>(
                     Some(t) => tokio::time::sleep_until(tokio::time::Instant::from_std(t)).await,
                     None => std::future::pending().await,
                 }
-            } => d.handle_timeout(Instant::now()),
+            } => d.handle_timeout(crate::util::clock::now()),
         }
     }
 }
@@ -1895,7 +1895,7 @@ mod tests {
 
     #[test]
     fn boot_up_then_heartbeat_at_the_written_period() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let ms = |n: u64| t0 + Duration::from_millis(n);
         let mut d = drive(t0);
         assert_eq!(out(&mut d), vec!["701#00"]);
@@ -1932,7 +1932,7 @@ mod tests {
     /// The server's answers to python-canopen's requests equal python-canopen's own server.
     #[test]
     fn sdo_server_matches_python_canopen() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut d = drive(t0);
         out(&mut d);
         assert_eq!(
@@ -1981,7 +1981,7 @@ mod tests {
 
     #[test]
     fn sdo_server_aborts() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut d = drive(t0);
         out(&mut d);
         // No object; no sub-index; read-only; too long; too short; bad toggle.
@@ -2040,7 +2040,7 @@ mod tests {
 
     #[test]
     fn pdo_mapping_rules_and_honoured_mapping() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut d = drive(t0);
         out(&mut d);
         // Mapping while the PDO is valid: refused (device state).
@@ -2111,7 +2111,7 @@ mod tests {
 
     #[test]
     fn controlword_drives_the_fsa_and_statusword() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut d = drive(t0);
         out(&mut d);
         let sw = |d: &mut TwinDrive, cw: u16| {
@@ -2134,7 +2134,7 @@ mod tests {
 
     #[test]
     fn fault_injection_emcy_and_reset() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut d = drive(t0);
         out(&mut d);
         d.inject_fault(0x8611, [0xDE, 0xAD, 0, 0, 1], t0);
@@ -2232,7 +2232,7 @@ mod tests {
 
     #[test]
     fn position_reaches_the_plant_callback() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let seen = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
         let s = seen.clone();
         let mut d = TwinDrive::new(
@@ -2323,7 +2323,7 @@ mod tests {
     /// without going past it by more than its servo's overshoot.
     #[test]
     fn csp_late_demand_while_steady_and_at_the_end() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let ms = |n: u64| t0 + Duration::from_millis(n);
         let mut d = csp_drive(t0);
         // Positions as the drive has them, in whole increments.
@@ -2372,7 +2372,7 @@ mod tests {
     /// exactly on a held demand; a jump is run at the velocity limit.
     #[test]
     fn csp_follows_demands_within_its_limits() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let ms = |n: u64| t0 + Duration::from_millis(n);
         let mut d = csp_drive(t0);
         let cpm = Scaling::default().counts_per_mm();

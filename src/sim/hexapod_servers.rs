@@ -38,7 +38,7 @@ struct Motion {
 
 impl Default for HexapodMount {
     fn default() -> Self {
-        let now = Instant::now();
+        let now = crate::util::clock::now();
         HexapodMount {
             motion: Mutex::new(Motion {
                 from: HexPose::default(),
@@ -292,7 +292,7 @@ impl TwinHexapod {
 
     /// The reached pose now (work coordinates), as the controller's encoders see it.
     pub fn position(&self) -> HexPose {
-        self.mount.pose_at(Instant::now())
+        self.mount.pose_at(crate::util::clock::now())
     }
 
     fn home(&self) {
@@ -302,12 +302,15 @@ impl TwinHexapod {
         s.group = READY_HOMING;
         s.target = HexPose::default();
         drop(s);
-        self.mount
-            .start_move(HexPose::default(), Duration::ZERO, Instant::now());
+        self.mount.start_move(
+            HexPose::default(),
+            Duration::ZERO,
+            crate::util::clock::now(),
+        );
     }
 
     fn request_move(&self, target: HexPose, gcs: bool) -> MoveOutcome {
-        let now = Instant::now();
+        let now = crate::util::clock::now();
         let mut s = self.lock();
         s.moves += 1;
         let ready = if gcs {
@@ -356,9 +359,9 @@ impl TwinHexapod {
     }
 
     fn stop(&self) {
-        self.mount.halt(Instant::now());
+        self.mount.halt(crate::util::clock::now());
         let mut s = self.lock();
-        s.target = self.mount.pose_at(Instant::now());
+        s.target = self.mount.pose_at(crate::util::clock::now());
         if s.group == READY_MOTION || s.group == READY_HOMING {
             s.group = READY_ABORT;
         }
@@ -457,7 +460,7 @@ fn gcs_line(h: &TwinHexapod, line: &str) -> Result<Option<String>, ()> {
         return Ok(None);
     };
     let args: Vec<&str> = words.collect();
-    let now = Instant::now();
+    let now = crate::util::clock::now();
     let set_error = |code: i64| {
         let mut s = h.lock();
         if s.error == 0 {
@@ -618,7 +621,7 @@ async fn serve_gcs(mut s: TcpStream, h: Arc<TwinHexapod>) {
             if line.is_empty() && matches!(b, 4 | 5 | 7 | 24) {
                 let reply = match b {
                     5 => {
-                        let m = if h.mount.moving(Instant::now()) {
+                        let m = if h.mount.moving(crate::util::clock::now()) {
                             63
                         } else {
                             0
@@ -688,9 +691,9 @@ async fn xps_answer(h: &TwinHexapod, text: &str) -> Result<String, ()> {
         return Ok(reply(-7, ""));
     };
     let group_ok = |i: usize| args.get(i).is_some_and(|g| *g == "HEXAPOD");
-    let now = Instant::now();
+    let now = crate::util::clock::now();
     let status = |h: &TwinHexapod| {
-        if h.mount.moving(Instant::now()) {
+        if h.mount.moving(crate::util::clock::now()) {
             MOVING
         } else {
             h.lock().group

@@ -106,7 +106,7 @@ impl RegisterBank for Bank {
         if kind != self.map.kind || !self.map.block.contains(&range) {
             return Err(Exception::IllegalDataAddress);
         }
-        let at = Instant::now();
+        let at = crate::util::clock::now();
         let sample = self.source.sample(at);
         let reading = Reading {
             spots: sample.spots,

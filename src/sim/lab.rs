@@ -285,7 +285,7 @@ const STALL_LIMIT: usize = 10_000;
 impl Lab {
     /// Build the lab; its clock starts now (an arbitrary origin: nothing waits on it).
     pub fn new(spec: &LabSpec) -> Result<Lab, LabError> {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let plant = Arc::new(Plant::new(&spec.layout, &spec.plant, t0)?);
         let p = plant.clone();
         let drive = TwinDrive::new(

@@ -485,7 +485,7 @@ mod tests {
 
     #[test]
     fn compensation_moves_the_axis() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let plant = Plant::new(&Layout::reference(), &PlantSpec::default(), t0).unwrap();
         plant.move_carriage(500.0, t0);
         let t = t0 + Duration::from_secs(30);
@@ -505,7 +505,7 @@ mod tests {
 
     #[test]
     fn sample_follows_carriage_and_follower() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let spec = PlantSpec {
             noise_mm: 0.0,
             install: InstallSpec {

@@ -219,7 +219,7 @@ impl Shared {
 
     fn heartbeat(&self, st: &State) -> u16 {
         st.frozen_heartbeat.unwrap_or_else(|| {
-            let n = self.t0.elapsed().as_nanos() / self.period.as_nanos().max(1);
+            let n = crate::util::clock::since(self.t0).as_nanos() / self.period.as_nanos().max(1);
             n as u16
         })
     }
@@ -240,7 +240,7 @@ impl Shared {
 
     /// Validate the staged table for commit `seq` and apply it or reject it.
     fn process_commit(&self, st: &mut State, seq: u32) {
-        let at = Instant::now();
+        let at = crate::util::clock::now();
         if let Some(k) = st.faults.corrupt_next.take() {
             let a = self.map.payload.address as usize + k;
             if let Some(r) = st.holding.get_mut(a) {
@@ -356,7 +356,7 @@ impl RegisterBank for Bank {
                     st.commits.push(CommitRecord {
                         sequence: seq,
                         result: CommitResult::Ignored,
-                        at: Instant::now(),
+                        at: crate::util::clock::now(),
                     });
                 } else if sh.apply_delay.is_zero() {
                     sh.process_commit(&mut st, seq);
@@ -453,7 +453,7 @@ impl TwinPlc {
         let shared = Arc::new(Shared {
             unit: map.unit_id,
             writable: writable(&map),
-            t0: Instant::now(),
+            t0: crate::util::clock::now(),
             period: config.heartbeat_period,
             apply_delay: config.apply_delay,
             silent: AtomicBool::new(false),
@@ -777,7 +777,7 @@ async fn pull_once(
                     Ok(()) => CommitResult::Accepted,
                     Err(r) => CommitResult::Rejected(r),
                 },
-                at: Instant::now(),
+                at: crate::util::clock::now(),
             },
             *status,
         );
@@ -806,7 +806,14 @@ mod tests {
     use crate::sim::plant::PlantSpec;
 
     fn plant() -> Arc<Plant> {
-        Arc::new(Plant::new(&Layout::reference(), &PlantSpec::default(), Instant::now()).unwrap())
+        Arc::new(
+            Plant::new(
+                &Layout::reference(),
+                &PlantSpec::default(),
+                crate::util::clock::now(),
+            )
+            .unwrap(),
+        )
     }
 
     fn t(

@@ -50,7 +50,7 @@ use crate::run::Dialect;
 use serde::{Deserialize, Serialize};
 use std::net::{Ipv4Addr, SocketAddr};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::task::JoinHandle;
@@ -170,7 +170,7 @@ fn spawn_drive_on<T: CanTransport>(
 impl Twin {
     /// Build and start the twin (inside a tokio runtime).
     pub async fn start(layout: &Layout, spec: TwinSpec) -> Result<Twin, SimError> {
-        let plant = Arc::new(Plant::new(layout, &spec.plant, Instant::now())?);
+        let plant = Arc::new(Plant::new(layout, &spec.plant, crate::util::clock::now())?);
         let io = IoModule::start(
             plant.clone(),
             spec.io_map.clone(),
@@ -248,7 +248,7 @@ impl Twin {
 
     /// Move the carriage to `mm` and wait until it is at rest.
     pub async fn move_and_wait(&self, mm: f64) {
-        self.plant.move_carriage(mm, Instant::now());
+        self.plant.move_carriage(mm, crate::util::clock::now());
         let end = self.plant.carriage_move_end();
         tokio::time::sleep_until(tokio::time::Instant::from_std(end)).await;
     }
@@ -300,7 +300,7 @@ fn start_program(
             if stop {
                 m.stop_at_next_stop();
             }
-            m.step(Instant::now(), &plant, captured);
+            m.step(crate::util::clock::now(), &plant, captured);
             {
                 let mut st = cnc.lock().unwrap_or_else(|p| p.into_inner());
                 st.code = m.handshake.code;
@@ -319,8 +319,8 @@ fn start_program(
             // Wake at the next event, or soon while waiting for the PLC.
             let next = m
                 .next_wake()
-                .map(|w| w.min(Instant::now() + Duration::from_millis(5)))
-                .unwrap_or(Instant::now() + Duration::from_millis(5));
+                .map(|w| w.min(crate::util::clock::now() + Duration::from_millis(5)))
+                .unwrap_or(crate::util::clock::now() + Duration::from_millis(5));
             tokio::time::sleep_until(tokio::time::Instant::from_std(next)).await;
         }
     }));
@@ -365,7 +365,7 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
     match cmd {
         "move" => {
             let mm = num("mm").ok_or("move needs \"mm\"")?;
-            let now = Instant::now();
+            let now = crate::util::clock::now();
             ctx.plant.move_carriage(mm, now);
             let d = ctx.plant.carriage_move_end().saturating_duration_since(now);
             Ok(serde_json::json!({"ok": true, "duration_s": d.as_secs_f64()}))
@@ -376,7 +376,7 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
             Ok(serde_json::json!({"ok": true}))
         }
         "truth" => {
-            let t = TruthView::from(ctx.plant.truth(Instant::now()));
+            let t = TruthView::from(ctx.plant.truth(crate::util::clock::now()));
             Ok(serde_json::json!({"ok": true, "truth": t}))
         }
         "block" => {
@@ -479,7 +479,7 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
             plc_command(plc.as_deref().ok_or("the twin runs no PLC")?, v)
         }
         "target" => {
-            let t = ctx.plant.target_readings(Instant::now());
+            let t = ctx.plant.target_readings(crate::util::clock::now());
             let view: Vec<serde_json::Value> = t
                 .iter()
                 .map(|s| match s {
@@ -501,7 +501,7 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
         "level" => {
             let sd = ctx.plant.spec.level_sd_rad;
             let noise = ctx.level_rng.lock().map(|mut r| r.gauss(sd)).unwrap_or(0.0);
-            let roll = ctx.plant.truth(Instant::now()).errors.ey + noise;
+            let roll = ctx.plant.truth(crate::util::clock::now()).errors.ey + noise;
             let arcsec = |rad: f64| rad / crate::units::RAD_PER_ARCSEC;
             Ok(serde_json::json!({"ok": true, "level": {
                 "roll_arcsec": arcsec(roll),

@@ -38,7 +38,7 @@ pub use run_tables::{ActiveTable, RunTables};
 
 use rusqlite::{Connection, ErrorCode, OpenFlags, TransactionBehavior};
 use std::path::{Path, PathBuf};
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 use thiserror::Error;
 
 /// How long a statement waits for another connection's lock before failing.
@@ -389,10 +389,7 @@ fn classify(path: &str, what: &'static str, e: rusqlite::Error) -> StoreError {
 
 /// Now, in µs since the Unix epoch (the stamp of bookkeeping columns).
 pub fn now_us() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| i64::try_from(d.as_micros()).unwrap_or(i64::MAX))
-        .unwrap_or(0)
+    crate::util::clock::unix_us()
 }
 
 #[cfg(test)]

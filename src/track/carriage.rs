@@ -206,7 +206,7 @@ mod tests {
     /// follower's motion cancels out of the carriage, even when its samples come late.
     #[test]
     fn frames_wait_for_the_follower_sample_after_them() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut e = CarriageEstimator::default();
         // Carriage at 30 mm/s from 1 mm; the follower at 40 mm/s from 0 (catching up).
         let carriage = |t: f64| 1.0 + 0.03 * t;
@@ -232,7 +232,7 @@ mod tests {
     /// late frames out of order are ignored.
     #[test]
     fn a_still_follower_places_frames_at_once() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut e = CarriageEstimator::default();
         e.handle_frame(ms(t0, 0.0), 0.5);
         e.handle_follower(ms(t0, 5.0), 2.0, true);

@@ -1103,7 +1103,7 @@ mod tests {
 
     impl Bench {
         fn new() -> Self {
-            let t0 = Instant::now();
+            let t0 = crate::util::clock::now();
             Bench {
                 t0,
                 now: t0,
@@ -1405,7 +1405,7 @@ mod tests {
     /// with the carriage's velocity.
     #[test]
     fn follow_targets_are_the_carriage_whatever_the_follower_does() {
-        let t0 = Instant::now();
+        let t0 = crate::util::clock::now();
         let mut rng = Rng::new(11);
         let mut tr = Tracker::new(TrackSettings {
             strategy: Strategy::Encoder,

@@ -2,6 +2,7 @@
 //! fixed-rate pacing, socket options.
 
 pub mod backoff;
+pub mod clock;
 pub mod csv;
 pub mod pace;
 pub mod progress;

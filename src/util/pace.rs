@@ -139,7 +139,7 @@ mod tests {
 
     #[test]
     fn grid_points_are_multiples_of_the_period_from_the_origin() {
-        let o = std::time::Instant::now();
+        let o = crate::util::clock::now();
         let ms = Duration::from_millis;
         assert_eq!(grid_point_at_or_after(o, o, ms(2)), o);
         assert_eq!(grid_point_at_or_after(o, o + ms(3), ms(2)), o + ms(4));
@@ -149,7 +149,7 @@ mod tests {
             o + ms(20)
         );
         // Before the origin: no grid yet.
-        let before = std::time::Instant::now();
+        let before = crate::util::clock::now();
         let later = before + ms(5);
         assert_eq!(grid_point_at_or_after(later, before, ms(2)), before);
     }

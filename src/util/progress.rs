@@ -24,7 +24,7 @@ impl Progress {
             done: 0,
             tty: std::io::stderr().is_terminal(),
             last_quarter: 0,
-            started: Instant::now(),
+            started: crate::util::clock::now(),
             enabled: true,
         };
         p.draw();
@@ -39,7 +39,7 @@ impl Progress {
             done: 0,
             tty: false,
             last_quarter: 0,
-            started: Instant::now(),
+            started: crate::util::clock::now(),
             enabled: false,
         }
     }

@@ -11,7 +11,7 @@ use axiscomp::sim::iomodule::{FixedSource, IoModule, IoModuleConfig, Served};
 use axiscomp::sim::plant::PsdSample;
 use std::path::Path;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tokio::net::TcpStream;
 use tokio::sync::broadcast;
 
@@ -94,7 +94,7 @@ async fn frames_match_the_served_samples(module: &IoModule, acq: Acquisition) {
     assert!(x2.iter().any(|&x| (x - x2[0]).abs() > 3.0 * HALF_COUNT_MM));
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn frames_equal_the_plant_sample_within_quantisation() {
     let module = twin(plant()).await;
     let link = link(module.local_addr());
@@ -109,12 +109,12 @@ async fn frames_equal_the_plant_sample_within_quantisation() {
     frames_match_the_served_samples(&module, acq).await;
     let ls = link.stats();
     assert_eq!((ls.errors, ls.reconnects), (0, 0));
-    assert!(ls.latency_p50.is_some() && ls.rate_hz > 0.0);
+    // Its latency and rate are the real clock's (tests/realtime).
 }
 
 /// Unthrottled through the pipelined reader, four reads in flight: every frame is still the
 /// module's sample for its own request, in order (the module answers in order).
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn pipelined_frames_equal_the_plant_sample_in_order() {
     let module = twin(plant()).await;
     let acq = Acquisition::spawn_pipelined(
@@ -135,7 +135,7 @@ async fn pipelined_frames_equal_the_plant_sample_in_order() {
 
 /// Paced at 500 Hz through the paced reader: every frame is the module's sample for its
 /// request, stamped when the reply arrived (the kernel's receive time), in order.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn paced_frames_equal_the_plant_sample_and_carry_the_reply_time() {
     let module = twin(plant()).await;
     let acq = Acquisition::spawn_paced(
@@ -150,7 +150,10 @@ async fn paced_frames_equal_the_plant_sample_and_carry_the_reply_time() {
     let mut frames = Vec::new();
     while frames.len() < 200 {
         let f = next(&mut rx).await;
-        assert!(f.at <= Instant::now(), "published after its reply arrived");
+        assert!(
+            f.at <= axiscomp::util::clock::now(),
+            "published after its reply arrived"
+        );
         frames.push(f);
     }
     let served = module.served();
@@ -175,13 +178,13 @@ async fn paced_frames_equal_the_plant_sample_and_carry_the_reply_time() {
     assert!(ls.latency_p50.is_some());
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn module_outage_reconnects_and_frames_resume_within_2_s() {
     outage_reconnects_within_2_s(|addr, map, config| Acquisition::spawn(link(addr), map, config))
         .await;
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn module_outage_reconnects_and_paced_frames_resume_within_2_s() {
     outage_reconnects_within_2_s(|addr, map, config| {
         Acquisition::spawn_paced(link_config(addr), map, config)
@@ -189,7 +192,7 @@ async fn module_outage_reconnects_and_paced_frames_resume_within_2_s() {
     .await;
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn module_outage_reconnects_and_pipelined_frames_resume_within_2_s() {
     outage_reconnects_within_2_s(|addr, map, config| {
         Acquisition::spawn_pipelined(link_config(addr), map, config)
@@ -215,11 +218,11 @@ async fn outage_reconnects_within_2_s(
         next(&mut rx).await;
     }
     module.server().stop().await;
-    let stopped = Instant::now();
+    let stopped = axiscomp::util::clock::now();
     tokio::time::sleep(Duration::from_millis(500)).await;
     assert!(!link.state().borrow().is_up(), "the link saw the outage");
     module.server().restart().await.expect("listen again");
-    let restarted = Instant::now();
+    let restarted = axiscomp::util::clock::now();
     // Frames until the first one read after the restart; the largest gap between frames.
     let mut last: Option<Frame> = None;
     let mut max_gap = Duration::ZERO;
@@ -237,7 +240,7 @@ async fn outage_reconnects_within_2_s(
             break;
         }
         assert!(
-            stopped.elapsed() < Duration::from_secs(10),
+            axiscomp::util::clock::since(stopped) < Duration::from_secs(10),
             "frames never resumed"
         );
     }
@@ -255,7 +258,7 @@ async fn outage_reconnects_within_2_s(
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn blocked_beam_makes_frames_invalid_until_unblocked() {
     let plant = plant();
     let module = twin(plant.clone()).await;
@@ -270,7 +273,7 @@ async fn blocked_beam_makes_frames_invalid_until_unblocked() {
     let mut rx = acq.subscribe();
     assert!(next(&mut rx).await.is_valid());
     plant.set_blocked(1, true);
-    let blocked_at = Instant::now() + Duration::from_millis(50);
+    let blocked_at = axiscomp::util::clock::now() + Duration::from_millis(50);
     let mut seen = 0;
     while seen < 20 {
         let f = next(&mut rx).await;
@@ -285,7 +288,7 @@ async fn blocked_beam_makes_frames_invalid_until_unblocked() {
     }
     assert!(acq.stats().invalid_frames >= 20);
     plant.set_blocked(1, false);
-    let clear_at = Instant::now() + Duration::from_millis(50);
+    let clear_at = axiscomp::util::clock::now() + Duration::from_millis(50);
     loop {
         let f = next(&mut rx).await;
         if f.at > clear_at {
@@ -295,7 +298,7 @@ async fn blocked_beam_makes_frames_invalid_until_unblocked() {
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn server_answers_bad_requests_with_exceptions_and_keeps_the_connection() {
     let module = twin(plant()).await;
     let mut s = TcpStream::connect(module.local_addr()).await.unwrap();
@@ -320,7 +323,7 @@ async fn server_answers_bad_requests_with_exceptions_and_keeps_the_connection() 
     assert_eq!((st.accepted, st.exceptions), (1, 8));
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn twin_serves_the_product_maps_in_both_modes() {
     for file in ["wago-750-352-750-456.toml", "beckhoff-bk9000-kl3404.toml"] {
         let map = IoMap::load(&maps_dir().join(file)).unwrap();
@@ -373,7 +376,7 @@ impl Drop for Reap {
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 #[ignore = "needs pymodbus/mbpoll: run by .ci/run"]
 async fn interop_pymodbus_io_frames() {
     use std::io::BufRead;
@@ -468,7 +471,7 @@ async fn interop_pymodbus_io_frames() {
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 #[ignore = "needs pymodbus/mbpoll: run by .ci/run"]
 async fn interop_mbpoll_reads_the_twin() {
     let sample = PsdSample {

@@ -345,12 +345,12 @@ fn a_2000_mm_axis_is_aligned_from_the_spots_at_both_ends() {
 /// (this test) jogs the carriage to each end, reads the station, enters what a target shows
 /// where a PSD has no spot, and turns the twin's screws as advised, until the check passes;
 /// the beam's residual angle the service reports is the twin's.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_service_advises_the_screw_turns_until_the_check_passes() {
     use crate::helpers::{RigOptions, ServiceRig};
     use axiscomp::align::Screw;
     use axiscomp::service::control::{FollowerAction, Request};
-    use std::time::Instant;
+
     let defaults = RigOptions::default();
     let rig = ServiceRig::start(RigOptions {
         plant: PlantSpec {
@@ -420,7 +420,7 @@ async fn the_service_advises_the_screw_turns_until_the_check_passes() {
                 .request(Request::AlignRead { at_mm: Some(at) })
                 .await
                 .expect("read");
-            let targets = rig.twin.plant.target_readings(Instant::now());
+            let targets = rig.twin.plant.target_readings(axiscomp::util::clock::now());
             for k in 0..3 {
                 if st["spots"][k].is_null()
                     && let Some(t) = targets[k]
@@ -497,12 +497,12 @@ async fn the_service_advises_the_screw_turns_until_the_check_passes() {
 /// the beam): the run pauses and says why in the snapshot, the twin's CNC stops at its next
 /// stop, nothing is captured while the beam is off, and once it is back the rest of the cycle
 /// runs and the run finishes with every capture stored exactly once.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_service_pauses_a_run_while_the_beam_is_cut_and_finishes_it_with_every_capture_once() {
     use crate::helpers::{RigOptions, ServiceRig, align_service, short_plan};
     use axiscomp::service::control::Request;
     use axiscomp::store::{RunId, Store};
-    use std::time::Instant;
+
     let rig = ServiceRig::start(RigOptions {
         service_toml: "[tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n\n\
                        [capture]\nframes = 100\nsettle_ms = 200\n"
@@ -528,10 +528,10 @@ async fn the_service_pauses_a_run_while_the_beam_is_cut_and_finishes_it_with_eve
             .as_u64()
             .unwrap_or(0)
     };
-    let t0 = Instant::now();
+    let t0 = axiscomp::util::clock::now();
     while captures().await < 4 {
         assert!(
-            t0.elapsed() < Duration::from_secs(90),
+            axiscomp::util::clock::since(t0) < Duration::from_secs(90),
             "no 4 captures in 90 s"
         );
         tokio::time::sleep(Duration::from_millis(100)).await;
@@ -550,10 +550,10 @@ async fn the_service_pauses_a_run_while_the_beam_is_cut_and_finishes_it_with_eve
         .and_then(|r| r.paused)
         .unwrap_or_default();
     assert!(why.contains("PSD1, PSD2, PSD3 have no spot"), "{why}");
-    let t1 = Instant::now();
+    let t1 = axiscomp::util::clock::now();
     while !rig.twin.cnc.lock().map(|c| c.stopped).unwrap_or(false) {
         assert!(
-            t1.elapsed() < Duration::from_secs(30),
+            axiscomp::util::clock::since(t1) < Duration::from_secs(30),
             "the twin's CNC did not stop"
         );
         tokio::time::sleep(Duration::from_millis(100)).await;
@@ -564,7 +564,7 @@ async fn the_service_pauses_a_run_while_the_beam_is_cut_and_finishes_it_with_eve
     for k in 0..3 {
         rig.twin.plant.set_blocked(k, false);
     }
-    let t2 = Instant::now();
+    let t2 = axiscomp::util::clock::now();
     loop {
         let st = rig.request(Request::RunStatus).await.expect("run status");
         match st["state"].as_str() {
@@ -573,7 +573,7 @@ async fn the_service_pauses_a_run_while_the_beam_is_cut_and_finishes_it_with_eve
             _ => panic!("the run ended so: {st}"),
         }
         assert!(
-            t2.elapsed() < Duration::from_secs(240),
+            axiscomp::util::clock::since(t2) < Duration::from_secs(240),
             "not finished: {st}"
         );
         tokio::time::sleep(Duration::from_millis(200)).await;

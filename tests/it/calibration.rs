@@ -97,7 +97,7 @@ fn model_calibration_holds_over_the_travel() {
 /// random head) fits as well but reads implausibly here: it is refused without the override,
 /// says why, and is accepted with it. A bad path is named; accept with nothing waiting is
 /// refused.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_service_fits_accepts_and_uses_a_calibration() {
     use crate::helpers::{RigOptions, ServiceRig};
     use axiscomp::service::control::Request;
@@ -249,7 +249,7 @@ async fn fit(rig: &crate::helpers::ServiceRig, poses: &std::path::Path) -> serde
 /// reference: the decoupling alone), and the stated sd.
 async fn live_deviation(rig: &crate::helpers::ServiceRig) -> ([f64; 6], [f64; 6]) {
     use axiscomp::service::control::Request;
-    use std::time::{Duration, Instant};
+    use std::time::Duration;
     rig.request(Request::Nominal { mm: None })
         .await
         .expect("clear");
@@ -266,7 +266,12 @@ async fn live_deviation(rig: &crate::helpers::ServiceRig) -> ([f64; 6], [f64; 6]
                 .is_some_and(|l| l.nominal_mm == Some(0.0) && l.frames >= 50)
         })
         .await;
-    let truth = rig.twin.plant.truth(Instant::now()).errors.to_user();
+    let truth = rig
+        .twin
+        .plant
+        .truth(axiscomp::util::clock::now())
+        .errors
+        .to_user();
     let live = s.live.expect("live");
     (
         std::array::from_fn(|k| (live.errors[k] - truth[k]).abs()),

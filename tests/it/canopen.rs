@@ -276,7 +276,7 @@ async fn quick_stop_interrupts_a_move() {
 /// sampler, the streamer or the master's SYNC stopped for a while) are left out and counted;
 /// most samples must remain. Two worker threads, so that the twin's motion updates do not wait behind the
 /// sampler.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn follows_a_moving_target_in_csp() {
     use axiscomp::canopen::{ProfileConfig, TravelLimits};
     use std::time::Instant;
@@ -302,7 +302,7 @@ async fn follows_a_moving_target_in_csp() {
     let m = &r.master;
     let mut events = m.events();
     assert_eq!(r.plant.follower_encoder(), 0.0);
-    let start = Instant::now();
+    let start = axiscomp::util::clock::now();
     let target_at = move |t: Instant| SPEED * t.duration_since(start).as_secs_f64();
     // When the streamer last sent a target (µs since the start).
     let sent = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
@@ -314,7 +314,7 @@ async fn follows_a_moving_target_in_csp() {
             tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
             loop {
                 tick.tick().await;
-                let now = Instant::now();
+                let now = axiscomp::util::clock::now();
                 if now.duration_since(start) >= STREAM {
                     break;
                 }
@@ -343,7 +343,7 @@ async fn follows_a_moving_target_in_csp() {
     within_s(20, "streaming", async {
         loop {
             tick.tick().await;
-            let woke = Instant::now();
+            let woke = axiscomp::util::clock::now();
             if woke.duration_since(start) >= STREAM {
                 break;
             }
@@ -364,7 +364,7 @@ async fn follows_a_moving_target_in_csp() {
             last_wake = woke;
             // Let due timers (the twin's motion update) run before reading the encoder.
             tokio::task::yield_now().await;
-            let now = Instant::now();
+            let now = axiscomp::util::clock::now();
             let (at, mm) = r.encoder_set();
             let t = at.saturating_duration_since(start);
             if t < Duration::from_millis(100) {

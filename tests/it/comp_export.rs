@@ -954,12 +954,12 @@ fn run_linuxcnc(comp: &str, comp_type: u8, units: Units, moves: &[Vec<f64>]) -> 
         .stdout(std::process::Stdio::null())
         .spawn()
         .expect("linuxcnc (linuxcnc-uspace) on PATH");
-    let end = std::time::Instant::now() + std::time::Duration::from_secs(180);
+    let end = axiscomp::util::clock::now() + std::time::Duration::from_secs(180);
     let status = loop {
         if let Some(s) = child.try_wait().unwrap() {
             break s;
         }
-        if std::time::Instant::now() > end {
+        if axiscomp::util::clock::now() > end {
             let _ = child.kill();
             panic!("linuxcnc did not finish within 180 s");
         }

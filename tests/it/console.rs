@@ -302,7 +302,7 @@ fn snapshot_screens(app: &mut App, screens: &[Screen]) {
 #[test]
 fn every_screen_renders_from_a_twin_run_at_80x24_and_160x48() {
     let fx = load_fixture();
-    let t0 = Instant::now();
+    let t0 = axiscomp::util::clock::now();
     let mut rest = rest_app(&fx, t0, true);
     snapshot_screens(&mut rest, &[Screen::Live, Screen::Align]);
     let (mut mid, _) = mid_run_app(&fx, t0, true);
@@ -373,7 +373,7 @@ fn publish_app(fx: &Fixture, t0: Instant, color: bool) -> App {
 #[test]
 fn calibrate_and_publish_render_from_the_twin_session() {
     let fx = load_fixture();
-    let t0 = Instant::now();
+    let t0 = axiscomp::util::clock::now();
     let mut cal = calibrate_app(&fx, t0, true);
     snapshot_screens(&mut cal, &[Screen::Calibrate]);
     let mut publ = publish_app(&fx, t0, true);
@@ -409,7 +409,7 @@ fn calibrate_and_publish_render_from_the_twin_session() {
 fn the_screens_show_the_twin_data_they_are_given() {
     // Independent of the snapshots: the numbers on screen are the fixture's.
     let fx = load_fixture();
-    let t0 = Instant::now();
+    let t0 = axiscomp::util::clock::now();
     let rest = rest_app(&fx, t0, false);
     let live = text(&render(&rest, 160, 48));
     let l = fx.rest.live.as_ref().expect("live errors at rest");
@@ -475,7 +475,7 @@ fn the_screens_show_the_twin_data_they_are_given() {
 #[test]
 fn overlays_read_only_and_no_service_render() {
     let fx = load_fixture();
-    let t0 = Instant::now();
+    let t0 = axiscomp::util::clock::now();
     // Help on the Measure screen.
     let (mut app, now) = mid_run_app(&fx, t0, true);
     app.handle_key(key(KeyCode::Char('?')));
@@ -547,7 +547,7 @@ fn overlays_read_only_and_no_service_render() {
 fn no_color_draws_without_colours() {
     use ratatui::style::Color;
     let fx = load_fixture();
-    let t0 = Instant::now();
+    let t0 = axiscomp::util::clock::now();
     for color in [true, false] {
         let mut app = results_app(&fx, t0, color);
         let mut coloured = 0usize;
@@ -588,7 +588,7 @@ impl Console {
                     jog_step_mm: 0.1,
                     color: true,
                 },
-                Instant::now(),
+                axiscomp::util::clock::now(),
             ),
             client: Client::spawn(ClientOptions::new(socket.to_path_buf())),
         }
@@ -623,10 +623,10 @@ impl Console {
     }
 
     async fn until(&mut self, secs: u64, what: &str, pred: impl Fn(&App) -> bool) {
-        let end = Instant::now() + Duration::from_secs(secs);
+        let end = axiscomp::util::clock::now() + Duration::from_secs(secs);
         while !pred(&self.app) {
             assert!(
-                Instant::now() < end,
+                axiscomp::util::clock::now() < end,
                 "{what}: not within {secs} s; the screen:\n{}",
                 self.screen()
             );
@@ -642,27 +642,27 @@ async fn settle(c: &mut Console) {
             .as_ref()
             .is_some_and(|s| s.run.is_none() && s.tracking.valid && s.tracking.at_rest)
     };
-    let end = Instant::now() + Duration::from_secs(30);
+    let end = axiscomp::util::clock::now() + Duration::from_secs(30);
     let mut since: Option<Instant> = None;
     loop {
         c.run(Vec::new(), Duration::from_millis(200)).await;
         since = if at_rest(&c.app) {
-            since.or(Some(Instant::now()))
+            since.or(Some(axiscomp::util::clock::now()))
         } else {
             None
         };
-        if since.is_some_and(|t| t.elapsed() >= Duration::from_secs(1)) {
+        if since.is_some_and(|t| axiscomp::util::clock::since(t) >= Duration::from_secs(1)) {
             return;
         }
         assert!(
-            Instant::now() < end,
+            axiscomp::util::clock::now() < end,
             "not at rest within 30 s:\n{}",
             c.screen()
         );
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn measure_workflow_by_keys_against_the_twin() {
     let rig = ServiceRig::start(RigOptions {
         service_toml: FAST.into(),
@@ -816,7 +816,7 @@ async fn measure_workflow_by_keys_against_the_twin() {
 /// Record `fixtures/console_twin.json` from a real twin + service session:
 /// `cargo test --test it console::capture_console_fixture -- --ignored`, then review the
 /// snapshots that change (`INSTA_UPDATE=always` or `cargo insta review`).
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 #[ignore = "writes the fixture; run by hand when the snapshot or the screens change"]
 async fn capture_console_fixture() {
     let rig = ServiceRig::start(RigOptions {
@@ -858,7 +858,7 @@ async fn capture_console_fixture() {
     };
     // Run 1, to the end: the "before" of the comparison.
     let first = rig.request(start()).await.expect("run_start 1");
-    let t1 = Instant::now();
+    let t1 = axiscomp::util::clock::now();
     loop {
         let status = rig.request(Request::RunStatus).await.expect("status");
         match status["state"].as_str() {
@@ -866,7 +866,10 @@ async fn capture_console_fixture() {
             Some("finished") => break,
             _ => panic!("run 1 ended so: {status}"),
         }
-        assert!(t1.elapsed() < Duration::from_secs(180), "run 1 stalls");
+        assert!(
+            axiscomp::util::clock::since(t1) < Duration::from_secs(180),
+            "run 1 stalls"
+        );
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
     // The snapshot catches up (it shows no run), and the last handover is over: a run started
@@ -883,14 +886,17 @@ async fn capture_console_fixture() {
     .await;
     // Run 2, recorded.
     let start_reply = rig.request(start()).await.expect("run_start 2");
-    let t0 = Instant::now();
+    let t0 = axiscomp::util::clock::now();
     let mut progress: Vec<(f64, Snapshot)> = Vec::new();
     let mut last = usize::MAX;
     let mut live = None;
     loop {
-        assert!(t0.elapsed() < Duration::from_secs(180), "run 2 stalls");
+        assert!(
+            axiscomp::util::clock::since(t0) < Duration::from_secs(180),
+            "run 2 stalls"
+        );
         let s = rig.snapshot().await;
-        let t = t0.elapsed().as_secs_f64();
+        let t = axiscomp::util::clock::since(t0).as_secs_f64();
         match &s.run {
             // Before the first snapshot of run 2 no run shows either.
             None if progress.is_empty() => {}
@@ -1098,7 +1104,7 @@ fn shift_json(v: &mut serde_json::Value, shift: i64) {
 /// a controller error mid-plan stops it with the controller's code and text on the screen;
 /// u resumes at the next pose; the fit's hold-out against the Cramér–Rao bound shows and the
 /// calibration waits for accept, which puts it in use.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn calibrate_screen_runs_the_hexapod_through_the_service() {
     use axiscomp::hexapod::plan::{PlanSpec, PosePlan};
     use axiscomp::sim::hexapod_servers::{HexapodFault, gcs_error_text};

@@ -465,7 +465,7 @@ fn the_command_line_imports_shows_and_exports() {
 
 /// The service: a stored map put in use by the control request is applied and named in the
 /// snapshot; viewers may ask which map is in use.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_service_puts_a_stored_map_in_use_and_shows_it() {
     use crate::helpers::{RigOptions, ServiceRig};
     use axiscomp::service::control::Request;

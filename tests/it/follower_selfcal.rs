@@ -6,7 +6,7 @@
 use axiscomp::follower::selfcal::{Collector, LEAD_IN_MM, Plan, Spec, Taken, Timing, long_degree};
 use axiscomp::follower::{self, Certificate, MapSettings, Source};
 use axiscomp::track::{HandoverKind, HandoverRecord, Strategy, TrackSettings};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 fn spec() -> Spec {
     Spec {
@@ -162,7 +162,7 @@ fn the_dwell_covers_rest_averaging_and_the_followers_step() {
 #[test]
 fn the_collector_arms_on_the_lead_in_and_keeps_optical_steps() {
     let plan = Plan::new(spec()).unwrap();
-    let t0 = Instant::now();
+    let t0 = axiscomp::util::clock::now();
     let mut c = Collector::new(plan, t0);
     let base = TrackSettings {
         strategy: Strategy::Encoder,
@@ -262,7 +262,7 @@ fn the_collector_arms_on_the_lead_in_and_keeps_optical_steps() {
 
 #[test]
 fn an_approach_from_further_up_arms_again_before_the_first_stop() {
-    let mut c = Collector::new(Plan::new(spec()).unwrap(), Instant::now());
+    let mut c = Collector::new(Plan::new(spec()).unwrap(), axiscomp::util::clock::now());
     // The carriage was 24 mm above the start: the first leg is −12 mm too.
     assert_eq!(
         c.handle_record(&record(HandoverKind::Encoder, 24.0, 12.1)),

@@ -10,7 +10,7 @@ use axiscomp::follower::Source;
 use axiscomp::service::control::Request;
 use axiscomp::service::follower::CertificateImport;
 use axiscomp::service::follower_map::{FollowerMapping, MappingConfig, MappingRequest};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// The twin's head square, the pre-run alignment check off (runs start at once).
 const SERVICE: &str = "[align]\ncheck_before_run = false\n";
@@ -30,9 +30,9 @@ fn short_mapping() -> MappingRequest {
 /// the control API: the map is stored with the twin's certificate, in use and in the
 /// snapshot; its vertical is the twin's true follower vertical (to the end-point line over
 /// the mapped span) within 3 u at every point.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_service_maps_the_twins_follower_through_the_control_api() {
-    let wall = Instant::now();
+    let wall = std::time::Instant::now();
     let rig = ServiceRig::start(RigOptions {
         service_toml: SERVICE.into(),
         twin_cnc: true,
@@ -300,7 +300,7 @@ fn a_mapping_interrupted_by_a_restart_is_said_so() {
 /// `axiscomp follower import|map` on the command line: the certificate through the running
 /// service (applied at once) and into the store when no service answers; the mapping started
 /// detached, its status, stopped.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_command_line_imports_and_maps_through_the_service() {
     use crate::helpers::{run, stderr, stdout};
     let rig = ServiceRig::start(RigOptions {
@@ -443,7 +443,7 @@ async fn the_command_line_imports_and_maps_through_the_service() {
 /// the operator, the carriage goes through its stops (here the test is the CNC), the mapping
 /// ends by itself once every planned stop was seen; `follower_map_finish` with no steps fails
 /// in words and leaves the map in use.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn with_a_manual_cnc_the_mapping_ends_when_every_stop_was_seen() {
     use axiscomp::follower::selfcal::{Plan, Spec};
     let rig = ServiceRig::start(RigOptions {
@@ -543,10 +543,10 @@ async fn with_a_manual_cnc_the_mapping_ends_when_every_stop_was_seen() {
 /// lab's maps: the RMS of (map − truth)/u at most 2 and no point beyond 5 u (the points are
 /// one correlated curve, all sharing the first station's error). Refusals both ways with a
 /// measurement run, a hexapod run and the mapping while the stations are under way.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_service_reads_the_twins_level_at_stations_and_refits_the_map() {
     use axiscomp::service::follower_level::LevelRequest;
-    let wall = Instant::now();
+    let wall = std::time::Instant::now();
     let rig = ServiceRig::start(RigOptions {
         service_toml: SERVICE.into(),
         follower_toml: Some("level = \"twin\"\n".into()),
@@ -719,7 +719,7 @@ async fn the_service_reads_the_twins_level_at_stations_and_refits_the_map() {
 
 /// A level's reading typed through the API: not a number, beyond the limit, or with no
 /// stations under way, refused in words naming the field and what to do.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_bad_level_reading_is_refused_in_words() {
     use axiscomp::service::follower_level::{LEVEL_LIMIT_ARCSEC, LevelRequest};
     let rig = ServiceRig::start(RigOptions {

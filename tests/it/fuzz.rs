@@ -21,7 +21,7 @@ use proptest::test_runner::{Config, RngSeed, TestCaseError, TestRunner};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::sync::OnceLock;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 // ---------- a counting allocator: the peak bytes live on this thread ----------
 
@@ -133,14 +133,14 @@ fn fuzz<S: Strategy>(
         config.rng_seed = RngSeed::Fixed(18);
     }
     let cases = config.cases;
-    let t0 = Instant::now();
+    let t0 = axiscomp::util::clock::now();
     let mut runner = TestRunner::new(config);
     if let Err(e) = runner.run(&strategy, test) {
         panic!("fuzz target {name}: {e}");
     }
     eprintln!(
         "fuzz {name}: {cases} cases in {:.1} s",
-        t0.elapsed().as_secs_f64()
+        axiscomp::util::clock::since(t0).as_secs_f64()
     );
 }
 
@@ -729,7 +729,7 @@ fn fuzz_canopen_frames() {
     use axiscomp::canopen::{Command, DriveConfig, Emcy, Master, NodeId, ObjAddr, SdoClient};
     let node = NodeId::new(1).expect("node");
     fuzz("canopen", 1500, canopen_frames(), |frames| {
-        let t0 = Instant::now();
+        let t0 = axiscomp::util::clock::now();
         let mut now = t0;
         // The SDO client mid-upload and mid-download.
         for download in [false, true] {

@@ -129,20 +129,22 @@ impl DriveRig {
             Plant::new(
                 &axiscomp::optics::Layout::reference(),
                 &PlantSpec::default(),
-                std::time::Instant::now(),
+                axiscomp::util::clock::now(),
             )
             .expect("plant"),
         );
         let p = plant.clone();
-        let encoder_set =
-            std::sync::Arc::new(std::sync::Mutex::new((std::time::Instant::now(), f64::NAN)));
+        let encoder_set = std::sync::Arc::new(std::sync::Mutex::new((
+            axiscomp::util::clock::now(),
+            f64::NAN,
+        )));
         let set = encoder_set.clone();
         // The master listens before the twin boots, as on a real bus powered up together.
         let (master, mt) = axiscomp::canopen::spawn_drive(bus.port(), &cfg).expect("master");
         let (twin, tt) = axiscomp::sim::spawn_twin_drive(bus.port(), twin, move |mm| {
             p.set_follower_encoder(mm);
             if let Ok(mut s) = set.lock() {
-                *s = (std::time::Instant::now(), mm);
+                *s = (axiscomp::util::clock::now(), mm);
             }
         })
         .expect("twin drive");
@@ -205,15 +207,19 @@ use axiscomp::sim::iomodule::IoModule;
 use axiscomp::sim::plant::{Plant, PlantSpec};
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
 /// The twin's plant with the default spec and the reference layout.
 pub fn plant() -> Arc<Plant> {
     Arc::new(
-        Plant::new(&Layout::reference(), &PlantSpec::default(), Instant::now())
-            .expect("default plant"),
+        Plant::new(
+            &Layout::reference(),
+            &PlantSpec::default(),
+            axiscomp::util::clock::now(),
+        )
+        .expect("default plant"),
     )
 }
 
@@ -536,14 +542,14 @@ impl ServiceRig {
         what: &str,
         mut pred: impl FnMut(&axiscomp::service::snapshot::Snapshot) -> bool,
     ) -> axiscomp::service::snapshot::Snapshot {
-        let end = Instant::now() + Duration::from_secs(secs);
+        let end = axiscomp::util::clock::now() + Duration::from_secs(secs);
         let mut c = self.client().await;
         loop {
             let s = c.status().await.expect("status");
             if pred(&s) {
                 return s;
             }
-            if Instant::now() > end {
+            if axiscomp::util::clock::now() > end {
                 panic!("waited {secs} s for {what}; last snapshot:\n{s:#?}");
             }
             tokio::time::sleep(Duration::from_millis(50)).await;
@@ -655,13 +661,13 @@ pub fn short_plan() -> axiscomp::run::PlanSpec {
 /// so the first round passes.
 pub async fn align_service(socket: &Path, twin: &axiscomp::sim::twin::Twin, span: (f64, f64)) {
     use axiscomp::service::control::{Client, FollowerAction, Request};
-    use std::time::{Duration, Instant};
+    use std::time::Duration;
     let mut c = Client::connect(socket).await.expect("the control socket");
     // Wait for a spot on every PSD with the carriage at rest; the follower brought to the
     // carriage when PSD2 has none after a while.
     async fn at_rest(c: &mut Client, twin: &axiscomp::sim::twin::Twin, at: f64) {
         let mut moved = false;
-        let start = Instant::now();
+        let start = axiscomp::util::clock::now();
         loop {
             let s = c.request(&Request::Status).await.expect("status");
             let spots = s["psd"]["spots_um"]
@@ -671,7 +677,7 @@ pub async fn align_service(socket: &Path, twin: &axiscomp::sim::twin::Twin, span
                 tokio::time::sleep(Duration::from_millis(600)).await;
                 return;
             }
-            if !moved && start.elapsed() > Duration::from_secs(4) {
+            if !moved && axiscomp::util::clock::since(start) > Duration::from_secs(4) {
                 moved = true;
                 c.request(&Request::Follower {
                     action: FollowerAction::Move,
@@ -681,9 +687,9 @@ pub async fn align_service(socket: &Path, twin: &axiscomp::sim::twin::Twin, span
                 .expect("follower move");
             }
             assert!(
-                start.elapsed() < Duration::from_secs(40),
+                axiscomp::util::clock::since(start) < Duration::from_secs(40),
                 "no spot on every PSD at {at} mm: {s}; truth {:?}",
-                twin.plant.truth(Instant::now())
+                twin.plant.truth(axiscomp::util::clock::now())
             );
             tokio::time::sleep(Duration::from_millis(200)).await;
         }

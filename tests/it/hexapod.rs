@@ -8,7 +8,7 @@ use axiscomp::sim::hexapod_servers::{
 };
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 pub(crate) fn spec() -> TwinHexapodSpec {
     TwinHexapodSpec {
@@ -65,16 +65,16 @@ async fn both_drivers_move_the_twin_platform() {
         let (pivot, work) = s.hexapod.frames();
         assert_eq!(pivot, [0.0, 0.0, 120.5]);
         assert_eq!(work.0[5], 90.0);
-        let t0 = Instant::now();
+        let t0 = axiscomp::util::clock::now();
         let reached = h.move_to(POSE).await.expect("move");
         // 2 mm at 50 mm/s: the move takes its time before "in position".
         assert!(
-            t0.elapsed() >= Duration::from_millis(35),
+            axiscomp::util::clock::since(t0) >= Duration::from_millis(35),
             "{kind:?} {:?}",
-            t0.elapsed()
+            axiscomp::util::clock::since(t0)
         );
         assert!(close(&reached, &POSE, 1e-3), "{kind:?} reached {reached:?}");
-        let platform = s.hexapod.mount.pose_at(Instant::now());
+        let platform = s.hexapod.mount.pose_at(axiscomp::util::clock::now());
         assert!(close(&platform, &reached, 1e-6), "{kind:?}");
         let again = h.position().await.expect("position");
         assert!(close(&again, &reached, 1e-6));
@@ -91,11 +91,11 @@ async fn both_drivers_set_the_platforms_speed() {
         let mut h = driver(&s, kind).await;
         h.initialize().await.expect("initialise");
         h.set_speed(8.0).await.expect("speed");
-        let t0 = Instant::now();
+        let t0 = axiscomp::util::clock::now();
         h.move_to(HexPose([0.0, 4.0, 0.0, 0.0, 0.0, 0.0]))
             .await
             .expect("move");
-        let took = t0.elapsed();
+        let took = axiscomp::util::clock::since(t0);
         // At the twin's 50 mm/s it would take 80 ms.
         assert!(
             took >= Duration::from_millis(480) && took < Duration::from_secs(3),
@@ -212,7 +212,7 @@ async fn stop_halts_a_move() {
         tokio::time::sleep(Duration::from_millis(200)).await;
         stopper.stop().await.expect("stop");
         let r = mover.await.expect("join");
-        let y = s.hexapod.mount.pose_at(Instant::now()).0[1];
+        let y = s.hexapod.mount.pose_at(axiscomp::util::clock::now()).0[1];
         assert!(y > 0.1 && y < 1.5, "{kind:?}: halted at y = {y} mm ({r:?})");
     }
 }
@@ -256,7 +256,7 @@ pub(crate) async fn rig(seed: u64) -> Rig {
                 },
                 ..PlantSpec::default()
             },
-            Instant::now(),
+            axiscomp::util::clock::now(),
         )
         .expect("plant"),
     );
@@ -351,7 +351,7 @@ pub(crate) fn quick() -> RunOptions {
 /// The whole procedure on the twin through the XPS driver: every pose stored, the fitted
 /// calibration within 1.15× the single-frame Cramér–Rao bound on every DOF on the held-out
 /// poses, and the head at the calibrated pose reads what the hexapod says.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_procedure_calibrates_the_twins_head() {
     let r = rig(5).await;
     let dir = TempDir::new("hexapod-proc");
@@ -374,7 +374,11 @@ async fn the_procedure_calibrates_the_twins_head() {
     assert_eq!(seen.last().map(|s| s.1), Some(Some(Duration::ZERO)));
     // The last pose stood far out along y; after it the platform went back to its zero pose,
     // where the plant sees only the axis' own errors at D = 0 (tens of µm and arcsec at most).
-    let truth = r.plant.truth(Instant::now()).errors.to_array();
+    let truth = r
+        .plant
+        .truth(axiscomp::util::clock::now())
+        .errors
+        .to_array();
     let last = store.poses[119].reached.to_errors().to_array();
     assert!(last[1].abs() > 0.5, "a pose far out along y: {last:?}");
     for k in 0..6 {
@@ -395,7 +399,7 @@ async fn the_procedure_calibrates_the_twins_head() {
 /// A controller error mid-plan stops the run with the controller's code and text, nothing
 /// after it moves, and a second run resumes at the next pose; a dropped link is reconnected
 /// and the pose taken again.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_controller_error_stops_and_the_run_resumes_a_dropped_link_reconnects() {
     let r = rig(6).await;
     let dir = TempDir::new("hexapod-resume");
@@ -452,7 +456,7 @@ async fn a_controller_error_stops_and_the_run_resumes_a_dropped_link_reconnects(
 }
 
 /// A plan pose outside the workspace is refused before any move.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_plan_outside_the_workspace_is_refused_before_any_move() {
     let r = rig(7).await;
     let dir = TempDir::new("hexapod-ws");
@@ -539,7 +543,7 @@ fn the_command_line_checks_plan_and_config_first() {
 
 /// A following error mid-plan (Newport): the run stops with -25 and the controller's text;
 /// the resumed run initialises the disabled group again and finishes.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_following_error_stops_and_the_resumed_run_initialises_again() {
     let r = rig(8).await;
     let dir = TempDir::new("hexapod-following");

@@ -18,7 +18,6 @@ use axiscomp::sim::plant::Plant;
 use axiscomp::units::DOF_NAMES;
 use std::io::Write as _;
 use std::sync::Arc;
-use std::time::Instant;
 
 /// The twin's carriage and follower moved directly on the plant; each visit is recorded.
 struct PlantBench {
@@ -41,7 +40,8 @@ impl Bench for PlantBench {
     }
 
     async fn go_to(&mut self, travel_mm: f64, follower_mm: f64) -> Result<(), String> {
-        self.plant.move_carriage(travel_mm, Instant::now());
+        self.plant
+            .move_carriage(travel_mm, axiscomp::util::clock::now());
         let end = self.plant.carriage_move_end();
         tokio::time::sleep_until(tokio::time::Instant::from_std(end)).await;
         self.plant.set_follower_encoder(follower_mm);
@@ -60,7 +60,7 @@ fn stations() -> Vec<(f64, f64)> {
 /// follower's errors there only up to what the beams' direction relative to the travel
 /// trades with them, µm and arcsec over 300 mm that vary with the noise: the readings cannot
 /// tell the two apart, so no test compares them with the twin's truth.)
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_procedure_calibrates_along_the_travel_with_an_offset_per_station() {
     let r = rig(9).await;
     let dir = TempDir::new("hexapod-along");
@@ -170,7 +170,7 @@ fn append(path: &std::path::Path, text: &str) {
 /// A controller error at the second station stops the run; the resumed run goes back to
 /// that station first (the carriage was moved away meanwhile), then the third, and every
 /// pose is stored once at its own station.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_run_stopped_at_a_station_resumes_there() {
     let r = rig(10).await;
     let dir = TempDir::new("hexapod-along-resume");
@@ -198,7 +198,7 @@ async fn a_run_stopped_at_a_station_resumes_there() {
     let visited = bench.visits.clone();
     assert_eq!(visited, stations()[..2]);
     // Meanwhile the carriage goes elsewhere.
-    r.plant.move_carriage(0.0, Instant::now());
+    r.plant.move_carriage(0.0, axiscomp::util::clock::now());
     r.plant.set_follower_encoder(0.0);
 
     let mut store = PoseStore::open(&dir.path("run"), &plan).expect("reopen");

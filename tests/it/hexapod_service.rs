@@ -6,7 +6,7 @@
 use crate::helpers::{RigOptions, TempDir, hexapod_rig};
 use axiscomp::hexapod::plan::{PlanSpec, PosePlan};
 use axiscomp::service::control::Request;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 const FAST: &str = "[tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n\n\
                     [capture]\nframes = 100\nsettle_ms = 200\n\n[align]\ncheck_before_run = false\n";
@@ -31,7 +31,7 @@ fn run_start() -> Request {
 /// `HEXAPOD_SERVICE_POSES=200` measures the must-show instead: that many poses at five
 /// stations over the twin's whole 1000 mm, with the default settle (200 ms) and window (50
 /// frames), within 1.1× the bound on every DOF (poses, ratios, machine and wall time printed).
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_service_calibrates_along_the_travel_and_keeps_runs_apart() {
     let must_show: Option<usize> = std::env::var("HEXAPOD_SERVICE_POSES")
         .ok()
@@ -87,7 +87,7 @@ async fn the_service_calibrates_along_the_travel_and_keeps_runs_apart() {
         e.to_string(),
         "a hexapod calibration run is under way (it moves the head): stop it with hexapod_stop or let it finish, then start the run"
     );
-    let t0 = Instant::now();
+    let t0 = axiscomp::util::clock::now();
     // While the last station's poses are taken, the carriage and the follower stand there.
     let mut seen_there = 0;
     let status = loop {
@@ -100,7 +100,7 @@ async fn the_service_calibrates_along_the_travel_and_keeps_runs_apart() {
                 let done = s["done"].as_u64().unwrap_or(0) as usize;
                 let ns = stations.len();
                 if done > poses * (ns - 1) / ns + 1 && done + 2 < poses {
-                    let truth = rig.twin.plant.truth(Instant::now());
+                    let truth = rig.twin.plant.truth(axiscomp::util::clock::now());
                     assert!((truth.travel - last).abs() < 1e-6, "{truth:?}");
                     assert!((truth.follower_encoder - last).abs() < 0.01, "{truth:?}");
                     seen_there += 1;
@@ -110,7 +110,10 @@ async fn the_service_calibrates_along_the_travel_and_keeps_runs_apart() {
             Some("done") => break s,
             _ => panic!("the hexapod run ended so: {s}"),
         }
-        assert!(t0.elapsed() < Duration::from_secs(400), "stalls: {s}");
+        assert!(
+            axiscomp::util::clock::since(t0) < Duration::from_secs(400),
+            "stalls: {s}"
+        );
         tokio::time::sleep(Duration::from_millis(200)).await;
     };
     assert!(seen_there > 0, "never looked at the last station");
@@ -146,7 +149,7 @@ async fn the_service_calibrates_along_the_travel_and_keeps_runs_apart() {
             .collect::<Vec<_>>()
             .join(" "),
         status["machine_s"].as_f64().unwrap_or(0.0),
-        t0.elapsed().as_secs_f64()
+        axiscomp::util::clock::since(t0).as_secs_f64()
     );
     let limit = if must_show.is_some() { 1.1 } else { 1.4 };
     assert!(ratio.iter().all(|r| *r > 0.5 && *r <= limit), "{ratio:?}");

@@ -8,7 +8,7 @@ use crate::helpers::{RigOptions, ServiceRig, free_port};
 use axiscomp::service::snapshot::Snapshot;
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Child, ChildStdin, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tokio::sync::mpsc;
 
 /// The pymodbus module and its command pipe (its stdout lines come through a thread).
@@ -106,7 +106,7 @@ async fn recovered(rig: &ServiceRig, what: &str) -> Snapshot {
     .await
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 #[ignore = "needs pymodbus >= 3.12: run by tests/interop/links.sh"]
 async fn interop_field_links_tell_the_truth() {
     let port = free_port();
@@ -170,7 +170,7 @@ async fn interop_field_links_tell_the_truth() {
     // (b) Exceptions that persist: refusing, the frame stale and invalid, the rate falls to
     // zero within the last second, and after 1 s the alarm names the exception.
     peer.command("exception 4").await;
-    let t = Instant::now();
+    let t = axiscomp::util::clock::now();
     let s = rig
         .wait_for(3, "refusing, the last frame invalid", |s| {
             s.links.io.state == "refusing" && !psd_valid(s)
@@ -186,7 +186,7 @@ async fn interop_field_links_tell_the_truth() {
             alarm(s, "io-exception").is_some()
         })
         .await;
-    let took = t.elapsed();
+    let took = axiscomp::util::clock::since(t);
     let text = alarm(&s, "io-exception").unwrap_or_default();
     assert!(
         text.contains("exception 0x04 (server device failure)"),
@@ -200,7 +200,8 @@ async fn interop_field_links_tell_the_truth() {
         "persistent exceptions: alarm after {:.2} s",
         took.as_secs_f64()
     );
-    tokio::time::sleep(Duration::from_millis(1300).saturating_sub(t.elapsed())).await;
+    tokio::time::sleep(Duration::from_millis(1300).saturating_sub(axiscomp::util::clock::since(t)))
+        .await;
     let s = rig.snapshot().await;
     let frozen = seq(&s);
     assert!(!psd_valid(&s), "a frozen frame is not valid");
@@ -231,9 +232,9 @@ async fn interop_field_links_tell_the_truth() {
     })
     .await;
     let mut seen = std::collections::BTreeSet::new();
-    let end = Instant::now() + Duration::from_secs(2);
+    let end = axiscomp::util::clock::now() + Duration::from_secs(2);
     let mut c = rig.client().await;
-    while Instant::now() < end {
+    while axiscomp::util::clock::now() < end {
         let s = c.status().await.expect("status");
         assert_ne!(s.links.io.state, "up", "a hung module is never up");
         assert!(
@@ -255,7 +256,7 @@ async fn interop_field_links_tell_the_truth() {
 
     // (d) An outage: down, the alarm, the last frame invalid once stale, the rate to zero.
     peer.command("outage").await;
-    let t = Instant::now();
+    let t = axiscomp::util::clock::now();
     let s = rig
         .wait_for(3, "down with the alarm, the frame invalid", |s| {
             s.links.io.state != "up" && alarm(s, "io-link-down").is_some() && !psd_valid(s)
@@ -263,10 +264,11 @@ async fn interop_field_links_tell_the_truth() {
         .await;
     eprintln!(
         "outage: shown after {:.2} s, state {}",
-        t.elapsed().as_secs_f64(),
+        axiscomp::util::clock::since(t).as_secs_f64(),
         s.links.io.state
     );
-    tokio::time::sleep(Duration::from_millis(1300).saturating_sub(t.elapsed())).await;
+    tokio::time::sleep(Duration::from_millis(1300).saturating_sub(axiscomp::util::clock::since(t)))
+        .await;
     let s = rig.snapshot().await;
     assert!(rate(&s) < 1.0, "rate {:.1}/s", rate(&s));
     assert!(!psd_valid(&s));
@@ -277,7 +279,7 @@ async fn interop_field_links_tell_the_truth() {
 
 /// A follower drive that is not on the bus (the service looks for node 9; the twin's drive is
 /// node 1): the `drive-absent` alarm names the node, the CAN link shows no heartbeat.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn an_absent_drive_raises_an_alarm() {
     let rig = ServiceRig::start(RigOptions {
         follower_toml: Some("node_id = 9\n".into()),
@@ -285,7 +287,7 @@ async fn an_absent_drive_raises_an_alarm() {
         ..RigOptions::default()
     })
     .await;
-    let t = Instant::now();
+    let t = axiscomp::util::clock::now();
     let s = rig
         .wait_for(20, "the drive-absent alarm", |s| {
             alarm(s, "drive-absent").is_some()
@@ -297,7 +299,7 @@ async fn an_absent_drive_raises_an_alarm() {
     assert_eq!(s.follower.state, "unknown");
     eprintln!(
         "absent drive: alarm after {:.1} s",
-        t.elapsed().as_secs_f64()
+        axiscomp::util::clock::since(t).as_secs_f64()
     );
     rig.stop().await;
 }

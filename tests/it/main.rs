@@ -27,7 +27,6 @@ mod modbus;
 mod plc;
 mod report;
 mod report_budget;
-mod resume;
 mod service;
 mod socketcan;
 mod store;

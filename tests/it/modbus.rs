@@ -35,7 +35,7 @@ fn r(start: u16, count: u16) -> ReadRange {
     ReadRange::new(start, count).unwrap()
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_timed_out_call_never_shifts_the_next_reply() {
     let (srv, _) = server(None).await;
     let link = link(srv.local_addr(), 100);
@@ -49,9 +49,12 @@ async fn a_timed_out_call_never_shifts_the_next_reply() {
     // The late reply to (0, 2) is on its way; the link dropped that connection, so the next
     // call gets its own answer, not the stale [0, 1]. (Calls made before the new connection
     // is up fail fast with `Disconnected`.)
-    let t0 = std::time::Instant::now();
+    let t0 = axiscomp::util::clock::now();
     while link.stats().reconnects == 0 {
-        assert!(t0.elapsed() < Duration::from_secs(2), "reconnected");
+        assert!(
+            axiscomp::util::clock::since(t0) < Duration::from_secs(2),
+            "reconnected"
+        );
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
     assert_eq!(
@@ -71,7 +74,7 @@ async fn a_timed_out_call_never_shifts_the_next_reply() {
     assert_eq!(srv.stats().accepted, 2);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn an_exception_keeps_the_connection() {
     let (srv, _) = server(None).await;
     let link = link(srv.local_addr(), 500);
@@ -106,7 +109,7 @@ async fn an_exception_keeps_the_connection() {
     assert_eq!(srv.stats().accepted, 1);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn writes_round_trip_within_the_writable_range() {
     let (srv, bank) = server(None).await;
     let link = link(srv.local_addr(), 500);
@@ -135,7 +138,7 @@ async fn writes_round_trip_within_the_writable_range() {
 
 /// At most `max_connections` at once: the next is closed on accept (counted, logged), and a
 /// place that frees up is taken again.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn connections_beyond_the_limit_are_closed_on_accept() {
     use tokio::io::AsyncReadExt;
     let bank = Arc::new(MemoryBank::new((0..200).collect(), vec![0; 20], None));
@@ -172,7 +175,7 @@ async fn connections_beyond_the_limit_are_closed_on_accept() {
     assert_eq!(srv.stats().accepted, 3);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn peers_outside_the_allow_list_are_closed_on_accept() {
     let (srv, _) = server(Some(vec!["192.0.2.1".parse().unwrap()])).await;
     let link = link(srv.local_addr(), 300);
@@ -194,7 +197,7 @@ async fn peers_outside_the_allow_list_are_closed_on_accept() {
     assert_eq!(link.read_input_registers(1, r(7, 1)).await, Ok(vec![7]));
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn link_state_follows_the_device_and_ends_with_the_handles() {
     let (srv, _) = server(None).await;
     let link = link(srv.local_addr(), 300);
@@ -256,12 +259,15 @@ fn paced(addr: SocketAddr, timeout_ms: u64, range: ReadRange) -> PacedReader {
 
 /// Tick `reader` every 5 ms until it reports, at most `within`.
 async fn next_outcome(reader: &mut PacedReader, within: Duration) -> Result<Reply, LinkError> {
-    let t0 = std::time::Instant::now();
+    let t0 = axiscomp::util::clock::now();
     loop {
         if let Some(r) = reader.tick().await {
             return r;
         }
-        assert!(t0.elapsed() < within, "no outcome within {within:?}");
+        assert!(
+            axiscomp::util::clock::since(t0) < within,
+            "no outcome within {within:?}"
+        );
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
 }
@@ -273,7 +279,7 @@ async fn after_change(
     reader: &mut PacedReader,
     want: impl Fn(&Result<Reply, LinkError>) -> bool,
 ) -> Result<Reply, LinkError> {
-    let t0 = std::time::Instant::now();
+    let t0 = axiscomp::util::clock::now();
     let mut seen = Vec::new();
     loop {
         let r = next_outcome(reader, Duration::from_secs(2)).await;
@@ -282,73 +288,13 @@ async fn after_change(
         }
         seen.push(r);
         assert!(
-            t0.elapsed() < Duration::from_secs(2) && seen.len() <= 3,
+            axiscomp::util::clock::since(t0) < Duration::from_secs(2) && seen.len() <= 3,
             "{seen:?}"
         );
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_paced_reader_collects_each_reply_at_the_next_tick() {
-    let (srv, bank) = server(None).await;
-    let (mut reader, monitor) = PacedReader::new(
-        LinkConfig::new(srv.local_addr()),
-        RegisterKind::Input,
-        1,
-        r(10, 4),
-    );
-    // The first tick connects and sends; nothing to collect yet: connected, not up until
-    // the first reply is in.
-    assert_eq!(reader.tick().await, None);
-    assert_eq!(monitor.state().borrow().name(), "connected");
-    // A reply holds the registers as they were at some time between its request's send and
-    // its collection: the values when it was sent, or the ones set after (when the device
-    // served it late). Never older ones.
-    let mut at_send = vec![10, 11, 12, 13];
-    let mut last_at = None;
-    for k in 0..20u16 {
-        tokio::time::sleep(Duration::from_millis(20)).await;
-        let now = vec![k, k + 1, 100, 100 + k];
-        bank.set_input(10, &now);
-        tokio::time::sleep(Duration::from_millis(5)).await;
-        // Collects the reply to the request sent at the previous tick, sends the next one.
-        let reply = next_outcome(&mut reader, Duration::from_secs(2))
-            .await
-            .expect("a good reply");
-        assert!(
-            reply.registers == at_send || reply.registers == now,
-            "reply {k}: {:?}, sent with {at_send:?} in the registers, then {now:?}",
-            reply.registers
-        );
-        at_send = now;
-        // Stamped with the kernel's receive time: after the send, before we looked.
-        assert!(
-            reply.sent < reply.at && reply.at <= std::time::Instant::now(),
-            "{reply:?}"
-        );
-        if let Some(l) = last_at {
-            assert!(reply.at > l);
-        }
-        last_at = Some(reply.at);
-    }
-    assert!(monitor.state().borrow().is_up(), "up once replies came");
-    let st = monitor.stats();
-    assert_eq!((st.ok, st.errors, st.reconnects), (20, 0, 0));
-    assert!(
-        st.latency_p50
-            .is_some_and(|l| l < Duration::from_millis(20))
-    );
-    // One connection; 20 requests answered and the 21st in flight (served or not yet).
-    let ss = srv.stats();
-    assert!(
-        ss.accepted == 1 && (20..=21).contains(&ss.requests),
-        "{ss:?}"
-    );
-    drop(reader);
-    assert_eq!(*monitor.state().borrow(), LinkState::Closed);
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_late_paced_reply_times_out_and_never_becomes_the_next_frame() {
     let (srv, bank) = server(None).await;
     let (mut reader, monitor) = {
@@ -383,7 +329,7 @@ async fn a_late_paced_reply_times_out_and_never_becomes_the_next_frame() {
     assert_eq!(srv.stats().accepted, 2);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_paced_exception_keeps_the_connection_and_a_lost_device_reconnects() {
     let (srv, _) = server(None).await;
     let mut reader = paced(srv.local_addr(), 500, r(0, 1));
@@ -409,7 +355,7 @@ async fn a_paced_exception_keeps_the_connection_and_a_lost_device_reconnects() {
         "{e}"
     );
     srv.restart().await.expect("listen again");
-    let t0 = std::time::Instant::now();
+    let t0 = axiscomp::util::clock::now();
     loop {
         if next_outcome(&mut reader, Duration::from_secs(2))
             .await
@@ -418,7 +364,7 @@ async fn a_paced_exception_keeps_the_connection_and_a_lost_device_reconnects() {
             break;
         }
         assert!(
-            t0.elapsed() < Duration::from_secs(2),
+            axiscomp::util::clock::since(t0) < Duration::from_secs(2),
             "reconnected within 2 s"
         );
     }
@@ -487,7 +433,7 @@ async fn hand_written_module(
 /// to no request in flight drops it and the reader reconnects. A hand-written module, so the
 /// bytes on the wire are the test's (Implementation Guide v1.0b §3.1.3, Application
 /// Protocol v1.1b3 §6.4).
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_pipelined_reader_keeps_four_reads_in_flight_and_matches_replies_by_id() {
     let (listener, mut reader, monitor) = hand_written_module(500, 4).await;
     let module = tokio::spawn(async move {
@@ -560,7 +506,7 @@ async fn the_pipelined_reader_keeps_four_reads_in_flight_and_matches_replies_by_
 
 /// A module that never answers: the oldest read times out, the connection is dropped (a late
 /// reply can never be taken for another read) and the link is down, never up.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_pipelined_reader_times_out_a_silent_module_and_never_calls_it_up() {
     let (listener, mut reader, monitor) = hand_written_module(200, 3).await;
     let module = tokio::spawn(async move {
@@ -570,12 +516,12 @@ async fn the_pipelined_reader_times_out_a_silent_module_and_never_calls_it_up() 
         let _ = s.read_to_end(&mut rest).await;
         rest.len()
     });
-    let t0 = std::time::Instant::now();
+    let t0 = axiscomp::util::clock::now();
     assert_eq!(
         reader.next().await,
         Err(LinkError::Timeout(Duration::from_millis(200)))
     );
-    let waited = t0.elapsed();
+    let waited = axiscomp::util::clock::since(t0);
     assert!(
         waited >= Duration::from_millis(190) && waited < Duration::from_secs(2),
         "{waited:?}"

@@ -15,7 +15,7 @@ use axiscomp::sim::axis::Direction;
 use axiscomp::sim::plant::Plant;
 use axiscomp::sim::plc::{CommitResult, PullClientConfig, spawn_pull_client};
 use std::path::Path;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// A smooth table of `n` points 4 mm apart, peak about ±40 µm.
 fn smooth(n: usize, phase: f64) -> PlcTable {
@@ -56,7 +56,7 @@ fn axiscomp_link(addr: std::net::SocketAddr) -> Link {
     })
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn publish_to_the_twin_plc_for_every_map() {
     for file in cnc_map_files() {
         let map = cnc_map(&file);
@@ -91,7 +91,7 @@ async fn publish_to_the_twin_plc_for_every_map() {
 
 /// The protocol end to end: a bidirectional table of the plant's own positioning error,
 /// published, leaves (almost) no error at the grid points in either direction.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_published_table_of_the_true_error_cancels_it() {
     let map = cnc_map("generic.toml");
     let (twin, plant) = twin_plc(map.clone()).await;
@@ -118,7 +118,7 @@ async fn a_published_table_of_the_true_error_cancels_it() {
         "{r:?}"
     );
     // Moves on the plant's own clock: each starts where the last ended.
-    let mut now = Instant::now();
+    let mut now = axiscomp::util::clock::now();
     let mut largest: f64 = 0.0;
     for (target, dir) in [
         (600.0, Direction::Up),
@@ -144,7 +144,7 @@ async fn a_published_table_of_the_true_error_cancels_it() {
     );
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn straightness_tables_act_across_the_travel() {
     let map = cnc_map("generic.toml");
     let (twin, plant) = twin_plc(map.clone()).await;
@@ -172,7 +172,7 @@ async fn straightness_tables_act_across_the_travel() {
     assert_eq!(active[2].as_ref().map(|a| a.0), Some(11));
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_link_drop_mid_publish_commits_nothing_and_a_retry_succeeds() {
     let map = cnc_map("generic.toml");
     let (twin, plant) = twin_plc(map.clone()).await;
@@ -236,7 +236,7 @@ async fn a_link_drop_mid_publish_commits_nothing_and_a_retry_succeeds() {
     assert!(l.stats().reconnects >= 1);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_corrupted_payload_is_rejected_with_the_crc_code() {
     let map = cnc_map("generic.toml");
     let (twin, plant) = twin_plc(map.clone()).await;
@@ -276,7 +276,7 @@ async fn a_corrupted_payload_is_rejected_with_the_crc_code() {
     );
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_refusal_and_a_missing_echo_are_reported() {
     let map = cnc_map("generic.toml");
     let (twin, plant) = twin_plc(map.clone()).await;
@@ -316,7 +316,7 @@ async fn a_refusal_and_a_missing_echo_are_reported() {
     ));
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_plc_not_ready_or_not_alive_gets_nothing() {
     let map = cnc_map("generic.toml");
     let (twin, _) = twin_plc(map.clone()).await;
@@ -373,7 +373,7 @@ async fn pull_read(
     )
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_pull_server_serves_the_table_and_guards_the_ack_range() {
     let map = cnc_map("generic.toml");
     // Writers: only 127.0.0.2; this test connects from 127.0.0.1.
@@ -452,7 +452,7 @@ async fn the_pull_server_serves_the_table_and_guards_the_ack_range() {
 /// beyond the limit is closed on accept; a peer that sends nothing, and one that trickles a
 /// frame byte by byte, are closed once no request came for the idle timeout, and not before;
 /// a PLC polling more often than that stays connected; the places freed are taken again.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_pull_server_closes_idle_peers_and_refuses_beyond_its_limit() {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     use tokio::net::TcpStream;
@@ -472,7 +472,7 @@ async fn the_pull_server_closes_idle_peers_and_refuses_beyond_its_limit() {
     let read = [3u8, 0, 0, 0, 1];
     let mut plc = TcpStream::connect(addr).await.unwrap();
     assert_eq!(raw_request(&mut plc, 1, 1, &read).await, [3, 2, 0, 0]);
-    let opened = Instant::now();
+    let opened = axiscomp::util::clock::now();
     let mut silent = TcpStream::connect(addr).await.unwrap();
     let mut slow = TcpStream::connect(addr).await.unwrap();
     // An MBAP header announcing 253 bytes, one byte every 100 ms: never a whole request.
@@ -506,7 +506,7 @@ async fn the_pull_server_closes_idle_peers_and_refuses_beyond_its_limit() {
         .await
         .expect("the silent peer is closed within 5 s");
     assert!(matches!(n, Ok(0) | Err(_)), "{n:?}");
-    let closed_after = opened.elapsed();
+    let closed_after = axiscomp::util::clock::since(opened);
     assert!(
         closed_after >= idle,
         "closed after {closed_after:?}, before the idle timeout"
@@ -524,7 +524,7 @@ async fn the_pull_server_closes_idle_peers_and_refuses_beyond_its_limit() {
     assert_eq!(raw_request(&mut again, 21, 1, &read).await, [3, 2, 0, 0]);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_twin_plc_pulls_from_the_pull_server() {
     let map = cnc_map("generic.toml");
     let srv = PullServer::start(map.clone(), PullConfig::new("127.0.0.1:0".parse().unwrap()))
@@ -629,7 +629,7 @@ fn interop_values() -> (Vec<f64>, String) {
     (values, text.join(","))
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 #[ignore = "needs pymodbus/mbpoll: run by .ci/run"]
 async fn interop_pymodbus_plc_takes_pushed_tables_in_every_word_order() {
     let (values, values_arg) = interop_values();
@@ -726,7 +726,7 @@ async fn interop_pymodbus_plc_takes_pushed_tables_in_every_word_order() {
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 #[ignore = "needs pymodbus/mbpoll: run by .ci/run"]
 async fn interop_mbpoll_and_pymodbus_read_the_pull_server() {
     let map = cnc_map("generic.toml");
@@ -893,7 +893,7 @@ fn store_synthetic_run(store: &std::path::Path, plant: &Plant) -> i64 {
 /// The service with the twin's I/O module, drive and PLC on loopback: generate the tables of a
 /// stored run, publish without and with confirmation, read the PLC's table back, and a PLC
 /// that rejects (issue 5: control API and CLI).
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_service_generates_publishes_and_reads_back_tables() {
     use axiscomp::service::control::Request;
     use axiscomp::service::tables::{PublishView, StatusView, StoredTable, TableView};
@@ -1095,7 +1095,7 @@ async fn the_service_generates_publishes_and_reads_back_tables() {
 /// Pull only (`[plc] pull = true`, push off): `table_publish` serves the table on the pull
 /// server, the twin's PLC pulls it, applies it and acknowledges; the reply and the status come
 /// from that acknowledgement.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_service_serves_a_published_table_for_pull() {
     use axiscomp::service::control::Request;
     use axiscomp::service::tables::{PublishView, StatusView, TableView};

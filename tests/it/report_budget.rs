@@ -639,7 +639,7 @@ fn a_term_the_run_could_not_state_is_named_with_its_reason() {
 /// id, and the encoder's offset to the carriage, here against the twin's truth), the
 /// calibration's term (none configured: not stated, and why), the drift check and the
 /// temperature inputs as not stated, PSD2's sensitivities through its decoupling.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_service_records_the_budget_inputs_when_a_run_starts() {
     use crate::helpers::{RigOptions, ServiceRig, short_plan};
     use axiscomp::evaluate::recorded::Recorded;
@@ -660,11 +660,13 @@ async fn the_service_records_the_budget_inputs_when_a_run_starts() {
         .expect("map in use");
     // The carriage 1.5 mm on, the spot still on PSD2: the follower stays, its encoder reads
     // 1.5 mm less than the carriage.
-    rig.twin.plant.move_carriage(1.5, std::time::Instant::now());
+    rig.twin
+        .plant
+        .move_carriage(1.5, axiscomp::util::clock::now());
     let settled = rig.twin.plant.carriage_move_end() + std::time::Duration::from_millis(500);
     tokio::time::sleep_until(settled.into()).await;
     let plant = &rig.twin.plant;
-    let truth = plant.follower_encoder() - plant.carriage(std::time::Instant::now()).0;
+    let truth = plant.follower_encoder() - plant.carriage(axiscomp::util::clock::now()).0;
     assert!((truth + 1.5).abs() < 0.01, "the follower stayed: {truth}");
     let started = rig
         .request(Request::RunStart {
@@ -867,11 +869,11 @@ fn a_lab_run_stored_with_its_record_reports_the_labs_own_budget() {
 /// with a follower map in use; `axiscomp report` states the follower term from the map the
 /// run recorded — S·√(u(x)² + u(ref)²) with the certificate's 0.2 µm — and says why the
 /// calibration and drift terms are not stated.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_service_run_reports_the_follower_map_it_used() {
     use crate::helpers::{RigOptions, ServiceRig, short_plan};
     use axiscomp::service::control::Request;
-    use std::time::{Duration, Instant};
+    use std::time::Duration;
     let rig = ServiceRig::start(RigOptions {
         service_toml: "[align]\ncheck_before_run = false\n\n\
                        [tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n\n\
@@ -900,7 +902,7 @@ async fn a_service_run_reports_the_follower_map_it_used() {
         .await
         .expect("the run starts");
     let id = started["run_id"].as_i64().expect("run id");
-    let t0 = Instant::now();
+    let t0 = axiscomp::util::clock::now();
     loop {
         let st = rig.request(Request::RunStatus).await.expect("run status");
         match st["state"].as_str() {
@@ -909,7 +911,7 @@ async fn a_service_run_reports_the_follower_map_it_used() {
             _ => panic!("the run ended so: {st}"),
         }
         assert!(
-            t0.elapsed() < Duration::from_secs(240),
+            axiscomp::util::clock::since(t0) < Duration::from_secs(240),
             "not finished: {st}"
         );
         tokio::time::sleep(Duration::from_millis(200)).await;

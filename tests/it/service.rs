@@ -9,7 +9,7 @@ use axiscomp::service::snapshot::Snapshot;
 use axiscomp::sim::plant::Truth;
 use axiscomp::track::Strategy;
 use axiscomp::units::DOF_NAMES;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// Handovers quicker than the production defaults, so the stepped run stays short; the
 /// statistics are the same (100 frames each side).
@@ -65,7 +65,7 @@ async fn assert_matches_truth(rig: &ServiceRig, nominal: f64, at_zero: &Truth, l
     let mut worst_seen = 0.0;
     for attempt in 0..2 {
         let s = fresh_window(rig, nominal).await;
-        let truth = rig.twin.plant.truth(Instant::now());
+        let truth = rig.twin.plant.truth(axiscomp::util::clock::now());
         let expected = relative(&truth, at_zero);
         let (ok, worst, dof) = within_k_sd(&s, &expected, 3.0);
         worst_seen = worst;
@@ -94,10 +94,14 @@ async fn hundred_mm(strategy: Strategy) {
         .expect("nominal 0");
     let zero = rig.request(Request::Zero).await.expect("zero");
     assert_eq!(zero["zeroed"], true);
-    let at_zero = rig.twin.plant.truth(Instant::now());
+    let at_zero = rig.twin.plant.truth(axiscomp::util::clock::now());
     let s0 = rig.snapshot().await;
     let ref_follower = s0.tracking.follower_mm;
-    let ref_true = rig.twin.plant.truth(Instant::now()).follower_true;
+    let ref_true = rig
+        .twin
+        .plant
+        .truth(axiscomp::util::clock::now())
+        .follower_true;
     assert_matches_truth(&rig, 0.0, &at_zero, "at 0 mm").await;
     rig.request(Request::Nominal { mm: None })
         .await
@@ -163,16 +167,16 @@ async fn hundred_mm(strategy: Strategy) {
 
     // Compare once the service's view of the follower is the plant's (the follower at rest).
     let (s, truth) = {
-        let end = Instant::now() + Duration::from_secs(10);
+        let end = axiscomp::util::clock::now() + Duration::from_secs(10);
         loop {
             let s = rig.snapshot().await;
-            let truth = rig.twin.plant.truth(Instant::now());
+            let truth = rig.twin.plant.truth(axiscomp::util::clock::now());
             let seen = s.follower.position_mm.expect("follower position");
             if (seen - truth.follower_encoder).abs() < 1e-3 {
                 break (s, truth);
             }
             assert!(
-                Instant::now() < end,
+                axiscomp::util::clock::now() < end,
                 "the follower keeps moving: service sees {seen} mm, plant {} mm",
                 truth.follower_encoder
             );
@@ -200,7 +204,10 @@ async fn hundred_mm(strategy: Strategy) {
     let worst = assert_matches_truth(&rig, 100.0, &at_zero, &format!("{name} at 100 mm")).await;
     let s = rig.snapshot().await;
     let live = s.live.as_ref().expect("live");
-    let expected = relative(&rig.twin.plant.truth(Instant::now()), &at_zero);
+    let expected = relative(
+        &rig.twin.plant.truth(axiscomp::util::clock::now()),
+        &at_zero,
+    );
     eprintln!(
         "{name} at 100 mm: dy measured {:.3} µm, true {:.3} µm, stated sd {:.3} µm (stitching {:.3} µm); worst DOF {worst:.2} sd",
         live.errors[1], expected[1], live.sd[1], s.tracking.sd_um[0]
@@ -208,19 +215,19 @@ async fn hundred_mm(strategy: Strategy) {
     rig.stop().await;
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn overlap_stitching_over_100_mm_matches_the_truth() {
     hundred_mm(Strategy::Overlap).await;
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn encoder_tracking_over_100_mm_matches_the_truth() {
     hundred_mm(Strategy::Encoder).await;
 }
 
 /// The I/O module stops and comes back: the link reconnects within 2 s, frames resume, and the
 /// alarm comes and goes.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn io_module_outage_reconnects_within_2_s() {
     let rig = ServiceRig::start(rig_options("overlap")).await;
     let server = rig.twin.io.server().clone();
@@ -236,13 +243,13 @@ async fn io_module_outage_reconnects_within_2_s() {
     let seq_down = s.psd.as_ref().map(|p| p.seq).unwrap_or(0);
     tokio::time::sleep(Duration::from_millis(500)).await;
     server.restart().await.expect("restart the I/O module");
-    let back = Instant::now();
+    let back = axiscomp::util::clock::now();
     let s = rig
         .wait_for(10, "frames again", |s| {
             s.psd.as_ref().is_some_and(|p| p.seq > seq_down + 10) && s.links.io.state == "up"
         })
         .await;
-    let took = back.elapsed();
+    let took = axiscomp::util::clock::since(back);
     eprintln!("I/O module back: frames resumed after {took:?} (snapshot polling adds up to 50 ms)");
     assert!(
         took <= Duration::from_secs(2),
@@ -258,7 +265,7 @@ async fn io_module_outage_reconnects_within_2_s() {
 
 /// The CAN link at rest shows the quiet SYNC and the drive's TPDOs at that rate; then the
 /// drive's heartbeat stops: alarm in the snapshot, the follower shown lost; it comes back.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn heartbeat_loss_raises_an_alarm_and_stops_the_follower() {
     let rig = ServiceRig::start(rig_options("overlap")).await;
     // At rest SYNC slows from 10 ms to the default quiet 100 ms: about 10 TPDO/s, measured
@@ -304,7 +311,7 @@ async fn heartbeat_loss_raises_an_alarm_and_stops_the_follower() {
 
 /// The drive faults with an EMCY: alarm with the decoded text; a fault reset on command
 /// brings it back to operation.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn drive_fault_alarm_and_reset_on_command() {
     let rig = ServiceRig::start(rig_options("overlap")).await;
     rig.twin.drive.inject_fault(0x8611, [0; 5]);
@@ -345,7 +352,7 @@ async fn drive_fault_alarm_and_reset_on_command() {
 
 /// The beam is blocked: frames are marked invalid, no errors are published from them, and
 /// the live errors come back when it is unblocked.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn blocked_beam_frames_are_invalid_and_not_published() {
     let rig = ServiceRig::start(rig_options("overlap")).await;
     rig.twin.plant.set_blocked(2, true);
@@ -376,7 +383,7 @@ async fn blocked_beam_frames_are_invalid_and_not_published() {
 /// A peer that is neither operator nor viewer is refused by the kernel on connect (the socket
 /// admits only the role groups, by its ACL) and changes nothing. Refusals by role, per
 /// request and by name, are tested with real users in tests/interop/package.sh.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_stranger_is_refused_by_peer_credentials() {
     use std::os::unix::process::CommandExt;
     if unsafe { libc::geteuid() } != 0 {

@@ -11,7 +11,7 @@ use axiscomp::store::{RunId, RunState, Store};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// Handovers and captures quicker than the production defaults (as the console test), so
 /// the 20 captures take about half a minute.
@@ -72,8 +72,8 @@ async fn wait_snapshot(
     secs: u64,
     pred: impl Fn(&axiscomp::service::snapshot::Snapshot) -> bool,
 ) -> bool {
-    let end = Instant::now() + Duration::from_secs(secs);
-    while Instant::now() < end {
+    let end = axiscomp::util::clock::now() + Duration::from_secs(secs);
+    while axiscomp::util::clock::now() < end {
         if let Ok(mut c) = Client::connect(socket).await
             && let Ok(s) = c.status().await
             && pred(&s)
@@ -139,7 +139,7 @@ async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {
     assert_eq!(expected, 20, "{started}");
 
     // Wait for the captures, then SIGKILL (std's Child::kill on Unix) the service mid-run.
-    let end = Instant::now() + Duration::from_secs(60);
+    let end = axiscomp::util::clock::now() + Duration::from_secs(60);
     let at_kill = loop {
         let st = ask(&socket, &Request::RunStatus).await;
         let n = st
@@ -149,7 +149,7 @@ async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {
         if n >= KILL_AFTER {
             break n;
         }
-        if Instant::now() > end {
+        if axiscomp::util::clock::now() > end {
             let _ = child.kill();
             fail(
                 &log,
@@ -170,7 +170,7 @@ async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {
     tokio::time::sleep(Duration::from_secs(1)).await;
     let mut child = serve(&config, &log[1]);
 
-    let end = Instant::now() + Duration::from_secs(150);
+    let end = axiscomp::util::clock::now() + Duration::from_secs(150);
     let state = loop {
         let st = ask(&socket, &Request::RunStatus).await;
         if let Some(s) = st.as_ref().and_then(|s| s["state"].as_str())
@@ -178,7 +178,7 @@ async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {
         {
             break s.to_string();
         }
-        if Instant::now() > end {
+        if axiscomp::util::clock::now() > end {
             let _ = child.kill();
             fail(
                 &log,
@@ -281,9 +281,9 @@ async fn a_store_refusing_writes_mid_run_raises_the_store_alarm_and_clears_it() 
                 .is_some_and(|c| c >= n)
         }
     };
-    let end = Instant::now() + Duration::from_secs(60);
+    let end = axiscomp::util::clock::now() + Duration::from_secs(60);
     while !captures(2).await {
-        if Instant::now() > end {
+        if axiscomp::util::clock::now() > end {
             let _ = child.kill();
             fail(&log, "no 2 captures within 60 s".into());
         }
