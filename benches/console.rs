@@ -8,8 +8,8 @@
 use axiscomp::console::app::{Action, App, AppOptions, Field, Screen};
 use axiscomp::console::client::{Identity, PeerRole};
 use axiscomp::console::ui;
-use axiscomp::service::control::Request;
-use axiscomp::service::snapshot::Snapshot;
+use axiscomp::service::api::Request;
+use axiscomp::service::api::snapshot::Snapshot;
 use criterion::{Criterion, criterion_group, criterion_main};
 use crossterm::event::{KeyCode, KeyEvent, KeyModifiers};
 use ratatui::Terminal;

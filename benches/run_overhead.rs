@@ -15,7 +15,8 @@
 //! floor.
 
 use axiscomp::run::{Plan, PlanSpec};
-use axiscomp::service::control::{Client, Request};
+use axiscomp::service::api::Request;
+use axiscomp::service::control::Client;
 use std::net::{TcpListener, UdpSocket};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};

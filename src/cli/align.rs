@@ -10,7 +10,7 @@
 
 use super::table::Common;
 use anyhow::Result;
-use axiscomp::service::control::Request;
+use axiscomp::service::api::Request;
 use clap::Subcommand;
 
 #[derive(Subcommand, Debug)]

@@ -12,7 +12,8 @@
 use super::InputError;
 use anyhow::{Context, Result};
 use axiscomp::follower::{Certificate, FollowerMap};
-use axiscomp::service::control::{Client, ClientError, Request};
+use axiscomp::service::api::Request;
+use axiscomp::service::control::{Client, ClientError};
 use axiscomp::store::Store;
 use clap::Subcommand;
 use std::path::{Path, PathBuf};
@@ -210,7 +211,7 @@ fn import(a: ImportArgs) -> Result<()> {
     let cert = Certificate::parse(&text, &name).map_err(|e| InputError(e.to_string()))?;
     if a.db.db.is_none() {
         let socket = socket_path(a.socket.as_deref(), a.db.config.as_deref())?;
-        let req = Request::FollowerCertificate(axiscomp::service::follower::CertificateImport {
+        let req = Request::FollowerCertificate(axiscomp::service::api::CertificateImport {
             csv: Some(text),
             name: Some(name),
             keep_current: a.keep_current,
@@ -369,7 +370,7 @@ fn map_on_service(a: MapArgs) -> Result<()> {
         ),
         None => None,
     };
-    let req = axiscomp::service::follower_map::MappingRequest {
+    let req = axiscomp::service::api::MappingRequest {
         from_mm: a.from_mm,
         to_mm: a.to_mm,
         step_mm: a.step_mm,

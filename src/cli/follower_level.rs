@@ -6,8 +6,9 @@
 
 use super::follower::{duration_words, refused, runtime, socket_path};
 use anyhow::Result;
-use axiscomp::service::control::{Client, Request};
-use axiscomp::service::follower_level::LevelRequest;
+use axiscomp::service::api::LevelRequest;
+use axiscomp::service::api::Request;
+use axiscomp::service::control::Client;
 use std::path::PathBuf;
 use std::time::Duration;
 

@@ -101,7 +101,7 @@ pub fn stdout_closes_quietly() {
 pub fn control_request(
     socket: Option<&Path>,
     config: Option<&Path>,
-    req: &axiscomp::service::control::Request,
+    req: &axiscomp::service::api::Request,
 ) -> Result<serde_json::Value> {
     use anyhow::Context;
     use axiscomp::service::control::{Client, ClientError};

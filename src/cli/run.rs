@@ -5,7 +5,8 @@
 use super::InputError;
 use anyhow::{Context, Result};
 use axiscomp::run::PlanSpec;
-use axiscomp::service::control::{Client, Request};
+use axiscomp::service::api::Request;
+use axiscomp::service::control::Client;
 use axiscomp::store::Store;
 use clap::Subcommand;
 use std::path::PathBuf;

@@ -3,9 +3,9 @@
 use super::InputError;
 use anyhow::{Context, Result};
 use axiscomp::config::{self, Layers, Resource};
+use axiscomp::service::api::snapshot::Snapshot;
 use axiscomp::service::control::Client;
 use axiscomp::service::shutdown::{self, Trigger};
-use axiscomp::service::snapshot::Snapshot;
 use axiscomp::service::{self, ServiceError};
 use std::path::{Path, PathBuf};
 

@@ -7,7 +7,7 @@
 
 use super::InputError;
 use anyhow::Result;
-use axiscomp::service::control::Request;
+use axiscomp::service::api::Request;
 use axiscomp::service::tables::{PublishView, StatusView, TableView};
 use clap::Subcommand;
 use std::path::PathBuf;

@@ -6,8 +6,9 @@
 //! Requests are never re-sent after a lost connection (a start or a jog must not happen twice):
 //! the reply says the link failed, and the operator decides.
 
-use crate::service::control::{self, Request};
-use crate::service::snapshot::Snapshot;
+use crate::service::api::Request;
+use crate::service::api::snapshot::Snapshot;
+use crate::service::control;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use thiserror::Error;

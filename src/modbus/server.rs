@@ -437,7 +437,21 @@ impl ServerHandle {
     /// Listen again on the same address after [`stop`](Self::stop).
     pub async fn restart(&self) -> Result<(), ServerError> {
         self.stop().await;
-        let listener = listen(self.inner.addr)?;
+        // While nobody listens, a client redialling on loopback may get the port itself as
+        // its own source port (a TCP self-connection, which it drops at the first bad
+        // reply): try again for a second before giving up.
+        let mut tries = 0;
+        let listener = loop {
+            match listen(self.inner.addr) {
+                Err(ServerError::Bind { source, .. })
+                    if source.kind() == std::io::ErrorKind::AddrInUse && tries < 20 =>
+                {
+                    tries += 1;
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                }
+                r => break r?,
+            }
+        };
         self.spawn(listener);
         Ok(())
     }

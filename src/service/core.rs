@@ -4,14 +4,15 @@
 //! tasks, so the loop never waits on the bus.
 
 use super::Prepared;
-use super::control::{Command, FollowerAction, Request};
+use super::api::snapshot::{
+    FollowerView, LinkView, LinksView, LiveView, PsdView, RunView, Snapshot, TrackingView,
+};
+use super::api::{FollowerAction, Request};
+use super::control::Command;
 use super::notify;
 use super::pipeline::{Output, Pipeline, now_us};
 use super::results;
 use super::shutdown::Shutdown;
-use super::snapshot::{
-    FollowerView, LinkView, LinksView, LiveView, PsdView, RunView, Snapshot, TrackingView,
-};
 use crate::acquire::{Acquisition, Frame};
 use crate::canopen::{DriveError, DriveHandle, DriveStatus, Event, PowerState};
 use crate::config::CncMode;
@@ -163,7 +164,7 @@ pub(super) struct Core {
     /// A run to resume once the follower is ready.
     pending_resume: Option<PendingResume>,
     store: Store,
-    follower_map: Option<super::follower::FollowerMapView>,
+    follower_map: Option<super::api::FollowerMapView>,
     run: Option<ActiveRun>,
     cnc: CncMode,
     dialect: Dialect,

@@ -5,24 +5,11 @@
 //! self-calibration of the map in use when it has one); the snapshot names it. The
 //! stop-and-go self-calibration itself is `follower_map` (the module beside this one).
 
-use crate::follower::{Certificate, FollowerMap, MapSettings, Sources, StoredMap};
+use super::api::{CertificateImport, FollowerMapView};
+use crate::follower::{Certificate, FollowerMap, MapSettings, StoredMap};
 use crate::store::{FollowerMapRecord, Store};
 use crate::track::Tracker;
-use serde::{Deserialize, Serialize};
 use std::sync::Arc;
-
-/// The map in use, as the snapshot shows it.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FollowerMapView {
-    pub id: i64,
-    pub name: String,
-    /// `certificate`, `self-calibration` or `both`.
-    pub source: String,
-    /// When it was stored (RFC 3339, UTC).
-    pub created: String,
-    /// Where each term comes from.
-    pub sources: Sources,
-}
 
 pub(super) fn view(r: &FollowerMapRecord) -> FollowerMapView {
     FollowerMapView {
@@ -83,24 +70,6 @@ pub(super) fn request(
         "summary": in_use.map(|m| m.map.summary()),
         "maps": list,
     }))
-}
-
-/// Where a certificate to import comes from: a file on the service's host, or its text.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct CertificateImport {
-    /// A CSV file on the service's host.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub path: Option<String>,
-    /// The CSV text itself (the command line sends the file it read).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub csv: Option<String>,
-    /// The name errors and the store give it (default: the path's file name).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub name: Option<String>,
-    /// Store it without putting it in use.
-    #[serde(default)]
-    pub keep_current: bool,
 }
 
 /// The map a certificate makes in `store`: joined with the self-calibration of the map in

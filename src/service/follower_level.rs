@@ -27,13 +27,13 @@
 //! follower mapping refuse to start under it, and it under them. Not resumed after a
 //! restart (nothing is stored until the end).
 
+use super::api::{LevelRequest, LevelView, StationView};
 use super::follower_map::Ctx;
 use crate::config::{CncMode, LevelSource};
 use crate::follower::{FollowerMap, LevelStation, StoredMap, StoredSteps, VerticalReference};
 use crate::run::Dialect;
 use crate::store::FollowerMapRecord;
 use crate::units::RAD_PER_ARCSEC;
-use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -54,99 +54,6 @@ const TYPING_S: f64 = 20.0;
 const DEFAULT_FEED_MM_MIN: f64 = 2000.0;
 /// Each reading is a fresh live window: this much after the last one ended.
 const READING_GAP: Duration = Duration::from_millis(50);
-
-/// `follower_level_start`: every field optional.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct LevelRequest {
-    /// The carriage's span (mm); default: the map in use's span.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub from_mm: Option<f64>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub to_mm: Option<f64>,
-    /// Stations at most this far apart, both ends included (mm, default 100).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub station_mm: Option<f64>,
-    /// Readings of the head (and of the twin's level) at each station (default 20).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub readings: Option<usize>,
-    /// The carriage's feed between stations (mm/min, default 2000).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub feed_mm_min: Option<f64>,
-    /// The machine axis: the program's axis letter (default X).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub axis: Option<String>,
-    /// The program's dialect (default: the configured one).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub dialect: Option<String>,
-}
-
-/// One station as the view shows it.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct StationView {
-    /// Where the carriage rests (mm).
-    pub at_mm: f64,
-    /// "waiting", "reading", "awaiting the level" or "taken".
-    pub state: String,
-    /// The head's readings taken.
-    pub readings: usize,
-    /// The follower's encoder there, the head's and the level's mean roll (arcsec), and the
-    /// follower's vertical the station gives (µm, up to the common constant) with its u.
-    pub encoder_mm: Option<f64>,
-    pub head_arcsec: Option<f64>,
-    pub level_arcsec: Option<f64>,
-    pub value_um: Option<f64>,
-    pub u_um: Option<f64>,
-}
-
-/// The level stations as `follower_level_status` and the snapshot show them.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct LevelView {
-    /// "stations" (under way), "done", "stopped", "failed".
-    pub state: String,
-    /// "manual" or "twin".
-    pub level: String,
-    /// The instrument in words.
-    pub instrument: String,
-    pub axis: String,
-    pub from_mm: f64,
-    pub to_mm: f64,
-    pub station_mm: f64,
-    pub readings: usize,
-    pub stations: Vec<StationView>,
-    pub taken: usize,
-    /// The station being read, and (manual level) the one whose level reading is awaited.
-    pub current: Option<usize>,
-    pub awaiting_reading: Option<usize>,
-    /// What the operator is to do now.
-    pub prompt: String,
-    pub dwell_s: f64,
-    pub dwell: String,
-    pub program: String,
-    pub cnc: String,
-    /// The map in use the stations are fitted with (its id and name).
-    pub map_from: i64,
-    pub map_from_name: String,
-    pub started: String,
-    pub started_by: String,
-    pub elapsed_s: f64,
-    pub error: Option<String>,
-    /// The map stored, its summary, and the vertical's u at mid-span before (the steps alone)
-    /// and after (with the stations), µm.
-    pub map_id: Option<i64>,
-    pub summary: Vec<String>,
-    pub u_mid_steps_um: Option<f64>,
-    pub u_mid_level_um: Option<f64>,
-}
-
-impl LevelView {
-    /// Whether the stations are under way.
-    pub fn active(&self) -> bool {
-        self.state == "stations"
-    }
-}
 
 /// What the level stations need of the service's configuration.
 #[derive(Clone, Debug)]
@@ -403,12 +310,12 @@ impl FollowerLevel {
     /// A level request (the core hands over every `follower_level_*`).
     pub(super) fn request(
         &mut self,
-        req: super::control::Request,
+        req: super::api::Request,
         who: &str,
         busy: Busy,
         ctx: Ctx<'_>,
     ) -> Result<serde_json::Value, String> {
-        use super::control::Request as R;
+        use super::api::Request as R;
         match req {
             R::FollowerLevelStart(r) => self.start(r, who, busy, ctx),
             R::FollowerLevelStatus => Ok(self.status()),

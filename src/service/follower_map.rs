@@ -17,7 +17,7 @@
 //! ends. A mapping is not resumed after a service restart: a marker in the state directory
 //! says at the next start that it was interrupted (no map stored, the map in use unchanged).
 
-use super::follower::FollowerMapView;
+use super::api::{FollowerMapView, MappingRequest, MappingView};
 use super::pipeline::Pipeline;
 use crate::config::CncMode;
 use crate::follower::selfcal::{Collector, Plan, Spec, Taken, Timing, long_degree};
@@ -40,90 +40,6 @@ pub const DEFAULT_FEED_MM_MIN: f64 = 2000.0;
 const ACCEL_MM_S2: f64 = 500.0;
 /// The marker of a mapping under way, in the state directory.
 const MARKER: &str = "follower-mapping.json";
-
-/// `follower_map_start`: every field optional.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct MappingRequest {
-    /// The span (mm); default: the axis' last alignment.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub from_mm: Option<f64>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub to_mm: Option<f64>,
-    /// The carriage's step between stops (mm, default 3.75).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub step_mm: Option<f64>,
-    /// Passes over the span, alternately up and down (default 4).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub passes: Option<usize>,
-    /// Frames averaged each side of a handover (default 1000).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub frames: Option<usize>,
-    /// The follower's screw lead (mm, default 5).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub lead_mm: Option<f64>,
-    /// A back-and-forth probe every this many stops (default 13; 0: none).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub probe_every: Option<usize>,
-    /// The carriage's feed (mm/min, default 2000).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub feed_mm_min: Option<f64>,
-    /// The machine axis (default X): its alignment, the program's axis letter.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub axis: Option<String>,
-    /// The program's dialect (default: the configured one).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub dialect: Option<String>,
-    /// A certificate CSV on the service's host (default: the one kept with the map in use).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub certificate: Option<String>,
-}
-
-/// The mapping as `follower_map_status` and the snapshot show it.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct MappingView {
-    /// "approaching" (before the start), "mapping", "finishing", "done", "stopped",
-    /// "failed", "interrupted" (by a service restart).
-    pub state: String,
-    pub axis: String,
-    pub from_mm: f64,
-    pub to_mm: f64,
-    pub step_mm: f64,
-    pub passes: usize,
-    pub frames: usize,
-    pub stops_done: usize,
-    pub stops_planned: usize,
-    pub steps_kept: usize,
-    pub skipped: usize,
-    /// Kept steps whose move is not the plan's (another program on the CNC, a stop missed).
-    pub out_of_plan: usize,
-    /// Machine time since the start, and left by the plan (s).
-    pub elapsed_s: f64,
-    pub left_s: f64,
-    pub dwell_s: f64,
-    /// What the dwell is made of, in words.
-    pub dwell: String,
-    /// The part program's file, and where it went.
-    pub program: String,
-    pub cnc: String,
-    /// The certificate the map is built with, in words.
-    pub certificate: String,
-    pub started: String,
-    pub started_by: String,
-    /// Why it stopped, failed or was interrupted.
-    pub error: Option<String>,
-    /// The map stored, and its summary (`FollowerMap::summary`), once done.
-    pub map_id: Option<i64>,
-    pub summary: Vec<String>,
-}
-
-impl MappingView {
-    /// Whether a mapping is under way.
-    pub fn active(&self) -> bool {
-        matches!(self.state.as_str(), "approaching" | "mapping" | "finishing")
-    }
-}
 
 /// What the service knows that sets the mapping's timing and where its program goes.
 #[derive(Clone, Debug)]

@@ -12,6 +12,7 @@
 //! control socket and the follower through the service's own drive. With a CNC the service
 //! does not drive, such a plan is refused before any move.
 
+use super::api::HexapodView as RunView;
 use super::calibration::{Pending, Summary};
 use crate::acquire::Frame;
 use crate::canopen::DriveHandle;
@@ -23,7 +24,6 @@ use crate::hexapod::procedure::{PoseStore, ProcedureError};
 use crate::hexapod::session::{self, SessionEvent};
 use crate::optics::Layout;
 use crate::units::DOF_TO_USER;
-use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -78,55 +78,6 @@ pub const MIN_POSES: usize = 20;
 pub const DEFAULT_POSES: usize = 200;
 /// Every n-th pose is held out of the fit to judge it.
 const HOLDOUT_EVERY: usize = 5;
-
-/// Where the run is, as `hexapod_status` answers (DOFs in µm and arcsec).
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct RunView {
-    /// "idle", "running", "stopping", "fitting", "stopped", "failed" or "done".
-    pub state: String,
-    pub controller: String,
-    /// The plan file, or "" for the generated plan of `poses` poses.
-    pub plan: String,
-    pub poses: usize,
-    pub out: String,
-    pub done: usize,
-    pub total: usize,
-    pub resumed_from: usize,
-    pub machine_s: f64,
-    pub elapsed_s: f64,
-    pub eta_s: Option<f64>,
-    pub reconnects: u32,
-    pub fit_iteration: u32,
-    /// Why it stopped or failed (the controller's code and text when it was the controller).
-    pub error: Option<String>,
-    /// The judgement: held-out poses and frames, RMS of single frames against the reached
-    /// poses, the single-frame Cramér–Rao bound, and their ratio, per DOF.
-    pub holdout_poses: usize,
-    pub holdout_frames: usize,
-    /// Held-out frames the calibration could not decouple, left out of the judgement.
-    pub untraceable: usize,
-    /// Positions along the travel (carriage, follower; mm) the plan visits.
-    pub stations: usize,
-    pub holdout_rms: Option<[f64; 6]>,
-    pub crlb: Option<[f64; 6]>,
-    pub ratio: Option<[f64; 6]>,
-    pub calibration_file: String,
-}
-
-impl RunView {
-    fn idle() -> RunView {
-        RunView {
-            state: "idle".into(),
-            ..RunView::default()
-        }
-    }
-
-    /// Whether a run (or its fit) is under way.
-    pub fn active(&self) -> bool {
-        matches!(self.state.as_str(), "running" | "stopping" | "fitting")
-    }
-}
 
 /// The service's hexapod runs: at most one at a time.
 #[derive(Debug)]

@@ -5,6 +5,7 @@
 //! loads and checks everything it reads (also `axiscomp check`).
 
 pub mod align;
+pub mod api;
 pub mod calibration;
 pub mod composition;
 pub mod control;
@@ -20,7 +21,6 @@ pub mod pipeline;
 pub mod results;
 mod run_budget;
 pub mod shutdown;
-pub mod snapshot;
 pub mod tables;
 
 use crate::acquire::{Acquisition, IoMap, MapError};
@@ -33,8 +33,8 @@ use crate::canopen::{DriveHandle, spawn_drive};
 use crate::config::{CanSettings, Resource, Settings};
 use crate::decouple::{Decoupler, Method, SolveOptions, Source};
 use crate::optics::{Layout, LayoutError};
+use api::Snapshot;
 use shutdown::Shutdown;
-use snapshot::Snapshot;
 use thiserror::Error;
 use tokio::sync::{mpsc, watch};
 

@@ -7,16 +7,9 @@
 //! ([`open_to_groups`]), since one file has one group and a site's viewers and operators are
 //! two. Everyone else is refused by the kernel on connect.
 
+use super::api::Role;
 use serde::Serialize;
 use std::ffi::{CStr, CString};
-
-/// What a peer may do.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Role {
-    Viewer,
-    Operator,
-}
 
 /// A connected peer.
 #[derive(Clone, Debug, PartialEq, Serialize)]

@@ -3,8 +3,8 @@
 //! and alarms are kept. The live service's core task drives it from its sockets; the
 //! virtual-time lab (`sim::lab`) drives the very same logic on a simulated clock.
 
+use super::api::snapshot::Alarm;
 use super::measure::Measure;
-use super::snapshot::Alarm;
 use crate::acquire::Frame;
 use crate::canopen::{DriveStatus, Event, PowerState};
 use crate::decouple::Decoupler;

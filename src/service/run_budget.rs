@@ -7,8 +7,8 @@
 //! mid-travel, and — said as not stated, with the reason — the drift check (the service runs
 //! none) and the temperature inputs (the service reads no material temperature sensor).
 
+use super::api::FollowerMapView;
 use super::calibration::Calibrations;
-use super::follower::FollowerMapView;
 use crate::decouple::Decoupler;
 use crate::evaluate::recorded::{RecordedBudget, RecordedMap, Stated};
 use crate::evaluate::uncertainty::psd2_sensitivity;

@@ -16,8 +16,9 @@
 //! The decisions (stored format, the next sequence, the status verdict) are plain functions
 //! with unit tests; the task only does the I/O. The protocol is `plc-maps/README.md`.
 
+use super::api::Request;
 use super::composition::{self, Base};
-use super::control::{Command, Request};
+use super::control::Command;
 use super::shutdown::Shutdown;
 use crate::comp::{self, AxisMapping, CompTable, MachineAxis, TableKind, TableSpec};
 use crate::config::{PlcSettings, TableBuild};

@@ -349,7 +349,7 @@ fn a_2000_mm_axis_is_aligned_from_the_spots_at_both_ends() {
 async fn the_service_advises_the_screw_turns_until_the_check_passes() {
     use crate::helpers::{RigOptions, ServiceRig};
     use axiscomp::align::Screw;
-    use axiscomp::service::control::{FollowerAction, Request};
+    use axiscomp::service::api::{FollowerAction, Request};
 
     let defaults = RigOptions::default();
     let rig = ServiceRig::start(RigOptions {
@@ -500,7 +500,7 @@ async fn the_service_advises_the_screw_turns_until_the_check_passes() {
 #[tokio::test(start_paused = true)]
 async fn the_service_pauses_a_run_while_the_beam_is_cut_and_finishes_it_with_every_capture_once() {
     use crate::helpers::{RigOptions, ServiceRig, align_service, short_plan};
-    use axiscomp::service::control::Request;
+    use axiscomp::service::api::Request;
     use axiscomp::store::{RunId, Store};
 
     let rig = ServiceRig::start(RigOptions {

@@ -100,7 +100,7 @@ fn model_calibration_holds_over_the_travel() {
 #[tokio::test(start_paused = true)]
 async fn the_service_fits_accepts_and_uses_a_calibration() {
     use crate::helpers::{RigOptions, ServiceRig};
-    use axiscomp::service::control::Request;
+    use axiscomp::service::api::Request;
 
     let dir = std::env::temp_dir().join(format!("axiscomp-svc-cal-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
@@ -233,7 +233,7 @@ async fn the_service_fits_accepts_and_uses_a_calibration() {
 }
 
 async fn fit(rig: &crate::helpers::ServiceRig, poses: &std::path::Path) -> serde_json::Value {
-    use axiscomp::service::control::Request;
+    use axiscomp::service::api::Request;
     crate::helpers::within_s(
         300,
         "the fit",
@@ -248,7 +248,7 @@ async fn fit(rig: &crate::helpers::ServiceRig, poses: &std::path::Path) -> serde
 /// |live − truth| per DOF (user units) over a fresh window at rest at D = 0 (no zero
 /// reference: the decoupling alone), and the stated sd.
 async fn live_deviation(rig: &crate::helpers::ServiceRig) -> ([f64; 6], [f64; 6]) {
-    use axiscomp::service::control::Request;
+    use axiscomp::service::api::Request;
     use std::time::Duration;
     rig.request(Request::Nominal { mm: None })
         .await

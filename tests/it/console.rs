@@ -23,8 +23,8 @@ use axiscomp::console::app::{Access, Action, App, AppOptions, Field, LinkState, 
 use axiscomp::console::client::{Client, ClientError, ClientOptions, Identity, PeerRole};
 use axiscomp::console::{drive, ui};
 use axiscomp::run::PlanSpec;
-use axiscomp::service::control::Request;
-use axiscomp::service::snapshot::Snapshot;
+use axiscomp::service::api::Request;
+use axiscomp::service::api::snapshot::Snapshot;
 use crossterm::event::{Event, KeyCode, KeyEvent, KeyModifiers};
 use futures_util::StreamExt;
 use ratatui::Terminal;
@@ -431,7 +431,7 @@ fn the_screens_show_the_twin_data_they_are_given() {
     assert!(t.contains("no follower map (follower import)"), "{t}");
     let mut snap = fx.rest.clone();
     let src = axiscomp::follower::Source::Certificate;
-    snap.tracking.follower_map = Some(axiscomp::service::follower::FollowerMapView {
+    snap.tracking.follower_map = Some(axiscomp::service::api::FollowerMapView {
         id: 3,
         name: "stage-7".into(),
         source: "certificate".into(),

@@ -468,7 +468,7 @@ fn the_command_line_imports_shows_and_exports() {
 #[tokio::test(start_paused = true)]
 async fn the_service_puts_a_stored_map_in_use_and_shows_it() {
     use crate::helpers::{RigOptions, ServiceRig};
-    use axiscomp::service::control::Request;
+    use axiscomp::service::api::Request;
     let rig = ServiceRig::start(RigOptions::default()).await;
     let cert = Certificate::parse(GOOD_CERT, "vendor.csv").unwrap();
     let map = follower::build(&[], Some(&cert), &MapSettings::default()).unwrap();

@@ -7,9 +7,10 @@
 
 use crate::helpers::{RigOptions, ServiceRig, TempDir, short_plan};
 use axiscomp::follower::Source;
-use axiscomp::service::control::Request;
-use axiscomp::service::follower::CertificateImport;
-use axiscomp::service::follower_map::{FollowerMapping, MappingConfig, MappingRequest};
+use axiscomp::service::api::CertificateImport;
+use axiscomp::service::api::MappingRequest;
+use axiscomp::service::api::Request;
+use axiscomp::service::follower_map::{FollowerMapping, MappingConfig};
 use std::time::Duration;
 
 /// The twin's head square, the pre-run alignment check off (runs start at once).
@@ -545,7 +546,7 @@ async fn with_a_manual_cnc_the_mapping_ends_when_every_stop_was_seen() {
 /// measurement run, a hexapod run and the mapping while the stations are under way.
 #[tokio::test(start_paused = true)]
 async fn the_service_reads_the_twins_level_at_stations_and_refits_the_map() {
-    use axiscomp::service::follower_level::LevelRequest;
+    use axiscomp::service::api::LevelRequest;
     let wall = std::time::Instant::now();
     let rig = ServiceRig::start(RigOptions {
         service_toml: SERVICE.into(),
@@ -721,7 +722,8 @@ async fn the_service_reads_the_twins_level_at_stations_and_refits_the_map() {
 /// stations under way, refused in words naming the field and what to do.
 #[tokio::test(start_paused = true)]
 async fn a_bad_level_reading_is_refused_in_words() {
-    use axiscomp::service::follower_level::{LEVEL_LIMIT_ARCSEC, LevelRequest};
+    use axiscomp::service::api::LevelRequest;
+    use axiscomp::service::follower_level::LEVEL_LIMIT_ARCSEC;
     let rig = ServiceRig::start(RigOptions {
         service_toml: SERVICE.into(),
         follower_toml: Some("level = \"manual\"\n".into()),

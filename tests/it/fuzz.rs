@@ -982,7 +982,7 @@ fn fuzz_twin_cnc_gcode() {
 
 #[test]
 fn fuzz_control_api_lines() {
-    use axiscomp::service::control::Request;
+    use axiscomp::service::api::Request;
     let seeds: Vec<String> = [
         r#"{"cmd":"status"}"#,
         r#"{"cmd":"subscribe","hz":10.0}"#,

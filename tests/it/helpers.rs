@@ -523,14 +523,14 @@ impl ServiceRig {
     }
 
     /// The current snapshot.
-    pub async fn snapshot(&self) -> axiscomp::service::snapshot::Snapshot {
+    pub async fn snapshot(&self) -> axiscomp::service::api::snapshot::Snapshot {
         self.client().await.status().await.expect("status")
     }
 
     /// Send a request and return its result.
     pub async fn request(
         &self,
-        r: axiscomp::service::control::Request,
+        r: axiscomp::service::api::Request,
     ) -> Result<serde_json::Value, axiscomp::service::control::ClientError> {
         self.client().await.request(&r).await
     }
@@ -540,8 +540,8 @@ impl ServiceRig {
         &self,
         secs: u64,
         what: &str,
-        mut pred: impl FnMut(&axiscomp::service::snapshot::Snapshot) -> bool,
-    ) -> axiscomp::service::snapshot::Snapshot {
+        mut pred: impl FnMut(&axiscomp::service::api::snapshot::Snapshot) -> bool,
+    ) -> axiscomp::service::api::snapshot::Snapshot {
         let end = axiscomp::util::clock::now() + Duration::from_secs(secs);
         let mut c = self.client().await;
         loop {
@@ -660,7 +660,8 @@ pub fn short_plan() -> axiscomp::run::PlanSpec {
 /// axis X; back at 0 mm, the zero taken again. The twin's head in these rigs is mounted square,
 /// so the first round passes.
 pub async fn align_service(socket: &Path, twin: &axiscomp::sim::twin::Twin, span: (f64, f64)) {
-    use axiscomp::service::control::{Client, FollowerAction, Request};
+    use axiscomp::service::api::{FollowerAction, Request};
+    use axiscomp::service::control::Client;
     use std::time::Duration;
     let mut c = Client::connect(socket).await.expect("the control socket");
     // Wait for a spot on every PSD with the carriage at rest; the follower brought to the

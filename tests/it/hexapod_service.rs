@@ -5,7 +5,7 @@
 
 use crate::helpers::{RigOptions, TempDir, hexapod_rig};
 use axiscomp::hexapod::plan::{PlanSpec, PosePlan};
-use axiscomp::service::control::Request;
+use axiscomp::service::api::Request;
 use std::time::Duration;
 
 const FAST: &str = "[tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n\n\

@@ -5,7 +5,7 @@
 //! its alarms and the frame's validity are asserted. And a drive that is not on the bus.
 
 use crate::helpers::{RigOptions, ServiceRig, free_port};
-use axiscomp::service::snapshot::Snapshot;
+use axiscomp::service::api::snapshot::Snapshot;
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Child, ChildStdin, Command, Stdio};
 use std::time::Duration;

@@ -13,7 +13,7 @@ use axiscomp::plc::table::{self as ptable, PlcTable};
 use axiscomp::plc::{CncMap, Timeouts};
 use axiscomp::run::program::CaptureMode;
 use axiscomp::run::{Dialect, Direction};
-use axiscomp::service::control::Request;
+use axiscomp::service::api::Request;
 use axiscomp::service::tables::{StoredTable, Tables};
 use axiscomp::sim::InstallSpec;
 use axiscomp::sim::axis::{AxisSpec, Wear};

@@ -895,7 +895,7 @@ fn store_synthetic_run(store: &std::path::Path, plant: &Plant) -> i64 {
 /// that rejects (issue 5: control API and CLI).
 #[tokio::test(start_paused = true)]
 async fn the_service_generates_publishes_and_reads_back_tables() {
-    use axiscomp::service::control::Request;
+    use axiscomp::service::api::Request;
     use axiscomp::service::tables::{PublishView, StatusView, StoredTable, TableView};
     use axiscomp::store::{PublicationOutcome, Store, TableId};
     let rig = ServiceRig::start(RigOptions {
@@ -1097,7 +1097,7 @@ async fn the_service_generates_publishes_and_reads_back_tables() {
 /// from that acknowledgement.
 #[tokio::test(start_paused = true)]
 async fn the_service_serves_a_published_table_for_pull() {
-    use axiscomp::service::control::Request;
+    use axiscomp::service::api::Request;
     use axiscomp::service::tables::{PublishView, StatusView, TableView};
     let port = free_port();
     let rig = ServiceRig::start(RigOptions {
@@ -1143,7 +1143,7 @@ async fn publish_by_api(
     rig: &crate::helpers::ServiceRig,
     table_id: i64,
 ) -> axiscomp::service::tables::PublishView {
-    use axiscomp::service::control::Request;
+    use axiscomp::service::api::Request;
     serde_json::from_value(
         rig.request(Request::TablePublish {
             table_id,

@@ -643,7 +643,7 @@ fn a_term_the_run_could_not_state_is_named_with_its_reason() {
 async fn the_service_records_the_budget_inputs_when_a_run_starts() {
     use crate::helpers::{RigOptions, ServiceRig, short_plan};
     use axiscomp::evaluate::recorded::Recorded;
-    use axiscomp::service::control::Request;
+    use axiscomp::service::api::Request;
     let rig = ServiceRig::start(RigOptions {
         service_toml: "[align]\ncheck_before_run = false\n".into(),
         ..RigOptions::default()
@@ -872,7 +872,7 @@ fn a_lab_run_stored_with_its_record_reports_the_labs_own_budget() {
 #[tokio::test(start_paused = true)]
 async fn a_service_run_reports_the_follower_map_it_used() {
     use crate::helpers::{RigOptions, ServiceRig, short_plan};
-    use axiscomp::service::control::Request;
+    use axiscomp::service::api::Request;
     use std::time::Duration;
     let rig = ServiceRig::start(RigOptions {
         service_toml: "[align]\ncheck_before_run = false\n\n\

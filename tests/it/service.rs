@@ -4,8 +4,8 @@
 //! twin's truth, and the faults (issue 3).
 
 use crate::helpers::{RigOptions, ServiceRig, run, stderr};
-use axiscomp::service::control::Request;
-use axiscomp::service::snapshot::Snapshot;
+use axiscomp::service::api::Request;
+use axiscomp::service::api::snapshot::Snapshot;
 use axiscomp::sim::plant::Truth;
 use axiscomp::track::Strategy;
 use axiscomp::units::DOF_NAMES;
@@ -334,7 +334,7 @@ async fn drive_fault_alarm_and_reset_on_command() {
     assert!(s.follower.last_emcy.is_some());
     let r = rig
         .request(Request::Follower {
-            action: axiscomp::service::control::FollowerAction::FaultReset,
+            action: axiscomp::service::api::FollowerAction::FaultReset,
             mm: None,
         })
         .await

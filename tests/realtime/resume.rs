@@ -6,7 +6,8 @@
 
 use crate::helpers::{RigOptions, TempDir, bin, short_plan, twin_and_config};
 use axiscomp::run::{Direction, TargetKey};
-use axiscomp::service::control::{Client, Request};
+use axiscomp::service::api::Request;
+use axiscomp::service::control::Client;
 use axiscomp::store::{RunId, RunState, Store};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -70,7 +71,7 @@ async fn ask(socket: &Path, req: &Request) -> Option<serde_json::Value> {
 async fn wait_snapshot(
     socket: &Path,
     secs: u64,
-    pred: impl Fn(&axiscomp::service::snapshot::Snapshot) -> bool,
+    pred: impl Fn(&axiscomp::service::api::snapshot::Snapshot) -> bool,
 ) -> bool {
     let end = axiscomp::util::clock::now() + Duration::from_secs(secs);
     while axiscomp::util::clock::now() < end {
@@ -123,7 +124,7 @@ async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {
     let log = [dir.path("serve-1.log"), dir.path("serve-2.log")];
     let mut child = serve(&config, &log[0]);
 
-    let ready = |s: &axiscomp::service::snapshot::Snapshot| {
+    let ready = |s: &axiscomp::service::api::snapshot::Snapshot| {
         s.follower.homed && s.tracking.valid && s.tracking.at_rest
     };
     if !wait_snapshot(&socket, 60, ready).await {
@@ -263,7 +264,7 @@ async fn a_store_refusing_writes_mid_run_raises_the_store_alarm_and_clears_it() 
     .await;
     let log = [dir.path("serve.log")];
     let mut child = serve(&config, &log[0]);
-    let ready = |s: &axiscomp::service::snapshot::Snapshot| {
+    let ready = |s: &axiscomp::service::api::snapshot::Snapshot| {
         s.follower.homed && s.tracking.valid && s.tracking.at_rest
     };
     if !wait_snapshot(&socket, 60, ready).await {
@@ -296,7 +297,7 @@ async fn a_store_refusing_writes_mid_run_raises_the_store_alarm_and_clears_it() 
         .execute_batch("BEGIN EXCLUSIVE")
         .expect("lock the store");
     let alarm = |active: bool| {
-        move |s: &axiscomp::service::snapshot::Snapshot| {
+        move |s: &axiscomp::service::api::snapshot::Snapshot| {
             s.alarms
                 .iter()
                 .any(|a| a.code == "store" && a.active && a.text.contains("capture not stored"))

@@ -2,10 +2,10 @@
 
 use super::*;
 
+/// A hexapod run as the service reports it (`hexapod_status`).
+pub use crate::service::api::HexapodView;
 /// A calibration as the service summarises it (`calibration`, `calibration_fit`).
 pub use crate::service::calibration::Summary as CalSummary;
-/// A hexapod run as the service reports it (`hexapod_status`).
-pub use crate::service::hexapod_run::RunView as HexapodView;
 
 /// Polling interval of `hexapod_status` while the Calibrate screen shows.
 pub const HEXAPOD_STATUS_EVERY: Duration = Duration::from_secs(1);

@@ -5,7 +5,7 @@
 //! Their progress and outcome come from the snapshots (`follower_map_lines`).
 
 use super::*;
-use crate::service::follower_level::{LevelRequest, LevelView};
+use crate::service::api::{LevelRequest, LevelView};
 
 /// Parse the level's reading typed (arcsec): a finite number (the service checks its range).
 pub fn parse_level_reading(text: &str) -> Result<f64, String> {

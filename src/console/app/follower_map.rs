@@ -5,8 +5,8 @@
 //! alignment and the follower map (at 80×24 they take turns; a mapping started shows its own).
 
 use super::*;
-use crate::service::follower::CertificateImport;
-use crate::service::follower_map::{MappingRequest, MappingView};
+use crate::service::api::CertificateImport;
+use crate::service::api::{MappingRequest, MappingView};
 
 /// The lower panel of the Align screen (at 80×24 one at a time).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

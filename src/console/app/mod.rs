@@ -30,9 +30,9 @@ pub use results::ResultsView;
 
 use super::client::{ClientError, Identity, LinkEvent, PeerRole};
 use crate::run::{Plan, PlanSpec};
-use crate::service::control::{FollowerAction, Request};
+use crate::service::api::snapshot::Snapshot;
+use crate::service::api::{FollowerAction, Request};
 use crate::service::results::{AuditView, RunResult, RunSummary};
-use crate::service::snapshot::Snapshot;
 use crate::service::tables::{PublishView, StatusView, TableView};
 use crossterm::event::{KeyCode, KeyEvent, KeyEventKind, KeyModifiers};
 use std::collections::{BTreeMap, VecDeque};
@@ -130,7 +130,7 @@ pub enum Confirm {
     /// default plan).
     HexapodStart(String),
     /// Map the follower by the stop-and-go self-calibration.
-    MapStart(crate::service::follower_map::MappingRequest),
+    MapStart(crate::service::api::MappingRequest),
     /// Stop the follower mapping under way.
     MapStop,
     /// Read a level at stations along the map in use's span.

@@ -1,5 +1,5 @@
 use super::*;
-use crate::service::snapshot::RunView;
+use crate::service::api::snapshot::RunView;
 
 fn key(c: KeyCode) -> KeyEvent {
     KeyEvent::new(c, KeyModifiers::NONE)
@@ -714,8 +714,8 @@ fn a_suggested_path_is_selected_typing_replaces_it_and_ctrl_u_clears() {
 /// the map made is summarised; `v` switches back to the beam alignment.
 #[test]
 fn align_imports_a_certificate_maps_the_follower_and_shows_progress_at_80x24() {
-    use crate::service::follower::CertificateImport;
-    use crate::service::follower_map::{MappingRequest, MappingView};
+    use crate::service::api::CertificateImport;
+    use crate::service::api::{MappingRequest, MappingView};
     let (mut a, t0) = app();
     a.handle_key(ch('2'));
     assert_eq!(a.follower.panel, AlignPanel::Beam);
@@ -894,7 +894,7 @@ fn align_imports_a_certificate_maps_the_follower_and_shows_progress_at_80x24() {
 
 #[test]
 fn align_starts_the_level_stations_takes_a_typed_reading_and_stops_them() {
-    use crate::service::follower_level::{LevelRequest, LevelView, StationView};
+    use crate::service::api::{LevelRequest, LevelView, StationView};
     let (mut a, t0) = app();
     a.handle_key(ch('2'));
     // L with nothing under way: said, nothing sent.

@@ -8,7 +8,7 @@
 use super::live::psd_row;
 use super::{TALL, Theme, WIDE, bar, panel};
 use crate::console::app::{AlignPanel, App, StationSpot};
-use crate::service::snapshot::Snapshot;
+use crate::service::api::snapshot::Snapshot;
 use ratatui::Frame;
 use ratatui::layout::{Constraint, Layout, Rect};
 use ratatui::text::{Line, Span};

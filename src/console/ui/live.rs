@@ -3,7 +3,7 @@
 
 use super::{TALL, Theme, WIDE, panel, psd, signed};
 use crate::console::app::App;
-use crate::service::snapshot::{LinkView, Snapshot};
+use crate::service::api::snapshot::{LinkView, Snapshot};
 use crate::units::{DOF_MEANING, DOF_NAMES};
 use ratatui::Frame;
 use ratatui::layout::{Constraint, Layout, Rect};
@@ -305,7 +305,7 @@ fn state_compact(frame: &mut Frame, area: Rect, snap: Option<&Snapshot>, theme: 
 #[cfg(test)]
 mod tests {
     use super::why_no_errors;
-    use crate::service::snapshot::{PsdView, Snapshot};
+    use crate::service::api::snapshot::{PsdView, Snapshot};
 
     #[test]
     fn live_says_why_it_has_no_errors() {

@@ -2,7 +2,7 @@
 //! Shared by the Live and Align screens.
 
 use super::{Theme, bar, panel, signed};
-use crate::service::snapshot::PsdView;
+use crate::service::api::snapshot::PsdView;
 use ratatui::Frame;
 use ratatui::layout::{Constraint, Layout, Rect};
 use ratatui::style::Color;

@@ -24,11 +24,11 @@ pub struct Snapshot {
     /// The follower's stop-and-go mapping: under way, or how the last one since the service
     /// started ended.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub follower_mapping: Option<super::follower_map::MappingView>,
+    pub follower_mapping: Option<super::MappingView>,
     /// The follower's level stations: under way, or how the last one since the service
     /// started ended.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub follower_level: Option<super::follower_level::LevelView>,
+    pub follower_level: Option<super::LevelView>,
 }
 
 /// A measurement run in progress.
@@ -113,7 +113,7 @@ pub struct TrackingView {
     pub handovers: usize,
     /// The follower error map applied to encoder steps, when one is in use.
     #[serde(default)]
-    pub follower_map: Option<super::follower::FollowerMapView>,
+    pub follower_map: Option<super::FollowerMapView>,
 }
 
 /// One field link.
