@@ -5,6 +5,7 @@
 pub mod machine;
 pub mod plan;
 pub mod program;
+pub mod session;
 
 pub use machine::{CaptureSettings, FrameSample, RunAction, RunMachine};
 pub use plan::{Plan, PlanError, PlanSpec, Step, TargetKey};

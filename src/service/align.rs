@@ -8,7 +8,7 @@ use crate::acquire::Frame;
 use crate::align::{AlignSettings, Observed, SpotSource, Station};
 use crate::config::AlignConfig;
 use crate::optics::{Layout, Spot};
-use crate::store::{NewAlignment, Store};
+use crate::store::{AlignmentRecord, NewAlignment};
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
@@ -94,34 +94,30 @@ impl AlignState {
         self.stations.clear();
     }
 
-    /// The advice over `span` (mm) from the stations read, as JSON for the control API, stored
-    /// for `axis` (the pre-run check reads the newest). The stations stay until `clear`: after
-    /// turning screws, clear and read both ends again.
-    pub fn advise_and_store(
+    /// The advice over `span` (mm) from the stations read, as the control API answers it, and
+    /// the record to store for `axis` (the pre-run check reads the newest). The stations stay
+    /// until `clear`: after turning screws, clear and read both ends again.
+    pub fn advise_for(
         &self,
         layout: &Layout,
         axis: &str,
         span: (f64, f64),
-        store: &mut Store,
-    ) -> Result<serde_json::Value, String> {
+    ) -> Result<(NewAlignment, serde_json::Value), String> {
         let (a, mut v) = self.advise(layout, span)?;
         // Without a residual angle (one station) nothing passed: record 0.
         let [yaw, pitch] = a.misalignment_urad.unwrap_or([0.0; 2]);
-        let id = store
-            .insert_alignment(&NewAlignment {
-                axis: axis.to_string(),
-                from_mm: span.0,
-                to_mm: span.1,
-                passed: a.now.passed(),
-                yaw_rad: yaw * 1e-6,
-                pitch_rad: pitch * 1e-6,
-                check: a.now.to_string(),
-                advice: v.clone(),
-            })
-            .map_err(|e| format!("the advice was not stored: {e}"))?;
-        v["alignment_id"] = serde_json::json!(id);
         v["axis"] = serde_json::json!(axis);
-        Ok(v)
+        let rec = NewAlignment {
+            axis: axis.to_string(),
+            from_mm: span.0,
+            to_mm: span.1,
+            passed: a.now.passed(),
+            yaw_rad: yaw * 1e-6,
+            pitch_rad: pitch * 1e-6,
+            check: a.now.to_string(),
+            advice: v.clone(),
+        };
+        Ok((rec, v))
     }
 
     /// The pre-run check (issue 13): a run over `travel` (mm) of `axis` starts only when the
@@ -129,7 +125,7 @@ impl AlignState {
     /// the configured validity. The error says what is missing and what to do.
     pub fn pre_run_check(
         &self,
-        store: &Store,
+        latest: Option<&AlignmentRecord>,
         axis: &str,
         travel: (f64, f64),
         now_us: i64,
@@ -143,10 +139,7 @@ impl AlignState {
              console's Align screen), or set align.check_before_run = false",
             travel.0, travel.1, travel.0, travel.1
         );
-        let Some(rec) = store
-            .latest_alignment(axis)
-            .map_err(|e| format!("the pre-run check cannot read the alignments: {e}"))?
-        else {
+        let Some(rec) = latest else {
             return Err(format!("axis {axis} has no beam alignment: {how}"));
         };
         let a = &rec.alignment;
@@ -296,11 +289,18 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("axiscomp-prerun-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
-        let mut store = Store::open(dir.join("store.sqlite")).unwrap();
+        let mut store = crate::store::Store::open(dir.join("store.sqlite")).unwrap();
         let a = AlignState::default();
         let now = crate::store::now_us();
         let travel = (-5.0, 1005.0);
-        let e = a.pre_run_check(&store, "X", travel, now).unwrap_err();
+        let e = a
+            .pre_run_check(
+                store.latest_alignment("X").unwrap().as_ref(),
+                "X",
+                travel,
+                now,
+            )
+            .unwrap_err();
         assert!(
             e.contains("axis X has no beam alignment") && e.contains("-5.0 to 1005.0 mm"),
             "{e}"
@@ -316,7 +316,14 @@ mod tests {
             advice: serde_json::json!({"turns": [{"text": "turn the yaw screw 1.20 turns clockwise"}]}),
         };
         store.insert_alignment(&rec).unwrap();
-        let e = a.pre_run_check(&store, "X", travel, now).unwrap_err();
+        let e = a
+            .pre_run_check(
+                store.latest_alignment("X").unwrap().as_ref(),
+                "X",
+                travel,
+                now,
+            )
+            .unwrap_err();
         assert!(
             e.contains("did not pass: PSD3 leaves its margin at 1005 mm")
                 && e.contains("adjust: turn the yaw screw 1.20 turns clockwise"),
@@ -324,23 +331,48 @@ mod tests {
         );
         // Another axis's alignment is not this one's.
         assert!(
-            a.pre_run_check(&store, "Y", travel, now)
-                .unwrap_err()
-                .contains("axis Y has no")
+            a.pre_run_check(
+                store.latest_alignment("Y").unwrap().as_ref(),
+                "Y",
+                travel,
+                now
+            )
+            .unwrap_err()
+            .contains("axis Y has no")
         );
         rec.passed = true;
         rec.to_mm = 800.0;
         store.insert_alignment(&rec).unwrap();
-        let e = a.pre_run_check(&store, "X", travel, now).unwrap_err();
+        let e = a
+            .pre_run_check(
+                store.latest_alignment("X").unwrap().as_ref(),
+                "X",
+                travel,
+                now,
+            )
+            .unwrap_err();
         assert!(
             e.contains("aligned over -5.0 to 800.0 mm, the run travels -5.0 to 1005.0 mm"),
             "{e}"
         );
         rec.to_mm = 1005.0;
         store.insert_alignment(&rec).unwrap();
-        a.pre_run_check(&store, "X", travel, now).unwrap();
+        a.pre_run_check(
+            store.latest_alignment("X").unwrap().as_ref(),
+            "X",
+            travel,
+            now,
+        )
+        .unwrap();
         let day_later = now + 25 * 3_600_000_000;
-        let e = a.pre_run_check(&store, "X", travel, day_later).unwrap_err();
+        let e = a
+            .pre_run_check(
+                store.latest_alignment("X").unwrap().as_ref(),
+                "X",
+                travel,
+                day_later,
+            )
+            .unwrap_err();
         assert!(
             e.contains("25.0 h old (align.valid_for_h is 24.0 h)"),
             "{e}"
@@ -349,7 +381,7 @@ mod tests {
             check_before_run: false,
             ..a.config.clone()
         });
-        off.pre_run_check(&store, "Z", travel, now).unwrap();
+        off.pre_run_check(None, "Z", travel, now).unwrap();
         let stored = store.latest_alignment("X").unwrap().unwrap();
         assert_eq!(stored.alignment, rec);
         drop(store);

@@ -6,10 +6,8 @@
 //! stop-and-go self-calibration itself is `follower_map` (the module beside this one).
 
 use super::api::{CertificateImport, FollowerMapView};
-use crate::follower::{Certificate, FollowerMap, MapSettings, StoredMap};
+use crate::follower::{Certificate, MapSettings, StoredMap};
 use crate::store::{FollowerMapRecord, Store};
-use crate::track::Tracker;
-use std::sync::Arc;
 
 pub(super) fn view(r: &FollowerMapRecord) -> FollowerMapView {
     FollowerMapView {
@@ -21,35 +19,17 @@ pub(super) fn view(r: &FollowerMapRecord) -> FollowerMapView {
     }
 }
 
-/// The map in use in `store`, for the tracker and the snapshot (none when the store has
-/// none, or cannot say: logged).
-pub(super) fn in_use(store: &Store) -> (Option<FollowerMapView>, Option<Arc<FollowerMap>>) {
-    match store.follower_map_in_use() {
-        Ok(Some(r)) => {
-            tracing::info!(id = r.id, name = %r.name, "follower map in use");
-            (Some(view(&r)), Some(Arc::new(r.map)))
-        }
-        Ok(None) => (None, None),
-        Err(e) => {
-            tracing::warn!("the follower map in use could not be read: {e}; tracking without");
-            (None, None)
-        }
-    }
-}
-
-/// `follower_map`: with `id`, put stored map `id` in use (the tracker applies it from now on;
-/// take the zero again); then the map in use, its terms and the stored maps.
-pub(super) fn request(
+/// `follower_map`, on the store's thread: with `id`, put stored map `id` in use (the tracker
+/// applies it from now on; take the zero again); the answer (the map in use, its terms and the
+/// stored maps), and the map now in use when it changed.
+pub(super) fn request_on(
     store: &mut Store,
-    tracker: &mut Tracker,
-    shown: &mut Option<FollowerMapView>,
     id: Option<i64>,
-) -> Result<serde_json::Value, String> {
+) -> Result<(serde_json::Value, Option<FollowerMapRecord>), String> {
+    let mut changed = None;
     if let Some(id) = id {
         store.use_follower_map(id).map_err(|e| e.to_string())?;
-        let r = store.follower_map(id).map_err(|e| e.to_string())?;
-        tracker.set_map(Some(Arc::new(r.map.clone())));
-        *shown = Some(view(&r));
+        changed = Some(store.follower_map(id).map_err(|e| e.to_string())?);
     }
     let maps = store.follower_maps().map_err(|e| e.to_string())?;
     let list: Vec<serde_json::Value> = maps
@@ -65,11 +45,14 @@ pub(super) fn request(
         })
         .collect();
     let in_use = maps.iter().find(|m| m.in_use);
-    Ok(serde_json::json!({
-        "in_use": in_use.map(view),
-        "summary": in_use.map(|m| m.map.summary()),
-        "maps": list,
-    }))
+    Ok((
+        serde_json::json!({
+            "in_use": in_use.map(view),
+            "summary": in_use.map(|m| m.map.summary()),
+            "maps": list,
+        }),
+        changed,
+    ))
 }
 
 /// The map a certificate makes in `store`: joined with the self-calibration of the map in
@@ -113,14 +96,13 @@ pub(super) fn read_certificate(path: &str) -> Result<Certificate, String> {
     Certificate::parse(&text, path).map_err(|e| e.to_string())
 }
 
-/// `follower_certificate`: parse the certificate, make it a map ([`certificate_map`]), store
-/// it with its points and, unless `keep_current`, put it in use in the tracker at once.
-pub(super) fn import_certificate(
+/// `follower_certificate`, on the store's thread: parse the certificate (a file is read
+/// there too), make it a map ([`certificate_map`]), store it with its points; the answer, and
+/// the map to put in use unless `keep_current`.
+pub(super) fn import_on(
     store: &mut Store,
-    tracker: &mut Tracker,
-    shown: &mut Option<FollowerMapView>,
     req: CertificateImport,
-) -> Result<serde_json::Value, String> {
+) -> Result<(serde_json::Value, Option<FollowerMapRecord>), String> {
     let cert = match (&req.csv, &req.path) {
         (Some(text), _) => {
             let name = req.name.clone().unwrap_or_else(|| "certificate".into());
@@ -143,18 +125,18 @@ pub(super) fn import_certificate(
         .insert_stored_follower_map(&stored, &name, use_it)
         .map_err(|e| format!("the certificate's map was not stored: {e}"))?;
     let map = stored.map;
+    let mut now_in_use = None;
     if use_it {
-        let r = store.follower_map(id).map_err(|e| e.to_string())?;
-        tracker.set_map(Some(Arc::new(r.map.clone())));
-        *shown = Some(view(&r));
+        now_in_use = Some(store.follower_map(id).map_err(|e| e.to_string())?);
         tracing::info!(id, %name, "follower map from a certificate in use");
     }
-    Ok(serde_json::json!({
+    let answer = serde_json::json!({
         "id": id,
         "name": name,
         "in_use": use_it,
         "joined_with": joined,
         "summary": map.summary(),
         "zero": if use_it { "the map applies from now on: take the zero again before measuring" } else { "stored; the map in use is unchanged" },
-    }))
+    });
+    Ok((answer, now_in_use))
 }

@@ -7,17 +7,16 @@
 pub mod align;
 pub mod api;
 pub mod calibration;
+pub mod cnc;
 pub mod composition;
 pub mod control;
 mod core;
 pub mod follower;
-pub mod follower_level;
-pub mod follower_map;
-pub mod hexapod_run;
 pub mod measure;
 pub mod notify;
 pub mod peer;
 pub mod pipeline;
+pub mod procedure;
 pub mod results;
 mod run_budget;
 pub mod shutdown;
@@ -205,6 +204,9 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
     })?;
     let store_path = s.service.state_dir.join("axiscomp.db");
     let store = crate::store::Store::open(&store_path)?;
+    // What the loop looks up in the store, read before it starts.
+    let startup = startup(&store, &s.service.state_dir, s.cnc.dialect);
+    let (store, store_task) = crate::store::StoreQueue::spawn(store);
     // Opened after the core's store, which created and migrated the file.
     let tables = tables::Tables::start(p.cnc_map.clone(), &s.plc, &store_path).await?;
     let (drive, drive_task, can_peer) = start_drive(&p).await?;
@@ -237,7 +239,7 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
         s.service.max_connections,
         shutdown.clone(),
     ));
-    let core = core::Core::new(&p, acquisition, drive, can_peer, snap_tx, store);
+    let core = core::Core::new(&p, acquisition, drive, can_peer, snap_tx, store, startup);
     // A task of its own rather than the runtime's root future: waking the root future from a
     // task (every frame) costs the current-thread runtime an eventfd write and an extra poll.
     let result = match tokio::spawn(core.run(core_rx, shutdown)).await {
@@ -256,6 +258,100 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
         tracing::warn!("the tables task did not stop within 30 s");
     }
     let _ = std::fs::remove_file(&s.service.socket);
+    // What the store was given is written before the service says it stopped.
+    if tokio::time::timeout(std::time::Duration::from_secs(30), store_task)
+        .await
+        .is_err()
+    {
+        tracing::warn!("the store did not finish its queue within 30 s");
+    }
     tracing::info!("axiscomp service stopped");
     result
+}
+
+/// What the core looks up in the store (the newest alignment of each axis, the follower map
+/// in use) and a run the store says is still running (the service stopped or crashed in it):
+/// read once, before the loop starts.
+fn startup(
+    store: &crate::store::Store,
+    state_dir: &std::path::Path,
+    configured: crate::run::Dialect,
+) -> core::Startup {
+    use crate::store::RunState;
+    let mut cached = procedure::Cached::default();
+    match store.aligned_axes() {
+        Ok(axes) => {
+            for axis in axes {
+                if let Ok(Some(rec)) = store.latest_alignment(&axis) {
+                    cached.alignments.insert(axis, rec);
+                }
+            }
+        }
+        Err(e) => tracing::warn!("the alignments could not be read: {e}"),
+    }
+    match store.follower_map_in_use() {
+        Ok(m) => cached.follower_map = m,
+        Err(e) => {
+            tracing::warn!("the follower map in use could not be read: {e}; tracking without")
+        }
+    }
+    let resume = match store.runs_in_state(RunState::Running) {
+        Ok(runs) => runs.into_iter().max_by_key(|r| r.id.0).and_then(|rec| {
+            let plan: Result<crate::run::Plan, String> =
+                serde_json::from_value(rec.plan.clone()).map_err(|e| e.to_string());
+            let done = store.completed_keys(rec.id).map_err(|e| e.to_string());
+            // The run's programs go on in the dialect it was started with (the configuration
+            // snapshot names it), not in the configured default.
+            let dialect = rec.config["dialect"]
+                .as_str()
+                .and_then(crate::run::Dialect::parse)
+                .unwrap_or(configured);
+            match (plan, done) {
+                (Ok(plan), Ok(done)) => {
+                    tracing::info!(
+                        run = rec.id.0,
+                        captured = done.len(),
+                        "resuming run once the follower is ready"
+                    );
+                    Some(procedure::run::Resume {
+                        id: rec.id,
+                        plan,
+                        dialect,
+                        done,
+                        programs: programs_written(state_dir, rec.id),
+                    })
+                }
+                (Err(e), _) | (_, Err(e)) => {
+                    let why = format!("it cannot resume: its plan or captures do not load: {e}");
+                    tracing::warn!(run = rec.id.0, "{why}");
+                    None
+                }
+            }
+        }),
+        Err(e) => {
+            tracing::warn!("cannot look for runs to resume: {e}");
+            None
+        }
+    };
+    core::Startup { cached, resume }
+}
+
+/// The highest program number written for run `id` (0: none).
+fn programs_written(state_dir: &std::path::Path, id: crate::store::RunId) -> u32 {
+    let dir = state_dir.join("runs").join(id.0.to_string());
+    std::fs::read_dir(dir)
+        .map(|entries| {
+            entries
+                .filter_map(|e| {
+                    let name = e.ok()?.file_name().into_string().ok()?;
+                    name.strip_prefix("program-")?
+                        .split('.')
+                        .next()?
+                        .parse::<u32>()
+                        .ok()
+                })
+                .max()
+                .unwrap_or(0)
+        })
+        .unwrap_or(0)
 }

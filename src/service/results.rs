@@ -174,6 +174,12 @@ pub struct AuditView {
     pub action: String,
     /// The request's fields.
     pub details: serde_json::Value,
+    /// "done", "refused" or "recorded" (before outcomes were kept).
+    #[serde(default)]
+    pub outcome: String,
+    /// Why it was refused.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
 }
 
 /// The newest `limit` audit entries, newest first.
@@ -190,6 +196,8 @@ pub fn audit(store: &Store, limit: u32) -> Result<Vec<AuditView>, String> {
             role: r.entry.role,
             action: r.entry.action,
             details: r.entry.details,
+            outcome: r.entry.outcome.as_str().to_string(),
+            reason: r.entry.outcome.reason().map(str::to_string),
         })
         .collect();
     v.reverse();
@@ -215,6 +223,7 @@ pub fn audit_entry(
         role: role.to_string(),
         action,
         details,
+        outcome: crate::store::AuditOutcome::Recorded,
     }
 }
 

@@ -935,15 +935,21 @@ impl Tables {
             role: "service".into(),
             action: action.into(),
             details,
+            outcome: crate::store::AuditOutcome::Done,
         };
         if let Err(e) = self.store.audit(&entry) {
             tracing::error!("audit entry not stored: {e}");
         }
     }
 
-    fn audit(&mut self, c: &Command) {
-        let Some(entry) = c.audit_entry() else {
+    /// The request in the audit log, with what became of it.
+    fn audit(&mut self, c: &Command, r: &Result<serde_json::Value, String>) {
+        let Some(mut entry) = c.audit_entry() else {
             return;
+        };
+        entry.outcome = match r {
+            Ok(_) => crate::store::AuditOutcome::Done,
+            Err(why) => crate::store::AuditOutcome::Refused(why.clone()),
         };
         if let Err(e) = self.store.audit(&entry) {
             tracing::error!("audit entry not stored: {e}");
@@ -951,9 +957,13 @@ impl Tables {
     }
 
     async fn handle(&mut self, c: Command) {
-        tracing::info!(user = %c.peer.user, uid = c.peer.uid, request = ?c.request, "control request");
-        self.audit(&c);
+        let name = serde_json::to_value(&c.request)
+            .ok()
+            .and_then(|v| v["cmd"].as_str().map(str::to_string))
+            .unwrap_or_default();
+        tracing::info!(user = %c.peer.user, uid = c.peer.uid, request = %name, "control request");
         let r = self.request(&c.request, &c.peer.user).await;
+        self.audit(&c, &r);
         let _ = c.reply.send(r);
     }
 

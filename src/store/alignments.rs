@@ -116,4 +116,18 @@ impl Store {
             },
         }))
     }
+
+    /// The axes that have an alignment.
+    pub fn aligned_axes(&self) -> Result<Vec<String>, StoreError> {
+        let what = "read the alignments";
+        let mut stmt = self
+            .conn
+            .prepare("SELECT DISTINCT axis FROM alignments ORDER BY axis")
+            .map_err(|e| self.fail(what, e))?;
+        let rows = stmt
+            .query_map([], |r| r.get::<_, String>(0))
+            .map_err(|e| self.fail(what, e))?;
+        rows.collect::<Result<Vec<_>, _>>()
+            .map_err(|e| self.fail(what, e))
+    }
 }

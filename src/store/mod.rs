@@ -21,6 +21,7 @@
 
 mod alignments;
 mod follower;
+pub mod queue;
 mod records;
 mod run_list;
 mod run_tables;
@@ -28,10 +29,11 @@ pub mod schema;
 
 pub use alignments::{AlignmentRecord, NewAlignment};
 pub use follower::FollowerMapRecord;
+pub use queue::{QueueError, StoreQueue};
 pub use records::{
-    Actor, AuditEntry, AuditRecord, CalibrationId, CalibrationRecord, CalibrationSummary, NewRun,
-    Publication, PublicationOutcome, PublicationRecord, RunId, RunRecord, RunState, StoredHandover,
-    TableEntry, TableId, TableRecord,
+    Actor, AuditEntry, AuditOutcome, AuditRecord, CalibrationId, CalibrationRecord,
+    CalibrationSummary, NewRun, Publication, PublicationOutcome, PublicationRecord, RunId,
+    RunRecord, RunState, StoredHandover, TableEntry, TableId, TableRecord,
 };
 pub use run_list::{RunSummary, iso_utc};
 pub use run_tables::{ActiveTable, RunTables};

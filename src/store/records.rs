@@ -503,6 +503,40 @@ pub struct AuditEntry {
     /// What was done ("start-run", "publish", ...).
     pub action: String,
     pub details: serde_json::Value,
+    /// What became of it.
+    pub outcome: AuditOutcome,
+}
+
+/// What became of an audited request.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub enum AuditOutcome {
+    /// Written before it was handled (entries from before outcomes were kept, and the
+    /// service's own records).
+    #[default]
+    Recorded,
+    /// Carried out.
+    Done,
+    /// Refused, with the reason given.
+    Refused(String),
+}
+
+impl AuditOutcome {
+    /// The stored word.
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            AuditOutcome::Recorded => "recorded",
+            AuditOutcome::Done => "done",
+            AuditOutcome::Refused(_) => "refused",
+        }
+    }
+
+    /// The reason of a refusal.
+    pub fn reason(&self) -> Option<&str> {
+        match self {
+            AuditOutcome::Refused(r) => Some(r),
+            _ => None,
+        }
+    }
 }
 
 /// A stored audit entry.
@@ -1185,10 +1219,18 @@ impl Store {
         let details = json_text("audit details", &a.details)?;
         self.conn
             .execute(
-                "INSERT INTO audit (unix_us, uid, user, pid, role, action, details_json) \
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+                "INSERT INTO audit (unix_us, uid, user, pid, role, action, details_json, \
+                 outcome, reason) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)",
                 params![
-                    a.unix_us, a.who.uid, a.who.user, a.who.pid, a.role, a.action, details
+                    a.unix_us,
+                    a.who.uid,
+                    a.who.user,
+                    a.who.pid,
+                    a.role,
+                    a.action,
+                    details,
+                    a.outcome.as_str(),
+                    a.outcome.reason()
                 ],
             )
             .map_err(|e| self.fail("append to the audit log", e))?;
@@ -1207,12 +1249,14 @@ impl Store {
             String,
             String,
             String,
+            String,
+            Option<String>,
         );
         let mut stmt = self
             .conn
             .prepare_cached(
-                "SELECT * FROM (SELECT id, unix_us, uid, user, pid, role, action, details_json \
-                 FROM audit ORDER BY id DESC LIMIT ?1) ORDER BY id",
+                "SELECT * FROM (SELECT id, unix_us, uid, user, pid, role, action, details_json, \
+                 outcome, reason FROM audit ORDER BY id DESC LIMIT ?1) ORDER BY id",
             )
             .map_err(|e| self.fail(what, e))?;
         let raws: Vec<Raw> = stmt
@@ -1226,23 +1270,33 @@ impl Store {
                     r.get(5)?,
                     r.get(6)?,
                     r.get(7)?,
+                    r.get(8)?,
+                    r.get(9)?,
                 ))
             })
             .and_then(|rows| rows.collect())
             .map_err(|e| self.fail(what, e))?;
         raws.into_iter()
-            .map(|(id, unix_us, uid, user, pid, role, action, details)| {
-                Ok(AuditRecord {
-                    id,
-                    entry: AuditEntry {
-                        unix_us,
-                        who: Actor { uid, user, pid },
-                        role,
-                        action,
-                        details: self.json("audit details", &details)?,
-                    },
-                })
-            })
+            .map(
+                |(id, unix_us, uid, user, pid, role, action, details, outcome, reason)| {
+                    let outcome = match outcome.as_str() {
+                        "done" => AuditOutcome::Done,
+                        "refused" => AuditOutcome::Refused(reason.unwrap_or_default()),
+                        _ => AuditOutcome::Recorded,
+                    };
+                    Ok(AuditRecord {
+                        id,
+                        entry: AuditEntry {
+                            unix_us,
+                            who: Actor { uid, user, pid },
+                            role,
+                            action,
+                            details: self.json("audit details", &details)?,
+                            outcome,
+                        },
+                    })
+                },
+            )
             .collect()
     }
 }

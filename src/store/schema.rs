@@ -19,7 +19,7 @@ pub const APPLICATION_ID: i32 = 0x4158_4353;
 pub const LATEST: i64 = MIGRATIONS.len() as i64;
 
 /// Forward migrations; `MIGRATIONS[i]` goes from version `i` to `i + 1`.
-pub const MIGRATIONS: &[&str] = &[V1, V2, V3_FOLLOWER_MAPS, V4_RUN_TABLES];
+pub const MIGRATIONS: &[&str] = &[V1, V2, V3_FOLLOWER_MAPS, V4_RUN_TABLES, V5_AUDIT_OUTCOME];
 
 /// Version 1: the first schema.
 const V1: &str = r#"
@@ -215,6 +215,15 @@ CREATE TABLE run_tables (
 ) STRICT;
 "#;
 
+/// Version 5: the audit log says what became of each request (issue 24): `done`, or `refused`
+/// with the reason. Entries written before say `recorded` (the request was recorded before it
+/// was handled, its outcome not kept).
+const V5_AUDIT_OUTCOME: &str = r#"
+ALTER TABLE audit ADD COLUMN outcome TEXT NOT NULL DEFAULT 'recorded'
+    CHECK (outcome IN ('recorded', 'done', 'refused'));
+ALTER TABLE audit ADD COLUMN reason TEXT;
+"#;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -223,6 +232,6 @@ mod tests {
     fn application_id_literal_matches_the_constant() {
         // The pragma cannot take a bound parameter, so V1 spells the number out.
         assert!(V1.contains(&format!("PRAGMA application_id = {APPLICATION_ID};")));
-        assert_eq!(LATEST, 4);
+        assert_eq!(LATEST, 5);
     }
 }

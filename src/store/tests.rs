@@ -502,6 +502,7 @@ fn tables_publications_and_audit() {
                 role: "operator".into(),
                 action: (*action).into(),
                 details: json!({"n": i}),
+                outcome: Default::default(),
             })
             .unwrap();
     }
@@ -512,6 +513,7 @@ fn tables_publications_and_audit() {
             role: "plc".into(),
             action: "acknowledge".into(),
             details: json!(null),
+            outcome: Default::default(),
         })
         .unwrap();
     let last = store.audit_entries(2).unwrap();
@@ -534,6 +536,7 @@ fn tables_publications_and_audit() {
             role: "operator".into(),
             action: String::new(),
             details: json!({}),
+            outcome: Default::default(),
         }),
         Err(StoreError::Invalid { .. })
     ));

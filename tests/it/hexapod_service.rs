@@ -169,7 +169,7 @@ async fn the_service_calibrates_along_the_travel_and_keeps_runs_apart() {
     assert_eq!(
         e.to_string(),
         format!(
-            "measurement run {id} is under way: the hexapod would move the head under it; abort it or let it finish, then calibrate"
+            "measurement run {id} is under way (it moves the carriage): abort it with run_abort or let it finish, then calibrate"
         )
     );
     assert!(!dir.path("run2").exists(), "nothing stored");

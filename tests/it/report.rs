@@ -102,6 +102,7 @@ fn store(dir: &TempDir) -> PathBuf {
         role: "operator".into(),
         action: "run_start".into(),
         details: serde_json::json!({}),
+        outcome: Default::default(),
     })
     .expect("audit");
     std::thread::sleep(std::time::Duration::from_millis(5));

@@ -206,8 +206,9 @@ pub struct LevelView {
 }
 
 impl LevelView {
-    /// Whether the stations are under way.
+    /// Whether the stations are under way (or their map is being stored and the zero taken
+    /// again with it).
     pub fn active(&self) -> bool {
-        self.state == "stations"
+        matches!(self.state.as_str(), "stations" | "finishing")
     }
 }

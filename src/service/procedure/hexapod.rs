@@ -12,8 +12,7 @@
 //! control socket and the follower through the service's own drive. With a CNC the service
 //! does not drive, such a plan is refused before any move.
 
-use super::api::HexapodView as RunView;
-use super::calibration::{Pending, Summary};
+use super::{Ctx, Procedure, Reply, Who};
 use crate::acquire::Frame;
 use crate::canopen::DriveHandle;
 use crate::config::CncMode;
@@ -23,6 +22,9 @@ use crate::hexapod::plan::{PlanSpec, PosePlan};
 use crate::hexapod::procedure::{PoseStore, ProcedureError};
 use crate::hexapod::session::{self, SessionEvent};
 use crate::optics::Layout;
+use crate::service::api::HexapodView as RunView;
+use crate::service::api::Request;
+use crate::service::calibration::{Pending, Summary};
 use crate::units::DOF_TO_USER;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -56,15 +58,17 @@ impl Bench for ServiceBench {
         let addr = self
             .twin
             .ok_or("the service does not drive this CNC ([cnc] mode is manual)")?;
-        let r =
-            super::core::twin_request(addr, serde_json::json!({"cmd": "move", "mm": travel_mm}))
-                .await?;
+        let r = crate::service::cnc::twin_request(
+            addr,
+            serde_json::json!({"cmd": "move", "mm": travel_mm}),
+        )
+        .await?;
         // The twin answers a wait within its request timeout: sleep through the move first.
         let secs = r["duration_s"].as_f64().unwrap_or(0.0);
         if secs.is_finite() && secs > 0.0 {
             tokio::time::sleep(Duration::from_secs_f64(secs)).await;
         }
-        super::core::twin_request(addr, serde_json::json!({"cmd": "wait"})).await?;
+        crate::service::cnc::twin_request(addr, serde_json::json!({"cmd": "wait"})).await?;
         self.drive
             .move_to(follower_mm)
             .await
@@ -292,6 +296,77 @@ impl HexapodRuns {
         }
         v.state = "stopping".into();
         Ok(serde_json::json!({"stopping": true, "done": v.done, "total": v.total}))
+    }
+}
+
+impl Procedure for HexapodRuns {
+    fn name(&self) -> &'static str {
+        "the hexapod calibration run"
+    }
+
+    fn takes(&self, req: &Request) -> bool {
+        matches!(
+            req,
+            Request::HexapodStart { .. } | Request::HexapodStatus | Request::HexapodStop
+        )
+    }
+
+    fn starts(&self, req: &Request) -> bool {
+        matches!(req, Request::HexapodStart { .. })
+    }
+
+    fn holds_machine(&self) -> bool {
+        self.active()
+    }
+
+    /// Under a hexapod calibration the follower holds still: the poses' PSD2 readings are
+    /// taken with it where it is.
+    fn holds_follower(&self) -> bool {
+        self.active()
+    }
+
+    fn busy(&self, what: &str) -> String {
+        format!(
+            "a hexapod calibration run is under way (it moves the head): stop it with hexapod_stop or let it finish, then {what}"
+        )
+    }
+
+    fn request(&mut self, req: Request, _who: &Who, reply: Reply, ctx: &mut Ctx) {
+        match req {
+            Request::HexapodStart { plan, poses, out } => {
+                let bench = ServiceBench::new(&ctx.env.cnc, ctx.drive.clone());
+                let r = self.start(plan, poses, out, ctx.acquisition.subscribe(), bench);
+                if r.is_ok() {
+                    ctx.pipeline.invalidate_stitch(
+                        "the hexapod moved the head: zero again before measuring",
+                    );
+                }
+                reply.send(r);
+            }
+            Request::HexapodStatus => {
+                // A run that reads "done" has its calibration waiting by the time anyone
+                // asks (the tick that takes it may not have come yet).
+                let status = self.status();
+                self.take_fit(ctx);
+                reply.send(Ok(status));
+            }
+            Request::HexapodStop => reply.send(self.stop()),
+            _ => reply.send(Err("internal: not a hexapod request".into())),
+        }
+    }
+
+    fn tick(&mut self, ctx: &mut Ctx) {
+        self.take_fit(ctx);
+    }
+}
+
+impl HexapodRuns {
+    /// A finished run's calibration, made pending (once) for accept or reject.
+    fn take_fit(&self, ctx: &mut Ctx) {
+        if let Some(p) = self.take_finished() {
+            let measure = &ctx.pipeline.measure;
+            let _ = ctx.calibrations.fitted(Ok(p), |d| measure.read_with(d));
+        }
     }
 }
 

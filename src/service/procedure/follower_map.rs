@@ -17,16 +17,17 @@
 //! ends. A mapping is not resumed after a service restart: a marker in the state directory
 //! says at the next start that it was interrupted (no map stored, the map in use unchanged).
 
-use super::api::{FollowerMapView, MappingRequest, MappingView};
-use super::pipeline::Pipeline;
+use super::{Ctx, Procedure, Reply, Who};
 use crate::config::CncMode;
 use crate::follower::selfcal::{Collector, Plan, Spec, Taken, Timing, long_degree};
 use crate::follower::{Certificate, MapSettings};
 use crate::run::Dialect;
-use crate::store::Store;
+use crate::service::api::{MappingRequest, MappingView, Request, Snapshot};
+use crate::service::cnc::{CncDriver, CncNews};
+use crate::service::pipeline::{Output, Pipeline};
+use crate::store::FollowerMapRecord;
 use crate::track::{HandoverRecord, TrackSettings};
 use serde::{Deserialize, Serialize};
-use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -63,13 +64,12 @@ enum CertificateFrom {
     InUse,
 }
 
-/// Results of the mapping's own asynchronous work (the twin's CNC).
-#[derive(Debug)]
-enum Event {
-    /// The program was (or was not) taken by the twin; its program count after.
-    Delivered(Result<u32, String>),
-    /// The twin CNC's state.
-    Cnc(serde_json::Value),
+/// The map stored (or not): how the mapping ended, and the replies owed.
+struct Stored {
+    how: String,
+    elapsed_s: f64,
+    record: Result<FollowerMapRecord, String>,
+    reply: Option<Reply>,
 }
 
 /// A mapping under way.
@@ -82,20 +82,24 @@ struct Active {
     certificate: CertificateFrom,
     /// The service's own tracking settings, restored at the end.
     base: TrackSettings,
-    twin_programs_at_send: Option<u32>,
     /// When the twin's CNC said its program was done.
     cnc_done_at: Option<Instant>,
-    last_cnc_poll: Option<Instant>,
 }
 
 /// The service's follower mapping: at most one at a time, and the last one's outcome.
-#[derive(Debug)]
 pub struct FollowerMapping {
     cfg: MappingConfig,
     active: Option<Active>,
     view: Option<MappingView>,
-    tx: mpsc::UnboundedSender<Event>,
-    rx: mpsc::UnboundedReceiver<Event>,
+    cnc: CncDriver,
+    /// The map is being stored, or the zero taken again with it: the mapping still holds
+    /// the machine (and is "finishing").
+    storing: bool,
+    zeroing: bool,
+    /// The reply owed to `follower_map_finish`, sent once the mapping is done.
+    owed: Option<Reply>,
+    tx: mpsc::Sender<Stored>,
+    rx: mpsc::Receiver<Stored>,
     /// Found interrupted at start: tell (an alarm) and stop the twin's program, once.
     interrupted: bool,
 }
@@ -110,47 +114,10 @@ struct Marker {
     started_by: String,
 }
 
-fn twin_addr(cnc: &CncMode) -> Option<SocketAddr> {
-    match cnc {
-        CncMode::Twin(a) => Some(*a),
-        CncMode::Manual => None,
-    }
-}
-
-/// What else moves the machine now: a measurement run (its id), a hexapod run.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Busy {
-    pub run: Option<i64>,
-    pub hexapod: bool,
-}
-
-impl Busy {
-    /// Why a mapping cannot start now, naming what runs and how to end it.
-    fn refusal(self) -> Option<String> {
-        match (self.run, self.hexapod) {
-            (Some(id), _) => Some(format!(
-                "measurement run {id} is under way (it moves the carriage): abort it with run_abort or let it finish, then map the follower"
-            )),
-            (None, true) => Some("a hexapod calibration run is under way (it moves the head): stop it with hexapod_stop or let it finish, then map the follower".into()),
-            (None, false) => None,
-        }
-    }
-}
-
-/// The collection's context in the core: the tracker and alarms, the store, the map view.
-pub(super) struct Ctx<'a> {
-    pub pipeline: &'a mut Pipeline,
-    pub store: &'a mut Store,
-    pub shown: &'a mut Option<FollowerMapView>,
-    pub zero_window: Duration,
-    /// PSD frames per second over the last second.
-    pub frames_per_s: f64,
-}
-
 impl FollowerMapping {
     /// Idle; a marker left by a mapping the service did not finish says it was interrupted.
     pub fn new(cfg: MappingConfig) -> FollowerMapping {
-        let (tx, rx) = mpsc::unbounded_channel();
+        let (tx, rx) = mpsc::channel(4);
         let marker = cfg.state_dir.join(MARKER);
         let mut view = None;
         let mut interrupted = false;
@@ -176,9 +143,13 @@ impl FollowerMapping {
             let _ = std::fs::remove_file(&marker);
         }
         FollowerMapping {
+            cnc: CncDriver::new(cfg.cnc.clone()),
             cfg,
             active: None,
             view,
+            storing: false,
+            zeroing: false,
+            owed: None,
             tx,
             rx,
             interrupted,
@@ -188,15 +159,6 @@ impl FollowerMapping {
     /// Whether a mapping is under way.
     pub fn active(&self) -> bool {
         self.active.is_some()
-    }
-
-    /// Why a run or a hexapod run cannot start now (`None`: it may).
-    pub fn refusal(&self, what: &str) -> Option<String> {
-        self.active.as_ref().map(|_| {
-            format!(
-                "the follower mapping is under way (its part program moves the carriage): stop it with follower_map_stop (axiscomp follower map --stop, or m on the console's Align screen) or let it finish, then {what}"
-            )
-        })
     }
 
     /// The mapping as the snapshot shows it (none before the first since the start).
@@ -251,32 +213,41 @@ impl FollowerMapping {
         }
     }
 
-    /// `follower_map_start`: refused while a run or a hexapod run is `busy`; else the plan,
-    /// its program written (and sent to the twin's CNC), the collection started.
-    pub(super) fn start(
+    /// `follower_map_start`: the plan, its program written (and sent to the twin's CNC),
+    /// the collection started. (The core refuses it while another procedure holds the
+    /// machine.)
+    fn start(&mut self, req: MappingRequest, who: &str, reply: Reply, ctx: &mut Ctx) {
+        let r = self.prepare(req, who, ctx);
+        match r {
+            Ok((file, text, dialect, axis, view)) => {
+                self.cnc
+                    .deliver(file, text, dialect, &axis, Some((reply, view)))
+            }
+            Err(e) => reply.send(Err(e)),
+        }
+    }
+
+    /// Everything a start checks and sets up: the program's file and text, its dialect and
+    /// axis, and the answer.
+    fn prepare(
         &mut self,
         req: MappingRequest,
         who: &str,
-        busy: Busy,
-        ctx: Ctx<'_>,
-    ) -> Result<serde_json::Value, String> {
-        if self.active.is_some() {
+        ctx: &mut Ctx,
+    ) -> Result<(PathBuf, String, Dialect, String, serde_json::Value), String> {
+        if self.active.is_some() || self.storing || self.zeroing {
             return Err("a follower mapping is under way: stop it (follower_map_stop) or let it finish first".into());
-        }
-        if let Some(why) = busy.refusal() {
-            return Err(why);
         }
         let axis = req.axis.clone().unwrap_or_else(|| "X".into());
         let (from_mm, to_mm) = match (req.from_mm, req.to_mm) {
             (Some(a), Some(b)) => (a, b),
-            (None, None) => match ctx.store.latest_alignment(&axis) {
-                Ok(Some(a)) => (a.alignment.from_mm, a.alignment.to_mm),
-                Ok(None) => {
+            (None, None) => match ctx.cached.alignments.get(&axis) {
+                Some(a) => (a.alignment.from_mm, a.alignment.to_mm),
+                None => {
                     return Err(format!(
                         "axis {axis} has no beam alignment to take the span from: give from_mm and to_mm, or align the head first"
                     ));
                 }
-                Err(e) => return Err(format!("the alignments cannot be read: {e}")),
             },
             _ => {
                 return Err(
@@ -324,23 +295,21 @@ impl FollowerMapping {
             })?,
             None => self.cfg.dialect,
         };
-        let twin = twin_addr(&self.cfg.cnc);
-        if twin.is_some() && !matches!(dialect, Dialect::Iso | Dialect::LinuxCnc) {
+        if self.cnc.twin().is_some() && !matches!(dialect, Dialect::Iso | Dialect::LinuxCnc) {
             return Err("the twin's CNC runs iso or linuxcnc programs".into());
         }
         let (certificate, cert_text) = match &req.certificate {
             Some(path) => {
-                let c = super::follower::read_certificate(path)?;
+                let c = crate::service::follower::read_certificate(path)?;
                 let t = format!("{} (given)", c.name);
                 (CertificateFrom::Given(c), t)
             }
             None => {
                 let kept = ctx
-                    .store
-                    .follower_map_in_use()
-                    .ok()
-                    .flatten()
-                    .and_then(|r| r.certificate.map(|c| c.name));
+                    .cached
+                    .follower_map
+                    .as_ref()
+                    .and_then(|r| r.certificate.as_ref().map(|c| c.name.clone()));
                 let t = match kept {
                     Some(n) => format!("{n} (kept with the map in use)"),
                     None => "none yet: the one kept with the map in use when the mapping ends (without one the long-wavelength positioning is not mapped)".into(),
@@ -367,11 +336,10 @@ impl FollowerMapping {
             &title,
             dialect,
         );
-        let dir = self.cfg.state_dir.join("follower-maps");
-        let file = dir.join(format!("mapping-{started_us}.{}", dialect.extension()));
-        std::fs::create_dir_all(&dir)
-            .and_then(|()| std::fs::write(&file, &text))
-            .map_err(|e| format!("cannot write the program {}: {e}", file.display()))?;
+        let dir = self.cnc_dir();
+        let (file, cnc) = self
+            .cnc
+            .program_file(&dir, &format!("mapping-{started_us}"), dialect)?;
         let marker = Marker {
             axis: axis.clone(),
             from_mm,
@@ -389,23 +357,6 @@ impl FollowerMapping {
                 "the follower mapping's marker was not written ({e}): a restart will not say it was interrupted"
             );
         }
-        let cnc = match twin {
-            Some(addr) => {
-                let req = serde_json::json!({"cmd": "program", "dialect": if dialect == Dialect::LinuxCnc { "linuxcnc" } else { "iso" }, "axis": axis, "text": text});
-                let tx = self.tx.clone();
-                tokio::spawn(async move {
-                    let r = match super::core::twin_request(addr, req).await {
-                        Ok(_) => super::core::twin_request(addr, serde_json::json!({"cmd": "cnc"}))
-                            .await
-                            .map(|v| v["cnc"]["programs"].as_u64().unwrap_or(0) as u32),
-                        Err(e) => Err(e),
-                    };
-                    let _ = tx.send(Event::Delivered(r));
-                });
-                format!("sent to the twin's CNC at {addr}")
-            }
-            None => "load the program on the CNC and start it".to_string(),
-        };
         let collector = Collector::new(plan, now);
         // The overlap strategy from now on (the approach's records arm the collection).
         ctx.pipeline
@@ -414,7 +365,7 @@ impl FollowerMapping {
         let progress = collector.progress();
         let view = MappingView {
             state: "approaching".into(),
-            axis,
+            axis: axis.clone(),
             from_mm,
             to_mm,
             step_mm: spec.step_mm,
@@ -452,16 +403,15 @@ impl FollowerMapping {
             settings,
             certificate,
             base,
-            twin_programs_at_send: None,
             cnc_done_at: None,
-            last_cnc_poll: None,
         });
-        Ok(serde_json::to_value(view).unwrap_or_default())
+        let answer = serde_json::to_value(view).unwrap_or_default();
+        Ok((file, text, dialect, axis, answer))
     }
 
     /// A handover record of the tracker: one stop (or the approach), and the tracker's
     /// settings for what comes next.
-    pub(super) fn handle_record(&mut self, r: &HandoverRecord, pipeline: &mut Pipeline) {
+    fn handle_record(&mut self, r: &HandoverRecord, pipeline: &mut Pipeline) {
         let Some(a) = self.active.as_mut() else {
             return;
         };
@@ -492,7 +442,8 @@ impl FollowerMapping {
     }
 
     /// Each tick: the twin's CNC watched, the end judged, the view refreshed.
-    pub(super) fn tick(&mut self, now: Instant, ctx: Ctx<'_>) {
+    fn advance(&mut self, ctx: &mut Ctx) {
+        let now = ctx.now;
         if std::mem::take(&mut self.interrupted) {
             let text = self
                 .view
@@ -500,44 +451,46 @@ impl FollowerMapping {
                 .and_then(|v| v.error.clone())
                 .unwrap_or_default();
             ctx.pipeline.alarms.raise("mapping-interrupted", text);
-            if let Some(addr) = twin_addr(&self.cfg.cnc) {
-                tokio::spawn(async move {
-                    let _ = super::core::twin_request(
-                        addr,
-                        serde_json::json!({"cmd": "cnc", "stop": true}),
-                    )
-                    .await;
-                });
-            }
+            self.cnc.stop();
         }
-        while let Ok(e) = self.rx.try_recv() {
-            if let Some(why) = self.handle_event(e, now) {
-                self.fail(why, ctx);
-                return;
+        while let Ok(st) = self.rx.try_recv() {
+            self.stored(st, ctx);
+        }
+        if self.zeroing && !ctx.pipeline.zero_pending() {
+            self.zeroing = false;
+            if let Some(v) = self.view.as_mut() {
+                v.state = "done".into();
+            }
+            self.answer_owed();
+        }
+        for news in self.cnc.poll(now) {
+            match news {
+                CncNews::Refused(e) => {
+                    return self.fail(
+                        format!(
+                            "the twin's CNC did not take the program ({e}): nothing was mapped, the map in use is unchanged"
+                        ),
+                        ctx,
+                    );
+                }
+                CncNews::Ended => {
+                    if let Some(a) = self.active.as_mut()
+                        && a.cnc_done_at.is_none()
+                    {
+                        tracing::info!("follower mapping: the twin's CNC ended the program");
+                        a.cnc_done_at = Some(now);
+                    }
+                }
             }
         }
         let Some(a) = self.active.as_mut() else {
             return;
         };
-        if let Some(addr) = twin_addr(&self.cfg.cnc)
-            && a.last_cnc_poll
-                .is_none_or(|t| now.saturating_duration_since(t) >= Duration::from_secs(1))
-        {
-            a.last_cnc_poll = Some(now);
-            let tx = self.tx.clone();
-            tokio::spawn(async move {
-                if let Ok(v) =
-                    super::core::twin_request(addr, serde_json::json!({"cmd": "cnc"})).await
-                {
-                    let _ = tx.send(Event::Cnc(v));
-                }
-            });
-        }
         let grace = Duration::from_secs_f64(a.timing.dwell_s(a.collector.plan().spec().step_mm))
             + Duration::from_secs(2);
         let end = match a.cnc_done_at {
             Some(t) => a.collector.all_seen() || now.saturating_duration_since(t) >= grace,
-            None => twin_addr(&self.cfg.cnc).is_none() && a.collector.all_seen(),
+            None => self.cnc.twin().is_none() && a.collector.all_seen(),
         };
         if let Some(v) = self.view.as_mut()
             && a.cnc_done_at.is_some()
@@ -546,35 +499,12 @@ impl FollowerMapping {
         }
         self.refresh(now);
         if end {
-            self.finish_with(now, "the program ended", ctx);
+            self.finish_with(now, "the program ended", None, ctx);
         }
-    }
-
-    /// The outcome of the mapping's asynchronous work; a failure to report (the mapping
-    /// cannot go on).
-    fn handle_event(&mut self, e: Event, now: Instant) -> Option<String> {
-        let a = self.active.as_mut()?;
-        match e {
-            Event::Delivered(Ok(n)) => a.twin_programs_at_send = Some(n),
-            Event::Delivered(Err(e)) => {
-                return Some(format!(
-                    "the twin's CNC did not take the program ({e}): nothing was mapped, the map in use is unchanged"
-                ));
-            }
-            Event::Cnc(v) => {
-                let done = v["cnc"]["done"].as_bool().unwrap_or(false);
-                let programs = v["cnc"]["programs"].as_u64().unwrap_or(0) as u32;
-                if done && a.twin_programs_at_send == Some(programs) && a.cnc_done_at.is_none() {
-                    tracing::info!("follower mapping: the twin's CNC ended the program");
-                    a.cnc_done_at = Some(now);
-                }
-            }
-        }
-        None
     }
 
     /// End the mapping on a failure: nothing stored, the tracker's settings back.
-    fn fail(&mut self, msg: String, ctx: Ctx<'_>) {
+    fn fail(&mut self, msg: String, ctx: &mut Ctx) {
         let Some(a) = self.active.take() else {
             return;
         };
@@ -588,12 +518,13 @@ impl FollowerMapping {
     }
 
     /// `follower_map_stop`: end the mapping, nothing stored; the twin's program stopped.
-    pub(super) fn stop(&mut self, who: &str, ctx: Ctx<'_>) -> Result<serde_json::Value, String> {
+    fn stop(&mut self, who: &str, ctx: &mut Ctx) -> Result<serde_json::Value, String> {
         let Some(a) = self.active.take() else {
             return Err("no follower mapping is under way".into());
         };
         ctx.pipeline.tracker.set_settings(a.base);
-        self.stop_twin_program();
+        self.cnc.stop();
+        self.cnc.forget();
         self.remove_marker();
         let p = a.collector.progress();
         if let Some(v) = self.view.as_mut() {
@@ -610,62 +541,113 @@ impl FollowerMapping {
     }
 
     /// `follower_map_finish`: build the map now from the steps so far.
-    pub(super) fn finish(&mut self, who: &str, ctx: Ctx<'_>) -> Result<serde_json::Value, String> {
+    /// `follower_map_finish`: build the map now from the steps so far; the reply once it is
+    /// stored.
+    fn finish(&mut self, who: &str, reply: Reply, ctx: &mut Ctx) {
         if self.active.is_none() {
-            return Err("no follower mapping is under way".into());
+            return reply.send(Err("no follower mapping is under way".into()));
         }
-        self.stop_twin_program();
-        self.finish_with(
-            crate::util::clock::now(),
-            &format!("finished by {who}"),
-            ctx,
-        );
-        let v = self.status();
-        match v["state"].as_str() {
-            Some("failed") => Err(v["error"].as_str().unwrap_or("failed").to_string()),
-            _ => Ok(v),
-        }
+        self.cnc.stop();
+        self.cnc.forget();
+        self.finish_with(ctx.now, &format!("finished by {who}"), Some(reply), ctx);
     }
 
-    fn stop_twin_program(&self) {
-        if let Some(addr) = twin_addr(&self.cfg.cnc) {
-            tokio::spawn(async move {
-                if let Err(e) =
-                    super::core::twin_request(addr, serde_json::json!({"cmd": "cnc", "stop": true}))
-                        .await
-                {
-                    tracing::warn!("the twin's CNC was not stopped: {e}");
-                }
-            });
-        }
+    /// Where the mapping's programs go.
+    fn cnc_dir(&self) -> PathBuf {
+        self.cfg.state_dir.join("follower-maps")
     }
 
     fn remove_marker(&self) {
         let _ = std::fs::remove_file(self.cfg.state_dir.join(MARKER));
     }
 
-    /// Build, store and apply the map; the tracker gets its settings back either way.
-    fn finish_with(&mut self, now: Instant, how: &str, ctx: Ctx<'_>) {
+    /// Build the map and store it (off the loop); the tracker gets its settings back either
+    /// way. The map is put in use when the store has it (`stored`).
+    fn finish_with(&mut self, now: Instant, how: &str, reply: Option<Reply>, ctx: &mut Ctx) {
         let Some(a) = self.active.take() else {
+            if let Some(r) = reply {
+                r.send(Err("no follower mapping is under way".into()));
+            }
             return;
         };
         self.remove_marker();
         ctx.pipeline.tracker.set_settings(a.base);
-        let r = store_map(&a, now, ctx.store);
+        let elapsed_s = a.collector.elapsed(now).as_secs_f64();
+        let built = build_map(&a, now, ctx.cached.follower_map.as_ref());
+        let (stored, name) = match built {
+            Ok(b) => b,
+            Err(e) => {
+                return self.stored(
+                    Stored {
+                        how: how.to_string(),
+                        elapsed_s,
+                        record: Err(e),
+                        reply,
+                    },
+                    ctx,
+                );
+            }
+        };
+        let tx = self.tx.clone();
+        let how = how.to_string();
+        let job = ctx.store.try_call(move |s| {
+            let id = s.insert_stored_follower_map(&stored, &name, true)?;
+            s.follower_map(id)
+        });
+        match job {
+            Ok(done) => {
+                self.storing = true;
+                if let Some(v) = self.view.as_mut() {
+                    v.state = "finishing".into();
+                }
+                tokio::spawn(async move {
+                    let record = match done.await {
+                        Ok(Ok(r)) => Ok(r),
+                        Ok(Err(e)) => Err(format!("the map was not stored: {e}")),
+                        Err(e) => Err(format!("the map was not stored: {e}")),
+                    };
+                    let _ = tx
+                        .send(Stored {
+                            how,
+                            elapsed_s,
+                            record,
+                            reply,
+                        })
+                        .await;
+                });
+            }
+            Err(e) => self.stored(
+                Stored {
+                    how,
+                    elapsed_s,
+                    record: Err(format!("the map was not stored: {e}")),
+                    reply,
+                },
+                ctx,
+            ),
+        }
+    }
+
+    /// The map stored: in use in the tracker, in the cache and the snapshot, the zero taken
+    /// again; or why there is none.
+    fn stored(&mut self, st: Stored, ctx: &mut Ctx) {
+        self.storing = false;
         let Some(v) = self.view.as_mut() else {
             return;
         };
-        v.elapsed_s = a.collector.elapsed(now).as_secs_f64();
+        v.elapsed_s = st.elapsed_s;
         v.left_s = 0.0;
-        match r {
+        match st.record {
             Ok(rec) => {
                 ctx.pipeline
                     .tracker
                     .set_map(Some(Arc::new(rec.map.clone())));
-                *ctx.shown = Some(super::follower::view(&rec));
-                // The stitch has moved on by the follower's steps: the zero again, here.
-                let zero = ctx.pipeline.begin_zero(now, ctx.zero_window);
-                v.state = "done".into();
+                *ctx.shown = Some(crate::service::follower::view(&rec));
+                // The stitch has moved on by the follower's steps: the zero again, here. The
+                // mapping is done once it is taken.
+                let zero = ctx.pipeline.begin_zero(ctx.now, ctx.zero_window());
+                self.zeroing = zero;
+                v.state = if zero { "finishing" } else { "done" }.into();
                 v.map_id = Some(rec.id);
                 v.summary = rec.map.summary();
                 v.error = (!zero).then(|| {
@@ -673,15 +655,36 @@ impl FollowerMapping {
                 });
                 tracing::info!(
                     id = rec.id,
-                    "follower mapping {how}: map stored and in use, the zero taken again"
+                    "follower mapping {}: map stored and in use, the zero taken again",
+                    st.how
                 );
+                ctx.cached.follower_map = Some(rec);
             }
             Err(e) => {
-                let msg = format!("{how}, but no map was built: {e}; the map in use is unchanged");
+                let msg = format!(
+                    "{}, but no map was built: {e}; the map in use is unchanged",
+                    st.how
+                );
                 ctx.pipeline.alarms.raise("mapping-failed", msg.clone());
                 v.state = "failed".into();
                 v.error = Some(msg);
             }
+        }
+        self.owed = st.reply;
+        self.answer_owed();
+    }
+
+    /// The reply owed to `follower_map_finish`, once the mapping is done (or failed).
+    fn answer_owed(&mut self) {
+        if self.storing || self.zeroing {
+            return;
+        }
+        if let Some(r) = self.owed.take() {
+            let v = self.status();
+            r.send(match v["state"].as_str() {
+                Some("failed") => Err(v["error"].as_str().unwrap_or("failed").to_string()),
+                _ => Ok(v),
+            });
         }
     }
 }
@@ -713,18 +716,17 @@ fn program_stops(plan: &Plan) -> Vec<(f64, Option<String>)> {
     out
 }
 
-/// The map from the collected steps and the certificate, stored and put in use.
-fn store_map(
+/// The map from the collected steps and the certificate (given, or the one kept with the
+/// map in use), as it is stored (with its steps: a level's stations fit them again later),
+/// and its name.
+fn build_map(
     a: &Active,
     now: Instant,
-    store: &mut Store,
-) -> Result<crate::store::FollowerMapRecord, String> {
+    in_use: Option<&FollowerMapRecord>,
+) -> Result<(crate::follower::StoredMap, String), String> {
     let certificate = match &a.certificate {
         CertificateFrom::Given(c) => Some(c.clone()),
-        CertificateFrom::InUse => store
-            .follower_map_in_use()
-            .map_err(|e| format!("the map in use cannot be read for its certificate: {e}"))?
-            .and_then(|r| r.certificate),
+        CertificateFrom::InUse => in_use.and_then(|r| r.certificate.clone()),
     };
     let map = a
         .collector
@@ -741,7 +743,6 @@ fn store_map(
             .map(|c| format!(" + {}", c.name))
             .unwrap_or_default()
     );
-    // The steps are kept with the map: a level's stations fit them again later.
     let stored = crate::follower::StoredMap {
         map,
         certificate,
@@ -750,8 +751,59 @@ fn store_map(
             steps: a.collector.steps().to_vec(),
         }),
     };
-    let id = store
-        .insert_stored_follower_map(&stored, &name, true)
-        .map_err(|e| format!("the map was not stored: {e}"))?;
-    store.follower_map(id).map_err(|e| e.to_string())
+    Ok((stored, name))
+}
+
+impl Procedure for FollowerMapping {
+    fn name(&self) -> &'static str {
+        "the follower mapping"
+    }
+
+    fn takes(&self, req: &Request) -> bool {
+        matches!(
+            req,
+            Request::FollowerMapStart(_)
+                | Request::FollowerMapStatus
+                | Request::FollowerMapStop
+                | Request::FollowerMapFinish
+        )
+    }
+
+    fn starts(&self, req: &Request) -> bool {
+        matches!(req, Request::FollowerMapStart(_))
+    }
+
+    fn holds_machine(&self) -> bool {
+        self.active.is_some() || self.storing || self.zeroing
+    }
+
+    fn busy(&self, what: &str) -> String {
+        format!(
+            "the follower mapping is under way (its part program moves the carriage): stop it with follower_map_stop (axiscomp follower map --stop, or m on the console's Align screen) or let it finish, then {what}"
+        )
+    }
+
+    fn request(&mut self, req: Request, who: &Who, reply: Reply, ctx: &mut Ctx) {
+        match req {
+            Request::FollowerMapStart(m) => self.start(m, &who.user, reply, ctx),
+            Request::FollowerMapStatus => reply.send(Ok(self.status())),
+            Request::FollowerMapStop => reply.send(self.stop(&who.user, ctx)),
+            Request::FollowerMapFinish => self.finish(&who.user, reply, ctx),
+            _ => reply.send(Err("internal: not a follower mapping request".into())),
+        }
+    }
+
+    fn on_output(&mut self, out: &Output, ctx: &mut Ctx) {
+        if let Output::Handover(r) = out {
+            self.handle_record(r, ctx.pipeline);
+        }
+    }
+
+    fn tick(&mut self, ctx: &mut Ctx) {
+        self.advance(ctx);
+    }
+
+    fn show(&self, snap: &mut Snapshot, _pipeline: &Pipeline) {
+        snap.follower_mapping = self.view();
+    }
 }

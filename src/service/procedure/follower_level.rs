@@ -27,14 +27,15 @@
 //! follower mapping refuse to start under it, and it under them. Not resumed after a
 //! restart (nothing is stored until the end).
 
-use super::api::{LevelRequest, LevelView, StationView};
-use super::follower_map::Ctx;
+use super::{Ctx, Procedure, Reply, Who};
 use crate::config::{CncMode, LevelSource};
 use crate::follower::{FollowerMap, LevelStation, StoredMap, StoredSteps, VerticalReference};
 use crate::run::Dialect;
+use crate::service::api::{LevelRequest, LevelView, Request, Snapshot, StationView};
+use crate::service::cnc::{CncDriver, CncNews};
+use crate::service::pipeline::Pipeline;
 use crate::store::FollowerMapRecord;
 use crate::units::RAD_PER_ARCSEC;
-use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -71,41 +72,27 @@ pub struct LevelConfig {
     pub sync: Duration,
 }
 
-/// What else moves the machine now.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Busy {
-    pub run: Option<i64>,
-    pub hexapod: bool,
-    pub mapping: bool,
-}
-
-impl Busy {
-    fn refusal(self) -> Option<String> {
-        if let Some(id) = self.run {
-            return Some(format!(
-                "measurement run {id} is under way (it moves the carriage): abort it with run_abort or let it finish, then read the level's stations"
-            ));
-        }
-        if self.hexapod {
-            return Some("a hexapod calibration run is under way (it moves the head): stop it with hexapod_stop or let it finish, then read the level's stations".into());
-        }
-        self.mapping.then(|| "the follower mapping is under way (it moves the carriage): stop it with follower_map_stop or let it finish, then read the level's stations".into())
-    }
-}
-
 /// Results of the stations' own asynchronous work.
 #[derive(Debug)]
 enum Event {
-    /// The program was (or was not) taken by the twin; its program count after.
-    Delivered(Result<u32, String>),
-    /// The twin CNC's state.
-    Cnc(serde_json::Value),
     /// The twin level's reading `k` (rad) of visit `visit`.
     Level {
         visit: u64,
         k: usize,
         roll: Result<f64, String>,
     },
+    /// The map fitted with the stations stored (or not): how they ended, the missed
+    /// stations, the reply owed.
+    Stored(Box<Stored>),
+}
+
+/// The map fitted with the stations stored (or not).
+#[derive(Debug)]
+struct Stored {
+    how: String,
+    missed: Vec<String>,
+    record: Result<FollowerMapRecord, String>,
+    reply: Option<Reply>,
 }
 
 /// The head read at a station, waiting for the level (or being read).
@@ -152,9 +139,7 @@ struct Active {
     /// stations taken or to stop (a map from fewer stations than planned is not put in use
     /// unasked).
     incomplete: bool,
-    twin_programs_at_send: Option<u32>,
     cnc_done_at: Option<Instant>,
-    last_cnc_poll: Option<Instant>,
 }
 
 /// How the stations' programs move the carriage.
@@ -166,20 +151,18 @@ struct Program {
 }
 
 /// The service's level stations: at most one at a time, and the last one's outcome.
-#[derive(Debug)]
 pub struct FollowerLevel {
     cfg: LevelConfig,
     active: Option<Active>,
     view: Option<LevelView>,
-    tx: mpsc::UnboundedSender<Event>,
-    rx: mpsc::UnboundedReceiver<Event>,
-}
-
-fn twin_addr(cnc: &CncMode) -> Option<SocketAddr> {
-    match cnc {
-        CncMode::Twin(a) => Some(*a),
-        CncMode::Manual => None,
-    }
+    cnc: CncDriver,
+    /// The map fitted with the stations is being stored, or the zero taken again with it.
+    storing: bool,
+    zeroing: bool,
+    /// The reply owed to `follower_level_finish`, sent once the stations are done.
+    owed: Option<Reply>,
+    tx: mpsc::Sender<Event>,
+    rx: mpsc::Receiver<Event>,
 }
 
 /// A level's reading typed by the operator (`arcsec`): a finite number within
@@ -214,11 +197,15 @@ fn u_mid_um(map: &FollowerMap) -> Option<f64> {
 
 impl FollowerLevel {
     pub fn new(cfg: LevelConfig) -> FollowerLevel {
-        let (tx, rx) = mpsc::unbounded_channel();
+        let (tx, rx) = mpsc::channel(64);
         FollowerLevel {
+            cnc: CncDriver::new(cfg.cnc.clone()),
             cfg,
             active: None,
             view: None,
+            storing: false,
+            zeroing: false,
+            owed: None,
             tx,
             rx,
         }
@@ -227,15 +214,6 @@ impl FollowerLevel {
     /// Whether the stations are under way.
     pub fn active(&self) -> bool {
         self.active.is_some()
-    }
-
-    /// Why a run, a hexapod run or a mapping cannot start now (`None`: it may).
-    pub fn refusal(&self, what: &str) -> Option<String> {
-        self.active.as_ref().map(|_| {
-            format!(
-                "the follower's level stations are under way (the carriage rests at each): stop them with follower_level_stop (axiscomp follower level --stop, or l on the console's Align screen) or let them finish, then {what}"
-            )
-        })
     }
 
     /// The stations as the snapshot shows them (none before the first since the start).
@@ -268,7 +246,7 @@ impl FollowerLevel {
     }
 
     /// The dwell at each station (s, rounded up to 0.1 s) and what it is made of.
-    fn dwell(&self, readings: usize, frames_per_s: f64, ctx: &Ctx<'_>) -> (f64, String) {
+    fn dwell(&self, readings: usize, frames_per_s: f64, ctx: &Ctx) -> (f64, String) {
         let t = ctx.pipeline.tracker.settings();
         let configured = if self.cfg.frame_rate_hz > 0.0 {
             self.cfg.frame_rate_hz
@@ -307,42 +285,31 @@ impl FollowerLevel {
         (dwell, text)
     }
 
-    /// A level request (the core hands over every `follower_level_*`).
-    pub(super) fn request(
-        &mut self,
-        req: super::api::Request,
-        who: &str,
-        busy: Busy,
-        ctx: Ctx<'_>,
-    ) -> Result<serde_json::Value, String> {
-        use super::api::Request as R;
-        match req {
-            R::FollowerLevelStart(r) => self.start(r, who, busy, ctx),
-            R::FollowerLevelStatus => Ok(self.status()),
-            R::FollowerLevelReading { arcsec } => self.typed(&arcsec, who),
-            R::FollowerLevelStop => self.stop(who, ctx),
-            R::FollowerLevelFinish => self.finish(who, ctx),
-            _ => Err("internal: not a follower level request".into()),
+    fn start(&mut self, req: LevelRequest, who: &str, reply: Reply, ctx: &mut Ctx) {
+        match self.prepare(req, who, ctx) {
+            Ok((file, text, dialect, axis, answer)) => {
+                self.cnc
+                    .deliver(file, text, dialect, &axis, Some((reply, answer)))
+            }
+            Err(e) => reply.send(Err(e)),
         }
     }
 
-    fn start(
+    /// Everything a start checks and sets up: the program's file and text, its dialect and
+    /// axis, and the answer.
+    fn prepare(
         &mut self,
         req: LevelRequest,
         who: &str,
-        busy: Busy,
-        ctx: Ctx<'_>,
-    ) -> Result<serde_json::Value, String> {
-        if self.active.is_some() {
+        ctx: &mut Ctx,
+    ) -> Result<(PathBuf, String, Dialect, String, serde_json::Value), String> {
+        if self.active.is_some() || self.storing || self.zeroing {
             return Err("the follower's level stations are under way: stop them (follower_level_stop) or let them finish first".into());
         }
-        if let Some(why) = busy.refusal() {
-            return Err(why);
-        }
         let rec = ctx
-            .store
-            .follower_map_in_use()
-            .map_err(|e| format!("the map in use cannot be read: {e}"))?
+            .cached
+            .follower_map
+            .clone()
             .ok_or("map the follower first: no follower map is in use, and the level's stations are fitted with the self-calibration's steps (axiscomp follower map, or m on the console's Align screen)")?;
         let Some(steps) = rec.steps.clone() else {
             return Err(format!(
@@ -419,12 +386,11 @@ impl FollowerLevel {
             })?,
             None => self.cfg.dialect,
         };
-        let twin = twin_addr(&self.cfg.cnc);
-        if twin.is_some() && !matches!(dialect, Dialect::Iso | Dialect::LinuxCnc) {
+        if self.cnc.twin().is_some() && !matches!(dialect, Dialect::Iso | Dialect::LinuxCnc) {
             return Err("the twin's CNC runs iso or linuxcnc programs".into());
         }
         let stations = crate::follower::level::stations((from_mm, to_mm), station_mm);
-        let (dwell, dwell_text) = self.dwell(readings, ctx.frames_per_s, &ctx);
+        let (dwell, dwell_text) = self.dwell(readings, ctx.frames_per_s, ctx);
         let started_us = crate::store::now_us();
         let started = crate::util::time::rfc3339(started_us.div_euclid(1_000_000));
         let title = format!(
@@ -442,7 +408,8 @@ impl FollowerLevel {
             dialect,
             feed,
         };
-        let (file, cnc) =
+        let prog_axis = axis.clone();
+        let (file, cnc, text) =
             self.program(&prog, &stops, dwell, &title, &format!("level-{started_us}"))?;
         let (level, instrument) = self.instrument();
         let view = LevelView {
@@ -505,16 +472,14 @@ impl FollowerLevel {
             dwell_s: dwell,
             again: false,
             incomplete: false,
-            twin_programs_at_send: None,
             cnc_done_at: None,
-            last_cnc_poll: None,
         });
         self.refresh(crate::util::clock::now());
-        Ok(self.status())
+        Ok((file, text, dialect, prog_axis, self.status()))
     }
 
-    /// The stations' part program written to the state directory (`name`) and, with the twin's
-    /// CNC, sent to it: the file and where it went.
+    /// The stations' part program: its file in the state directory (`name`), where it goes
+    /// (in words) and its text.
     fn program(
         &self,
         p: &Program,
@@ -522,43 +487,22 @@ impl FollowerLevel {
         dwell: f64,
         title: &str,
         name: &str,
-    ) -> Result<(PathBuf, String), String> {
+    ) -> Result<(PathBuf, String, String), String> {
         let text =
             crate::run::program::generate_stops(&p.axis, stops, p.feed, dwell, title, p.dialect);
         let dir = self.cfg.state_dir.join("follower-maps");
-        let file = dir.join(format!("{name}.{}", p.dialect.extension()));
-        std::fs::create_dir_all(&dir)
-            .and_then(|()| std::fs::write(&file, &text))
-            .map_err(|e| format!("cannot write the program {}: {e}", file.display()))?;
-        let cnc = match twin_addr(&self.cfg.cnc) {
-            Some(addr) => {
-                let dialect = if p.dialect == Dialect::LinuxCnc {
-                    "linuxcnc"
-                } else {
-                    "iso"
-                };
-                let req = serde_json::json!({"cmd": "program", "dialect": dialect, "axis": p.axis, "text": text});
-                let tx = self.tx.clone();
-                tokio::spawn(async move {
-                    let r = match super::core::twin_request(addr, req).await {
-                        Ok(_) => super::core::twin_request(addr, serde_json::json!({"cmd": "cnc"}))
-                            .await
-                            .map(|v| v["cnc"]["programs"].as_u64().unwrap_or(0) as u32),
-                        Err(e) => Err(e),
-                    };
-                    let _ = tx.send(Event::Delivered(r));
-                });
-                format!("sent to the twin's CNC at {addr}")
-            }
+        let (file, cnc) = self.cnc.program_file(&dir, name, p.dialect)?;
+        let cnc = match self.cnc.twin() {
+            Some(_) => cnc,
             None => "load the program on the CNC and start it (or bring the carriage to each station and let it rest)".into(),
         };
-        Ok((file, cnc))
+        Ok((file, cnc, text))
     }
 
     /// The twin's program ended with stations missed (a loaded host, a reading the carriage
     /// left): once, the missed ones again with twice the dwell. `false`: not sent (already
     /// done once, or the program could not be written).
-    fn again(&mut self, now: Instant) -> bool {
+    fn again(&mut self) -> bool {
         let Some(a) = self.active.as_ref().filter(|a| !a.again) else {
             return false;
         };
@@ -581,7 +525,12 @@ impl FollowerLevel {
             return false;
         };
         a.again = true;
-        let Ok((file, cnc)) = r else {
+        let Ok((file, cnc, text)) = r else {
+            return false;
+        };
+        let (dialect, axis) = (a.program.dialect, a.program.axis.clone());
+        self.cnc.deliver(file.clone(), text, dialect, &axis, None);
+        let Some(a) = self.active.as_mut() else {
             return false;
         };
         let at: Vec<String> = missed.iter().map(|(x, _)| format!("{x:.1}")).collect();
@@ -592,8 +541,6 @@ impl FollowerLevel {
         a.dwell_s = dwell;
         a.grace = Duration::from_secs_f64(dwell) + Duration::from_secs(2);
         a.cnc_done_at = None;
-        a.twin_programs_at_send = None;
-        a.last_cnc_poll = Some(now);
         if let Some(v) = self.view.as_mut() {
             v.dwell_s = dwell;
             v.program = file.display().to_string();
@@ -641,29 +588,42 @@ impl FollowerLevel {
     }
 
     /// Each tick: the twin's CNC and level heard, the station at rest read, the end judged.
-    pub(super) fn tick(&mut self, now: Instant, ctx: Ctx<'_>) {
+    fn advance(&mut self, ctx: &mut Ctx) {
+        let now = ctx.now;
         while let Ok(e) = self.rx.try_recv() {
-            if let Some(why) = self.handle_event(e, now) {
+            if let Some(why) = self.handle_event(e, ctx) {
                 self.fail(why, ctx);
                 return;
             }
         }
-        let Some(a) = self.active.as_mut() else {
-            return;
-        };
-        if let Some(addr) = twin_addr(&self.cfg.cnc)
-            && a.last_cnc_poll
-                .is_none_or(|t| now.saturating_duration_since(t) >= Duration::from_secs(1))
-        {
-            a.last_cnc_poll = Some(now);
-            let tx = self.tx.clone();
-            tokio::spawn(async move {
-                if let Ok(v) =
-                    super::core::twin_request(addr, serde_json::json!({"cmd": "cnc"})).await
-                {
-                    let _ = tx.send(Event::Cnc(v));
+        if self.zeroing && !ctx.pipeline.zero_pending() {
+            self.zeroing = false;
+            if let Some(v) = self.view.as_mut() {
+                v.state = "done".into();
+            }
+            self.answer_owed();
+        }
+        for news in self.cnc.poll(now) {
+            match news {
+                CncNews::Refused(e) => {
+                    return self.fail(
+                        format!(
+                            "the twin's CNC did not take the program ({e}): no station was read, the map in use is unchanged"
+                        ),
+                        ctx,
+                    );
                 }
-            });
+                CncNews::Ended => {
+                    if let Some(a) = self.active.as_mut()
+                        && a.cnc_done_at.is_none()
+                    {
+                        a.cnc_done_at = Some(now);
+                    }
+                }
+            }
+        }
+        if self.active.is_none() {
+            return;
         }
         if let Err(why) = self.read(now, ctx.pipeline)
             && let Some(v) = self.view.as_mut()
@@ -681,14 +641,14 @@ impl FollowerLevel {
             .is_some_and(|t| now.saturating_duration_since(t) >= a.grace)
             && a.reading.is_none();
         if all {
-            self.finish_with(now, "every station taken", ctx);
-        } else if ended && !a.incomplete && !self.again(now) {
+            self.finish_with(now, "every station taken", None, ctx);
+        } else if ended && !a.incomplete && !self.again() {
             self.incomplete();
         }
     }
 
     /// The station at rest: start it, take the head's next reading, ask the twin's level.
-    fn read(&mut self, now: Instant, p: &mut super::pipeline::Pipeline) -> Result<(), String> {
+    fn read(&mut self, now: Instant, p: &mut Pipeline) -> Result<(), String> {
         let Some(a) = self.active.as_mut() else {
             return Ok(());
         };
@@ -742,15 +702,16 @@ impl FollowerLevel {
         if let LevelSource::Twin(addr) = self.cfg.source {
             let (tx, visit) = (self.tx.clone(), r.visit);
             tokio::spawn(async move {
-                let roll = super::core::twin_request(addr, serde_json::json!({"cmd": "level"}))
-                    .await
-                    .and_then(|v| {
-                        v["level"]["roll_arcsec"]
-                            .as_f64()
-                            .map(|x| x * RAD_PER_ARCSEC)
-                            .ok_or_else(|| format!("the twin's level answered {v}"))
-                    });
-                let _ = tx.send(Event::Level { visit, k, roll });
+                let roll =
+                    crate::service::cnc::twin_request(addr, serde_json::json!({"cmd": "level"}))
+                        .await
+                        .and_then(|v| {
+                            v["level"]["roll_arcsec"]
+                                .as_f64()
+                                .map(|x| x * RAD_PER_ARCSEC)
+                                .ok_or_else(|| format!("the twin's level answered {v}"))
+                        });
+                let _ = tx.send(Event::Level { visit, k, roll }).await;
             });
         }
         if r.head.len() < a.readings {
@@ -889,7 +850,7 @@ impl FollowerLevel {
                 a.readings
             ),
             None => match a.taken.iter().position(Option::is_none) {
-                Some(k) if twin_addr(&self.cfg.cnc).is_some() => format!(
+                Some(k) if self.cnc.twin().is_some() => format!(
                     "the twin's CNC brings the carriage to the stations (next {:.1} mm)",
                     a.stations[k]
                 ),
@@ -903,60 +864,43 @@ impl FollowerLevel {
     }
 
     /// The outcome of the stations' asynchronous work; a failure to report.
-    fn handle_event(&mut self, e: Event, now: Instant) -> Option<String> {
-        let a = self.active.as_mut()?;
+    fn handle_event(&mut self, e: Event, ctx: &mut Ctx) -> Option<String> {
         match e {
-            Event::Delivered(Ok(n)) => a.twin_programs_at_send = Some(n),
-            Event::Delivered(Err(e)) => {
-                return Some(format!(
-                    "the twin's CNC did not take the program ({e}): no station was read, the map in use is unchanged"
-                ));
-            }
-            Event::Cnc(v) => {
-                let done = v["cnc"]["done"].as_bool().unwrap_or(false);
-                let programs = v["cnc"]["programs"].as_u64().unwrap_or(0) as u32;
-                if done && a.twin_programs_at_send == Some(programs) && a.cnc_done_at.is_none() {
-                    a.cnc_done_at = Some(now);
-                }
+            Event::Stored(st) => {
+                let Stored {
+                    how,
+                    missed,
+                    record,
+                    reply,
+                } = *st;
+                self.stored(&how, &missed, record, reply, ctx);
+                None
             }
             Event::Level { visit, k, roll } => {
+                let a = self.active.as_mut()?;
                 let r = a.reading.as_mut().filter(|r| r.visit == visit)?;
                 match roll {
                     Ok(x) => {
                         if let Some(slot) = r.level.get_mut(k) {
                             *slot = Some(x);
                         }
+                        None
                     }
-                    Err(e) => {
-                        return Some(format!(
-                            "the twin's level did not answer ({e}): nothing was stored, the map in use is unchanged"
-                        ));
-                    }
+                    Err(e) => Some(format!(
+                        "the twin's level did not answer ({e}): nothing was stored, the map in use is unchanged"
+                    )),
                 }
             }
-        }
-        None
-    }
-
-    fn stop_twin_program(&self) {
-        if let Some(addr) = twin_addr(&self.cfg.cnc) {
-            tokio::spawn(async move {
-                if let Err(e) =
-                    super::core::twin_request(addr, serde_json::json!({"cmd": "cnc", "stop": true}))
-                        .await
-                {
-                    tracing::warn!("the twin's CNC was not stopped: {e}");
-                }
-            });
         }
     }
 
     /// End on a failure: nothing stored.
-    fn fail(&mut self, msg: String, ctx: Ctx<'_>) {
+    fn fail(&mut self, msg: String, ctx: &mut Ctx) {
         if self.active.take().is_none() {
             return;
         }
-        self.stop_twin_program();
+        self.cnc.stop();
+        self.cnc.forget();
         ctx.pipeline.alarms.raise("level-failed", msg.clone());
         if let Some(v) = self.view.as_mut() {
             v.state = "failed".into();
@@ -965,12 +909,12 @@ impl FollowerLevel {
     }
 
     /// `follower_level_stop`: nothing stored; the twin's program stopped.
-    fn stop(&mut self, who: &str, ctx: Ctx<'_>) -> Result<serde_json::Value, String> {
+    fn stop(&mut self, who: &str) -> Result<serde_json::Value, String> {
         let Some(a) = self.active.take() else {
             return Err("no level stations are under way".into());
         };
-        self.stop_twin_program();
-        let _ = ctx;
+        self.cnc.stop();
+        self.cnc.forget();
         if let Some(v) = self.view.as_mut() {
             v.state = "stopped".into();
             v.current = None;
@@ -1014,87 +958,148 @@ impl FollowerLevel {
     }
 
     /// `follower_level_finish`: fit the map now with the stations taken.
-    fn finish(&mut self, who: &str, ctx: Ctx<'_>) -> Result<serde_json::Value, String> {
+    fn finish(&mut self, who: &str, reply: Reply, ctx: &mut Ctx) {
         if self.active.is_none() {
-            return Err("no level stations are under way".into());
+            return reply.send(Err("no level stations are under way".into()));
         }
-        self.stop_twin_program();
-        self.finish_with(
-            crate::util::clock::now(),
-            &format!("finished by {who}"),
-            ctx,
-        );
-        let v = self.status();
-        match v["state"].as_str() {
-            Some("failed") => Err(v["error"].as_str().unwrap_or("failed").to_string()),
-            _ => Ok(v),
-        }
+        self.cnc.stop();
+        self.cnc.forget();
+        self.finish_with(ctx.now, &format!("finished by {who}"), Some(reply), ctx);
     }
 
-    /// Fit, store and apply the map with the stations taken.
-    fn finish_with(&mut self, now: Instant, how: &str, ctx: Ctx<'_>) {
+    /// Fit the map with the stations taken and store it (off the loop); it is put in use when
+    /// the store has it (`stored`).
+    fn finish_with(&mut self, now: Instant, how: &str, reply: Option<Reply>, ctx: &mut Ctx) {
         self.refresh(now);
         let Some(a) = self.active.take() else {
+            if let Some(r) = reply {
+                r.send(Err("no level stations are under way".into()));
+            }
             return;
         };
-        let r = self.store_map(&a, ctx.store);
-        let Some(v) = self.view.as_mut() else {
-            return;
+        if let Some(v) = self.view.as_mut() {
+            v.current = None;
+            v.awaiting_reading = None;
+            v.prompt = String::new();
+        }
+        let missed: Vec<String> = a
+            .stations
+            .iter()
+            .zip(&a.taken)
+            .filter(|(_, t)| t.is_none())
+            .map(|(x, _)| format!("{x:.1}"))
+            .collect();
+        let (stored, name) = match self.fit(&a) {
+            Ok(f) => f,
+            Err(e) => return self.stored(how, &missed, Err(e), reply, ctx),
         };
-        v.current = None;
-        v.awaiting_reading = None;
-        v.prompt = String::new();
-        match r {
-            Ok(rec) => {
-                ctx.pipeline
-                    .tracker
-                    .set_map(Some(Arc::new(rec.map.clone())));
-                *ctx.shown = Some(super::follower::view(&rec));
-                // The map in tracking changed: the zero again, here.
-                let zero = ctx.pipeline.begin_zero(now, ctx.zero_window);
-                let missed: Vec<String> = a
-                    .stations
-                    .iter()
-                    .zip(&a.taken)
-                    .filter(|(_, t)| t.is_none())
-                    .map(|(x, _)| format!("{x:.1}"))
-                    .collect();
-                v.state = "done".into();
-                v.map_id = Some(rec.id);
-                v.summary = rec.map.summary();
-                v.u_mid_level_um = u_mid_um(&rec.map);
-                let mut notes = Vec::new();
-                if !missed.is_empty() {
-                    notes.push(format!(
-                        "the stations at {} mm were not taken (the carriage did not rest there long enough)",
-                        missed.join(", ")
-                    ));
-                }
-                if !zero {
-                    notes.push("the zero could not be taken again (the follower's position is not known): take it before measuring".to_string());
-                }
-                v.error = (!notes.is_empty()).then(|| notes.join("; "));
-                tracing::info!(
-                    id = rec.id,
-                    "follower level stations {how}: map stored and in use, the zero taken again"
-                );
+        let (tx, how) = (self.tx.clone(), how.to_string());
+        let job = ctx.store.try_call(move |s| {
+            let id = s.insert_stored_follower_map(&stored, &name, true)?;
+            s.follower_map(id)
+        });
+        match job {
+            Ok(done) => {
+                self.storing = true;
+                tokio::spawn(async move {
+                    let record = match done.await {
+                        Ok(Ok(r)) => Ok(r),
+                        Ok(Err(e)) => Err(format!("the map was not stored: {e}")),
+                        Err(e) => Err(format!("the map was not stored: {e}")),
+                    };
+                    let _ = tx
+                        .send(Event::Stored(Box::new(Stored {
+                            how,
+                            missed,
+                            record,
+                            reply,
+                        })))
+                        .await;
+                });
             }
-            Err(e) => {
-                let msg = format!("{how}, but no map was fitted: {e}; the map in use is unchanged");
-                ctx.pipeline.alarms.raise("level-failed", msg.clone());
-                v.state = "failed".into();
-                v.error = Some(msg);
-            }
+            Err(e) => self.stored(
+                &how,
+                &missed,
+                Err(format!("the map was not stored: {e}")),
+                reply,
+                ctx,
+            ),
         }
     }
 
-    /// The map fitted with the stations, stored (with the same certificate and steps) and
-    /// put in use.
-    fn store_map(
-        &self,
-        a: &Active,
-        store: &mut crate::store::Store,
-    ) -> Result<FollowerMapRecord, String> {
+    /// The map stored: in use in the tracker, the cache and the snapshot, the zero taken
+    /// again; or why there is none.
+    fn stored(
+        &mut self,
+        how: &str,
+        missed: &[String],
+        record: Result<FollowerMapRecord, String>,
+        reply: Option<Reply>,
+        ctx: &mut Ctx,
+    ) {
+        self.storing = false;
+        if let Some(v) = self.view.as_mut() {
+            match record {
+                Ok(rec) => {
+                    ctx.pipeline
+                        .tracker
+                        .set_map(Some(Arc::new(rec.map.clone())));
+                    *ctx.shown = Some(crate::service::follower::view(&rec));
+                    // The map in tracking changed: the zero again, here. The stations are done
+                    // once it is taken.
+                    let zero = ctx.pipeline.begin_zero(ctx.now, ctx.zero_window());
+                    self.zeroing = zero;
+                    v.state = if zero { "finishing" } else { "done" }.into();
+                    v.map_id = Some(rec.id);
+                    v.summary = rec.map.summary();
+                    v.u_mid_level_um = u_mid_um(&rec.map);
+                    let mut notes = Vec::new();
+                    if !missed.is_empty() {
+                        notes.push(format!(
+                            "the stations at {} mm were not taken (the carriage did not rest there long enough)",
+                            missed.join(", ")
+                        ));
+                    }
+                    if !zero {
+                        notes.push("the zero could not be taken again (the follower's position is not known): take it before measuring".to_string());
+                    }
+                    v.error = (!notes.is_empty()).then(|| notes.join("; "));
+                    tracing::info!(
+                        id = rec.id,
+                        "follower level stations {how}: map stored and in use, the zero taken again"
+                    );
+                    ctx.cached.follower_map = Some(rec);
+                }
+                Err(e) => {
+                    let msg =
+                        format!("{how}, but no map was fitted: {e}; the map in use is unchanged");
+                    ctx.pipeline.alarms.raise("level-failed", msg.clone());
+                    v.state = "failed".into();
+                    v.error = Some(msg);
+                }
+            }
+        }
+        self.owed = reply;
+        self.answer_owed();
+    }
+
+    /// The reply owed to `follower_level_finish`, once the stations are done (or failed).
+    fn answer_owed(&mut self) {
+        if self.storing || self.zeroing {
+            return;
+        }
+        if let Some(r) = self.owed.take() {
+            let v = self.status();
+            r.send(match v["state"].as_str() {
+                Some("failed") => Err(v["error"].as_str().unwrap_or("failed").to_string()),
+                _ => Ok(v),
+            });
+        }
+    }
+
+    /// The map fitted with the stations, as it is stored (with the same certificate and
+    /// steps), and its name.
+    fn fit(&self, a: &Active) -> Result<(StoredMap, String), String> {
         let mut stations: Vec<LevelStation> = a.taken.iter().flatten().map(|t| t.station).collect();
         if stations.len() < 2 {
             return Err(format!(
@@ -1138,10 +1143,57 @@ impl FollowerLevel {
             certificate: a.source.certificate.clone(),
             steps: Some(a.steps.clone()),
         };
-        let id = store
-            .insert_stored_follower_map(&stored, &name, true)
-            .map_err(|e| format!("the map was not stored: {e}"))?;
-        store.follower_map(id).map_err(|e| e.to_string())
+        Ok((stored, name))
+    }
+}
+
+impl Procedure for FollowerLevel {
+    fn name(&self) -> &'static str {
+        "the follower's level stations"
+    }
+
+    fn takes(&self, req: &Request) -> bool {
+        matches!(
+            req,
+            Request::FollowerLevelStart(_)
+                | Request::FollowerLevelStatus
+                | Request::FollowerLevelReading { .. }
+                | Request::FollowerLevelStop
+                | Request::FollowerLevelFinish
+        )
+    }
+
+    fn starts(&self, req: &Request) -> bool {
+        matches!(req, Request::FollowerLevelStart(_))
+    }
+
+    fn holds_machine(&self) -> bool {
+        self.active.is_some() || self.storing || self.zeroing
+    }
+
+    fn busy(&self, what: &str) -> String {
+        format!(
+            "the follower's level stations are under way (the carriage rests at each): stop them with follower_level_stop (axiscomp follower level --stop, or l on the console's Align screen) or let them finish, then {what}"
+        )
+    }
+
+    fn request(&mut self, req: Request, who: &Who, reply: Reply, ctx: &mut Ctx) {
+        match req {
+            Request::FollowerLevelStart(r) => self.start(r, &who.user, reply, ctx),
+            Request::FollowerLevelStatus => reply.send(Ok(self.status())),
+            Request::FollowerLevelReading { arcsec } => reply.send(self.typed(&arcsec, &who.user)),
+            Request::FollowerLevelStop => reply.send(self.stop(&who.user)),
+            Request::FollowerLevelFinish => self.finish(&who.user, reply, ctx),
+            _ => reply.send(Err("internal: not a follower level request".into())),
+        }
+    }
+
+    fn tick(&mut self, ctx: &mut Ctx) {
+        self.advance(ctx);
+    }
+
+    fn show(&self, snap: &mut Snapshot, _pipeline: &Pipeline) {
+        snap.follower_level = self.view();
     }
 }
 
@@ -1165,23 +1217,5 @@ mod tests {
             e,
             "\"arcsec\" is 1000.5: give the level's reading within ±1000″"
         );
-    }
-
-    #[test]
-    fn busy_names_what_runs_and_how_to_end_it() {
-        let b = Busy {
-            run: Some(4),
-            ..Busy::default()
-        };
-        assert!(
-            b.refusal()
-                .is_some_and(|e| e.contains("measurement run 4") && e.contains("run_abort"))
-        );
-        let b = Busy {
-            mapping: true,
-            ..Busy::default()
-        };
-        assert!(b.refusal().is_some_and(|e| e.contains("follower_map_stop")));
-        assert_eq!(Busy::default().refusal(), None);
     }
 }

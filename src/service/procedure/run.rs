@@ -1,0 +1,708 @@
+//! The measurement run in the service (`run_start`, `run_status`, `run_abort`): the ISO 230-2
+//! cycle's part program to the CNC, the captures the pipeline takes stored as they come, the
+//! programs after it — the rest of the cycle after a pause, make-up passes for what is
+//! missing — from [`crate::run::session`] (the same logic the virtual-time lab runs), and a
+//! run found unfinished in the store at start resumed once the follower is ready.
+//!
+//! Nothing here waits for the disk: the run is created, its captures and its end stored
+//! through the store's queue. A capture the store does not take (locked past its busy
+//! timeout, a full disk) is kept and stored again every second, with the `store` alarm up
+//! until it is in; the run ends only once every capture is stored.
+
+use super::{Ctx, Procedure, Reply, Who};
+use crate::config::CncMode;
+use crate::evaluate::recorded::RecordedBudget;
+use crate::run::program::{CaptureMode, generate_settled};
+use crate::run::session::{Next, Program, Session};
+use crate::run::{Capture, CaptureSettings, Dialect, Plan, PlanSpec, RunMachine, TargetKey};
+use crate::service::api::snapshot::RunView;
+use crate::service::api::{Request, Snapshot};
+use crate::service::cnc::{CncDriver, CncNews};
+use crate::service::pipeline::{Output, Pipeline};
+use crate::store::{NewRun, RunId, RunState, StoreError};
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+use tokio::sync::mpsc;
+
+/// The acceleration the run's ETA assumes (mm/s²): a machine tool's axis at measuring feed
+/// is at speed within a millimetre or two, so the dwells and the feed set the time.
+const ETA_ACCEL_MM_S2: f64 = 500.0;
+
+/// A capture the store did not take is offered again after this long.
+const RETRY_EVERY: Duration = Duration::from_secs(1);
+
+/// A run found unfinished in the store at start, resumed once the follower is ready.
+#[derive(Debug)]
+pub struct Resume {
+    pub id: RunId,
+    pub plan: Plan,
+    /// The dialect the run was started with (its programs go on in it).
+    pub dialect: Dialect,
+    /// The captures stored.
+    pub done: BTreeSet<TargetKey>,
+    /// The programs already written for it (their numbers go on from there).
+    pub programs: u32,
+}
+
+/// What the service knows that a run needs.
+#[derive(Clone, Debug)]
+pub struct RunConfig {
+    pub capture: CaptureSettings,
+    /// The acquisition's frame rate (Hz; 0: as fast as the module answers).
+    pub rate_hz: f64,
+    pub dialect: Dialect,
+    pub cnc: CncMode,
+    pub state_dir: PathBuf,
+}
+
+/// News of the run's asynchronous work.
+enum News {
+    /// The store created a run (or could not).
+    Created(Box<Created>),
+    /// A capture went to the store: stored (or already there), or not.
+    Stored {
+        key: TargetKey,
+        result: Result<(), String>,
+    },
+}
+
+/// A run the store created (or could not): the reply owed, the plan, its dialect.
+struct Created {
+    reply: Reply,
+    plan: Plan,
+    dialect: Dialect,
+    id: Result<RunId, String>,
+}
+
+/// A run being measured.
+struct Active {
+    id: RunId,
+    dialect: Dialect,
+    session: Session,
+    cnc: CncDriver,
+    /// Where the last program went.
+    program: String,
+    /// Captures taken and not yet stored (the store's answer awaited, or to offer again).
+    unstored: BTreeMap<TargetKey, (Capture, bool)>,
+    /// When the captures the store refused are offered again.
+    retry_at: Option<Instant>,
+    /// The run machine has every capture: the run ends once they are stored.
+    complete: bool,
+    /// The program ended: what comes next is decided once every spot is back.
+    ended: bool,
+}
+
+/// The service's measurement run: at most one at a time.
+pub struct MeasurementRun {
+    cfg: RunConfig,
+    active: Option<Active>,
+    /// A start waits for the store to create its run.
+    starting: bool,
+    resume: Option<Resume>,
+    tx: mpsc::Sender<News>,
+    rx: mpsc::Receiver<News>,
+}
+
+impl MeasurementRun {
+    pub fn new(cfg: RunConfig, resume: Option<Resume>) -> MeasurementRun {
+        let (tx, rx) = mpsc::channel(64);
+        MeasurementRun {
+            cfg,
+            active: None,
+            starting: false,
+            resume,
+            tx,
+            rx,
+        }
+    }
+
+    /// `run_start`: checks on the loop; the run created by the store; then its program.
+    fn start(
+        &mut self,
+        spec: PlanSpec,
+        dialect: Option<String>,
+        notes: Option<String>,
+        who: &Who,
+        reply: Reply,
+        ctx: &mut Ctx,
+    ) {
+        if let Some(a) = &self.active {
+            return reply.send(Err(format!("run {} is under way: abort it first", a.id.0)));
+        }
+        if self.starting || self.resume.is_some() {
+            return reply.send(Err(
+                "a run is being started (or resumed): wait for it, then abort it first".into(),
+            ));
+        }
+        let r = self.prepare(spec, dialect, notes, who, ctx);
+        let (plan, dialect, new) = match r {
+            Ok(p) => p,
+            Err(e) => return reply.send(Err(e)),
+        };
+        let tx = self.tx.clone();
+        let job = ctx.store.try_call(move |s| -> Result<RunId, StoreError> {
+            let id = s.create_run(&new)?;
+            s.set_run_state(id, RunState::Running)?;
+            Ok(id)
+        });
+        match job {
+            Ok(done) => {
+                self.starting = true;
+                tokio::spawn(async move {
+                    let id = match done.await {
+                        Ok(r) => r.map_err(|e| e.to_string()),
+                        Err(e) => Err(e.to_string()),
+                    };
+                    let _ = tx
+                        .send(News::Created(Box::new(Created {
+                            reply,
+                            plan,
+                            dialect,
+                            id,
+                        })))
+                        .await;
+                });
+            }
+            Err(e) => reply.send(Err(format!("the run was not created: {e}"))),
+        }
+    }
+
+    /// Everything a start checks before the store is asked: the plan, the dwell, the beam
+    /// alignment, the dialect; the run's record.
+    fn prepare(
+        &self,
+        spec: PlanSpec,
+        dialect: Option<String>,
+        notes: Option<String>,
+        who: &Who,
+        ctx: &mut Ctx,
+    ) -> Result<(Plan, Dialect, NewRun), String> {
+        let capture = self.cfg.capture;
+        let plan = Plan::new(spec).map_err(|e| e.to_string())?;
+        if plan.spec.overrun_mm <= capture.target_tolerance_mm {
+            return Err(format!(
+                "the overrun ({} mm) must exceed capture.target_tolerance_mm ({} mm), or reversals look like targets",
+                plan.spec.overrun_mm, capture.target_tolerance_mm
+            ));
+        }
+        // At 0 Hz the module is read as fast as it answers: assume no less than 200 frames/s.
+        let rate = if self.cfg.rate_hz > 0.0 {
+            self.cfg.rate_hz
+        } else {
+            200.0
+        };
+        capture.check_dwell(&plan, rate)?;
+        let align = crate::service::align::AlignState::new(ctx.env.settings.align.clone());
+        align.pre_run_check(
+            ctx.cached.alignments.get(&plan.spec.axis),
+            &plan.spec.axis,
+            plan.travel_mm(),
+            crate::store::now_us(),
+        )?;
+        let dialect = match dialect {
+            Some(d) => Dialect::parse(&d).ok_or_else(|| {
+                format!("dialect \"{d}\": use iso, siemens, heidenhain or linuxcnc")
+            })?,
+            None => self.cfg.dialect,
+        };
+        if matches!(self.cfg.cnc, CncMode::Twin(_))
+            && !matches!(dialect, Dialect::Iso | Dialect::LinuxCnc)
+        {
+            return Err("the twin's CNC runs iso or linuxcnc programs".into());
+        }
+        let budget: RecordedBudget = crate::service::run_budget::record(
+            &crate::service::run_budget::AtStart {
+                calibrations: ctx.calibrations,
+                follower_map: ctx.shown.as_ref(),
+                encoder_mm: ctx.pipeline.follower_state().map(|f| f.position_mm),
+                carriage_mm: ctx.pipeline.measure.position(),
+                decoupler: ctx.pipeline.measure.decoupler(),
+            },
+            &plan,
+        );
+        let new = NewRun {
+            axis: plan.spec.axis.clone(),
+            plan: serde_json::to_value(&plan).map_err(|e| e.to_string())?,
+            config: serde_json::json!({
+                "capture": capture.to_json(),
+                "dialect": dialect.name(),
+                "budget": budget.to_json(),
+            }),
+            calibration: ctx.calibrations.active_id(),
+            notes: notes.unwrap_or_else(|| format!("started by {}", who.user)),
+        };
+        Ok((plan, dialect, new))
+    }
+
+    /// Start measuring `id` with `done` captures already stored (a resumed run: `resumed_at`
+    /// is where the follower holds the carriage's last position), and send the CNC its
+    /// first program; `then` is answered once it is written (and sent).
+    #[allow(clippy::too_many_arguments)]
+    fn begin(
+        &mut self,
+        id: RunId,
+        plan: Plan,
+        dialect: Dialect,
+        done: BTreeSet<TargetKey>,
+        resumed_at: Option<f64>,
+        programs: u32,
+        then: Option<(Reply, serde_json::Value)>,
+        ctx: &mut Ctx,
+    ) {
+        let machine = RunMachine::new(plan.clone(), self.cfg.capture, false, done.clone());
+        let mut session = Session::new(plan);
+        session.programs = programs;
+        let first = session.first(&done, resumed_at);
+        self.active = Some(Active {
+            id,
+            dialect,
+            session,
+            cnc: CncDriver::new(self.cfg.cnc.clone()),
+            program: String::new(),
+            unstored: BTreeMap::new(),
+            retry_at: None,
+            complete: false,
+            ended: false,
+        });
+        match resumed_at {
+            Some(_) => ctx.pipeline.resume_run(machine),
+            None => ctx.pipeline.start_run(machine),
+        }
+        match (first, then) {
+            (Some(p), then) => self.deliver(&p, then, ctx),
+            (None, Some((reply, answer))) => reply.send(Ok(answer)),
+            (None, None) => {}
+        }
+    }
+
+    /// Write (and with the twin's CNC send) program `p` of the active run; `then` is answered
+    /// once it is written (and sent).
+    fn deliver(&mut self, p: &Program, then: Option<(Reply, serde_json::Value)>, ctx: &mut Ctx) {
+        let Some(a) = self.active.as_mut() else {
+            return;
+        };
+        let mut plan = a.session.plan().clone();
+        plan.spec.dwell_s = p.dwell_s;
+        let text = match generate_settled(
+            &plan,
+            &p.steps,
+            &p.note,
+            a.dialect,
+            CaptureMode::Stability,
+            p.hold_s,
+        ) {
+            Ok(t) => t,
+            Err(e) => {
+                let why = format!("no program: {e}");
+                ctx.pipeline.alarms.raise("run", why.clone());
+                if let Some((reply, _)) = then {
+                    reply.send(Err(why));
+                }
+                return;
+            }
+        };
+        let dir = self.cfg.state_dir.join("runs").join(a.id.0.to_string());
+        let name = format!("program-{}", a.session.programs);
+        let file = match a.cnc.program_file(&dir, &name, a.dialect) {
+            Ok((file, _)) => file,
+            Err(e) => {
+                ctx.pipeline.alarms.raise("cnc", e.clone());
+                if let Some((reply, _)) = then {
+                    reply.send(Err(e));
+                }
+                return;
+            }
+        };
+        a.program = file.display().to_string();
+        let then = then.map(|(reply, mut answer)| {
+            answer["program"] = serde_json::json!(a.program);
+            (reply, answer)
+        });
+        a.cnc.deliver(file, text, a.dialect, &plan.spec.axis, then);
+    }
+
+    /// Store a capture through the queue; its answer comes back as news.
+    fn store_capture(&mut self, c: Capture, ctx: &mut Ctx) {
+        let Some(a) = self.active.as_mut() else {
+            return;
+        };
+        let (id, key, tx) = (a.id, TargetKey::of(&c), self.tx.clone());
+        a.unstored.insert(key, (c, true));
+        match ctx.store.try_call(move |s| s.insert_capture(id, &c)) {
+            Ok(done) => {
+                tokio::spawn(async move {
+                    let result = match done.await {
+                        Ok(Ok(_)) => Ok(()),
+                        Ok(Err(e)) => Err(e.to_string()),
+                        Err(e) => Err(e.to_string()),
+                    };
+                    let _ = tx.send(News::Stored { key, result }).await;
+                });
+            }
+            Err(e) => self.refused(key, &e.to_string(), ctx),
+        }
+    }
+
+    /// The store did not take capture `key`: kept, offered again in a second.
+    fn refused(&mut self, key: TargetKey, why: &str, ctx: &mut Ctx) {
+        let Some(a) = self.active.as_mut() else {
+            return;
+        };
+        if let Some(u) = a.unstored.get_mut(&key) {
+            u.1 = false;
+        }
+        a.retry_at.get_or_insert(ctx.now + RETRY_EVERY);
+        ctx.pipeline.alarms.raise(
+            "store",
+            format!(
+                "capture not stored: {why}; {} kept, stored again every {} s",
+                a.unstored.len(),
+                RETRY_EVERY.as_secs()
+            ),
+        );
+    }
+
+    /// End the active run in `state` (stored through the queue).
+    fn end(&mut self, state: RunState, why: &str, ctx: &mut Ctx) {
+        let Some(mut a) = self.active.take() else {
+            return;
+        };
+        a.cnc.forget();
+        let (id, note) = (a.id, why.to_string());
+        let failed = state == RunState::Failed;
+        let job = ctx.store.try_call(move |s| {
+            s.set_run_state(id, state)?;
+            if failed {
+                s.set_run_notes(id, &note)?;
+            }
+            Ok::<(), StoreError>(())
+        });
+        if let Err(e) = job {
+            ctx.pipeline
+                .alarms
+                .raise("store", format!("run {} state not stored: {e}", id.0));
+        }
+        if failed {
+            ctx.pipeline
+                .alarms
+                .raise("run-failed", format!("run {} failed: {why}", id.0));
+        } else {
+            ctx.pipeline.alarms.clear("run-failed");
+        }
+        tracing::info!(run = id.0, state = state.as_str(), "run ended: {why}");
+    }
+
+    /// The resumed run, once the follower is ready: the CNC first brings the carriage back
+    /// to the follower (which held its position while the service was down), where PSD2
+    /// finds the spot again, then goes on with the rest of the cycle.
+    fn try_resume(&mut self, ctx: &mut Ctx) {
+        if self.resume.is_none() {
+            return;
+        }
+        let Some(fs) = ctx.pipeline.follower_state().filter(|f| f.ready) else {
+            return;
+        };
+        let Some(r) = self.resume.take() else {
+            return;
+        };
+        tracing::info!(run = r.id.0, captured = r.done.len(), "resuming the run");
+        if crate::run::program::remaining_steps(&r.plan, &r.done).is_none() {
+            let (id, why) = (
+                r.id,
+                "nothing left to capture, yet the run was not finished".to_string(),
+            );
+            self.fail_record(id, &why, ctx);
+            return;
+        }
+        self.begin(
+            r.id,
+            r.plan,
+            r.dialect,
+            r.done,
+            Some(fs.position_mm),
+            r.programs,
+            None,
+            ctx,
+        );
+    }
+
+    /// Mark a stored run failed (one that cannot resume).
+    fn fail_record(&mut self, id: RunId, why: &str, ctx: &mut Ctx) {
+        let note = why.to_string();
+        let _ = ctx.store.try_call(move |s| {
+            s.set_run_state(id, RunState::Failed)?;
+            s.set_run_notes(id, &note)
+        });
+        ctx.pipeline
+            .alarms
+            .raise("run-failed", format!("run {} cannot resume: {why}", id.0));
+    }
+
+    /// `run_status`: while running, the plan's machine time (`plan_s`) and what is left of it
+    /// (`left_s`), for the ETA; else the newest stored run (read off the loop).
+    fn status(&self, reply: Reply, ctx: &mut Ctx) {
+        if let (Some(a), Some((done, total))) = (&self.active, ctx.pipeline.run_progress()) {
+            let plan = a.session.plan();
+            let plan_s = plan.motion_time_s(ETA_ACCEL_MM_S2);
+            let left_s = plan_s * total.saturating_sub(done) as f64 / total.max(1) as f64;
+            return reply.send(Ok(serde_json::json!({
+                "run_id": a.id.0, "state": "running", "captures": done, "expected": total,
+                "missing": ctx.pipeline.run_missing().map(|m| m.len()).unwrap_or(0),
+                "program": a.program,
+                "paused": ctx.pipeline.paused(),
+                "plan_s": plan_s,
+                "left_s": left_s,
+            })));
+        }
+        let store = ctx.store.clone();
+        tokio::spawn(async move {
+            let r = store
+                .call(|s| {
+                    let newest = s.list_runs()?.into_iter().max_by_key(|r| r.id.0);
+                    Ok::<_, StoreError>(match newest {
+                        Some(r) => serde_json::json!({
+                            "run_id": r.id.0, "state": r.state.as_str(),
+                            "captures": s.captures(r.id).map(|c| c.len()).unwrap_or(0),
+                            "notes": r.notes,
+                        }),
+                        None => serde_json::json!({"state": "none"}),
+                    })
+                })
+                .await;
+            reply.send(match r {
+                Ok(Ok(v)) => Ok(v),
+                Ok(Err(e)) => Err(e.to_string()),
+                Err(e) => Err(e.to_string()),
+            });
+        });
+    }
+
+    fn heard(&mut self, n: News, ctx: &mut Ctx) {
+        match n {
+            News::Created(c) => {
+                let Created {
+                    reply,
+                    plan,
+                    dialect,
+                    id,
+                } = *c;
+                self.starting = false;
+                let id = match id {
+                    Ok(id) => id,
+                    Err(e) => return reply.send(Err(format!("the run was not created: {e}"))),
+                };
+                let answer = serde_json::json!({
+                    "run_id": id.0, "captures_expected": plan.capture_count(),
+                    "warnings": plan.warnings(),
+                    "cnc": match self.cfg.cnc {
+                        CncMode::Twin(a) => format!("sent to the twin at {a}"),
+                        CncMode::Manual => "load the program on the CNC and start it".into(),
+                    }
+                });
+                self.begin(
+                    id,
+                    plan,
+                    dialect,
+                    BTreeSet::new(),
+                    None,
+                    0,
+                    Some((reply, answer)),
+                    ctx,
+                );
+            }
+            News::Stored { key, result } => match result {
+                Ok(()) => {
+                    let Some(a) = self.active.as_mut() else {
+                        return;
+                    };
+                    if a.unstored.remove(&key).is_some() {
+                        tracing::info!(run = a.id.0, capture = %key, direction = key.direction.sign(), "captured");
+                    }
+                    if a.unstored.values().all(|(_, asked)| *asked) {
+                        // The store takes writes again (a full disk freed, a lock gone).
+                        ctx.pipeline.alarms.clear("store");
+                    }
+                }
+                Err(e) => self.refused(key, &e, ctx),
+            },
+        }
+    }
+}
+
+impl Procedure for MeasurementRun {
+    fn name(&self) -> &'static str {
+        "the measurement run"
+    }
+
+    fn takes(&self, req: &Request) -> bool {
+        matches!(
+            req,
+            Request::RunStart { .. } | Request::RunStatus | Request::RunAbort
+        )
+    }
+
+    fn starts(&self, req: &Request) -> bool {
+        matches!(req, Request::RunStart { .. })
+    }
+
+    fn holds_machine(&self) -> bool {
+        self.active.is_some() || self.starting || self.resume.is_some()
+    }
+
+    fn busy(&self, what: &str) -> String {
+        match &self.active {
+            Some(a) => format!(
+                "measurement run {} is under way (it moves the carriage): abort it with run_abort or let it finish, then {what}",
+                a.id.0
+            ),
+            None => format!(
+                "a measurement run is being started or resumed: wait for it (run_status), then {what}"
+            ),
+        }
+    }
+
+    fn request(&mut self, req: Request, who: &Who, reply: Reply, ctx: &mut Ctx) {
+        match req {
+            Request::RunStart {
+                plan,
+                dialect,
+                notes,
+            } => self.start(plan, dialect, notes, who, reply, ctx),
+            Request::RunStatus => self.status(reply, ctx),
+            Request::RunAbort => {
+                if ctx.pipeline.abort_run() {
+                    let id = self.active.as_ref().map(|a| a.id.0);
+                    if let Some(a) = self.active.as_mut() {
+                        a.cnc.stop();
+                    }
+                    self.end(RunState::Aborted, &format!("aborted by {}", who.user), ctx);
+                    reply.send(Ok(serde_json::json!({"aborted": id})));
+                } else {
+                    reply.send(Err("no run is under way".into()));
+                }
+            }
+            _ => reply.send(Err("internal: not a run request".into())),
+        }
+    }
+
+    fn claims(&self, out: &Output) -> bool {
+        matches!(out, Output::Handover(_)) && self.active.is_some()
+    }
+
+    fn on_output(&mut self, out: &Output, ctx: &mut Ctx) {
+        match out {
+            Output::Handover(r) => {
+                let Some(a) = self.active.as_ref() else {
+                    return;
+                };
+                let (id, r) = (a.id, *r);
+                if let Err(e) = ctx.store.try_call(move |s| s.insert_handover(Some(id), &r)) {
+                    ctx.pipeline
+                        .alarms
+                        .raise("store", format!("handover not stored: {e}"));
+                }
+            }
+            Output::Captured(c) => self.store_capture(*c, ctx),
+            // The pipeline keeps the alarm. With the beam off the fixed PSDs the twin's CNC
+            // stops at its next stop, and the rest of the cycle follows once the beam is
+            // back. PSD2 alone (the follower behind) waits for the carriage's pass. A CNC the
+            // service does not drive goes on: what it missed is the make-up pass's.
+            Output::RunPaused(why) => {
+                tracing::warn!("{why}");
+                if ctx.pipeline.beam_lost()
+                    && let Some(a) = self.active.as_mut()
+                    && a.cnc.twin().is_some()
+                {
+                    a.cnc.stop();
+                    a.session.paused();
+                }
+            }
+            Output::RunResumed => tracing::info!("every spot is back: the run goes on"),
+            Output::RunFinished => {
+                if let Some(a) = self.active.as_mut() {
+                    a.complete = true;
+                }
+            }
+            Output::RunFailed(why) => self.end(RunState::Failed, why, ctx),
+            _ => {}
+        }
+    }
+
+    fn tick(&mut self, ctx: &mut Ctx) {
+        while let Ok(n) = self.rx.try_recv() {
+            self.heard(n, ctx);
+        }
+        self.try_resume(ctx);
+        let now = ctx.now;
+        let Some(a) = self.active.as_mut() else {
+            return;
+        };
+        // Captures the store refused, offered again.
+        if a.retry_at.is_some_and(|t| now >= t) {
+            a.retry_at = None;
+            let again: Vec<Capture> = a
+                .unstored
+                .values()
+                .filter(|(_, asked)| !asked)
+                .map(|(c, _)| *c)
+                .collect();
+            for c in again {
+                self.store_capture(c, ctx);
+            }
+        }
+        let Some(a) = self.active.as_mut() else {
+            return;
+        };
+        if a.complete && a.unstored.is_empty() {
+            self.end(RunState::Finished, "all captures taken", ctx);
+            return;
+        }
+        for n in a.cnc.poll(now) {
+            match n {
+                CncNews::Refused(e) => ctx.pipeline.alarms.raise("cnc", e),
+                CncNews::Ended => {
+                    ctx.pipeline.alarms.clear("cnc");
+                    a.ended = true;
+                }
+            }
+        }
+        // The program has ended: once every spot is back (the beam off the fixed PSDs waits),
+        // the rest of the cycle or a make-up pass, or the run fails.
+        if !a.ended || ctx.pipeline.beam_lost() {
+            return;
+        }
+        a.ended = false;
+        let missing = ctx.pipeline.run_missing().unwrap_or_default();
+        match a.session.ended(&missing) {
+            Next::Program(p) => {
+                tracing::info!(
+                    missing = missing.len(),
+                    note = %p.note,
+                    "the program ended with captures missing: the next program"
+                );
+                self.deliver(&p, None, ctx);
+            }
+            Next::Nothing => {}
+            Next::Fail(why) => {
+                ctx.pipeline.abort_run();
+                self.end(RunState::Failed, &why, ctx);
+            }
+        }
+    }
+
+    fn show(&self, snap: &mut Snapshot, pipeline: &Pipeline) {
+        let Some(a) = &self.active else {
+            return;
+        };
+        let (captures, expected) = pipeline.run_progress().unwrap_or((0, 0));
+        snap.run = Some(RunView {
+            id: a.id.0,
+            axis: a.session.plan().spec.axis.clone(),
+            captures,
+            expected,
+            program: a.program.clone(),
+            paused: pipeline.paused().map(str::to_string),
+        });
+    }
+}
