@@ -14,7 +14,8 @@
 //!   Fast, but the follower's own positioning and vertical straightness enter 1:1 (1 µm of
 //!   follower straightness reads as 1.38″ of roll).
 //!
-//! With a follower map (`follower::FollowerMap`, `set_map`) every displacement taken from the
+//! With a map of the follower stage's own errors (a [`StageCorrection`], such as
+//! `follower::FollowerMap`; `set_map`) every displacement taken from the
 //! encoder — the encoder strategy, and the overlap strategy's steps while the carriage runs —
 //! is corrected by the map's difference between the two positions, along the axis and
 //! vertically (the reversal by the direction the follower last moved in), with the map's
@@ -28,10 +29,14 @@
 //! (`poll_event`); `stitch()` gives the current PSD2 position estimate for the decoupling.
 
 pub mod carriage;
+mod correction;
+
+pub use correction::StageCorrection;
 
 use crate::acquire::Frame;
-use crate::follower::{Direction, FollowerMap};
+use crate::run::Direction;
 use carriage::CarriageEstimator;
+use correction::Applied;
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -287,7 +292,7 @@ pub struct Tracker {
     events: VecDeque<TrackEvent>,
     last_frame_unix_us: i64,
     /// The follower error map applied to encoder displacements.
-    map: Option<Arc<FollowerMap>>,
+    map: Option<Applied>,
     /// The direction the follower last moved in, and the turning point it is judged from.
     motion: Direction,
     motion_anchor: Option<f64>,
@@ -340,13 +345,14 @@ impl Tracker {
 
     /// Apply `map` to every displacement taken from the encoder from now on (`None`: the
     /// encoder alone). Take the reference again after changing it.
-    pub fn set_map(&mut self, map: Option<Arc<FollowerMap>>) {
-        self.map = map;
+    pub fn set_map<M: StageCorrection>(&mut self, map: Option<Arc<M>>) {
+        self.map = map.map(Applied::new);
     }
 
-    /// The follower map in use.
-    pub fn map(&self) -> Option<&Arc<FollowerMap>> {
-        self.map.as_ref()
+    /// The follower map in use, as the `Arc<M>` it was given in (`None` without a map, or
+    /// with one of another type).
+    pub fn map<M: StageCorrection>(&self) -> Option<&Arc<M>> {
+        self.map.as_ref()?.get()
     }
 
     /// Replace the settings (a calibration procedure's longer averaging, say).
