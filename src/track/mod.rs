@@ -1338,6 +1338,30 @@ mod tests {
         );
     }
 
+    /// Whoever puts a map in use gets the same map back, as its own type; asked for another
+    /// type, the tracker has none.
+    #[test]
+    fn the_map_in_use_comes_back_as_it_was_given() {
+        #[derive(Debug)]
+        struct Flat;
+        impl StageCorrection for Flat {
+            fn correction(&self, _: f64, _: Direction) -> [f64; 2] {
+                [0.0; 2]
+            }
+            fn difference_variance(&self, _: f64, _: f64, _: Direction, _: Direction) -> [f64; 2] {
+                [0.0; 2]
+            }
+        }
+        let mut tr = Tracker::new(TrackSettings::default());
+        assert!(tr.map::<Flat>().is_none());
+        let flat = Arc::new(Flat);
+        tr.set_map(Some(flat.clone()));
+        assert!(tr.map::<Flat>().is_some_and(|m| Arc::ptr_eq(m, &flat)));
+        assert!(tr.map::<crate::follower::FollowerMap>().is_none());
+        tr.set_map::<Flat>(None);
+        assert!(tr.map::<Flat>().is_none());
+    }
+
     /// With a map of the follower's own errors, the encoder strategy's stitch is where PSD2
     /// really is (along and vertically, from the reference), not where the encoder says.
     #[test]
@@ -1369,7 +1393,12 @@ mod tests {
             vertical_reference: None,
         };
         let (mut b, mut tr) = referenced(Strategy::Encoder);
-        tr.set_map(Some(Arc::new(map)));
+        let map = Arc::new(map);
+        tr.set_map(Some(map.clone()));
+        assert!(
+            tr.map::<FollowerMap>()
+                .is_some_and(|m| Arc::ptr_eq(m, &map))
+        );
         assert!(tr.reference());
         let (u0, v0, e0) = (fu(b.enc), fv(b.enc), b.enc);
         for _ in 0..2000 {
