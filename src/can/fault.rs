@@ -7,9 +7,10 @@
 //! wrapper) changes the settings at run time, cuts and restores the link, and reads counters.
 //!
 //! Semantics:
-//! - Drops are decided by a seeded [`Rng`] (one sub-stream per direction), so a seed gives the
-//!   same losses on every run. `drop_every = n` drops frames n, 2n, 3n… of that direction,
-//!   counted over frames that reach the decision (link up); then `drop_probability` applies.
+//! - Drops are decided by a seeded random stream of the wrapper's own (xorshift64*, one per
+//!   direction; the formula is at `Xorshift`), so a seed gives the same losses on every run
+//!   and build. `drop_every = n` drops frames n, 2n, 3n… of that direction, counted over
+//!   frames that reach the decision (link up); then `drop_probability` applies.
 //! - Link down: frames sent are discarded (`send` still returns `Ok`, as a cut cable gives no
 //!   error to a tunnel), frames arriving are read from the inner transport and discarded, and
 //!   delayed frames still in flight when they fall due are discarded too.
@@ -23,7 +24,6 @@
 //! - Timing uses `tokio::time`, so tests can run it on a paused clock.
 
 use super::{CanError, CanFrame, CanTransport};
-use crate::sim::rng::Rng;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex as StdMutex, OnceLock};
@@ -64,16 +64,39 @@ pub struct FaultStats {
     pub rx_dropped: u64,
 }
 
+/// The drops' random stream, carried here as smoltcp's fault injector carries its
+/// xorshift32: xorshift64* (Marsaglia's xorshift, Vigna's multiplier). The stream of
+/// direction `stream` starts at `x = (seed ^ stream << 32) · 0x9E37_79B9_7F4A_7C15` (1 if that
+/// is 0); each draw steps `x ^= x >> 12; x ^= x << 25; x ^= x >> 27` and is the top 53 bits
+/// of `x · 0x2545_F491_4F6C_DD1D` as a fraction in [0, 1).
+#[derive(Clone, Debug)]
+struct Xorshift(u64);
+
+impl Xorshift {
+    fn new(seed: u64, stream: u64) -> Self {
+        Xorshift(((seed ^ (stream << 32)).wrapping_mul(0x9E37_79B9_7F4A_7C15)).max(1))
+    }
+
+    /// Uniform in [0, 1).
+    fn unit(&mut self) -> f64 {
+        let x = &mut self.0;
+        *x ^= *x >> 12;
+        *x ^= *x << 25;
+        *x ^= *x >> 27;
+        (x.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
 /// Per-direction drop decision (sans-I/O).
 #[derive(Debug)]
 struct Dropper {
     faults: Faults,
-    rng: Rng,
+    rng: Xorshift,
     seen: u64,
 }
 
 impl Dropper {
-    fn new(rng: Rng) -> Self {
+    fn new(rng: Xorshift) -> Self {
         Dropper {
             faults: Faults::NONE,
             rng,
@@ -116,7 +139,7 @@ impl Shared {
     }
 }
 
-/// Stream numbers of the two directions' random sub-streams ([`Rng::fork`]).
+/// Stream numbers of the two directions' random streams (see the module's semantics).
 pub const TX_STREAM: u64 = 1;
 /// See [`TX_STREAM`].
 pub const RX_STREAM: u64 = 2;
@@ -180,13 +203,12 @@ pub struct Faulty<T> {
 impl<T: CanTransport> Faulty<T> {
     /// Wrap `inner` with no faults yet and the link up; `seed` fixes the random drops.
     pub fn new(inner: T, seed: u64) -> Self {
-        let rng = Rng::new(seed);
         Faulty {
             inner: Arc::new(inner),
             shared: Arc::new(Shared {
                 link_up: AtomicBool::new(true),
-                tx: StdMutex::new(Dropper::new(rng.fork(TX_STREAM))),
-                rx: StdMutex::new(Dropper::new(rng.fork(RX_STREAM))),
+                tx: StdMutex::new(Dropper::new(Xorshift::new(seed, TX_STREAM))),
+                rx: StdMutex::new(Dropper::new(Xorshift::new(seed, RX_STREAM))),
                 tx_passed: AtomicU64::new(0),
                 tx_dropped: AtomicU64::new(0),
                 rx_passed: AtomicU64::new(0),
@@ -311,9 +333,28 @@ mod tests {
     use super::*;
 
     fn dropper(f: Faults, seed: u64) -> Dropper {
-        let mut d = Dropper::new(Rng::new(seed));
+        let mut d = Dropper::new(Xorshift::new(seed, 0));
         d.faults = f;
         d
+    }
+
+    /// The stream is the documented one (values from an independent Python of the formula).
+    #[test]
+    fn the_random_stream_is_the_documented_xorshift64_star() {
+        let mut r = Xorshift::new(2024, RX_STREAM);
+        let got: Vec<f64> = (0..4).map(|_| r.unit()).collect();
+        assert_eq!(
+            got,
+            [
+                0.7415143008375686,
+                0.2530152719881609,
+                0.14178793876460116,
+                0.9113456998088905
+            ]
+        );
+        // Seed 0 of stream 0 would be xorshift's fixed point 0: it starts at 1 instead.
+        let mut zero = Xorshift::new(0, 0);
+        assert_eq!(zero.unit(), 0.28083505005035947);
     }
 
     #[test]
@@ -342,7 +383,7 @@ mod tests {
             },
             77,
         );
-        let mut reference = Rng::new(77);
+        let mut reference = Xorshift::new(77, 0);
         let got: Vec<bool> = (0..1000).map(|_| d.drops()).collect();
         let want: Vec<bool> = (0..1000).map(|_| reference.unit() < p).collect();
         assert_eq!(got, want);

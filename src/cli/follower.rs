@@ -10,6 +10,7 @@
 //! certificate, arguments or a refused request, 1 for anything else.
 
 use super::InputError;
+use super::client::{duration_words, follow, refused, runtime, socket_path};
 use anyhow::{Context, Result};
 use axiscomp::follower::{Certificate, FollowerMap};
 use axiscomp::service::api::Request;
@@ -17,7 +18,6 @@ use axiscomp::service::control::{Client, ClientError};
 use axiscomp::store::Store;
 use clap::Subcommand;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
@@ -181,29 +181,6 @@ pub fn run(c: Command) -> Result<()> {
     }
 }
 
-/// The control socket: `--socket`, else the configured one.
-pub(super) fn socket_path(socket: Option<&Path>, config: Option<&Path>) -> Result<PathBuf> {
-    Ok(match socket {
-        Some(s) => s.to_path_buf(),
-        None => super::service::settings(config)?.service.socket,
-    })
-}
-
-pub(super) fn runtime() -> Result<tokio::runtime::Runtime> {
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the async runtime")
-}
-
-/// A request the service refused is input to fix (exit code 2).
-pub(super) fn refused(e: ClientError) -> anyhow::Error {
-    match e {
-        ClientError::Refused(m) => InputError(m).into(),
-        e => e.into(),
-    }
-}
-
 fn import(a: ImportArgs) -> Result<()> {
     let text = std::fs::read_to_string(&a.certificate)
         .with_context(|| format!("reading the certificate {}", a.certificate.display()))?;
@@ -271,19 +248,6 @@ fn import(a: ImportArgs) -> Result<()> {
         );
     }
     Ok(())
-}
-
-/// Seconds as people read them: "45 s", "3.4 min", "1.7 h".
-pub(super) fn duration_words(s: f64) -> String {
-    if !s.is_finite() || s < 0.0 {
-        "?".into()
-    } else if s < 90.0 {
-        format!("{s:.0} s")
-    } else if s < 5400.0 {
-        format!("{:.1} min", s / 60.0)
-    } else {
-        format!("{:.1} h", s / 3600.0)
-    }
 }
 
 /// The mapping's progress on one line.
@@ -410,23 +374,15 @@ fn map_on_service(a: MapArgs) -> Result<()> {
             println!("follow it with: axiscomp follower map --status");
             return Ok(());
         }
-        let mut last = String::new();
-        loop {
-            tokio::time::sleep(Duration::from_secs(2)).await;
-            let v = c.request(&Request::FollowerMapStatus).await?;
-            let line = progress_line(&v);
-            if line != last {
-                eprintln!("{line}");
-                last = line;
-            }
-            if !matches!(
+        let v = follow(&mut c, &Request::FollowerMapStatus, progress_line, |v| {
+            matches!(
                 v["state"].as_str(),
                 Some("approaching" | "mapping" | "finishing")
-            ) {
-                print_status(&v);
-                return outcome(&v);
-            }
-        }
+            )
+        })
+        .await?;
+        print_status(&v);
+        outcome(&v)
     })
 }
 

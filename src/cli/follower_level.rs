@@ -4,13 +4,12 @@
 //! at the station being read (`--reading ARCSEC`, `[follower] level = "manual"`). Exit codes:
 //! 2 for a refused request, 1 for anything else.
 
-use super::follower::{duration_words, refused, runtime, socket_path};
+use super::client::{duration_words, follow, refused, runtime, socket_path};
 use anyhow::Result;
 use axiscomp::service::api::LevelRequest;
 use axiscomp::service::api::Request;
 use axiscomp::service::control::Client;
 use std::path::PathBuf;
-use std::time::Duration;
 
 #[derive(clap::Args, Debug)]
 pub struct LevelArgs {
@@ -205,19 +204,11 @@ pub fn run(a: LevelArgs) -> Result<()> {
                 "at each station, type the level's reading from another terminal: axiscomp follower level --reading ARCSEC"
             );
         }
-        let mut last = String::new();
-        loop {
-            tokio::time::sleep(Duration::from_secs(2)).await;
-            let v = c.request(&Request::FollowerLevelStatus).await?;
-            let line = progress_line(&v);
-            if line != last {
-                eprintln!("{line}");
-                last = line;
-            }
-            if v["state"].as_str() != Some("stations") {
-                print_status(&v);
-                return outcome(&v);
-            }
-        }
+        let v = follow(&mut c, &Request::FollowerLevelStatus, progress_line, |v| {
+            matches!(v["state"].as_str(), Some("stations" | "finishing"))
+        })
+        .await?;
+        print_status(&v);
+        outcome(&v)
     })
 }

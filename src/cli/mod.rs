@@ -3,6 +3,7 @@
 
 mod align;
 mod calibrate;
+mod client;
 mod console;
 mod decouple;
 mod demo;
@@ -103,25 +104,13 @@ pub fn control_request(
     config: Option<&Path>,
     req: &axiscomp::service::api::Request,
 ) -> Result<serde_json::Value> {
-    use anyhow::Context;
-    use axiscomp::service::control::{Client, ClientError};
-    let socket = match socket {
-        Some(s) => s.to_path_buf(),
-        None => service::settings(config)?.service.socket,
-    };
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the async runtime")?;
-    rt.block_on(async {
-        let mut c = Client::connect(&socket).await?;
-        c.request(req).await
-    })
-    .map_err(|e| match e {
-        // The service understood the request and refused it: input to fix.
-        ClientError::Refused(m) => anyhow::Error::from(InputError(m)),
-        e => e.into(),
-    })
+    let socket = client::socket_path(socket, config)?;
+    client::runtime()?
+        .block_on(async {
+            let mut c = axiscomp::service::control::Client::connect(&socket).await?;
+            c.request(req).await
+        })
+        .map_err(client::refused)
 }
 
 /// Run a parsed command line.

@@ -951,7 +951,8 @@ fn validate(
         ),
     };
     let plc = plc_settings(&v, &raw.plc)?;
-    let hexapod = crate::hexapod::config::validate(&raw.hexapod, origin)?;
+    let hexapod = crate::hexapod::config::validate(&raw.hexapod)
+        .map_err(|e| v.err(&e.dotted_key(), e.problem))?;
     let comp = crate::comp::settings::validate(&raw.comp).map_err(|(k, p)| v.err(&k, p))?;
     let (machine, acceptance) = crate::report::settings::validate(&raw.machine, &raw.acceptance)
         .map_err(|(k, p)| v.err(&k, p))?;
@@ -1257,6 +1258,23 @@ mod tests {
         assert!(load_text("[plc]\naddress = \"plc\"\n", &[]).is_ok());
         let e = load_text("[plc]\npush_to = true\n", &[]).unwrap_err();
         assert!(e.to_string().contains("push_to"), "{e}");
+    }
+
+    /// `hexapod::config`'s own error comes out as every other: the key and the file.
+    #[test]
+    fn hexapod_errors_name_the_key_and_the_file() {
+        let e = load_text("[hexapod]\ndriver = \"hxp\"\n", &[]).unwrap_err();
+        assert_eq!(e.key, "hexapod.driver", "{e}");
+        assert!(e.origin.ends_with(".toml"), "{e}");
+        assert!(
+            e.to_string().contains(
+                "hexapod.driver: \"hxp\": use \"pi-gcs\" (PI C-887), \"newport-xps\" (Newport HXP) or \"none\""
+            ),
+            "{e}"
+        );
+        let e = load_text("[hexapod]\npivot_mm = [0.0, 1.0]\n", &[]).unwrap_err();
+        assert_eq!(e.key, "hexapod.pivot_mm", "{e}");
+        assert!(e.origin.ends_with(".toml"), "{e}");
     }
 
     #[test]

@@ -43,7 +43,7 @@ mod stored;
 pub use certificate::{Certificate, CertificateError, CertificatePoint};
 pub use stored::{STEP_COLUMNS, StoredMap, StoredSteps};
 
-use crate::track::{HandoverKind, HandoverRecord};
+use crate::track::{HandoverKind, HandoverRecord, StageCorrection};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -288,6 +288,18 @@ pub struct MapPoint {
     pub vertical_um: f64,
     pub vertical_u_um: f64,
     pub vertical_source: Source,
+}
+
+/// What the tracker applies: the map's own [`FollowerMap::correction`] and
+/// [`FollowerMap::difference_variance`].
+impl StageCorrection for FollowerMap {
+    fn correction(&self, x: f64, dir: Direction) -> [f64; 2] {
+        FollowerMap::correction(self, x, dir)
+    }
+
+    fn difference_variance(&self, a: f64, b: f64, dir_a: Direction, dir_b: Direction) -> [f64; 2] {
+        FollowerMap::difference_variance(self, a, b, dir_a, dir_b)
+    }
 }
 
 impl FollowerMap {

@@ -1,12 +1,13 @@
 //! `[hexapod]`: the calibration hexapod's controller and how the calibration run takes its
-//! poses (first stage `RawHexapod`, validated `HexapodSettings`; errors name the key).
+//! poses (first stage `RawHexapod`, validated `HexapodSettings`; errors name the key, and
+//! `config` adds the file that set it).
 
 use super::driver::Timeouts;
 use super::procedure::RunOptions;
 use super::{Driver, HexPose, Workspace};
-use crate::config::ConfigError;
 use serde::{Deserialize, Serialize};
 use std::time::Duration;
+use thiserror::Error;
 
 /// `[hexapod]` as written.
 #[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
@@ -46,12 +47,28 @@ pub struct HexapodSettings {
     pub run: RunOptions,
 }
 
+/// A `[hexapod]` key that is not valid: which, what is wrong and what to write instead.
+#[derive(Clone, Debug, Error, PartialEq)]
+#[error("hexapod.{key}: {problem}")]
+pub struct HexapodConfigError {
+    /// The key within `[hexapod]` (`driver`, `pivot_mm`, …).
+    pub key: &'static str,
+    pub problem: String,
+}
+
+impl HexapodConfigError {
+    /// The key as the configuration names it (`hexapod.driver`).
+    pub fn dotted_key(&self) -> String {
+        format!("hexapod.{}", self.key)
+    }
+}
+
 fn six(
-    err: &dyn Fn(&str, String) -> ConfigError,
-    key: &str,
+    err: &dyn Fn(&'static str, String) -> HexapodConfigError,
+    key: &'static str,
     v: &[f64],
     n: usize,
-) -> Result<Vec<f64>, ConfigError> {
+) -> Result<Vec<f64>, HexapodConfigError> {
     if v.len() != n || v.iter().any(|x| !x.is_finite()) {
         return Err(err(
             key,
@@ -64,16 +81,9 @@ fn six(
     Ok(v.to_vec())
 }
 
-/// Validate `[hexapod]`; `origin` names where a key came from.
-pub fn validate(
-    raw: &RawHexapod,
-    origin: &dyn Fn(&str) -> String,
-) -> Result<HexapodSettings, ConfigError> {
-    let err = |key: &str, problem: String| ConfigError {
-        origin: origin(&format!("hexapod.{key}")),
-        key: format!("hexapod.{key}"),
-        problem,
-    };
+/// Validate `[hexapod]`.
+pub fn validate(raw: &RawHexapod) -> Result<HexapodSettings, HexapodConfigError> {
+    let err = |key: &'static str, problem: String| HexapodConfigError { key, problem };
     let driver = match raw.driver.as_str() {
         "pi-gcs" => Some(Driver::PiGcs),
         "newport-xps" => Some(Driver::NewportXps),

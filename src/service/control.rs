@@ -222,7 +222,7 @@ fn error_line(msg: &str) -> String {
 impl Connection {
     async fn run(mut self, stream: UnixStream) {
         let peer = match stream.peer_cred() {
-            Ok(c) => self.policy.peer(c.uid(), c.gid(), c.pid()),
+            Ok(c) => self.policy.peer(c.uid(), c.gid(), c.pid()).await,
             Err(e) => {
                 tracing::warn!("control: no peer credentials: {e}");
                 return;

@@ -3,13 +3,28 @@
 //! Root and the service's own user are operators. Group membership includes supplementary
 //! groups, looked up through the C library (so NSS users and groups work).
 //!
+//! A directory behind NSS (LDAP, sssd) may take seconds to answer, and the service has one
+//! event loop: a connection's lookups run on a blocking thread ([`Directory`]), and their
+//! answers are kept by uid and gid for [`LOOKUP_TTL`], so a changed group membership is seen
+//! within a minute.
+//!
 //! The socket file itself admits only the two groups (and its owner): a POSIX access ACL
 //! ([`open_to_groups`]), since one file has one group and a site's viewers and operators are
 //! two. Everyone else is refused by the kernel on connect.
 
 use super::api::Role;
+use nix::unistd::{Gid, Group, Uid, User};
 use serde::Serialize;
-use std::ffi::{CStr, CString};
+use std::collections::HashMap;
+use std::ffi::CString;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// How long the directory's answer about a peer is kept.
+pub const LOOKUP_TTL: Duration = Duration::from_secs(60);
+
+/// The answers kept at most (the oldest goes first).
+pub const LOOKUP_CAPACITY: usize = 64;
 
 /// A connected peer.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -23,7 +38,7 @@ pub struct Peer {
 }
 
 /// How roles are granted.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug)]
 pub struct RolePolicy {
     pub operator_gid: Option<u32>,
     pub viewer_gid: Option<u32>,
@@ -31,6 +46,8 @@ pub struct RolePolicy {
     /// The group names, for messages.
     pub operator_group: String,
     pub viewer_group: String,
+    /// Where the peers' names and groups come from (shared by every clone).
+    pub directory: Directory,
 }
 
 impl RolePolicy {
@@ -41,19 +58,17 @@ impl RolePolicy {
             viewer_gid: group_gid(viewer_group),
             operator_group: operator_group.to_string(),
             viewer_group: viewer_group.to_string(),
-            // SAFETY: geteuid has no preconditions.
-            service_uid: unsafe { libc::geteuid() },
+            service_uid: nix::unistd::geteuid().as_raw(),
+            directory: Directory::new(),
         }
     }
 
-    /// The role of a peer with `uid` and primary `gid`.
-    pub fn role_of(&self, uid: u32, gid: u32) -> Option<Role> {
+    /// The role of a peer with `uid` whose groups the directory gives in `account`.
+    pub fn role_of(&self, uid: u32, account: &Account) -> Option<Role> {
         if uid == 0 || uid == self.service_uid {
             return Some(Role::Operator);
         }
-        let groups = user_name(uid)
-            .map(|name| user_groups(&name, gid))
-            .unwrap_or_else(|| vec![gid]);
+        let groups = &account.groups;
         if self.operator_gid.is_some_and(|g| groups.contains(&g)) {
             Some(Role::Operator)
         } else if self.viewer_gid.is_some_and(|g| groups.contains(&g)) {
@@ -63,15 +78,130 @@ impl RolePolicy {
         }
     }
 
-    /// Describe a peer.
-    pub fn peer(&self, uid: u32, gid: u32, pid: Option<i32>) -> Peer {
+    /// Describe a peer, from the directory's answer (kept, or looked up off the event loop).
+    pub async fn peer(&self, uid: u32, gid: u32, pid: Option<i32>) -> Peer {
+        let account = self.directory.account(uid, gid).await;
         Peer {
             uid,
             gid,
             pid,
-            user: user_name(uid).unwrap_or_else(|| uid.to_string()),
-            role: self.role_of(uid, gid),
+            role: self.role_of(uid, &account),
+            user: account.user.unwrap_or_else(|| uid.to_string()),
         }
+    }
+}
+
+/// What the directory says of a peer.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Account {
+    /// The user name; `None` for a uid with no passwd entry.
+    pub user: Option<String>,
+    /// Its groups, primary and supplementary (the primary alone without a passwd entry).
+    pub groups: Vec<u32>,
+}
+
+impl Account {
+    /// Ask the directory about `uid` with primary group `gid`. Blocks for as long as NSS takes:
+    /// never on the event loop ([`Directory::account`]).
+    pub fn look_up(uid: u32, gid: u32) -> Account {
+        let user = user_name(uid);
+        let groups = user
+            .as_deref()
+            .map(|name| user_groups(name, gid))
+            .unwrap_or_else(|| vec![gid]);
+        Account { user, groups }
+    }
+}
+
+/// The directory's answers by (uid, gid), each kept for [`LOOKUP_TTL`], at most
+/// [`LOOKUP_CAPACITY`] of them (sans-I/O: the time is an argument).
+#[derive(Debug, Default)]
+struct Cache {
+    entries: HashMap<(u32, u32), (Instant, Account)>,
+}
+
+impl Cache {
+    /// The answer for `key`, when one younger than [`LOOKUP_TTL`] is kept.
+    fn get(&self, key: (u32, u32), now: Instant) -> Option<&Account> {
+        self.entries
+            .get(&key)
+            .filter(|(at, _)| now.saturating_duration_since(*at) < LOOKUP_TTL)
+            .map(|(_, a)| a)
+    }
+
+    /// Keep `account` as the answer for `key` given at `at`; expired answers go, and the
+    /// oldest when the cache is full.
+    fn insert(&mut self, key: (u32, u32), account: Account, at: Instant) {
+        self.entries
+            .retain(|_, (t, _)| at.saturating_duration_since(*t) < LOOKUP_TTL);
+        if self.entries.len() >= LOOKUP_CAPACITY && !self.entries.contains_key(&key) {
+            let oldest = self
+                .entries
+                .iter()
+                .min_by_key(|(_, (t, _))| *t)
+                .map(|(k, _)| *k);
+            if let Some(k) = oldest {
+                self.entries.remove(&k);
+            }
+        }
+        self.entries.insert(key, (at, account));
+    }
+}
+
+/// The user directory as the control socket asks it: a miss is looked up on a blocking thread
+/// (a slow NSS or LDAP server holds that thread, not the service's event loop) and kept
+/// ([`LOOKUP_TTL`], [`LOOKUP_CAPACITY`]). Clones share the answers.
+#[derive(Clone, Debug)]
+pub struct Directory {
+    cache: Arc<Mutex<Cache>>,
+    look_up: fn(u32, u32) -> Account,
+}
+
+impl Default for Directory {
+    fn default() -> Self {
+        Directory::new()
+    }
+}
+
+impl Directory {
+    /// The system's directory, through the C library.
+    pub fn new() -> Self {
+        Directory::with_lookup(Account::look_up)
+    }
+
+    /// A directory that asks `look_up` (a test's stand-in for NSS).
+    pub fn with_lookup(look_up: fn(u32, u32) -> Account) -> Self {
+        Directory {
+            cache: Arc::default(),
+            look_up,
+        }
+    }
+
+    /// What the directory says of `uid` with primary group `gid`: the kept answer, else a
+    /// lookup off the event loop (a lookup that panicked counts as no passwd entry, unkept).
+    pub async fn account(&self, uid: u32, gid: u32) -> Account {
+        let now = crate::util::clock::now();
+        if let Some(a) = self.cache().get((uid, gid), now) {
+            return a.clone();
+        }
+        let look_up = self.look_up;
+        match tokio::task::spawn_blocking(move || look_up(uid, gid)).await {
+            Ok(account) => {
+                self.cache().insert((uid, gid), account.clone(), now);
+                account
+            }
+            Err(e) => {
+                tracing::warn!("control: looking up uid {uid} failed: {e}");
+                Account {
+                    user: None,
+                    groups: vec![gid],
+                }
+            }
+        }
+    }
+
+    fn cache(&self) -> std::sync::MutexGuard<'_, Cache> {
+        self.cache.lock().unwrap_or_else(|p| p.into_inner())
     }
 }
 
@@ -128,98 +258,63 @@ pub fn open_to_groups(path: &std::path::Path, gids: &[u32]) -> std::io::Result<(
     Err(e)
 }
 
-fn buffer_size(kind: libc::c_int) -> usize {
-    // SAFETY: sysconf has no preconditions.
-    let n = unsafe { libc::sysconf(kind) };
-    if n > 0 { n as usize } else { 16 * 1024 }
-}
-
-/// The gid of a group name.
+/// The gid of a group name. Blocks on NSS.
 pub fn group_gid(name: &str) -> Option<u32> {
-    let cname = CString::new(name).ok()?;
-    let mut buf = vec![0u8; buffer_size(libc::_SC_GETGR_R_SIZE_MAX).max(1024)];
-    for _ in 0..8 {
-        // SAFETY: all pointers are valid for the duration of the call; buf's length is given.
-        let mut grp: libc::group = unsafe { std::mem::zeroed() };
-        let mut out: *mut libc::group = std::ptr::null_mut();
-        let rc = unsafe {
-            libc::getgrnam_r(
-                cname.as_ptr(),
-                &mut grp,
-                buf.as_mut_ptr().cast(),
-                buf.len(),
-                &mut out,
-            )
-        };
-        if rc == libc::ERANGE {
-            buf.resize(buf.len() * 2, 0);
-            continue;
-        }
-        return (rc == 0 && !out.is_null()).then_some(grp.gr_gid);
-    }
-    None
+    Group::from_name(name)
+        .ok()
+        .flatten()
+        .map(|g| g.gid.as_raw())
 }
 
-/// The user name of a uid.
+/// The user name of a uid. Blocks on NSS.
 pub fn user_name(uid: u32) -> Option<String> {
-    let mut buf = vec![0u8; buffer_size(libc::_SC_GETPW_R_SIZE_MAX).max(1024)];
-    for _ in 0..8 {
-        // SAFETY: as for getgrnam_r.
-        let mut pw: libc::passwd = unsafe { std::mem::zeroed() };
-        let mut out: *mut libc::passwd = std::ptr::null_mut();
-        let rc =
-            unsafe { libc::getpwuid_r(uid, &mut pw, buf.as_mut_ptr().cast(), buf.len(), &mut out) };
-        if rc == libc::ERANGE {
-            buf.resize(buf.len() * 2, 0);
-            continue;
-        }
-        if rc != 0 || out.is_null() || pw.pw_name.is_null() {
-            return None;
-        }
-        // SAFETY: pw_name points into buf, NUL-terminated by the C library.
-        let name = unsafe { CStr::from_ptr(pw.pw_name) };
-        return Some(name.to_string_lossy().into_owned());
-    }
-    None
+    User::from_uid(Uid::from_raw(uid))
+        .ok()
+        .flatten()
+        .map(|u| u.name)
+        .filter(|n| !n.is_empty())
 }
 
-/// All groups of a user (primary and supplementary).
+/// All groups of a user (primary and supplementary). Blocks on NSS.
 pub fn user_groups(name: &str, primary: u32) -> Vec<u32> {
-    let Ok(cname) = CString::new(name) else {
-        return vec![primary];
-    };
-    let mut n: libc::c_int = 32;
-    for _ in 0..8 {
-        let mut groups = vec![0 as libc::gid_t; n as usize];
-        let mut count = n;
-        // SAFETY: groups has room for `count` entries; count is updated by the call.
-        let rc =
-            unsafe { libc::getgrouplist(cname.as_ptr(), primary, groups.as_mut_ptr(), &mut count) };
-        if rc >= 0 {
-            groups.truncate(count.max(0) as usize);
-            return groups;
-        }
-        n = count.max(n * 2);
+    let groups = CString::new(name)
+        .ok()
+        .and_then(|n| nix::unistd::getgrouplist(&n, Gid::from_raw(primary)).ok());
+    match groups {
+        Some(g) => g.into_iter().map(Gid::as_raw).collect(),
+        None => vec![primary],
     }
-    vec![primary]
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    #[test]
-    fn root_and_self_are_operators_strangers_nothing() {
-        let p = RolePolicy {
+    fn policy(
+        operator_gid: Option<u32>,
+        viewer_gid: Option<u32>,
+        directory: Directory,
+    ) -> RolePolicy {
+        RolePolicy {
             operator_group: String::new(),
             viewer_group: String::new(),
-            operator_gid: None,
-            viewer_gid: None,
+            operator_gid,
+            viewer_gid,
             service_uid: 4242,
+            directory,
+        }
+    }
+
+    #[test]
+    fn root_and_self_are_operators_strangers_nothing() {
+        let p = policy(None, None, Directory::new());
+        let groups = |g: u32| Account {
+            user: None,
+            groups: vec![g],
         };
-        assert_eq!(p.role_of(0, 0), Some(Role::Operator));
-        assert_eq!(p.role_of(4242, 100), Some(Role::Operator));
-        assert_eq!(p.role_of(65534, 65534), None);
+        assert_eq!(p.role_of(0, &groups(0)), Some(Role::Operator));
+        assert_eq!(p.role_of(4242, &groups(100)), Some(Role::Operator));
+        assert_eq!(p.role_of(65534, &groups(65534)), None);
     }
 
     #[test]
@@ -229,17 +324,82 @@ mod tests {
         assert_eq!(root_gid, 0);
         assert_eq!(user_name(0).as_deref(), Some("root"));
         assert!(user_groups("root", 0).contains(&0));
-        let p = RolePolicy {
-            operator_group: String::new(),
-            viewer_group: String::new(),
-            operator_gid: None,
-            viewer_gid: Some(65534),
-            service_uid: 4242,
-        };
+        let p = policy(None, Some(65534), Directory::new());
         // A uid with no passwd entry: only its primary gid counts.
-        assert_eq!(p.role_of(54321, 65534), Some(Role::Viewer));
-        assert_eq!(p.role_of(54321, 1), None);
+        let stranger = |gid| p.role_of(54321, &Account::look_up(54321, gid));
+        assert_eq!(stranger(65534), Some(Role::Viewer));
+        assert_eq!(stranger(1), None);
         assert_eq!(group_gid("no-such-group-axiscomp"), None);
+    }
+
+    /// The stand-in directory of `a_directory_answer_is_kept_for_a_minute`: user "ann" in
+    /// `GROUPS`, counting the lookups.
+    static LOOKUPS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    static GROUPS: Mutex<Vec<u32>> = Mutex::new(Vec::new());
+
+    fn ann(_uid: u32, gid: u32) -> Account {
+        LOOKUPS.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        let mut groups = vec![gid];
+        groups.extend(GROUPS.lock().unwrap().iter());
+        Account {
+            user: Some("ann".into()),
+            groups,
+        }
+    }
+
+    /// A peer's lookup is kept for LOOKUP_TTL by uid and gid, then asked again: a group
+    /// membership added meanwhile grants its role within the minute (simulated clock).
+    #[tokio::test(start_paused = true)]
+    async fn a_directory_answer_is_kept_for_a_minute() {
+        use std::sync::atomic::Ordering::SeqCst;
+        let lookups = || LOOKUPS.load(SeqCst);
+        let p = policy(None, Some(7), Directory::with_lookup(ann));
+        let peer = p.peer(1000, 100, Some(1)).await;
+        assert_eq!((peer.user.as_str(), peer.role), ("ann", None));
+        assert_eq!(lookups(), 1);
+        // Ann joins the viewers; the answer kept still says she is not one.
+        GROUPS.lock().unwrap().push(7);
+        tokio::time::sleep(Duration::from_secs(30)).await;
+        let clone = p.clone();
+        assert_eq!(clone.peer(1000, 100, Some(2)).await.role, None);
+        assert_eq!(lookups(), 1, "a hit, also from a clone");
+        // Another primary group is another question.
+        assert_eq!(p.peer(1000, 101, None).await.role, Some(Role::Viewer));
+        assert_eq!(lookups(), 2);
+        // A minute after the first lookup it has expired: asked again, she is a viewer.
+        tokio::time::sleep(Duration::from_secs(30)).await;
+        assert_eq!(p.peer(1000, 100, None).await.role, Some(Role::Viewer));
+        assert_eq!(lookups(), 3);
+        assert_eq!(p.peer(1000, 100, None).await.role, Some(Role::Viewer));
+        assert_eq!(lookups(), 3);
+    }
+
+    /// The cache holds LOOKUP_CAPACITY answers: the oldest goes first, expired ones at once.
+    #[test]
+    fn the_cache_is_bounded() {
+        let t0 = Instant::now();
+        let at = |ms: u64| t0 + Duration::from_millis(ms);
+        let account = |uid| Account {
+            user: None,
+            groups: vec![uid],
+        };
+        let mut c = Cache::default();
+        for uid in 0..LOOKUP_CAPACITY as u32 + 5 {
+            c.insert((uid, 0), account(uid), at(u64::from(uid)));
+        }
+        assert_eq!(c.entries.len(), LOOKUP_CAPACITY);
+        let now = at(10_000);
+        assert!((0..5).all(|uid| c.get((uid, 0), now).is_none()));
+        assert_eq!(c.get((5, 0), now), Some(&account(5)));
+        // Replacing an answer kept takes no room from another.
+        c.insert((5, 0), account(55), now);
+        assert_eq!(c.entries.len(), LOOKUP_CAPACITY);
+        assert_eq!(c.get((5, 0), now), Some(&account(55)));
+        // A minute on, all but the newest have expired and go with the next insert.
+        let later = now + LOOKUP_TTL - Duration::from_secs(1);
+        assert!(c.get((6, 0), later).is_none());
+        c.insert((1000, 0), account(1000), later);
+        assert_eq!(c.entries.len(), 2);
     }
 
     #[test]

@@ -462,7 +462,7 @@ pub fn measure(
         reference_mm: reference,
         psd2_sensitivity: psd2_sensitivity(&spec.lab.decoupler, mid)
             .map_err(LoopError::Sensitivity)?,
-        follower: match lab.pipeline.tracker.map() {
+        follower: match lab.pipeline.tracker.map::<crate::follower::FollowerMap>() {
             Some(m) => FollowerInput::of_map(m, encoder_offset, reference, 2.5, map_source(m)),
             None => b.follower.clone(),
         },

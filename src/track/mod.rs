@@ -14,7 +14,8 @@
 //!   Fast, but the follower's own positioning and vertical straightness enter 1:1 (1 µm of
 //!   follower straightness reads as 1.38″ of roll).
 //!
-//! With a follower map (`follower::FollowerMap`, `set_map`) every displacement taken from the
+//! With a map of the follower stage's own errors (a [`StageCorrection`], such as
+//! `follower::FollowerMap`; `set_map`) every displacement taken from the
 //! encoder — the encoder strategy, and the overlap strategy's steps while the carriage runs —
 //! is corrected by the map's difference between the two positions, along the axis and
 //! vertically (the reversal by the direction the follower last moved in), with the map's
@@ -28,10 +29,14 @@
 //! (`poll_event`); `stitch()` gives the current PSD2 position estimate for the decoupling.
 
 pub mod carriage;
+mod correction;
+
+pub use correction::StageCorrection;
 
 use crate::acquire::Frame;
-use crate::follower::{Direction, FollowerMap};
+use crate::run::Direction;
 use carriage::CarriageEstimator;
+use correction::Applied;
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -287,7 +292,7 @@ pub struct Tracker {
     events: VecDeque<TrackEvent>,
     last_frame_unix_us: i64,
     /// The follower error map applied to encoder displacements.
-    map: Option<Arc<FollowerMap>>,
+    map: Option<Applied>,
     /// The direction the follower last moved in, and the turning point it is judged from.
     motion: Direction,
     motion_anchor: Option<f64>,
@@ -340,13 +345,14 @@ impl Tracker {
 
     /// Apply `map` to every displacement taken from the encoder from now on (`None`: the
     /// encoder alone). Take the reference again after changing it.
-    pub fn set_map(&mut self, map: Option<Arc<FollowerMap>>) {
-        self.map = map;
+    pub fn set_map<M: StageCorrection>(&mut self, map: Option<Arc<M>>) {
+        self.map = map.map(Applied::new);
     }
 
-    /// The follower map in use.
-    pub fn map(&self) -> Option<&Arc<FollowerMap>> {
-        self.map.as_ref()
+    /// The follower map in use, as the `Arc<M>` it was given in (`None` without a map, or
+    /// with one of another type).
+    pub fn map<M: StageCorrection>(&self) -> Option<&Arc<M>> {
+        self.map.as_ref()?.get()
     }
 
     /// Replace the settings (a calibration procedure's longer averaging, say).
@@ -1332,6 +1338,30 @@ mod tests {
         );
     }
 
+    /// Whoever puts a map in use gets the same map back, as its own type; asked for another
+    /// type, the tracker has none.
+    #[test]
+    fn the_map_in_use_comes_back_as_it_was_given() {
+        #[derive(Debug)]
+        struct Flat;
+        impl StageCorrection for Flat {
+            fn correction(&self, _: f64, _: Direction) -> [f64; 2] {
+                [0.0; 2]
+            }
+            fn difference_variance(&self, _: f64, _: f64, _: Direction, _: Direction) -> [f64; 2] {
+                [0.0; 2]
+            }
+        }
+        let mut tr = Tracker::new(TrackSettings::default());
+        assert!(tr.map::<Flat>().is_none());
+        let flat = Arc::new(Flat);
+        tr.set_map(Some(flat.clone()));
+        assert!(tr.map::<Flat>().is_some_and(|m| Arc::ptr_eq(m, &flat)));
+        assert!(tr.map::<crate::follower::FollowerMap>().is_none());
+        tr.set_map::<Flat>(None);
+        assert!(tr.map::<Flat>().is_none());
+    }
+
     /// With a map of the follower's own errors, the encoder strategy's stitch is where PSD2
     /// really is (along and vertically, from the reference), not where the encoder says.
     #[test]
@@ -1363,7 +1393,12 @@ mod tests {
             vertical_reference: None,
         };
         let (mut b, mut tr) = referenced(Strategy::Encoder);
-        tr.set_map(Some(Arc::new(map)));
+        let map = Arc::new(map);
+        tr.set_map(Some(map.clone()));
+        assert!(
+            tr.map::<FollowerMap>()
+                .is_some_and(|m| Arc::ptr_eq(m, &map))
+        );
         assert!(tr.reference());
         let (u0, v0, e0) = (fu(b.enc), fv(b.enc), b.enc);
         for _ in 0..2000 {

@@ -7,7 +7,6 @@ use axiscomp::can::fault::{FaultStats, Faults, Faulty, RX_STREAM};
 use axiscomp::can::memory::MemoryBus;
 use axiscomp::can::pycan::{self, PyCanMulticast};
 use axiscomp::can::{CanError, CanFrame, CanTransport};
-use axiscomp::sim::rng::Rng;
 use std::io::{BufRead, BufReader};
 use std::net::{Ipv4Addr, UdpSocket};
 use std::path::Path;
@@ -383,9 +382,18 @@ async fn faulty_random_drops_are_the_seeded_ones() {
     for i in 0..n {
         a.send(&std_frame(i, &[])).await.unwrap();
     }
-    // Independent computation of the survivors from the documented stream.
-    let mut rng = Rng::new(seed).fork(RX_STREAM);
-    let want: Vec<u32> = (0..n as u32).filter(|_| rng.unit() >= p).collect();
+    // Independent computation of the survivors from the documented stream (xorshift64*,
+    // as can::fault documents it).
+    let mut x = (seed ^ (RX_STREAM << 32))
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .max(1);
+    let mut unit = || {
+        x ^= x >> 12;
+        x ^= x << 25;
+        x ^= x >> 27;
+        (x.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let want: Vec<u32> = (0..n as u32).filter(|_| unit() >= p).collect();
     assert!((250..340).contains(&want.len()), "{}", want.len());
     let got: Vec<u32> = recv_n(&b, want.len())
         .await
