@@ -76,6 +76,8 @@ impl Bench for ServiceBench {
 pub const MIN_POSES: usize = 20;
 /// Poses of the default plan.
 pub const DEFAULT_POSES: usize = 200;
+/// The most poses a generated plan takes (a day at a few seconds a pose).
+pub const MAX_POSES: usize = 20_000;
 /// Every n-th pose is held out of the fit to judge it.
 const HOLDOUT_EVERY: usize = 5;
 
@@ -158,6 +160,7 @@ pub fn plan_for(plan: Option<&str>, poses: Option<usize>) -> Result<PosePlan, St
             if n < MIN_POSES {
                 return Err(format!("{n} poses: give at least {MIN_POSES}"));
             }
+            crate::util::range::int_field("poses", Some(n), MIN_POSES, MAX_POSES)?;
             Ok(PosePlan::generate(&PlanSpec {
                 poses: n,
                 ..PlanSpec::default()
