@@ -79,6 +79,27 @@ pub struct MappingRequest {
     pub certificate: Option<String>,
 }
 
+impl MappingRequest {
+    /// Every number given within its range (`start` and the plan check how they fit
+    /// together), or the first that is not, named.
+    pub fn check(&self) -> Result<(), String> {
+        use crate::follower::selfcal::{MAX_STEP_MM, MIN_STEP_MM};
+        use crate::util::range::{FEED_MM_MIN, POSITION_MM, Range, field, int_field};
+        field("from_mm", self.from_mm, POSITION_MM)?;
+        field("to_mm", self.to_mm, POSITION_MM)?;
+        field(
+            "step_mm",
+            self.step_mm,
+            Range::new(MIN_STEP_MM, MAX_STEP_MM, "mm"),
+        )?;
+        field("lead_mm", self.lead_mm, Range::new(0.1, 100.0, "mm"))?;
+        field("feed_mm_min", self.feed_mm_min, FEED_MM_MIN)?;
+        int_field("passes", self.passes, 1, 100)?;
+        int_field("frames", self.frames, 10, 100_000)?;
+        int_field("probe_every", self.probe_every, 0, 1000)
+    }
+}
+
 /// The mapping as `follower_map_status` and the snapshot show it.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
