@@ -555,14 +555,29 @@ fn follower_key(e: &crate::canopen::ConfigError) -> String {
 
 struct V<'a> {
     origin: &'a dyn Fn(&str) -> String,
+    /// The section the keys given are in (`tracking`: `rest_ms` is `tracking.rest_ms`);
+    /// empty: keys are given whole.
+    section: &'static str,
 }
 
 impl V<'_> {
     fn err(&self, key: &str, problem: impl Into<String>) -> ConfigError {
+        let key = match self.section {
+            "" => key.to_string(),
+            section => format!("{section}.{key}"),
+        };
         ConfigError {
-            origin: (self.origin)(key),
-            key: key.into(),
+            origin: (self.origin)(&key),
+            key,
             problem: problem.into(),
+        }
+    }
+
+    /// The same checks with keys given within `section`.
+    fn section(&self, section: &'static str) -> V<'_> {
+        V {
+            origin: self.origin,
+            section,
         }
     }
 
@@ -645,7 +660,10 @@ fn validate(
     origin: &dyn Fn(&str) -> String,
     sources: Vec<String>,
 ) -> Result<Settings, ConfigError> {
-    let v = V { origin };
+    let v = V {
+        origin,
+        section: "",
+    };
     let s = &raw.service;
     if s.socket.is_empty() {
         return Err(v.err("service.socket", "empty: give the control socket's path"));
@@ -788,50 +806,29 @@ fn validate(
     })?;
     let speed = Range::new(0.001, 1000.0, "mm/s");
     let accel = Range::new(0.01, 1e6, "mm/s²");
-    for (key, x, r) in [
-        (
-            "follower.feed_mm",
-            f.feed_mm,
-            Range::new(0.01, 1000.0, "mm"),
-        ),
-        (
-            "follower.gear_ratio",
-            f.gear_ratio,
-            Range::new(0.001, 1000.0, ""),
-        ),
-        (
-            "follower.homing_switch_speed_mm_s",
-            f.homing_switch_speed_mm_s,
-            speed,
-        ),
-        (
-            "follower.homing_zero_speed_mm_s",
-            f.homing_zero_speed_mm_s,
-            speed,
-        ),
+    let window = Range::new(0.001, 1000.0, "mm");
+    // One key a line, whole (for grep), though rustfmt would split the longer ones.
+    #[rustfmt::skip]
+    let homing = [
+        ("follower.homing_switch_speed_mm_s", f.homing_switch_speed_mm_s, speed),
+        ("follower.homing_zero_speed_mm_s", f.homing_zero_speed_mm_s, speed),
         ("follower.homing_accel_mm_s2", f.homing_accel_mm_s2, accel),
         ("follower.homing_offset_mm", f.homing_offset_mm, POSITION_MM),
+    ];
+    #[rustfmt::skip]
+    let drive = [
+        ("follower.feed_mm", f.feed_mm, Range::new(0.01, 1000.0, "mm")),
+        ("follower.gear_ratio", f.gear_ratio, Range::new(0.001, 1000.0, "")),
         ("follower.velocity_mm_s", f.velocity_mm_s, speed),
         ("follower.accel_mm_s2", f.accel_mm_s2, accel),
         ("follower.decel_mm_s2", f.decel_mm_s2, accel),
-        (
-            "follower.quick_stop_decel_mm_s2",
-            f.quick_stop_decel_mm_s2,
-            accel,
-        ),
-        (
-            "follower.position_window_um",
-            f.position_window_um,
-            Range::new(0.01, 10_000.0, "µm"),
-        ),
-        (
-            "follower.following_error_window_mm",
-            f.following_error_window_mm,
-            Range::new(0.001, 1000.0, "mm"),
-        ),
+        ("follower.quick_stop_decel_mm_s2", f.quick_stop_decel_mm_s2, accel),
+        ("follower.position_window_um", f.position_window_um, Range::new(0.01, 10_000.0, "µm")),
+        ("follower.following_error_window_mm", f.following_error_window_mm, window),
         ("follower.min_mm", f.min_mm, POSITION_MM),
         ("follower.max_mm", f.max_mm, POSITION_MM),
-    ] {
+    ];
+    for (key, x, r) in drive.into_iter().chain(homing) {
         v.range(key, x, r)?;
     }
     if !(f.min_mm.is_finite() && f.max_mm.is_finite() && f.min_mm < f.max_mm) {
@@ -843,19 +840,15 @@ fn validate(
             ),
         ));
     }
+    let fv = v.section("follower");
     let drive = DriveConfig {
         node_id,
         // 0x1017 and 0x1016 hold u16 milliseconds.
-        heartbeat_period: v.ms("follower.heartbeat_ms", f.heartbeat_ms, 1, 65_535)?,
-        heartbeat_timeout: v.ms(
-            "follower.heartbeat_timeout_ms",
-            f.heartbeat_timeout_ms,
-            1,
-            65_535,
-        )?,
-        sdo_timeout: v.ms("follower.sdo_timeout_ms", f.sdo_timeout_ms, 1, 60_000)?,
-        sync_period: v.ms("follower.sync_ms", f.sync_ms, 1, 1000)?,
-        quiet_sync_period: v.ms("follower.quiet_sync_ms", f.quiet_sync_ms, 1, 60_000)?,
+        heartbeat_period: fv.ms("heartbeat_ms", f.heartbeat_ms, 1, 65_535)?,
+        heartbeat_timeout: fv.ms("heartbeat_timeout_ms", f.heartbeat_timeout_ms, 1, 65_535)?,
+        sdo_timeout: fv.ms("sdo_timeout_ms", f.sdo_timeout_ms, 1, 60_000)?,
+        sync_period: fv.ms("sync_ms", f.sync_ms, 1, 1000)?,
+        quiet_sync_period: fv.ms("quiet_sync_ms", f.quiet_sync_ms, 1, 60_000)?,
         scaling: Scaling {
             feed_mm: f.feed_mm,
             shaft_revolutions: f.shaft_revolutions,
@@ -869,12 +862,7 @@ fn validate(
             zero_speed_mm_s: f.homing_zero_speed_mm_s,
             accel_mm_s2: f.homing_accel_mm_s2,
             offset_mm: f.homing_offset_mm,
-            timeout: v.ms(
-                "follower.homing_timeout_ms",
-                f.homing_timeout_ms,
-                1,
-                3_600_000,
-            )?,
+            timeout: fv.ms("homing_timeout_ms", f.homing_timeout_ms, 1, 3_600_000)?,
         },
         profile: ProfileConfig {
             velocity_mm_s: f.velocity_mm_s,
@@ -899,6 +887,7 @@ fn validate(
             None => v.err(&key, e.to_string()),
         });
     }
+    let level_sd = Range::new(0.001, 60.0, "arcsec");
     let follower = FollowerSettings {
         drive,
         home_on_start: f.home_on_start,
@@ -912,11 +901,8 @@ fn validate(
                 ));
             }
         },
-        level_sd_rad: v.range(
-            "follower.level_sd_arcsec",
-            f.level_sd_arcsec,
-            Range::new(0.001, 60.0, "arcsec"),
-        )? * crate::units::RAD_PER_ARCSEC,
+        level_sd_rad: fv.range("level_sd_arcsec", f.level_sd_arcsec, level_sd)?
+            * crate::units::RAD_PER_ARCSEC,
     };
     let t = &raw.tracking;
     let strategy = match t.strategy.as_str() {
@@ -954,44 +940,30 @@ fn validate(
         Range::new(0.0, 1000.0, "µm"),
         Range::new(0.0, 1000.0, "µm/m"),
     );
+    let band = Range::new(0.001, 50.0, "mm");
+    let tv = v.section("tracking");
     let tracking = TrackSettings {
         strategy,
         handover_mm,
         edge_mm,
-        rest_tolerance_mm: v.range(
-            "tracking.rest_tolerance_um",
-            t.rest_tolerance_um,
-            tolerance_um,
-        )? * 1e-3,
-        rest_time: v.ms("tracking.rest_ms", t.rest_ms, 1, 60_000)?,
+        rest_tolerance_mm: tv.range("rest_tolerance_um", t.rest_tolerance_um, tolerance_um)? * 1e-3,
+        rest_time: tv.ms("rest_ms", t.rest_ms, 1, 60_000)?,
         average_frames: t.average_frames as usize,
-        settle: v.ms("tracking.settle_ms", t.settle_ms, 0, 60_000)?,
-        follow_band_mm: v.range(
-            "tracking.follow_band_mm",
-            t.follow_band_mm,
-            Range::new(0.001, 50.0, "mm"),
-        )?,
-        follow_interval: v.ms(
-            "tracking.follow_interval_ms",
-            t.follow_interval_ms,
-            1,
-            10_000,
-        )?,
-        lead: v.ms("tracking.lead_ms", t.lead_ms, 0, 10_000)?,
-        lost_after: v.ms("tracking.lost_after_ms", t.lost_after_ms, 1, 60_000)?,
-        encoder_sd_mm: v.range("tracking.encoder_sd_um", t.encoder_sd_um, sd_um)? * 1e-3,
-        encoder_sd_per_mm: v.range(
-            "tracking.encoder_sd_um_per_m",
-            t.encoder_sd_um_per_m,
-            sd_um_per_m,
-        )? * 1e-6,
-        vertical_sd_mm: v.range("tracking.vertical_sd_um", t.vertical_sd_um, sd_um)? * 1e-3,
-        vertical_sd_per_mm: v.range(
-            "tracking.vertical_sd_um_per_m",
+        settle: tv.ms("settle_ms", t.settle_ms, 0, 60_000)?,
+        follow_band_mm: tv.range("follow_band_mm", t.follow_band_mm, band)?,
+        follow_interval: tv.ms("follow_interval_ms", t.follow_interval_ms, 1, 10_000)?,
+        lead: tv.ms("lead_ms", t.lead_ms, 0, 10_000)?,
+        lost_after: tv.ms("lost_after_ms", t.lost_after_ms, 1, 60_000)?,
+        encoder_sd_mm: tv.range("encoder_sd_um", t.encoder_sd_um, sd_um)? * 1e-3,
+        encoder_sd_per_mm: tv.range("encoder_sd_um_per_m", t.encoder_sd_um_per_m, sd_um_per_m)?
+            * 1e-6,
+        vertical_sd_mm: tv.range("vertical_sd_um", t.vertical_sd_um, sd_um)? * 1e-3,
+        vertical_sd_per_mm: tv.range(
+            "vertical_sd_um_per_m",
             t.vertical_sd_um_per_m,
             sd_um_per_m,
         )? * 1e-6,
-        move_timeout: v.ms("tracking.move_timeout_ms", t.move_timeout_ms, 1, 600_000)?,
+        move_timeout: tv.ms("move_timeout_ms", t.move_timeout_ms, 1, 600_000)?,
         approach_mm: approach_mm(&v, t.approach_um)?,
     };
     let c = &raw.cnc;
@@ -1023,18 +995,11 @@ fn validate(
             format!("{} is too few: give at least 2", k.frames),
         ));
     }
+    let (cv, target_mm) = (v.section("capture"), Range::new(0.001, 100.0, "mm"));
     let capture = CaptureSettings {
-        rest_tolerance_mm: v.range(
-            "capture.rest_tolerance_um",
-            k.rest_tolerance_um,
-            tolerance_um,
-        )? * 1e-3,
-        settle: v.ms("capture.settle_ms", k.settle_ms, 1, 60_000)?,
-        target_tolerance_mm: v.range(
-            "capture.target_tolerance_mm",
-            k.target_tolerance_mm,
-            Range::new(0.001, 100.0, "mm"),
-        )?,
+        rest_tolerance_mm: cv.range("rest_tolerance_um", k.rest_tolerance_um, tolerance_um)? * 1e-3,
+        settle: cv.ms("settle_ms", k.settle_ms, 1, 60_000)?,
+        target_tolerance_mm: cv.range("target_tolerance_mm", k.target_tolerance_mm, target_mm)?,
         frames: v.checked(
             "capture.frames",
             range::int(k.frames, 2, MAX_FRAMES, "").map(|n| n as usize),
@@ -1044,15 +1009,11 @@ fn validate(
             range::int(k.timeout_s, 1, 86_400, "s").map(Duration::from_secs),
         )?,
     };
-    let a = &raw.align;
+    let (a, angle) = (&raw.align, Range::new(1.0, 10_000.0, "µrad"));
     let align = AlignConfig {
         settings: crate::align::AlignSettings {
             margin_mm: v.range("align.margin_mm", a.margin_mm, Range::new(0.01, 10.0, "mm"))?,
-            max_angle_rad: v.range(
-                "align.max_angle_urad",
-                a.max_angle_urad,
-                Range::new(1.0, 10_000.0, "µrad"),
-            )? * 1e-6,
+            max_angle_rad: v.range("align.max_angle_urad", a.max_angle_urad, angle)? * 1e-6,
             ..Default::default()
         },
         check_before_run: a.check_before_run,

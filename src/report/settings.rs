@@ -80,12 +80,6 @@ pub fn validate(
     a: &RawAcceptance,
 ) -> Result<(MachineSettings, AcceptanceSettings), (String, String)> {
     let alpha = m.expansion_um_per_m_k;
-    if alpha.is_nan() || alpha < 0.0 {
-        return Err((
-            "machine.expansion_um_per_m_k".into(),
-            format!("{} must be zero (not specified) or positive", num(alpha)),
-        ));
-    }
     // Below a hundredth even Zerodur's 0.05 is far; above 100 no scale is.
     if alpha != 0.0 && !(0.01..=100.0).contains(&alpha) {
         return Err((

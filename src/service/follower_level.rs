@@ -85,15 +85,13 @@ impl LevelRequest {
     /// Every number given within its range (`start` checks the span against the map's), or
     /// the first that is not, named.
     pub fn check(&self) -> Result<(), String> {
-        use crate::util::range::{FEED_MM_MIN, POSITION_MM, Range, field, int_field};
-        field("from_mm", self.from_mm, POSITION_MM)?;
-        field("to_mm", self.to_mm, POSITION_MM)?;
+        use crate::util::range::{Range, field, int_field};
+        super::follower_map::check_span_and_feed(self.from_mm, self.to_mm, self.feed_mm_min)?;
         field(
             "station_mm",
             self.station_mm,
             Range::new(1.0, 10_000.0, "mm"),
         )?;
-        field("feed_mm_min", self.feed_mm_min, FEED_MM_MIN)?;
         int_field("readings", self.readings, 2, 1000)
     }
 }

@@ -84,20 +84,28 @@ impl MappingRequest {
     /// together), or the first that is not, named.
     pub fn check(&self) -> Result<(), String> {
         use crate::follower::selfcal::{MAX_STEP_MM, MIN_STEP_MM};
-        use crate::util::range::{FEED_MM_MIN, POSITION_MM, Range, field, int_field};
-        field("from_mm", self.from_mm, POSITION_MM)?;
-        field("to_mm", self.to_mm, POSITION_MM)?;
-        field(
-            "step_mm",
-            self.step_mm,
-            Range::new(MIN_STEP_MM, MAX_STEP_MM, "mm"),
-        )?;
+        use crate::util::range::{Range, field, int_field};
+        check_span_and_feed(self.from_mm, self.to_mm, self.feed_mm_min)?;
+        let step = Range::new(MIN_STEP_MM, MAX_STEP_MM, "mm");
+        field("step_mm", self.step_mm, step)?;
         field("lead_mm", self.lead_mm, Range::new(0.1, 100.0, "mm"))?;
-        field("feed_mm_min", self.feed_mm_min, FEED_MM_MIN)?;
         int_field("passes", self.passes, 1, 100)?;
         int_field("frames", self.frames, 10, 100_000)?;
         int_field("probe_every", self.probe_every, 0, 1000)
     }
+}
+
+/// A request's span and the carriage's feed, when given (`follower_map_start`,
+/// `follower_level_start`).
+pub(super) fn check_span_and_feed(
+    from_mm: Option<f64>,
+    to_mm: Option<f64>,
+    feed_mm_min: Option<f64>,
+) -> Result<(), String> {
+    use crate::util::range::{FEED_MM_MIN, POSITION_MM, field};
+    field("from_mm", from_mm, POSITION_MM)?;
+    field("to_mm", to_mm, POSITION_MM)?;
+    field("feed_mm_min", feed_mm_min, FEED_MM_MIN)
 }
 
 /// The mapping as `follower_map_status` and the snapshot show it.

@@ -217,6 +217,11 @@ pub fn parse_all(
     let arcsec = Range::new(0.0, 3600.0, "arcsec");
     let wear = um(super::twin::WEAR_MAX_UM);
     let lead = Range::new(0.1, 100.0, "mm");
+    // A head mounted and built within 10 mm and 10° of its design.
+    let (mm10, deg10) = (
+        Range::new(0.0, 10.0, "mm"),
+        Range::new(0.0, 10.0, "degrees"),
+    );
     let t = &raw.twin;
     let layout = match t.layout.as_str() {
         "builtin" | "builtin:reference" => Layout::reference(),
@@ -252,16 +257,8 @@ pub fn parse_all(
             },
         },
         install: InstallSpec {
-            offset_mm: rng(
-                "twin.head.install_offset_mm",
-                h.install_offset_mm,
-                Range::new(0.0, 10.0, "mm"),
-            )?,
-            tilt_deg: rng(
-                "twin.head.install_tilt_deg",
-                h.install_tilt_deg,
-                Range::new(0.0, 10.0, "degrees"),
-            )?,
+            offset_mm: rng("twin.head.install_offset_mm", h.install_offset_mm, mm10)?,
+            tilt_deg: rng("twin.head.install_tilt_deg", h.install_tilt_deg, deg10)?,
             gain_error: rng(
                 "twin.head.gain_error",
                 h.gain_error,
@@ -269,16 +266,8 @@ pub fn parse_all(
             )?,
         },
         mount: super::plant::MountSpec {
-            angle_deg: rng(
-                "twin.head.mount_angle_deg",
-                h.mount_angle_deg,
-                Range::new(0.0, 10.0, "degrees"),
-            )?,
-            offset_mm: rng(
-                "twin.head.mount_offset_mm",
-                h.mount_offset_mm,
-                Range::new(0.0, 10.0, "mm"),
-            )?,
+            angle_deg: rng("twin.head.mount_angle_deg", h.mount_angle_deg, deg10)?,
+            offset_mm: rng("twin.head.mount_offset_mm", h.mount_offset_mm, mm10)?,
         },
         noise_mm: rng("twin.head.noise_um", h.noise_um, um(1000.0))? * 1e-3,
         beam_drift_rad_per_sqrt_s: rng(
