@@ -223,13 +223,17 @@ fn extreme_u64() -> impl Strategy<Value = u64> {
 }
 
 /// Where the numbers of `v` are: runs of digits (with a sign, a point, an exponent) that do
-/// not continue a name (`X1_um`, `u32`).
+/// not continue a name (`X1_um`, `u32`), outside `#` comments.
 fn number_spans(v: &[u8]) -> Vec<(usize, usize)> {
     let mut out = Vec::new();
     let mut i = 0;
     while i < v.len() {
         let word = |b: u8| b.is_ascii_alphanumeric() || b == b'_';
-        if v[i].is_ascii_digit() && (i == 0 || !word(v[i - 1])) {
+        if v[i] == b'#' {
+            while i < v.len() && v[i] != b'\n' {
+                i += 1;
+            }
+        } else if v[i].is_ascii_digit() && (i == 0 || !word(v[i - 1])) {
             let start = if i > 0 && v[i - 1] == b'-' { i - 1 } else { i };
             let mut end = i;
             while end < v.len()
@@ -390,10 +394,20 @@ fn bytes_from(seeds: Vec<Vec<u8>>, max: usize) -> impl Strategy<Value = Vec<u8>>
     ]
 }
 
-/// Text inputs: mutated seeds taken as UTF-8 (invalid sequences replaced).
+/// A seed whole but for one to three of its numbers, each replaced by an extreme one: every
+/// key, field and column of a file meets the extremes with the rest of it valid.
+fn numbers_from(seeds: Vec<Vec<u8>>) -> impl Strategy<Value = Vec<u8>> {
+    let n = seeds.len();
+    let number = (any::<usize>(), 0..EXTREME_NUMBERS.len()).prop_map(|(p, k)| Edit::Number(p, k));
+    (0..n, prop::collection::vec(number, 1..4)).prop_map(move |(k, edits)| apply(&seeds[k], &edits))
+}
+
+/// Text inputs: mutated seeds taken as UTF-8 (invalid sequences replaced), half of them with
+/// extreme numbers only.
 fn text_from(seeds: Vec<String>) -> impl Strategy<Value = String> {
     let max = seeds.iter().map(String::len).max().unwrap_or(64);
-    bytes_from(seeds.into_iter().map(String::into_bytes).collect(), max)
+    let seeds: Vec<Vec<u8>> = seeds.into_iter().map(String::into_bytes).collect();
+    prop_oneof![bytes_from(seeds.clone(), max), numbers_from(seeds),]
         .prop_map(|b| String::from_utf8_lossy(&b).into_owned())
 }
 
