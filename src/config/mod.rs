@@ -1056,7 +1056,7 @@ fn approach_mm(v: &V, um: f64) -> Result<f64, ConfigError> {
 }
 
 /// Frames averaged at once (`tracking.average_frames`, `capture.frames`): 2 at least, and at
-/// most what a few minutes at the highest frame rate give.
+/// most a million (100 s at the highest frame rate).
 const MAX_FRAMES: u64 = 1_000_000;
 
 /// `io.pipeline`: block reads in flight when unthrottled (modbus::pipelined).

@@ -271,7 +271,29 @@ impl Request {
             Request::FollowerLevelReading { arcsec } if !arcsec.is_null() => {
                 super::follower_level::typed_reading(arcsec).map(drop)
             }
-            _ => Ok(()),
+            // No numbers (a new request with numbers must be added above).
+            Request::Status
+            | Request::Zero
+            | Request::ClearZero
+            | Request::Strategy { .. }
+            | Request::RunStatus
+            | Request::RunAbort
+            | Request::Calibration
+            | Request::CalibrationFit { .. }
+            | Request::CalibrationAccept { .. }
+            | Request::CalibrationReject
+            | Request::HexapodStatus
+            | Request::HexapodStop
+            | Request::TableStatus
+            | Request::AlignClear
+            | Request::FollowerCertificate(_)
+            | Request::FollowerMapStatus
+            | Request::FollowerMapStop
+            | Request::FollowerMapFinish
+            | Request::FollowerLevelStatus
+            | Request::FollowerLevelReading { .. }
+            | Request::FollowerLevelStop
+            | Request::FollowerLevelFinish => Ok(()),
         }
     }
 
