@@ -27,6 +27,7 @@
 
 use super::super::modbus::RegisterKind;
 use super::super::modbus::codec::{self, CodecError, ReadRange, ValueType, WordOrder};
+use crate::util::range::Range;
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -285,18 +286,21 @@ impl Ctx<'_> {
         }
     }
 
-    fn finite(&self, key: &str, v: f64, nonzero: bool) -> Result<f64, MapError> {
-        if !v.is_finite() || (nonzero && v == 0.0) {
-            let what = if nonzero {
-                "a finite, non-zero number"
-            } else {
-                "a finite number"
-            };
-            return Err(self.err(key, format!("{v} is not {what}"), "give a real value"));
-        }
-        Ok(v)
+    /// `v` within `r`, or an error naming `key` with the range, and `fix`.
+    fn range(&self, key: &str, v: f64, r: Range, fix: &str) -> Result<f64, MapError> {
+        r.check(v).map_err(|p| self.err(key, p, fix))
     }
 }
+
+// What a module and a PSD can be: signals within ±100 V, a count from 1 nV to 10 V, gains
+// from 1 µm to 1 m per volt (negative for an inverted axis), offsets and active lengths
+// within a PSD's size.
+const SUM_THRESHOLD: Range = Range::new(0.0, 100.0, "V");
+const VOLTS_PER_COUNT: Range = Range::new(1e-9, 10.0, "V").either_sign();
+const VOLTS_OFFSET: Range = Range::symmetric(100.0, "V");
+const GAIN: Range = Range::new(0.001, 1000.0, "mm/V").either_sign();
+const OFFSET: Range = Range::symmetric(100.0, "mm");
+const LENGTH: Range = Range::new(0.1, 100.0, "mm");
 
 impl IoMap {
     /// Load and validate a map file.
@@ -340,14 +344,12 @@ fn validate(raw: RawMap, cx: &Ctx) -> Result<IoMap, MapError> {
             "one block read carries 1..=125 registers inside 0..=65535",
         )
     })?;
-    let threshold = cx.finite("sum_threshold_v", raw.sum_threshold_v, false)?;
-    if threshold < 0.0 {
-        return Err(cx.err(
-            "sum_threshold_v",
-            format!("{threshold} V is negative"),
-            "give the SUM (V) below which a PSD has no spot, e.g. 0.5",
-        ));
-    }
+    let threshold = cx.range(
+        "sum_threshold_v",
+        raw.sum_threshold_v,
+        SUM_THRESHOLD,
+        "give the SUM (V) below which a PSD has no spot, e.g. 0.5",
+    )?;
     let electrodes = match raw.mode.as_str() {
         "conditioned" => false,
         "electrodes" => true,
@@ -437,7 +439,7 @@ fn psd(
         })?;
         channel(c, &format!("{at}.{k}"), d, block, used, cx)
     };
-    let number = |k: &str, v: Option<f64>, default: Option<f64>, nonzero: bool| {
+    let number = |k: &str, v: Option<f64>, default: Option<f64>, r: Range| {
         let v = v.or(default).ok_or_else(|| {
             cx.err(
                 format!("{at}.{k}"),
@@ -445,7 +447,12 @@ fn psd(
                 "give it (see plc-maps/io/generic.toml)",
             )
         })?;
-        cx.finite(&format!("{at}.{k}"), v, nonzero)
+        cx.range(
+            &format!("{at}.{k}"),
+            v,
+            r,
+            "give the PSD's value (see plc-maps/io/generic.toml)",
+        )
     };
     if electrodes {
         let layout = match p.layout.as_deref() {
@@ -462,17 +469,8 @@ fn psd(
                 ));
             }
         };
-        let lx = number("length_x_mm", p.length_x_mm, None, true)?;
-        let ly = number("length_y_mm", p.length_y_mm, None, true)?;
-        for (k, v) in [("length_x_mm", lx), ("length_y_mm", ly)] {
-            if v < 0.0 {
-                return Err(cx.err(
-                    format!("{at}.{k}"),
-                    format!("{v} mm is negative"),
-                    "give the active length (electrode to electrode) in mm",
-                ));
-            }
-        }
+        let lx = number("length_x_mm", p.length_x_mm, None, LENGTH)?;
+        let ly = number("length_y_mm", p.length_y_mm, None, LENGTH)?;
         Ok(PsdMap::Electrodes(Electrodes {
             name,
             layout,
@@ -486,10 +484,10 @@ fn psd(
     } else {
         Ok(PsdMap::Conditioned(Conditioned {
             name,
-            gain_x_mm_per_v: number("gain_x_mm_per_v", p.gain_x_mm_per_v, None, true)?,
-            gain_y_mm_per_v: number("gain_y_mm_per_v", p.gain_y_mm_per_v, None, true)?,
-            offset_x_mm: number("offset_x_mm", p.offset_x_mm, Some(0.0), false)?,
-            offset_y_mm: number("offset_y_mm", p.offset_y_mm, Some(0.0), false)?,
+            gain_x_mm_per_v: number("gain_x_mm_per_v", p.gain_x_mm_per_v, None, GAIN)?,
+            gain_y_mm_per_v: number("gain_y_mm_per_v", p.gain_y_mm_per_v, None, GAIN)?,
+            offset_x_mm: number("offset_x_mm", p.offset_x_mm, Some(0.0), OFFSET)?,
+            offset_y_mm: number("offset_y_mm", p.offset_y_mm, Some(0.0), OFFSET)?,
             x: need("x", p.x)?,
             y: need("y", p.y)?,
             sum: need("sum", p.sum)?,
@@ -530,11 +528,17 @@ fn channel(
             "give volts_per_count here or in [defaults] (full-scale volts / full-scale counts)",
         )
     })?;
-    let vpc = cx.finite(&format!("{key}.volts_per_count"), vpc, true)?;
-    let voff = cx.finite(
+    let vpc = cx.range(
+        &format!("{key}.volts_per_count"),
+        vpc,
+        VOLTS_PER_COUNT,
+        "give the module's full-scale volts / full-scale counts",
+    )?;
+    let voff = cx.range(
         &format!("{key}.volts_offset"),
         c.volts_offset.or(d.volts_offset).unwrap_or(0.0),
-        false,
+        VOLTS_OFFSET,
+        "give the volts at 0 counts (usually 0)",
     )?;
     let status_bits = c.status_bits.or(d.status_bits).unwrap_or(0);
     if status_bits > 0 && (ty.words() != 1 || status_bits > 15) {

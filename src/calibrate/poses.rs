@@ -6,6 +6,7 @@ use super::CalError;
 use crate::optics::Pose;
 use crate::units::{Errors6, readings_from_um, readings_to_um};
 use crate::util::csv::NumericCsv;
+use crate::util::range::{POSITION_MM, Range};
 use nalgebra::Vector6;
 use std::fmt::Write as _;
 
@@ -23,6 +24,25 @@ pub const READING_COLUMNS: [&str; 6] = ["X1_um", "Y1_um", "X2_um", "Y2_um", "X3_
 /// Optional position columns.
 pub const POSITION_COLUMNS: [&str; 2] = ["travel_mm", "follower_mm"];
 
+/// A PSD reading (µm): ±100 mm, beyond any PSD's size.
+pub const READING_UM: Range = Range::symmetric(100_000.0, "µm");
+
+/// Every column's range: the pose within a hexapod's reach (±100 mm, ±10°), the readings
+/// within [`READING_UM`], the positions along a machine axis.
+pub fn column_ranges() -> Vec<(&'static str, Range)> {
+    let (um, arcsec) = (
+        Range::symmetric(100_000.0, "µm"),
+        Range::symmetric(36_000.0, "arcsec"),
+    );
+    let errors = ERROR_COLUMNS
+        .iter()
+        .enumerate()
+        .map(|(k, c)| (*c, if k < 3 { um } else { arcsec }));
+    let readings = READING_COLUMNS.iter().map(|c| (*c, READING_UM));
+    let positions = POSITION_COLUMNS.iter().map(|c| (*c, POSITION_MM));
+    errors.chain(readings).chain(positions).collect()
+}
+
 /// One known pose and the readings taken there (mm).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PoseSample {
@@ -35,6 +55,7 @@ pub fn parse_pose_csv(text: &str, source_name: &str) -> Result<Vec<PoseSample>, 
     let mut required: Vec<&str> = ERROR_COLUMNS.to_vec();
     required.extend_from_slice(&READING_COLUMNS);
     let csv = NumericCsv::parse(text, source_name, &required, &POSITION_COLUMNS)?;
+    csv.check_ranges(&column_ranges())?;
     let ecol: Vec<usize> = ERROR_COLUMNS.iter().filter_map(|c| csv.col(c)).collect();
     let rcol: Vec<usize> = READING_COLUMNS.iter().filter_map(|c| csv.col(c)).collect();
     let (tcol, fcol) = (csv.col("travel_mm"), csv.col("follower_mm"));

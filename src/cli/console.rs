@@ -35,6 +35,10 @@ pub fn run(a: Args) -> Result<()> {
         ))
         .into());
     }
+    // The service refuses a subscription outside this range: say so before connecting.
+    axiscomp::config::SNAPSHOT_HZ
+        .check(a.hz)
+        .map_err(|p| super::InputError(format!("--hz: {p}")))?;
     let opts = axiscomp::console::Options {
         socket,
         jog_step_mm: a.jog_mm,

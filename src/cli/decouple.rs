@@ -79,6 +79,12 @@ pub fn run(a: Args) -> Result<()> {
         &READING_COLUMNS,
         &["travel_mm", "follower_mm"],
     )?;
+    let mut ranges: Vec<_> = READING_COLUMNS
+        .iter()
+        .map(|c| (*c, axiscomp::calibrate::poses::READING_UM))
+        .collect();
+    ranges.extend(["travel_mm", "follower_mm"].map(|c| (c, axiscomp::util::range::POSITION_MM)));
+    csv.check_ranges(&ranges)?;
     let cols: Vec<usize> = READING_COLUMNS.iter().filter_map(|c| csv.col(c)).collect();
     let (tcol, fcol) = (csv.col("travel_mm"), csv.col("follower_mm"));
     let stdout = std::io::stdout();

@@ -7,6 +7,7 @@ use super::heidenhain::{Backlash, Family};
 use super::linuxcnc::Units;
 use super::mitsubishi::Mode;
 use super::siemens::{EndHandling, SiemensControl};
+use crate::util::range::{POSITION_MM, Range};
 use serde::{Deserialize, Serialize};
 
 /// `[comp.siemens]`
@@ -267,23 +268,37 @@ pub fn mitsubishi_mode(v: &str) -> Result<Mode, (String, String)> {
 
 /// Check `[comp]`; an error is (key, problem).
 pub fn validate(raw: &RawComp) -> Result<CompSettings, (String, String)> {
-    let positive = |key: &str, v: f64| {
-        if v.is_finite() && v > 0.0 {
-            Ok(())
-        } else {
-            Err((key.to_string(), format!("{v} must be a positive number")))
-        }
-    };
-    positive(
-        "comp.fanuc.input_increment_mm",
-        raw.fanuc.input_increment_mm,
-    )?;
-    positive("comp.fanuc.detection_unit_mm", raw.fanuc.detection_unit_mm)?;
-    positive("comp.fanuc.max_feed_mm_min", raw.fanuc.max_feed_mm_min)?;
-    positive(
-        "comp.mitsubishi.output_unit_mm",
-        raw.mitsubishi.output_unit_mm,
-    )?;
+    // A control's units: down to 1 nm (IS-D and finer), up to 1 mm.
+    let unit = Range::new(1e-6, 1.0, "mm");
+    for (key, v, r) in [
+        (
+            "comp.fanuc.input_increment_mm",
+            raw.fanuc.input_increment_mm,
+            unit,
+        ),
+        (
+            "comp.fanuc.detection_unit_mm",
+            raw.fanuc.detection_unit_mm,
+            unit,
+        ),
+        (
+            "comp.fanuc.max_feed_mm_min",
+            raw.fanuc.max_feed_mm_min,
+            Range::new(1.0, 1e6, "mm/min"),
+        ),
+        (
+            "comp.mitsubishi.output_unit_mm",
+            raw.mitsubishi.output_unit_mm,
+            unit,
+        ),
+        (
+            "comp.heidenhain.datum_mm",
+            raw.heidenhain.datum_mm,
+            POSITION_MM,
+        ),
+    ] {
+        r.check(v).map_err(|p| (key.to_string(), p))?;
+    }
     if !(1..=100).contains(&raw.fanuc.magnification) {
         return Err((
             "comp.fanuc.magnification".into(),
@@ -291,12 +306,6 @@ pub fn validate(raw: &RawComp) -> Result<CompSettings, (String, String)> {
                 "{} is outside parameter 3623's 1..=100",
                 raw.fanuc.magnification
             ),
-        ));
-    }
-    if !raw.heidenhain.datum_mm.is_finite() {
-        return Err((
-            "comp.heidenhain.datum_mm".into(),
-            format!("{} is not a position", raw.heidenhain.datum_mm),
         ));
     }
     Ok(CompSettings {

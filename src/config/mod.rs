@@ -18,6 +18,7 @@ use crate::canopen::{DriveConfig, HomingConfig, ProfileConfig, Scaling, TravelLi
 use crate::modbus::LinkConfig;
 use crate::run::{CaptureSettings, Dialect};
 use crate::track::{Strategy, TrackSettings};
+use crate::util::range::{self, POSITION_MM, Range};
 
 pub mod kind;
 
@@ -27,6 +28,8 @@ pub const DEFAULTS: &str = include_str!("defaults.toml");
 pub const ETC_PATH: &str = "/etc/axiscomp/axiscomp.toml";
 /// Environment variable prefix; `AXISCOMP__IO__RATE_HZ=250` sets `io.rate_hz`.
 pub const ENV_PREFIX: &str = "AXISCOMP";
+/// Snapshots a second for subscribers (`service.snapshot_hz`, a `subscribe` request's `hz`).
+pub const SNAPSHOT_HZ: Range = Range::new(0.1, 100.0, "Hz");
 
 /// A configuration error: where, which key, what is wrong and what to do.
 #[derive(Debug, Error, Clone, PartialEq)]
@@ -552,14 +555,29 @@ fn follower_key(e: &crate::canopen::ConfigError) -> String {
 
 struct V<'a> {
     origin: &'a dyn Fn(&str) -> String,
+    /// The section the keys given are in (`tracking`: `rest_ms` is `tracking.rest_ms`);
+    /// empty: keys are given whole.
+    section: &'static str,
 }
 
 impl V<'_> {
     fn err(&self, key: &str, problem: impl Into<String>) -> ConfigError {
+        let key = match self.section {
+            "" => key.to_string(),
+            section => format!("{section}.{key}"),
+        };
         ConfigError {
-            origin: (self.origin)(key),
-            key: key.into(),
+            origin: (self.origin)(&key),
+            key,
             problem: problem.into(),
+        }
+    }
+
+    /// The same checks with keys given within `section`.
+    fn section(&self, section: &'static str) -> V<'_> {
+        V {
+            origin: self.origin,
+            section,
         }
     }
 
@@ -584,27 +602,24 @@ impl V<'_> {
         }
     }
 
-    fn positive(&self, key: &str, v: f64) -> Result<f64, ConfigError> {
-        if v.is_finite() && v > 0.0 {
-            Ok(v)
-        } else {
-            Err(self.err(key, format!("{v} must be a positive number")))
-        }
+    /// A range check's result (`util::range`), its problem named with `key`.
+    fn checked<T>(&self, key: &str, r: Result<T, String>) -> Result<T, ConfigError> {
+        r.map_err(|p| self.err(key, p))
     }
 
-    fn non_negative(&self, key: &str, v: f64) -> Result<f64, ConfigError> {
-        if v.is_finite() && v >= 0.0 {
-            Ok(v)
-        } else {
-            Err(self.err(key, format!("{v} must be zero or positive")))
-        }
+    /// `v` within `r`.
+    fn range(&self, key: &str, v: f64, r: Range) -> Result<f64, ConfigError> {
+        self.checked(key, r.check(v))
     }
 
-    fn ms(&self, key: &str, v: u64, min: u64) -> Result<Duration, ConfigError> {
+    fn ms(&self, key: &str, v: u64, min: u64, max: u64) -> Result<Duration, ConfigError> {
         if v < min {
             return Err(self.err(key, format!("{v} ms is too short: give at least {min} ms")));
         }
-        Ok(Duration::from_millis(v))
+        self.checked(
+            key,
+            range::int(v, min, max, "ms").map(Duration::from_millis),
+        )
     }
 
     fn addr(&self, key: &str, s: &str) -> Result<SocketAddr, ConfigError> {
@@ -645,7 +660,10 @@ fn validate(
     origin: &dyn Fn(&str) -> String,
     sources: Vec<String>,
 ) -> Result<Settings, ConfigError> {
-    let v = V { origin };
+    let v = V {
+        origin,
+        section: "",
+    };
     let s = &raw.service;
     if s.socket.is_empty() {
         return Err(v.err("service.socket", "empty: give the control socket's path"));
@@ -655,9 +673,7 @@ fn validate(
         state_dir: PathBuf::from(&s.state_dir),
         operator_group: s.operator_group.clone(),
         viewer_group: s.viewer_group.clone(),
-        snapshot_period: Duration::from_secs_f64(
-            1.0 / v.positive("service.snapshot_hz", s.snapshot_hz)?,
-        ),
+        snapshot_period: v.checked("service.snapshot_hz", SNAPSHOT_HZ.period(s.snapshot_hz))?,
         watchdog: s.watchdog,
         max_connections: match s.max_connections {
             1..=10_000 => s.max_connections as usize,
@@ -673,9 +689,9 @@ fn validate(
     let head = HeadSettings {
         layout: v.resource("head.layout", &h.layout, &["reference"])?,
         calibration: (!h.calibration.is_empty()).then(|| PathBuf::from(&h.calibration)),
-        noise_mm: v.positive("head.noise_um", h.noise_um)? * 1e-3,
-        live_window: v.ms("head.live_window_ms", h.live_window_ms, 10)?,
-        zero_window: v.ms("head.zero_window_ms", h.zero_window_ms, 10)?,
+        noise_mm: v.range("head.noise_um", h.noise_um, Range::new(0.001, 1000.0, "µm"))? * 1e-3,
+        live_window: v.ms("head.live_window_ms", h.live_window_ms, 10, 60_000)?,
+        zero_window: v.ms("head.zero_window_ms", h.zero_window_ms, 10, 600_000)?,
         serial: h.serial.trim().to_string(),
     };
     let i = &raw.io;
@@ -685,10 +701,14 @@ fn validate(
             format!("{} is not a Modbus unit id (0..=255)", i.unit),
         )
     })?;
-    let rate = v.non_negative("io.rate_hz", i.rate_hz)?;
+    let rate = v.range(
+        "io.rate_hz",
+        i.rate_hz,
+        Range::new(1.0, 10_000.0, "Hz").or_zero("as fast as the module answers"),
+    )?;
     let (rmin, rmax) = (
-        v.ms("io.reconnect_min_ms", i.reconnect_min_ms, 1)?,
-        v.ms("io.reconnect_max_ms", i.reconnect_max_ms, 1)?,
+        v.ms("io.reconnect_min_ms", i.reconnect_min_ms, 1, 600_000)?,
+        v.ms("io.reconnect_max_ms", i.reconnect_max_ms, 1, 600_000)?,
     );
     if rmax < rmin {
         return Err(v.err(
@@ -701,7 +721,7 @@ fn validate(
     }
     let address = v.addr("io.address", &i.address)?;
     let mut link = LinkConfig::new(address);
-    link.timeout = v.ms("io.timeout_ms", i.timeout_ms, 1)?;
+    link.timeout = v.ms("io.timeout_ms", i.timeout_ms, 1, 60_000)?;
     link.backoff_min = rmin;
     link.backoff_max = rmax;
     let io = IoSettings {
@@ -784,6 +804,33 @@ fn validate(
             ),
         )
     })?;
+    let speed = Range::new(0.001, 1000.0, "mm/s");
+    let accel = Range::new(0.01, 1e6, "mm/s²");
+    let window = Range::new(0.001, 1000.0, "mm");
+    // One key a line, whole (for grep), though rustfmt would split the longer ones.
+    #[rustfmt::skip]
+    let homing = [
+        ("follower.homing_switch_speed_mm_s", f.homing_switch_speed_mm_s, speed),
+        ("follower.homing_zero_speed_mm_s", f.homing_zero_speed_mm_s, speed),
+        ("follower.homing_accel_mm_s2", f.homing_accel_mm_s2, accel),
+        ("follower.homing_offset_mm", f.homing_offset_mm, POSITION_MM),
+    ];
+    #[rustfmt::skip]
+    let drive = [
+        ("follower.feed_mm", f.feed_mm, Range::new(0.01, 1000.0, "mm")),
+        ("follower.gear_ratio", f.gear_ratio, Range::new(0.001, 1000.0, "")),
+        ("follower.velocity_mm_s", f.velocity_mm_s, speed),
+        ("follower.accel_mm_s2", f.accel_mm_s2, accel),
+        ("follower.decel_mm_s2", f.decel_mm_s2, accel),
+        ("follower.quick_stop_decel_mm_s2", f.quick_stop_decel_mm_s2, accel),
+        ("follower.position_window_um", f.position_window_um, Range::new(0.01, 10_000.0, "µm")),
+        ("follower.following_error_window_mm", f.following_error_window_mm, window),
+        ("follower.min_mm", f.min_mm, POSITION_MM),
+        ("follower.max_mm", f.max_mm, POSITION_MM),
+    ];
+    for (key, x, r) in drive.into_iter().chain(homing) {
+        v.range(key, x, r)?;
+    }
     if !(f.min_mm.is_finite() && f.max_mm.is_finite() && f.min_mm < f.max_mm) {
         return Err(v.err(
             "follower.max_mm",
@@ -793,13 +840,15 @@ fn validate(
             ),
         ));
     }
+    let fv = v.section("follower");
     let drive = DriveConfig {
         node_id,
-        heartbeat_period: Duration::from_millis(f.heartbeat_ms),
-        heartbeat_timeout: Duration::from_millis(f.heartbeat_timeout_ms),
-        sdo_timeout: Duration::from_millis(f.sdo_timeout_ms),
-        sync_period: Duration::from_millis(f.sync_ms),
-        quiet_sync_period: Duration::from_millis(f.quiet_sync_ms),
+        // 0x1017 and 0x1016 hold u16 milliseconds.
+        heartbeat_period: fv.ms("heartbeat_ms", f.heartbeat_ms, 1, 65_535)?,
+        heartbeat_timeout: fv.ms("heartbeat_timeout_ms", f.heartbeat_timeout_ms, 1, 65_535)?,
+        sdo_timeout: fv.ms("sdo_timeout_ms", f.sdo_timeout_ms, 1, 60_000)?,
+        sync_period: fv.ms("sync_ms", f.sync_ms, 1, 1000)?,
+        quiet_sync_period: fv.ms("quiet_sync_ms", f.quiet_sync_ms, 1, 60_000)?,
         scaling: Scaling {
             feed_mm: f.feed_mm,
             shaft_revolutions: f.shaft_revolutions,
@@ -813,7 +862,7 @@ fn validate(
             zero_speed_mm_s: f.homing_zero_speed_mm_s,
             accel_mm_s2: f.homing_accel_mm_s2,
             offset_mm: f.homing_offset_mm,
-            timeout: Duration::from_millis(f.homing_timeout_ms),
+            timeout: fv.ms("homing_timeout_ms", f.homing_timeout_ms, 1, 3_600_000)?,
         },
         profile: ProfileConfig {
             velocity_mm_s: f.velocity_mm_s,
@@ -838,6 +887,7 @@ fn validate(
             None => v.err(&key, e.to_string()),
         });
     }
+    let level_sd = Range::new(0.001, 60.0, "arcsec");
     let follower = FollowerSettings {
         drive,
         home_on_start: f.home_on_start,
@@ -851,7 +901,7 @@ fn validate(
                 ));
             }
         },
-        level_sd_rad: v.positive("follower.level_sd_arcsec", f.level_sd_arcsec)?
+        level_sd_rad: fv.range("level_sd_arcsec", f.level_sd_arcsec, level_sd)?
             * crate::units::RAD_PER_ARCSEC,
     };
     let t = &raw.tracking;
@@ -865,8 +915,9 @@ fn validate(
             ));
         }
     };
-    let handover_mm = v.positive("tracking.handover_mm", t.handover_mm)?;
-    let edge_mm = v.positive("tracking.edge_mm", t.edge_mm)?;
+    let spot_mm = Range::new(0.01, 50.0, "mm");
+    let handover_mm = v.range("tracking.handover_mm", t.handover_mm, spot_mm)?;
+    let edge_mm = v.range("tracking.edge_mm", t.edge_mm, spot_mm)?;
     if edge_mm <= handover_mm {
         return Err(v.err_with(
             "tracking.edge_mm",
@@ -880,26 +931,39 @@ fn validate(
             format!("{} is too few: give at least 2", t.average_frames),
         ));
     }
+    v.checked(
+        "tracking.average_frames",
+        range::int(t.average_frames, 2, MAX_FRAMES, ""),
+    )?;
+    let (tolerance_um, sd_um, sd_um_per_m) = (
+        Range::new(0.01, 1000.0, "µm"),
+        Range::new(0.0, 1000.0, "µm"),
+        Range::new(0.0, 1000.0, "µm/m"),
+    );
+    let band = Range::new(0.001, 50.0, "mm");
+    let tv = v.section("tracking");
     let tracking = TrackSettings {
         strategy,
         handover_mm,
         edge_mm,
-        rest_tolerance_mm: v.positive("tracking.rest_tolerance_um", t.rest_tolerance_um)? * 1e-3,
-        rest_time: v.ms("tracking.rest_ms", t.rest_ms, 1)?,
+        rest_tolerance_mm: tv.range("rest_tolerance_um", t.rest_tolerance_um, tolerance_um)? * 1e-3,
+        rest_time: tv.ms("rest_ms", t.rest_ms, 1, 60_000)?,
         average_frames: t.average_frames as usize,
-        settle: v.ms("tracking.settle_ms", t.settle_ms, 0)?,
-        follow_band_mm: v.positive("tracking.follow_band_mm", t.follow_band_mm)?,
-        follow_interval: v.ms("tracking.follow_interval_ms", t.follow_interval_ms, 1)?,
-        lead: v.ms("tracking.lead_ms", t.lead_ms, 0)?,
-        lost_after: v.ms("tracking.lost_after_ms", t.lost_after_ms, 1)?,
-        encoder_sd_mm: v.non_negative("tracking.encoder_sd_um", t.encoder_sd_um)? * 1e-3,
-        encoder_sd_per_mm: v.non_negative("tracking.encoder_sd_um_per_m", t.encoder_sd_um_per_m)?
+        settle: tv.ms("settle_ms", t.settle_ms, 0, 60_000)?,
+        follow_band_mm: tv.range("follow_band_mm", t.follow_band_mm, band)?,
+        follow_interval: tv.ms("follow_interval_ms", t.follow_interval_ms, 1, 10_000)?,
+        lead: tv.ms("lead_ms", t.lead_ms, 0, 10_000)?,
+        lost_after: tv.ms("lost_after_ms", t.lost_after_ms, 1, 60_000)?,
+        encoder_sd_mm: tv.range("encoder_sd_um", t.encoder_sd_um, sd_um)? * 1e-3,
+        encoder_sd_per_mm: tv.range("encoder_sd_um_per_m", t.encoder_sd_um_per_m, sd_um_per_m)?
             * 1e-6,
-        vertical_sd_mm: v.non_negative("tracking.vertical_sd_um", t.vertical_sd_um)? * 1e-3,
-        vertical_sd_per_mm: v
-            .non_negative("tracking.vertical_sd_um_per_m", t.vertical_sd_um_per_m)?
-            * 1e-6,
-        move_timeout: v.ms("tracking.move_timeout_ms", t.move_timeout_ms, 1)?,
+        vertical_sd_mm: tv.range("vertical_sd_um", t.vertical_sd_um, sd_um)? * 1e-3,
+        vertical_sd_per_mm: tv.range(
+            "vertical_sd_um_per_m",
+            t.vertical_sd_um_per_m,
+            sd_um_per_m,
+        )? * 1e-6,
+        move_timeout: tv.ms("move_timeout_ms", t.move_timeout_ms, 1, 600_000)?,
         approach_mm: approach_mm(&v, t.approach_um)?,
     };
     let c = &raw.cnc;
@@ -931,24 +995,33 @@ fn validate(
             format!("{} is too few: give at least 2", k.frames),
         ));
     }
+    let (cv, target_mm) = (v.section("capture"), Range::new(0.001, 100.0, "mm"));
     let capture = CaptureSettings {
-        rest_tolerance_mm: v.positive("capture.rest_tolerance_um", k.rest_tolerance_um)? * 1e-3,
-        settle: v.ms("capture.settle_ms", k.settle_ms, 1)?,
-        target_tolerance_mm: v.positive("capture.target_tolerance_mm", k.target_tolerance_mm)?,
-        frames: k.frames as usize,
-        timeout: Duration::from_secs(k.timeout_s.max(1)),
+        rest_tolerance_mm: cv.range("rest_tolerance_um", k.rest_tolerance_um, tolerance_um)? * 1e-3,
+        settle: cv.ms("settle_ms", k.settle_ms, 1, 60_000)?,
+        target_tolerance_mm: cv.range("target_tolerance_mm", k.target_tolerance_mm, target_mm)?,
+        frames: v.checked(
+            "capture.frames",
+            range::int(k.frames, 2, MAX_FRAMES, "").map(|n| n as usize),
+        )?,
+        timeout: v.checked(
+            "capture.timeout_s",
+            range::int(k.timeout_s, 1, 86_400, "s").map(Duration::from_secs),
+        )?,
     };
-    let a = &raw.align;
+    let (a, angle) = (&raw.align, Range::new(1.0, 10_000.0, "µrad"));
     let align = AlignConfig {
         settings: crate::align::AlignSettings {
-            margin_mm: v.positive("align.margin_mm", a.margin_mm)?,
-            max_angle_rad: v.positive("align.max_angle_urad", a.max_angle_urad)? * 1e-6,
+            margin_mm: v.range("align.margin_mm", a.margin_mm, Range::new(0.01, 10.0, "mm"))?,
+            max_angle_rad: v.range("align.max_angle_urad", a.max_angle_urad, angle)? * 1e-6,
             ..Default::default()
         },
         check_before_run: a.check_before_run,
-        valid_for: Duration::from_secs_f64(
-            v.positive("align.valid_for_h", a.valid_for_h)? * 3600.0,
-        ),
+        // From a few minutes (re-align before every run) to a year.
+        valid_for: v.checked(
+            "align.valid_for_h",
+            Range::new(0.1, 8760.0, "h").duration(a.valid_for_h, 3600.0),
+        )?,
     };
     let plc = plc_settings(&v, &raw.plc)?;
     let hexapod = crate::hexapod::config::validate(&raw.hexapod)
@@ -979,15 +1052,13 @@ fn validate(
 /// 100 µm (more than the stage's reversal switch and a drive's overshoot on a short move, less
 /// than a spot's rest tolerance could hide).
 fn approach_mm(v: &V, um: f64) -> Result<f64, ConfigError> {
-    if um == 0.0 || (5.0..=100.0).contains(&um) {
-        Ok(um * 1e-3)
-    } else {
-        Err(v.err(
-            "tracking.approach_um",
-            format!("{um} µm is out of range: use 0 (no approach) or 5 to 100 µm"),
-        ))
-    }
+    let r = Range::new(5.0, 100.0, "µm").or_zero("no approach");
+    Ok(v.range("tracking.approach_um", um, r)? * 1e-3)
 }
+
+/// Frames averaged at once (`tracking.average_frames`, `capture.frames`): 2 at least, and at
+/// most a million (100 s at the highest frame rate).
+const MAX_FRAMES: u64 = 1_000_000;
 
 /// `io.pipeline`: block reads in flight when unthrottled (modbus::pipelined).
 fn io_pipeline(v: &V, n: i64) -> Result<usize, ConfigError> {
@@ -1012,8 +1083,8 @@ fn plc_settings(v: &V, p: &RawPlc) -> Result<PlcSettings, ConfigError> {
             )
         })?;
         let (rmin, rmax) = (
-            v.ms("plc.reconnect_min_ms", p.reconnect_min_ms, 1)?,
-            v.ms("plc.reconnect_max_ms", p.reconnect_max_ms, 1)?,
+            v.ms("plc.reconnect_min_ms", p.reconnect_min_ms, 1, 600_000)?,
+            v.ms("plc.reconnect_max_ms", p.reconnect_max_ms, 1, 600_000)?,
         );
         if rmax < rmin {
             return Err(v.err(
@@ -1025,7 +1096,7 @@ fn plc_settings(v: &V, p: &RawPlc) -> Result<PlcSettings, ConfigError> {
             ));
         }
         let mut link = LinkConfig::new(v.addr("plc.address", &p.address)?);
-        link.timeout = v.ms("plc.timeout_ms", p.timeout_ms, 1)?;
+        link.timeout = v.ms("plc.timeout_ms", p.timeout_ms, 1, 60_000)?;
         link.backoff_min = rmin;
         link.backoff_max = rmax;
         Some(PlcPush { link, unit })
@@ -1080,10 +1151,15 @@ fn plc_settings(v: &V, p: &RawPlc) -> Result<PlcSettings, ConfigError> {
         None
     };
     let timeouts = crate::plc::Timeouts {
-        ready: v.ms("plc.ready_timeout_ms", p.ready_timeout_ms, 1)?,
-        heartbeat: v.ms("plc.heartbeat_timeout_ms", p.heartbeat_timeout_ms, 1)?,
-        poll: v.ms("plc.poll_ms", p.poll_ms, 1)?,
-        echo: v.ms("plc.echo_timeout_ms", p.echo_timeout_ms, 1)?,
+        ready: v.ms("plc.ready_timeout_ms", p.ready_timeout_ms, 1, 600_000)?,
+        heartbeat: v.ms(
+            "plc.heartbeat_timeout_ms",
+            p.heartbeat_timeout_ms,
+            1,
+            600_000,
+        )?,
+        poll: v.ms("plc.poll_ms", p.poll_ms, 1, 60_000)?,
+        echo: v.ms("plc.echo_timeout_ms", p.echo_timeout_ms, 1, 600_000)?,
     };
     if timeouts.heartbeat > timeouts.ready {
         return Err(v.err_with(
@@ -1105,7 +1181,12 @@ fn plc_settings(v: &V, p: &RawPlc) -> Result<PlcSettings, ConfigError> {
             ));
         }
     };
-    let step_mm = Some(v.non_negative("plc.step_mm", p.step_mm)?).filter(|s| *s > 0.0);
+    let step_mm = Some(v.range(
+        "plc.step_mm",
+        p.step_mm,
+        Range::new(0.01, 10_000.0, "mm").or_zero("the targets' mean spacing"),
+    )?)
+    .filter(|s| *s > 0.0);
     Ok(PlcSettings {
         map,
         push,
@@ -1320,7 +1401,12 @@ mod tests {
         let e = load_text("[io]\nrate_hz = -5.0\n", &[]).unwrap_err();
         assert_eq!(e.key, "io.rate_hz");
         assert!(e.origin.ends_with(".toml"), "{e}");
-        assert!(e.to_string().contains("must be zero or positive"));
+        assert!(
+            e.to_string().ends_with(
+                "io.rate_hz: -5 Hz is out of range: use 0 (as fast as the module answers) or 1 to 10000 Hz"
+            ),
+            "{e}"
+        );
 
         let e = load_text(
             "[io]\nrate_hz = 5.0\n",

@@ -9,6 +9,7 @@ use super::iso230_2::Sample;
 use crate::run::Direction;
 use crate::units::MM_PER_UM;
 use crate::util::csv::NumericCsv;
+use crate::util::range::{POSITION_MM, Range};
 
 /// The header, in the documented order (any column order is accepted).
 pub const COLUMNS: [&str; 5] = [
@@ -23,6 +24,11 @@ pub const COLUMNS: [&str; 5] = [
 pub fn parse_deviation_csv(text: &str, source_name: &str) -> Result<Vec<Sample>, EvalError> {
     let mapped = map_direction_column(text, source_name)?;
     let csv = NumericCsv::parse(&mapped, source_name, &COLUMNS, &[])?;
+    // A deviation beyond 10 mm is a wrong unit or a crash, not a positioning error.
+    csv.check_ranges(&[
+        ("target_mm", POSITION_MM),
+        ("deviation_um", Range::symmetric(10_000.0, "µm")),
+    ])?;
     let col = |name: &str| csv.col(name).unwrap_or(0);
     let (ct, cp, cr, cd, cv) = (
         col("target_index"),

@@ -16,6 +16,7 @@
 //! Every refused row names the file and the line.
 
 use super::Direction;
+use crate::util::range::{POSITION_MM, Range};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -98,8 +99,16 @@ impl Certificate {
                     _ => Err(row(line, format!("{name} \"{f}\" is not a finite number"))),
                 }
             };
-            let position_mm = number(0, "position_mm")?;
-            let error_um = number(1, "error_um")?;
+            let in_range = |name: &str, v: f64, r: Range| {
+                r.check(v).map_err(|p| row(line, format!("{name} {p}")))
+            };
+            let position_mm = in_range("position_mm", number(0, "position_mm")?, POSITION_MM)?;
+            // A stage's error beyond 10 mm is a wrong unit, not an error to map.
+            let error_um = in_range(
+                "error_um",
+                number(1, "error_um")?,
+                Range::symmetric(10_000.0, "µm"),
+            )?;
             let direction = match fields[2] {
                 "+" => Direction::Up,
                 "-" => Direction::Down,
@@ -128,6 +137,11 @@ impl Certificate {
                     ),
                 ));
             }
+            let u = in_range(
+                "uncertainty_um",
+                u,
+                Range::new(MIN_UNCERTAINTY_UM, 1000.0, "µm"),
+            )?;
             let (list, k) = match direction {
                 Direction::Up => (&mut up, 0),
                 Direction::Down => (&mut down, 1),

@@ -27,6 +27,7 @@
 
 use super::{Certificate, FollowerMap, MapError, MapSettings, Step, build};
 use crate::track::{HandoverRecord, Strategy, TrackSettings};
+use crate::util::range::{self, POSITION_MM};
 use serde::{Deserialize, Serialize};
 use std::time::{Duration, Instant};
 use thiserror::Error;
@@ -99,6 +100,18 @@ impl Plan {
                 "span {} to {} mm, step {} mm: give finite numbers",
                 spec.from_mm, spec.to_mm, spec.step_mm
             ));
+        }
+        // The span along a machine axis, and passes and probes a day's mapping can hold.
+        for (name, v) in [("from_mm", spec.from_mm), ("to_mm", spec.to_mm)] {
+            POSITION_MM
+                .check(v)
+                .map_err(|p| SelfCalError::Spec(format!("{name} {p}")))?;
+        }
+        for (name, v, max) in [
+            ("passes", spec.passes, 100),
+            ("probe_every", spec.probe_every, 1000),
+        ] {
+            range::int(v, 0, max, "").map_err(|p| SelfCalError::Spec(format!("{name} {p}")))?;
         }
         if !(spec.step_mm > MIN_STEP_MM && spec.step_mm <= MAX_STEP_MM)
             || spec.to_mm <= spec.from_mm + spec.step_mm

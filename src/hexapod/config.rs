@@ -5,6 +5,7 @@
 use super::driver::Timeouts;
 use super::procedure::RunOptions;
 use super::{Driver, HexPose, Workspace};
+use crate::util::range::{self, Range};
 use serde::{Deserialize, Serialize};
 use std::time::Duration;
 use thiserror::Error;
@@ -63,11 +64,13 @@ impl HexapodConfigError {
     }
 }
 
+/// `n` numbers, the `k`-th (`x`, `y`, `z`, `u`, `v`, `w`) within `range(k)`.
 fn six(
     err: &dyn Fn(&'static str, String) -> HexapodConfigError,
     key: &'static str,
     v: &[f64],
     n: usize,
+    range: impl Fn(usize) -> Range,
 ) -> Result<Vec<f64>, HexapodConfigError> {
     if v.len() != n || v.iter().any(|x| !x.is_finite()) {
         return Err(err(
@@ -77,6 +80,11 @@ fn six(
                 vec!["0"; n].join(", ")
             ),
         ));
+    }
+    for (k, x) in v.iter().enumerate() {
+        range(k)
+            .check(*x)
+            .map_err(|p| err(key, format!("{} = {p}", super::AXES[k].to_lowercase())))?;
     }
     Ok(v.to_vec())
 }
@@ -116,42 +124,51 @@ pub fn validate(raw: &RawHexapod) -> Result<HexapodSettings, HexapodConfigError>
     if raw.group.trim().is_empty() {
         return Err(err("group", "empty: the HXP's group is \"HEXAPOD\"".into()));
     }
-    let pivot = six(&err, "pivot_mm", &raw.pivot_mm, 3)?;
-    let work = six(&err, "work", &raw.work, 6)?;
-    let ws = six(&err, "workspace", &raw.workspace, 6)?;
-    if ws.iter().any(|x| *x <= 0.0) {
-        return Err(err(
-            "workspace",
-            "every half-range must be positive (mm, degrees)".into(),
-        ));
-    }
-    if !(raw.speed_mm_s.is_finite() && raw.speed_mm_s >= 0.0) {
-        return Err(err(
-            "speed_mm_s",
-            format!(
-                "{} must be zero (the controller's) or positive",
-                raw.speed_mm_s
-            ),
-        ));
-    }
+    // Positions within a metre of the controller's origin, angles within a half turn; a
+    // half-range of the workspace up to a metre or a right angle.
+    let (mm, deg) = (
+        Range::symmetric(1000.0, "mm"),
+        Range::symmetric(180.0, "degrees"),
+    );
+    let pivot = six(&err, "pivot_mm", &raw.pivot_mm, 3, |_| mm)?;
+    let work = six(&err, "work", &raw.work, 6, |k| if k < 3 { mm } else { deg })?;
+    let ws = six(&err, "workspace", &raw.workspace, 6, |k| {
+        if k < 3 {
+            Range::new(0.001, 1000.0, "mm")
+        } else {
+            Range::new(0.001, 90.0, "degrees")
+        }
+    })?;
+    let speed = Range::new(0.001, 1000.0, "mm/s").or_zero("the controller's");
+    speed
+        .check(raw.speed_mm_s)
+        .map_err(|p| err("speed_mm_s", p))?;
     if raw.frames < 2 {
         return Err(err(
             "frames",
             format!("{}: average at least 2 frames per pose", raw.frames),
         ));
     }
-    if !(raw.stable_um.is_finite() && raw.stable_um > 0.0) {
-        return Err(err(
-            "stable_um",
-            format!("{} must be a positive number", raw.stable_um),
-        ));
-    }
+    range::int(raw.frames, 2, 100_000, "").map_err(|p| err("frames", p))?;
+    Range::new(0.001, 1000.0, "µm")
+        .check(raw.stable_um)
+        .map_err(|p| err("stable_um", p))?;
     if raw.timeout_ms < 10 {
         return Err(err(
             "timeout_ms",
             format!("{} ms is too short: give at least 10 ms", raw.timeout_ms),
         ));
     }
+    let ms = |key: &'static str, v: u64, min: u64, max: u64| {
+        range::int(v, min, max, "ms")
+            .map(Duration::from_millis)
+            .map_err(|p| err(key, p))
+    };
+    let reply = ms("timeout_ms", raw.timeout_ms, 10, 600_000)?;
+    let settle = ms("settle_ms", raw.settle_ms, 0, 60_000)?;
+    let motion = range::int(raw.motion_timeout_s, 1, 86_400, "s")
+        .map(Duration::from_secs)
+        .map_err(|p| err("motion_timeout_s", p))?;
     Ok(HexapodSettings {
         driver,
         address,
@@ -159,14 +176,14 @@ pub fn validate(raw: &RawHexapod) -> Result<HexapodSettings, HexapodConfigError>
         workspace: Workspace::symmetric(std::array::from_fn(|k| ws[k])),
         speed_mm_s: raw.speed_mm_s,
         timeouts: Timeouts {
-            reply: Duration::from_millis(raw.timeout_ms),
-            motion: Duration::from_secs(raw.motion_timeout_s.max(1)),
+            reply,
+            motion,
             ..Timeouts::default()
         },
         run: RunOptions {
             pivot: [pivot[0], pivot[1], pivot[2]],
             work: HexPose(std::array::from_fn(|k| work[k])),
-            settle: Duration::from_millis(raw.settle_ms),
+            settle,
             frames: raw.frames as usize,
             stable_um: raw.stable_um,
             ..RunOptions::default()

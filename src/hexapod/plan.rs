@@ -6,6 +6,7 @@
 
 use super::{AXES, HexPose, Workspace};
 use crate::units::Errors6;
+use crate::util::range::{POSITION_MM, Range};
 use std::fmt::Write as _;
 use thiserror::Error;
 
@@ -87,6 +88,16 @@ fn radical_inverse(mut i: u64, base: u64) -> f64 {
         i /= base;
     }
     r
+}
+
+/// The range of column `k` of a plan file: a hexapod's reach (±1 m, a half turn), then the
+/// positions along the axis.
+fn column_range(k: usize) -> Range {
+    match k {
+        0..3 => Range::symmetric(1000.0, "mm"),
+        3..6 => Range::symmetric(180.0, "degrees"),
+        _ => POSITION_MM,
+    }
 }
 
 /// The CSV columns of a plan file.
@@ -267,6 +278,9 @@ impl PosePlan {
                                 format!("{} = \"{}\" is not a number", PLAN_COLUMNS[k], fields[c]),
                             )
                         })?;
+                    column_range(k)
+                        .check(v[k])
+                        .map_err(|p| err(ln, format!("{} = {p}", PLAN_COLUMNS[k])))?;
                 }
             }
             poses.push(PlanPose {

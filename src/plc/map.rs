@@ -16,6 +16,7 @@
 
 use crate::modbus::RegisterKind;
 use crate::modbus::codec::{ValueType, WordOrder};
+use crate::util::range::Range;
 use serde::Deserialize;
 use std::fmt;
 use std::path::Path;
@@ -639,13 +640,6 @@ fn field(
                     "give scale (units per count) and unit, e.g. scale = 0.1, unit = \"um\"",
                 )
             })?;
-            if !(scale.is_finite() && scale > 0.0) {
-                return Err(cx.err(
-                    format!("{key}.scale"),
-                    format!("{scale} is not a positive number"),
-                    "give the units per count, e.g. 0.1",
-                ));
-            }
             let unit = r.unit.as_deref().unwrap_or("");
             let unit = LengthUnit::parse(unit).ok_or_else(|| {
                 cx.err(
@@ -654,7 +648,20 @@ fn field(
                     "use \"mm\", \"um\" or \"nm\"",
                 )
             })?;
-            scale * unit.mm()
+            // From a nanometre to a millimetre per count.
+            let mm = scale * unit.mm();
+            if !Range::new(1e-6, 1.0, "mm").contains(mm) {
+                return Err(cx.err(
+                    format!("{key}.scale"),
+                    format!(
+                        "{} {} per count is out of range: use 1 nm to 1 mm per count",
+                        crate::util::range::num(scale),
+                        unit.name()
+                    ),
+                    "give the units per count, e.g. scale = 0.1, unit = \"um\"",
+                ));
+            }
+            mm
         }
         _ => {
             for (k, present) in [("scale", r.scale.is_some()), ("unit", r.unit.is_some())] {
@@ -837,14 +844,16 @@ fn validate(raw: RawMap, cx: &Ctx) -> Result<CncMap, MapError> {
             "give 2..=65535 (the PLC's table size)",
         ));
     }
+    // A compensation value or step from a nanometre to 10 mm: beyond it the machine needs
+    // repair, not compensation.
     for (k, v) in [("max_abs_um", l.max_abs_um), ("max_step_um", l.max_step_um)] {
-        if !(v.is_finite() && v > 0.0) {
-            return Err(cx.err(
+        Range::new(0.001, 10_000.0, "µm").check(v).map_err(|p| {
+            cx.err(
                 format!("limits.{k}"),
-                format!("{v} is not a positive number of µm"),
+                p,
                 "give the largest value the PLC accepts, in µm",
-            ));
-        }
+            )
+        })?;
     }
     let limits = Limits {
         max_points: l.max_points as u16,

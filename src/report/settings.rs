@@ -3,6 +3,7 @@
 //! the tolerances it judges against. Raw (as written) then validated, like every section
 //! (DESIGN §11); errors name the key.
 
+use crate::util::range::{Range, num};
 use serde::{Deserialize, Serialize};
 
 /// `[machine]` as written.
@@ -65,15 +66,12 @@ impl AcceptanceSettings {
     }
 }
 
-fn non_negative(key: &str, v: f64) -> Result<f64, (String, String)> {
-    if v.is_finite() && v >= 0.0 {
-        Ok(v)
-    } else {
-        Err((
-            key.to_string(),
-            format!("{v} must be zero (not specified) or positive"),
-        ))
-    }
+/// A tolerance in `unit`: 0 (not specified), or from a hundredth to `max`.
+fn tolerance(key: &str, v: f64, max: f64, unit: &'static str) -> Result<f64, (String, String)> {
+    Range::new(0.01, max, unit)
+        .or_zero("not specified")
+        .check(v)
+        .map_err(|p| (key.to_string(), p))
 }
 
 /// Validate both sections; an error is (key, problem).
@@ -81,13 +79,16 @@ pub fn validate(
     m: &RawMachine,
     a: &RawAcceptance,
 ) -> Result<(MachineSettings, AcceptanceSettings), (String, String)> {
-    let alpha = non_negative("machine.expansion_um_per_m_k", m.expansion_um_per_m_k)?;
-    if alpha > 100.0 {
+    let alpha = m.expansion_um_per_m_k;
+    // Below a hundredth even Zerodur's 0.05 is far; above 100 no scale is.
+    if alpha != 0.0 && !(0.01..=100.0).contains(&alpha) {
         return Err((
             "machine.expansion_um_per_m_k".into(),
             format!(
-                "{alpha} µm/(m·K) is not an expansion coefficient of a machine's scale \
-                 (steel 11.5, cast iron 10.5, glass scales 8 to 10); give µm per metre and kelvin"
+                "{} µm/(m·K) is not an expansion coefficient of a machine's scale \
+                 (steel 11.5, cast iron 10.5, glass scales 8 to 10); give µm per metre and kelvin, \
+                 0.01 to 100, or 0 to leave positioning as measured",
+                num(alpha)
             ),
         ));
     }
@@ -98,6 +99,7 @@ pub fn validate(
         expansion_um_per_m_k: (alpha > 0.0).then_some(alpha),
     };
     let mut tolerances = Vec::new();
+    // Tolerances up to 10 mm or a degree: beyond them nothing is judged.
     for (figure, key, v, unit) in [
         ("A", "acceptance.a_um", a.a_um, "µm"),
         ("E", "acceptance.e_um", a.e_um, "µm"),
@@ -114,7 +116,8 @@ pub fn validate(
         ("roll", "acceptance.roll_arcsec", a.roll_arcsec, "arcsec"),
         ("yaw", "acceptance.yaw_arcsec", a.yaw_arcsec, "arcsec"),
     ] {
-        if non_negative(key, v)? > 0.0 {
+        let max = if unit == "µm" { 10_000.0 } else { 3600.0 };
+        if tolerance(key, v, max, unit)? > 0.0 {
             tolerances.push(Tolerance {
                 figure,
                 limit: v,
@@ -146,7 +149,10 @@ mod tests {
         };
         let (key, problem) = validate(&RawMachine::default(), &bad).unwrap_err();
         assert_eq!(key, "acceptance.r_um");
-        assert!(problem.contains("-1 must be zero"), "{problem}");
+        assert_eq!(
+            problem,
+            "-1 µm is out of range: use 0 (not specified) or 0.01 to 10000 µm"
+        );
         let m = RawMachine {
             expansion_um_per_m_k: 11.5e3,
             ..Default::default()

@@ -12,6 +12,7 @@
 //! at each target.
 
 use super::Direction;
+use crate::util::range::{self, FEED_MM_MIN, POSITION_MM, Range};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -54,6 +55,45 @@ pub struct PlanSpec {
     /// The reference point (mm): where compensation tables are zero. Defaults to the start.
     #[serde(default)]
     pub reference_mm: Option<f64>,
+}
+
+/// The most targets a plan may have: one a millimetre over a metre, beyond any ISO test.
+pub const MAX_TARGETS: usize = 1000;
+/// The most bidirectional runs (ISO 230-2 asks for five).
+pub const MAX_RUNS: u32 = 100;
+
+impl PlanSpec {
+    /// Every number within its range (the relations between them are checked by
+    /// [`Plan::new`]), or the first that is not, named.
+    pub fn check(&self) -> Result<(), PlanError> {
+        for (f, v, r) in [
+            ("start_mm", self.start_mm, POSITION_MM),
+            ("end_mm", self.end_mm, POSITION_MM),
+            ("overrun_mm", self.overrun_mm, Range::new(0.0, 1000.0, "mm")),
+            ("dwell_s", self.dwell_s, Range::new(0.0, 3600.0, "s")),
+            ("feed_mm_min", self.feed_mm_min, FEED_MM_MIN),
+            ("lead_mm", self.lead_mm, Range::new(0.0, 1000.0, "mm")),
+            (
+                "reference_mm",
+                self.reference_mm.unwrap_or(0.0),
+                POSITION_MM,
+            ),
+        ] {
+            r.check(v).map_err(|p| bad(f, p))?;
+        }
+        range::int(self.targets, 5, MAX_TARGETS, "").map_err(|p| bad("targets", p))?;
+        if self.runs < 2 {
+            return Err(bad(
+                "runs",
+                format!(
+                    "{}: at least 2 runs are needed for a standard deviation (ISO 230-2: 5)",
+                    self.runs
+                ),
+            ));
+        }
+        range::int(self.runs, 2, MAX_RUNS, "").map_err(|p| bad("runs", p))?;
+        Ok(())
+    }
 }
 
 impl Default for PlanSpec {
@@ -136,18 +176,7 @@ impl Plan {
         if !["X", "Y", "Z"].contains(&spec.axis.as_str()) {
             return Err(bad("axis", format!("\"{}\": use X, Y or Z", spec.axis)));
         }
-        for (f, v) in [
-            ("start_mm", spec.start_mm),
-            ("end_mm", spec.end_mm),
-            ("overrun_mm", spec.overrun_mm),
-            ("dwell_s", spec.dwell_s),
-            ("feed_mm_min", spec.feed_mm_min),
-            ("lead_mm", spec.lead_mm),
-        ] {
-            if !v.is_finite() {
-                return Err(bad(f, format!("{v} is not a finite number")));
-            }
-        }
+        spec.check()?;
         let len = spec.end_mm - spec.start_mm;
         if len <= 0.0 {
             return Err(bad(
@@ -166,25 +195,6 @@ impl Plan {
                     "{} are too few for {len} mm: ISO 230-2 asks for at least {min_targets} (five per metre, at least five)",
                     spec.targets
                 ),
-            ));
-        }
-        if spec.runs < 2 {
-            return Err(bad(
-                "runs",
-                format!(
-                    "{}: at least 2 runs are needed for a standard deviation (ISO 230-2: 5)",
-                    spec.runs
-                ),
-            ));
-        }
-        if spec.overrun_mm < 0.0
-            || spec.dwell_s < 0.0
-            || spec.feed_mm_min <= 0.0
-            || spec.lead_mm < 0.0
-        {
-            return Err(bad(
-                "overrun_mm/dwell_s/feed_mm_min/lead_mm",
-                "must not be negative (feed must be positive)",
             ));
         }
         let m = spec.targets;

@@ -281,6 +281,13 @@ impl Connection {
                     continue;
                 }
             };
+            if let Err(e) = request.check() {
+                let msg = format!("line {line_no}: {e}");
+                if wr.write_all(error_line(&msg).as_bytes()).await.is_err() {
+                    return;
+                }
+                continue;
+            }
             if peer.role.is_none_or(|r| r < request.needs()) {
                 let (role, group, key) = if request.needs() == Role::Operator {
                     ("operator", &self.policy.operator_group, "operator_group")
@@ -312,9 +319,9 @@ impl Connection {
                     )
                 }
                 Request::Subscribe { hz } => {
+                    // `hz` is in range (`Request::check`).
                     let period = hz
-                        .filter(|h| h.is_finite() && *h > 0.0)
-                        .map(|h| Duration::from_secs_f64(1.0 / h.min(100.0)))
+                        .and_then(|h| crate::config::SNAPSHOT_HZ.period(h).ok())
                         .unwrap_or(self.snapshot_period);
                     self.stream_snapshots(&mut wr, period).await;
                     return;
@@ -534,6 +541,17 @@ mod tests {
             r#"line 5: not UTF-8 text (byte 8 is not); requests are JSON like {"cmd":"status"}"#
         );
         assert_eq!(v["ok"], false);
+        // A number out of range is refused naming the field and the range, and the
+        // connection stays usable (a subscribe at 1e-300 Hz panicked its task).
+        c.wr.write_all(b"{\"cmd\":\"subscribe\",\"hz\":1e-300}\n")
+            .await
+            .unwrap();
+        let v = c.next_value().await.unwrap();
+        assert_eq!(
+            v["error"],
+            r#"line 6: "hz": 1e-300 Hz is out of range: use 0.1 to 100 Hz"#
+        );
+        assert_eq!(c.status().await.unwrap().unix_us, 42);
         // Two connections at most here: a third is refused with a reason, and admitted once
         // one closes.
         let c2 = Client::connect(&path).await.unwrap();

@@ -10,6 +10,7 @@ use super::{InstallSpec, SimError};
 use crate::acquire::IoMap;
 use crate::canopen::Scaling;
 use crate::optics::Layout;
+use crate::util::range::{POSITION_MM, Range};
 use serde::Deserialize;
 use std::net::SocketAddr;
 use std::path::Path;
@@ -210,76 +211,111 @@ pub fn parse_all(
         s.parse()
             .map_err(|_| bad(key, format!("\"{s}\" is not an address: write IP:port")))
     };
-    let non_neg = |key: &str, v: f64| -> Result<f64, SimError> {
-        if v.is_finite() && v >= 0.0 {
-            Ok(v)
-        } else {
-            Err(bad(key, format!("{v} must be zero or positive")))
-        }
-    };
-    let finite = |key: &str, v: f64| -> Result<f64, SimError> {
-        if v.is_finite() {
-            Ok(v)
-        } else {
-            Err(bad(key, format!("{v} must be a number of µm")))
-        }
-    };
+    let rng = |key: &str, v: f64, r: Range| r.check(v).map_err(|p| bad(key, p));
+    // The twin's errors, as large as a worn or badly built machine's and no larger.
+    let um = |max: f64| Range::new(0.0, max, "µm");
+    let arcsec = Range::new(0.0, 3600.0, "arcsec");
+    let wear = um(super::twin::WEAR_MAX_UM);
+    let lead = Range::new(0.1, 100.0, "mm");
+    // A head mounted and built within 10 mm and 10° of its design.
+    let (mm10, deg10) = (
+        Range::new(0.0, 10.0, "mm"),
+        Range::new(0.0, 10.0, "degrees"),
+    );
     let t = &raw.twin;
     let layout = match t.layout.as_str() {
         "builtin" | "builtin:reference" => Layout::reference(),
         p => Layout::load(Path::new(p)).map_err(|e| bad("twin.layout", e.to_string()))?,
     };
     let a = &t.axis;
-    if !(a.length_mm.is_finite() && a.length_mm > 0.0) {
-        return Err(bad(
-            "twin.axis.length_mm",
-            format!("{} must be positive", a.length_mm),
-        ));
-    }
+    rng(
+        "twin.axis.length_mm",
+        a.length_mm,
+        Range::new(1.0, 10_000.0, "mm"),
+    )?;
     let h = &t.head;
     let plant = PlantSpec {
         seed: t.seed,
         axis: AxisSpec {
             length_mm: a.length_mm,
-            positioning_um: non_neg("twin.axis.positioning_um", a.positioning_um)?,
-            periodic_um: non_neg("twin.axis.periodic_um", a.periodic_um)?,
-            lead_mm: non_neg("twin.axis.lead_mm", a.lead_mm)?,
-            backlash_um: non_neg("twin.axis.backlash_um", a.backlash_um)?,
-            straightness_um: non_neg("twin.axis.straightness_um", a.straightness_um)?,
-            pitch_yaw_arcsec: non_neg("twin.axis.pitch_yaw_arcsec", a.pitch_yaw_arcsec)?,
-            roll_arcsec: non_neg("twin.axis.roll_arcsec", a.roll_arcsec)?,
-            thermal_um_per_m_per_h: a.thermal_um_per_m_per_h,
+            positioning_um: rng("twin.axis.positioning_um", a.positioning_um, um(10_000.0))?,
+            periodic_um: rng("twin.axis.periodic_um", a.periodic_um, um(1000.0))?,
+            lead_mm: rng("twin.axis.lead_mm", a.lead_mm, lead)?,
+            backlash_um: rng("twin.axis.backlash_um", a.backlash_um, um(1000.0))?,
+            straightness_um: rng("twin.axis.straightness_um", a.straightness_um, um(10_000.0))?,
+            pitch_yaw_arcsec: rng("twin.axis.pitch_yaw_arcsec", a.pitch_yaw_arcsec, arcsec)?,
+            roll_arcsec: rng("twin.axis.roll_arcsec", a.roll_arcsec, arcsec)?,
+            thermal_um_per_m_per_h: rng(
+                "twin.axis.thermal_um_per_m_per_h",
+                a.thermal_um_per_m_per_h,
+                Range::symmetric(1000.0, "µm/m/h"),
+            )?,
             wear: super::axis::Wear {
-                positioning_um: finite("twin.axis.wear_positioning_um", a.wear_positioning_um)?,
-                backlash_um: non_neg("twin.axis.wear_backlash_um", a.wear_backlash_um)?,
-                thermal_um: finite("twin.axis.wear_thermal_um", a.wear_thermal_um)?,
+                positioning_um: rng("twin.axis.wear_positioning_um", a.wear_positioning_um, wear)?,
+                backlash_um: rng("twin.axis.wear_backlash_um", a.wear_backlash_um, wear)?,
+                thermal_um: rng("twin.axis.wear_thermal_um", a.wear_thermal_um, wear)?,
             },
         },
         install: InstallSpec {
-            offset_mm: non_neg("twin.head.install_offset_mm", h.install_offset_mm)?,
-            tilt_deg: non_neg("twin.head.install_tilt_deg", h.install_tilt_deg)?,
-            gain_error: non_neg("twin.head.gain_error", h.gain_error)?,
+            offset_mm: rng("twin.head.install_offset_mm", h.install_offset_mm, mm10)?,
+            tilt_deg: rng("twin.head.install_tilt_deg", h.install_tilt_deg, deg10)?,
+            gain_error: rng(
+                "twin.head.gain_error",
+                h.gain_error,
+                Range::new(0.0, 0.5, ""),
+            )?,
         },
         mount: super::plant::MountSpec {
-            angle_deg: non_neg("twin.head.mount_angle_deg", h.mount_angle_deg)?,
-            offset_mm: non_neg("twin.head.mount_offset_mm", h.mount_offset_mm)?,
+            angle_deg: rng("twin.head.mount_angle_deg", h.mount_angle_deg, deg10)?,
+            offset_mm: rng("twin.head.mount_offset_mm", h.mount_offset_mm, mm10)?,
         },
-        noise_mm: non_neg("twin.head.noise_um", h.noise_um)? * 1e-3,
-        beam_drift_rad_per_sqrt_s: non_neg(
+        noise_mm: rng("twin.head.noise_um", h.noise_um, um(1000.0))? * 1e-3,
+        beam_drift_rad_per_sqrt_s: rng(
             "twin.head.beam_drift_urad_per_sqrt_s",
             h.beam_drift_urad_per_sqrt_s,
+            Range::new(0.0, 1000.0, "µrad/√s"),
         )? * 1e-6,
         follower: FollowerSpec {
-            positioning_um: non_neg("twin.follower.positioning_um", t.follower.positioning_um)?,
-            straightness_um: non_neg("twin.follower.straightness_um", t.follower.straightness_um)?,
-            periodic_um: non_neg("twin.follower.periodic_um", t.follower.periodic_um)?,
-            lead_mm: non_neg("twin.follower.lead_mm", t.follower.lead_mm)?,
-            reversal_um: non_neg("twin.follower.reversal_um", t.follower.reversal_um)?,
+            positioning_um: rng(
+                "twin.follower.positioning_um",
+                t.follower.positioning_um,
+                um(1000.0),
+            )?,
+            straightness_um: rng(
+                "twin.follower.straightness_um",
+                t.follower.straightness_um,
+                um(1000.0),
+            )?,
+            periodic_um: rng(
+                "twin.follower.periodic_um",
+                t.follower.periodic_um,
+                um(1000.0),
+            )?,
+            lead_mm: rng("twin.follower.lead_mm", t.follower.lead_mm, lead)?,
+            reversal_um: rng(
+                "twin.follower.reversal_um",
+                t.follower.reversal_um,
+                um(1000.0),
+            )?,
         },
-        feed: non_neg("twin.carriage.feed_mm_s", t.carriage.feed_mm_s)?,
-        accel: non_neg("twin.carriage.accel_mm_s2", t.carriage.accel_mm_s2)?,
+        feed: rng(
+            "twin.carriage.feed_mm_s",
+            t.carriage.feed_mm_s,
+            Range::new(0.1, 2000.0, "mm/s"),
+        )?,
+        accel: rng(
+            "twin.carriage.accel_mm_s2",
+            t.carriage.accel_mm_s2,
+            Range::new(1.0, 1e6, "mm/s²"),
+        )?,
         level_sd_rad: match &t.level {
-            Some(l) => non_neg("twin.level.sd_urad", l.sd_urad)? * 1e-6,
+            Some(l) => {
+                rng(
+                    "twin.level.sd_urad",
+                    l.sd_urad,
+                    Range::new(0.0, 1000.0, "µrad"),
+                )? * 1e-6
+            }
             None => PlantSpec::default().level_sd_rad,
         },
         ..PlantSpec::default()
@@ -316,6 +352,13 @@ pub fn parse_all(
         }
     };
     let d = &raw.drive;
+    rng("drive.feed_mm", d.feed_mm, Range::new(0.01, 1000.0, "mm"))?;
+    rng(
+        "drive.gear_ratio",
+        d.gear_ratio,
+        Range::new(0.001, 1000.0, ""),
+    )?;
+    rng("twin.follower.start_mm", t.follower.start_mm, POSITION_MM)?;
     let drive = TwinDriveConfig {
         node_id: d.node_id,
         scaling: Scaling {

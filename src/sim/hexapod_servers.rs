@@ -897,24 +897,41 @@ pub fn spec_from_config(text: &str, label: &str) -> Result<TwinHexapodSpec, Stri
     };
     spec.gcs = addr("gcs_listen", &raw.gcs_listen, spec.gcs)?;
     spec.xps = addr("xps_listen", &raw.xps_listen, spec.xps)?;
+    use crate::util::range::Range;
     if let Some(w) = raw.workspace {
-        if w.len() != 6 || w.iter().any(|x| !(x.is_finite() && *x > 0.0)) {
+        let (mm, deg) = (
+            Range::new(0.001, 1000.0, "mm"),
+            Range::new(0.001, 90.0, "degrees"),
+        );
+        if w.len() != 6
+            || w.iter()
+                .enumerate()
+                .any(|(k, x)| !if k < 3 { mm } else { deg }.contains(*x))
+        {
             return Err(bad(
                 "workspace",
-                "give six positive half-ranges (mm, mm, mm, °, °, °)".into(),
+                format!(
+                    "give six half-ranges: {} for x, y, z and {} for u, v, w",
+                    mm.describe(),
+                    deg.describe()
+                ),
             ));
         }
         spec.workspace = Workspace::symmetric(std::array::from_fn(|k| w[k]));
     }
-    for (key, v, slot) in [
-        ("speed_mm_s", raw.speed_mm_s, &mut spec.speed_mm_s),
-        ("speed_deg_s", raw.speed_deg_s, &mut spec.speed_deg_s),
+    for (key, v, slot, unit) in [
+        ("speed_mm_s", raw.speed_mm_s, &mut spec.speed_mm_s, "mm/s"),
+        (
+            "speed_deg_s",
+            raw.speed_deg_s,
+            &mut spec.speed_deg_s,
+            "degrees/s",
+        ),
     ] {
         if let Some(v) = v {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(bad(key, format!("{v} must be a positive number")));
-            }
-            *slot = v;
+            *slot = Range::new(0.001, 1000.0, unit)
+                .check(v)
+                .map_err(|p| bad(key, p))?;
         }
     }
     Ok(spec)

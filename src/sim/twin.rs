@@ -390,8 +390,10 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
         }
         "io" => {
             if let Some(ms) = num("delay_ms") {
-                ctx.io
-                    .set_delay(Duration::from_secs_f64(ms.max(0.0) / 1000.0));
+                let delay = crate::util::range::Range::new(0.0, 60_000.0, "ms")
+                    .duration(ms, 1e-3)
+                    .map_err(|p| format!("io \"delay_ms\": {p}"))?;
+                ctx.io.set_delay(delay);
             }
             if let Some(code) = num("exception") {
                 if !(0.0..=255.0).contains(&code) {
@@ -565,7 +567,9 @@ fn plc_command(
         plc.corrupt_next_commit(k as usize);
     }
     if let Some(n) = num("silent_after") {
-        let down = Duration::from_secs_f64(num("down_ms").unwrap_or(1000.0).max(0.0) / 1000.0);
+        let down = crate::util::range::Range::new(0.0, 600_000.0, "ms")
+            .duration(num("down_ms").unwrap_or(1000.0), 1e-3)
+            .map_err(|p| format!("plc \"down_ms\": {p}"))?;
         plc.go_silent_after_writes(n as u64, down);
     }
     if let Some(ready) = flag("ready") {

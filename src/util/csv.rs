@@ -1,7 +1,9 @@
 //! Numeric CSV: a header of column names, then rows of finite numbers. Lines starting with `#`
 //! are comments (metadata), blank lines are skipped. Every error names the source, the line
-//! and the column, and says what was expected.
+//! and the column, and says what was expected; each reader states its columns' ranges
+//! ([`NumericCsv::check_ranges`]).
 
+use super::range::Range;
 use std::collections::HashMap;
 use thiserror::Error;
 
@@ -38,6 +40,7 @@ pub enum CsvError {
 /// A parsed numeric table.
 #[derive(Clone, Debug, PartialEq)]
 pub struct NumericCsv {
+    source_name: String,
     columns: Vec<String>,
     index: HashMap<String, usize>,
     /// Rows with their 1-based line numbers.
@@ -147,11 +150,32 @@ impl NumericCsv {
             rows.push((ln, values));
         }
         Ok(NumericCsv {
+            source_name: source_name.into(),
             columns,
             index,
             rows,
             comments,
         })
+    }
+
+    /// Every value of each present column of `ranges` within its range, or the first (by
+    /// line) that is not, named by its line and column.
+    pub fn check_ranges(&self, ranges: &[(&str, Range)]) -> Result<(), CsvError> {
+        let cols: Vec<(usize, &str, &Range)> = ranges
+            .iter()
+            .filter_map(|(c, r)| self.col(c).map(|i| (i, *c, r)))
+            .collect();
+        for (line, row) in &self.rows {
+            for (i, c, r) in &cols {
+                r.check(row[*i]).map_err(|problem| CsvError::Field {
+                    source_name: self.source_name.clone(),
+                    line: *line,
+                    column: c.to_string(),
+                    problem,
+                })?;
+            }
+        }
+        Ok(())
     }
 
     /// Whether a column is present.
@@ -182,6 +206,14 @@ mod tests {
         assert_eq!(c.rows[1], (6, vec![4.0, 5.0, 0.006]));
         assert_eq!(c.comments, vec!["seed 3", "note"]);
         assert_eq!(c.col("c"), Some(2));
+        let r = Range::new(0.0, 5.0, "mm");
+        assert_eq!(c.check_ranges(&[("a", r), ("b", r), ("zz", r)]), Ok(()));
+        assert_eq!(
+            c.check_ranges(&[("a", Range::new(0.0, 3.0, "mm"))])
+                .unwrap_err()
+                .to_string(),
+            "x.csv line 6, column a: 4 mm is out of range: use 0 to 3 mm"
+        );
     }
 
     #[test]

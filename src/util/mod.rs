@@ -1,11 +1,12 @@
-//! Small shared pieces: numeric CSV, progress display, UTC timestamps, reconnect backoff,
-//! fixed-rate pacing, socket options.
+//! Small shared pieces: numeric CSV, range checks of input numbers, progress display, UTC
+//! timestamps, reconnect backoff, fixed-rate pacing, socket options.
 
 pub mod backoff;
 pub mod clock;
 pub mod csv;
 pub mod pace;
 pub mod progress;
+pub mod range;
 pub mod sock;
 pub mod time;
 

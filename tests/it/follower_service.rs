@@ -723,7 +723,7 @@ async fn the_service_reads_the_twins_level_at_stations_and_refits_the_map() {
 #[tokio::test(start_paused = true)]
 async fn a_bad_level_reading_is_refused_in_words() {
     use axiscomp::service::api::LevelRequest;
-    use axiscomp::service::procedure::follower_level::LEVEL_LIMIT_ARCSEC;
+    use axiscomp::service::api::follower::LEVEL_LIMIT_ARCSEC;
     let rig = ServiceRig::start(RigOptions {
         service_toml: SERVICE.into(),
         follower_toml: Some("level = \"manual\"\n".into()),

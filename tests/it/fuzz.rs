@@ -4,7 +4,14 @@
 //! requests (our server, the twin's I/O module and PLC, the pull server, over TCP), register
 //! codecs, cannelloni and python-can msgpack datagrams, CANopen frames (SDO client, heartbeat
 //! consumer, EMCY, TPDO, the whole master), control-API lines, the configuration, I/O and CNC
-//! maps, pose and deviation CSVs, calibration TOML and the twin CNC's G-code.
+//! maps, pose and deviation CSVs, calibration TOML and the twin CNC's G-code; the twin's
+//! configuration, ISO plans, the self-calibration's spec and hexapod plan CSVs.
+//!
+//! Numbers at the edges: a mutation replaces a number of a seed with one of
+//! [`EXTREME_NUMBERS`] (±0, subnormals, 1e±300, ±inf, nan, the integer extremes), so every
+//! numeric key, field and column meets them; the structured targets draw their numbers from
+//! [`extreme_f64`] and [`extreme_u64`]. A number out of range must be refused by name, never
+//! reach a `Duration`, an allocation or a loop.
 //!
 //! Each target checks: no panic (proptest catches it and shrinks the input), no unbounded
 //! allocation (a counting allocator bounds the peak bytes a decode may allocate by its input's
@@ -154,6 +161,96 @@ enum Edit {
     Duplicate(usize, usize),
     Token(usize, usize),
     Truncate(usize),
+    /// The n-th number of the text (modulo their count) replaced by an extreme one.
+    Number(usize, usize),
+}
+
+/// Numbers at the edges of every range: zeros of both signs, subnormals, the smallest
+/// normal, 1e±300, the largest finite, infinities and NaN as TOML, JSON and CSV write them,
+/// and the integer types' extremes.
+const EXTREME_NUMBERS: &[&str] = &[
+    "0",
+    "-0",
+    "0.0",
+    "-0.0",
+    "5e-324",
+    "-5e-324",
+    "2.2250738585072014e-308",
+    "1e-300",
+    "-1e-300",
+    "1e300",
+    "-1e300",
+    "1.7976931348623157e308",
+    "-1.7976931348623157e308",
+    "inf",
+    "-inf",
+    "+inf",
+    "nan",
+    "-nan",
+    "NaN",
+    "-1",
+    "65535",
+    "4294967295",
+    "9223372036854775807",
+    "-9223372036854775808",
+    "18446744073709551615",
+];
+
+/// The extremes as floats, and any float, for the structured targets.
+fn extreme_f64() -> impl Strategy<Value = f64> {
+    prop_oneof![
+        3 => proptest::sample::select(
+            EXTREME_NUMBERS
+                .iter()
+                .filter_map(|s| s.parse::<f64>().ok())
+                .collect::<Vec<_>>()
+        ),
+        1 => any::<f64>(),
+        2 => -2000.0..2000.0f64,
+    ]
+}
+
+/// Integer extremes, and small counts, for the structured targets.
+fn extreme_u64() -> impl Strategy<Value = u64> {
+    prop_oneof![
+        Just(0),
+        Just(1),
+        Just(u64::from(u32::MAX)),
+        Just(i64::MAX as u64),
+        Just(u64::MAX),
+        0..2000u64,
+    ]
+}
+
+/// Where the numbers of `v` are: runs of digits (with a sign, a point, an exponent) that do
+/// not continue a name (`X1_um`, `u32`), outside `#` comments.
+fn number_spans(v: &[u8]) -> Vec<(usize, usize)> {
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < v.len() {
+        let word = |b: u8| b.is_ascii_alphanumeric() || b == b'_';
+        if v[i] == b'#' {
+            while i < v.len() && v[i] != b'\n' {
+                i += 1;
+            }
+        } else if v[i].is_ascii_digit() && (i == 0 || !word(v[i - 1])) {
+            let start = if i > 0 && v[i - 1] == b'-' { i - 1 } else { i };
+            let mut end = i;
+            while end < v.len()
+                && (v[end].is_ascii_digit()
+                    || v[end] == b'.'
+                    || ((v[end] == b'e' || v[end] == b'E') && end > i)
+                    || ((v[end] == b'-' || v[end] == b'+') && matches!(v[end - 1], b'e' | b'E')))
+            {
+                end += 1;
+            }
+            out.push((start, end));
+            i = end;
+        } else {
+            i += 1;
+        }
+    }
+    out
 }
 
 /// Tokens that move parsers into their edge cases.
@@ -232,6 +329,8 @@ fn edit() -> impl Strategy<Value = Edit> {
         (any::<usize>(), 1usize..64).prop_map(|(p, n)| Edit::Duplicate(p, n)),
         (any::<usize>(), 0..TOKENS.len()).prop_map(|(p, k)| Edit::Token(p, k)),
         any::<usize>().prop_map(Edit::Truncate),
+        (any::<usize>(), 0..EXTREME_NUMBERS.len()).prop_map(|(p, k)| Edit::Number(p, k)),
+        (any::<usize>(), 0..EXTREME_NUMBERS.len()).prop_map(|(p, k)| Edit::Number(p, k)),
     ]
 }
 
@@ -271,6 +370,13 @@ fn apply(seed: &[u8], edits: &[Edit]) -> Vec<u8> {
                 let n = at(*p, v.len());
                 v.truncate(n);
             }
+            Edit::Number(p, k) => {
+                let spans = number_spans(&v);
+                if !spans.is_empty() {
+                    let (a, b) = spans[p % spans.len()];
+                    v.splice(a..b, EXTREME_NUMBERS[*k].bytes());
+                }
+            }
             _ => {}
         }
     }
@@ -288,10 +394,20 @@ fn bytes_from(seeds: Vec<Vec<u8>>, max: usize) -> impl Strategy<Value = Vec<u8>>
     ]
 }
 
-/// Text inputs: mutated seeds taken as UTF-8 (invalid sequences replaced).
+/// A seed whole but for one to three of its numbers, each replaced by an extreme one: every
+/// key, field and column of a file meets the extremes with the rest of it valid.
+fn numbers_from(seeds: Vec<Vec<u8>>) -> impl Strategy<Value = Vec<u8>> {
+    let n = seeds.len();
+    let number = (any::<usize>(), 0..EXTREME_NUMBERS.len()).prop_map(|(p, k)| Edit::Number(p, k));
+    (0..n, prop::collection::vec(number, 1..4)).prop_map(move |(k, edits)| apply(&seeds[k], &edits))
+}
+
+/// Text inputs: mutated seeds taken as UTF-8 (invalid sequences replaced), half of them with
+/// extreme numbers only.
 fn text_from(seeds: Vec<String>) -> impl Strategy<Value = String> {
     let max = seeds.iter().map(String::len).max().unwrap_or(64);
-    bytes_from(seeds.into_iter().map(String::into_bytes).collect(), max)
+    let seeds: Vec<Vec<u8>> = seeds.into_iter().map(String::into_bytes).collect();
+    prop_oneof![bytes_from(seeds.clone(), max), numbers_from(seeds),]
         .prop_map(|b| String::from_utf8_lossy(&b).into_owned())
 }
 
@@ -867,9 +983,10 @@ fn fuzz_service_configuration() {
     let dir = TempDir::new("fuzz-config");
     let seeds = vec![
         repo_file("configs/axiscomp.toml"),
+        repo_file("configs/twin-service.toml"),
         "[io]\naddress = \"127.0.0.1:502\"\nrate_hz = 500.0\n[follower]\nnode_id = 1\n".into(),
     ];
-    fuzz("configuration", 300, text_from(seeds), |text| {
+    fuzz("configuration", 600, text_from(seeds), |text| {
         let path = dir.write("fuzz-axiscomp.toml", &text);
         let r = axiscomp::config::load(&axiscomp::config::Layers {
             etc: None,
@@ -878,6 +995,142 @@ fn fuzz_service_configuration() {
         });
         names_input(r, "fuzz-axiscomp.toml")
     });
+}
+
+#[test]
+fn fuzz_twin_configuration() {
+    fuzz(
+        "twin configuration",
+        300,
+        text_from(vec![repo_file("configs/sim.toml")]),
+        |text| {
+            let r = axiscomp::sim::config::parse(&text, "fuzz-sim.toml");
+            names_input(r, "fuzz-sim.toml")?;
+            let r = axiscomp::sim::hexapod_servers::spec_from_config(&text, "fuzz-sim.toml");
+            names_input(r, "fuzz-sim.toml")
+        },
+    );
+}
+
+/// An accepted ISO plan is one the service can run: its cycle, its motion time and the
+/// lab's time limit from it are finite and bounded.
+fn plan_is_runnable(plan: &axiscomp::run::Plan) -> Result<(), TestCaseError> {
+    let steps = plan.steps();
+    prop_assert!(steps.len() <= 2 * 100 * 1002, "{} steps", steps.len());
+    let t = plan.motion_time_s(500.0);
+    prop_assert!(t.is_finite() && t >= 0.0, "motion time {t}");
+    prop_assert!(Duration::try_from_secs_f64(3.0 * t).is_ok(), "{t} s");
+    let (lo, hi) = plan.travel_mm();
+    prop_assert!(lo.is_finite() && hi.is_finite());
+    Ok(())
+}
+
+/// An accepted self-calibration plan stops a bounded number of times.
+fn selfcal_is_bounded(spec: axiscomp::follower::selfcal::Spec) -> Result<(), TestCaseError> {
+    if let Ok(plan) = axiscomp::follower::selfcal::Plan::new(spec) {
+        prop_assert!(
+            plan.stops().len() <= 100 * 3 * 40_000,
+            "{} stops",
+            plan.stops().len()
+        );
+    }
+    Ok(())
+}
+
+/// Plans as files: an ISO plan (`run start --plan plan.toml`) and a hexapod plan CSV
+/// (`calibrate run --plan`), mutated with extreme numbers.
+#[test]
+fn fuzz_plan_files() {
+    use axiscomp::hexapod::plan::{PlanError, PlanSpec as HexSpec, PosePlan};
+    use axiscomp::run::{Plan, PlanSpec};
+    let iso = toml::to_string(&PlanSpec {
+        reference_mm: Some(10.0),
+        ..PlanSpec::default()
+    })
+    .expect("plan TOML");
+    let hexapod = PosePlan::generate(&HexSpec {
+        poses: 12,
+        ..HexSpec::default()
+    })
+    .to_csv();
+    fuzz("plan files", 800, text_from(vec![iso, hexapod]), |text| {
+        if let Ok(spec) = toml::from_str::<PlanSpec>(&text)
+            && let Ok(plan) = Plan::new(spec)
+        {
+            plan_is_runnable(&plan)?;
+        }
+        let (r, peak) = peak_of(|| PosePlan::parse(&text, "fuzz-plan.csv"));
+        check_alloc("PosePlan::parse", peak, text.len(), 512)?;
+        match r {
+            Ok(p) => {
+                for pose in &p.poses {
+                    prop_assert!(pose.pose.0.iter().all(|x| x.is_finite()));
+                }
+            }
+            Err(e @ PlanError::Parse { .. }) => names_input(Err::<(), _>(e), "fuzz-plan.csv")?,
+            Err(_) => {}
+        }
+        Ok(())
+    });
+}
+
+/// The numbers of an ISO plan, a self-calibration and the level stations drawn from the
+/// extremes: refused by name, or a plan that runs in bounded time and memory.
+#[test]
+fn fuzz_plan_numbers() {
+    use axiscomp::run::{Plan, PlanSpec};
+    let plan = (
+        prop::collection::vec(extreme_f64(), 7),
+        extreme_u64(),
+        extreme_u64(),
+    );
+    let selfcal = (
+        prop::collection::vec(extreme_f64(), 3),
+        extreme_u64(),
+        extreme_u64(),
+    );
+    fuzz(
+        "plan numbers",
+        2000,
+        (plan, selfcal),
+        |((f, targets, runs), (g, passes, probe))| {
+            let spec = PlanSpec {
+                start_mm: f[0],
+                end_mm: f[1],
+                targets: targets as usize,
+                runs: runs.min(u64::from(u32::MAX)) as u32,
+                overrun_mm: f[2],
+                dwell_s: f[3],
+                feed_mm_min: f[4],
+                lead_mm: f[5],
+                reference_mm: Some(f[6]).filter(|x| *x != 0.0),
+                ..PlanSpec::default()
+            };
+            match Plan::new(spec) {
+                Ok(plan) => plan_is_runnable(&plan)?,
+                Err(e) => prop_assert!(e.to_string().starts_with("test plan: "), "{e}"),
+            }
+            selfcal_is_bounded(axiscomp::follower::selfcal::Spec {
+                from_mm: g[0],
+                to_mm: g[1],
+                step_mm: g[2],
+                passes: passes as usize,
+                probe_every: probe as usize,
+            })?;
+            let level = axiscomp::service::api::LevelRequest {
+                from_mm: Some(g[0]),
+                to_mm: Some(g[1]),
+                station_mm: Some(g[2]),
+                readings: Some(passes as usize),
+                ..Default::default()
+            };
+            if level.check().is_ok() && g[0] < g[1] {
+                let n = axiscomp::follower::level::stations((g[0], g[1]), g[2]).len();
+                prop_assert!(n <= 20_002, "{n} stations");
+            }
+            Ok(())
+        },
+    );
 }
 
 /// A pose CSV and a calibration file made by the binary (`calibrate simulate`, `fit`).
@@ -988,16 +1241,67 @@ fn fuzz_control_api_lines() {
         r#"{"cmd":"subscribe","hz":10.0}"#,
         r#"{"cmd":"nominal","mm":12.5}"#,
         r#"{"cmd":"follower","action":"move","mm":1.0}"#,
-        r#"{"cmd":"run_start","plan":{"axis":"X","start_mm":0,"end_mm":100,"targets":11,"runs":5,"overrun_mm":2,"dwell_s":2,"feed_mm_min":3000}}"#,
+        r#"{"cmd":"run_start","plan":{"axis":"X","start_mm":0,"end_mm":100,"targets":11,"runs":5,"overrun_mm":2,"dwell_s":2,"feed_mm_min":3000,"lead_mm":10,"reference_mm":5}}"#,
+        r#"{"cmd":"runs","limit":50}"#,
+        r#"{"cmd":"audit","limit":50}"#,
+        r#"{"cmd":"run_result","run_id":3}"#,
+        r#"{"cmd":"table_publish","table_id":4,"confirm":true}"#,
+        r#"{"cmd":"hexapod_start","poses":200}"#,
+        r#"{"cmd":"align_read","at_mm":100.5}"#,
+        r#"{"cmd":"align_target","psd":2,"x":1.5,"y":-0.5}"#,
+        r#"{"cmd":"align_advice","from_mm":0,"to_mm":900,"axis":"X"}"#,
+        r#"{"cmd":"follower_map","id":2}"#,
+        r#"{"cmd":"follower_map_start","from_mm":0,"to_mm":400,"step_mm":3.75,"passes":2,"frames":1000,"lead_mm":5,"probe_every":13,"feed_mm_min":2000}"#,
+        r#"{"cmd":"follower_level_start","from_mm":0,"to_mm":400,"station_mm":100,"readings":20,"feed_mm_min":2000}"#,
+        r#"{"cmd":"follower_level_reading","arcsec":1.5}"#,
     ]
     .iter()
     .map(|s| s.to_string())
     .collect();
     fuzz("control lines", 3000, text_from(seeds), |line| {
-        let (r, peak) = peak_of(|| serde_json::from_str::<Request>(&line).map(|_| ()));
+        let (r, peak) = peak_of(|| serde_json::from_str::<Request>(&line));
         check_alloc("control line", peak, line.len(), 256)?;
-        if let Err(e) = r {
-            prop_assert!(!e.to_string().is_empty());
+        let r = match r {
+            Ok(r) => r,
+            Err(e) => {
+                prop_assert!(!e.to_string().is_empty());
+                return Ok(());
+            }
+        };
+        // Checked, then what the service does with the numbers first: none may panic.
+        if let Err(e) = r.check() {
+            prop_assert!(!e.is_empty());
+            return Ok(());
+        }
+        match r {
+            Request::Subscribe { hz: Some(hz) } => {
+                prop_assert!(axiscomp::config::SNAPSHOT_HZ.period(hz).is_ok(), "{hz}");
+            }
+            Request::RunStart { plan, .. } => {
+                if let Ok(plan) = axiscomp::run::Plan::new(plan) {
+                    plan_is_runnable(&plan)?;
+                }
+            }
+            Request::FollowerMapStart(m) => {
+                let d = axiscomp::follower::selfcal::Spec::default();
+                selfcal_is_bounded(axiscomp::follower::selfcal::Spec {
+                    from_mm: m.from_mm.unwrap_or(d.from_mm),
+                    to_mm: m.to_mm.unwrap_or(d.to_mm),
+                    step_mm: m.step_mm.unwrap_or(d.step_mm),
+                    passes: m.passes.unwrap_or(d.passes),
+                    probe_every: m.probe_every.unwrap_or(d.probe_every),
+                })?;
+            }
+            Request::FollowerLevelStart(l) => {
+                if let (Some(a), Some(b)) = (l.from_mm, l.to_mm)
+                    && a < b
+                {
+                    let n =
+                        axiscomp::follower::level::stations((a, b), l.station_mm.unwrap_or(100.0));
+                    prop_assert!(n.len() <= 20_002, "{} stations", n.len());
+                }
+            }
+            _ => {}
         }
         Ok(())
     });

@@ -25,6 +25,7 @@ mod links;
 mod maintenance;
 mod modbus;
 mod plc;
+mod ranges;
 mod report;
 mod report_budget;
 mod service;

@@ -212,3 +212,69 @@ impl LevelView {
         matches!(self.state.as_str(), "stations" | "finishing")
     }
 }
+
+impl MappingRequest {
+    /// Every number given within its range (`start` and the plan check how they fit
+    /// together), or the first that is not, named.
+    pub fn check(&self) -> Result<(), String> {
+        use crate::follower::selfcal::{MAX_STEP_MM, MIN_STEP_MM};
+        use crate::util::range::{Range, field, int_field};
+        check_span_and_feed(self.from_mm, self.to_mm, self.feed_mm_min)?;
+        let step = Range::new(MIN_STEP_MM, MAX_STEP_MM, "mm");
+        field("step_mm", self.step_mm, step)?;
+        field("lead_mm", self.lead_mm, Range::new(0.1, 100.0, "mm"))?;
+        int_field("passes", self.passes, 1, 100)?;
+        int_field("frames", self.frames, 10, 100_000)?;
+        int_field("probe_every", self.probe_every, 0, 1000)
+    }
+}
+
+impl LevelRequest {
+    /// Every number given within its range (`start` checks the span against the map's), or
+    /// the first that is not, named.
+    pub fn check(&self) -> Result<(), String> {
+        use crate::util::range::{Range, field, int_field};
+        check_span_and_feed(self.from_mm, self.to_mm, self.feed_mm_min)?;
+        field(
+            "station_mm",
+            self.station_mm,
+            Range::new(1.0, 10_000.0, "mm"),
+        )?;
+        int_field("readings", self.readings, 2, 1000)
+    }
+}
+
+/// A request's span and the carriage's feed, when given (`follower_map_start`,
+/// `follower_level_start`).
+fn check_span_and_feed(
+    from_mm: Option<f64>,
+    to_mm: Option<f64>,
+    feed_mm_min: Option<f64>,
+) -> Result<(), String> {
+    use crate::util::range::{FEED_MM_MIN, POSITION_MM, field};
+    field("from_mm", from_mm, POSITION_MM)?;
+    field("to_mm", to_mm, POSITION_MM)?;
+    field("feed_mm_min", feed_mm_min, FEED_MM_MIN)
+}
+
+/// A level's reading beyond this is refused (arcsec): a typing error, not a roll.
+pub const LEVEL_LIMIT_ARCSEC: f64 = 1000.0;
+
+/// A level's reading typed by the operator (`arcsec`): a finite number within
+/// ±[`LEVEL_LIMIT_ARCSEC`]; the error names the field.
+pub fn typed_reading(v: &serde_json::Value) -> Result<f64, String> {
+    let x = match v {
+        serde_json::Value::Null => {
+            return Err("follower_level_reading needs \"arcsec\": the level's reading at the station, a number of arcsec".into());
+        }
+        v => v.as_f64().ok_or_else(|| {
+            format!("\"arcsec\" is {v}: give the level's reading as a number of arcsec")
+        })?,
+    };
+    if !x.is_finite() || x.abs() > LEVEL_LIMIT_ARCSEC {
+        return Err(format!(
+            "\"arcsec\" is {x}: give the level's reading within ±{LEVEL_LIMIT_ARCSEC:.0}″"
+        ));
+    }
+    Ok(x)
+}

@@ -2,6 +2,13 @@
 
 use serde::{Deserialize, Serialize};
 
+/// Fewest poses a generated plan may have.
+pub const MIN_POSES: usize = 20;
+/// Poses of the default plan.
+pub const DEFAULT_POSES: usize = 200;
+/// The most poses a generated plan takes (a day at a few seconds a pose).
+pub const MAX_POSES: usize = 20_000;
+
 /// Where the run is, as `hexapod_status` answers (DOFs in µm and arcsec).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]

@@ -229,6 +229,80 @@ impl Request {
                 | Request::TableStatus
         )
     }
+
+    /// Every number of the request within its range, or the first that is not, named with
+    /// the range (DESIGN §8: bad input gets a clear error that names the input and what to
+    /// do). Checked once, right after the line parses, so nothing downstream sees a NaN, an
+    /// infinity or a count no machine has; how the numbers fit together (a span's ends, a
+    /// plan's targets for its length) is checked where they are used.
+    pub fn check(&self) -> Result<(), String> {
+        use crate::util::range::{POSITION_MM, Range, field, int_field};
+        // Stored runs, tables and maps are numbered from 1.
+        let id = |name: &str, v: Option<i64>| match v {
+            Some(v) if v < 1 => Err(format!(
+                "\"{name}\": {v} is not an id: give a stored one's, 1 or more"
+            )),
+            _ => Ok(()),
+        };
+        const LIMIT: usize = 10_000;
+        match self {
+            Request::Subscribe { hz } => field("hz", *hz, crate::config::SNAPSHOT_HZ),
+            Request::Follower { mm, .. } | Request::Nominal { mm } => field("mm", *mm, POSITION_MM),
+            Request::RunStart { plan, .. } => plan.check().map_err(|e| e.to_string()),
+            Request::Runs { limit } | Request::TableList { limit } => {
+                int_field("limit", *limit, 1, LIMIT)
+            }
+            Request::Audit { limit } => int_field("limit", *limit, 1, LIMIT as u32),
+            Request::RunResult { run_id } => id("run_id", *run_id),
+            Request::TableGenerate { run_id } => id("run_id", Some(*run_id)),
+            Request::TablePublish { table_id, .. } => id("table_id", Some(*table_id)),
+            Request::FollowerMap { id: map } => id("id", *map),
+            Request::HexapodStart { poses, .. } => {
+                use hexapod::{MAX_POSES, MIN_POSES};
+                int_field("poses", *poses, MIN_POSES, MAX_POSES)
+            }
+            Request::AlignRead { at_mm } => field("at_mm", *at_mm, POSITION_MM),
+            Request::AlignTarget { psd, x, y } => {
+                // What a target in front of a PSD shows: within a hand's width of its centre.
+                let target = Range::symmetric(100.0, "mm");
+                int_field("psd", Some(*psd), 1, 3)?;
+                field("x", Some(*x), target)?;
+                field("y", Some(*y), target)
+            }
+            Request::AlignAdvice { from_mm, to_mm, .. } => {
+                field("from_mm", Some(*from_mm), POSITION_MM)?;
+                field("to_mm", Some(*to_mm), POSITION_MM)
+            }
+            Request::FollowerMapStart(m) => m.check(),
+            Request::FollowerLevelStart(l) => l.check(),
+            Request::FollowerLevelReading { arcsec } if !arcsec.is_null() => {
+                follower::typed_reading(arcsec).map(drop)
+            }
+            // No numbers (a new request with numbers must be added above).
+            Request::Status
+            | Request::Zero
+            | Request::ClearZero
+            | Request::Strategy { .. }
+            | Request::RunStatus
+            | Request::RunAbort
+            | Request::Calibration
+            | Request::CalibrationFit { .. }
+            | Request::CalibrationAccept { .. }
+            | Request::CalibrationReject
+            | Request::HexapodStatus
+            | Request::HexapodStop
+            | Request::TableStatus
+            | Request::AlignClear
+            | Request::FollowerCertificate(_)
+            | Request::FollowerMapStatus
+            | Request::FollowerMapStop
+            | Request::FollowerMapFinish
+            | Request::FollowerLevelStatus
+            | Request::FollowerLevelReading { .. }
+            | Request::FollowerLevelStop
+            | Request::FollowerLevelFinish => Ok(()),
+        }
+    }
 }
 
 #[cfg(test)]
@@ -333,5 +407,161 @@ mod tests {
             serde_json::json!({"cmd": "follower_certificate", "path": "/tmp/c.csv", "keep_current": false})
         );
         assert_eq!(r.needs(), Role::Operator);
+    }
+
+    /// One request of each kind with every numeric field given (nested ones too).
+    fn numeric_samples() -> Vec<Request> {
+        vec![
+            Request::Subscribe { hz: Some(10.0) },
+            Request::Follower {
+                action: FollowerAction::Jog,
+                mm: Some(0.5),
+            },
+            Request::Nominal { mm: Some(12.0) },
+            Request::RunStart {
+                plan: crate::run::PlanSpec {
+                    reference_mm: Some(0.0),
+                    ..Default::default()
+                },
+                dialect: None,
+                notes: None,
+            },
+            Request::Runs { limit: Some(5) },
+            Request::RunResult { run_id: Some(1) },
+            Request::Audit { limit: Some(5) },
+            Request::HexapodStart {
+                plan: None,
+                poses: Some(200),
+                out: None,
+            },
+            Request::TableList { limit: Some(5) },
+            Request::TableGenerate { run_id: 1 },
+            Request::TablePublish {
+                table_id: 1,
+                confirm: false,
+            },
+            Request::AlignRead { at_mm: Some(0.0) },
+            Request::AlignTarget {
+                psd: 2,
+                x: 1.0,
+                y: -1.0,
+            },
+            Request::AlignAdvice {
+                from_mm: 0.0,
+                to_mm: 500.0,
+                axis: None,
+            },
+            Request::FollowerMap { id: Some(1) },
+            Request::FollowerMapStart(MappingRequest {
+                from_mm: Some(0.0),
+                to_mm: Some(400.0),
+                step_mm: Some(3.75),
+                passes: Some(2),
+                frames: Some(1000),
+                lead_mm: Some(5.0),
+                probe_every: Some(13),
+                feed_mm_min: Some(2000.0),
+                ..Default::default()
+            }),
+            Request::FollowerLevelStart(LevelRequest {
+                from_mm: Some(0.0),
+                to_mm: Some(400.0),
+                station_mm: Some(100.0),
+                readings: Some(20),
+                feed_mm_min: Some(2000.0),
+                ..Default::default()
+            }),
+            Request::FollowerLevelReading {
+                arcsec: serde_json::json!(1.5),
+            },
+        ]
+    }
+
+    /// The JSON paths (object keys) of every number in `v`.
+    fn number_paths(v: &serde_json::Value, path: &mut Vec<String>, out: &mut Vec<Vec<String>>) {
+        match v {
+            serde_json::Value::Number(_) => out.push(path.clone()),
+            serde_json::Value::Object(m) => {
+                for (k, x) in m {
+                    path.push(k.clone());
+                    number_paths(x, path, out);
+                    path.pop();
+                }
+            }
+            _ => {}
+        }
+    }
+
+    /// Every numeric field of every request, set in turn to the extremes JSON can carry
+    /// (tiny, huge, negative, zero, negative zero, subnormal, the largest integers): the line
+    /// is refused by serde (a fraction or a sign an integer field cannot hold), accepted by
+    /// `Request::check`, or refused by it naming the field; never a panic.
+    #[test]
+    fn every_numeric_field_is_range_checked() {
+        const EXTREMES: [&str; 11] = [
+            "1e-300",
+            "1e300",
+            "-1",
+            "0",
+            "-0.0",
+            "5e-324",
+            "2.2250738585072014e-308",
+            "9223372036854775807",
+            "-9223372036854775808",
+            "18446744073709551615",
+            "1.7976931348623157e308",
+        ];
+        let (mut fields, mut refused) = (0, 0);
+        for sample in numeric_samples() {
+            assert_eq!(sample.check(), Ok(()), "{sample:?}");
+            let v = serde_json::to_value(&sample).unwrap();
+            let mut paths = Vec::new();
+            number_paths(&v, &mut Vec::new(), &mut paths);
+            assert!(!paths.is_empty(), "{v}");
+            for path in paths {
+                fields += 1;
+                let name = path.last().unwrap().clone();
+                for x in EXTREMES {
+                    let mut w = v.clone();
+                    let leaf = path.iter().fold(&mut w, |w, k| &mut w[k.as_str()]);
+                    *leaf = serde_json::json!("@X@");
+                    let line = w.to_string().replace("\"@X@\"", x);
+                    let Ok(r) = serde_json::from_str::<Request>(&line) else {
+                        continue;
+                    };
+                    if let Err(e) = r.check() {
+                        refused += 1;
+                        assert!(e.contains(&name), "{line}: {e}");
+                        assert!(!e.contains("Some("), "{line}: {e}");
+                    }
+                }
+            }
+        }
+        assert_eq!(fields, 40, "numeric fields covered");
+        assert!(refused > 100, "{refused}");
+        let r: Request = serde_json::from_str(r#"{"cmd":"subscribe","hz":1e-300}"#).unwrap();
+        assert_eq!(
+            r.check().unwrap_err(),
+            r#""hz": 1e-300 Hz is out of range: use 0.1 to 100 Hz"#
+        );
+        let r: Request =
+            serde_json::from_str(r#"{"cmd":"follower_map_start","frames":5,"passes":2}"#).unwrap();
+        assert_eq!(
+            r.check().unwrap_err(),
+            r#""frames": 5 is out of range: use 10 to 100000"#
+        );
+        let r: Request = serde_json::from_str(
+            r#"{"cmd":"run_start","plan":{"axis":"X","start_mm":0,"end_mm":100,"targets":11,"runs":5,"overrun_mm":2,"dwell_s":1e300,"feed_mm_min":3000,"lead_mm":0}}"#,
+        )
+        .unwrap();
+        assert_eq!(
+            r.check().unwrap_err(),
+            "test plan: dwell_s: 1e300 s is out of range: use 0 to 3600 s"
+        );
+        let r: Request = serde_json::from_str(r#"{"cmd":"table_publish","table_id":0}"#).unwrap();
+        assert_eq!(
+            r.check().unwrap_err(),
+            r#""table_id": 0 is not an id: give a stored one's, 1 or more"#
+        );
     }
 }

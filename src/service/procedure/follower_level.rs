@@ -31,6 +31,7 @@ use super::{Ctx, Procedure, Reply, Who};
 use crate::config::{CncMode, LevelSource};
 use crate::follower::{FollowerMap, LevelStation, StoredMap, StoredSteps, VerticalReference};
 use crate::run::Dialect;
+use crate::service::api::follower::typed_reading;
 use crate::service::api::{LevelRequest, LevelView, Request, Snapshot, StationView};
 use crate::service::cnc::{CncDriver, CncNews};
 use crate::service::pipeline::Pipeline;
@@ -47,8 +48,6 @@ pub const DEFAULT_STATION_MM: f64 = 100.0;
 pub const DEFAULT_READINGS: usize = 20;
 /// A station is taken with the carriage at rest within this of it (mm).
 pub const NEAR_MM: f64 = 1.0;
-/// A level's reading beyond this is refused (arcsec): a typing error, not a roll.
-pub const LEVEL_LIMIT_ARCSEC: f64 = 1000.0;
 /// With the level read by hand, the dwell leaves this long to read it and type it (s).
 const TYPING_S: f64 = 20.0;
 /// The carriage's feed between stations by default (mm/min).
@@ -163,25 +162,6 @@ pub struct FollowerLevel {
     owed: Option<Reply>,
     tx: mpsc::Sender<Event>,
     rx: mpsc::Receiver<Event>,
-}
-
-/// A level's reading typed by the operator (`arcsec`): a finite number within
-/// ±[`LEVEL_LIMIT_ARCSEC`]; the error names the field.
-pub fn typed_reading(v: &serde_json::Value) -> Result<f64, String> {
-    let x = match v {
-        serde_json::Value::Null => {
-            return Err("follower_level_reading needs \"arcsec\": the level's reading at the station, a number of arcsec".into());
-        }
-        v => v.as_f64().ok_or_else(|| {
-            format!("\"arcsec\" is {v}: give the level's reading as a number of arcsec")
-        })?,
-    };
-    if !x.is_finite() || x.abs() > LEVEL_LIMIT_ARCSEC {
-        return Err(format!(
-            "\"arcsec\" is {x}: give the level's reading within ±{LEVEL_LIMIT_ARCSEC:.0}″"
-        ));
-    }
-    Ok(x)
 }
 
 fn arcsec(rad: f64) -> f64 {

@@ -24,6 +24,7 @@ use crate::hexapod::session::{self, SessionEvent};
 use crate::optics::Layout;
 use crate::service::api::HexapodView as RunView;
 use crate::service::api::Request;
+use crate::service::api::hexapod::{DEFAULT_POSES, MAX_POSES, MIN_POSES};
 use crate::service::calibration::{Pending, Summary};
 use crate::units::DOF_TO_USER;
 use std::net::SocketAddr;
@@ -76,10 +77,6 @@ impl Bench for ServiceBench {
     }
 }
 
-/// Fewest poses a generated plan may have.
-pub const MIN_POSES: usize = 20;
-/// Poses of the default plan.
-pub const DEFAULT_POSES: usize = 200;
 /// Every n-th pose is held out of the fit to judge it.
 const HOLDOUT_EVERY: usize = 5;
 
@@ -113,6 +110,7 @@ pub fn plan_for(plan: Option<&str>, poses: Option<usize>) -> Result<PosePlan, St
             if n < MIN_POSES {
                 return Err(format!("{n} poses: give at least {MIN_POSES}"));
             }
+            crate::util::range::int_field("poses", Some(n), MIN_POSES, MAX_POSES)?;
             Ok(PosePlan::generate(&PlanSpec {
                 poses: n,
                 ..PlanSpec::default()
