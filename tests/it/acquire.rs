@@ -376,7 +376,7 @@ impl Drop for Reap {
     }
 }
 
-#[tokio::test(start_paused = true)]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "needs pymodbus/mbpoll: run by .ci/run"]
 async fn interop_pymodbus_io_frames() {
     use std::io::BufRead;
@@ -471,7 +471,7 @@ async fn interop_pymodbus_io_frames() {
     }
 }
 
-#[tokio::test(start_paused = true)]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "needs pymodbus/mbpoll: run by .ci/run"]
 async fn interop_mbpoll_reads_the_twin() {
     let sample = PsdSample {

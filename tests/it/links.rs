@@ -106,7 +106,7 @@ async fn recovered(rig: &ServiceRig, what: &str) -> Snapshot {
     .await
 }
 
-#[tokio::test(start_paused = true)]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "needs pymodbus >= 3.12: run by tests/interop/links.sh"]
 async fn interop_field_links_tell_the_truth() {
     let port = free_port();

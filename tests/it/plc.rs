@@ -629,7 +629,7 @@ fn interop_values() -> (Vec<f64>, String) {
     (values, text.join(","))
 }
 
-#[tokio::test(start_paused = true)]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "needs pymodbus/mbpoll: run by .ci/run"]
 async fn interop_pymodbus_plc_takes_pushed_tables_in_every_word_order() {
     let (values, values_arg) = interop_values();
@@ -726,7 +726,7 @@ async fn interop_pymodbus_plc_takes_pushed_tables_in_every_word_order() {
     }
 }
 
-#[tokio::test(start_paused = true)]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "needs pymodbus/mbpoll: run by .ci/run"]
 async fn interop_mbpoll_and_pymodbus_read_the_pull_server() {
     let map = cnc_map("generic.toml");
