@@ -12,4 +12,4 @@ py=${PYTHON:-python3}
   echo "can.sh: $py lacks python-can or msgpack (pip install python-can msgpack)" >&2
   exit 2
 }
-exec cargo test --locked --test it -- --ignored can::python_can --test-threads=1
+exec cargo test --locked --profile "${CARGO_PROFILE:-dev}" --test it -- --ignored can::python_can --test-threads=1

@@ -14,4 +14,4 @@ py=${PYTHON:-python3}
   exit 2
 }
 "$py" tests/interop/canopen_check.py
-exec cargo test --locked --test it -- --ignored canopen::python_canopen --test-threads=1
+exec cargo test --locked --profile "${CARGO_PROFILE:-dev}" --test it -- --ignored canopen::python_canopen --test-threads=1

@@ -24,8 +24,13 @@ cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 command -v tmux >/dev/null || { echo "console.sh: tmux not found" >&2; exit 1; }
 command -v python3 >/dev/null || { echo "console.sh: python3 not found" >&2; exit 1; }
 
-cargo build --locked -q
-bin="${CARGO_TARGET_DIR:-target}/debug/axiscomp"
+# AXISCOMP_BIN: a binary built already (.ci/run builds one for every script).
+if [ -n "${AXISCOMP_BIN:-}" ]; then
+  bin=$AXISCOMP_BIN
+else
+  cargo build --locked -q
+  bin="${CARGO_TARGET_DIR:-target}/debug/axiscomp"
+fi
 [ -x "$bin" ] || { echo "console.sh: no binary at $bin" >&2; exit 1; }
 
 work=$(mktemp -d)

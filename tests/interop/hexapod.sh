@@ -11,8 +11,13 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 poses=${HEXAPOD_POSES:-200}
-cargo build --locked -q
-bin="${CARGO_TARGET_DIR:-target}/debug/axiscomp"
+# AXISCOMP_BIN: a binary built already (.ci/run builds one for every script).
+if [ -n "${AXISCOMP_BIN:-}" ]; then
+  bin=$AXISCOMP_BIN
+else
+  cargo build --locked -q
+  bin="${CARGO_TARGET_DIR:-target}/debug/axiscomp"
+fi
 work=$(mktemp -d)
 sim=""
 cleanup() {

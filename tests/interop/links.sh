@@ -7,4 +7,4 @@
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 python3 -c 'import pymodbus.simulator, tomllib' || { echo "links.sh: python3 with pymodbus >= 3.12 and tomllib (3.11+) needed" >&2; exit 1; }
-cargo test --locked --test it -- --ignored --exact links::interop_field_links_tell_the_truth --nocapture
+cargo test --locked --profile "${CARGO_PROFILE:-dev}" --test it -- --ignored --exact links::interop_field_links_tell_the_truth --nocapture

@@ -23,4 +23,4 @@ if [ -e /tmp/linuxcnc.lock ]; then
   echo "linuxcnc.sh: /tmp/linuxcnc.lock exists: another LinuxCNC is running (or a stale lock)" >&2
   exit 1
 fi
-cargo test --locked --test it comp_export::linuxcnc -- --ignored --nocapture --test-threads=1
+cargo test --locked --profile "${CARGO_PROFILE:-dev}" --test it comp_export::linuxcnc -- --ignored --nocapture --test-threads=1

@@ -6,4 +6,4 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 command -v mbpoll >/dev/null || { echo "modbus.sh: mbpoll not found" >&2; exit 1; }
 python3 -c 'import pymodbus, tomllib' || { echo "modbus.sh: python3 with pymodbus 3.x and tomllib (3.11+) needed" >&2; exit 1; }
-cargo test --locked --test it -- --ignored interop_pymodbus_io_frames interop_mbpoll_reads_the_twin
+cargo test --locked --profile "${CARGO_PROFILE:-dev}" --test it -- --ignored interop_pymodbus_io_frames interop_mbpoll_reads_the_twin

@@ -237,9 +237,15 @@ if [ -n "${PACKAGE_DEBS:-}" ]; then
 else
 out=${CARGO_TARGET_DIR:-target}/debian/package-test
 rm -rf "$out" && mkdir -p "$out"
-# The release build as the rest of CI makes it (so cargo-deb adds no build of its own), then
-# the packaging alone, timed; --strip: the release profile keeps line tables, the package not.
-cargo build --release --locked
+# The binary the rest of CI tested (AXISCOMP_BIN, put where cargo-deb looks for it) or the
+# release build, so cargo-deb adds no build of its own; then the packaging alone, timed;
+# --strip: the profiles keep line tables, the package not.
+if [ -n "${AXISCOMP_BIN:-}" ]; then
+  mkdir -p "${CARGO_TARGET_DIR:-target}/release"
+  cp "$AXISCOMP_BIN" "${CARGO_TARGET_DIR:-target}/release/axiscomp"
+else
+  cargo build --release --locked
+fi
 start=$(date +%s.%N)
 "$cargo_deb" --no-build --strip --deb-revision 1 -o "$out/" >/dev/null
 mid=$(date +%s.%N)

@@ -11,6 +11,6 @@ command -v mbpoll >/dev/null || { echo "plc.sh: mbpoll not found" >&2; exit 1; }
 python3 -c 'import pymodbus.simulator, tomllib' || { echo "plc.sh: python3 with pymodbus 3.12+ (SimDevice) and tomllib (3.11+) needed" >&2; exit 1; }
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT
-cargo test --locked --test it -- --ignored plc:: 2>&1 | tee "$log"
+cargo test --locked --profile "${CARGO_PROFILE:-dev}" --test it -- --ignored plc:: 2>&1 | tee "$log"
 # A filter that matched nothing would pass: the interop tests must have run.
 grep -Eq '^test result: ok\. [1-9][0-9]* passed' "$log" || { echo "plc.sh: no PLC interop test ran" >&2; exit 1; }

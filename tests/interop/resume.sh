@@ -14,8 +14,13 @@ cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 command -v python3 >/dev/null || { echo "resume.sh: python3 not found" >&2; exit 1; }
 
 kill_after=${KILL_AFTER:-7}
-cargo build --locked -q
-bin="${CARGO_TARGET_DIR:-target}/debug/axiscomp"
+# AXISCOMP_BIN: a binary built already (.ci/run builds one for every script).
+if [ -n "${AXISCOMP_BIN:-}" ]; then
+  bin=$AXISCOMP_BIN
+else
+  cargo build --locked -q
+  bin="${CARGO_TARGET_DIR:-target}/debug/axiscomp"
+fi
 [ -x "$bin" ] || { echo "resume.sh: no binary at $bin" >&2; exit 1; }
 
 # The twin and the service on free loopback ports, the twin's CNC running the programs.

@@ -17,4 +17,4 @@ vm=$(cd "$vm" && pwd)
 export VCANVM_RUNNER_OPTS=${VCANVM_RUNNER_OPTS:--t 900 -m 1G}
 export CARGO_TARGET_X86_64_UNKNOWN_LINUX_GNU_RUNNER="$vm/cargo-runner.sh"
 # All tests share vcan0, so one at a time.
-exec cargo test --locked --test it -- --ignored socketcan:: --test-threads=1
+exec cargo test --locked --profile "${CARGO_PROFILE:-dev}" --test it -- --ignored socketcan:: --test-threads=1
