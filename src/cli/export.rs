@@ -425,8 +425,9 @@ fn compose_with_active(
     id: RunId,
     table: &CompTable,
 ) -> Result<(Option<CompTable>, Option<String>)> {
-    use axiscomp::service::composition::{Base, grid_table};
-    use axiscomp::service::tables::StoredTable;
+    use axiscomp::service::composition::grid_table;
+    use axiscomp::service::stored::Base;
+    use axiscomp::service::stored::StoredTable;
     let Some(during) = store.run_tables(id)? else {
         return Ok((None, None));
     };

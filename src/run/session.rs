@@ -17,7 +17,9 @@
 //! missing again, so the make-up pass retakes them while the run is on the machine.
 
 use super::plan::{Plan, Step, TargetKey};
-use super::program::{makeup_steps, remaining_steps};
+use super::program::{
+    CaptureMode, Dialect, ProgramError, generate_settled, makeup_steps, remaining_steps,
+};
 use std::collections::{BTreeMap, BTreeSet};
 
 /// A make-up pass is sent for a missing capture at most this many times before the run fails.
@@ -31,6 +33,21 @@ pub struct Program {
     pub note: String,
     pub dwell_s: f64,
     pub hold_s: f64,
+}
+
+impl Program {
+    /// The part program's text for `plan` in `dialect`: this program's stops, its dwell at
+    /// each target and its hold at each approach point.
+    pub fn text(
+        &self,
+        plan: &Plan,
+        dialect: Dialect,
+        mode: CaptureMode,
+    ) -> Result<String, ProgramError> {
+        let mut plan = plan.clone();
+        plan.spec.dwell_s = self.dwell_s;
+        generate_settled(&plan, &self.steps, &self.note, dialect, mode, self.hold_s)
+    }
 }
 
 /// What comes after a program ended.

@@ -6,7 +6,7 @@
 //! - every run records the tables active when it started ([`active_tables`], from the PLC
 //!   read back and the store's publications; `store::RunTables`);
 //! - a table generated from such a run is the active table plus the residual, on the active
-//!   table's grid ([`compose_stored`]), and says so ([`Base`]);
+//!   table's grid ([`compose_stored`]), and says so ([`Base`](super::stored::Base));
 //! - publishing refuses a table whose base is not what the PLC applies now, and a table from
 //!   a run under compensation that is not composed (the residual alone) ([`publishable`]).
 //!
@@ -14,7 +14,7 @@
 //! table published last is read back with its sequence and CRC; the others the PLC applies
 //! are known from the store's record of what it accepted, and are marked so.
 
-use super::tables::{StoredTable, kind_from_name};
+use super::stored::{StoredTable, kind_from_name};
 use crate::comp::table::compose;
 use crate::comp::{CompTable, TableValues};
 use crate::plc::table::{RawHeader, Reject, TableDirection};
@@ -22,31 +22,7 @@ use crate::plc::{PlcStatus, PlcTable};
 use crate::store::{
     ActiveTable, PublicationOutcome, PublicationRecord, RunTables, TableId, TableRecord,
 };
-use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-
-/// What a composed table was built on: the active table during the run, and the run.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Base {
-    /// The table that was active (kind, axis, stored id, sequence, CRC).
-    pub active: ActiveTable,
-    /// The run whose residual was added.
-    pub run_id: i64,
-}
-
-impl Base {
-    /// "table 3 (sequence 4, CRC 0x…) + the residual of run 2".
-    pub fn describe(&self) -> String {
-        let a = &self.active;
-        let id = a
-            .table
-            .map_or_else(|| "the PLC's table".into(), |t| format!("table {t}"));
-        format!(
-            "{id} (sequence {}, CRC 0x{:08X}) + the residual measured by run {}",
-            a.sequence, a.crc, self.run_id
-        )
-    }
-}
 
 /// The tables `status` (and the staging area `staged`, when it could be read) say the PLC at
 /// `target` applies now. Known only when the PLC is empty or its active sequence is one the
@@ -245,11 +221,26 @@ pub fn publishable(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::plc::StatusCode;
-    use crate::service::tables::tests::header;
+    use crate::service::stored::Base;
     use crate::store::{Publication, TableEntry};
+
+    pub(crate) fn header(sequence: u32, crc: u32) -> RawHeader {
+        RawHeader {
+            kind: 1,
+            axis: 2,
+            base_axis: 2,
+            direction: 3,
+            points: 11,
+            unit: 100,
+            start_mm: 0.0,
+            interval_mm: 10.0,
+            sequence,
+            crc,
+        }
+    }
 
     fn status(active: u32) -> PlcStatus {
         PlcStatus {

@@ -20,6 +20,7 @@ pub mod procedure;
 pub mod results;
 mod run_budget;
 pub mod shutdown;
+pub mod stored;
 pub mod tables;
 
 use crate::acquire::{Acquisition, IoMap, MapError};

@@ -14,13 +14,16 @@
 //!   the store at start).
 //!
 //! The decisions (stored format, the next sequence, the status verdict) are plain functions
-//! with unit tests; the task only does the I/O. The protocol is `plc-maps/README.md`.
+//! with unit tests; the task only does the I/O. The protocol is `plc-maps/README.md`. The task
+//! reaches its store connection through a [`StoreQueue`] of its own, so a store locked by
+//! another process holds up this task's requests, never the runtime the core shares with it.
 
 use super::api::Request;
-use super::composition::{self, Base};
+use super::composition;
 use super::control::Command;
 use super::shutdown::Shutdown;
-use crate::comp::{self, AxisMapping, CompTable, MachineAxis, TableKind, TableSpec};
+use super::stored::{Base, StoredTable};
+use crate::comp::{self, AxisMapping, MachineAxis, TableSpec};
 use crate::config::{PlcSettings, TableBuild};
 use crate::evaluate::{EvalOptions, ReferenceLine, evaluate_captures};
 use crate::modbus::Link;
@@ -28,17 +31,14 @@ use crate::plc::table::{self as ptable, RawHeader, Reject, TableDirection};
 use crate::plc::{self, CncMap, PlcStatus, PlcTable, PublishOutcome, PullServer, StatusCode};
 use crate::run::Direction;
 use crate::store::{
-    Publication, PublicationOutcome, PublicationRecord, RunId, RunState, RunTables, Store,
-    StoreError, TableEntry, TableId, TableRecord, now_us,
+    AuditEntry, Publication, PublicationOutcome, PublicationRecord, RunId, RunState, RunTables,
+    Store, StoreError, StoreQueue, TableEntry, TableId, TableRecord, now_us,
 };
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
 use std::path::Path;
 use thiserror::Error;
 use tokio::sync::mpsc;
-
-/// The `format` of a stored table's values.
-pub const FORMAT: &str = "axiscomp-plc-table/1";
 
 /// Why the tables task could not start.
 #[derive(Debug, Error)]
@@ -47,137 +47,6 @@ pub enum TablesError {
     Store(#[from] StoreError),
     #[error("PLC pull server: {0}")]
     Pull(#[from] plc::PullError),
-}
-
-/// A table's `values_json` in the store: the table as published, and as measured.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct StoredTable {
-    /// [`FORMAT`].
-    pub format: String,
-    /// ISO 230-1 name ("EYY", "EXY").
-    pub name: String,
-    /// The CNC map it was fitted to (its `name`).
-    pub map: String,
-    /// "positioning", "straightness" or "abbe".
-    pub kind: String,
-    /// The axis the values act on, and the one whose position indexes them.
-    pub axis: MachineAxis,
-    pub base_axis: MachineAxis,
-    /// "both", "+", "-" or "bidirectional" (+ profile in `values_mm`, − in `down_mm`).
-    pub direction: String,
-    pub start_mm: f64,
-    pub interval_mm: f64,
-    /// e = measured − nominal (mm) per point.
-    pub values_mm: Vec<f64>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub down_mm: Option<Vec<f64>>,
-    /// Where the values are zero (mm).
-    pub reference_mm: f64,
-    /// The table as measured (`comp::CompTable`), before fitting to the PLC's grid; for a
-    /// composed table, the residual the run measured.
-    #[serde(default)]
-    pub measured: serde_json::Value,
-    /// Composed (issue 15): the table active during the run, which these values include.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub base: Option<Base>,
-}
-
-fn direction_name(d: TableDirection) -> &'static str {
-    match d {
-        TableDirection::Both => "both",
-        TableDirection::Positive => "+",
-        TableDirection::Negative => "-",
-        TableDirection::Bidirectional => "bidirectional",
-    }
-}
-
-fn direction_from_name(s: &str) -> Option<TableDirection> {
-    Some(match s {
-        "both" => TableDirection::Both,
-        "+" => TableDirection::Positive,
-        "-" => TableDirection::Negative,
-        "bidirectional" => TableDirection::Bidirectional,
-        _ => return None,
-    })
-}
-
-pub(crate) fn kind_from_name(s: &str) -> Option<TableKind> {
-    Some(match s {
-        "positioning" => TableKind::Positioning,
-        "straightness" => TableKind::Straightness,
-        "abbe" => TableKind::Abbe,
-        _ => return None,
-    })
-}
-
-impl StoredTable {
-    pub fn new(map: &CncMap, t: &PlcTable, measured: &CompTable) -> StoredTable {
-        StoredTable {
-            format: FORMAT.into(),
-            name: measured.name.clone(),
-            map: map.name.clone(),
-            kind: t.kind.name().into(),
-            axis: t.axis,
-            base_axis: t.base_axis,
-            direction: direction_name(t.direction).into(),
-            start_mm: t.start_mm,
-            interval_mm: t.interval_mm,
-            values_mm: t.values_mm.clone(),
-            down_mm: t.down_mm.clone(),
-            reference_mm: measured.reference_mm,
-            measured: serde_json::to_value(measured).unwrap_or_default(),
-            base: None,
-        }
-    }
-
-    /// What the values are: "composed: …", or "measured" (with why nothing was composed).
-    pub fn composition(&self) -> String {
-        match &self.base {
-            Some(b) => format!("composed: {}", b.describe()),
-            None => "measured".into(),
-        }
-    }
-
-    /// From a stored table's values.
-    pub fn from_record(r: &TableRecord) -> Result<StoredTable, String> {
-        let not_ours = |why: String| {
-            format!(
-                "table {} was not generated for a PLC ({why}); generate one with table_generate",
-                r.id
-            )
-        };
-        let s: StoredTable =
-            serde_json::from_value(r.entry.values.clone()).map_err(|e| not_ours(e.to_string()))?;
-        if s.format != FORMAT {
-            return Err(not_ours(format!("format {:?}", s.format)));
-        }
-        Ok(s)
-    }
-
-    /// The table as the PLC protocol carries it.
-    pub fn plc_table(&self) -> Result<PlcTable, String> {
-        Ok(PlcTable {
-            kind: kind_from_name(&self.kind).ok_or_else(|| format!("kind {:?}", self.kind))?,
-            axis: self.axis,
-            base_axis: self.base_axis,
-            direction: direction_from_name(&self.direction)
-                .ok_or_else(|| format!("direction {:?}", self.direction))?,
-            start_mm: self.start_mm,
-            interval_mm: self.interval_mm,
-            values_mm: self.values_mm.clone(),
-            down_mm: self.down_mm.clone(),
-        })
-    }
-
-    /// Smallest and largest value over both profiles (µm).
-    pub fn range_um(&self) -> (f64, f64) {
-        self.values_mm
-            .iter()
-            .chain(self.down_mm.iter().flatten())
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
-                (lo.min(v * 1e3), hi.max(v * 1e3))
-            })
-    }
 }
 
 // ---------- replies ----------
@@ -722,7 +591,7 @@ async fn serve_for_pull(
 pub struct Tables {
     map: CncMap,
     settings: PlcSettings,
-    store: Store,
+    store: StoreQueue,
     link: Option<Link>,
     pull: Option<PullServer>,
     /// Runs created from this time on get their active tables recorded (µs since the epoch).
@@ -759,6 +628,7 @@ impl Tables {
             Some(cfg) => Some(PullServer::start(map.clone(), cfg.clone()).await?),
             None => None,
         };
+        let (store, _) = StoreQueue::spawn(store);
         let t = Tables {
             map,
             settings: settings.clone(),
@@ -767,8 +637,27 @@ impl Tables {
             pull,
             started_us: now_us(),
         };
-        t.restore_pull();
+        t.restore_pull().await;
         Ok(t)
+    }
+
+    /// Run `f` on this task's store connection (on the store's thread) and wait for it.
+    async fn db<R, F>(&self, f: F) -> Result<R, String>
+    where
+        R: Send + 'static,
+        F: FnOnce(&mut Store) -> Result<R, StoreError> + Send + 'static,
+    {
+        match self.store.call(f).await {
+            Ok(r) => r.map_err(|e| e.to_string()),
+            Err(e) => Err(e.to_string()),
+        }
+    }
+
+    /// The tables and every publication, as stored.
+    async fn tables_and_publications(
+        &self,
+    ) -> Result<(Vec<TableRecord>, Vec<PublicationRecord>), String> {
+        self.db(|s| Ok((s.tables()?, s.publications(None)?))).await
     }
 
     /// Where the pull server listens.
@@ -777,9 +666,9 @@ impl Tables {
     }
 
     /// Serve the table the PLC last accepted (any target) on the pull server.
-    fn restore_pull(&self) {
+    async fn restore_pull(&self) {
         let Some(pull) = &self.pull else { return };
-        let last = match self.store.publications(None) {
+        let last = match self.db(|s| s.publications(None)).await {
             Ok(p) => p
                 .into_iter()
                 .rev()
@@ -790,10 +679,10 @@ impl Tables {
             }
         };
         let Some(p) = last else { return };
+        let id = p.publication.table;
         let r = self
-            .store
-            .table(p.publication.table)
-            .map_err(|e| e.to_string())
+            .db(move |s| s.table(id))
+            .await
             .and_then(|r| StoredTable::from_record(&r))
             .and_then(|s| s.plc_table())
             .and_then(|t| {
@@ -849,9 +738,9 @@ impl Tables {
             source,
             tables: Vec::new(),
         };
-        let (tables, pubs) = match (self.store.tables(), self.store.publications(None)) {
-            (Ok(t), Ok(p)) => (t, p),
-            (Err(e), _) | (_, Err(e)) => return unknown(e.to_string()),
+        let (tables, pubs) = match self.tables_and_publications().await {
+            Ok(tp) => tp,
+            Err(e) => return unknown(e),
         };
         if let (Some(link), Some(target)) = (&self.link, self.push_target()) {
             match plc::read_table(link, &self.map).await {
@@ -884,15 +773,15 @@ impl Tables {
     /// Read what the PLC applies and record it as the tables active during run `run`.
     pub async fn record_run_tables(&mut self, run: RunId) -> Result<RunTables, String> {
         let active = self.read_active().await;
-        self.store
-            .record_run_tables(run, &active)
-            .map_err(|e| e.to_string())?;
+        let record = active.clone();
+        self.db(move |s| s.record_run_tables(run, &record)).await?;
         tracing::info!(run = run.0, tables = %active.summary(), "tables active during the run recorded");
         Ok(active)
     }
 
     async fn record_new_runs(&mut self) {
-        let runs = match self.store.runs_without_tables(self.started_us) {
+        let since = self.started_us;
+        let runs = match self.db(move |s| s.runs_without_tables(since)).await {
             Ok(r) => r,
             Err(e) => {
                 tracing::warn!("cannot list new runs: {e}");
@@ -913,8 +802,8 @@ impl Tables {
         who: &str,
     ) -> Result<serde_json::Value, String> {
         match request {
-            Request::TableList { limit } => self.list(limit.unwrap_or(50)),
-            Request::TableGenerate { run_id } => self.generate(*run_id),
+            Request::TableList { limit } => self.list(limit.unwrap_or(50)).await,
+            Request::TableGenerate { run_id } => self.generate(*run_id).await,
             Request::TablePublish { table_id, confirm } => {
                 self.publish(*table_id, *confirm, who).await
             }
@@ -924,8 +813,8 @@ impl Tables {
     }
 
     /// An audit entry for what a request did (the request itself is audited as it arrives).
-    fn audit_outcome(&mut self, who: &str, action: &str, details: serde_json::Value) {
-        let entry = crate::store::AuditEntry {
+    async fn audit_outcome(&mut self, who: &str, action: &str, details: serde_json::Value) {
+        let entry = AuditEntry {
             unix_us: now_us(),
             who: crate::store::Actor {
                 uid: None,
@@ -937,13 +826,17 @@ impl Tables {
             details,
             outcome: crate::store::AuditOutcome::Done,
         };
-        if let Err(e) = self.store.audit(&entry) {
+        self.store_audit(entry).await;
+    }
+
+    async fn store_audit(&self, entry: AuditEntry) {
+        if let Err(e) = self.db(move |s| s.audit(&entry)).await {
             tracing::error!("audit entry not stored: {e}");
         }
     }
 
     /// The request in the audit log, with what became of it.
-    fn audit(&mut self, c: &Command, r: &Result<serde_json::Value, String>) {
+    async fn audit(&mut self, c: &Command, r: &Result<serde_json::Value, String>) {
         let Some(mut entry) = c.audit_entry() else {
             return;
         };
@@ -951,9 +844,7 @@ impl Tables {
             Ok(_) => crate::store::AuditOutcome::Done,
             Err(why) => crate::store::AuditOutcome::Refused(why.clone()),
         };
-        if let Err(e) = self.store.audit(&entry) {
-            tracing::error!("audit entry not stored: {e}");
-        }
+        self.store_audit(entry).await;
     }
 
     async fn handle(&mut self, c: Command) {
@@ -963,13 +854,12 @@ impl Tables {
             .unwrap_or_default();
         tracing::info!(user = %c.peer.user, uid = c.peer.uid, request = %name, "control request");
         let r = self.request(&c.request, &c.peer.user).await;
-        self.audit(&c, &r);
+        self.audit(&c, &r).await;
         let _ = c.reply.send(r);
     }
 
-    fn list(&self, limit: usize) -> Result<serde_json::Value, String> {
-        let tables = self.store.tables().map_err(|e| e.to_string())?;
-        let pubs = self.store.publications(None).map_err(|e| e.to_string())?;
+    async fn list(&self, limit: usize) -> Result<serde_json::Value, String> {
+        let (tables, pubs) = self.tables_and_publications().await?;
         let v: Vec<TableView> = tables
             .iter()
             .rev()
@@ -979,14 +869,26 @@ impl Tables {
         Ok(serde_json::json!({ "tables": v, "map": self.map.name }))
     }
 
-    fn generate(&mut self, run_id: i64) -> Result<serde_json::Value, String> {
-        let built = generate(&self.store, run_id, &self.map, &self.settings.tables)?;
-        let mut views = Vec::new();
-        for (entry, _) in &built {
-            let id = self.store.insert_table(entry).map_err(|e| e.to_string())?;
-            let rec = self.store.table(id).map_err(|e| e.to_string())?;
-            views.push(table_view(&rec, &[]));
-        }
+    async fn generate(&mut self, run_id: i64) -> Result<serde_json::Value, String> {
+        let (map, build) = (self.map.clone(), self.settings.tables.clone());
+        // Built and stored in one job: nothing else reaches this connection in between.
+        let stored = match self
+            .store
+            .call(move |s| -> Result<Vec<TableRecord>, String> {
+                let built = generate(s, run_id, &map, &build)?;
+                let mut records = Vec::new();
+                for (entry, _) in &built {
+                    let id = s.insert_table(entry).map_err(|e| e.to_string())?;
+                    records.push(s.table(id).map_err(|e| e.to_string())?);
+                }
+                Ok(records)
+            })
+            .await
+        {
+            Ok(r) => r?,
+            Err(e) => return Err(e.to_string()),
+        };
+        let views: Vec<TableView> = stored.iter().map(|rec| table_view(rec, &[])).collect();
         tracing::info!(run = run_id, tables = ?views.iter().map(|v| v.id).collect::<Vec<_>>(), "tables generated");
         self.audit_outcome(
             "",
@@ -996,7 +898,8 @@ impl Tables {
                 "table_ids": views.iter().map(|v| v.id).collect::<Vec<_>>(),
                 "compositions": views.iter().map(|v| v.composition.clone()).collect::<Vec<_>>(),
             }),
-        );
+        )
+        .await;
         Ok(serde_json::json!({ "run_id": run_id, "map": self.map.name, "tables": views }))
     }
 
@@ -1017,10 +920,7 @@ impl Tables {
                     .into(),
             );
         }
-        let rec = self
-            .store
-            .table(TableId(table_id))
-            .map_err(|e| e.to_string())?;
+        let rec = self.db(move |s| s.table(TableId(table_id))).await?;
         let stored = StoredTable::from_record(&rec)?;
         let t = stored
             .plc_table()
@@ -1039,7 +939,7 @@ impl Tables {
         }
         // Issue 15: never the residual alone, never on a base the PLC no longer applies.
         let during = match rec.entry.source_run {
-            Some(r) => self.store.run_tables(r).map_err(|e| e.to_string())?,
+            Some(r) => self.db(move |s| s.run_tables(r)).await?,
             None => None,
         };
         let now = self.read_active().await;
@@ -1051,9 +951,8 @@ impl Tables {
             &now,
         )?;
         let store_max = self
-            .store
-            .publications(None)
-            .map_err(|e| e.to_string())?
+            .db(|s| s.publications(None))
+            .await?
             .iter()
             .map(|p| p.publication.sequence)
             .max()
@@ -1088,7 +987,7 @@ impl Tables {
                     // Withdraw it and serve the last accepted table again (or none), so the
                     // PLC does not pull a table that was refused or never acknowledged.
                     pull.clear();
-                    self.restore_pull();
+                    self.restore_pull().await;
                 }
                 let active = pull.acks().borrow().status.active_sequence;
                 (target, sequence, r, Some(active))
@@ -1096,15 +995,16 @@ impl Tables {
                 return Err("internal: no PLC".into());
             };
         let outcome = plc::publication_outcome(&result);
+        let publication = Publication {
+            table: rec.id,
+            target: target.clone(),
+            sequence,
+            outcome,
+            unix_us: now_us(),
+        };
         let not_recorded = self
-            .store
-            .insert_publication(&Publication {
-                table: rec.id,
-                target: target.clone(),
-                sequence,
-                outcome,
-                unix_us: now_us(),
-            })
+            .db(move |s| s.insert_publication(&publication))
+            .await
             .err()
             .map(|e| {
                 tracing::error!("publication not recorded: {e}");
@@ -1138,7 +1038,8 @@ impl Tables {
                 "sequence": sequence, "crc": format!("0x{:08X}", rec.entry.crc),
                 "target": target, "result": res, "composition": stored.composition(),
             }),
-        );
+        )
+        .await;
         let v = PublishView {
             table_id,
             target,
@@ -1154,8 +1055,7 @@ impl Tables {
     }
 
     async fn status(&mut self) -> Result<serde_json::Value, String> {
-        let tables = self.store.tables().map_err(|e| e.to_string())?;
-        let pubs = self.store.publications(None).map_err(|e| e.to_string())?;
+        let (tables, pubs) = self.tables_and_publications().await?;
         let view = if let (Some(link), Some(target)) = (&self.link, self.push_target()) {
             let rb = plc::read_table(link, &self.map)
                 .await
@@ -1233,6 +1133,7 @@ impl Tables {
 pub(crate) mod tests {
     use super::*;
     use crate::plc::table::RejectCode;
+    use crate::service::composition::tests::header;
 
     fn status(active: u32, status_sequence: u32) -> PlcStatus {
         PlcStatus {
@@ -1293,21 +1194,6 @@ pub(crate) mod tests {
         }
     }
 
-    pub(crate) fn header(sequence: u32, crc: u32) -> RawHeader {
-        RawHeader {
-            kind: 1,
-            axis: 2,
-            base_axis: 2,
-            direction: 3,
-            points: 11,
-            unit: 100,
-            start_mm: 0.0,
-            interval_mm: 10.0,
-            sequence,
-            crc,
-        }
-    }
-
     #[test]
     fn the_verdict_compares_the_crc_or_falls_back_to_the_sequence() {
         let tables = [table(1, 0xAAAA), table(2, 0xBBBB)];
@@ -1354,42 +1240,5 @@ pub(crate) mod tests {
         // Pull: the acknowledgement only.
         assert_eq!(v(&status(1, 1), None).0, "matches");
         assert_eq!(v(&status(2, 2), None).0, "differs");
-    }
-
-    #[test]
-    fn stored_tables_round_trip() {
-        let m = CncMap::generic().unwrap();
-        let comp = CompTable {
-            kind: TableKind::Positioning,
-            name: "EYY".into(),
-            base_axis: MachineAxis::Y,
-            comp_axis: MachineAxis::Y,
-            reference_mm: 0.0,
-            positions_mm: vec![0.0, 10.0, 20.0],
-            values: comp::TableValues::Single {
-                values: vec![0.0, 0.002, -0.001],
-                backlash_mm: Some(0.003),
-            },
-        };
-        let t = PlcTable::from_comp(&comp, &m, None).unwrap();
-        let s = StoredTable::new(&m, &t, &comp);
-        let rec = TableRecord {
-            id: TableId(3),
-            entry: TableEntry {
-                values: serde_json::to_value(&s).unwrap(),
-                ..table(3, 0).entry
-            },
-        };
-        let back = StoredTable::from_record(&rec).unwrap();
-        assert_eq!(back, s);
-        assert_eq!(back.plc_table().unwrap(), t);
-        assert_eq!(back.direction, "bidirectional");
-        let (lo, hi) = back.range_um();
-        assert!(
-            (lo + 1.0).abs() < 1e-9 && (hi - 5.0).abs() < 1e-9,
-            "{lo} {hi}"
-        );
-        let e = StoredTable::from_record(&table(4, 0)).unwrap_err();
-        assert!(e.contains("table 4 was not generated for a PLC"), "{e}");
     }
 }

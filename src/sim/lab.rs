@@ -22,8 +22,9 @@ use crate::config::Settings;
 use crate::decouple::Decoupler;
 use crate::optics::Layout;
 use crate::optics::Spot;
-use crate::run::program::{CaptureMode, generate, generate_settled, makeup_steps, remaining_steps};
-use crate::run::{Capture, CaptureSettings, Dialect, Plan, RunMachine, TargetKey};
+use crate::run::program::{CaptureMode, generate};
+use crate::run::session::{Next, Session};
+use crate::run::{Capture, CaptureSettings, Dialect, Plan, RunMachine};
 use crate::service::pipeline::{Output, Pipeline, now_us};
 use crate::track::{FollowerCommand, HandoverRecord, TrackSettings};
 use std::collections::BTreeSet;
@@ -46,12 +47,8 @@ pub enum LabError {
     Program(String),
     #[error("the run failed: {0}")]
     RunFailed(String),
-    #[error("{missing} captures still missing after {tries} make-up passes (first: {first})")]
-    Missing {
-        missing: usize,
-        tries: u32,
-        first: String,
-    },
+    #[error("the run is incomplete: {0}")]
+    Incomplete(String),
     #[error("the pre-run check refused the run: {check}; align the head first (axiscomp align)")]
     Refused { check: String },
     #[error("the alignment did not pass in {rounds} rounds: {check}")]
@@ -260,8 +257,6 @@ pub struct Lab {
 
 /// A station is read over this long with the carriage at rest.
 const STATION_WINDOW: Duration = Duration::from_millis(500);
-/// A make-up pass is sent for a missing capture at most this many times (as the service).
-const MAKEUP_TRIES: u32 = 3;
 
 /// One round of alignment: what the spots read and what the technician was told.
 #[derive(Clone, Debug, PartialEq)]
@@ -706,9 +701,9 @@ impl Lab {
             + self.capture.timeout
             + Duration::from_secs(600);
         let expected = plan.capture_count();
-        let mut makeup_for: std::collections::BTreeMap<TargetKey, u32> = Default::default();
-        // A program stopped by a pause is followed by the rest of the cycle.
-        let mut stopped_by_pause = false;
+        // The programs after the first: the rest of the cycle after a pause, make-up passes
+        // for what is still missing; the same bookkeeping as the service's.
+        let mut session = Session::new(plan.clone());
         let mut next_recovery = self.now;
         let result = loop {
             if let Some(end) = self.run_end.take() {
@@ -722,7 +717,9 @@ impl Lab {
             }
             let cnc_done = self.cnc.as_ref().is_none_or(Cnc::is_done);
             if self.pipeline.paused().is_some() {
-                stopped_by_pause = true;
+                if !session.stopped_by_pause() {
+                    session.paused();
+                }
                 if cnc_done && self.now >= next_recovery {
                     if let Err(e) = self.recover(plan) {
                         self.pipeline.abort_run();
@@ -741,42 +738,19 @@ impl Lab {
                         + self.live_window_bound()
             {
                 let missing = self.pipeline.run_missing().unwrap_or_default();
-                let next = if stopped_by_pause {
-                    stopped_by_pause = false;
-                    let done: BTreeSet<TargetKey> = self
-                        .captures
-                        .iter()
-                        .map(|c| TargetKey::of(&c.capture))
-                        .collect();
-                    remaining_steps(plan, &done).map(|steps| (steps, "resumed".to_string()))
-                } else {
-                    let tries = |k: &TargetKey| makeup_for.get(k).copied().unwrap_or(0);
-                    if missing.iter().all(|k| tries(k) >= MAKEUP_TRIES) {
-                        self.pipeline.abort_run();
-                        break Err(LabError::Missing {
-                            missing: missing.len(),
-                            tries: MAKEUP_TRIES,
-                            first: missing
-                                .first()
-                                .map(|k| k.describe(plan))
-                                .unwrap_or_default(),
-                        });
-                    }
-                    let pass = missing.iter().map(tries).min().unwrap_or(0) + 1;
-                    for k in &missing {
-                        *makeup_for.entry(*k).or_insert(0) += 1;
-                    }
-                    Some((
-                        makeup_steps(plan, &missing, plan.spec.overrun_mm),
-                        format!("make-up {pass}"),
-                    ))
-                };
-                if let Some((steps, note)) = next {
-                    let text =
-                        generate_settled(plan, &steps, &note, dialect, mode, plan.spec.dwell_s)
+                match session.ended(&missing) {
+                    Next::Program(p) => {
+                        let text = p
+                            .text(plan, dialect, mode)
                             .map_err(|e| LabError::Program(e.to_string()))?;
-                    self.load(&text, plan, dialect)?;
-                    self.extra_programs += 1;
+                        self.load(&text, plan, dialect)?;
+                        self.extra_programs += 1;
+                    }
+                    Next::Nothing => {}
+                    Next::Fail(why) => {
+                        self.pipeline.abort_run();
+                        break Err(LabError::Incomplete(why));
+                    }
                 }
             }
             if let Err(e) = self.advance(Duration::from_secs(1)) {

@@ -896,7 +896,8 @@ fn store_synthetic_run(store: &std::path::Path, plant: &Plant) -> i64 {
 #[tokio::test(start_paused = true)]
 async fn the_service_generates_publishes_and_reads_back_tables() {
     use axiscomp::service::api::Request;
-    use axiscomp::service::tables::{PublishView, StatusView, StoredTable, TableView};
+    use axiscomp::service::stored::StoredTable;
+    use axiscomp::service::tables::{PublishView, StatusView, TableView};
     use axiscomp::store::{PublicationOutcome, Store, TableId};
     let rig = ServiceRig::start(RigOptions {
         twin_plc: true,

@@ -1,6 +1,6 @@
 //! The real-time tier: what only the real clock can show, on the runtime flavour production
 //! uses — the kernel's receive stamps and a link's latency, the service as a real process
-//! killed and restarted. Not part of plain `cargo test` (`test = false` in Cargo.toml):
+//! killed and restarted, its store locked by another process. Not part of plain `cargo test` (`test = false` in Cargo.toml):
 //! `.ci/run` runs it with `cargo test --test realtime`. Everything else runs on a simulated
 //! clock in `tests/it`.
 
@@ -10,3 +10,5 @@ mod helpers;
 
 mod links;
 mod resume;
+mod serve;
+mod store_lock;

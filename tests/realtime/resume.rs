@@ -4,109 +4,16 @@
 //! on the same store, and the run must finish with every (run, target, direction) capture stored
 //! exactly once, each under the direction the carriage came from.
 
-use crate::helpers::{RigOptions, TempDir, bin, short_plan, twin_and_config};
+use crate::helpers::{RigOptions, TempDir, short_plan, twin_and_config};
+use crate::serve::{FAST, align_and_start, ask, fail, serve, wait_snapshot};
 use axiscomp::run::{Direction, TargetKey};
 use axiscomp::service::api::Request;
-use axiscomp::service::control::Client;
 use axiscomp::store::{RunId, RunState, Store};
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Stdio};
 use std::time::Duration;
-
-/// Handovers and captures quicker than the production defaults (as the console test), so
-/// the 20 captures take about half a minute.
-const FAST: &str = "[tracking]\nrest_ms = 200\naverage_frames = 100\nsettle_ms = 100\n\n\
-                    [capture]\nframes = 100\nsettle_ms = 200\n";
 
 /// Kill the service once this many captures are stored.
 const KILL_AFTER: u64 = 7;
-
-/// `axiscomp serve` as a child process, its output in `log`.
-fn serve(config: &Path, log: &Path) -> Child {
-    let out = std::fs::File::create(log).expect("service log");
-    let err = out.try_clone().expect("service log");
-    bin()
-        .args(["serve", "--config"])
-        .arg(config)
-        .env("RUST_LOG", "info")
-        .stdin(Stdio::null())
-        .stdout(out)
-        .stderr(err)
-        .spawn()
-        .expect("spawn axiscomp serve")
-}
-
-/// The tail of each service log, for a failure message.
-fn logs(logs: &[PathBuf]) -> String {
-    logs.iter()
-        .map(|p| {
-            let text = std::fs::read_to_string(p).unwrap_or_default();
-            let lines: Vec<&str> = text
-                .lines()
-                .filter(|l| !l.contains("request=RunStatus"))
-                .collect();
-            let tail = lines[lines.len().saturating_sub(30)..].join("\n");
-            format!("---- {} ----\n{tail}", p.display())
-        })
-        .collect::<Vec<_>>()
-        .join("\n")
-}
-
-/// Fail the test with `what` and the tails of the service logs.
-fn fail(log: &[PathBuf], what: String) -> ! {
-    panic!("{what}\n{}", logs(log))
-}
-
-/// The service's answer to `req`, or None while it does not answer (not up yet, or killed).
-async fn ask(socket: &Path, req: &Request) -> Option<serde_json::Value> {
-    let mut c = Client::connect(socket).await.ok()?;
-    tokio::time::timeout(Duration::from_secs(5), c.request(req))
-        .await
-        .ok()?
-        .ok()
-}
-
-/// Wait up to `secs` for the service's snapshot to satisfy `pred`.
-async fn wait_snapshot(
-    socket: &Path,
-    secs: u64,
-    pred: impl Fn(&axiscomp::service::api::snapshot::Snapshot) -> bool,
-) -> bool {
-    let end = axiscomp::util::clock::now() + Duration::from_secs(secs);
-    while axiscomp::util::clock::now() < end {
-        if let Ok(mut c) = Client::connect(socket).await
-            && let Ok(s) = c.status().await
-            && pred(&s)
-        {
-            return true;
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-    false
-}
-
-/// Align the short plan's travel (the pre-run check wants it) and start the run: its reply.
-async fn align_and_start(
-    socket: &Path,
-    twin: &axiscomp::sim::twin::Twin,
-    log: &[PathBuf],
-) -> serde_json::Value {
-    let travel = axiscomp::run::Plan::new(short_plan())
-        .expect("plan")
-        .travel_mm();
-    crate::helpers::align_service(socket, twin, travel).await;
-    ask(
-        socket,
-        &Request::RunStart {
-            plan: short_plan(),
-            dialect: Some("linuxcnc".into()),
-            notes: None,
-        },
-    )
-    .await
-    .unwrap_or_else(|| fail(log, "run_start was not answered".into()))
-}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sigkill_mid_run_and_restart_finishes_with_every_capture_once() {

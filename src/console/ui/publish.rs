@@ -180,7 +180,7 @@ fn plc_values<'a>(p: &'a PublishState, t: &TableView) -> Option<&'a [f64]> {
 /// Whether the staging area holds a table of `t`'s kind acting on `t`'s axis.
 fn staged_is(s: &crate::service::tables::StagedView, t: &TableView) -> bool {
     use crate::plc::table::{axis_code, kind_code};
-    let kind = crate::service::tables::kind_from_name(&t.kind).map(kind_code);
+    let kind = crate::service::stored::kind_from_name(&t.kind).map(kind_code);
     let axis = crate::comp::MachineAxis::from_letter(&t.axis).map(axis_code);
     kind == Some(s.kind) && axis == Some(s.axis)
 }

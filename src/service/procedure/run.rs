@@ -12,7 +12,7 @@
 use super::{Ctx, Procedure, Reply, Who};
 use crate::config::CncMode;
 use crate::evaluate::recorded::RecordedBudget;
-use crate::run::program::{CaptureMode, generate_settled};
+use crate::run::program::CaptureMode;
 use crate::run::session::{Next, Program, Session};
 use crate::run::{Capture, CaptureSettings, Dialect, Plan, PlanSpec, RunMachine, TargetKey};
 use crate::service::api::snapshot::RunView;
@@ -282,16 +282,7 @@ impl MeasurementRun {
         let Some(a) = self.active.as_mut() else {
             return;
         };
-        let mut plan = a.session.plan().clone();
-        plan.spec.dwell_s = p.dwell_s;
-        let text = match generate_settled(
-            &plan,
-            &p.steps,
-            &p.note,
-            a.dialect,
-            CaptureMode::Stability,
-            p.hold_s,
-        ) {
+        let text = match p.text(a.session.plan(), a.dialect, CaptureMode::Stability) {
             Ok(t) => t,
             Err(e) => {
                 let why = format!("no program: {e}");
@@ -319,7 +310,8 @@ impl MeasurementRun {
             answer["program"] = serde_json::json!(a.program);
             (reply, answer)
         });
-        a.cnc.deliver(file, text, a.dialect, &plan.spec.axis, then);
+        let axis = a.session.plan().spec.axis.clone();
+        a.cnc.deliver(file, text, a.dialect, &axis, then);
     }
 
     /// Store a capture through the queue; its answer comes back as news.
