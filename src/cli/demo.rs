@@ -686,6 +686,21 @@ fn store_run(store: &mut Store, spec: &LoopSpec, pass: &str, caps: &[Capture]) -
         },
     })?;
     store.set_run_state(id, RunState::Running)?;
+    if pass == "before" {
+        // The twin's PLC applied nothing when the first run started: recorded, as the service
+        // records it, so tables made from this run are the axis's own. The verification run
+        // (tables active, not in this store) has no such record: a table from it is refused
+        // unless its residual is asked for by name.
+        store.record_run_tables(
+            id,
+            &axiscomp::store::RunTables {
+                unix_us: axiscomp::store::now_us(),
+                known: true,
+                source: "the demo's twin PLC, before any table was published".into(),
+                tables: Vec::new(),
+            },
+        )?;
+    }
     for c in caps {
         store.insert_capture(id, c)?;
     }

@@ -74,6 +74,11 @@ pub struct ExportArgs {
     /// One table per direction instead of one with backlash.
     #[arg(long)]
     pub bidirectional: bool,
+    /// Write the run's residual as the table when the tables the PLC applied while it ran
+    /// are not recorded (a run not measured by the service). Loaded alone, a residual
+    /// replaces the compensation it was measured under.
+    #[arg(long)]
+    pub residual_only: bool,
     /// The controller's name of the axis: Siemens machine axis (default X1/Y1/Z1, MD10000),
     /// Beckhoff logical axis name, Mitsubishi axis name, HEIDENHAIN column key.
     #[arg(long)]
@@ -345,6 +350,9 @@ pub fn run(a: ExportArgs) -> Result<()> {
     let settings = super::service::settings(a.store.config.as_deref())?;
     let store = open_store(&a.store)?;
     let id = RunId(a.store.run);
+    // Finished, no flag open, and what the PLC applied while it ran known (issue 24).
+    let during =
+        axiscomp::service::composition::usable(&store, id, a.residual_only).map_err(InputError)?;
     let rec = store.run(id)?;
     let captures = store.captures(id)?;
     let eval = evaluate_captures(&captures, &EvalOptions::default())?;
@@ -378,7 +386,7 @@ pub fn run(a: ExportArgs) -> Result<()> {
             .get(1)
             .ok_or_else(|| InputError("no vertical straightness table".into()))?,
     };
-    let (composed, composition) = compose_with_active(&store, id, table)?;
+    let (composed, composition) = compose_with_active(&store, id, during.as_ref(), table)?;
     let table = composed.as_ref().unwrap_or(table);
     let o = Overrides {
         machine_axis: a.machine_axis.clone(),
@@ -423,19 +431,13 @@ pub fn run(a: ExportArgs) -> Result<()> {
 fn compose_with_active(
     store: &axiscomp::store::Store,
     id: RunId,
+    during: Option<&axiscomp::store::RunTables>,
     table: &CompTable,
 ) -> Result<(Option<CompTable>, Option<String>)> {
     use axiscomp::service::composition::grid_table;
     use axiscomp::service::stored::Base;
     use axiscomp::service::stored::StoredTable;
-    let Some(during) = store.run_tables(id)? else {
-        return Ok((None, None));
-    };
-    let Some(a) = during
-        .known
-        .then(|| during.find(table.kind.name(), table.comp_axis.letter()))
-        .flatten()
-    else {
+    let Some(a) = during.and_then(|d| d.find(table.kind.name(), table.comp_axis.letter())) else {
         return Ok((None, None));
     };
     let cannot = |why: String| {

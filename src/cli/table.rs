@@ -54,6 +54,11 @@ pub struct GenerateArgs {
     /// The stored run (finished) to build the tables from.
     #[arg(long)]
     pub run: i64,
+    /// Write the run's residual as the table when the tables the PLC applied while it ran
+    /// are not recorded (a run not measured by the service). Published alone, a residual
+    /// replaces the table it was measured under.
+    #[arg(long)]
+    pub residual_only: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -76,7 +81,13 @@ pub fn run(c: Command) -> Result<()> {
                 limit: Some(a.limit),
             },
         ),
-        Command::Generate(a) => (a.at, Request::TableGenerate { run_id: a.run }),
+        Command::Generate(a) => (
+            a.at,
+            Request::TableGenerate {
+                run_id: a.run,
+                residual_only: a.residual_only,
+            },
+        ),
         Command::Publish(a) => {
             if !a.confirm {
                 return Err(InputError(format!(
@@ -106,7 +117,7 @@ pub fn run(c: Command) -> Result<()> {
             let tables: Vec<TableView> =
                 serde_json::from_value(v["tables"].clone()).map_err(parse)?;
             if !at.json {
-                if let Request::TableGenerate { run_id } = req {
+                if let Request::TableGenerate { run_id, .. } = req {
                     println!(
                         "run {run_id}: {} table(s) for {}",
                         tables.len(),

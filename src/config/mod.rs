@@ -171,6 +171,8 @@ pub struct RawCapture {
     pub target_tolerance_mm: f64,
     pub frames: u64,
     pub timeout_s: u64,
+    pub repeatability_um: f64,
+    pub repeatability_arcsec: f64,
 }
 
 /// `[align]`
@@ -1008,6 +1010,21 @@ fn validate(
             "capture.timeout_s",
             range::int(k.timeout_s, 1, 86_400, "s").map(Duration::from_secs),
         )?,
+        repeatability: crate::run::Repeatability {
+            linear_mm: cv.range(
+                "repeatability_um",
+                k.repeatability_um,
+                Range::new(0.01, 1000.0, "µm"),
+            )? * 1e-3,
+            angular_rad: cv
+                .range(
+                    "repeatability_arcsec",
+                    k.repeatability_arcsec,
+                    Range::new(0.01, 1000.0, "arcsec"),
+                )?
+                .to_radians()
+                / 3600.0,
+        },
     };
     let (a, angle) = (&raw.align, Range::new(1.0, 10_000.0, "µrad"));
     let align = AlignConfig {

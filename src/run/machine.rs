@@ -17,6 +17,7 @@
 //! the target the carriage rests at. A frame's measured position (`position_mm`, nominal plus
 //! dy) is valid whatever nominal it was decoupled with, so rest detection does not depend on it.
 
+use super::judge::{Decision, Judge, Repeatability};
 use super::plan::{Plan, TargetKey};
 use super::{Capture, Direction};
 use crate::units::Errors6;
@@ -41,6 +42,8 @@ pub struct CaptureSettings {
     pub frames: usize,
     /// With no capture for this long the run fails.
     pub timeout: Duration,
+    /// How far a capture may sit from the others of its target and direction (`run::judge`).
+    pub repeatability: Repeatability,
 }
 
 impl CaptureSettings {
@@ -52,6 +55,8 @@ impl CaptureSettings {
             "target_tolerance_mm": self.target_tolerance_mm,
             "frames": self.frames,
             "timeout_s": self.timeout.as_secs_f64(),
+            "repeatability_um": self.repeatability.linear_mm * 1e3,
+            "repeatability_arcsec": self.repeatability.angular_rad.to_degrees() * 3600.0,
         })
     }
 }
@@ -64,6 +69,7 @@ impl Default for CaptureSettings {
             target_tolerance_mm: 0.5,
             frames: 150,
             timeout: Duration::from_secs(120),
+            repeatability: Repeatability::default(),
         }
     }
 }
@@ -124,6 +130,15 @@ pub enum RunAction {
     Finished,
     /// The run cannot go on.
     Failed(String),
+    /// The judge found this capture wrong or could not check it (`run::judge`): keep it
+    /// with the reason (out of the store when `stored`); it is retaken.
+    Flagged {
+        capture: Capture,
+        reason: String,
+        stored: bool,
+    },
+    /// The reference moved by `by` (internal units): shift the zero by it.
+    ShiftZero { by: Errors6, reason: String },
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -176,6 +191,10 @@ pub struct RunMachine {
     /// the run numbers of those after it.
     cycle: Vec<TargetKey>,
     cursor: usize,
+    /// Every capture judged before it counts.
+    judge: Judge,
+    /// The captures flagged so far.
+    flagged: BTreeSet<TargetKey>,
 }
 
 impl RunMachine {
@@ -186,11 +205,36 @@ impl RunMachine {
         handshake: bool,
         completed: BTreeSet<TargetKey>,
     ) -> Self {
+        Self::with_judge(plan, settings, handshake, completed, Vec::new())
+    }
+
+    /// A resumed run: `stored` are its captures already stored, which the judge takes as true
+    /// (the captures after the restart are checked against them).
+    pub fn resumed(
+        plan: Plan,
+        settings: CaptureSettings,
+        handshake: bool,
+        stored: Vec<Capture>,
+    ) -> Self {
+        let done = stored.iter().map(TargetKey::of).collect();
+        Self::with_judge(plan, settings, handshake, done, stored)
+    }
+
+    fn with_judge(
+        plan: Plan,
+        settings: CaptureSettings,
+        handshake: bool,
+        completed: BTreeSet<TargetKey>,
+        stored: Vec<Capture>,
+    ) -> Self {
         let total = plan.capture_count();
+        let judge = Judge::new(settings.repeatability, stored);
         let mut m = RunMachine {
             plan,
             settings,
             handshake,
+            judge,
+            flagged: BTreeSet::new(),
             done: completed,
             total,
             phase: Phase::Watch,
@@ -214,6 +258,54 @@ impl RunMachine {
     /// Captures taken and expected.
     pub fn progress(&self) -> (usize, usize) {
         (self.done.len(), self.total)
+    }
+
+    /// Captures flagged so far, and those held for want of a check (with the event).
+    pub fn judged(&self) -> (usize, usize, Option<&str>) {
+        (
+            self.flagged.len(),
+            self.judge.held(),
+            self.judge.unverified(),
+        )
+    }
+
+    /// The captures flagged so far (each reopened for a retake).
+    pub fn flagged(&self) -> &BTreeSet<TargetKey> {
+        &self.flagged
+    }
+
+    /// An event that can move the positioning reference happened (`run::judge`): the
+    /// captures after it are held until one checks it.
+    pub fn reference_event(&mut self, what: &str, unix_us: i64) {
+        if self.phase != Phase::Done {
+            self.judge.event(what, unix_us);
+        }
+    }
+
+    /// Carry out the judge's decisions: stored captures go out, flagged ones are reopened
+    /// for the make-up pass.
+    fn apply(&mut self, decisions: Vec<Decision>) {
+        for d in decisions {
+            match d {
+                Decision::Store(c) => self.actions.push_back(RunAction::Captured(c)),
+                Decision::Flag {
+                    capture,
+                    reason,
+                    stored,
+                } => {
+                    self.done.remove(&TargetKey::of(&capture));
+                    self.flagged.insert(TargetKey::of(&capture));
+                    self.actions.push_back(RunAction::Flagged {
+                        capture,
+                        reason,
+                        stored,
+                    });
+                }
+                Decision::ShiftZero { by, reason } => {
+                    self.actions.push_back(RunAction::ShiftZero { by, reason })
+                }
+            }
+        }
     }
 
     /// The keys still missing, in cycle order.
@@ -540,7 +632,8 @@ impl RunMachine {
         if let Some(i) = self.cycle.iter().position(|k| *k == key) {
             self.cursor = i + 1;
         }
-        self.actions.push_back(RunAction::Captured(capture));
+        let decisions = self.judge.offer(capture);
+        self.apply(decisions);
         if let Some(code) = code {
             self.actions.push_back(RunAction::Acknowledge { code });
         }
@@ -550,6 +643,11 @@ impl RunMachine {
         // Off the target, frames are decoupled at their measured travel again: with the
         // target's nominal they would read as positions near it while the carriage moves on.
         self.set_nominal(None);
+        if self.done.len() >= self.total {
+            // Every capture in (stored or held): the judge's review may reopen some.
+            let decisions = self.judge.review();
+            self.apply(decisions);
+        }
         if self.done.len() >= self.total {
             self.phase = Phase::Done;
             self.actions.push_back(RunAction::Finished);

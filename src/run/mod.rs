@@ -2,11 +2,13 @@
 //! target, and the run state machine. A run produces `Capture`s, which `evaluate` turns into ISO
 //! figures and `comp` into compensation tables.
 
+pub mod judge;
 pub mod machine;
 pub mod plan;
 pub mod program;
 pub mod session;
 
+pub use judge::{Decision, Judge, Repeatability};
 pub use machine::{CaptureSettings, FrameSample, RunAction, RunMachine};
 pub use plan::{Plan, PlanError, PlanSpec, Step, TargetKey};
 pub use program::{CaptureMode, Dialect, Handshake};

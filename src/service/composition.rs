@@ -20,9 +20,39 @@ use crate::comp::{CompTable, TableValues};
 use crate::plc::table::{RawHeader, Reject, TableDirection};
 use crate::plc::{PlcStatus, PlcTable};
 use crate::store::{
-    ActiveTable, PublicationOutcome, PublicationRecord, RunTables, TableId, TableRecord,
+    ActiveTable, PublicationOutcome, PublicationRecord, RunId, RunState, RunTables, Store, TableId,
+    TableRecord,
 };
 use std::collections::BTreeMap;
+
+/// Whether run `run` may give a compensation table, and what the PLC applied while it ran:
+/// it must be finished, with no flagged capture left open (`store::flags`), and with the
+/// tables active during it recorded and known, since a table made from a run taken under
+/// compensation is the residual on top of them. `residual_only` (asked for by name) lets a
+/// run without that record give its residual; `None` then.
+pub fn usable(store: &Store, run: RunId, residual_only: bool) -> Result<Option<RunTables>, String> {
+    let rec = store.run(run).map_err(|e| e.to_string())?;
+    if rec.state != RunState::Finished {
+        return Err(format!(
+            "run {run} is {}: tables come from finished runs only",
+            rec.state
+        ));
+    }
+    if let Some(why) = store.open_flags(run).map_err(|e| e.to_string())? {
+        return Err(why);
+    }
+    match store.run_tables(run).map_err(|e| e.to_string())? {
+        Some(t) if t.known => Ok(Some(t)),
+        _ if residual_only => Ok(None),
+        Some(t) => Err(format!(
+            "run {run} started when the PLC could not be read ({}): the tables it applied are unknown, so a table from it could be the residual on top of one of them; measure again, or ask for the residual by name (--residual-only)",
+            t.source
+        )),
+        None => Err(format!(
+            "run {run} has no record of the tables the PLC applied while it ran (it was not measured by the service): a table from it could be the residual on top of one of them; measure again through the service, or ask for the residual by name (--residual-only)"
+        )),
+    }
+}
 
 /// The tables `status` (and the staging area `staged`, when it could be read) say the PLC at
 /// `target` applies now. Known only when the PLC is empty or its active sequence is one the

@@ -164,6 +164,22 @@ impl Measure {
         other.decouple(&r, travel, follower).ok().map(|e| e.errors)
     }
 
+    /// Shift the zero reference by `by` (internal units): frames read `by` less than they
+    /// did. The run's judge found the reference moved by as much (`run::judge`).
+    pub fn shift_zero(&mut self, by: Errors6) {
+        let by = by.to_vector();
+        match self.zero.as_mut() {
+            Some(z) => z.errors += by,
+            None => {
+                self.zero = Some(Zero {
+                    errors: by,
+                    cov: Matrix6::zeros(),
+                })
+            }
+        }
+        self.samples.clear();
+    }
+
     /// Forget the zero reference.
     pub fn clear_zero(&mut self) {
         self.zero = None;

@@ -300,7 +300,7 @@ fn startup(
         Ok(runs) => runs.into_iter().max_by_key(|r| r.id.0).and_then(|rec| {
             let plan: Result<crate::run::Plan, String> =
                 serde_json::from_value(rec.plan.clone()).map_err(|e| e.to_string());
-            let done = store.completed_keys(rec.id).map_err(|e| e.to_string());
+            let done = store.captures(rec.id).map_err(|e| e.to_string());
             // The run's programs go on in the dialect it was started with (the configuration
             // snapshot names it), not in the configured default.
             let dialect = rec.config["dialect"]
@@ -318,7 +318,7 @@ fn startup(
                         id: rec.id,
                         plan,
                         dialect,
-                        done,
+                        stored: done,
                         programs: programs_written(state_dir, rec.id),
                     })
                 }

@@ -89,6 +89,16 @@ pub enum Output {
     RunFinished,
     /// The active run cannot go on.
     RunFailed(String),
+    /// The run's judge flagged this capture (`run::judge`): keep it with the reason, out of
+    /// the store when `stored`; the run retakes it.
+    Flagged {
+        capture: Capture,
+        reason: String,
+        stored: bool,
+    },
+    /// Something that can move the positioning reference happened during the run, or the
+    /// judge found that it did and shifted the zero back: record it with the run.
+    RunEvent { kind: String, detail: String },
 }
 
 /// The measurement logic.
@@ -351,6 +361,10 @@ impl Pipeline {
                         self.measure.restart();
                         self.alarms.clear("stitch-broken");
                         tracing::info!("PSD2 found the spot: stitch re-referenced by the encoder");
+                        self.reference_event(
+                            "stitch-rereferenced",
+                            "PSD2's stitch re-referenced by the follower's encoder".into(),
+                        );
                     }
                 }
                 TrackEvent::SpotFound => tracing::info!("PSD2 sees the spot again"),
@@ -373,10 +387,32 @@ impl Pipeline {
                 }
                 RunAction::Finished => finished = Some(Output::RunFinished),
                 RunAction::Failed(msg) => finished = Some(Output::RunFailed(msg)),
+                RunAction::Flagged {
+                    capture,
+                    reason,
+                    stored,
+                } => {
+                    tracing::warn!("capture flagged: {reason}");
+                    self.alarms.raise("capture-flagged", reason.clone());
+                    self.outputs.push_back(Output::Flagged {
+                        capture,
+                        reason,
+                        stored,
+                    });
+                }
+                RunAction::ShiftZero { by, reason } => {
+                    tracing::warn!("zero shifted back: {reason}");
+                    self.measure.shift_zero(by);
+                    self.outputs.push_back(Output::RunEvent {
+                        kind: "zero-shifted".into(),
+                        detail: reason,
+                    });
+                }
             }
         }
         if let Some(out) = finished {
             self.run = None;
+            self.alarms.clear("capture-flagged");
             if self.paused.take().is_some() {
                 self.alarms.clear("run-paused");
             }
@@ -399,10 +435,44 @@ impl Pipeline {
         }
     }
 
+    /// An event that can move the positioning reference (`run::judge`): the active run holds
+    /// its captures until one checks the reference, and the event is recorded with it.
+    pub fn reference_event(&mut self, kind: &str, detail: String) {
+        let Some(run) = self.run.as_mut() else {
+            return;
+        };
+        run.reference_event(&detail, crate::util::clock::unix_us());
+        self.outputs.push_back(Output::RunEvent {
+            kind: kind.into(),
+            detail,
+        });
+    }
+
     /// A follower drive event; `peer` names the CAN link in alarms.
     pub fn handle_drive_event(&mut self, e: &Event, peer: &str) {
         match e {
+            Event::FollowingEnded(Err(err)) => self.reference_event(
+                "following-ended",
+                format!("the follower's following ended on an error ({err})"),
+            ),
+            Event::PowerState { to, .. }
+                if matches!(
+                    to,
+                    PowerState::Fault
+                        | PowerState::FaultReactionActive
+                        | PowerState::QuickStopActive
+                ) =>
+            {
+                self.reference_event("drive-stopped", format!("the follower drive went to {to}"))
+            }
+            _ => {}
+        }
+        match e {
             Event::HeartbeatLost => {
+                self.reference_event(
+                    "heartbeat-lost",
+                    format!("the follower drive's heartbeat lost ({peer})"),
+                );
                 self.alarms.raise(
                     "heartbeat-lost",
                     format!("the follower drive's heartbeat stopped ({peer}): follower stopped"),
@@ -420,6 +490,7 @@ impl Pipeline {
                 if emcy.is_reset() {
                     self.alarms.clear("drive-fault");
                 } else {
+                    self.reference_event("drive-fault", format!("a follower drive fault ({emcy})"));
                     self.alarms.raise(
                         "drive-fault",
                         format!("follower drive EMCY: {emcy}; reset it with the follower fault_reset command"),
@@ -427,6 +498,7 @@ impl Pipeline {
                 }
             }
             Event::BootUp { expected: false } => {
+                self.reference_event("drive-rebooted", "the follower drive rebooted".into());
                 self.alarms.raise(
                     "drive-rebooted",
                     "the follower drive rebooted: reconfiguring it".into(),
@@ -512,13 +584,14 @@ impl Pipeline {
     /// the service was down), so the spot is awaited, not failed on, and the stitch is
     /// re-referenced by the encoder when it comes (at once when PSD2 sees it already).
     pub fn resume_run(&mut self, machine: RunMachine) {
+        self.start_run(machine);
+        self.reference_event("resumed", "a resume after a restart".into());
         self.rereference_on_spot = true;
         if !self.tracker.stitch().valid || self.tracker.is_lost() {
             self.tracker.invalidate();
         } else if self.tracker.reference_by_encoder() {
             self.rereference_on_spot = false;
         }
-        self.start_run(machine);
     }
 
     /// Start measuring a run.
@@ -542,6 +615,19 @@ impl Pipeline {
     /// The active run's progress (captures taken, expected).
     pub fn run_progress(&self) -> Option<(usize, usize)> {
         self.run.as_ref().map(RunMachine::progress)
+    }
+
+    /// The active run's judge: captures flagged, captures held, and the event they wait on.
+    pub fn run_judged(&self) -> Option<(usize, usize, Option<String>)> {
+        self.run.as_ref().map(|r| {
+            let (f, h, e) = r.judged();
+            (f, h, e.map(str::to_string))
+        })
+    }
+
+    /// The active run's flagged captures.
+    pub fn run_flagged(&self) -> Option<std::collections::BTreeSet<crate::run::TargetKey>> {
+        self.run.as_ref().map(|r| r.flagged().clone())
     }
 
     /// The active run's missing captures.

@@ -31,8 +31,8 @@ use crate::plc::table::{self as ptable, RawHeader, Reject, TableDirection};
 use crate::plc::{self, CncMap, PlcStatus, PlcTable, PublishOutcome, PullServer, StatusCode};
 use crate::run::Direction;
 use crate::store::{
-    AuditEntry, Publication, PublicationOutcome, PublicationRecord, RunId, RunState, RunTables,
-    Store, StoreError, StoreQueue, TableEntry, TableId, TableRecord, now_us,
+    AuditEntry, Publication, PublicationOutcome, PublicationRecord, RunId, RunTables, Store,
+    StoreError, StoreQueue, TableEntry, TableId, TableRecord, now_us,
 };
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
@@ -460,16 +460,13 @@ pub fn verdict(
 pub fn generate(
     store: &Store,
     run_id: i64,
+    residual_only: bool,
     map: &CncMap,
     build: &TableBuild,
 ) -> Result<Vec<(TableEntry, StoredTable)>, String> {
+    // Finished, no flag open, and what the PLC applied while it ran known (issue 24).
+    let during = composition::usable(store, RunId(run_id), residual_only)?;
     let rec = store.run(RunId(run_id)).map_err(|e| e.to_string())?;
-    if rec.state != RunState::Finished {
-        return Err(format!(
-            "run {run_id} is {}: tables come from finished runs only",
-            rec.state
-        ));
-    }
     let captures = store.captures(rec.id).map_err(|e| e.to_string())?;
     let eval = evaluate_captures(&captures, &EvalOptions::default())
         .map_err(|e| format!("run {run_id} cannot be evaluated: {e}"))?;
@@ -496,7 +493,6 @@ pub fn generate(
     let generated_us = now_us();
     // Issue 15: what the PLC applied while the run ran; a table of a kind it applied is the
     // residual on top of that table, so it is composed with it.
-    let during = store.run_tables(rec.id).map_err(|e| e.to_string())?;
     chosen
         .iter()
         .map(|c| {
@@ -508,7 +504,6 @@ pub fn generate(
             };
             let active = during
                 .as_ref()
-                .filter(|d| d.known)
                 .and_then(|d| d.find(c.kind.name(), c.comp_axis.letter()));
             let (t, base) = match active {
                 None => (
@@ -803,7 +798,10 @@ impl Tables {
     ) -> Result<serde_json::Value, String> {
         match request {
             Request::TableList { limit } => self.list(limit.unwrap_or(50)).await,
-            Request::TableGenerate { run_id } => self.generate(*run_id).await,
+            Request::TableGenerate {
+                run_id,
+                residual_only,
+            } => self.generate(*run_id, *residual_only).await,
             Request::TablePublish { table_id, confirm } => {
                 self.publish(*table_id, *confirm, who).await
             }
@@ -869,13 +867,17 @@ impl Tables {
         Ok(serde_json::json!({ "tables": v, "map": self.map.name }))
     }
 
-    async fn generate(&mut self, run_id: i64) -> Result<serde_json::Value, String> {
+    async fn generate(
+        &mut self,
+        run_id: i64,
+        residual_only: bool,
+    ) -> Result<serde_json::Value, String> {
         let (map, build) = (self.map.clone(), self.settings.tables.clone());
         // Built and stored in one job: nothing else reaches this connection in between.
         let stored = match self
             .store
             .call(move |s| -> Result<Vec<TableRecord>, String> {
-                let built = generate(s, run_id, &map, &build)?;
+                let built = generate(s, run_id, residual_only, &map, &build)?;
                 let mut records = Vec::new();
                 for (entry, _) in &built {
                     let id = s.insert_table(entry).map_err(|e| e.to_string())?;
@@ -936,6 +938,12 @@ impl Tables {
                 "table {table_id} was fitted to the CNC map \"{}\" (CRC 0x{:08X}); the configured map {} gives CRC 0x{:08X}: generate it again (table_generate)",
                 stored.map, rec.entry.crc, self.map.file, enc.crc
             ));
+        }
+        // Issue 24: nothing from a run whose flags are open.
+        if let Some(r) = rec.entry.source_run
+            && let Some(why) = self.db(move |s| s.open_flags(r)).await?
+        {
+            return Err(format!("table {table_id} is from run {}: {why}", r.0));
         }
         // Issue 15: never the residual alone, never on a base the PLC no longer applies.
         let during = match rec.entry.source_run {

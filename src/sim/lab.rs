@@ -24,7 +24,7 @@ use crate::optics::Layout;
 use crate::optics::Spot;
 use crate::run::program::{CaptureMode, generate};
 use crate::run::session::{Next, Session};
-use crate::run::{Capture, CaptureSettings, Dialect, Plan, RunMachine};
+use crate::run::{Capture, CaptureSettings, Dialect, Plan, RunMachine, TargetKey};
 use crate::service::pipeline::{Output, Pipeline, now_us};
 use crate::track::{FollowerCommand, HandoverRecord, TrackSettings};
 use std::collections::BTreeSet;
@@ -251,9 +251,21 @@ pub struct Lab {
     pub realign_when_paused: bool,
     /// What the last run went through: pauses (with why) and resumptions.
     pub pauses: Vec<String>,
+    /// The last run's flagged captures (`run::judge`), with the truth when each was taken and
+    /// the reason.
+    pub flags: Vec<(TrueCapture, String)>,
+    /// The last run's events that could move the reference (kind, what).
+    pub events: Vec<(String, String)>,
+    /// The truth every 100 ms over the last hour (µs since the epoch): a capture held until
+    /// the judge checked it is compared with the truth of when it was taken.
+    truths: std::collections::VecDeque<(i64, Truth)>,
     /// The last run's programs after the first (resumed and make-up ones).
     pub extra_programs: usize,
 }
+
+/// The truth is kept every this often (µs), this many times (an hour).
+const TRUTH_EVERY_US: i64 = 100_000;
+const TRUTHS_KEPT: usize = 36_000;
 
 /// A station is read over this long with the carriage at rest.
 const STATION_WINDOW: Duration = Duration::from_millis(500);
@@ -323,6 +335,9 @@ impl Lab {
             align: AlignSettings::default(),
             realign_when_paused: true,
             pauses: Vec::new(),
+            flags: Vec::new(),
+            events: Vec::new(),
+            truths: std::collections::VecDeque::new(),
             extra_programs: 0,
         })
     }
@@ -438,6 +453,16 @@ impl Lab {
             sums: s.sums,
         };
         let unix_us = self.unix0_us + (now - self.t0).as_micros() as i64;
+        if self
+            .truths
+            .back()
+            .is_none_or(|(t, _)| unix_us - t >= TRUTH_EVERY_US)
+        {
+            if self.truths.len() >= TRUTHS_KEPT {
+                self.truths.pop_front();
+            }
+            self.truths.push_back((unix_us, self.plant.truth(now)));
+        }
         let f = encode(&self.map, &reading)
             .and_then(|block| frame(&self.map, &block, self.seq, now, unix_us));
         self.seq += 1;
@@ -535,10 +560,23 @@ impl Lab {
                     self.master.submit(Command::Enable, now);
                 }
                 Output::Handover(r) => self.handovers.push(r),
-                Output::Captured(c) => self.captures.push(TrueCapture {
-                    capture: c,
-                    truth: self.plant.truth(now),
-                }),
+                Output::Captured(c) => {
+                    let truth = self.truth_of(&c);
+                    self.captures.push(TrueCapture { capture: c, truth });
+                }
+                Output::Flagged {
+                    capture,
+                    reason,
+                    stored,
+                } => {
+                    if stored {
+                        let key = TargetKey::of(&capture);
+                        self.captures.retain(|t| TargetKey::of(&t.capture) != key);
+                    }
+                    let truth = self.truth_of(&capture);
+                    self.flags.push((TrueCapture { capture, truth }, reason));
+                }
+                Output::RunEvent { kind, detail } => self.events.push((kind, detail)),
                 Output::Acknowledge(code) => self.plc.acknowledged = Some(code),
                 Output::RunPaused(why) => {
                     self.pauses.push(why);
@@ -551,6 +589,17 @@ impl Lab {
                 Output::RunFailed(why) => self.run_end = Some(Err(why)),
             }
         }
+    }
+
+    /// The truth when capture `c` was taken: at the end of its frames (when the run machine
+    /// had it), from the history.
+    fn truth_of(&self, c: &Capture) -> Truth {
+        let end = c.unix_us + (self.frame_period * c.frames).as_micros() as i64;
+        self.truths
+            .iter()
+            .min_by_key(|(t, _)| (t - end).abs())
+            .map(|(_, truth)| *truth)
+            .unwrap_or_else(|| self.plant.truth(self.now))
     }
 
     /// Submit a drive command and run the clock until it completes.
@@ -684,6 +733,8 @@ impl Lab {
         self.captures.clear();
         self.handovers.clear();
         self.pauses.clear();
+        self.flags.clear();
+        self.events.clear();
         self.extra_programs = 0;
         self.run_end = None;
         let started = self.now;

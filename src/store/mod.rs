@@ -20,6 +20,7 @@
 //! one task. Open a second `Store` (e.g. `open_read_only`) for a concurrent reader.
 
 mod alignments;
+mod flags;
 mod follower;
 pub mod queue;
 mod records;
@@ -28,6 +29,7 @@ mod run_tables;
 pub mod schema;
 
 pub use alignments::{AlignmentRecord, NewAlignment};
+pub use flags::{CaptureFlag, RunEvent};
 pub use follower::FollowerMapRecord;
 pub use queue::{QueueError, StoreQueue};
 pub use records::{

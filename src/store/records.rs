@@ -180,7 +180,7 @@ fn raw_run(r: &Row<'_>) -> rusqlite::Result<RawRun> {
 // Captures
 
 /// A `Direction` as its stored sign.
-struct Sign(Direction);
+pub(super) struct Sign(pub(super) Direction);
 
 impl ToSql for Sign {
     fn to_sql(&self) -> rusqlite::Result<ToSqlOutput<'_>> {

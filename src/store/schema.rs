@@ -19,7 +19,14 @@ pub const APPLICATION_ID: i32 = 0x4158_4353;
 pub const LATEST: i64 = MIGRATIONS.len() as i64;
 
 /// Forward migrations; `MIGRATIONS[i]` goes from version `i` to `i + 1`.
-pub const MIGRATIONS: &[&str] = &[V1, V2, V3_FOLLOWER_MAPS, V4_RUN_TABLES, V5_AUDIT_OUTCOME];
+pub const MIGRATIONS: &[&str] = &[
+    V1,
+    V2,
+    V3_FOLLOWER_MAPS,
+    V4_RUN_TABLES,
+    V5_AUDIT_OUTCOME,
+    V6_FLAGS,
+];
 
 /// Version 1: the first schema.
 const V1: &str = r#"
@@ -224,6 +231,37 @@ ALTER TABLE audit ADD COLUMN outcome TEXT NOT NULL DEFAULT 'recorded'
 ALTER TABLE audit ADD COLUMN reason TEXT;
 "#;
 
+/// Version 6: every stored capture true or flagged (issue 24). The events of a run that could
+/// move its positioning reference, and the captures its judge flagged: the capture as taken
+/// (JSON, `run::Capture`), why, whether it had been stored (it is moved out of `captures` in
+/// the same transaction), and the operator's exclusion. A flag whose run, target and direction
+/// have a capture in `captures` was retaken.
+const V6_FLAGS: &str = r#"
+CREATE TABLE run_events (
+    id       INTEGER PRIMARY KEY,
+    run_id   INTEGER NOT NULL REFERENCES runs (id),
+    unix_us  INTEGER NOT NULL,
+    kind     TEXT    NOT NULL CHECK (kind <> ''),
+    detail   TEXT    NOT NULL
+) STRICT;
+CREATE INDEX run_events_run ON run_events (run_id, id);
+CREATE TABLE capture_flags (
+    id              INTEGER PRIMARY KEY,
+    run_id          INTEGER NOT NULL REFERENCES runs (id),
+    run             INTEGER NOT NULL CHECK (run >= 1),
+    target_index    INTEGER NOT NULL CHECK (target_index >= 0),
+    direction       TEXT    NOT NULL CHECK (direction IN ('+', '-')),
+    unix_us         INTEGER NOT NULL,                      -- when it was flagged
+    capture_json    TEXT    NOT NULL CHECK (json_valid(capture_json)),
+    reason          TEXT    NOT NULL CHECK (reason <> ''),
+    was_stored      INTEGER NOT NULL CHECK (was_stored IN (0, 1)),
+    excluded_by     TEXT,
+    excluded_us     INTEGER,
+    excluded_reason TEXT CHECK (excluded_reason IS NULL OR excluded_reason <> '')
+) STRICT;
+CREATE INDEX capture_flags_run ON capture_flags (run_id, id);
+"#;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -232,6 +270,6 @@ mod tests {
     fn application_id_literal_matches_the_constant() {
         // The pragma cannot take a bound parameter, so V1 spells the number out.
         assert!(V1.contains(&format!("PRAGMA application_id = {APPLICATION_ID};")));
-        assert_eq!(LATEST, 5);
+        assert_eq!(LATEST, 6);
     }
 }

@@ -14,6 +14,7 @@ use axiscomp::comp::siemens::{self, CecOptions, EndHandling, LecOptions, Siemens
 use axiscomp::comp::{CompTable, MachineAxis, TableKind, TableValues};
 use axiscomp::evaluate::axis::synthetic_capture;
 use axiscomp::run::Direction;
+use axiscomp::store::RunState;
 use axiscomp::store::{NewRun, Store};
 
 const UM: f64 = 1e-3;
@@ -620,6 +621,8 @@ fn store_with_run(dir: &TempDir) -> std::path::PathBuf {
             notes: String::new(),
         })
         .unwrap();
+    store.set_run_state(run, RunState::Running).unwrap();
+    crate::helpers::record_no_tables(&mut store, run);
     for t in 0..5u32 {
         for r in 1..=2u32 {
             for d in [Direction::Up, Direction::Down] {
@@ -637,6 +640,7 @@ fn store_with_run(dir: &TempDir) -> std::path::PathBuf {
             }
         }
     }
+    store.set_run_state(run, RunState::Finished).unwrap();
     path
 }
 

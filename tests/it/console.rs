@@ -941,6 +941,7 @@ async fn capture_console_fixture() {
     let generate_reply = rig
         .request(Request::TableGenerate {
             run_id: start_reply["run_id"].as_i64().expect("run 2"),
+            residual_only: false,
         })
         .await
         .expect("table_generate");

@@ -719,3 +719,20 @@ pub async fn align_service(socket: &Path, twin: &axiscomp::sim::twin::Twin, span
     at_rest(&mut c, twin, 0.0).await;
     c.request(&Request::Zero).await.expect("zero");
 }
+
+/// Record, as the service does when a run starts, that the PLC applied no table while run
+/// `run` ran (a run stored by a test, not measured by the service, has no such record, and
+/// tables from it are refused).
+pub fn record_no_tables(store: &mut axiscomp::store::Store, run: axiscomp::store::RunId) {
+    store
+        .record_run_tables(
+            run,
+            &axiscomp::store::RunTables {
+                unix_us: axiscomp::store::now_us(),
+                known: true,
+                source: "no PLC configured (a test's run)".into(),
+                tables: Vec::new(),
+            },
+        )
+        .expect("record the tables active during the run");
+}

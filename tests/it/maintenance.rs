@@ -170,7 +170,10 @@ impl Bench {
     /// `table generate` on run `id`: the stored tables' ids and their replies.
     fn generate(&mut self, id: RunId) -> Vec<serde_json::Value> {
         let r = self
-            .ask(Request::TableGenerate { run_id: id.0 })
+            .ask(Request::TableGenerate {
+                run_id: id.0,
+                residual_only: false,
+            })
             .expect("generate");
         r["tables"].as_array().expect("tables").clone()
     }

@@ -840,6 +840,11 @@ async fn interop_mbpoll_and_pymodbus_read_the_pull_server() {
 /// the twin takes minutes; `sim::lab` measures one on a virtual clock) — what is tested here
 /// is everything after the captures: evaluation, tables, publishing, read-back.
 fn store_synthetic_run(store: &std::path::Path, plant: &Plant) -> i64 {
+    store_synthetic_run_recorded(store, plant, true)
+}
+
+/// As [`store_synthetic_run`]; `record`: whether the tables active during it are recorded.
+fn store_synthetic_run_recorded(store: &std::path::Path, plant: &Plant, record: bool) -> i64 {
     use axiscomp::Errors6;
     use axiscomp::run::{Capture, Direction as RunDirection};
     use axiscomp::store::{NewRun, RunState, Store};
@@ -854,6 +859,9 @@ fn store_synthetic_run(store: &std::path::Path, plant: &Plant) -> i64 {
         })
         .expect("create run");
     s.set_run_state(id, RunState::Running).expect("running");
+    if record {
+        crate::helpers::record_no_tables(&mut s, id);
+    }
     let small = Errors6 {
         dx: 1e-4,
         dy: 1e-4,
@@ -890,6 +898,132 @@ fn store_synthetic_run(store: &std::path::Path, plant: &Plant) -> i64 {
     id.0
 }
 
+/// Issue 24 (must-show 4): nothing from a run the store cannot vouch for. `table generate`,
+/// publish and `export` refuse a run with a flagged capture left open, and a run without a
+/// record of the tables the PLC applied while it ran, each with the reason; the residual is
+/// written only when asked for by name; the audit log shows the refusals as refused.
+#[tokio::test(start_paused = true)]
+async fn tables_refuse_runs_with_open_flags_or_without_the_active_tables_recorded() {
+    use axiscomp::service::api::Request;
+    use axiscomp::store::{AuditOutcome, RunId, Store, now_us};
+    let rig = ServiceRig::start(RigOptions {
+        twin_plc: true,
+        ..RigOptions::default()
+    })
+    .await;
+    let generate = |run_id: i64, residual_only: bool| Request::TableGenerate {
+        run_id,
+        residual_only,
+    };
+    // A table from a run with nothing open, then one capture of that run flagged (as the
+    // judge's review moves a stored capture out).
+    let run = store_synthetic_run(&rig.store, &rig.twin.plant);
+    let v = rig.request(generate(run, false)).await.expect("generate");
+    let table_id = v["tables"][0]["id"].as_i64().expect("a table");
+    {
+        let mut s = Store::open(&rig.store).expect("store");
+        let c = s.captures(RunId(run)).expect("captures")[3];
+        s.flag_capture(
+            RunId(run),
+            &c,
+            "run 2, target 2 +: off the other 2 captures of its target and direction by dy +3.5 µm",
+            true,
+            now_us(),
+        )
+        .expect("flag");
+        assert_eq!(s.captures(RunId(run)).expect("captures").len(), 65);
+    }
+    let e = rig
+        .request(generate(run, false))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains(&format!(
+            "run {run} has 1 flagged capture neither retaken nor excluded"
+        )) && e.contains("dy +3.5 µm"),
+        "{e}"
+    );
+    let e = rig
+        .request(Request::TablePublish {
+            table_id,
+            confirm: true,
+        })
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains(&format!("table {table_id} is from run {run}")) && e.contains("flagged"),
+        "{e}"
+    );
+    let db = rig.store.to_str().expect("path").to_string();
+    let dir = TempDir::new("refusals");
+    let out = dir.path("refused.csv");
+    let o = out.to_str().expect("path").to_string();
+    let export = |run: i64, extra: &[&str]| {
+        let run = run.to_string();
+        let mut a = vec![
+            "export", "--run", &run, "--db", &db, "--format", "csv", "--out", &o,
+        ];
+        a.extend_from_slice(extra);
+        crate::helpers::run(&a, "")
+    };
+    let r = export(run, &[]);
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(
+        !r.status.success() && err.contains("flagged capture"),
+        "{err}"
+    );
+    assert!(!out.exists(), "nothing written");
+
+    // A run with no record of what the PLC applied: refused; the residual by name only.
+    let bare = store_synthetic_run_recorded(&rig.store, &rig.twin.plant, false);
+    let e = rig
+        .request(generate(bare, false))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains(&format!(
+            "run {bare} has no record of the tables the PLC applied while it ran"
+        )) && e.contains("--residual-only"),
+        "{e}"
+    );
+    let r = export(bare, &[]);
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(!r.status.success() && err.contains("no record"), "{err}");
+    let v = rig
+        .request(generate(bare, true))
+        .await
+        .expect("residual by name");
+    assert!(!v["tables"].as_array().expect("tables").is_empty(), "{v}");
+    let r = export(bare, &["--residual-only"]);
+    assert!(
+        r.status.success() && out.exists(),
+        "{}",
+        String::from_utf8_lossy(&r.stderr)
+    );
+
+    // The refusals in the audit log, as refused, with their reasons.
+    let s = Store::open_read_only(&rig.store).expect("store");
+    let refused: Vec<String> = s
+        .audit_entries(50)
+        .expect("audit")
+        .into_iter()
+        .filter_map(|a| match a.entry.outcome {
+            AuditOutcome::Refused(why) => Some(format!("{} {why}", a.entry.action)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(refused.len(), 3, "{refused:#?}");
+    assert!(
+        refused.iter().any(|r| r.contains("flagged capture"))
+            && refused.iter().any(|r| r.contains("is from run"))
+            && refused.iter().any(|r| r.contains("no record")),
+        "{refused:#?}"
+    );
+}
+
 /// The service with the twin's I/O module, drive and PLC on loopback: generate the tables of a
 /// stored run, publish without and with confirmation, read the PLC's table back, and a PLC
 /// that rejects (issue 5: control API and CLI).
@@ -916,7 +1050,10 @@ async fn the_service_generates_publishes_and_reads_back_tables() {
 
     // Generate: positioning and both straightnesses, stored with their run.
     let v = rig
-        .request(Request::TableGenerate { run_id })
+        .request(Request::TableGenerate {
+            run_id,
+            residual_only: false,
+        })
         .await
         .expect("generate");
     let tables: Vec<TableView> = serde_json::from_value(v["tables"].clone()).expect("tables");
@@ -1110,7 +1247,10 @@ async fn the_service_serves_a_published_table_for_pull() {
     .await;
     let run_id = store_synthetic_run(&rig.store, &rig.twin.plant);
     let v = rig
-        .request(Request::TableGenerate { run_id })
+        .request(Request::TableGenerate {
+            run_id,
+            residual_only: false,
+        })
         .await
         .expect("generate");
     let tables: Vec<TableView> = serde_json::from_value(v["tables"].clone()).expect("tables");

@@ -62,7 +62,10 @@ impl App {
                     self.publish.generating = Some(run);
                     self.log(Level::Info, format!("→ generate tables from run {run}"));
                     return vec![self.send(
-                        Request::TableGenerate { run_id: run },
+                        Request::TableGenerate {
+                            run_id: run,
+                            residual_only: false,
+                        },
                         Pending::Generate(run),
                     )];
                 }

@@ -132,7 +132,14 @@ pub enum Request {
     },
     /// Evaluate stored run `run_id`, build its compensation tables for the configured CNC map
     /// and store them: their ids and a summary.
-    TableGenerate { run_id: i64 },
+    TableGenerate {
+        run_id: i64,
+        /// Write the run's residual as the table even when the tables the PLC applied while
+        /// it ran are not recorded (asked for by name: a residual published alone undoes the
+        /// compensation it was measured under).
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        residual_only: bool,
+    },
     /// Publish stored table `table_id` to the PLC (push, or serve it for pull); refused unless
     /// `confirm` is true. The reply says committed (with the sequence), rejected (with the
     /// PLC's code) or failed (with the reason).
@@ -254,7 +261,7 @@ impl Request {
             }
             Request::Audit { limit } => int_field("limit", *limit, 1, LIMIT as u32),
             Request::RunResult { run_id } => id("run_id", *run_id),
-            Request::TableGenerate { run_id } => id("run_id", Some(*run_id)),
+            Request::TableGenerate { run_id, .. } => id("run_id", Some(*run_id)),
             Request::TablePublish { table_id, .. } => id("table_id", Some(*table_id)),
             Request::FollowerMap { id: map } => id("id", *map),
             Request::HexapodStart { poses, .. } => {
@@ -435,7 +442,10 @@ mod tests {
                 out: None,
             },
             Request::TableList { limit: Some(5) },
-            Request::TableGenerate { run_id: 1 },
+            Request::TableGenerate {
+                run_id: 1,
+                residual_only: false,
+            },
             Request::TablePublish {
                 table_id: 1,
                 confirm: false,

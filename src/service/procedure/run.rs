@@ -39,8 +39,8 @@ pub struct Resume {
     pub plan: Plan,
     /// The dialect the run was started with (its programs go on in it).
     pub dialect: Dialect,
-    /// The captures stored.
-    pub done: BTreeSet<TargetKey>,
+    /// The captures stored (the judge takes them as true and checks the rest against them).
+    pub stored: Vec<Capture>,
     /// The programs already written for it (their numbers go on from there).
     pub programs: u32,
 }
@@ -65,6 +65,24 @@ enum News {
         key: TargetKey,
         result: Result<(), String>,
     },
+    /// A flag or an event went to the store, or not.
+    Recorded { id: u64, result: Result<(), String> },
+}
+
+/// A flagged capture or an event of the active run, for the store (kept until it is stored).
+#[derive(Clone, Debug)]
+enum Record {
+    Flag {
+        capture: Capture,
+        reason: String,
+        stored: bool,
+        unix_us: i64,
+    },
+    Event {
+        kind: String,
+        detail: String,
+        unix_us: i64,
+    },
 }
 
 /// A run the store created (or could not): the reply owed, the plan, its dialect.
@@ -74,6 +92,9 @@ struct Created {
     dialect: Dialect,
     id: Result<RunId, String>,
 }
+
+/// The state of a finished run whose flags are open (and the start of its notes).
+pub const WITH_FLAGS: &str = "finished with flags";
 
 /// A run being measured.
 struct Active {
@@ -85,6 +106,9 @@ struct Active {
     program: String,
     /// Captures taken and not yet stored (the store's answer awaited, or to offer again).
     unstored: BTreeMap<TargetKey, (Capture, bool)>,
+    /// Flags and events not yet stored (the store's answer awaited: true), by number.
+    unrecorded: BTreeMap<u64, (Record, bool)>,
+    next_record: u64,
     /// When the captures the store refused are offered again.
     retry_at: Option<Instant>,
     /// The run machine has every capture: the run ends once they are stored.
@@ -244,13 +268,14 @@ impl MeasurementRun {
         id: RunId,
         plan: Plan,
         dialect: Dialect,
-        done: BTreeSet<TargetKey>,
+        stored: Vec<Capture>,
         resumed_at: Option<f64>,
         programs: u32,
         then: Option<(Reply, serde_json::Value)>,
         ctx: &mut Ctx,
     ) {
-        let machine = RunMachine::new(plan.clone(), self.cfg.capture, false, done.clone());
+        let done: BTreeSet<TargetKey> = stored.iter().map(TargetKey::of).collect();
+        let machine = RunMachine::resumed(plan.clone(), self.cfg.capture, false, stored);
         let mut session = Session::new(plan);
         session.programs = programs;
         let first = session.first(&done, resumed_at);
@@ -261,6 +286,8 @@ impl MeasurementRun {
             cnc: CncDriver::new(self.cfg.cnc.clone()),
             program: String::new(),
             unstored: BTreeMap::new(),
+            unrecorded: BTreeMap::new(),
+            next_record: 0,
             retry_at: None,
             complete: false,
             ended: false,
@@ -336,6 +363,73 @@ impl MeasurementRun {
         }
     }
 
+    /// Keep `r` for the store, and offer it.
+    fn record(&mut self, r: Record, ctx: &mut Ctx) {
+        let Some(a) = self.active.as_mut() else {
+            return;
+        };
+        let id = a.next_record;
+        a.next_record += 1;
+        a.unrecorded.insert(id, (r, true));
+        self.offer_record(id, ctx);
+    }
+
+    fn offer_record(&mut self, id: u64, ctx: &mut Ctx) {
+        let Some(a) = self.active.as_mut() else {
+            return;
+        };
+        let Some((r, asked)) = a.unrecorded.get_mut(&id) else {
+            return;
+        };
+        *asked = true;
+        let (run, r, tx) = (a.id, r.clone(), self.tx.clone());
+        let job = ctx.store.try_call(move |s| match r {
+            Record::Flag {
+                capture,
+                reason,
+                stored,
+                unix_us,
+            } => s.flag_capture(run, &capture, &reason, stored, unix_us),
+            Record::Event {
+                kind,
+                detail,
+                unix_us,
+            } => s.record_run_event(run, unix_us, &kind, &detail),
+        });
+        match job {
+            Ok(done) => {
+                tokio::spawn(async move {
+                    let result = match done.await {
+                        Ok(Ok(())) => Ok(()),
+                        Ok(Err(e)) => Err(e.to_string()),
+                        Err(e) => Err(e.to_string()),
+                    };
+                    let _ = tx.send(News::Recorded { id, result }).await;
+                });
+            }
+            Err(e) => self.record_refused(id, &e.to_string(), ctx),
+        }
+    }
+
+    /// The store did not take flag or event `id`: kept, offered again in a second.
+    fn record_refused(&mut self, id: u64, why: &str, ctx: &mut Ctx) {
+        let Some(a) = self.active.as_mut() else {
+            return;
+        };
+        if let Some(u) = a.unrecorded.get_mut(&id) {
+            u.1 = false;
+        }
+        a.retry_at.get_or_insert(ctx.now + RETRY_EVERY);
+        ctx.pipeline.alarms.raise(
+            "store",
+            format!(
+                "run record not stored: {why}; {} kept, stored again every {} s",
+                a.unrecorded.len(),
+                RETRY_EVERY.as_secs()
+            ),
+        );
+    }
+
     /// The store did not take capture `key`: kept, offered again in a second.
     fn refused(&mut self, key: TargetKey, why: &str, ctx: &mut Ctx) {
         let Some(a) = self.active.as_mut() else {
@@ -363,9 +457,12 @@ impl MeasurementRun {
         a.cnc.forget();
         let (id, note) = (a.id, why.to_string());
         let failed = state == RunState::Failed;
+        // A run that ends with flags open says why in its notes (its state reads "finished
+        // with flags" while they are open).
+        let keep_note = failed || why.starts_with(WITH_FLAGS);
         let job = ctx.store.try_call(move |s| {
             s.set_run_state(id, state)?;
-            if failed {
+            if keep_note {
                 s.set_run_notes(id, &note)?;
             }
             Ok::<(), StoreError>(())
@@ -398,8 +495,9 @@ impl MeasurementRun {
         let Some(r) = self.resume.take() else {
             return;
         };
-        tracing::info!(run = r.id.0, captured = r.done.len(), "resuming the run");
-        if crate::run::program::remaining_steps(&r.plan, &r.done).is_none() {
+        tracing::info!(run = r.id.0, captured = r.stored.len(), "resuming the run");
+        let done: BTreeSet<TargetKey> = r.stored.iter().map(TargetKey::of).collect();
+        if crate::run::program::remaining_steps(&r.plan, &done).is_none() {
             let (id, why) = (
                 r.id,
                 "nothing left to capture, yet the run was not finished".to_string(),
@@ -411,7 +509,7 @@ impl MeasurementRun {
             r.id,
             r.plan,
             r.dialect,
-            r.done,
+            r.stored,
             Some(fs.position_mm),
             r.programs,
             None,
@@ -438,9 +536,13 @@ impl MeasurementRun {
             let plan = a.session.plan();
             let plan_s = plan.motion_time_s(ETA_ACCEL_MM_S2);
             let left_s = plan_s * total.saturating_sub(done) as f64 / total.max(1) as f64;
+            let (flagged, held, unverified) = ctx.pipeline.run_judged().unwrap_or_default();
             return reply.send(Ok(serde_json::json!({
                 "run_id": a.id.0, "state": "running", "captures": done, "expected": total,
                 "missing": ctx.pipeline.run_missing().map(|m| m.len()).unwrap_or(0),
+                "flagged": flagged,
+                "held": held,
+                "unverified_since": unverified,
                 "program": a.program,
                 "paused": ctx.pipeline.paused(),
                 "plan_s": plan_s,
@@ -453,11 +555,22 @@ impl MeasurementRun {
                 .call(|s| {
                     let newest = s.list_runs()?.into_iter().max_by_key(|r| r.id.0);
                     Ok::<_, StoreError>(match newest {
-                        Some(r) => serde_json::json!({
-                            "run_id": r.id.0, "state": r.state.as_str(),
-                            "captures": s.captures(r.id).map(|c| c.len()).unwrap_or(0),
-                            "notes": r.notes,
-                        }),
+                        Some(r) => {
+                            let flags = s.capture_flags(r.id)?;
+                            let open = flags.iter().filter(|f| f.open()).count();
+                            let state = if r.state == RunState::Finished && open > 0 {
+                                WITH_FLAGS
+                            } else {
+                                r.state.as_str()
+                            };
+                            serde_json::json!({
+                                "run_id": r.id.0, "state": state,
+                                "captures": s.captures(r.id).map(|c| c.len()).unwrap_or(0),
+                                "flagged": flags.len(),
+                                "flags_open": open,
+                                "notes": r.notes,
+                            })
+                        }
                         None => serde_json::json!({"state": "none"}),
                     })
                 })
@@ -496,7 +609,7 @@ impl MeasurementRun {
                     id,
                     plan,
                     dialect,
-                    BTreeSet::new(),
+                    Vec::new(),
                     None,
                     0,
                     Some((reply, answer)),
@@ -517,6 +630,20 @@ impl MeasurementRun {
                     }
                 }
                 Err(e) => self.refused(key, &e, ctx),
+            },
+            News::Recorded { id, result } => match result {
+                Ok(()) => {
+                    let Some(a) = self.active.as_mut() else {
+                        return;
+                    };
+                    a.unrecorded.remove(&id);
+                    if a.unstored.values().all(|(_, asked)| *asked)
+                        && a.unrecorded.values().all(|(_, asked)| *asked)
+                    {
+                        ctx.pipeline.alarms.clear("store");
+                    }
+                }
+                Err(e) => self.record_refused(id, &e, ctx),
             },
         }
     }
@@ -596,6 +723,36 @@ impl Procedure for MeasurementRun {
                 }
             }
             Output::Captured(c) => self.store_capture(*c, ctx),
+            Output::Flagged {
+                capture,
+                reason,
+                stored,
+            } => {
+                if let Some(a) = self.active.as_mut() {
+                    // Not offered again: the flag keeps it.
+                    a.unstored.remove(&TargetKey::of(capture));
+                }
+                self.record(
+                    Record::Flag {
+                        capture: *capture,
+                        reason: reason.clone(),
+                        stored: *stored,
+                        unix_us: crate::util::clock::unix_us(),
+                    },
+                    ctx,
+                );
+            }
+            Output::RunEvent { kind, detail } => {
+                tracing::warn!(kind = %kind, "run event: {detail}");
+                self.record(
+                    Record::Event {
+                        kind: kind.clone(),
+                        detail: detail.clone(),
+                        unix_us: crate::util::clock::unix_us(),
+                    },
+                    ctx,
+                );
+            }
             // The pipeline keeps the alarm. With the beam off the fixed PSDs the twin's CNC
             // stops at its next stop, and the rest of the cycle follows once the beam is
             // back. PSD2 alone (the follower behind) waits for the carriage's pass. A CNC the
@@ -642,11 +799,25 @@ impl Procedure for MeasurementRun {
             for c in again {
                 self.store_capture(c, ctx);
             }
+            let records: Vec<u64> = self
+                .active
+                .as_ref()
+                .map(|a| {
+                    a.unrecorded
+                        .iter()
+                        .filter(|(_, (_, asked))| !asked)
+                        .map(|(id, _)| *id)
+                        .collect()
+                })
+                .unwrap_or_default();
+            for id in records {
+                self.offer_record(id, ctx);
+            }
         }
         let Some(a) = self.active.as_mut() else {
             return;
         };
-        if a.complete && a.unstored.is_empty() {
+        if a.complete && a.unstored.is_empty() && a.unrecorded.is_empty() {
             self.end(RunState::Finished, "all captures taken", ctx);
             return;
         }
@@ -677,8 +848,18 @@ impl Procedure for MeasurementRun {
             }
             Next::Nothing => {}
             Next::Fail(why) => {
+                // Every capture still missing was flagged (`run::judge`) and its retakes ran
+                // out: the run ends with its flags open, not failed; nothing of it reaches a
+                // table until they are retaken or excluded.
+                let flagged = ctx.pipeline.run_flagged().unwrap_or_default();
+                let all_flagged =
+                    !missing.is_empty() && missing.iter().all(|k| flagged.contains(k));
                 ctx.pipeline.abort_run();
-                self.end(RunState::Failed, &why, ctx);
+                if all_flagged {
+                    self.end(RunState::Finished, &format!("{WITH_FLAGS}: {why}"), ctx);
+                } else {
+                    self.end(RunState::Failed, &why, ctx);
+                }
             }
         }
     }

@@ -1,0 +1,485 @@
+//! Every stored capture true or flagged (issue 24), sans-I/O: the run judges each capture
+//! before it counts.
+//!
+//! - **Against its group.** A capture whose errors differ from the median of the other
+//!   captures of its target and direction by more than the stated repeatability
+//!   (`[capture] repeatability_um`, `repeatability_arcsec`) is flagged and retaken. Checked
+//!   as each capture comes when its group has two others, and over every group once the
+//!   run has all its captures (a first capture that was the odd one is found then).
+//! - **Across reference events.** An event that can move the positioning reference (a
+//!   following error, a drive fault or quick stop, a lost heartbeat, PSD2 re-referenced by
+//!   the encoder, a resume after a restart) makes every capture after it *unverified*: it is
+//!   held, not stored. The first unverified capture whose target and direction have a capture
+//!   from before the event settles it: within the repeatability, the reference held and the
+//!   held captures are stored; beyond it, the reference moved by the difference: the zero is
+//!   shifted back by it and the held captures are flagged and retaken (with the zero
+//!   restored). Held captures that nothing could check by the end of the run are flagged.
+//!   Nothing held is stored, so a crash loses them and the resumed run takes them again.
+//!
+//! The judge gives decisions; the run machine carries them out (reopens flagged captures for
+//! the make-up pass) and the service stores them (`captures`, `capture_flags`, `run_events`).
+
+use super::{Capture, Direction, TargetKey};
+use crate::units::Errors6;
+use std::collections::BTreeMap;
+
+/// How far a capture may sit from its group: linear errors (mm) and angles (rad).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Repeatability {
+    pub linear_mm: f64,
+    pub angular_rad: f64,
+}
+
+impl Repeatability {
+    fn limit(&self, k: usize) -> f64 {
+        if k < 3 {
+            self.linear_mm
+        } else {
+            self.angular_rad
+        }
+    }
+}
+
+impl Default for Repeatability {
+    fn default() -> Self {
+        Repeatability {
+            linear_mm: 0.002,
+            angular_rad: 2.0 * ARCSEC,
+        }
+    }
+}
+
+const ARCSEC: f64 = std::f64::consts::PI / 180.0 / 3600.0;
+const NAMES: [&str; 6] = ["dx", "dy", "dz", "ex", "ey", "ez"];
+
+/// What to do with a capture, or with the reference.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Decision {
+    /// Store it: it is judged true.
+    Store(Capture),
+    /// It is wrong or could not be checked: keep it with the reason, retake it. `stored`: it
+    /// was stored already (found by the review at the run's end) and must come out.
+    Flag {
+        capture: Capture,
+        reason: String,
+        stored: bool,
+    },
+    /// The reference moved by `by` (internal units, zero where it did not): the zero is to be
+    /// shifted by it, so that frames read as they did before the event.
+    ShiftZero { by: Errors6, reason: String },
+}
+
+/// An event that can move the reference.
+#[derive(Clone, Debug, PartialEq)]
+struct Event {
+    what: String,
+    unix_us: i64,
+}
+
+/// The judge of one run.
+#[derive(Clone, Debug)]
+pub struct Judge {
+    limits: Repeatability,
+    /// Captures stored (or taken as true), by key.
+    accepted: BTreeMap<TargetKey, Capture>,
+    /// Captures held since the first unchecked event; with the index of the event they
+    /// followed.
+    held: Vec<(Capture, usize)>,
+    /// Events since the reference was last known good.
+    events: Vec<Event>,
+}
+
+impl Judge {
+    /// A judge with `limits`; `stored`: captures already stored (a resumed run), taken as true.
+    pub fn new(limits: Repeatability, stored: impl IntoIterator<Item = Capture>) -> Judge {
+        Judge {
+            limits,
+            accepted: stored.into_iter().map(|c| (TargetKey::of(&c), c)).collect(),
+            held: Vec::new(),
+            events: Vec::new(),
+        }
+    }
+
+    /// Whether captures are held for want of a check.
+    pub fn unverified(&self) -> Option<&str> {
+        self.events.last().map(|e| e.what.as_str())
+    }
+
+    /// Captures held now.
+    pub fn held(&self) -> usize {
+        self.held.len()
+    }
+
+    /// The keys held now.
+    pub fn held_keys(&self) -> impl Iterator<Item = TargetKey> + '_ {
+        self.held.iter().map(|(c, _)| TargetKey::of(c))
+    }
+
+    /// An event that can move the reference happened at `unix_us`.
+    pub fn event(&mut self, what: &str, unix_us: i64) {
+        self.events.push(Event {
+            what: what.to_string(),
+            unix_us,
+        });
+    }
+
+    /// The accepted captures of the group of (`target_index`, `direction`), `key` left out.
+    fn group(&self, target_index: u32, direction: Direction, but: TargetKey) -> Vec<&Capture> {
+        self.accepted
+            .iter()
+            .filter(|(k, _)| {
+                k.target_index == target_index && k.direction == direction && **k != but
+            })
+            .map(|(_, c)| c)
+            .collect()
+    }
+
+    /// Each error of `c` minus the median of `group` (which is not empty).
+    fn offset(c: &Capture, group: &[&Capture]) -> [f64; 6] {
+        let e = c.errors.to_array();
+        std::array::from_fn(|k| {
+            let mut v: Vec<f64> = group.iter().map(|g| g.errors.to_array()[k]).collect();
+            v.sort_by(f64::total_cmp);
+            let n = v.len();
+            let median = if n % 2 == 1 {
+                v[n / 2]
+            } else {
+                0.5 * (v[n / 2 - 1] + v[n / 2])
+            };
+            e[k] - median
+        })
+    }
+
+    /// The components of `d` beyond their limits, in words ("dy 33.5 µm"), or None.
+    fn beyond(&self, d: &[f64; 6]) -> Option<String> {
+        let words: Vec<String> = (0..6)
+            .filter(|&k| d[k].abs() > self.limits.limit(k))
+            .map(|k| {
+                if k < 3 {
+                    format!("{} {:+.1} µm", NAMES[k], d[k] * 1e3)
+                } else {
+                    format!("{} {:+.1}″", NAMES[k], d[k] / ARCSEC)
+                }
+            })
+            .collect();
+        (!words.is_empty()).then(|| words.join(", "))
+    }
+
+    /// Whether the captures of `group` lie within the limits of each other.
+    fn agrees(&self, group: &[&Capture]) -> bool {
+        (0..6).all(|k| {
+            let (lo, hi) = group
+                .iter()
+                .map(|g| g.errors.to_array()[k])
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+                    (a.min(x), b.max(x))
+                });
+            hi - lo <= self.limits.limit(k)
+        })
+    }
+
+    fn limits_words(&self) -> String {
+        format!(
+            "{:.1} µm, {:.1}″",
+            self.limits.linear_mm * 1e3,
+            self.limits.angular_rad / ARCSEC
+        )
+    }
+
+    /// A new capture: what to do with it (and with those held).
+    pub fn offer(&mut self, c: Capture) -> Vec<Decision> {
+        let key = TargetKey::of(&c);
+        if self.events.is_empty() {
+            let group = self.group(c.target_index, c.direction, key);
+            // Judged at once against two or more that agree; a group that does not agree
+            // with itself waits for the review.
+            if group.len() >= 2
+                && self.agrees(&group)
+                && let Some(off) = self.beyond(&Self::offset(&c, &group))
+            {
+                return vec![Decision::Flag {
+                    reason: format!(
+                        "{key} {}: off the other {} captures of its target and direction by {off} (repeatability {})",
+                        c.direction.sign(),
+                        group.len(),
+                        self.limits_words()
+                    ),
+                    capture: c,
+                    stored: false,
+                }];
+            }
+            self.accepted.insert(key, c);
+            return vec![Decision::Store(c)];
+        }
+        let last = self.events.len() - 1;
+        let group = self.group(c.target_index, c.direction, key);
+        if group.is_empty() {
+            self.held.push((c, last));
+            return Vec::new();
+        }
+        // The check: this capture against those of its target and direction from before.
+        let d = Self::offset(&c, &group);
+        let what = self.events[last].what.clone();
+        let mut out = Vec::new();
+        let held = std::mem::take(&mut self.held);
+        match self.beyond(&d) {
+            None => {
+                // The reference held over the last event; captures held from before it (an
+                // earlier event nothing checked) cannot be vouched for.
+                for (h, ev) in held {
+                    if ev == last {
+                        self.accepted.insert(TargetKey::of(&h), h);
+                        out.push(Decision::Store(h));
+                    } else {
+                        out.push(self.unchecked(h, ev));
+                    }
+                }
+                self.accepted.insert(key, c);
+                out.push(Decision::Store(c));
+            }
+            Some(off) => {
+                let by: [f64; 6] = std::array::from_fn(|k| {
+                    if d[k].abs() > self.limits.limit(k) {
+                        d[k]
+                    } else {
+                        0.0
+                    }
+                });
+                let reason = format!(
+                    "after {what}, {key} {} read {off} off the captures of its target and direction from before: the reference moved",
+                    c.direction.sign()
+                );
+                out.push(Decision::ShiftZero {
+                    by: Errors6::from_array(by),
+                    reason: reason.clone(),
+                });
+                for (h, _) in held.into_iter().chain(std::iter::once((c, last))) {
+                    out.push(Decision::Flag {
+                        reason: format!(
+                            "{} {} taken after {what}, when the reference had moved ({off}): retaken",
+                            TargetKey::of(&h),
+                            h.direction.sign()
+                        ),
+                        capture: h,
+                        stored: false,
+                    });
+                }
+            }
+        }
+        self.events.clear();
+        out
+    }
+
+    fn unchecked(&self, h: Capture, ev: usize) -> Decision {
+        Decision::Flag {
+            reason: format!(
+                "{} {} taken after {}, and nothing could check the reference before a later event: retaken",
+                TargetKey::of(&h),
+                h.direction.sign(),
+                self.events[ev].what
+            ),
+            capture: h,
+            stored: false,
+        }
+    }
+
+    /// The run has a capture for every key (stored or held): the review. Held captures that
+    /// nothing checked: stored when nothing came before them (the run's reference is
+    /// theirs), else flagged. Then every group: a capture off its group's median is flagged,
+    /// and comes out of the store.
+    pub fn review(&mut self) -> Vec<Decision> {
+        let mut out = Vec::new();
+        let held = std::mem::take(&mut self.held);
+        if self.accepted.is_empty() {
+            for (h, _) in held {
+                self.accepted.insert(TargetKey::of(&h), h);
+                out.push(Decision::Store(h));
+            }
+        } else {
+            for (h, ev) in held {
+                out.push(self.unchecked(h, ev));
+            }
+        }
+        self.events.clear();
+        let keys: Vec<TargetKey> = self.accepted.keys().copied().collect();
+        let mut flagged = Vec::new();
+        for key in keys {
+            let c = self.accepted[&key];
+            let group = self.group(key.target_index, key.direction, key);
+            if group.len() < 2 {
+                continue;
+            }
+            if let Some(off) = self.beyond(&Self::offset(&c, &group)) {
+                flagged.push(Decision::Flag {
+                    reason: format!(
+                        "{key} {}: off the other {} captures of its target and direction by {off} (repeatability {}), found when the run had every capture",
+                        c.direction.sign(),
+                        group.len(),
+                        self.limits_words()
+                    ),
+                    capture: c,
+                    stored: true,
+                });
+            }
+        }
+        // A group with one bad capture flags that one; a group split in halves flags all,
+        // and they are all retaken.
+        for d in &flagged {
+            if let Decision::Flag { capture, .. } = d {
+                self.accepted.remove(&TargetKey::of(capture));
+            }
+        }
+        out.extend(flagged);
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cap(run: u32, t: u32, dir: Direction, dy_um: f64, unix_us: i64) -> Capture {
+        Capture {
+            run,
+            target_index: t,
+            target_mm: 100.0 * t as f64,
+            direction: dir,
+            errors: Errors6::from_array([0.0, dy_um * 1e-3, 0.0, 0.0, 0.0, 0.0]),
+            frame_sd: Errors6::default(),
+            u: Errors6::default(),
+            frames: 150,
+            material_c: None,
+            air_c: None,
+            unix_us,
+        }
+    }
+
+    fn stored(d: &[Decision]) -> Vec<(u32, u32)> {
+        d.iter()
+            .filter_map(|d| match d {
+                Decision::Store(c) => Some((c.run, c.target_index)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn flagged(d: &[Decision]) -> Vec<(u32, u32, bool)> {
+        d.iter()
+            .filter_map(|d| match d {
+                Decision::Flag {
+                    capture, stored, ..
+                } => Some((capture.run, capture.target_index, *stored)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn an_outlier_against_two_others_is_flagged_at_once() {
+        let mut j = Judge::new(Repeatability::default(), []);
+        let up = Direction::Up;
+        assert_eq!(stored(&j.offer(cap(1, 0, up, -4.0, 1))), [(1, 0)]);
+        assert_eq!(stored(&j.offer(cap(2, 0, up, -4.1, 2))), [(2, 0)]);
+        // 1.5 µm off: within the default 2 µm.
+        assert_eq!(stored(&j.offer(cap(3, 0, up, -2.55, 3))), [(3, 0)]);
+        let d = j.offer(cap(4, 0, up, -0.5, 4));
+        assert_eq!(flagged(&d), [(4, 0, false)]);
+        let Decision::Flag { reason, .. } = &d[0] else {
+            unreachable!()
+        };
+        assert!(
+            reason.contains("run 4, target 1 +: off the other 3 captures")
+                && reason.contains("dy +3.5 µm"),
+            "{reason}"
+        );
+        // The other direction is another group.
+        assert_eq!(
+            stored(&j.offer(cap(1, 0, Direction::Down, 1.0, 5))),
+            [(1, 0)]
+        );
+    }
+
+    #[test]
+    fn a_moved_reference_is_found_by_the_first_capture_with_a_sibling_from_before() {
+        let mut j = Judge::new(Repeatability::default(), []);
+        let (up, down) = (Direction::Up, Direction::Down);
+        for t in 0..3 {
+            assert_eq!(
+                stored(&j.offer(cap(1, t, up, -4.0 + t as f64, 10 + t as i64))).len(),
+                1
+            );
+        }
+        j.event("a following error", 20);
+        assert_eq!(j.unverified(), Some("a following error"));
+        // Run 1 down has no capture from before: held.
+        for t in (0..3).rev() {
+            assert!(j.offer(cap(1, t, down, -30.0, 30 + t as i64)).is_empty());
+        }
+        assert_eq!(j.held(), 3);
+        // Run 2 up, target 1: 29.5 µm off run 1 up.
+        let d = j.offer(cap(2, 0, up, -33.5, 40));
+        let Decision::ShiftZero { by, reason } = &d[0] else {
+            panic!("{d:?}")
+        };
+        assert!((by.to_array()[1] * 1e3 + 29.5).abs() < 1e-9, "{by:?}");
+        assert!(reason.contains("after a following error"), "{reason}");
+        assert_eq!(
+            flagged(&d),
+            [(1, 2, false), (1, 1, false), (1, 0, false), (2, 0, false)]
+        );
+        assert_eq!(j.unverified(), None);
+        // Retaken with the zero shifted back: they agree and are stored.
+        assert_eq!(stored(&j.offer(cap(2, 1, up, -3.0, 50))), [(2, 1)]);
+    }
+
+    #[test]
+    fn a_reference_that_held_stores_what_was_held() {
+        let mut j = Judge::new(
+            Repeatability::default(),
+            [cap(1, 0, Direction::Up, -4.0, 1)],
+        );
+        j.event("PSD2 re-referenced by the encoder", 5);
+        assert!(j.offer(cap(1, 1, Direction::Up, 7.0, 6)).is_empty());
+        let d = j.offer(cap(2, 0, Direction::Up, -4.2, 7));
+        assert_eq!(stored(&d), [(1, 1), (2, 0)]);
+        assert!(flagged(&d).is_empty());
+    }
+
+    #[test]
+    fn captures_between_two_events_with_no_check_are_flagged() {
+        let mut j = Judge::new(
+            Repeatability::default(),
+            [cap(1, 0, Direction::Up, -4.0, 1)],
+        );
+        j.event("a drive fault", 5);
+        assert!(j.offer(cap(1, 1, Direction::Up, 7.0, 6)).is_empty());
+        j.event("a lost heartbeat", 7);
+        assert!(j.offer(cap(1, 2, Direction::Up, 8.0, 8)).is_empty());
+        let d = j.offer(cap(2, 0, Direction::Up, -4.1, 9));
+        assert_eq!(stored(&d), [(1, 2), (2, 0)]);
+        assert_eq!(flagged(&d), [(1, 1, false)]);
+    }
+
+    #[test]
+    fn the_review_stores_a_first_epoch_and_flags_the_odd_one_of_a_group() {
+        // An event before any capture: the run's reference is the one after it.
+        let mut j = Judge::new(Repeatability::default(), []);
+        j.event("a resume after a restart", 1);
+        assert!(j.offer(cap(1, 0, Direction::Up, -4.0, 2)).is_empty());
+        assert_eq!(stored(&j.review()), [(1, 0)]);
+        // The first capture was the odd one: three agree against it at the end.
+        let mut j = Judge::new(Repeatability::default(), []);
+        j.offer(cap(1, 0, Direction::Up, 0.0, 1));
+        j.offer(cap(2, 0, Direction::Up, -4.0, 2));
+        // Two that disagree by 4 µm judge nothing: stored, for the review.
+        assert_eq!(
+            stored(&j.offer(cap(3, 0, Direction::Up, -4.1, 3))),
+            [(3, 0)]
+        );
+        assert_eq!(
+            stored(&j.offer(cap(4, 0, Direction::Up, -4.05, 4))),
+            [(4, 0)]
+        );
+        assert_eq!(flagged(&j.review()), [(1, 0, true)]);
+    }
+}

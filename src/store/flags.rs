@@ -1,0 +1,263 @@
+//! Every stored capture true or flagged (issue 24): the events of a run that could move its
+//! positioning reference (`run_events`), and the captures its judge flagged (`capture_flags`)
+//! with their values and the reason. A flagged capture is never in `captures`: it was kept
+//! out, or (found by the review at the run's end) moved out in the same transaction as its
+//! flag was written, so nothing is lost and every reader of `captures` sees judged captures
+//! only. A flag is *open* until its capture is retaken (a capture of the same run, target and
+//! direction is stored) or the operator excludes it with a reason.
+
+use super::records::{CONSTRAINT_FOREIGNKEY, Sign};
+use super::{RunId, Store, StoreError};
+use crate::run::{Capture, TargetKey};
+use rusqlite::params;
+use serde::Serialize;
+
+/// An event of a run that could move its reference, as stored.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct RunEvent {
+    pub unix_us: i64,
+    /// "following-ended", "drive-fault", "stitch-rereferenced", "resumed", "zero-shifted"…
+    pub kind: String,
+    pub detail: String,
+}
+
+/// A flagged capture, as stored.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct CaptureFlag {
+    pub id: i64,
+    pub key: TargetKey,
+    /// When it was flagged.
+    pub unix_us: i64,
+    /// The capture as it was taken.
+    pub capture: Capture,
+    pub reason: String,
+    /// It had been stored, and was moved out when flagged.
+    pub was_stored: bool,
+    /// A capture of its run, target and direction is stored now.
+    pub retaken: bool,
+    /// The operator's exclusion: who, when, why.
+    pub excluded: Option<(String, i64, String)>,
+}
+
+impl CaptureFlag {
+    /// Neither retaken nor excluded.
+    pub fn open(&self) -> bool {
+        !self.retaken && self.excluded.is_none()
+    }
+}
+
+impl Store {
+    /// Record an event of run `run` that could move its reference.
+    pub fn record_run_event(
+        &mut self,
+        run: RunId,
+        unix_us: i64,
+        kind: &str,
+        detail: &str,
+    ) -> Result<(), StoreError> {
+        let what = "record a run's event";
+        self.conn
+            .execute(
+                "INSERT INTO run_events (run_id, unix_us, kind, detail) VALUES (?1, ?2, ?3, ?4)",
+                params![run.0, unix_us, kind, detail],
+            )
+            .map_err(|e| self.fk_or(run, what, e))?;
+        Ok(())
+    }
+
+    fn fk_or(&self, run: RunId, what: &'static str, e: rusqlite::Error) -> StoreError {
+        if e.sqlite_error()
+            .is_some_and(|s| s.extended_code == CONSTRAINT_FOREIGNKEY)
+        {
+            StoreError::NoSuchRun(run)
+        } else {
+            self.fail(what, e)
+        }
+    }
+
+    /// Flag capture `c` of run `run` with `reason` at `unix_us`; `stored`: it is in
+    /// `captures` and comes out of it in the same transaction.
+    pub fn flag_capture(
+        &mut self,
+        run: RunId,
+        c: &Capture,
+        reason: &str,
+        stored: bool,
+        unix_us: i64,
+    ) -> Result<(), StoreError> {
+        let what = "flag a capture";
+        let json = serde_json::to_string(c).map_err(|e| StoreError::Invalid {
+            what: "capture",
+            problem: e.to_string(),
+        })?;
+        let path = self.label();
+        let fail = |e| super::classify(&path, what, e);
+        let tx = self.conn.transaction().map_err(fail)?;
+        tx.execute(
+            "INSERT INTO capture_flags (run_id, run, target_index, direction, unix_us, \
+             capture_json, reason, was_stored) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
+            params![
+                run.0,
+                c.run,
+                c.target_index,
+                Sign(c.direction),
+                unix_us,
+                json,
+                reason,
+                stored
+            ],
+        )
+        .map_err(|e| match e.sqlite_error() {
+            Some(s) if s.extended_code == CONSTRAINT_FOREIGNKEY => StoreError::NoSuchRun(run),
+            _ => fail(e),
+        })?;
+        if stored {
+            tx.execute(
+                "DELETE FROM captures WHERE run_id = ?1 AND run = ?2 AND target_index = ?3 \
+                 AND direction = ?4",
+                params![run.0, c.run, c.target_index, Sign(c.direction)],
+            )
+            .map_err(fail)?;
+        }
+        tx.commit().map_err(fail)
+    }
+
+    /// The events of run `run`, in order.
+    pub fn run_events(&self, run: RunId) -> Result<Vec<RunEvent>, StoreError> {
+        let what = "read a run's events";
+        let mut stmt = self
+            .conn
+            .prepare_cached(
+                "SELECT unix_us, kind, detail FROM run_events WHERE run_id = ?1 ORDER BY id",
+            )
+            .map_err(|e| self.fail(what, e))?;
+        stmt.query_map([run.0], |r| {
+            Ok(RunEvent {
+                unix_us: r.get(0)?,
+                kind: r.get(1)?,
+                detail: r.get(2)?,
+            })
+        })
+        .and_then(|rows| rows.collect())
+        .map_err(|e| self.fail(what, e))
+    }
+
+    /// The flags of run `run`, in order, each with whether it was retaken.
+    pub fn capture_flags(&self, run: RunId) -> Result<Vec<CaptureFlag>, StoreError> {
+        let what = "read a run's flagged captures";
+        let mut stmt = self
+            .conn
+            .prepare_cached(
+                "SELECT f.id, f.unix_us, f.capture_json, f.reason, f.was_stored, \
+                 EXISTS (SELECT 1 FROM captures c WHERE c.run_id = f.run_id AND c.run = f.run \
+                         AND c.target_index = f.target_index AND c.direction = f.direction), \
+                 f.excluded_by, f.excluded_us, f.excluded_reason \
+                 FROM capture_flags f WHERE f.run_id = ?1 ORDER BY f.id",
+            )
+            .map_err(|e| self.fail(what, e))?;
+        let rows: Vec<(
+            i64,
+            i64,
+            String,
+            String,
+            bool,
+            bool,
+            Option<(String, i64, String)>,
+        )> = stmt
+            .query_map([run.0], |r| {
+                let by: Option<String> = r.get(6)?;
+                let at: Option<i64> = r.get(7)?;
+                let why: Option<String> = r.get(8)?;
+                Ok((
+                    r.get(0)?,
+                    r.get(1)?,
+                    r.get(2)?,
+                    r.get(3)?,
+                    r.get(4)?,
+                    r.get(5)?,
+                    match (by, at, why) {
+                        (Some(by), Some(at), Some(why)) => Some((by, at, why)),
+                        _ => None,
+                    },
+                ))
+            })
+            .and_then(|rows| rows.collect())
+            .map_err(|e| self.fail(what, e))?;
+        rows.into_iter()
+            .map(
+                |(id, unix_us, json, reason, was_stored, retaken, excluded)| {
+                    let capture: Capture =
+                        serde_json::from_str(&json).map_err(|e| StoreError::Invalid {
+                            what: "flagged capture",
+                            problem: format!("flag {id}: {e}"),
+                        })?;
+                    Ok(CaptureFlag {
+                        id,
+                        key: TargetKey::of(&capture),
+                        unix_us,
+                        capture,
+                        reason,
+                        was_stored,
+                        retaken,
+                        excluded,
+                    })
+                },
+            )
+            .collect()
+    }
+
+    /// Why run `run` cannot give a table, a report's verdict or a publication: its open flags
+    /// in words, or None when it has none.
+    pub fn open_flags(&self, run: RunId) -> Result<Option<String>, StoreError> {
+        let open: Vec<CaptureFlag> = self
+            .capture_flags(run)?
+            .into_iter()
+            .filter(CaptureFlag::open)
+            .collect();
+        Ok(open.first().map(|f| {
+            format!(
+                "run {run} has {} flagged capture{} neither retaken nor excluded (the first: {}); retake them (run the make-up again) or exclude them with a reason (axiscomp run exclude)",
+                open.len(),
+                if open.len() == 1 { "" } else { "s" },
+                f.reason
+            )
+        }))
+    }
+
+    /// The operator excludes flag `flag` of run `run`: `who` says why. The capture stays out
+    /// of the run; the flag no longer holds the run's tables back.
+    pub fn exclude_flag(
+        &mut self,
+        run: RunId,
+        flag: i64,
+        who: &str,
+        reason: &str,
+        unix_us: i64,
+    ) -> Result<(), StoreError> {
+        if reason.trim().is_empty() {
+            return Err(StoreError::Invalid {
+                what: "exclusion",
+                problem: "give the reason for excluding the capture".into(),
+            });
+        }
+        let what = "exclude a flagged capture";
+        let n = self
+            .conn
+            .execute(
+                "UPDATE capture_flags SET excluded_by = ?3, excluded_us = ?4, \
+                 excluded_reason = ?5 WHERE run_id = ?1 AND id = ?2 AND excluded_us IS NULL",
+                params![run.0, flag, who, unix_us, reason],
+            )
+            .map_err(|e| self.fail(what, e))?;
+        if n == 0 {
+            return Err(StoreError::Invalid {
+                what: "exclusion",
+                problem: format!(
+                    "run {run} has no flag {flag} that is not excluded already (axiscomp run flags --run {})",
+                    run.0
+                ),
+            });
+        }
+        Ok(())
+    }
+}
