@@ -253,6 +253,12 @@ impl Judge {
                     by: Errors6::from_array(by),
                     reason: reason.clone(),
                 });
+                // One capture measured the move, with its own error: the captures after the
+                // shift are held and checked again, until one agrees with those from before.
+                let shifted = Event {
+                    what: format!("the zero was shifted back by {off}"),
+                    unix_us: c.unix_us,
+                };
                 for (h, _) in held.into_iter().chain(std::iter::once((c, last))) {
                     out.push(Decision::Flag {
                         reason: format!(
@@ -264,6 +270,8 @@ impl Judge {
                         stored: false,
                     });
                 }
+                self.events = vec![shifted];
+                return out;
             }
         }
         self.events.clear();
@@ -427,9 +435,14 @@ mod tests {
             flagged(&d),
             [(1, 2, false), (1, 1, false), (1, 0, false), (2, 0, false)]
         );
+        // Checked again after the shift: the next capture with one from before agrees.
+        assert!(
+            j.unverified()
+                .is_some_and(|e| e.contains("shifted back by dy -29.5 µm"))
+        );
+        assert!(j.offer(cap(1, 0, down, -5.0, 45)).is_empty());
+        assert_eq!(stored(&j.offer(cap(2, 1, up, -3.0, 50))), [(1, 0), (2, 1)]);
         assert_eq!(j.unverified(), None);
-        // Retaken with the zero shifted back: they agree and are stored.
-        assert_eq!(stored(&j.offer(cap(2, 1, up, -3.0, 50))), [(2, 1)]);
     }
 
     #[test]

@@ -393,6 +393,17 @@ impl RunMachine {
             .map(|(_, k)| *k)
     }
 
+    /// The median of the last `APPROACH_MEDIAN` remembered positions.
+    fn recent_median(&self) -> Option<f64> {
+        let n = APPROACH_MEDIAN.min(self.history.len());
+        if n < APPROACH_MEDIAN {
+            return None;
+        }
+        let mut w: Vec<f64> = self.history.iter().rev().take(n).map(|(_, x)| *x).collect();
+        w.sort_by(f64::total_cmp);
+        Some(w[n / 2])
+    }
+
     fn at_rest(&self, now: Instant) -> Option<f64> {
         let (first, _) = self.rest.front()?;
         if now.saturating_duration_since(*first) < self.settings.settle.mul_f64(0.9) {
@@ -487,7 +498,14 @@ impl RunMachine {
         match self.phase.clone() {
             Phase::Done => {}
             Phase::Leaving { position } => {
-                if (s.position_mm - position).abs() > self.settings.target_tolerance_mm {
+                // Left only when the median of the last positions is off the target: one
+                // spike of the stitch (a follower still hunting) is not a move, and taken for
+                // one it filed the same stop again under the next run (issue 24).
+                if self
+                    .recent_median()
+                    .is_some_and(|x| (x - position).abs() > self.settings.target_tolerance_mm)
+                {
+                    tracing::debug!(from_mm = position, at_mm = s.position_mm, "left the target");
                     self.phase = Phase::Watch;
                 }
             }

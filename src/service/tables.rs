@@ -872,7 +872,7 @@ impl Tables {
         run_id: i64,
         residual_only: bool,
     ) -> Result<serde_json::Value, String> {
-        let (map, build) = (self.map.clone(), self.settings.tables.clone());
+        let (map, build) = (self.map.clone(), self.settings.tables);
         // Built and stored in one job: nothing else reaches this connection in between.
         let stored = match self
             .store

@@ -54,6 +54,9 @@ pub enum PlantEvent {
     Block([bool; 3]),
     /// The head is knocked on its mount (rad, mm added).
     Knock(Mount),
+    /// The follower's encoder slips (after a following error, a crash of the stage): from
+    /// now on the stage sits this much (mm) beyond what its encoder reads.
+    EncoderSlip(f64),
 }
 
 /// Everything the plant is built from.
@@ -158,6 +161,8 @@ struct State {
     carriage: Carriage,
     compensation: Compensation,
     follower_encoder: f64,
+    /// How far the stage sits beyond its encoder's reading (mm): slips added up.
+    encoder_slip: f64,
     follower_motion: Motion,
     /// The furthest encoder position in the current direction (the turning point).
     follower_anchor: f64,
@@ -224,6 +229,7 @@ impl Plant {
                 carriage: Carriage::new(0.0, spec.feed, spec.accel, now),
                 compensation: Compensation::default(),
                 follower_encoder: 0.0,
+                encoder_slip: 0.0,
                 follower_motion: Motion::Up,
                 follower_anchor: 0.0,
                 blocked: [false; 3],
@@ -309,6 +315,11 @@ impl Plant {
         self.lock().follower_encoder
     }
 
+    /// The follower's encoder slips by `mm` now ([`PlantEvent::EncoderSlip`]).
+    pub fn slip_encoder(&self, mm: f64) {
+        self.lock().encoder_slip += mm;
+    }
+
     /// Block or unblock the beam to one PSD (0..3).
     pub fn set_blocked(&self, psd: usize, blocked: bool) {
         if let Some(b) = self.lock().blocked.get_mut(psd) {
@@ -329,6 +340,7 @@ impl Plant {
             match e {
                 PlantEvent::Block(b) => s.blocked = b,
                 PlantEvent::Knock(m) => s.mount = s.mount.plus(m),
+                PlantEvent::EncoderSlip(mm) => s.encoder_slip += mm,
             }
         }
     }
@@ -425,7 +437,7 @@ impl Plant {
             moving: s.carriage.is_moving(now),
             errors,
             follower_encoder: s.follower_encoder,
-            follower_true: s.follower_encoder + fu,
+            follower_true: s.follower_encoder + fu + s.encoder_slip,
             follower_vertical: fv,
             follower_motion: s.follower_motion,
             mount: s.mount,

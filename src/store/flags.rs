@@ -46,6 +46,18 @@ impl CaptureFlag {
     }
 }
 
+/// A `capture_flags` row as read: id, flagged at, the capture's JSON, the reason, was
+/// stored, retaken, the exclusion.
+type FlagRow = (
+    i64,
+    i64,
+    String,
+    String,
+    bool,
+    bool,
+    Option<(String, i64, String)>,
+);
+
 impl Store {
     /// Record an event of run `run` that could move its reference.
     pub fn record_run_event(
@@ -155,15 +167,7 @@ impl Store {
                  FROM capture_flags f WHERE f.run_id = ?1 ORDER BY f.id",
             )
             .map_err(|e| self.fail(what, e))?;
-        let rows: Vec<(
-            i64,
-            i64,
-            String,
-            String,
-            bool,
-            bool,
-            Option<(String, i64, String)>,
-        )> = stmt
+        let rows: Vec<FlagRow> = stmt
             .query_map([run.0], |r| {
                 let by: Option<String> = r.get(6)?;
                 let at: Option<i64> = r.get(7)?;
