@@ -22,6 +22,36 @@ pub enum Command {
     /// Every stored run with its date, axis, range, plan, notes, operator, calibration, the
     /// tables active while it ran and its state (from the store; no service needed).
     List(ListArgs),
+    /// A run's flagged captures (values, why, retaken or excluded) and the events that could
+    /// move its reference.
+    Flags(FlagsArgs),
+    /// Exclude a flagged capture with a reason (audited): it stays out of the run, and no
+    /// longer holds the run's tables back.
+    Exclude(ExcludeArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct FlagsArgs {
+    #[command(flatten)]
+    pub at: Where,
+    /// The run.
+    #[arg(long)]
+    pub run: i64,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct ExcludeArgs {
+    #[command(flatten)]
+    pub at: Where,
+    /// The run.
+    #[arg(long)]
+    pub run: i64,
+    /// The flag (`run flags` lists them).
+    #[arg(long)]
+    pub flag: i64,
+    /// Why it is excluded (kept with the flag and in the audit log).
+    #[arg(long)]
+    pub reason: String,
 }
 
 #[derive(clap::Args, Debug)]
@@ -138,6 +168,15 @@ pub fn run(c: Command) -> Result<()> {
         }
         Command::Status(w) => (w, Request::RunStatus),
         Command::Abort(w) => (w, Request::RunAbort),
+        Command::Flags(a) => (a.at, Request::RunFlags { run_id: a.run }),
+        Command::Exclude(a) => (
+            a.at,
+            Request::RunExclude {
+                run_id: a.run,
+                flag: a.flag,
+                reason: a.reason,
+            },
+        ),
         Command::List(a) => return list(&a),
     };
     let socket = match at.socket {

@@ -6,9 +6,9 @@
 //!   (`[capture] repeatability_um`, `repeatability_arcsec`) is flagged and retaken. Checked
 //!   as each capture comes when its group has two others, and over every group once the
 //!   run has all its captures (a first capture that was the odd one is found then).
-//! - **Across reference events.** An event that can move the positioning reference (a
-//!   following error, a drive fault or quick stop, a lost heartbeat, PSD2 re-referenced by
-//!   the encoder, a resume after a restart) makes every capture after it *unverified*: it is
+//! - **Across reference events.** An event that takes the positioning reference again (PSD2
+//!   re-referenced by the encoder, a resume after a restart; the service records the others,
+//!   `service::pipeline::reference_event`) makes every capture after it *unverified*: it is
 //!   held, not stored. The first unverified capture whose target and direction have a capture
 //!   from before the event settles it: within the repeatability, the reference held and the
 //!   held captures are stored; beyond it, the reference moved by the difference: the zero is
@@ -224,15 +224,12 @@ impl Judge {
         let held = std::mem::take(&mut self.held);
         match self.beyond(&d) {
             None => {
-                // The reference held over the last event; captures held from before it (an
-                // earlier event nothing checked) cannot be vouched for.
-                for (h, ev) in held {
-                    if ev == last {
-                        self.accepted.insert(TargetKey::of(&h), h);
-                        out.push(Decision::Store(h));
-                    } else {
-                        out.push(self.unchecked(h, ev));
-                    }
+                // The reference held over the events since the last check: what was held is
+                // stored (a capture that an earlier event of several moved is left to the
+                // groups' review at the run's end).
+                for (h, _) in held {
+                    self.accepted.insert(TargetKey::of(&h), h);
+                    out.push(Decision::Store(h));
                 }
                 self.accepted.insert(key, c);
                 out.push(Decision::Store(c));
@@ -459,18 +456,18 @@ mod tests {
     }
 
     #[test]
-    fn captures_between_two_events_with_no_check_are_flagged() {
+    fn captures_held_over_two_events_are_checked_once() {
         let mut j = Judge::new(
             Repeatability::default(),
             [cap(1, 0, Direction::Up, -4.0, 1)],
         );
-        j.event("a drive fault", 5);
+        j.event("PSD2's stitch re-referenced", 5);
         assert!(j.offer(cap(1, 1, Direction::Up, 7.0, 6)).is_empty());
-        j.event("a lost heartbeat", 7);
+        j.event("a resume after a restart", 7);
         assert!(j.offer(cap(1, 2, Direction::Up, 8.0, 8)).is_empty());
         let d = j.offer(cap(2, 0, Direction::Up, -4.1, 9));
-        assert_eq!(stored(&d), [(1, 2), (2, 0)]);
-        assert_eq!(flagged(&d), [(1, 1, false)]);
+        assert_eq!(stored(&d), [(1, 1), (1, 2), (2, 0)]);
+        assert!(flagged(&d).is_empty());
     }
 
     #[test]

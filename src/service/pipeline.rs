@@ -435,13 +435,19 @@ impl Pipeline {
         }
     }
 
-    /// An event that can move the positioning reference (`run::judge`): the active run holds
-    /// its captures until one checks the reference, and the event is recorded with it.
+    /// Something that could move the positioning reference happened during the active run:
+    /// it is recorded with the run. When the reference itself was taken again (PSD2's stitch
+    /// re-referenced by the encoder, a resume after a restart) the run holds its captures
+    /// until one checks the reference (`run::judge`); a drive fault, a stop or a lost
+    /// heartbeat moves the reference only through such a re-reference (the optical stitch
+    /// carries it otherwise), so they are recorded, not held for.
     pub fn reference_event(&mut self, kind: &str, detail: String) {
         let Some(run) = self.run.as_mut() else {
             return;
         };
-        run.reference_event(&detail, crate::util::clock::unix_us());
+        if matches!(kind, "stitch-rereferenced" | "resumed") {
+            run.reference_event(&detail, crate::util::clock::unix_us());
+        }
         self.outputs.push_back(Output::RunEvent {
             kind: kind.into(),
             detail,

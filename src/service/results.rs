@@ -227,6 +227,29 @@ pub fn audit_entry(
     }
 }
 
+/// A flagged capture as `run_flags` shows it: the key, the values in user units, why, and
+/// what became of it.
+pub fn flag_view(f: &crate::store::CaptureFlag) -> serde_json::Value {
+    let e = f.capture.errors.to_user();
+    serde_json::json!({
+        "flag": f.id,
+        "run": f.key.run,
+        "target": f.key.target_index + 1,
+        "target_mm": f.capture.target_mm,
+        "direction": f.key.direction.sign(),
+        "errors_um_arcsec": e,
+        "reason": f.reason,
+        "was_stored": f.was_stored,
+        "state": if f.retaken {
+            "retaken".to_string()
+        } else if let Some((by, _, why)) = &f.excluded {
+            format!("excluded by {by}: {why}")
+        } else {
+            "open".to_string()
+        },
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -218,9 +218,10 @@ impl Store {
             .into_iter()
             .filter(CaptureFlag::open)
             .collect();
+        let run_n = run.0;
         Ok(open.first().map(|f| {
             format!(
-                "run {run} has {} flagged capture{} neither retaken nor excluded (the first: {}); retake them (run the make-up again) or exclude them with a reason (axiscomp run exclude)",
+                "run {run} has {} flagged capture{} neither retaken nor excluded (the first: {}); retake them (run the make-up again) or exclude them with a reason (axiscomp run flags --run {run_n}; axiscomp run exclude --run {run_n} --flag N --reason …)",
                 open.len(),
                 if open.len() == 1 { "" } else { "s" },
                 f.reason

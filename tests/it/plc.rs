@@ -1004,6 +1004,43 @@ async fn tables_refuse_runs_with_open_flags_or_without_the_active_tables_recorde
         String::from_utf8_lossy(&r.stderr)
     );
 
+    // The operator excludes the flag with a reason: audited, shown, no longer holding the
+    // run back on that count (the capture stays out of the run).
+    let flags = rig
+        .request(Request::RunFlags { run_id: run })
+        .await
+        .expect("run_flags");
+    let flag = flags["flags"][0]["flag"].as_i64().expect("a flag");
+    assert_eq!(flags["flags"][0]["state"], "open", "{flags:#}");
+    let e = rig
+        .request(Request::RunExclude {
+            run_id: run,
+            flag,
+            reason: " ".into(),
+        })
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("give the reason"), "{e}");
+    let v = rig
+        .request(Request::RunExclude {
+            run_id: run,
+            flag,
+            reason: "the carriage was knocked by the operator at that capture".into(),
+        })
+        .await
+        .expect("run_exclude");
+    assert!(v["open"].is_null(), "{v:#}");
+    let flags = rig
+        .request(Request::RunFlags { run_id: run })
+        .await
+        .expect("run_flags");
+    let state = flags["flags"][0]["state"].as_str().unwrap_or_default();
+    assert!(
+        state.starts_with("excluded by") && state.contains("knocked"),
+        "{flags:#}"
+    );
+
     // The refusals in the audit log, as refused, with their reasons.
     let s = Store::open_read_only(&rig.store).expect("store");
     let refused: Vec<String> = s
@@ -1015,11 +1052,12 @@ async fn tables_refuse_runs_with_open_flags_or_without_the_active_tables_recorde
             _ => None,
         })
         .collect();
-    assert_eq!(refused.len(), 3, "{refused:#?}");
+    assert_eq!(refused.len(), 4, "{refused:#?}");
     assert!(
         refused.iter().any(|r| r.contains("flagged capture"))
             && refused.iter().any(|r| r.contains("is from run"))
-            && refused.iter().any(|r| r.contains("no record")),
+            && refused.iter().any(|r| r.contains("no record"))
+            && refused.iter().any(|r| r.contains("give the reason")),
         "{refused:#?}"
     );
 }

@@ -88,6 +88,16 @@ pub enum Request {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         run_id: Option<i64>,
     },
+    /// A stored run's flagged captures (each with its values, why, and whether it was
+    /// retaken or excluded) and the events that could move its reference.
+    RunFlags { run_id: i64 },
+    /// Exclude flagged capture `flag` of run `run_id` with `reason` (audited): it stays out of
+    /// the run, and no longer holds its tables back.
+    RunExclude {
+        run_id: i64,
+        flag: i64,
+        reason: String,
+    },
     /// The newest entries of the audit log (every operator request, who and when), newest
     /// first (at most `limit`, default 50).
     Audit {
@@ -214,6 +224,7 @@ impl Request {
             | Request::RunStatus
             | Request::Runs { .. }
             | Request::RunResult { .. }
+            | Request::RunFlags { .. }
             | Request::Audit { .. }
             | Request::Calibration
             | Request::HexapodStatus
@@ -261,6 +272,10 @@ impl Request {
             }
             Request::Audit { limit } => int_field("limit", *limit, 1, LIMIT as u32),
             Request::RunResult { run_id } => id("run_id", *run_id),
+            Request::RunFlags { run_id } => id("run_id", Some(*run_id)),
+            Request::RunExclude { run_id, flag, .. } => {
+                id("run_id", Some(*run_id)).and_then(|_| id("flag", Some(*flag)))
+            }
             Request::TableGenerate { run_id, .. } => id("run_id", Some(*run_id)),
             Request::TablePublish { table_id, .. } => id("table_id", Some(*table_id)),
             Request::FollowerMap { id: map } => id("id", *map),
@@ -435,6 +450,12 @@ mod tests {
             },
             Request::Runs { limit: Some(5) },
             Request::RunResult { run_id: Some(1) },
+            Request::RunFlags { run_id: 1 },
+            Request::RunExclude {
+                run_id: 1,
+                flag: 1,
+                reason: "the carriage was knocked".into(),
+            },
             Request::Audit { limit: Some(5) },
             Request::HexapodStart {
                 plan: None,
@@ -547,7 +568,7 @@ mod tests {
                 }
             }
         }
-        assert_eq!(fields, 40, "numeric fields covered");
+        assert_eq!(fields, 43, "numeric fields covered");
         assert!(refused > 100, "{refused}");
         let r: Request = serde_json::from_str(r#"{"cmd":"subscribe","hz":1e-300}"#).unwrap();
         assert_eq!(

@@ -79,6 +79,52 @@ impl Core {
                 },
                 reply,
             ),
+            Request::RunFlags { run_id } => self.read(
+                move |s| {
+                    let run = crate::store::RunId(run_id);
+                    s.run(run).map_err(|e| e.to_string())?;
+                    let flags = s.capture_flags(run).map_err(|e| e.to_string())?;
+                    let events = s.run_events(run).map_err(|e| e.to_string())?;
+                    Ok(serde_json::json!({
+                        "run_id": run_id,
+                        "flags": flags.iter().map(crate::service::results::flag_view).collect::<Vec<_>>(),
+                        "events": events,
+                    }))
+                },
+                reply,
+            ),
+            Request::RunExclude {
+                run_id,
+                flag,
+                reason,
+            } => {
+                let user = who.user.clone();
+                match self.store.try_call(move |s| {
+                    s.exclude_flag(
+                        crate::store::RunId(run_id),
+                        flag,
+                        &user,
+                        &reason,
+                        crate::util::clock::unix_us(),
+                    )
+                    .map_err(|e| e.to_string())?;
+                    Ok(serde_json::json!({
+                        "run_id": run_id,
+                        "excluded": flag,
+                        "open": s.open_flags(crate::store::RunId(run_id)).map_err(|e| e.to_string())?,
+                    }))
+                }) {
+                    Ok(done) => {
+                        tokio::spawn(async move {
+                            reply.send(match done.await {
+                                Ok(r) => r,
+                                Err(e) => Err(e.to_string()),
+                            })
+                        });
+                    }
+                    Err(e) => reply.send(Err(e.to_string())),
+                }
+            }
             Request::Calibration => reply.send(Ok(self.calibrations.status())),
             Request::CalibrationFit { poses } => self.calibration_fit(poses, reply),
             Request::CalibrationAccept { force } => self.calibration_accept(force, reply),
