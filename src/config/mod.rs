@@ -173,6 +173,7 @@ pub struct RawCapture {
     pub timeout_s: u64,
     pub repeatability_um: f64,
     pub repeatability_arcsec: f64,
+    pub judge: bool,
 }
 
 /// `[align]`
@@ -1025,6 +1026,7 @@ fn validate(
                 .to_radians()
                 / 3600.0,
         },
+        judge: k.judge,
     };
     let (a, angle) = (&raw.align, Range::new(1.0, 10_000.0, "µrad"));
     let align = AlignConfig {

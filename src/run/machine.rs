@@ -44,6 +44,9 @@ pub struct CaptureSettings {
     pub timeout: Duration,
     /// How far a capture may sit from the others of its target and direction (`run::judge`).
     pub repeatability: Repeatability,
+    /// Judge every capture before it counts (`run::judge`; `[capture] judge`, off by default
+    /// until the fault storm passes with it: issue 24).
+    pub judge: bool,
 }
 
 impl CaptureSettings {
@@ -57,6 +60,7 @@ impl CaptureSettings {
             "timeout_s": self.timeout.as_secs_f64(),
             "repeatability_um": self.repeatability.linear_mm * 1e3,
             "repeatability_arcsec": self.repeatability.angular_rad.to_degrees() * 3600.0,
+            "judge": self.judge,
         })
     }
 }
@@ -70,6 +74,7 @@ impl Default for CaptureSettings {
             frames: 150,
             timeout: Duration::from_secs(120),
             repeatability: Repeatability::default(),
+            judge: false,
         }
     }
 }
@@ -277,7 +282,7 @@ impl RunMachine {
     /// An event that can move the positioning reference happened (`run::judge`): the
     /// captures after it are held until one checks it.
     pub fn reference_event(&mut self, what: &str, unix_us: i64) {
-        if self.phase != Phase::Done {
+        if self.phase != Phase::Done && self.settings.judge {
             self.judge.event(what, unix_us);
         }
     }
@@ -498,13 +503,16 @@ impl RunMachine {
         match self.phase.clone() {
             Phase::Done => {}
             Phase::Leaving { position } => {
-                // Left only when the median of the last positions is off the target: one
-                // spike of the stitch (a follower still hunting) is not a move, and taken for
-                // one it filed the same stop again under the next run (issue 24).
-                if self
-                    .recent_median()
-                    .is_some_and(|x| (x - position).abs() > self.settings.target_tolerance_mm)
-                {
+                // With the judge, left only when the median of the last positions is off the
+                // target: one spike of the stitch (a follower still hunting) is not a move, and
+                // taken for one it filed the same stop again under the next run (issue 24).
+                let off = |x: f64| (x - position).abs() > self.settings.target_tolerance_mm;
+                let left = if self.settings.judge {
+                    self.recent_median().is_some_and(off)
+                } else {
+                    off(s.position_mm)
+                };
+                if left {
                     tracing::debug!(from_mm = position, at_mm = s.position_mm, "left the target");
                     self.phase = Phase::Watch;
                 }
@@ -650,8 +658,12 @@ impl RunMachine {
         if let Some(i) = self.cycle.iter().position(|k| *k == key) {
             self.cursor = i + 1;
         }
-        let decisions = self.judge.offer(capture);
-        self.apply(decisions);
+        if self.settings.judge {
+            let decisions = self.judge.offer(capture);
+            self.apply(decisions);
+        } else {
+            self.actions.push_back(RunAction::Captured(capture));
+        }
         if let Some(code) = code {
             self.actions.push_back(RunAction::Acknowledge { code });
         }
@@ -661,7 +673,7 @@ impl RunMachine {
         // Off the target, frames are decoupled at their measured travel again: with the
         // target's nominal they would read as positions near it while the carriage moves on.
         self.set_nominal(None);
-        if self.done.len() >= self.total {
+        if self.done.len() >= self.total && self.settings.judge {
             // Every capture in (stored or held): the judge's review may reopen some.
             let decisions = self.judge.review();
             self.apply(decisions);

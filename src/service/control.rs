@@ -281,13 +281,6 @@ impl Connection {
                     continue;
                 }
             };
-            if let Err(e) = request.check() {
-                let msg = format!("line {line_no}: {e}");
-                if wr.write_all(error_line(&msg).as_bytes()).await.is_err() {
-                    return;
-                }
-                continue;
-            }
             if peer.role.is_none_or(|r| r < request.needs()) {
                 let (role, group, key) = if request.needs() == Role::Operator {
                     ("operator", &self.policy.operator_group, "operator_group")
@@ -304,6 +297,15 @@ impl Connection {
                         .unwrap_or_default(),
                     peer.user,
                 );
+                if wr.write_all(error_line(&msg).as_bytes()).await.is_err() {
+                    return;
+                }
+                continue;
+            }
+            // The ranges once the role allows the request: a peer without it is told so, not
+            // what else is wrong with its request.
+            if let Err(e) = request.check() {
+                let msg = format!("line {line_no}: {e}");
                 if wr.write_all(error_line(&msg).as_bytes()).await.is_err() {
                     return;
                 }

@@ -55,8 +55,17 @@ def main():
             c.mdi(f"G1 X{x:.8f} F{feed}")
             c.wait_complete(60)
             wait(lambda: s.inpos, "in position")
-        # The comp is slewed in by motion; let it settle.
-        time.sleep(0.3)
+        # The comp is slewed in by motion: read once the correction has held still for
+        # 0.3 s (a fixed wait read it mid-slew on a loaded machine).
+        last, still_since, deadline = None, time.time(), time.time() + 20.0
+        while time.time() < deadline:
+            d = hal.get_value("joint.0.motor-pos-cmd") - hal.get_value("joint.0.pos-cmd")
+            if last is None or abs(d - last) > 1e-9:
+                still_since = time.time()
+            elif time.time() - still_since >= 0.3:
+                break
+            last = d
+            time.sleep(0.02)
         out.append({
             "x": moves[-1],
             "from": moves[0],

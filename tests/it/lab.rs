@@ -109,7 +109,8 @@ fn a_short_run_captures_every_stop_at_the_truth() {
 fn a_slipped_encoder_mid_run(seed: u64, slip_um: f64) {
     crate::helpers::init_test_log();
     let _machine = crate::helpers::heavy();
-    let spec = LabSpec::standard(perfect_head(seed), None).expect("spec");
+    let mut spec = LabSpec::standard(perfect_head(seed), None).expect("spec");
+    spec.capture.judge = true;
     let mut lab = Lab::new(&spec).expect("lab");
     lab.bring_up().expect("bring-up");
     let at_zero = lab.plant.truth(lab.now()).errors.to_array();
