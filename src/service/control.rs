@@ -302,9 +302,13 @@ impl Connection {
                 }
                 continue;
             }
-            // The ranges once the role allows the request: a peer without it is told so, not
-            // what else is wrong with its request.
-            if let Err(e) = request.check() {
+            // The ranges once the role allows the request (a peer without it is told so, not
+            // what else is wrong with it); here for what this task answers itself, and where
+            // the request is audited for the rest (the core, the tables task), so that a
+            // refused request is recorded as refused.
+            if matches!(request, Request::Status | Request::Subscribe { .. })
+                && let Err(e) = request.check()
+            {
                 let msg = format!("line {line_no}: {e}");
                 if wr.write_all(error_line(&msg).as_bytes()).await.is_err() {
                     return;

@@ -851,7 +851,10 @@ impl Tables {
             .and_then(|v| v["cmd"].as_str().map(str::to_string))
             .unwrap_or_default();
         tracing::info!(user = %c.peer.user, uid = c.peer.uid, request = %name, "control request");
-        let r = self.request(&c.request, &c.peer.user).await;
+        let r = match c.request.check() {
+            Ok(()) => self.request(&c.request, &c.peer.user).await,
+            Err(e) => Err(e),
+        };
         self.audit(&c, &r).await;
         let _ = c.reply.send(r);
     }

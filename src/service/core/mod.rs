@@ -535,6 +535,9 @@ impl Core {
             .audit_entry()
             .map(|e| (e, self.store.clone(), self.store_alarm_tx.clone()));
         let reply = Reply::new(c.reply, audit);
+        if let Err(e) = c.request.check() {
+            return reply.send(Err(e));
+        }
         let who = Who {
             user: c.peer.user.clone(),
             uid: c.peer.uid,
