@@ -272,6 +272,20 @@ pub enum HomingStatus {
     Reserved,
 }
 
+impl std::fmt::Display for HomingStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            HomingStatus::InProgress => "homing still in progress",
+            HomingStatus::Interrupted => "homing interrupted or not started",
+            HomingStatus::AttainedNotReached => "home attained, target not reached",
+            HomingStatus::Completed => "homing completed",
+            HomingStatus::ErrorMoving => "homing error with the stage moving",
+            HomingStatus::ErrorStopped => "homing error with the stage stopped",
+            HomingStatus::Reserved => "a reserved homing status",
+        })
+    }
+}
+
 impl HomingStatus {
     pub fn from_statusword(sw: u16) -> HomingStatus {
         let e = sw & SW_HOMING_ERROR != 0;

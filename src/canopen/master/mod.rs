@@ -158,7 +158,7 @@ pub enum Reply {
 pub enum DriveError {
     #[error(transparent)]
     Sdo(#[from] SdoError),
-    #[error("{what}: nothing within {after:?}")]
+    #[error("{what}: nothing within {:.1} s", .after.as_secs_f64())]
     Timeout { what: &'static str, after: Duration },
     #[error("the drive is in fault: {}", match .emcy { Some(e) => e.to_string(), None => "no EMCY received".into() })]
     Fault { emcy: Option<Emcy> },
@@ -184,7 +184,7 @@ pub enum DriveError {
     },
     #[error("the drive reports a following error (statusword bit 13)")]
     FollowingError,
-    #[error("homing failed: {0:?}")]
+    #[error("homing failed: {0}")]
     Homing(HomingStatus),
     #[error("interrupted by {by}")]
     Interrupted { by: &'static str },
