@@ -472,6 +472,13 @@ impl RunMachine {
         }
     }
 
+    /// A pause (a PSD without its spot) has ended. The time paused waited for the operator,
+    /// not for the machine: the progress timeout counts again from the next frame.
+    pub fn pause_ended(&mut self) {
+        self.restart_average();
+        self.last_progress = None;
+    }
+
     pub fn handle_sample(&mut self, s: &FrameSample, now: Instant) {
         if self.phase == Phase::Done {
             return;
@@ -1024,6 +1031,38 @@ mod tests {
         let s = f.sample(50.0);
         m.handle_sample(&s, f.now);
         m.handle_timeout(f.now + Duration::from_secs(6));
+        let mut failed = false;
+        while let Some(a) = m.poll_action() {
+            failed |= matches!(a, RunAction::Failed(_));
+        }
+        assert!(failed);
+    }
+
+    #[test]
+    fn a_pause_longer_than_the_timeout_does_not_fail_the_run() {
+        let mut m = RunMachine::new(
+            plan(),
+            CaptureSettings {
+                timeout: Duration::from_secs(5),
+                ..CaptureSettings::default()
+            },
+            false,
+            BTreeSet::new(),
+        );
+        let mut f = feed();
+        let s = f.sample(50.0);
+        m.handle_sample(&s, f.now);
+        // Paused 60 s (no samples reach the machine), then the spot is back.
+        m.interrupt();
+        m.pause_ended();
+        let later = f.now + Duration::from_secs(60);
+        m.handle_sample(&s, later);
+        m.handle_timeout(later + Duration::from_secs(4));
+        while let Some(a) = m.poll_action() {
+            assert!(!matches!(a, RunAction::Failed(_)), "failed after a pause");
+        }
+        // Still stalled 5 s after the pause: that fails.
+        m.handle_timeout(later + Duration::from_secs(6));
         let mut failed = false;
         while let Some(a) = m.poll_action() {
             failed |= matches!(a, RunAction::Failed(_));

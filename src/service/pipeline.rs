@@ -226,7 +226,7 @@ impl Pipeline {
                 self.alarms.clear("run-paused");
                 self.measure.restart();
                 if let Some(run) = &mut self.run {
-                    run.restart_average();
+                    run.pause_ended();
                 }
                 self.outputs.push_back(Output::RunResumed);
             }
