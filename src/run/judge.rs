@@ -219,6 +219,12 @@ impl Judge {
         }
         // The check: this capture against those of its target and direction from before.
         let d = Self::offset(&c, &group);
+        // What a move measured by `d` is uncertain by: this capture's u and its group median's.
+        let u_by: [f64; 6] = std::array::from_fn(|k| {
+            let n = group.len() as f64;
+            let ug = group.iter().map(|g| g.u.to_array()[k].powi(2)).sum::<f64>() / n;
+            (c.u.to_array()[k].powi(2) + ug / n).sqrt()
+        });
         let what = self.events[last].what.clone();
         let mut out = Vec::new();
         let held = std::mem::take(&mut self.held);
@@ -250,24 +256,43 @@ impl Judge {
                     by: Errors6::from_array(by),
                     reason: reason.clone(),
                 });
+                // The captures held since the same event read through the same moved
+                // reference: re-referenced by the move, its uncertainty added to theirs.
+                // Those held since an earlier event had a reference nothing measured: retaken.
+                // This capture measured the move; re-referenced it would only repeat its
+                // group: retaken.
+                for (h, ev) in held {
+                    if ev == last {
+                        let h = rereferenced(h, &by, &u_by);
+                        self.accepted.insert(TargetKey::of(&h), h);
+                        out.push(Decision::Store(h));
+                    } else {
+                        out.push(Decision::Flag {
+                            reason: format!(
+                                "{} {} taken after {}, and the reference moved again before anything checked it: retaken",
+                                TargetKey::of(&h),
+                                h.direction.sign(),
+                                self.events[ev].what
+                            ),
+                            capture: h,
+                            stored: false,
+                        });
+                    }
+                }
+                out.push(Decision::Flag {
+                    reason: format!(
+                        "{key} {} taken after {what}, when the reference had moved ({off}): it measured the move; retaken",
+                        c.direction.sign()
+                    ),
+                    capture: c,
+                    stored: false,
+                });
                 // One capture measured the move, with its own error: the captures after the
                 // shift are held and checked again, until one agrees with those from before.
-                let shifted = Event {
+                self.events = vec![Event {
                     what: format!("the zero was shifted back by {off}"),
                     unix_us: c.unix_us,
-                };
-                for (h, _) in held.into_iter().chain(std::iter::once((c, last))) {
-                    out.push(Decision::Flag {
-                        reason: format!(
-                            "{} {} taken after {what}, when the reference had moved ({off}): retaken",
-                            TargetKey::of(&h),
-                            h.direction.sign()
-                        ),
-                        capture: h,
-                        stored: false,
-                    });
-                }
-                self.events = vec![shifted];
+                }];
                 return out;
             }
         }
@@ -337,6 +362,21 @@ impl Judge {
         out.extend(flagged);
         out
     }
+}
+
+/// `c` read through a reference that had moved by `by`: its errors less the move, the move's
+/// uncertainty `u_by` added (in quadrature) where it moved.
+fn rereferenced(mut c: Capture, by: &[f64; 6], u_by: &[f64; 6]) -> Capture {
+    let (e, u) = (c.errors.to_array(), c.u.to_array());
+    c.errors = Errors6::from_array(std::array::from_fn(|k| e[k] - by[k]));
+    c.u = Errors6::from_array(std::array::from_fn(|k| {
+        if by[k] == 0.0 {
+            u[k]
+        } else {
+            u[k].hypot(u_by[k])
+        }
+    }));
+    c
 }
 
 #[cfg(test)]
@@ -428,18 +468,42 @@ mod tests {
         };
         assert!((by.to_array()[1] * 1e3 + 29.5).abs() < 1e-9, "{by:?}");
         assert!(reason.contains("after a following error"), "{reason}");
-        assert_eq!(
-            flagged(&d),
-            [(1, 2, false), (1, 1, false), (1, 0, false), (2, 0, false)]
-        );
+        // The three held since the event are re-referenced by the move (−30 + 29.5 µm), the
+        // capture that measured it is retaken.
+        assert_eq!(stored(&d), [(1, 2), (1, 1), (1, 0)]);
+        for c in d.iter().filter_map(|d| match d {
+            Decision::Store(c) => Some(c),
+            _ => None,
+        }) {
+            assert!((c.errors.dy * 1e3 + 0.5).abs() < 1e-9, "{c:?}");
+        }
+        assert_eq!(flagged(&d), [(2, 0, false)]);
         // Checked again after the shift: the next capture with one from before agrees.
         assert!(
             j.unverified()
                 .is_some_and(|e| e.contains("shifted back by dy -29.5 µm"))
         );
-        assert!(j.offer(cap(1, 0, down, -5.0, 45)).is_empty());
-        assert_eq!(stored(&j.offer(cap(2, 1, up, -3.0, 50))), [(1, 0), (2, 1)]);
+        assert_eq!(stored(&j.offer(cap(2, 2, down, -0.4, 45))), [(2, 2)]);
         assert_eq!(j.unverified(), None);
+        assert_eq!(stored(&j.offer(cap(2, 1, up, -3.0, 50))), [(2, 1)]);
+    }
+
+    #[test]
+    fn captures_held_before_a_second_event_are_retaken_when_the_reference_moved() {
+        let mut j = Judge::new(Repeatability::default(), [cap(1, 0, Direction::Up, 0.0, 1)]);
+        j.event("PSD2's stitch re-referenced", 5);
+        assert!(j.offer(cap(1, 1, Direction::Up, 10.0, 6)).is_empty());
+        j.event("a resume after a restart", 7);
+        assert!(j.offer(cap(1, 2, Direction::Up, 20.0, 8)).is_empty());
+        // 5 µm off run 1: the reference since the resume moved by 5 µm; what came before the
+        // resume was under a reference nothing measured.
+        let d = j.offer(cap(2, 0, Direction::Up, 5.0, 9));
+        assert_eq!(stored(&d), [(1, 2)]);
+        assert_eq!(flagged(&d), [(1, 1, false), (2, 0, false)]);
+        let Some(Decision::Store(c)) = d.iter().find(|d| matches!(d, Decision::Store(_))) else {
+            panic!("{d:?}")
+        };
+        assert!((c.errors.dy * 1e3 - 15.0).abs() < 1e-9, "{c:?}");
     }
 
     #[test]

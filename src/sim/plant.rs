@@ -415,11 +415,16 @@ impl Plant {
         self.truth_locked(&s, now)
     }
 
-    fn truth_locked(&self, s: &State, now: Instant) -> Truth {
-        let travel = s.carriage.position(now);
+    /// The axis' true errors (the compensation in force and the hexapod's pose included) at
+    /// `travel` approached in `dir`, at `now`, wherever the carriage is: what a capture taken
+    /// at rest there is judged by.
+    pub fn errors_at(&self, travel: f64, dir: Direction, now: Instant) -> Errors6 {
+        let s = self.lock();
+        self.errors_locked(&s, travel, dir, now)
+    }
+
+    fn errors_locked(&self, s: &State, travel: f64, dir: Direction, now: Instant) -> Errors6 {
         let hours = now.saturating_duration_since(self.t0).as_secs_f64() / 3600.0;
-        let dir: Direction = s.carriage.direction();
-        let (fu, fv) = self.follower_errors(s.follower_encoder, s.follower_motion);
         let mut errors = self.axis.errors(travel, dir, hours);
         let c = &s.compensation;
         if let Some(p) = &c.dy {
@@ -432,6 +437,14 @@ impl Plant {
             errors.dz += p.at(travel, dir);
         }
         self.hexapod.apply(&mut errors, now);
+        errors
+    }
+
+    fn truth_locked(&self, s: &State, now: Instant) -> Truth {
+        let travel = s.carriage.position(now);
+        let dir: Direction = s.carriage.direction();
+        let (fu, fv) = self.follower_errors(s.follower_encoder, s.follower_motion);
+        let errors = self.errors_locked(s, travel, dir, now);
         Truth {
             travel,
             moving: s.carriage.is_moving(now),

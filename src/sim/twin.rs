@@ -5,7 +5,10 @@
 //! Control protocol: TCP, newline-delimited JSON, one reply line per request:
 //! - `{"cmd":"move","mm":100.0}` → `{"ok":true,"duration_s":2.1}`
 //! - `{"cmd":"wait"}` → waits until the carriage is at rest
-//! - `{"cmd":"truth"}` → `{"ok":true,"truth":{...}}` (user units)
+//! - `{"cmd":"truth"}` → `{"ok":true,"truth":{...}}` (user units);
+//!   `{"cmd":"truth","mm":500.0,"direction":"+"}` → `{"ok":true,"errors":[dx,dy,dz,ex,ey,ez]}`
+//!   (µm, arcsec): the axis' errors at that position approached that way, now (what a capture
+//!   taken there at rest is judged by)
 //! - `{"cmd":"block","psd":2,"on":true}` (PSD 1..3)
 //! - `{"cmd":"io","action":"stop"|"restart"}`, `{"cmd":"io","delay_ms":50}` (a hung module:
 //!   a delay longer than the client waits), `{"cmd":"io","exception":6}` (every request answered
@@ -376,8 +379,21 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
             Ok(serde_json::json!({"ok": true}))
         }
         "truth" => {
-            let t = TruthView::from(ctx.plant.truth(crate::util::clock::now()));
-            Ok(serde_json::json!({"ok": true, "truth": t}))
+            let now = crate::util::clock::now();
+            let Some(mm) = num("mm") else {
+                let t = TruthView::from(ctx.plant.truth(now));
+                return Ok(serde_json::json!({"ok": true, "truth": t}));
+            };
+            let dir = match v.get("direction").and_then(|d| d.as_str()) {
+                Some("+") => super::axis::Direction::Up,
+                Some("-") => super::axis::Direction::Down,
+                _ => return Err("truth at \"mm\" needs \"direction\": \"+\" or \"-\"".into()),
+            };
+            if !mm.is_finite() {
+                return Err(format!("truth at {mm} mm: give a finite position"));
+            }
+            let e = ctx.plant.errors_at(mm, dir, now);
+            Ok(serde_json::json!({"ok": true, "errors": e.to_user()}))
         }
         "block" => {
             let psd = num("psd").ok_or("block needs \"psd\" (1..3)")? as usize;

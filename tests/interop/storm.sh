@@ -113,7 +113,8 @@ python3 tests/interop/storm.py --bin "$bin" --sock "$sock" --twin "$twin_ctl" \
   --serve-cmd "$serve_cmd" --serve-log "$work/serve-" --pidfile "$pidfile" \
   --state "$state" --clock-file "$work/clock-offset" --events "$work/storm-events.tsv" \
   --faults "$faults" --seed "$seed" --gap-max "${STORM_GAP_MAX_S:-4}" --run-args "$run_args" --db "$state/axiscomp.db" \
-  --disk "$disk" --budget "${STORM_BUDGET_S:-900}" | tee "$work/storm.out" || fail "the storm was not survived (storm-events.tsv)"
+  --disk "$disk" --budget "${STORM_BUDGET_S:-900}" --truth "${STORM_TRUTH:-report}" \
+  --truth-json "$work/storm-truth.json" | tee "$work/storm.out" || fail "the storm was not survived (storm-events.tsv)"
 echo "storm.sh: run and storm in $((SECONDS - t0)) s"
 column -t -s $'\t' "$work/storm-events.tsv" | sed 's/^/storm.sh:   /'
 echo "storm.sh: PASS"
