@@ -23,6 +23,8 @@ import subprocess
 import sys
 import time
 
+from truth import judge_by_truth
+
 # Every fault the twin can inject during a run (src/sim/twin.rs), with how it is removed and the
 # alarm codes the service is expected to show for it when held long enough.
 TWIN_KINDS = {
@@ -359,75 +361,6 @@ def check_captures(db, run_id, log):
     log(f"captures: {sum(have.values())} stored of {len(want)} planned; missing {missing or 'none'}, "
         f"duplicated or not planned {dup or 'none'}")
     return len(missing), len(dup)
-
-
-UM_ARCSEC = [1e3, 1e3, 1e3] + [180.0 / 3.141592653589793 * 3600.0] * 3
-DOFS = ["dx", "dy", "dz", "ex", "ey", "ez"]
-UNITS = ["µm"] * 3 + ["″"] * 3
-# The linear and angular repeatability the twin's axis holds (a capture's five passes agree
-# within this once the flagged ones are retaken): issue 24, must-show 2.
-PASSES_WITHIN = [1.0, 1.0, 1.0, 0.5, 0.5, 0.5]
-
-
-def judge_by_truth(db, run_id, twin, zero_truth, log):
-    """Every stored capture against the twin's truth at its target and approach direction,
-    relative to the truth at the zero: how many lie outside their stated U (k = 2), the RMS
-    error and the largest U per DOF (U sharp: at most 3 × the RMS error, or 0.5 µm / 0.5″ when
-    the errors are smaller than that), the spread of each target and direction's passes, and
-    how many captures were flagged."""
-    c = sqlite3.connect(db)
-    t0 = zero_truth["errors"]
-    cols = ", ".join([f"{d}_{'mm' if i < 3 else 'rad'}" for i, d in enumerate(DOFS)]
-                     + [f"u_{d}_{'mm' if i < 3 else 'rad'}" for i, d in enumerate(DOFS)])
-    rows = c.execute(f"SELECT run, target_index, target_mm, direction, {cols} FROM captures "
-                     "WHERE run_id = ? ORDER BY target_index, direction, run", (run_id,)).fetchall()
-    flags = c.execute("SELECT COUNT(*), SUM(was_stored), SUM(excluded_by IS NOT NULL) "
-                      "FROM capture_flags WHERE run_id = ?", (run_id,)).fetchone()
-    events = c.execute("SELECT kind, COUNT(*) FROM run_events WHERE run_id = ? GROUP BY kind",
-                       (run_id,)).fetchall()
-    truth_at = {}
-    out, caps = [], []
-    err = [[] for _ in DOFS]
-    big_u = [0.0] * 6
-    groups = {}
-    for r in rows:
-        run, ti, mm, d = r[0], r[1], r[2], r[3]
-        m = [r[4 + k] * UM_ARCSEC[k] for k in range(6)]
-        U = [2.0 * r[10 + k] * UM_ARCSEC[k] for k in range(6)]
-        if (mm, d) not in truth_at:
-            truth_at[(mm, d)] = twin.cmd({"cmd": "truth", "mm": mm, "direction": d})["errors"]
-        t = [truth_at[(mm, d)][k] - t0[k] for k in range(6)]
-        e = [m[k] - t[k] for k in range(6)]
-        bad = [DOFS[k] for k in range(6) if abs(e[k]) > U[k]]
-        for k in range(6):
-            err[k].append(e[k])
-            big_u[k] = max(big_u[k], U[k])
-        groups.setdefault((ti, d), []).append(m)
-        caps.append({"run": run, "target": ti, "mm": mm, "direction": d,
-                     "measured": m, "truth": t, "U": U, "outside": bad})
-        if bad:
-            out.append(caps[-1])
-    rms = [(sum(x * x for x in e) / len(e)) ** 0.5 if e else 0.0 for e in err]
-    floor = [0.5] * 6
-    sharp_each = [big_u[k] <= 3.0 * max(rms[k], floor[k]) for k in range(6)]
-    spread = [max((max(g[i][k] for i in range(len(g))) - min(g[i][k] for i in range(len(g)))
-                   for g in groups.values()), default=0.0) for k in range(6)]
-    for k in range(6):
-        log(f"truth {DOFS[k]}: RMS error {rms[k]:.2f} {UNITS[k]}, worst "
-            f"{max((abs(x) for x in err[k]), default=0.0):.2f} {UNITS[k]}, largest U "
-            f"{big_u[k]:.2f} {UNITS[k]} ({'sharp' if sharp_each[k] else 'NOT SHARP: over 3 x the RMS error'}), "
-            f"passes of a target and direction within {spread[k]:.2f} {UNITS[k]}")
-    for o in out[:20]:
-        log(f"  outside U: run {o['run']}, target {o['target']} ({o['mm']:.1f} mm) {o['direction']}: "
-            + ", ".join(f"{DOFS[k]} {o['measured'][k]:+.2f} vs {o['truth'][k]:+.2f} ± {o['U'][k]:.2f} {UNITS[k]}"
-                        for k in range(6) if DOFS[k] in o["outside"]))
-    log(f"truth: {len(out)} of {len(rows)} stored captures outside their U; flags {flags[0] or 0} "
-        f"({flags[1] or 0} moved out of the store, {flags[2] or 0} excluded); run events "
-        + (", ".join(f"{k} x{n}" for k, n in events) or "none"))
-    return {"captures_judged": len(rows), "outside_u": len(out), "rms": rms, "largest_u": big_u,
-            "sharp": all(sharp_each), "passes_within": spread,
-            "passes_within_limit": all(spread[k] <= PASSES_WITHIN[k] for k in range(6)),
-            "flags": flags[0] or 0, "events": dict(events), "captures": caps}
 
 
 # The PLC's faults (src/sim/twin.rs `plc`), each with what undoes it, then a clean publish.
