@@ -161,8 +161,7 @@ check_run() {
       runs_done=$((runs_done + 1))
       echo "soak.sh: t=$((SECONDS - start)) s: run $runs_started finished ($caps captures) in $((SECONDS - start - run_active)) s"
       # Every capture against the twin's truth: reported; SOAK_TRUTH=strict fails on one
-      # outside its U (issue 24: today the live positioning reads about 2.5 µm off the truth,
-      # half the axis' backlash, in an undisturbed run).
+      # outside its U (issue 24: the stored U is not yet the real one).
       local run_id strict=""
       [ "${SOAK_TRUTH:-report}" = strict ] && strict=--strict
       run_id=$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["run_id"])' "$work/start-$((runs_started - 1)).json")

@@ -84,7 +84,7 @@ EOF
 # against the service at $sock ($bin the binary), the twin's carriage moved to each end, as a
 # technician does before a run (the pre-run check wants the plan's travel aligned): where PSD2
 # lost its spot on the way, the follower is brought to the carriage; back at 0 mm, the zero is
-# taken again. Fails unless the check passes.
+# taken again (at the nominal 0 mm). Fails unless the check passes.
 align_cli() {
   local from=$1 to=$2 at
   "$bin" align clear --socket "$sock" >/dev/null || return 1
@@ -104,7 +104,11 @@ align_cli() {
     svc_cmd '{"cmd":"follower","action":"move","mm":0}' >/dev/null || return 1
     spots_at_rest 30 || return 1
   fi
+  # The zero at a known nominal (0 mm), as the lab takes it: positioning then reads relative
+  # to the carriage's true position here, the way every capture is judged by the truth.
+  svc_cmd '{"cmd":"nominal","mm":0.0}' >/dev/null
   svc_cmd '{"cmd":"zero"}' >/dev/null
+  svc_cmd '{"cmd":"nominal","mm":null}' >/dev/null
 }
 
 # spots_at_rest SECONDS: wait until the service sees a spot on every PSD with the carriage at
