@@ -1015,32 +1015,9 @@ mod tests {
         assert!(matches!(m.poll_action(), Some(RunAction::Failed(_))));
     }
 
-    #[test]
-    fn timeout_fails_the_run() {
-        let p = plan();
-        let mut m = RunMachine::new(
-            p,
-            CaptureSettings {
-                timeout: Duration::from_secs(5),
-                ..CaptureSettings::default()
-            },
-            false,
-            BTreeSet::new(),
-        );
-        let mut f = feed();
-        let s = f.sample(50.0);
-        m.handle_sample(&s, f.now);
-        m.handle_timeout(f.now + Duration::from_secs(6));
-        let mut failed = false;
-        while let Some(a) = m.poll_action() {
-            failed |= matches!(a, RunAction::Failed(_));
-        }
-        assert!(failed);
-    }
-
-    #[test]
-    fn a_pause_longer_than_the_timeout_does_not_fail_the_run() {
-        let mut m = RunMachine::new(
+    /// A machine on `plan()` whose progress timeout is 5 s.
+    fn with_a_5_s_timeout() -> RunMachine {
+        RunMachine::new(
             plan(),
             CaptureSettings {
                 timeout: Duration::from_secs(5),
@@ -1048,7 +1025,31 @@ mod tests {
             },
             false,
             BTreeSet::new(),
-        );
+        )
+    }
+
+    /// Whether the actions pending include a failure (drains them).
+    fn failed(m: &mut RunMachine) -> bool {
+        let mut failed = false;
+        while let Some(a) = m.poll_action() {
+            failed |= matches!(a, RunAction::Failed(_));
+        }
+        failed
+    }
+
+    #[test]
+    fn timeout_fails_the_run() {
+        let mut m = with_a_5_s_timeout();
+        let mut f = feed();
+        let s = f.sample(50.0);
+        m.handle_sample(&s, f.now);
+        m.handle_timeout(f.now + Duration::from_secs(6));
+        assert!(failed(&mut m));
+    }
+
+    #[test]
+    fn a_pause_longer_than_the_timeout_does_not_fail_the_run() {
+        let mut m = with_a_5_s_timeout();
         let mut f = feed();
         let s = f.sample(50.0);
         m.handle_sample(&s, f.now);
@@ -1058,15 +1059,9 @@ mod tests {
         let later = f.now + Duration::from_secs(60);
         m.handle_sample(&s, later);
         m.handle_timeout(later + Duration::from_secs(4));
-        while let Some(a) = m.poll_action() {
-            assert!(!matches!(a, RunAction::Failed(_)), "failed after a pause");
-        }
+        assert!(!failed(&mut m), "failed after a pause");
         // Still stalled 5 s after the pause: that fails.
         m.handle_timeout(later + Duration::from_secs(6));
-        let mut failed = false;
-        while let Some(a) = m.poll_action() {
-            failed |= matches!(a, RunAction::Failed(_));
-        }
-        assert!(failed);
+        assert!(failed(&mut m));
     }
 }

@@ -23,7 +23,7 @@ import subprocess
 import sys
 import time
 
-from truth import judge_by_truth
+from truth import Twin, judge_by_truth
 
 # Every fault the twin can inject during a run (src/sim/twin.rs), with how it is removed and the
 # alarm codes the service is expected to show for it when held long enough.
@@ -42,21 +42,6 @@ TWIN_KINDS = {
     "knock": (None, None, set()),
 }
 SPECIAL = ["sigkill", "disk-full", "clock-step"]
-
-
-class Twin:
-    def __init__(self, addr):
-        host, port = addr.rsplit(":", 1)
-        self.s = socket.create_connection((host, int(port)), timeout=30)
-        self.f = self.s.makefile("rw")
-
-    def cmd(self, req):
-        self.f.write(json.dumps(req) + "\n")
-        self.f.flush()
-        r = json.loads(self.f.readline())
-        if not r.get("ok"):
-            raise RuntimeError(f"twin: {json.dumps(req)}: {r.get('error')}")
-        return r
 
 
 def svc(sock, req, timeout=5.0):
