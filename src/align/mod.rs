@@ -12,8 +12,10 @@
 //! travel between them, and the spots' extremes lie at the ends. PSD2's X follows the
 //! follower, which keeps it centred; its Y is checked like the others.
 
+pub mod knock;
 pub mod mount;
 
+pub use knock::{Knock, KnockSettings, KnockWatch};
 pub use mount::{Mount, MountGeometry, Screw};
 
 use crate::optics::{Layout, Pose, Spot};

@@ -310,6 +310,15 @@ pub struct Decoupler {
 }
 
 impl Decoupler {
+    /// The layout the decoupling models (a fitted β's nominal layout): where the moving
+    /// module is and which way it travels.
+    pub fn layout(&self) -> &Layout {
+        match &self.source {
+            Source::Simulated(l) | Source::Model(l) => l,
+            Source::Linear { nominal, .. } => nominal,
+        }
+    }
+
     /// The sensitivity β at a pose with zero error: the model's Jacobian, or the fitted β.
     pub fn beta(&self, travel: f64, follower: f64) -> Result<Matrix6<f64>, DecoupleError> {
         match &self.source {

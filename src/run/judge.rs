@@ -123,6 +123,18 @@ impl Judge {
         });
     }
 
+    /// Take the capture of `key` back (a knock found after it moved its last frames):
+    /// `Some(true)` when it was stored, `Some(false)` when it was held, `None` when the judge
+    /// has none.
+    pub fn withdraw(&mut self, key: TargetKey) -> Option<bool> {
+        if self.accepted.remove(&key).is_some() {
+            return Some(true);
+        }
+        let before = self.held.len();
+        self.held.retain(|(c, _)| TargetKey::of(c) != key);
+        (self.held.len() < before).then_some(false)
+    }
+
     /// The accepted captures of the group of (`target_index`, `direction`), `key` left out.
     fn group(&self, target_index: u32, direction: Direction, but: TargetKey) -> Vec<&Capture> {
         self.accepted

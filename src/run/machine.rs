@@ -173,6 +173,7 @@ struct Acc {
     material: (f64, usize),
     air: (f64, usize),
     first_us: i64,
+    last_us: i64,
 }
 
 /// The run machine.
@@ -200,7 +201,13 @@ pub struct RunMachine {
     judge: Judge,
     /// The captures flagged so far.
     flagged: BTreeSet<TargetKey>,
+    /// The newest captures with their last frame's time: a knock found after them may have
+    /// moved their last frames.
+    recent: VecDeque<(Capture, i64)>,
 }
+
+/// How many of the newest captures a knock found late may reach back to.
+const RECENT: usize = 4;
 
 impl RunMachine {
     /// A machine for `plan`; `completed` are captures already stored (a resumed run).
@@ -251,6 +258,7 @@ impl RunMachine {
             actions: VecDeque::new(),
             cycle: Vec::new(),
             cursor: 0,
+            recent: VecDeque::new(),
         };
         m.cycle = m.plan.steps().iter().filter_map(|s| s.target).collect();
         if m.done.len() >= m.total {
@@ -285,6 +293,47 @@ impl RunMachine {
         if self.phase != Phase::Done && self.settings.judge {
             self.judge.event(what, unix_us);
         }
+    }
+
+    /// The head was knocked on its mount (`align::knock`) at `since_us`, found only now: the
+    /// frames from then on read through a turn that the live pipeline takes out from now
+    /// on. The capture being averaged starts again; a capture whose frames reach past the
+    /// knock is flagged (out of the store when it was stored) and retaken; the captures
+    /// after it are checked like those after any event that can move the reference.
+    pub fn knocked(&mut self, since_us: i64, what: &str) {
+        if self.phase == Phase::Done {
+            return;
+        }
+        self.restart_average();
+        let hit: Vec<Capture> = self
+            .recent
+            .iter()
+            .filter(|(c, last_us)| *last_us >= since_us && self.done.contains(&TargetKey::of(c)))
+            .map(|(c, _)| *c)
+            .collect();
+        self.recent.retain(|(_, last_us)| *last_us < since_us);
+        let mut decisions = Vec::new();
+        for c in hit {
+            let key = TargetKey::of(&c);
+            // Without the judge every capture was stored as it came.
+            let stored = if self.settings.judge {
+                self.judge.withdraw(key)
+            } else {
+                Some(true)
+            };
+            if let Some(stored) = stored {
+                decisions.push(Decision::Flag {
+                    reason: format!(
+                        "{key} {}: {what} while it was averaged (found after it): retaken",
+                        c.direction.sign()
+                    ),
+                    capture: c,
+                    stored,
+                });
+            }
+        }
+        self.apply(decisions);
+        self.reference_event(what, since_us);
     }
 
     /// Carry out the judge's decisions: stored captures go out, flagged ones are reopened
@@ -599,6 +648,7 @@ impl RunMachine {
         if a.n == 0 {
             a.first_us = s.unix_us;
         }
+        a.last_us = s.unix_us;
         a.n += 1;
         let (e, v, sv) = (
             s.errors.to_array(),
@@ -662,6 +712,10 @@ impl RunMachine {
             unix_us: a.first_us,
         };
         self.done.insert(key);
+        self.recent.push_back((capture, a.last_us));
+        if self.recent.len() > RECENT {
+            self.recent.pop_front();
+        }
         if let Some(i) = self.cycle.iter().position(|k| *k == key) {
             self.cursor = i + 1;
         }
@@ -929,6 +983,81 @@ mod tests {
                 direction: Direction::Down
             }]
         );
+    }
+
+    #[test]
+    fn a_knock_found_after_a_capture_s_last_frames_has_it_retaken() {
+        for judge in [false, true] {
+            let p = plan();
+            let steps = cycle(&p);
+            let settings = CaptureSettings {
+                judge,
+                ..CaptureSettings::default()
+            };
+            let mut m = RunMachine::new(p.clone(), settings, false, BTreeSet::new());
+            let mut f = feed();
+            let first = f.run(&mut m, &steps[..6], None);
+            assert!(first.len() >= 2, "{} captures", first.len());
+            let (before, last) = (first[first.len() - 2], first[first.len() - 1]);
+            // The knock lies within the last capture's 150 frames (0.3 s from its first).
+            m.knocked(last.unix_us + 200_000, "a knock");
+            let mut flagged = Vec::new();
+            while let Some(a) = m.poll_action() {
+                if let RunAction::Flagged {
+                    capture, stored, ..
+                } = a
+                {
+                    flagged.push((TargetKey::of(&capture), stored));
+                }
+            }
+            assert_eq!(
+                flagged,
+                vec![(TargetKey::of(&last), true)],
+                "judge {judge}: the last capture only, out of the store"
+            );
+            assert!(m.missing().contains(&TargetKey::of(&last)));
+            assert!(!m.missing().contains(&TargetKey::of(&before)));
+            // A knock found after a capture's last frames touches none.
+            let mut m2 = RunMachine::new(p.clone(), settings, false, BTreeSet::new());
+            let mut f2 = feed();
+            let caps = f2.run(&mut m2, &steps[..6], None);
+            let last2 = caps[caps.len() - 1];
+            m2.knocked(last2.unix_us + 400_000, "a knock");
+            while let Some(a) = m2.poll_action() {
+                assert!(
+                    !matches!(a, RunAction::Flagged { .. }),
+                    "judge {judge}: {a:?}"
+                );
+            }
+            // The run goes on: the rest of the cycle and a make-up pass over what is
+            // missing finish it, every key once.
+            let rest = f.run(&mut m, &steps[6..], None);
+            let missing = m.missing();
+            let mut makeup = Vec::new();
+            for k in &missing {
+                let t = p.targets[k.target_index as usize];
+                let from = match k.direction {
+                    Direction::Up => t - 2.0,
+                    Direction::Down => t + 2.0,
+                };
+                makeup.push((from, 0.2));
+                makeup.push((t, 1.0));
+            }
+            let retaken = f.run(&mut m, &makeup, None);
+            assert!(m.is_finished(), "judge {judge}: missing {:?}", m.missing());
+            let keys: BTreeSet<TargetKey> = first[..first.len() - 1]
+                .iter()
+                .chain(&rest)
+                .chain(&retaken)
+                .map(TargetKey::of)
+                .collect();
+            assert_eq!(keys.len(), p.capture_count(), "judge {judge}");
+            assert!(
+                retaken
+                    .iter()
+                    .any(|c| TargetKey::of(c) == TargetKey::of(&last))
+            );
+        }
     }
 
     #[test]

@@ -10,9 +10,16 @@
 //! estimated as PSD2's position plus the spot's offset on it, which is good enough for β but
 //! leaves positioning undefined (`LiveErrors::nominal` is `None`). Pure logic; time is an
 //! argument.
+//!
+//! A knock that turns the head on its mount (`align::knock`) is found in the frames and taken
+//! out of every later frame by the turn it gave (a constant angle and a straightness growing
+//! with the distance from the mount's pivot), its uncertainty carried with the stitching's.
+//! A new zero, or none, starts from the head as it stands.
 
 use crate::acquire::Frame;
+use crate::align::{Knock, KnockSettings, KnockWatch, Mount, MountGeometry};
 use crate::decouple::{BetaCache, DecoupleError, Decoupler};
+use crate::optics::Layout;
 use crate::run::FrameSample;
 use crate::track::Stitch;
 use crate::units::Errors6;
@@ -61,6 +68,83 @@ struct ZeroAverage {
     n: usize,
 }
 
+/// The head's turns on its mount found since the zero (knocks), taken out of every frame.
+#[derive(Clone, Debug)]
+struct Turned {
+    watch: KnockWatch,
+    /// The sum of the turns found.
+    turn: Mount,
+    /// The variance of `turn`'s yaw and pitch (rad²).
+    var: [f64; 2],
+    /// A knock found and not yet taken by the caller.
+    found: Option<Knock>,
+}
+
+impl Turned {
+    fn new() -> Self {
+        Turned {
+            watch: KnockWatch::new(KnockSettings::default()),
+            turn: Mount::default(),
+            var: [0.0; 2],
+            found: None,
+        }
+    }
+
+    fn reset(&mut self) {
+        *self = Turned::new();
+    }
+
+    fn head_pose(m: Mount, layout: &Layout, travel: f64, e: &Errors6) -> Errors6 {
+        m.head_pose(
+            MountGeometry::default().pivot(),
+            layout.c,
+            layout.travel_axis,
+            travel,
+            e,
+        )
+    }
+
+    /// `e` as the head read it before its turns, at `travel`.
+    fn undo(&self, layout: &Layout, travel: f64, e: Errors6) -> Errors6 {
+        if self.turn == Mount::default() {
+            return e;
+        }
+        let back = Mount {
+            yaw: -self.turn.yaw,
+            pitch: -self.turn.pitch,
+            ..Mount::default()
+        };
+        Self::head_pose(back, layout, travel, &e)
+    }
+
+    /// The variance the turns' uncertainty adds to each error at `travel`.
+    fn var_at(&self, layout: &Layout, travel: f64) -> [f64; 6] {
+        if self.var == [0.0; 2] {
+            return [0.0; 6];
+        }
+        let yaw = Mount {
+            yaw: self.var[0].sqrt(),
+            ..Mount::default()
+        };
+        let pitch = Mount {
+            pitch: self.var[1].sqrt(),
+            ..Mount::default()
+        };
+        let (y, p) = (
+            Self::head_pose(yaw, layout, travel, &Errors6::ZERO).to_array(),
+            Self::head_pose(pitch, layout, travel, &Errors6::ZERO).to_array(),
+        );
+        std::array::from_fn(|k| y[k] * y[k] + p[k] * p[k])
+    }
+
+    fn add(&mut self, k: Knock) {
+        self.turn = self.turn.plus(k.turn);
+        self.var[0] += k.sd_rad[0].powi(2);
+        self.var[1] += k.sd_rad[1].powi(2);
+        self.found = Some(k);
+    }
+}
+
 /// The live pipeline.
 #[derive(Debug)]
 pub struct Measure {
@@ -76,6 +160,7 @@ pub struct Measure {
     /// The newest frame's readings (mm, PSD2 as read), travel and follower position: what a
     /// calibration waiting to be accepted is judged on.
     last_input: Option<(Vector6<f64>, f64, f64)>,
+    turned: Turned,
 }
 
 impl Measure {
@@ -91,7 +176,19 @@ impl Measure {
             zero: None,
             zero_average: None,
             last_input: None,
+            turned: Turned::new(),
         }
+    }
+
+    /// A knock found in the frames since last asked (its turn is taken out of every frame
+    /// from it on).
+    pub fn take_knock(&mut self) -> Option<Knock> {
+        self.turned.found.take()
+    }
+
+    /// The head's turn on its mount since the zero, as the knocks found add up.
+    pub fn turned(&self) -> Mount {
+        self.turned.turn
     }
 
     /// Set or clear the nominal travel; the averaging window restarts.
@@ -136,6 +233,7 @@ impl Measure {
     /// now until [`Measure::set_zero`].
     pub fn start_zero(&mut self) {
         self.zero = None;
+        self.turned.reset();
         self.zero_average = Some(ZeroAverage::default());
     }
 
@@ -183,6 +281,7 @@ impl Measure {
     /// Forget the zero reference.
     pub fn clear_zero(&mut self) {
         self.zero = None;
+        self.turned.reset();
     }
 
     /// The decoupling in use.
@@ -198,6 +297,7 @@ impl Measure {
         self.samples.clear();
         self.zero = None;
         self.zero_average = self.zero_average.map(|_| ZeroAverage::default());
+        self.turned.reset();
     }
 
     /// Feed one frame with PSD2's stitched position. Invalid frames (a PSD without its spot)
@@ -233,13 +333,22 @@ impl Measure {
             self.decoupler
                 .decouple_cached(&r, travel, follower, &var, &mut self.beta)?;
         self.frame_cov = est.cov;
+        let layout = self.decoupler.layout();
+        let mut read = self.turned.undo(layout, travel, est.errors);
+        if let Some(k) = self.turned.watch.push(now, frame.unix_us, travel, &read) {
+            // The frames since the knock read through a turn not taken out yet: dropped.
+            self.turned.add(k);
+            read = self.turned.undo(layout, travel, est.errors);
+            self.restart();
+        }
+        let turned_var = self.turned.var_at(self.decoupler.layout(), travel);
         if let Some(a) = self.zero_average.as_mut() {
-            a.sum += est.errors.to_vector();
+            a.sum += read.to_vector();
             a.n += 1;
         }
         self.samples.push_back(Sample {
             at: now,
-            errors: est.errors.to_vector(),
+            errors: read.to_vector(),
             travel,
             follower,
             stitch_var: stitch.variance,
@@ -248,20 +357,20 @@ impl Measure {
         // systematic as the stitching's.
         let (errors, zero_var) = match &self.zero {
             Some(z) => (
-                Errors6::from_vector(&(est.errors.to_vector() - z.errors)),
+                Errors6::from_vector(&(read.to_vector() - z.errors)),
                 std::array::from_fn(|k| z.cov[(k, k)]),
             ),
-            None => (est.errors, [0.0; 6]),
+            None => (read, [0.0; 6]),
         };
         Ok(Some(FrameSample {
             at: now,
             unix_us: frame.unix_us,
-            position_mm: travel + est.errors.dy,
+            position_mm: travel + read.dy,
             nominal: self.nominal,
             errors,
             var: Errors6::from_array(std::array::from_fn(|k| est.cov[(k, k)])),
             stitch_var: Errors6::from_array(std::array::from_fn(|k| {
-                stitch_cov[(k, k)] + zero_var[k]
+                stitch_cov[(k, k)] + zero_var[k] + turned_var[k]
             })),
             material_c: None,
             air_c: None,
@@ -297,6 +406,10 @@ impl Measure {
             / n as f64;
         let mut cov = self.window_cov()?;
         let mut e = mean;
+        let turned = self.turned.var_at(self.decoupler.layout(), last.travel);
+        for (k, v) in turned.iter().enumerate() {
+            cov[(k, k)] += v;
+        }
         if let Some(z) = &self.zero {
             e -= z.errors;
             cov += z.cov;
@@ -317,6 +430,7 @@ impl Measure {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::align::{Mount, MountGeometry};
     use crate::decouple::{Method, SolveOptions, Source};
     use crate::optics::{Layout, Pose, Spot};
     use crate::sim::Rng;
@@ -484,5 +598,93 @@ mod tests {
         let live = m.live().unwrap();
         let z = m.set_zero().unwrap();
         assert_eq!(z, live.errors);
+    }
+
+    #[test]
+    fn a_knock_is_taken_out_of_every_later_frame_along_the_travel() {
+        let layout = Layout::reference();
+        let dec = Decoupler {
+            source: Source::Simulated(layout.clone()),
+            method: Method::Linear,
+            sigma_mm: [1e-3; 6],
+            options: SolveOptions::default(),
+        };
+        let pivot = MountGeometry::default().pivot();
+        // The truth at a travel, as a head turned by `yaw` on its mount reads it.
+        let truth =
+            |d: f64| Errors6::from_user([3.0 + 0.01 * d, -4.0, 1.0, 2.0, -1.0, 1.5 + 0.002 * d]);
+        let read = |d: f64, yaw: f64| {
+            let m = Mount {
+                yaw,
+                ..Mount::default()
+            };
+            Pose::new(
+                m.head_pose(pivot, layout.c, layout.travel_axis, d, &truth(d)),
+                d,
+                d,
+            )
+        };
+        for (seed, yaw) in [(1, 6e-6), (2, -3e-6), (3, 12e-6)] {
+            let mut m = Measure::new(dec.clone(), Duration::from_millis(500));
+            let mut rng = Rng::new(seed);
+            let t0 = crate::util::clock::now();
+            let mut i = 0u64;
+            let mut feed = |m: &mut Measure, d: f64, yaw: f64, frames: u64| {
+                m.set_nominal(Some(d));
+                for _ in 0..frames {
+                    let t = t0 + Duration::from_millis(2 * i);
+                    let f = frame_at(&layout, &read(d, yaw), &mut rng, t, 1e-3);
+                    m.handle_frame(&f, &stitch(d, 0.0), t).unwrap();
+                    i += 1;
+                }
+            };
+            m.start_zero();
+            feed(&mut m, 0.0, 0.0, 500);
+            m.set_zero().unwrap();
+            // Knocked at rest: found within the watch's window, the turn known to its sd.
+            feed(&mut m, 0.0, 0.0, 300);
+            assert!(m.take_knock().is_none());
+            feed(&mut m, 0.0, yaw, 600);
+            let k = m.take_knock().expect("a knock");
+            assert!(
+                (k.turn.yaw - yaw).abs() < 4.0 * k.sd_rad[0],
+                "yaw {} µrad for {} (sd {})",
+                k.turn.yaw * 1e6,
+                yaw * 1e6,
+                k.sd_rad[0] * 1e6
+            );
+            assert!(m.take_knock().is_none(), "taken once");
+            // Far along the travel, the live errors are the truth's change since the zero:
+            // untaken, the turn would put dx off by yaw times ~1.2 m.
+            for d in [400.0, 800.0] {
+                feed(&mut m, d, yaw, 250);
+                let live = m.live().unwrap();
+                let want = truth(d).to_vector() - truth(0.0).to_vector();
+                let (e, sd) = (live.errors.to_vector(), live.sd.to_array());
+                for k in [0, 2, 3, 5] {
+                    assert!(
+                        (e[k] - want[k]).abs() < 4.5 * sd[k],
+                        "seed {seed} at {d} mm: {} {} against {} (sd {})",
+                        ["dx", "dy", "dz", "ex", "ey", "ez"][k],
+                        e[k],
+                        want[k],
+                        sd[k]
+                    );
+                }
+                let untaken = yaw * (d + 380.0);
+                assert!(
+                    untaken.abs() > 6.0 * sd[0],
+                    "the test can tell: {untaken} against sd {}",
+                    sd[0]
+                );
+            }
+            assert!(
+                m.take_knock().is_none(),
+                "no knock in moving along the travel"
+            );
+            // A new zero starts from the head as it stands.
+            m.start_zero();
+            assert_eq!(m.turned(), Mount::default());
+        }
     }
 }

@@ -6,6 +6,7 @@
 use super::api::snapshot::Alarm;
 use super::measure::Measure;
 use crate::acquire::Frame;
+use crate::align::Knock;
 use crate::canopen::{DriveStatus, Event, PowerState};
 use crate::decouple::Decoupler;
 use crate::run::{Capture, RunAction, RunMachine};
@@ -135,6 +136,10 @@ struct PendingZero {
 
 /// A zero is retaken at most this many times for follower steps in its window.
 const ZERO_RETAKES: u8 = 3;
+
+/// A knock's step is placed to within this (µs): the captures it may have reached are
+/// counted from this much before it.
+const KNOCK_PLACED_US: i64 = 100_000;
 
 /// A PSD without a spot for this long pauses a run (a beam cut for a moment does not).
 pub const PAUSE_AFTER: Duration = Duration::from_millis(500);
@@ -304,6 +309,9 @@ impl Pipeline {
         match self.measure.handle_frame(f, &self.tracker.stitch(), now) {
             Ok(sample) => {
                 self.alarms.clear("decoupling");
+                if let Some(k) = self.measure.take_knock() {
+                    self.knocked(&k);
+                }
                 if let (Some(run), Some(s), None) = (self.run.as_mut(), sample, &self.paused) {
                     run.handle_sample(&s, now);
                     run.handle_timeout(now);
@@ -451,6 +459,23 @@ impl Pipeline {
         self.outputs.push_back(Output::RunEvent {
             kind: kind.into(),
             detail,
+        });
+    }
+
+    /// The live pipeline found a knock that turned the head on its mount and takes its turn
+    /// out of every frame from now on; the active run retakes what the frames before that
+    /// touched and checks what follows (`RunMachine::knocked`).
+    fn knocked(&mut self, k: &Knock) {
+        let what = format!("a knock turned the head on its mount ({})", k.describe());
+        tracing::warn!("{what}: taken out of every frame from it on");
+        let Some(run) = self.run.as_mut() else {
+            return;
+        };
+        run.knocked(k.unix_us - KNOCK_PLACED_US, &what);
+        self.drain_run();
+        self.outputs.push_back(Output::RunEvent {
+            kind: "knock".into(),
+            detail: what,
         });
     }
 

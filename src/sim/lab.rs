@@ -180,6 +180,8 @@ pub struct Progress {
     /// Simulated seconds since the program started.
     pub elapsed_s: f64,
     pub position_mm: f64,
+    /// Whether the carriage is moving.
+    pub moving: bool,
 }
 
 /// One frame as the lab saw it (`Lab::trace`), for finding out why a run went wrong.
@@ -808,11 +810,13 @@ impl Lab {
                 self.pipeline.abort_run();
                 break Err(e);
             }
+            let (position_mm, moving) = self.plant.carriage(self.now);
             progress(Progress {
                 captures: self.captures.len(),
                 expected,
                 elapsed_s: (self.now - started).as_secs_f64(),
-                position_mm: self.plant.carriage(self.now).0,
+                position_mm,
+                moving,
             });
         };
         self.cnc = None;

@@ -50,6 +50,8 @@ fail() {
   echo "console.sh: FAIL: $*" >&2
   echo "---- the screen ----" >&2
   "${tmx[@]}" capture-pane -p -t console >&2 2>/dev/null || true
+  echo "---- the service's calibration (the screen may cut it off) ----" >&2
+  [ -S "${sock:-}" ] && svc_cmd '{"cmd":"calibration"}' >&2 2>&1 || true
   echo "---- service log (tail) ----" >&2
   tail -n 20 "$work/serve.log" >&2 || true
   exit 1
