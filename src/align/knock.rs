@@ -84,6 +84,10 @@ struct Point {
 /// Below this spread of positions (mm) the window is at rest: no slope is fitted.
 const AT_REST_MM: f64 = 0.1;
 
+/// A moving window is tested only where the carriage went one way: its net move at least
+/// this share of the positions' spread.
+const MONOTONIC: f64 = 0.9;
+
 /// The most the position columns may inflate the step's variance before a window is not
 /// tested.
 const BLUR: f64 = 8.0;
@@ -198,6 +202,12 @@ impl KnockWatch {
             return None;
         }
         let moving = hi - lo > AT_REST_MM;
+        // There and back (an overrun and the return to a target): an axis' angles at the same
+        // position differ with the direction of travel, and would pass for a step.
+        let net = self.window[n - 1].position - self.window[0].position;
+        if moving && net.abs() < MONOTONIC * (hi - lo) {
+            return None;
+        }
         // Scaled to the window's half span, so the normal equations stay well conditioned.
         let span = if moving { 0.5 * (hi - lo) } else { 1.0 };
         let row = |i: usize, p: &Point| {
@@ -356,6 +366,27 @@ mod tests {
         // A turn well inside the noise of a window is not reported.
         let got = watch(14, 0.0, 3000, Some((1500, 0.2e-6, 0.0)));
         assert!(got.is_empty(), "{got:?}");
+        // Nor an overrun and the return: 2 mm out and back at 20 mm/s, the axis' angles
+        // 1.5 µrad apart with the direction of travel.
+        let mut w = KnockWatch::new(KnockSettings::default());
+        let mut rng = Rng::new(17);
+        let t0 = crate::util::clock::now();
+        for i in 0..3000usize {
+            let s = i as f64 / 500.0;
+            let (pos, back) = match s {
+                s if s < 2.0 => (0.0, false),
+                s if s < 2.1 => (20.0 * (s - 2.0), false),
+                s if s < 2.2 => (2.0 - 20.0 * (s - 2.1), true),
+                _ => (0.0, true),
+            };
+            let e = Errors6 {
+                ez: if back { 1.5e-6 } else { 0.0 } + rng.gauss(1.4e-6),
+                ex: rng.gauss(1.4e-6),
+                ..Errors6::ZERO
+            };
+            let t = t0 + Duration::from_millis(2 * i as u64);
+            assert!(w.push(t, i as i64, pos, &e).is_none(), "at {s} s");
+        }
         // Nor a knock in a move at the feed (the axis' own waves would pass for knocks).
         let got = watch(16, 50.0, 3000, Some((1500, 10e-6, 0.0)));
         assert!(got.is_empty(), "{got:?}");
