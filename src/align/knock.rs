@@ -20,7 +20,6 @@ use super::Mount;
 use crate::units::Errors6;
 use nalgebra::{Matrix4, Vector4};
 use std::collections::VecDeque;
-use std::time::Instant;
 
 /// How the watch decides.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -49,8 +48,8 @@ impl Default for KnockSettings {
 /// A knock found: when it happened and the turn it gave the head.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Knock {
-    /// The first frame after the step (to within a few frames for a knock near the limit).
-    pub at: Instant,
+    /// The first frame after the step (µs since the epoch; to within a few frames for a knock
+    /// near the limit).
     pub unix_us: i64,
     /// The head's turn on its mount (yaw and pitch; no offsets).
     pub turn: Mount,
@@ -74,7 +73,6 @@ impl Knock {
 
 #[derive(Clone, Copy, Debug)]
 struct Point {
-    at: Instant,
     unix_us: i64,
     position: f64,
     /// Pitch (ex) and yaw (ez), rad.
@@ -125,22 +123,15 @@ impl KnockWatch {
         self.pending = None;
     }
 
-    /// One frame at `at` (`unix_us`), the carriage at `position` (mm) and `errors` (the head's
-    /// frame, internal units). Returns a knock once its step has passed the window's middle.
+    /// One frame at `unix_us`, the carriage at `position` (mm) and `errors` (the head's frame,
+    /// internal units). Returns a knock once its step has passed the window's middle.
     /// After a knock the watch starts again: the caller corrects what follows by its turn.
-    pub fn push(
-        &mut self,
-        at: Instant,
-        unix_us: i64,
-        position: f64,
-        errors: &Errors6,
-    ) -> Option<Knock> {
+    pub fn push(&mut self, unix_us: i64, position: f64, errors: &Errors6) -> Option<Knock> {
         if !(position.is_finite() && errors.ex.is_finite() && errors.ez.is_finite()) {
             return None;
         }
         let n = 2 * self.settings.half;
         self.window.push_back(Point {
-            at,
             unix_us,
             position,
             angles: [errors.ex, errors.ez],
@@ -263,7 +254,6 @@ impl KnockWatch {
         let first = self.window[split];
         // The head turned by t: it reads pitch and yaw less by t (Mount::head_pose).
         Some(Knock {
-            at: first.at,
             unix_us: first.unix_us,
             turn: Mount {
                 yaw: -c[1],
@@ -281,7 +271,6 @@ impl KnockWatch {
 mod tests {
     use super::*;
     use crate::sim::Rng;
-    use std::time::Duration;
 
     /// Frames at 500 Hz of a carriage at `speed` mm/s from 0 mm whose true pitch and yaw
     /// wave with the position (8″ over 300 mm wavelengths), 1.4 µrad of noise, the head
@@ -294,7 +283,6 @@ mod tests {
     ) -> Vec<(usize, Knock)> {
         let mut rng = Rng::new(seed);
         let mut w = KnockWatch::new(KnockSettings::default());
-        let t0 = crate::util::clock::now();
         let amp = 8.0 * 4.848e-6;
         let mut out = Vec::new();
         let mut turned = (0.0, 0.0);
@@ -311,8 +299,7 @@ mod tests {
                 ez: amp * (1.3 * k).cos() - turned.0 + rng.gauss(1.4e-6),
                 ..Errors6::ZERO
             };
-            let t = t0 + Duration::from_millis(2 * i as u64);
-            if let Some(found) = w.push(t, i as i64, pos + rng.gauss(1e-3), &e) {
+            if let Some(found) = w.push(i as i64, pos + rng.gauss(1e-3), &e) {
                 out.push((i, found));
             }
         }
@@ -370,7 +357,6 @@ mod tests {
         // 1.5 µrad apart with the direction of travel.
         let mut w = KnockWatch::new(KnockSettings::default());
         let mut rng = Rng::new(17);
-        let t0 = crate::util::clock::now();
         for i in 0..3000usize {
             let s = i as f64 / 500.0;
             let (pos, back) = match s {
@@ -384,8 +370,7 @@ mod tests {
                 ex: rng.gauss(1.4e-6),
                 ..Errors6::ZERO
             };
-            let t = t0 + Duration::from_millis(2 * i as u64);
-            assert!(w.push(t, i as i64, pos, &e).is_none(), "at {s} s");
+            assert!(w.push(i as i64, pos, &e).is_none(), "at {s} s");
         }
         // Nor a knock in a move at the feed (the axis' own waves would pass for knocks).
         let got = watch(16, 50.0, 3000, Some((1500, 10e-6, 0.0)));
@@ -395,10 +380,9 @@ mod tests {
     #[test]
     fn a_reset_forgets_and_bad_numbers_are_skipped() {
         let mut w = KnockWatch::new(KnockSettings::default());
-        let t = crate::util::clock::now();
         let e = Errors6::ZERO;
         for i in 0..100 {
-            assert!(w.push(t, i, 0.0, &e).is_none());
+            assert!(w.push(i, 0.0, &e).is_none());
         }
         w.reset();
         assert!(w.window.is_empty());
@@ -406,8 +390,8 @@ mod tests {
             ez: f64::NAN,
             ..Errors6::ZERO
         };
-        assert!(w.push(t, 0, 0.0, &nan).is_none());
-        assert!(w.push(t, 0, f64::INFINITY, &e).is_none());
+        assert!(w.push(0, 0.0, &nan).is_none());
+        assert!(w.push(0, f64::INFINITY, &e).is_none());
         assert!(w.window.is_empty());
     }
 }

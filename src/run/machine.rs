@@ -879,6 +879,22 @@ mod tests {
             .collect()
     }
 
+    /// A make-up pass over `missing`: each target approached from 2 mm on its side, then a
+    /// 1 s dwell on it.
+    fn makeup(p: &Plan, missing: &[TargetKey]) -> Vec<(f64, f64)> {
+        missing
+            .iter()
+            .flat_map(|k| {
+                let t = p.targets[k.target_index as usize];
+                let from = match k.direction {
+                    Direction::Up => t - 2.0,
+                    Direction::Down => t + 2.0,
+                };
+                [(from, 0.2), (t, 1.0)]
+            })
+            .collect()
+    }
+
     /// A machine for `p` with the default capture settings and nothing captured yet.
     fn fresh(p: &Plan) -> RunMachine {
         RunMachine::new(
@@ -1033,17 +1049,7 @@ mod tests {
             // missing finish it, every key once.
             let rest = f.run(&mut m, &steps[6..], None);
             let missing = m.missing();
-            let mut makeup = Vec::new();
-            for k in &missing {
-                let t = p.targets[k.target_index as usize];
-                let from = match k.direction {
-                    Direction::Up => t - 2.0,
-                    Direction::Down => t + 2.0,
-                };
-                makeup.push((from, 0.2));
-                makeup.push((t, 1.0));
-            }
-            let retaken = f.run(&mut m, &makeup, None);
+            let retaken = f.run(&mut m, &makeup(&p, &missing), None);
             assert!(m.is_finished(), "judge {judge}: missing {:?}", m.missing());
             let keys: BTreeSet<TargetKey> = first[..first.len() - 1]
                 .iter()
@@ -1091,17 +1097,7 @@ mod tests {
         assert_eq!(missing.len() + all.len(), p.capture_count());
         assert!(!missing.is_empty() && missing.len() <= 2, "{missing:?}");
         // A make-up pass over the missing targets completes the run.
-        let mut makeup = Vec::new();
-        for k in &missing {
-            let t = p.targets[k.target_index as usize];
-            let from = match k.direction {
-                Direction::Up => t - 2.0,
-                Direction::Down => t + 2.0,
-            };
-            makeup.push((from, 0.2));
-            makeup.push((t, 1.0));
-        }
-        let third = f.run(&mut m2, &makeup, None);
+        let third = f.run(&mut m2, &makeup(&p, &missing), None);
         assert_eq!(third.len(), missing.len());
         assert!(m2.is_finished());
     }

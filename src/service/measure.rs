@@ -186,11 +186,6 @@ impl Measure {
         self.turned.found.take()
     }
 
-    /// The head's turn on its mount since the zero, as the knocks found add up.
-    pub fn turned(&self) -> Mount {
-        self.turned.turn
-    }
-
     /// Set or clear the nominal travel; the averaging window restarts.
     pub fn set_nominal(&mut self, nominal: Option<f64>) {
         if nominal != self.nominal {
@@ -335,7 +330,7 @@ impl Measure {
         self.frame_cov = est.cov;
         let layout = self.decoupler.layout();
         let mut read = self.turned.undo(layout, travel, est.errors);
-        if let Some(k) = self.turned.watch.push(now, frame.unix_us, travel, &read) {
+        if let Some(k) = self.turned.watch.push(frame.unix_us, travel, &read) {
             // The frames since the knock read through a turn not taken out yet: dropped.
             self.turned.add(k);
             read = self.turned.undo(layout, travel, est.errors);
@@ -453,6 +448,16 @@ mod tests {
         }
     }
 
+    /// The layout's nominal model with 1 µm of reading noise.
+    fn nominal(layout: &Layout, method: Method) -> Decoupler {
+        Decoupler {
+            source: Source::Simulated(layout.clone()),
+            method,
+            sigma_mm: [1e-3; 6],
+            options: SolveOptions::default(),
+        }
+    }
+
     fn stitch(follower: f64, var: f64) -> Stitch {
         Stitch {
             follower_mm: follower,
@@ -467,12 +472,7 @@ mod tests {
     #[test]
     fn live_mean_matches_truth_within_stated_sd() {
         let layout = Layout::reference();
-        let dec = Decoupler {
-            source: Source::Simulated(layout.clone()),
-            method: Method::Nonlinear,
-            sigma_mm: [1e-3; 6],
-            options: SolveOptions::default(),
-        };
+        let dec = nominal(&layout, Method::Nonlinear);
         let mut m = Measure::new(dec, Duration::from_millis(250));
         m.set_nominal(Some(100.0));
         let truth = Errors6::from_user([12.0, -7.0, 4.0, 3.0, -2.0, 5.0]);
@@ -501,12 +501,7 @@ mod tests {
     #[test]
     fn stitch_variance_enters_positioning_and_invalid_frames_are_skipped() {
         let layout = Layout::reference();
-        let dec = Decoupler {
-            source: Source::Simulated(layout.clone()),
-            method: Method::Linear,
-            sigma_mm: [1e-3; 6],
-            options: SolveOptions::default(),
-        };
+        let dec = nominal(&layout, Method::Linear);
         let mut m = Measure::new(dec, Duration::from_millis(250));
         let t = crate::util::clock::now();
         // At D = 0, where the design's bound for dy (1.2137 µm at σ = 1 µm) applies.
@@ -545,12 +540,7 @@ mod tests {
     #[test]
     fn the_zero_averages_every_frame_since_it_was_asked_for() {
         let layout = Layout::reference();
-        let dec = Decoupler {
-            source: Source::Simulated(layout.clone()),
-            method: Method::Linear,
-            sigma_mm: [1e-3; 6],
-            options: SolveOptions::default(),
-        };
+        let dec = nominal(&layout, Method::Linear);
         let mut m = Measure::new(dec, Duration::from_millis(250));
         m.set_nominal(Some(0.0));
         let pose = Pose::new(Errors6::ZERO, 0.0, 0.0);
@@ -603,12 +593,7 @@ mod tests {
     #[test]
     fn a_knock_is_taken_out_of_every_later_frame_along_the_travel() {
         let layout = Layout::reference();
-        let dec = Decoupler {
-            source: Source::Simulated(layout.clone()),
-            method: Method::Linear,
-            sigma_mm: [1e-3; 6],
-            options: SolveOptions::default(),
-        };
+        let dec = nominal(&layout, Method::Linear);
         let pivot = MountGeometry::default().pivot();
         // The truth at a travel, as a head turned by `yaw` on its mount reads it.
         let truth =
@@ -684,7 +669,7 @@ mod tests {
             );
             // A new zero starts from the head as it stands.
             m.start_zero();
-            assert_eq!(m.turned(), Mount::default());
+            assert_eq!(m.turned.turn, Mount::default());
         }
     }
 }
