@@ -377,6 +377,10 @@ impl Pipeline {
                 }
                 TrackEvent::SpotFound => tracing::info!("PSD2 sees the spot again"),
                 TrackEvent::FollowerProblem(p) => self.alarms.raise("follower", p),
+                TrackEvent::FollowerRecovered => {
+                    tracing::info!("the follower serves the tracker again");
+                    self.alarms.clear("follower");
+                }
             }
         }
     }

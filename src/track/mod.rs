@@ -203,6 +203,16 @@ pub enum TrackEvent {
     SpotFound,
     /// A follower move did not finish in time or the follower is not ready.
     FollowerProblem(String),
+    /// The follower serves again after a `FollowerProblem`: ready again after it was not,
+    /// or a move reached its target after one did not in time.
+    FollowerRecovered,
+}
+
+/// What the last `FollowerProblem` was, and so what ends it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Problem {
+    NotReady,
+    Late,
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -303,6 +313,8 @@ pub struct Tracker {
     ref_corr: [f64; 2],
     stitch_corr: [f64; 2],
     before_corr: [f64; 2],
+    /// The follower problem last reported and not yet recovered from.
+    problem: Option<Problem>,
 }
 
 /// The follower has turned when it is this far back from its furthest point (mm).
@@ -332,6 +344,7 @@ impl Tracker {
             valid: false,
             commands: VecDeque::new(),
             events: VecDeque::new(),
+            problem: None,
             last_frame_unix_us: 0,
             map: None,
             motion: Direction::Up,
@@ -597,6 +610,9 @@ impl Tracker {
                 .handle_follower(at, state.position_mm, state.target_reached);
         }
         self.follower = Some(state);
+        if state.ready && self.problem == Some(Problem::NotReady) {
+            self.recovered();
+        }
         match self.phase.clone() {
             Phase::Moving {
                 target,
@@ -605,6 +621,7 @@ impl Tracker {
                 reached_at,
             } => {
                 if !state.ready {
+                    self.problem = Some(Problem::NotReady);
                     self.events.push_back(TrackEvent::FollowerProblem(
                         "the follower is not ready".into(),
                     ));
@@ -625,6 +642,9 @@ impl Tracker {
                     }
                 } else if self.reached(&state, target) {
                     if reached_at.is_none() {
+                        if self.problem == Some(Problem::Late) {
+                            self.recovered();
+                        }
                         tracing::debug!(
                             position_mm = state.position_mm,
                             target_mm = target,
@@ -670,6 +690,9 @@ impl Tracker {
                         };
                     }
                     None if self.reached(&state, target) => {
+                        if self.problem == Some(Problem::Late) {
+                            self.recovered();
+                        }
                         self.approached();
                         done(self);
                     }
@@ -692,10 +715,17 @@ impl Tracker {
         state.target_reached && (state.position_mm - target).abs() < tol
     }
 
+    /// The follower problem reported last is over (said as an event).
+    fn recovered(&mut self) {
+        self.problem = None;
+        self.events.push_back(TrackEvent::FollowerRecovered);
+    }
+
     /// A move begun at `since` towards `target` has not finished in time (said as an event).
     fn timed_out(&mut self, since: Instant, target: f64, now: Instant) -> bool {
         let late = now.saturating_duration_since(since) > self.settings.move_timeout;
         if late {
+            self.problem = Some(Problem::Late);
             self.events.push_back(TrackEvent::FollowerProblem(format!(
                 "the follower did not reach {target:.3} mm in {:.1} s",
                 self.settings.move_timeout.as_secs_f64()
@@ -1098,6 +1128,9 @@ mod tests {
         seq: u64,
         /// Every absolute move commanded (mm).
         moves: Vec<f64>,
+        /// The drive is enabled (it moves and says so) / it stands still whatever it is told.
+        ready: bool,
+        stalled: bool,
     }
 
     fn fu(d: f64) -> f64 {
@@ -1119,6 +1152,8 @@ mod tests {
                 rng: Rng::new(3),
                 seq: 0,
                 moves: Vec::new(),
+                ready: true,
+                stalled: false,
             }
         }
 
@@ -1140,7 +1175,7 @@ mod tests {
         /// Advance 2 ms: one frame; the follower runs at 100 mm/s towards its target.
         fn step(&mut self, tr: &mut Tracker) {
             self.now += Duration::from_millis(2);
-            if let Some(t) = self.target {
+            if let Some(t) = self.target.filter(|_| self.ready && !self.stalled) {
                 let max = 100.0 * 0.002;
                 let d = (t - self.enc).clamp(-max, max);
                 self.enc += d;
@@ -1163,7 +1198,7 @@ mod tests {
             tr.handle_follower(
                 FollowerState {
                     position_mm: self.enc,
-                    ready: true,
+                    ready: self.ready,
                     target_reached: self.target.is_none(),
                     at: None,
                 },
@@ -1187,6 +1222,66 @@ mod tests {
         b.run(&mut tr, 50);
         assert!(tr.reference());
         (b, tr)
+    }
+
+    /// The follower events of `tr` since the last call: problems by their text, recoveries.
+    fn follower_events(tr: &mut Tracker) -> Vec<String> {
+        std::iter::from_fn(|| tr.poll_event())
+            .filter_map(|e| match e {
+                TrackEvent::FollowerProblem(p) => Some(p),
+                TrackEvent::FollowerRecovered => Some("recovered".into()),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Step the carriage 1 mm at a time until the tracker starts a follower move.
+    fn until_a_move(b: &mut Bench, tr: &mut Tracker) {
+        let moves = b.moves.len();
+        while b.moves.len() == moves {
+            b.carriage += 1.0;
+            for _ in 0..750 {
+                b.step(tr);
+                if b.moves.len() > moves {
+                    return;
+                }
+            }
+            assert!(b.carriage < 50.0, "no follower move by {} mm", b.carriage);
+        }
+    }
+
+    #[test]
+    fn a_follower_problem_is_said_once_and_its_end_is_said_when_the_follower_serves_again() {
+        // Not ready in the middle of a move: said; ready again: recovered.
+        let (mut b, mut tr) = referenced(Strategy::Overlap);
+        follower_events(&mut tr);
+        until_a_move(&mut b, &mut tr);
+        b.ready = false;
+        b.run(&mut tr, 20);
+        assert_eq!(follower_events(&mut tr), ["the follower is not ready"]);
+        b.run(&mut tr, 500);
+        b.ready = true;
+        b.run(&mut tr, 20);
+        assert_eq!(follower_events(&mut tr), ["recovered"]);
+
+        // A move that does not end in time: said once; the next move that does: recovered.
+        let (mut b, mut tr) = referenced(Strategy::Overlap);
+        until_a_move(&mut b, &mut tr);
+        b.stalled = true;
+        b.run(&mut tr, 10_500);
+        let target = b.moves.last().copied().unwrap_or_default();
+        assert_eq!(
+            follower_events(&mut tr),
+            [format!(
+                "the follower did not reach {target:.3} mm in 10.0 s"
+            )]
+        );
+        b.stalled = false;
+        b.run(&mut tr, 1000);
+        assert_eq!(follower_events(&mut tr), Vec::<String>::new());
+        until_a_move(&mut b, &mut tr);
+        b.run(&mut tr, 1000);
+        assert_eq!(follower_events(&mut tr), ["recovered"]);
     }
 
     #[test]
