@@ -14,9 +14,11 @@
 
 pub mod knock;
 pub mod mount;
+pub mod revisit;
 
 pub use knock::{Knock, KnockSettings, KnockWatch};
 pub use mount::{Mount, MountGeometry, Screw};
+pub use revisit::{Revisit, RevisitSettings};
 
 use crate::optics::{Layout, Pose, Spot};
 use crate::units::Errors6;

@@ -206,8 +206,10 @@ pub struct RunMachine {
     recent: VecDeque<(Capture, i64)>,
 }
 
-/// How many of the newest captures a knock found late may reach back to.
-const RECENT: usize = 4;
+/// How many of the newest captures a knock found late may reach back to: half a window
+/// late from the watch, or since the last return to the zero (`align::revisit`), a pass or
+/// two of a long run.
+const RECENT: usize = 512;
 
 impl RunMachine {
     /// A machine for `plan`; `completed` are captures already stored (a resumed run).

@@ -14,10 +14,14 @@
 //! A knock that turns the head on its mount (`align::knock`) is found in the frames and taken
 //! out of every later frame by the turn it gave (a constant angle and a straightness growing
 //! with the distance from the mount's pivot), its uncertainty carried with the stitching's.
+//! A knock in a move, which the frames alone cannot tell from the axis' own angles, is found
+//! at the carriage's next return to the zero (`align::revisit`) and taken out the same way.
 //! A new zero, or none, starts from the head as it stands.
 
 use crate::acquire::Frame;
-use crate::align::{Knock, KnockSettings, KnockWatch, Mount, MountGeometry};
+use crate::align::{
+    Knock, KnockSettings, KnockWatch, Mount, MountGeometry, Revisit, RevisitSettings,
+};
 use crate::decouple::{BetaCache, DecoupleError, Decoupler};
 use crate::optics::Layout;
 use crate::run::FrameSample;
@@ -72,6 +76,8 @@ struct ZeroAverage {
 #[derive(Clone, Debug)]
 struct Turned {
     watch: KnockWatch,
+    /// Each return to the zero's place, checked for a turn since the last one.
+    revisit: Revisit,
     /// The sum of the turns found.
     turn: Mount,
     /// The variance of `turn`'s yaw and pitch (rad²).
@@ -84,14 +90,21 @@ impl Turned {
     fn new() -> Self {
         Turned {
             watch: KnockWatch::new(KnockSettings::default()),
+            revisit: Revisit::new(RevisitSettings::default()),
             turn: Mount::default(),
             var: [0.0; 2],
             found: None,
         }
     }
 
+    /// No turn, no zero to check returns against (the side the carriage is on is kept).
     fn reset(&mut self) {
-        *self = Turned::new();
+        let mut revisit = std::mem::replace(&mut self.revisit, Revisit::new(Default::default()));
+        revisit.forget();
+        *self = Turned {
+            revisit,
+            ..Turned::new()
+        };
     }
 
     fn head_pose(m: Mount, layout: &Layout, travel: f64, e: &Errors6) -> Errors6 {
@@ -247,6 +260,9 @@ impl Measure {
             _ => (live.errors.to_vector(), self.window_cov()?),
         };
         self.zero = Some(Zero { errors: e, cov });
+        if let Some(at) = self.position() {
+            self.turned.revisit.set_zero(at);
+        }
         Some(Errors6::from_vector(&e))
     }
 
@@ -335,6 +351,29 @@ impl Measure {
             self.turned.add(k);
             read = self.turned.undo(layout, travel, est.errors);
             self.restart();
+            self.turned.revisit.restart();
+        }
+        // Pitch and yaw relative to the zero, for the check of each return to it.
+        let (rel, zero_sd) = match &self.zero {
+            Some(z) => (
+                read.to_vector() - z.errors,
+                [z.cov[(3, 3)].sqrt(), z.cov[(5, 5)].sqrt()],
+            ),
+            None => (read.to_vector(), [0.0; 2]),
+        };
+        let at = travel + read.dy;
+        if let Some(k) = self
+            .turned
+            .revisit
+            .push(frame.unix_us, at, [rel[3], rel[5]], zero_sd)
+        {
+            // Found back at the zero: the frames of this stay read through it too.
+            self.turned.add(k);
+            read = self
+                .turned
+                .undo(self.decoupler.layout(), travel, est.errors);
+            self.restart();
+            self.turned.watch.reset();
         }
         let turned_var = self.turned.var_at(self.decoupler.layout(), travel);
         if let Some(a) = self.zero_average.as_mut() {

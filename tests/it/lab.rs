@@ -225,7 +225,10 @@ fn a_slipped_encoder_mid_run_is_found_and_its_captures_retaken() {
 /// dx off by 6 µrad × (380 + 200) mm ≈ 3.5 µm at the far target. (The lab reports progress
 /// once a simulated second: a knock within a capture's 0.3 s of frames is the run machine's
 /// test, `a_knock_found_after_a_capture_s_last_frames_has_it_retaken`.)
-fn knocked_mid_run(seed: u64, knocks: [Mount; 2]) {
+/// Two knocks made in a 200 mm run of 3 passes: at rest (`in_moves` false: the first at rest,
+/// the second on a target after a move) or while the carriage moves (`in_moves`: found only
+/// at the next return to the zero). Each found, and every capture within 3 u of the truth.
+fn knocked_mid_run(seed: u64, knocks: [Mount; 2], in_moves: bool) {
     crate::helpers::init_test_log();
     let _machine = crate::helpers::heavy();
     let mut spec = LabSpec::standard(perfect_head(seed), None).expect("spec");
@@ -241,7 +244,12 @@ fn knocked_mid_run(seed: u64, knocks: [Mount; 2]) {
     let mut moved = false;
     let run = lab.measure(&plan, Dialect::LinuxCnc, CaptureMode::Stability, |p| {
         let on_target = targets.iter().any(|t| (t - p.position_mm).abs() < 1e-3);
-        if done == 0 && p.captures >= 6 && !p.moving {
+        if in_moves {
+            if (done == 0 && p.captures >= 6 || done == 1 && p.captures >= 14) && p.moving {
+                plant.knock(knocks[done]);
+                done += 1;
+            }
+        } else if done == 0 && p.captures >= 6 && !p.moving {
             plant.knock(knocks[0]);
             done = 1;
         } else if done == 1 && p.captures >= 14 {
@@ -271,7 +279,8 @@ fn knocked_mid_run(seed: u64, knocks: [Mount; 2]) {
         run.captures.len(),
         lab.flags.len()
     );
-    assert_eq!(knocks_found.len(), 2, "events {:?}", lab.events);
+    // A knock in a move may be found in part by the watch and the rest at the zero.
+    assert!(knocks_found.len() >= 2, "events {:?}", lab.events);
     let worst = once_at_rest_within_3u(&run, 30, &at_zero, &format!("seed {seed}"));
     eprintln!("seed {seed}: worst |measured − truth| / u per DOF: {worst:.2?}");
 }
@@ -342,8 +351,9 @@ fn knocks_mid_run_are_found_and_taken_out_of_the_captures() {
                 ..Mount::default()
             },
         ],
+        false,
     );
-    knocked_mid_run(9, [yaw(-8.0), yaw(5.0)]);
+    knocked_mid_run(9, [yaw(-8.0), yaw(5.0)], false);
     knocked_mid_run(
         17,
         [
@@ -353,6 +363,28 @@ fn knocks_mid_run_are_found_and_taken_out_of_the_captures() {
             },
             yaw(-3.0),
         ],
+        false,
+    );
+}
+
+#[test]
+fn knocks_in_moves_are_found_back_at_the_zero_and_what_they_reached_is_retaken() {
+    let yaw = |urad: f64| Mount {
+        yaw: urad * 1e-6,
+        ..Mount::default()
+    };
+    knocked_mid_run(5, [yaw(9.0), yaw(-4.0)], true);
+    knocked_mid_run(
+        12,
+        [
+            Mount {
+                yaw: 3e-6,
+                pitch: -2e-6,
+                ..Mount::default()
+            },
+            yaw(-6.0),
+        ],
+        true,
     );
 }
 

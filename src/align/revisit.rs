@@ -1,0 +1,276 @@
+//! A knock in a move, found where the carriage comes back to the zero (issue 24).
+//!
+//! [`KnockWatch`](super::KnockWatch) finds a knock in frames where the carriage stands or goes
+//! one way over a short span; in a move the axis' own angular waviness hides it. A return to
+//! the zero reference's position, from the side the zero was approached from, is a check no
+//! move can hide: there the head reads the pitch and yaw it read at the zero (relative to the
+//! zero: none), within the noise of the mean and the axis' angular repeatability. A mean
+//! beyond that is a turn of the head since the last return that agreed, and is reported as a
+//! knock at that return's time, so that everything measured since is taken again, with the
+//! turn taken out.
+//!
+//! Sans-I/O: the caller gives each frame's time, measured position and its pitch and yaw
+//! relative to the zero, and says when the zero is taken or forgotten.
+
+use super::{Knock, Mount};
+
+/// How the check decides.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RevisitSettings {
+    /// The carriage is back at the zero within this (mm).
+    pub tolerance_mm: f64,
+    /// Further than this from the zero (mm), the carriage was away, on one side.
+    pub away_mm: f64,
+    /// Frames skipped after arriving (the carriage settling), then frames averaged.
+    pub settle: usize,
+    pub frames: usize,
+    /// Significance a turn needs (standard deviations of the mean and the zero together).
+    pub z: f64,
+    /// The smallest turn reported (rad): an axis' angular repeatability at one place.
+    pub min_rad: f64,
+}
+
+impl Default for RevisitSettings {
+    /// 0.2 s to settle and 0.5 s averaged at 500 Hz (inside a capture's dwell); 1 µrad, 0.2″,
+    /// is about what a machine axis repeats its yaw and pitch to at one place, and moves a
+    /// straightness by 1 µm per metre from the pivot.
+    fn default() -> Self {
+        RevisitSettings {
+            tolerance_mm: 0.05,
+            away_mm: 1.0,
+            settle: 100,
+            frames: 250,
+            z: 5.5,
+            min_rad: 1.0e-6,
+        }
+    }
+}
+
+/// The zero's place: its measured position, and the side the carriage came from (-1 below,
+/// +1 above; `None` until a return tells it).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Place {
+    position: f64,
+    side: Option<i8>,
+}
+
+/// The check of each return to the zero.
+#[derive(Clone, Debug)]
+pub struct Revisit {
+    settings: RevisitSettings,
+    zero: Option<Place>,
+    /// The side of the zero the carriage was last away on.
+    side: Option<i8>,
+    /// The newest frame's time, and the time the head last agreed with the zero (µs).
+    last_us: i64,
+    agreed_us: i64,
+    /// Frames at the zero since arriving, and the sums of pitch and yaw (and squares) averaged.
+    seen: usize,
+    sum: [f64; 2],
+    sum_sq: [f64; 2],
+    n: usize,
+    /// This stay at the zero is judged.
+    judged: bool,
+}
+
+impl Revisit {
+    pub fn new(settings: RevisitSettings) -> Self {
+        Revisit {
+            settings,
+            zero: None,
+            side: None,
+            last_us: 0,
+            agreed_us: 0,
+            seen: 0,
+            sum: [0.0; 2],
+            sum_sq: [0.0; 2],
+            n: 0,
+            judged: false,
+        }
+    }
+
+    /// The zero is taken at `position` (mm) with the newest frame: the head agrees with it
+    /// there and then. The carriage stands at it: this stay is not judged.
+    pub fn set_zero(&mut self, position: f64) {
+        self.zero = Some(Place {
+            position,
+            side: self.side,
+        });
+        self.agreed_us = self.last_us;
+        self.restart();
+        self.judged = true;
+    }
+
+    /// No zero (forgotten, or another decoupling): nothing to check against.
+    pub fn forget(&mut self) {
+        self.zero = None;
+        self.restart();
+    }
+
+    /// The frames averaged so far do not count (the head's turn changed under them).
+    pub fn restart(&mut self) {
+        self.seen = 0;
+        self.sum = [0.0; 2];
+        self.sum_sq = [0.0; 2];
+        self.n = 0;
+    }
+
+    /// One frame at `unix_us`: the measured position (mm), pitch and yaw relative to the zero
+    /// (rad), and the zero's own standard uncertainty of each. A turn found: the knock, at
+    /// the time the head last agreed with the zero.
+    pub fn push(
+        &mut self,
+        unix_us: i64,
+        position: f64,
+        angles: [f64; 2],
+        zero_sd: [f64; 2],
+    ) -> Option<Knock> {
+        if !(position.is_finite() && angles.iter().all(|a| a.is_finite())) {
+            return None;
+        }
+        self.last_us = unix_us;
+        let s = self.settings;
+        let Some(place) = self.zero.as_mut() else {
+            return None;
+        };
+        let d = position - place.position;
+        if d.abs() > s.away_mm {
+            self.side = Some(if d > 0.0 { 1 } else { -1 });
+            self.judged = false;
+            self.restart();
+            return None;
+        }
+        if d.abs() > s.tolerance_mm {
+            self.restart();
+            return None;
+        }
+        if self.judged || self.side.is_none() {
+            return None;
+        }
+        // The zero's side is the first return's when the zero's own approach is not known.
+        if place.side.is_none() {
+            place.side = self.side;
+        }
+        if place.side != self.side {
+            return None;
+        }
+        self.seen += 1;
+        if self.seen <= s.settle {
+            return None;
+        }
+        for k in 0..2 {
+            self.sum[k] += angles[k];
+            self.sum_sq[k] += angles[k] * angles[k];
+        }
+        self.n += 1;
+        if self.n < s.frames {
+            return None;
+        }
+        self.judged = true;
+        let n = self.n as f64;
+        let mean: [f64; 2] = std::array::from_fn(|k| self.sum[k] / n);
+        let sd: [f64; 2] = std::array::from_fn(|k| {
+            let var_frame = ((self.sum_sq[k] - n * mean[k] * mean[k]) / (n - 1.0)).max(0.0);
+            (var_frame / n + zero_sd[k] * zero_sd[k]).sqrt()
+        });
+        let z = (0..2)
+            .map(|k| mean[k].abs() / sd[k].max(f64::MIN_POSITIVE))
+            .fold(0.0, f64::max);
+        let turned = (0..2).any(|k| mean[k].abs() > (s.z * sd[k]).max(s.min_rad));
+        let since = std::mem::replace(&mut self.agreed_us, unix_us);
+        turned.then_some(Knock {
+            unix_us: since,
+            turn: Mount {
+                yaw: -mean[1],
+                pitch: -mean[0],
+                ..Mount::default()
+            },
+            sd_rad: [sd[1], sd[0]],
+            z,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::Rng;
+
+    /// Frames every 2 ms from `t0` (µs) at `position` with pitch and yaw `angles` plus 1.4 µrad
+    /// of noise each: the knock found, if any.
+    fn stay(
+        r: &mut Revisit,
+        rng: &mut Rng,
+        t0: i64,
+        position: f64,
+        angles: [f64; 2],
+        frames: usize,
+    ) -> Option<Knock> {
+        let mut found = None;
+        for i in 0..frames {
+            let a = [angles[0] + rng.gauss(1.4e-6), angles[1] + rng.gauss(1.4e-6)];
+            if let Some(k) = r.push(t0 + 2000 * i as i64, position, a, [0.05e-6; 2]) {
+                assert!(found.is_none(), "one knock a stay");
+                found = Some(k);
+            }
+        }
+        found
+    }
+
+    #[test]
+    fn a_turn_since_the_last_return_is_found_at_the_next_return_from_the_zero_s_side() {
+        let mut rng = Rng::new(5);
+        let mut r = Revisit::new(RevisitSettings::default());
+        // Came from below, zero at 0 mm at t = 1 s.
+        assert!(stay(&mut r, &mut rng, 0, -2.0, [0.0; 2], 10).is_none());
+        assert!(stay(&mut r, &mut rng, 1_000_000, 0.0, [0.0; 2], 10).is_none());
+        r.set_zero(0.0);
+        // Away above and back from below, unturned: agrees (at the stay's last frame).
+        assert!(stay(&mut r, &mut rng, 2_000_000, 300.0, [0.0; 2], 10).is_none());
+        assert!(stay(&mut r, &mut rng, 3_000_000, -2.0, [0.0; 2], 10).is_none());
+        assert!(stay(&mut r, &mut rng, 4_000_000, 0.01, [0.0; 2], 500).is_none());
+        let agreed = 4_000_000 + 2000 * 349;
+        // Knocked away (the head now reads yaw +3 µrad, pitch -2 µrad more); back from above
+        // first: another side, not judged.
+        let turned = [-2.0e-6, 3.0e-6];
+        assert!(stay(&mut r, &mut rng, 5_000_000, 500.0, turned, 10).is_none());
+        assert!(stay(&mut r, &mut rng, 6_000_000, 0.0, turned, 500).is_none());
+        // From below: found, dated at the last agreement, the turn that undoes it.
+        assert!(stay(&mut r, &mut rng, 7_000_000, -2.0, turned, 10).is_none());
+        let k = stay(&mut r, &mut rng, 8_000_000, 0.0, turned, 500).expect("the turn found");
+        assert_eq!(k.unix_us, agreed);
+        assert!((k.turn.yaw + 3.0e-6).abs() < 0.5e-6, "yaw {:e}", k.turn.yaw);
+        assert!(
+            (k.turn.pitch - 2.0e-6).abs() < 0.5e-6,
+            "pitch {:e}",
+            k.turn.pitch
+        );
+        assert!(
+            k.sd_rad[0] < 0.15e-6 && k.sd_rad[0] > 0.05e-6,
+            "{:?}",
+            k.sd_rad
+        );
+        // A turn below the axis' repeatability is no knock; nor is anything without a zero.
+        assert!(stay(&mut r, &mut rng, 9_000_000, -2.0, [0.0; 2], 10).is_none());
+        assert!(stay(&mut r, &mut rng, 9_100_000, 0.0, [0.0, 0.6e-6], 500).is_none());
+        r.forget();
+        assert!(stay(&mut r, &mut rng, 10_000_000, -2.0, [0.0; 2], 10).is_none());
+        assert!(stay(&mut r, &mut rng, 11_000_000, 0.0, turned, 500).is_none());
+    }
+
+    #[test]
+    fn a_stay_too_short_or_off_the_zero_is_not_judged() {
+        let mut rng = Rng::new(6);
+        let mut r = Revisit::new(RevisitSettings::default());
+        r.set_zero(0.0);
+        let turned = [0.0, 5.0e-6];
+        assert!(stay(&mut r, &mut rng, 0, -3.0, turned, 10).is_none());
+        // 0.6 s: settling and averaging need 0.7 s.
+        assert!(stay(&mut r, &mut rng, 1_000_000, 0.0, turned, 300).is_none());
+        // 0.1 mm off the zero.
+        assert!(stay(&mut r, &mut rng, 2_000_000, 0.1, turned, 500).is_none());
+        // Away and back for long enough: found.
+        assert!(stay(&mut r, &mut rng, 3_000_000, -3.0, turned, 10).is_none());
+        assert!(stay(&mut r, &mut rng, 4_000_000, 0.0, turned, 400).is_some());
+    }
+}
