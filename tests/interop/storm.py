@@ -62,22 +62,27 @@ def svc(sock, req, timeout=5.0):
 # (PSD2 alone without its spot after the follower was stopped or left behind: by design the
 # run waits for the carriage's next pass and makes up what it missed at the end).
 WAITING_FOR_PASS = {"run-paused", "stitch-broken", "beam-blocked"}
+# A capture flagged (a knock found late, the judge) stays alarmed while its run retakes it in
+# the make-up pass: the run's own business, not a fault left unrecovered.
+RUN_RETAKES = {"capture-flagged"}
 
 
 def healthy(st):
     """Whether a status shows the service whole again: the I/O link up with a fresh frame, the
-    follower enabled with its heartbeat and homed, and no active alarm — except the three of a
-    run waiting for the carriage's next pass (PSD1 and PSD3 seeing their spots, PSD2 not)."""
+    follower enabled with its heartbeat and homed, and no active alarm — except, in a run, a
+    flagged capture it retakes, and the three of a run waiting for the carriage's next pass
+    (PSD1 and PSD3 seeing their spots, PSD2 not)."""
     if not st or "links" not in st:
         return False
     p = st.get("psd") or {}
     f = st["follower"]
     spots = p.get("spots_um", [None, None, None])
-    alarms = active_alarms(st)
+    run = st.get("run") is not None
+    alarms = active_alarms(st) - (RUN_RETAKES if run else set())
     waiting = spots[0] is not None and spots[2] is not None and alarms <= WAITING_FOR_PASS
     return (st["links"]["io"]["state"] == "up" and p.get("age_ms", 1e9) < 100.0
             and f["heartbeat_ok"] and f["homed"] and f["state"] == "Operation enabled"
-            and (not alarms or (waiting and st.get("run") is not None)))
+            and (not alarms or (waiting and run)))
 
 
 def active_alarms(st):
