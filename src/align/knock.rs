@@ -16,7 +16,7 @@
 //! Sans-I/O: the caller gives each frame's time, position and errors, and resets the watch
 //! where the errors it gives step for another reason (a new zero, another decoupler).
 
-use super::Mount;
+use super::mount::Mount;
 use crate::units::Errors6;
 use nalgebra::{Matrix4, Vector4};
 use std::collections::VecDeque;

@@ -12,7 +12,8 @@
 //! Sans-I/O: the caller gives each frame's time, measured position and its pitch and yaw
 //! relative to the zero, and says when the zero is taken or forgotten.
 
-use super::{Knock, Mount};
+use super::knock::Knock;
+use super::mount::Mount;
 
 /// How the check decides.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -130,9 +131,7 @@ impl Revisit {
         }
         self.last_us = unix_us;
         let s = self.settings;
-        let Some(place) = self.zero.as_mut() else {
-            return None;
-        };
+        let place = self.zero.as_mut()?;
         let d = position - place.position;
         if d.abs() > s.away_mm {
             self.side = Some(if d > 0.0 { 1 } else { -1 });
@@ -158,9 +157,9 @@ impl Revisit {
         if self.seen <= s.settle {
             return None;
         }
-        for k in 0..2 {
-            self.sum[k] += angles[k];
-            self.sum_sq[k] += angles[k] * angles[k];
+        for (k, a) in angles.iter().enumerate() {
+            self.sum[k] += a;
+            self.sum_sq[k] += a * a;
         }
         self.n += 1;
         if self.n < s.frames {
