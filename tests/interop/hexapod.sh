@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The calibration hexapod with real processes (issue 17): `axiscomp sim` serves its hexapod
-# where the real controllers listen (PI GCS on 127.0.0.1:50000, Newport XPS on 127.0.0.1:5001);
+# on free ports (the real controllers' PI GCS 50000 lies in the ephemeral range, where a loaded
+# machine's client sockets took it once);
 #  1. PI's pipython and Newport's newportxps drive it (tests/interop/hexapod_peer.py);
 #  2. `axiscomp calibrate run` drives it with both of axiscomp's drivers, and a run killed with
 #     SIGKILL resumes at the next pose;
@@ -37,21 +38,23 @@ fail() {
 }
 
 source tests/interop/twin-configs.sh
-twin_configs "$work"
+TWIN_HEXAPOD_PORTS=free twin_configs "$work"
 # A head with installation errors (±0.5 mm, ±0.2°, 1 % PSD gain), the follower at 0, a quick
-# platform (20 mm/s, 5°/s); the hexapod stays on its default ports.
+# platform (20 mm/s, 5°/s).
 sed -i -e 's/^install_offset_mm = .*/install_offset_mm = 0.5/' \
        -e 's/^install_tilt_deg = .*/install_tilt_deg = 0.2/' \
        -e 's/^gain_error = .*/gain_error = 0.01/' \
        -e 's/^start_mm = .*/start_mm = 0.0/' \
        -e 's/^speed_mm_s = .*/speed_mm_s = 20.0/' \
        -e 's/^speed_deg_s = .*/speed_deg_s = 5.0/' "$work/sim.toml"
-grep -q '^gcs_listen = "127.0.0.1:50000"' "$work/sim.toml" || fail "sim.toml: hexapod not on 50000"
+gcs=$(sed -n 's/^gcs_listen = "127.0.0.1:\([0-9]*\)"$/\1/p' "$work/sim.toml")
+xps=$(sed -n 's/^xps_listen = "127.0.0.1:\([0-9]*\)"$/\1/p' "$work/sim.toml")
+[ -n "$gcs" ] && [ -n "$xps" ] && [ "$gcs" != 50000 ] || fail "sim.toml: the hexapod's ports not set"
 
 start_sim() {
   "$bin" sim --config "$work/sim.toml" >"$work/sim.log" 2>&1 & sim=$!
   for _ in $(seq 1 100); do
-    grep -q "twin hexapod: PI GCS on 127.0.0.1:50000, Newport XPS on 127.0.0.1:5001" "$work/sim.log" && return 0
+    grep -q "twin hexapod: PI GCS on 127.0.0.1:$gcs, Newport XPS on 127.0.0.1:$xps" "$work/sim.log" && return 0
     kill -0 "$sim" 2>/dev/null || fail "the twin exited"
     sleep 0.1
   done
@@ -60,14 +63,14 @@ start_sim() {
 
 echo "1. pipython and newportxps against the twin's controllers"
 start_sim
-python3 tests/interop/hexapod_peer.py 127.0.0.1 50000 5001 || fail "the independent clients"
+python3 tests/interop/hexapod_peer.py 127.0.0.1 $gcs $xps || fail "the independent clients"
 
 echo "2. axiscomp's drivers; a run killed mid-plan resumes"
 quick=(AXISCOMP__HEXAPOD__FRAMES=20 AXISCOMP__HEXAPOD__SETTLE_MS=20)
 env "${quick[@]}" "$bin" calibrate run --config "$work/service.toml" --poses 20 \
   --out "$work/gcs" >"$work/gcs.out" 2>"$work/gcs.err" || fail "calibrate run (pi-gcs)"
-grep -q "PI C-887 at 127.0.0.1:50000" "$work/gcs.err" || fail "pi-gcs driver not used"
-env "${quick[@]}" AXISCOMP__HEXAPOD__DRIVER=newport-xps AXISCOMP__HEXAPOD__ADDRESS=127.0.0.1:5001 \
+grep -q "PI C-887 at 127.0.0.1:$gcs" "$work/gcs.err" || fail "pi-gcs driver not used"
+env "${quick[@]}" AXISCOMP__HEXAPOD__DRIVER=newport-xps AXISCOMP__HEXAPOD__ADDRESS=127.0.0.1:$xps \
   "$bin" calibrate run --config "$work/service.toml" --poses 40 --out "$work/xps" \
   >"$work/xps-1.out" 2>"$work/xps-1.err" & run=$!
 for _ in $(seq 1 300); do
@@ -78,7 +81,7 @@ kill -9 "$run" 2>/dev/null || true
 wait "$run" 2>/dev/null || true
 stored=$(grep -c '^[0-9]' "$work/xps/run.csv" || true)
 [ "$stored" -ge 10 ] && [ "$stored" -lt 40 ] || fail "killed run stored $stored poses"
-env "${quick[@]}" AXISCOMP__HEXAPOD__DRIVER=newport-xps AXISCOMP__HEXAPOD__ADDRESS=127.0.0.1:5001 \
+env "${quick[@]}" AXISCOMP__HEXAPOD__DRIVER=newport-xps AXISCOMP__HEXAPOD__ADDRESS=127.0.0.1:$xps \
   "$bin" calibrate run --config "$work/service.toml" --poses 40 --out "$work/xps" \
   >"$work/xps-2.out" 2>"$work/xps-2.err" || fail "resumed calibrate run (newport-xps)"
 grep -q "resuming $work/xps: $stored of 40 poses stored" "$work/xps-2.err" || fail "no resume"
