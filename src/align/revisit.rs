@@ -151,6 +151,10 @@ impl Revisit {
             place.side = self.side;
         }
         if place.side != self.side {
+            if self.seen == 0 {
+                tracing::debug!(position, "back at the zero from the other side: not judged");
+                self.seen = 1;
+            }
             return None;
         }
         self.seen += 1;
@@ -176,6 +180,13 @@ impl Revisit {
             .map(|k| mean[k].abs() / sd[k].max(f64::MIN_POSITIVE))
             .fold(0.0, f64::max);
         let turned = (0..2).any(|k| mean[k].abs() > (s.z * sd[k]).max(s.min_rad));
+        tracing::debug!(
+            pitch_urad = mean[0] * 1e6,
+            yaw_urad = mean[1] * 1e6,
+            sd_urad = sd[1] * 1e6,
+            turned,
+            "back at the zero: pitch and yaw against the zero's"
+        );
         let since = std::mem::replace(&mut self.agreed_us, unix_us);
         turned.then_some(Knock {
             unix_us: since,
