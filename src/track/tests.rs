@@ -1,0 +1,512 @@
+//! The tracker against a virtual plant: stitching, follower moves and their problems.
+
+use super::*;
+use crate::optics::Spot;
+use crate::sim::Rng;
+
+/// A virtual plant: carriage at `carriage` (mm), follower encoder `enc`, the follower's own
+/// errors along (`fu`) and across (`fv`), PSD noise 1 µm.
+struct Bench {
+    t0: Instant,
+    now: Instant,
+    carriage: f64,
+    enc: f64,
+    target: Option<f64>,
+    rng: Rng,
+    seq: u64,
+    /// Every absolute move commanded (mm).
+    moves: Vec<f64>,
+    /// The drive is enabled (it moves and says so) / it stands still whatever it is told.
+    ready: bool,
+    stalled: bool,
+}
+
+fn fu(d: f64) -> f64 {
+    3e-3 * (d / 10.0).sin()
+}
+fn fv(d: f64) -> f64 {
+    2e-3 * (d / 7.0 + 0.3).sin()
+}
+
+impl Bench {
+    fn new() -> Self {
+        let t0 = crate::util::clock::now();
+        Bench {
+            t0,
+            now: t0,
+            carriage: 0.0,
+            enc: 0.0,
+            target: None,
+            rng: Rng::new(3),
+            seq: 0,
+            moves: Vec::new(),
+            ready: true,
+            stalled: false,
+        }
+    }
+
+    fn frame(&mut self) -> Frame {
+        let noise = 1e-3;
+        let x = self.carriage - (self.enc + fu(self.enc)) + self.rng.gauss(noise);
+        let y = -fv(self.enc) + self.rng.gauss(noise);
+        self.seq += 1;
+        let other = Some(Spot { x: 0.0, y: 0.0 });
+        Frame {
+            seq: self.seq,
+            at: self.now,
+            unix_us: (self.now - self.t0).as_micros() as i64,
+            spots: [other, Some(Spot { x, y }), other],
+            sums: [5.0; 3],
+        }
+    }
+
+    /// Advance 2 ms: one frame; the follower runs at 100 mm/s towards its target.
+    fn step(&mut self, tr: &mut Tracker) {
+        self.now += Duration::from_millis(2);
+        if let Some(t) = self.target.filter(|_| self.ready && !self.stalled) {
+            let max = 100.0 * 0.002;
+            let d = (t - self.enc).clamp(-max, max);
+            self.enc += d;
+            if (t - self.enc).abs() < 1e-12 {
+                self.enc = t;
+                self.target = None;
+            }
+        }
+        let f = self.frame();
+        tr.handle_frame(&f, self.now);
+        while let Some(c) = tr.poll_command() {
+            self.target = Some(match c {
+                FollowerCommand::MoveTo(t) => {
+                    self.moves.push(t);
+                    t
+                }
+                FollowerCommand::Follow { target_mm, .. } => target_mm,
+            });
+        }
+        tr.handle_follower(
+            FollowerState {
+                position_mm: self.enc,
+                ready: self.ready,
+                target_reached: self.target.is_none(),
+                at: None,
+            },
+            self.now,
+        );
+    }
+
+    fn run(&mut self, tr: &mut Tracker, ms: u64) {
+        for _ in 0..ms / 2 {
+            self.step(tr);
+        }
+    }
+}
+
+fn referenced(strategy: Strategy) -> (Bench, Tracker) {
+    let mut b = Bench::new();
+    let mut tr = Tracker::new(TrackSettings {
+        strategy,
+        ..TrackSettings::default()
+    });
+    b.run(&mut tr, 50);
+    assert!(tr.reference());
+    (b, tr)
+}
+
+/// The follower events of `tr` since the last call: problems by their text, recoveries.
+fn follower_events(tr: &mut Tracker) -> Vec<String> {
+    std::iter::from_fn(|| tr.poll_event())
+        .filter_map(|e| match e {
+            TrackEvent::FollowerProblem(p) => Some(p),
+            TrackEvent::FollowerRecovered => Some("recovered".into()),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Step the carriage 1 mm at a time until the tracker starts a follower move.
+fn until_a_move(b: &mut Bench, tr: &mut Tracker) {
+    let moves = b.moves.len();
+    while b.moves.len() == moves {
+        b.carriage += 1.0;
+        for _ in 0..750 {
+            b.step(tr);
+            if b.moves.len() > moves {
+                return;
+            }
+        }
+        assert!(b.carriage < 50.0, "no follower move by {} mm", b.carriage);
+    }
+}
+
+#[test]
+fn a_follower_problem_is_said_once_and_its_end_is_said_when_the_follower_serves_again() {
+    // Not ready in the middle of a move: said; ready again: recovered.
+    let (mut b, mut tr) = referenced(Strategy::Overlap);
+    follower_events(&mut tr);
+    until_a_move(&mut b, &mut tr);
+    b.ready = false;
+    b.run(&mut tr, 20);
+    assert_eq!(follower_events(&mut tr), ["the follower is not ready"]);
+    b.run(&mut tr, 500);
+    b.ready = true;
+    b.run(&mut tr, 20);
+    assert_eq!(follower_events(&mut tr), ["recovered"]);
+
+    // A move that does not end in time: said once; the next move that does: recovered.
+    let (mut b, mut tr) = referenced(Strategy::Overlap);
+    until_a_move(&mut b, &mut tr);
+    b.stalled = true;
+    b.run(&mut tr, 10_500);
+    let target = b.moves.last().copied().unwrap_or_default();
+    assert_eq!(
+        follower_events(&mut tr),
+        [format!(
+            "the follower did not reach {target:.3} mm in 10.0 s"
+        )]
+    );
+    b.stalled = false;
+    b.run(&mut tr, 1000);
+    assert_eq!(follower_events(&mut tr), Vec::<String>::new());
+    until_a_move(&mut b, &mut tr);
+    b.run(&mut tr, 1000);
+    assert_eq!(follower_events(&mut tr), ["recovered"]);
+}
+
+#[test]
+fn overlap_stitch_measures_the_followers_true_displacement() {
+    let (mut b, mut tr) = referenced(Strategy::Overlap);
+    let (u0, v0) = (fu(b.enc), fv(b.enc));
+    // Step the carriage 1 mm at a time to 40 mm, resting 1.5 s at each step.
+    for k in 1..=40 {
+        b.carriage = k as f64;
+        b.run(&mut tr, 1500);
+    }
+    let s = tr.stitch();
+    assert!(s.valid);
+    assert!(s.handovers >= 15, "{} handovers", s.handovers);
+    let mut records = Vec::new();
+    while let Some(e) = tr.poll_event() {
+        if let TrackEvent::Handover(r) = e {
+            assert_eq!(r.kind, HandoverKind::Overlap);
+            records.push(r);
+        }
+    }
+    assert_eq!(records.len(), s.handovers);
+    // Truth: PSD2 is at enc + fu(enc) along, fv(enc) across, relative to the reference.
+    let true_u = b.enc + fu(b.enc) - u0;
+    let true_v = fv(b.enc) - v0;
+    let (sd_u, sd_v) = (s.variance[0].sqrt(), s.variance[1].sqrt());
+    assert!(sd_u > 0.0 && sd_u < 1e-3, "{sd_u}");
+    assert!(
+        (s.follower_mm - true_u).abs() < 4.0 * sd_u,
+        "{} vs {true_u} (sd {sd_u})",
+        s.follower_mm
+    );
+    assert!(
+        (s.vertical_mm - true_v).abs() < 4.0 * sd_v,
+        "{} vs {true_v} (sd {sd_v})",
+        s.vertical_mm
+    );
+    // The encoder alone would be off by the follower's own error.
+    assert!((fu(b.enc) - u0).abs() > 1e-3);
+    assert!((b.enc - true_u).abs() > 3.0 * sd_u, "sd {sd_u}");
+    // Offline re-stitching of the records gives the same.
+    let re = restitch(&records, true, tr.settings());
+    assert!((re.follower_mm - s.follower_mm).abs() < 1e-9);
+    assert!((re.vertical_mm - s.vertical_mm).abs() < 1e-12);
+    let enc = restitch(&records, false, tr.settings());
+    assert!((enc.follower_mm - b.enc).abs() < 1e-9);
+}
+
+#[test]
+fn overlap_follows_by_encoder_when_the_carriage_does_not_stop() {
+    let (mut b, mut tr) = referenced(Strategy::Overlap);
+    // Move continuously at 5 mm/s for 4 s.
+    for _ in 0..2000 {
+        b.carriage += 5.0 * 0.002;
+        b.step(&mut tr);
+    }
+    b.run(&mut tr, 2000);
+    let mut kinds = Vec::new();
+    let mut followed = false;
+    while let Some(e) = tr.poll_event() {
+        match e {
+            TrackEvent::Handover(r) => kinds.push(r.kind),
+            TrackEvent::FollowedWhileMoving { .. } => followed = true,
+            _ => {}
+        }
+    }
+    assert!(followed);
+    assert!(kinds.contains(&HandoverKind::Encoder), "{kinds:?}");
+    let s = tr.stitch();
+    // The spot never left the PSD.
+    assert!(s.valid);
+    // Encoder steps carry the encoder's uncertainty.
+    assert!(s.variance[0].sqrt() >= tr.settings().encoder_sd_mm);
+}
+
+/// The carriage runs 20 mm down and stops: the follower follows it by its encoder, then
+/// ends with its approach from below (20 µm down, then up to where it stood), so the
+/// tracker knows the stage stands in its "up" state whatever its samples showed on the way
+/// down; the step is taken from the encoder once the approach is over. Without an
+/// approach configured, the follower stays where following left it.
+#[test]
+fn following_ends_with_an_approach_from_below() {
+    for approach in [0.02, 0.0] {
+        let (mut b, mut tr) = referenced(Strategy::Overlap);
+        let mut s = *tr.settings();
+        s.approach_mm = approach;
+        tr.set_settings(s);
+        for _ in 0..2000 {
+            b.carriage -= 10.0 * 0.002;
+            b.step(&mut tr);
+        }
+        assert_eq!(tr.motion(), Direction::Down);
+        b.run(&mut tr, 3000);
+        let mut records = Vec::new();
+        while let Some(e) = tr.poll_event() {
+            if let TrackEvent::Handover(r) = e {
+                records.push(r);
+            }
+        }
+        let last = records.last().expect("a handover");
+        assert_eq!(last.kind, HandoverKind::Encoder);
+        assert!(!tr.handing_over());
+        if approach > 0.0 {
+            // The last two moves: the approach point 20 µm below, then the target, where
+            // the encoder step ends.
+            let n = b.moves.len();
+            assert!(n >= 2, "{:?}", b.moves);
+            let (via, target) = (b.moves[n - 2], b.moves[n - 1]);
+            assert!((target - via - 0.02).abs() < 1e-9, "{via} then {target}");
+            assert_eq!(last.encoder_after, target);
+            assert_eq!(b.enc, target);
+            assert_eq!(tr.motion(), Direction::Up);
+        } else {
+            // No move beyond following (whose last targets may step back: the state is then
+            // whatever the samples say).
+            assert!(b.moves.is_empty(), "{:?}", b.moves);
+        }
+        // PSD2 is where the carriage put the spot, within the encoder step's uncertainty.
+        let st = tr.stitch();
+        let spot = b.carriage - (b.enc + fu(b.enc));
+        let psd2 = st.follower_mm + fu(0.0);
+        assert!(
+            (psd2 + spot - b.carriage).abs() < 5.0 * st.variance[0].sqrt(),
+            "{psd2} + {spot} against {}",
+            b.carriage
+        );
+    }
+}
+
+#[test]
+fn encoder_strategy_follows_continuously() {
+    let (mut b, mut tr) = referenced(Strategy::Encoder);
+    for _ in 0..2000 {
+        b.carriage += 10.0 * 0.002;
+        b.step(&mut tr);
+    }
+    b.run(&mut tr, 500);
+    let s = tr.stitch();
+    assert_eq!(s.follower_mm, b.enc);
+    assert!((b.carriage - b.enc).abs() < 0.5, "spot kept near centre");
+    assert!(s.handovers > 10);
+    let sd = s.variance[0].sqrt();
+    let expect = 1e-3 + 5e-6 * b.enc.abs();
+    assert!((sd - expect).abs() < 1e-12, "{sd}");
+    let sd_v = s.variance[1].sqrt();
+    assert!(
+        (sd_v - (0.2e-3 + 3e-6 * b.enc.abs())).abs() < 1e-12,
+        "{sd_v}"
+    );
+}
+
+/// Whoever puts a map in use gets the same map back, as its own type; asked for another
+/// type, the tracker has none.
+#[test]
+fn the_map_in_use_comes_back_as_it_was_given() {
+    #[derive(Debug)]
+    struct Flat;
+    impl StageCorrection for Flat {
+        fn correction(&self, _: f64, _: Direction) -> [f64; 2] {
+            [0.0; 2]
+        }
+        fn difference_variance(&self, _: f64, _: f64, _: Direction, _: Direction) -> [f64; 2] {
+            [0.0; 2]
+        }
+    }
+    let mut tr = Tracker::new(TrackSettings::default());
+    assert!(tr.map::<Flat>().is_none());
+    let flat = Arc::new(Flat);
+    tr.set_map(Some(flat.clone()));
+    assert!(tr.map::<Flat>().is_some_and(|m| Arc::ptr_eq(m, &flat)));
+    assert!(tr.map::<crate::follower::FollowerMap>().is_none());
+    tr.set_map::<Flat>(None);
+    assert!(tr.map::<Flat>().is_none());
+}
+
+/// With a map of the follower's own errors, the encoder strategy's stitch is where PSD2
+/// really is (along and vertically, from the reference), not where the encoder says.
+#[test]
+fn encoder_strategy_applies_the_follower_map() {
+    use crate::follower::{FollowerMap, Source, Sources};
+    let xs: Vec<f64> = (0..=400).map(|k| k as f64 * 0.25).collect();
+    let fus: Vec<f64> = xs.iter().map(|&x| fu(x)).collect();
+    let map = FollowerMap {
+        sources: Sources {
+            long: Source::Certificate,
+            periodic: Source::None,
+            reversal: Source::None,
+            vertical: Source::SelfCalibration,
+        },
+        certificate_name: None,
+        self_calibration: None,
+        long_positions_mm: xs.clone(),
+        long_up_mm: fus.clone(),
+        long_down_mm: fus,
+        long_u_mm: vec![0.1e-3; xs.len()],
+        periodic: None,
+        reversal: None,
+        certificate_reversal_mm: None,
+        vertical_positions_mm: xs.clone(),
+        vertical_mm: xs.iter().map(|&x| fv(x)).collect(),
+        vertical_u_mm: vec![0.2e-3; xs.len()],
+        vertical_slope: 0.0,
+        vertical_line: None,
+        vertical_reference: None,
+    };
+    let (mut b, mut tr) = referenced(Strategy::Encoder);
+    let map = Arc::new(map);
+    tr.set_map(Some(map.clone()));
+    assert!(
+        tr.map::<FollowerMap>()
+            .is_some_and(|m| Arc::ptr_eq(m, &map))
+    );
+    assert!(tr.reference());
+    let (u0, v0, e0) = (fu(b.enc), fv(b.enc), b.enc);
+    for _ in 0..2000 {
+        b.carriage += 10.0 * 0.002;
+        b.step(&mut tr);
+    }
+    b.run(&mut tr, 500);
+    let s = tr.stitch();
+    let true_u = b.enc + fu(b.enc) - u0 + e0;
+    let true_v = fv(b.enc) - v0;
+    // Linear interpolation every 0.25 mm of 3 µm and 2 µm sines: within 2 nm.
+    assert!(
+        (s.follower_mm - true_u).abs() < 2e-6,
+        "{} vs {true_u}",
+        s.follower_mm
+    );
+    assert!(
+        (s.vertical_mm - true_v).abs() < 2e-6,
+        "{} vs {true_v}",
+        s.vertical_mm
+    );
+    assert!(
+        (fu(b.enc) - u0).abs() > 1e-3,
+        "the encoder alone would be off"
+    );
+    // The map's uncertainty replaces the per-mm terms.
+    let sd = s.variance.map(f64::sqrt);
+    assert!(
+        (sd[0] - (1e-6_f64 + 2.0 * 0.01e-6).sqrt()).abs() < 1e-9,
+        "{sd:?}"
+    );
+}
+
+/// The follow target is the carriage, whatever the follower does and however late its
+/// reports come: the follower swinging ±0.5 mm at 5 Hz (a loop gone wrong), sampled at
+/// 10 ms SYNCs that come up to 30 ms late, reported up to 40 ms after that; the carriage at
+/// 50 mm/s. Every target after the first 100 ms is within 0.15 mm of the carriage at its
+/// time (what is left is the follower's curve between its samples, up to 40 ms apart),
+/// with the carriage's velocity.
+#[test]
+fn follow_targets_are_the_carriage_whatever_the_follower_does() {
+    let t0 = crate::util::clock::now();
+    let mut rng = Rng::new(11);
+    let mut tr = Tracker::new(TrackSettings {
+        strategy: Strategy::Encoder,
+        ..TrackSettings::default()
+    });
+    let carriage = |t: f64| 5.0 + 50.0 * t;
+    let follower = |t: f64| 5.0 + 50.0 * t + 0.5 * (2.0 * std::f64::consts::PI * 5.0 * t).sin();
+    let at = |t: f64| t0 + Duration::from_secs_f64(t);
+    // SYNC times (some late), each with the time its report arrives.
+    let mut reports = Vec::new();
+    let mut sync = 0.0;
+    while sync < 1.0 {
+        sync += 0.010
+            + if rng.uniform(0.0, 1.0) < 0.1 {
+                rng.uniform(0.0, 0.03)
+            } else {
+                0.0
+            };
+        reports.push((sync, sync + rng.uniform(0.0, 0.04)));
+    }
+    reports.sort_by(|a, b| a.1.total_cmp(&b.1));
+    let (mut next, mut targets) = (0, Vec::new());
+    for k in 1..500 {
+        let t = k as f64 * 0.002;
+        while next < reports.len() && reports[next].1 <= t {
+            let (s, _) = reports[next];
+            tr.handle_follower(
+                FollowerState {
+                    position_mm: follower(s),
+                    ready: true,
+                    target_reached: false,
+                    at: Some(at(s)),
+                },
+                at(t),
+            );
+            next += 1;
+        }
+        let x = carriage(t) - follower(t) + rng.gauss(1e-3);
+        let spot = Some(crate::optics::Spot { x, y: 0.0 });
+        let f = Frame {
+            seq: k,
+            at: at(t),
+            unix_us: 0,
+            spots: [spot, spot, spot],
+            sums: [5.0; 3],
+        };
+        tr.handle_frame(&f, at(t));
+        while let Some(c) = tr.poll_command() {
+            if let FollowerCommand::Follow {
+                target_mm,
+                velocity_mm_s,
+                at,
+            } = c
+            {
+                targets.push(((at - t0).as_secs_f64(), target_mm, velocity_mm_s));
+            }
+        }
+    }
+    assert!(targets.len() > 40, "{} targets", targets.len());
+    for &(t, target, v) in targets.iter().filter(|x| x.0 > 0.1) {
+        assert!(
+            (target - carriage(t)).abs() < 0.15,
+            "at {t:.3} s: target {target:.4}, carriage {:.4}",
+            carriage(t)
+        );
+        assert!((v - 50.0).abs() < 2.0, "at {t:.3} s: {v} mm/s");
+    }
+}
+
+#[test]
+fn blocked_beam_invalidates_the_stitch() {
+    let (mut b, mut tr) = referenced(Strategy::Overlap);
+    for _ in 0..400 {
+        b.now += Duration::from_millis(2);
+        let mut f = b.frame();
+        f.spots[1] = None;
+        tr.handle_frame(&f, b.now);
+    }
+    assert!(!tr.stitch().valid);
+    assert_eq!(tr.poll_event(), Some(TrackEvent::SpotLost));
+    b.run(&mut tr, 20);
+    assert_eq!(tr.poll_event(), Some(TrackEvent::SpotFound));
+    assert!(!tr.stitch().valid, "still broken until re-referenced");
+    assert!(tr.reference());
+    assert!(tr.stitch().valid);
+}
