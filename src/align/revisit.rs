@@ -55,6 +55,15 @@ struct Place {
     side: Option<i8>,
 }
 
+/// What a restarted service needs to go on checking returns to the zero it had: where the
+/// zero is, the side it is approached from (when known) and when the head last agreed with it.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RevisitState {
+    pub position_mm: f64,
+    pub side: Option<i8>,
+    pub agreed_us: i64,
+}
+
 /// The check of each return to the zero.
 #[derive(Clone, Debug)]
 pub struct Revisit {
@@ -100,6 +109,34 @@ impl Revisit {
         self.agreed_us = self.last_us;
         self.restart();
         self.judged = true;
+    }
+
+    /// The zero checked against, when there is one.
+    pub fn state(&self) -> Option<RevisitState> {
+        self.zero.map(|z| RevisitState {
+            position_mm: z.position,
+            side: z.side,
+            agreed_us: self.agreed_us,
+        })
+    }
+
+    /// Go on checking against a zero kept across a restart: where the carriage is now is not
+    /// known, so the first stay at the zero that follows a stay away is judged, and a turn
+    /// found there is dated at the last agreement before the restart.
+    pub fn restore(&mut self, state: RevisitState) {
+        self.zero = Some(Place {
+            position: state.position_mm,
+            side: state.side,
+        });
+        self.side = None;
+        self.agreed_us = state.agreed_us;
+        self.restart();
+        self.judged = false;
+    }
+
+    /// When the head last agreed with the zero (µs).
+    pub fn agreed_us(&self) -> i64 {
+        self.agreed_us
     }
 
     /// No zero (forgotten, or another decoupling): nothing to check against.
@@ -266,6 +303,38 @@ mod tests {
         r.forget();
         assert!(stay(&mut r, &mut rng, 10_000_000, -2.0, [0.0; 2], 10).is_none());
         assert!(stay(&mut r, &mut rng, 11_000_000, 0.0, turned, 500).is_none());
+    }
+
+    #[test]
+    fn a_zero_kept_across_a_restart_is_checked_at_the_first_return_and_a_turn_dated_before_it() {
+        let mut rng = Rng::new(7);
+        let mut r = Revisit::new(RevisitSettings::default());
+        assert!(stay(&mut r, &mut rng, 0, -2.0, [0.0; 2], 10).is_none());
+        r.set_zero(0.0);
+        assert!(stay(&mut r, &mut rng, 1_000_000, 400.0, [0.0; 2], 10).is_none());
+        assert!(stay(&mut r, &mut rng, 2_000_000, -2.0, [0.0; 2], 10).is_none());
+        assert!(stay(&mut r, &mut rng, 3_000_000, 0.0, [0.0; 2], 500).is_none());
+        let kept = r.state().expect("a zero");
+        assert_eq!(kept.side, Some(-1));
+        assert_eq!(kept.agreed_us, 3_000_000 + 2000 * 349);
+        // The service restarts; the head was knocked while nobody watched. Where the carriage
+        // stands when the frames come back is not a return: not judged.
+        let mut back = Revisit::new(RevisitSettings::default());
+        back.restore(kept);
+        assert_eq!(back.state(), Some(kept));
+        let turned = [0.0, 4.0e-6];
+        assert!(stay(&mut back, &mut rng, 9_000_000, 0.0, turned, 500).is_none());
+        // The first return from the zero's side is: found, dated at the agreement before.
+        assert!(stay(&mut back, &mut rng, 10_000_000, -2.0, turned, 10).is_none());
+        let k = stay(&mut back, &mut rng, 11_000_000, 0.0, turned, 500).expect("found");
+        assert_eq!(k.unix_us, kept.agreed_us);
+        assert!((k.turn.yaw + 4.0e-6).abs() < 0.5e-6, "yaw {:e}", k.turn.yaw);
+        // Unturned, it agrees at that return instead, and the agreement moves on.
+        let mut calm = Revisit::new(RevisitSettings::default());
+        calm.restore(kept);
+        assert!(stay(&mut calm, &mut rng, 10_000_000, -2.0, [0.0; 2], 10).is_none());
+        assert!(stay(&mut calm, &mut rng, 11_000_000, 0.0, [0.0; 2], 500).is_none());
+        assert_eq!(calm.agreed_us(), 11_000_000 + 2000 * 349);
     }
 
     #[test]

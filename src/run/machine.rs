@@ -231,7 +231,17 @@ impl RunMachine {
         stored: Vec<Capture>,
     ) -> Self {
         let done = stored.iter().map(TargetKey::of).collect();
-        Self::with_judge(plan, settings, handshake, done, stored)
+        // A knock found at the first return to the zero after the restart may be dated
+        // before it: the stored captures are within its reach (by their first frame's time,
+        // as the store keeps it; a capture ends at rest, where a knock is found at once).
+        let mut recent: VecDeque<(Capture, i64)> = stored.iter().map(|c| (*c, c.unix_us)).collect();
+        recent.make_contiguous().sort_by_key(|(_, t)| *t);
+        while recent.len() > RECENT {
+            recent.pop_front();
+        }
+        let mut m = Self::with_judge(plan, settings, handshake, done, stored);
+        m.recent = recent;
+        m
     }
 
     fn with_judge(
@@ -326,7 +336,7 @@ impl RunMachine {
             if let Some(stored) = stored {
                 decisions.push(Decision::Flag {
                     reason: format!(
-                        "{key} {}: {what} while it was averaged (found after it): retaken",
+                        "{key} {}: {what}, found after this capture was taken, reached its frames: retaken",
                         c.direction.sign()
                     ),
                     capture: c,
@@ -1001,6 +1011,43 @@ mod tests {
                 direction: Direction::Down
             }]
         );
+    }
+
+    #[test]
+    fn a_knock_found_after_a_restart_reaches_back_to_the_captures_stored_before_it() {
+        for judge in [false, true] {
+            let p = plan();
+            let steps = cycle(&p);
+            let settings = CaptureSettings {
+                judge,
+                ..CaptureSettings::default()
+            };
+            let mut m = RunMachine::new(p.clone(), settings, false, BTreeSet::new());
+            let stored = feed().run(&mut m, &steps[..8], None);
+            assert!(stored.len() >= 4, "{} captures", stored.len());
+            // The service restarts; at the first return to the zero the head is found
+            // turned since it last agreed, which was before the third capture.
+            let mut resumed = RunMachine::resumed(p.clone(), settings, false, stored.clone());
+            resumed.knocked(stored[2].unix_us - 1, "a knock found after the restart");
+            let mut flagged = BTreeSet::new();
+            while let Some(a) = resumed.poll_action() {
+                if let RunAction::Flagged {
+                    capture, stored, ..
+                } = a
+                {
+                    assert!(stored, "judge {judge}: it was in the store");
+                    flagged.insert(TargetKey::of(&capture));
+                }
+            }
+            let after: BTreeSet<TargetKey> = stored[2..].iter().map(TargetKey::of).collect();
+            assert_eq!(flagged, after, "judge {judge}");
+            for c in &stored[..2] {
+                assert!(!resumed.missing().contains(&TargetKey::of(c)));
+            }
+            for k in &after {
+                assert!(resumed.missing().contains(k), "judge {judge}: {k} retaken");
+            }
+        }
     }
 
     #[test]

@@ -17,10 +17,15 @@
 //! A knock in a move, which the frames alone cannot tell from the axis' own angles, is found
 //! at the carriage's next return to the zero (`align::revisit`) and taken out the same way.
 //! A new zero, or none, starts from the head as it stands.
+//!
+//! The zero, the turns found since and the place of the zero are the reference every reading
+//! rests on: each change is offered for the store (`take_reference_change`), and a restarted
+//! service takes them back (`restore_reference`) and checks them at the carriage's first
+//! return to the zero, so that a service killed in a run does not go on without them.
 
 use crate::acquire::Frame;
 use crate::align::{
-    Knock, KnockSettings, KnockWatch, Mount, MountGeometry, Revisit, RevisitSettings,
+    Knock, KnockSettings, KnockWatch, Mount, MountGeometry, Revisit, RevisitSettings, RevisitState,
 };
 use crate::decouple::{BetaCache, DecoupleError, Decoupler};
 use crate::optics::Layout;
@@ -54,6 +59,55 @@ pub struct LiveErrors {
 struct Zero {
     errors: Vector6<f64>,
     cov: Matrix6<f64>,
+}
+
+/// The zero reference in force, as kept across a restart (internal units).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ReferenceState {
+    /// The zero's six errors, and their covariance (36 values, row by row).
+    pub errors: [f64; 6],
+    pub cov: Vec<f64>,
+    /// The turns of the head found since the zero: yaw and pitch (rad), and their variance.
+    pub turn_rad: [f64; 2],
+    pub turn_var_rad2: [f64; 2],
+    /// Where the zero is, for the check of each return to it.
+    pub revisit: Option<RevisitState>,
+}
+
+impl ReferenceState {
+    /// Refuse a state that cannot be a reference (a damaged or foreign row).
+    fn check(&self) -> Result<(), String> {
+        let numbers = self
+            .errors
+            .iter()
+            .chain(&self.cov)
+            .chain(&self.turn_rad)
+            .chain(&self.turn_var_rad2);
+        if self.cov.len() != 36 {
+            return Err(format!(
+                "its covariance has {} values, not 36",
+                self.cov.len()
+            ));
+        }
+        if numbers.clone().any(|v| !v.is_finite()) {
+            return Err("it holds a value that is not a finite number".into());
+        }
+        if self.turn_var_rad2.iter().any(|v| *v < 0.0) {
+            return Err("a turn's variance is negative".into());
+        }
+        Ok(())
+    }
+}
+
+/// A name of the decoupling `d` (its model, calibration, method and noise): a zero kept with
+/// one name is not taken by a service that decouples with another.
+pub fn decoupler_name(d: &Decoupler) -> String {
+    // FNV-1a over the decoupler's full description: stable for equal decouplers.
+    let text = format!("{d:?}");
+    let hash = text.bytes().fold(0xcbf2_9ce4_8422_2325_u64, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+    });
+    format!("{hash:016x}")
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -174,6 +228,8 @@ pub struct Measure {
     /// calibration waiting to be accepted is judged on.
     last_input: Option<(Vector6<f64>, f64, f64)>,
     turned: Turned,
+    /// The reference changed since last taken for the store.
+    reference_changed: bool,
 }
 
 impl Measure {
@@ -190,7 +246,49 @@ impl Measure {
             zero_average: None,
             last_input: None,
             turned: Turned::new(),
+            reference_changed: false,
         }
+    }
+
+    /// The zero reference in force, as kept across a restart; `None` without a zero.
+    pub fn reference_state(&self) -> Option<ReferenceState> {
+        let z = self.zero?;
+        Some(ReferenceState {
+            errors: std::array::from_fn(|k| z.errors[k]),
+            cov: z.cov.transpose().iter().copied().collect(),
+            turn_rad: [self.turned.turn.yaw, self.turned.turn.pitch],
+            turn_var_rad2: self.turned.var,
+            revisit: self.turned.revisit.state(),
+        })
+    }
+
+    /// The reference when it changed since last asked: `Some(None)` when it was forgotten.
+    pub fn take_reference_change(&mut self) -> Option<Option<ReferenceState>> {
+        std::mem::take(&mut self.reference_changed).then(|| self.reference_state())
+    }
+
+    /// Take back a zero reference kept across a restart: readings are relative to it again,
+    /// the turns found before are taken out, and the next return to the zero checks it.
+    pub fn restore_reference(&mut self, state: &ReferenceState) -> Result<(), String> {
+        state.check()?;
+        let cov = Matrix6::from_row_slice(&state.cov);
+        self.zero = Some(Zero {
+            errors: Vector6::from_row_slice(&state.errors),
+            cov,
+        });
+        self.zero_average = None;
+        self.turned.reset();
+        self.turned.turn = Mount {
+            yaw: state.turn_rad[0],
+            pitch: state.turn_rad[1],
+            ..Mount::default()
+        };
+        self.turned.var = state.turn_var_rad2;
+        if let Some(r) = state.revisit {
+            self.turned.revisit.restore(r);
+        }
+        self.samples.clear();
+        Ok(())
     }
 
     /// A knock found in the frames since last asked (its turn is taken out of every frame
@@ -242,6 +340,7 @@ impl Measure {
     pub fn start_zero(&mut self) {
         self.zero = None;
         self.turned.reset();
+        self.reference_changed = true;
         self.zero_average = Some(ZeroAverage::default());
     }
 
@@ -263,6 +362,7 @@ impl Measure {
         if let Some(at) = self.position() {
             self.turned.revisit.set_zero(at);
         }
+        self.reference_changed = true;
         Some(Errors6::from_vector(&e))
     }
 
@@ -287,12 +387,14 @@ impl Measure {
             }
         }
         self.samples.clear();
+        self.reference_changed = true;
     }
 
     /// Forget the zero reference.
     pub fn clear_zero(&mut self) {
         self.zero = None;
         self.turned.reset();
+        self.reference_changed = true;
     }
 
     /// The decoupling in use.
@@ -309,6 +411,7 @@ impl Measure {
         self.zero = None;
         self.zero_average = self.zero_average.map(|_| ZeroAverage::default());
         self.turned.reset();
+        self.reference_changed = true;
     }
 
     /// Feed one frame with PSD2's stitched position. Invalid frames (a PSD without its spot)
@@ -352,6 +455,7 @@ impl Measure {
             read = self.turned.undo(layout, travel, est.errors);
             self.restart();
             self.turned.revisit.restart();
+            self.reference_changed = true;
         }
         // Pitch and yaw relative to the zero, for the check of each return to it.
         let (rel, zero_sd) = match &self.zero {
@@ -362,6 +466,7 @@ impl Measure {
             None => (read.to_vector(), [0.0; 2]),
         };
         let at = travel + read.dy;
+        let agreed = self.turned.revisit.agreed_us();
         if let Some(k) = self
             .turned
             .revisit
@@ -374,6 +479,9 @@ impl Measure {
                 .undo(self.decoupler.layout(), travel, est.errors);
             self.restart();
             self.turned.watch.reset();
+        }
+        if self.turned.revisit.agreed_us() != agreed && self.zero.is_some() {
+            self.reference_changed = true;
         }
         let turned_var = self.turned.var_at(self.decoupler.layout(), travel);
         if let Some(a) = self.zero_average.as_mut() {
@@ -469,6 +577,42 @@ mod tests {
     use crate::optics::{Layout, Pose, Spot};
     use crate::sim::Rng;
     use crate::track::Strategy;
+
+    #[test]
+    fn a_kept_reference_that_cannot_be_one_is_refused() {
+        let layout = Layout::reference();
+        let mut m = Measure::new(nominal(&layout, Method::Linear), Duration::from_millis(500));
+        let good = ReferenceState {
+            errors: [0.0; 6],
+            cov: vec![0.0; 36],
+            turn_rad: [0.0; 2],
+            turn_var_rad2: [0.0; 2],
+            revisit: None,
+        };
+        let short = ReferenceState {
+            cov: vec![0.0; 35],
+            ..good.clone()
+        };
+        let nan = ReferenceState {
+            turn_rad: [f64::NAN, 0.0],
+            ..good.clone()
+        };
+        assert!(
+            m.restore_reference(&short)
+                .unwrap_err()
+                .contains("35 values")
+        );
+        assert!(m.restore_reference(&nan).unwrap_err().contains("finite"));
+        assert!(
+            m.reference_state().is_none(),
+            "nothing taken from a refused state"
+        );
+        m.restore_reference(&good).unwrap();
+        assert_eq!(m.reference_state(), Some(good));
+        // Forgetting it is a change to keep.
+        m.clear_zero();
+        assert_eq!(m.take_reference_change(), Some(None));
+    }
 
     fn frame_at(layout: &Layout, pose: &Pose, rng: &mut Rng, t: Instant, noise: f64) -> Frame {
         let r = layout.forward(pose).vector().unwrap();
@@ -706,6 +850,30 @@ mod tests {
                 m.take_knock().is_none(),
                 "no knock in moving along the travel"
             );
+            // The service is killed and restarted: with the reference it kept (the zero and
+            // the turn), the new pipeline reads the truth's change since the zero too; one
+            // without it reads through the turn and the zero's offsets.
+            let kept = m.take_reference_change().expect("changed").expect("a zero");
+            assert!(m.take_reference_change().is_none(), "taken once");
+            let text = serde_json::to_string(&kept).unwrap();
+            let kept: ReferenceState = serde_json::from_str(&text).unwrap();
+            let mut restored = Measure::new(dec.clone(), Duration::from_millis(500));
+            restored.restore_reference(&kept).unwrap();
+            assert_eq!(restored.reference_state().as_ref(), Some(&kept));
+            assert!(restored.take_reference_change().is_none(), "already stored");
+            let mut bare = Measure::new(dec.clone(), Duration::from_millis(500));
+            for (pipeline, restored) in [(&mut restored, true), (&mut bare, false)] {
+                feed(pipeline, 800.0, yaw, 250);
+                let live = pipeline.live().unwrap();
+                let want = truth(800.0).to_vector() - truth(0.0).to_vector();
+                let (e, sd) = (live.errors.to_vector(), live.sd.to_array());
+                let off = [0, 2, 3, 5].map(|k| (e[k] - want[k]).abs() / sd[k]);
+                assert_eq!(
+                    off.iter().all(|z| *z < 4.5),
+                    restored,
+                    "seed {seed}, restored {restored}: dx, dz, ex, ez off by {off:?} sd"
+                );
+            }
             // A new zero starts from the head as it stands.
             m.start_zero();
             assert_eq!(m.turned.turn, Mount::default());

@@ -206,7 +206,7 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
     let store_path = s.service.state_dir.join("axiscomp.db");
     let store = crate::store::Store::open(&store_path)?;
     // What the loop looks up in the store, read before it starts.
-    let startup = startup(&store, &s.service.state_dir, s.cnc.dialect);
+    let startup = startup(&store, &s.service.state_dir, s.cnc.dialect, &p.decoupler);
     let (store, store_task) = crate::store::StoreQueue::spawn(store);
     // Opened after the core's store, which created and migrated the file.
     let tables = tables::Tables::start(p.cnc_map.clone(), &s.plc, &store_path).await?;
@@ -277,6 +277,7 @@ fn startup(
     store: &crate::store::Store,
     state_dir: &std::path::Path,
     configured: crate::run::Dialect,
+    decoupler: &crate::decouple::Decoupler,
 ) -> core::Startup {
     use crate::store::RunState;
     let mut cached = procedure::Cached::default();
@@ -334,7 +335,46 @@ fn startup(
             None
         }
     };
-    core::Startup { cached, resume }
+    let reference = kept_reference(store, decoupler);
+    core::Startup {
+        cached,
+        resume,
+        reference,
+    }
+}
+
+/// The zero reference in force when the service stopped, if it is in the terms of the
+/// decoupling it starts with.
+fn kept_reference(
+    store: &crate::store::Store,
+    decoupler: &crate::decouple::Decoupler,
+) -> Option<measure::ReferenceState> {
+    let kept = match store.latest_reference() {
+        Ok(k) => k?,
+        Err(e) => {
+            tracing::warn!(
+                "the zero reference kept before the restart could not be read: {e}; zero again"
+            );
+            return None;
+        }
+    };
+    let text = kept.state_json?;
+    let when = crate::store::iso_utc(kept.unix_us);
+    if kept.decoupler != measure::decoupler_name(decoupler) {
+        tracing::warn!(
+            "the zero reference of {when} was taken with another calibration than the one in use: not taken back; zero again"
+        );
+        return None;
+    }
+    match serde_json::from_str(&text) {
+        Ok(state) => Some(state),
+        Err(e) => {
+            tracing::warn!(
+                "the zero reference of {when} does not load ({e}): not taken back; zero again"
+            );
+            None
+        }
+    }
 }
 
 /// The highest program number written for run `id` (0: none).

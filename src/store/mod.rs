@@ -24,6 +24,7 @@ mod flags;
 mod follower;
 pub mod queue;
 mod records;
+mod references;
 mod run_list;
 mod run_tables;
 pub mod schema;
@@ -37,6 +38,7 @@ pub use records::{
     CalibrationSummary, NewRun, Publication, PublicationOutcome, PublicationRecord, RunId,
     RunRecord, RunState, StoredHandover, TableEntry, TableId, TableRecord,
 };
+pub use references::StoredReference;
 pub use run_list::{RunSummary, iso_utc};
 pub use run_tables::{ActiveTable, RunTables};
 

@@ -26,6 +26,7 @@ pub const MIGRATIONS: &[&str] = &[
     V4_RUN_TABLES,
     V5_AUDIT_OUTCOME,
     V6_FLAGS,
+    V7_REFERENCES,
 ];
 
 /// Version 1: the first schema.
@@ -262,6 +263,21 @@ CREATE TABLE capture_flags (
 CREATE INDEX capture_flags_run ON capture_flags (run_id, id);
 "#;
 
+/// Version 7: the zero reference survives a restart (issue 24). Each change of the live
+/// zero reference (taken, shifted, a turn of the head found, a return to it that agreed,
+/// forgotten) is a row; the newest is the reference in force. `state_json` is the reference
+/// (`service::measure::ReferenceState`), NULL when there is none; `decoupler` names the
+/// decoupling it is in the terms of, so that a service started with another one does not
+/// take it.
+const V7_REFERENCES: &str = r#"
+CREATE TABLE zero_references (
+    id          INTEGER PRIMARY KEY,
+    unix_us     INTEGER NOT NULL,
+    decoupler   TEXT    NOT NULL,
+    state_json  TEXT    CHECK (state_json IS NULL OR json_valid(state_json))
+) STRICT;
+"#;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -270,6 +286,6 @@ mod tests {
     fn application_id_literal_matches_the_constant() {
         // The pragma cannot take a bound parameter, so V1 spells the number out.
         assert!(V1.contains(&format!("PRAGMA application_id = {APPLICATION_ID};")));
-        assert_eq!(LATEST, 6);
+        assert_eq!(LATEST, 7);
     }
 }

@@ -796,3 +796,40 @@ fn the_tables_active_during_a_run_are_recorded_once() {
         "unknown (cannot read the PLC at 127.0.0.1:1502: timed out)"
     );
 }
+
+#[test]
+fn the_newest_zero_reference_is_the_one_in_force_across_a_reopen() {
+    let db = TempDb::new("references");
+    {
+        let mut store = Store::open(&db.path).unwrap();
+        assert_eq!(
+            store.latest_reference().unwrap(),
+            None,
+            "a new store has none"
+        );
+        store
+            .record_reference(10, "d1", Some(&json!({"errors": [1.5, 0.0]})))
+            .unwrap();
+        store.record_reference(20, "d1", None).unwrap();
+        store
+            .record_reference(30, "d2", Some(&json!({"errors": [2.5, -1.0]})))
+            .unwrap();
+    }
+    let store = Store::open(&db.path).unwrap();
+    let r = store.latest_reference().unwrap().expect("one recorded");
+    assert_eq!((r.unix_us, r.decoupler.as_str()), (30, "d2"));
+    let v: serde_json::Value = serde_json::from_str(r.state_json.as_deref().unwrap()).unwrap();
+    assert_eq!(v["errors"][0], 2.5);
+}
+
+#[test]
+fn a_zero_reference_forgotten_is_stored_as_none() {
+    let db = TempDb::new("references-none");
+    let mut store = Store::open(&db.path).unwrap();
+    store
+        .record_reference(10, "d1", Some(&json!({"errors": []})))
+        .unwrap();
+    store.record_reference(11, "d1", None).unwrap();
+    let r = store.latest_reference().unwrap().unwrap();
+    assert_eq!((r.unix_us, r.state_json), (11, None));
+}

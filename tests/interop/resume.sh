@@ -6,6 +6,10 @@
 # figures; exits non-zero with the logs on failure. Needs python3 (for its sqlite3 module).
 #   bash tests/interop/resume.sh                # from anywhere in the repository
 #   KILL_AFTER=3 KEEP=1 bash tests/interop/resume.sh   # kill earlier; keep the work directory
+# While the service is down the head is knocked on its mount (KNOCK_URAD of yaw, 8 by default,
+# 0: none): the service comes back with the zero reference it had (issue 24) and finds the turn
+# at the carriage's first return to the zero; every capture stored is then judged by the twin's
+# truth (tests/interop/truth.py), none further from it than its U or 1 µm / 0.4″.
 # Each capture's direction is checked against the twin's backlash and reported; STRICT=1 makes a
 # mislabelled direction fatal (open: the follower's hunting after a step still misleads the
 # approach judgement now and then on a loaded machine, crash or not).
@@ -80,6 +84,8 @@ done
 
 # The pre-run check wants the plan's travel (0–20 mm and 1 mm of overrun) aligned.
 align_cli -1 21 >"$work/align.txt" 2>&1 || { cat "$work/align.txt" >&2; fail "the alignment check did not pass"; }
+# The truth where the alignment took the zero (the carriage has not moved since).
+python3 tests/interop/truth.py zero "$twin_ctl" "$work/zero-truth.json" || fail "the twin did not give its truth"
 "$bin" run start --socket "$sock" --axis X --start-mm 0 --end-mm 20 --targets 5 --runs 2 \
   --dwell-s 1.5 --feed-mm-min 3000 --overrun-mm 1 --lead-mm 5 --dialect linuxcnc \
   >"$work/start.json" 2>&1 || { cat "$work/start.json" >&2; fail "run start refused"; }
@@ -104,7 +110,17 @@ print(c.execute("SELECT COUNT(*) FROM captures WHERE run_id = ?", (int(sys.argv[
 EOF
 )
 echo "resume.sh: run $run_id: SIGKILL of the service at $n captures reported ($stored_at_kill stored)"
-# The CNC goes on while the service is down; come back a moment later.
+# The CNC goes on while the service is down, and the head is knocked; come back a moment later.
+knock=${KNOCK_URAD:-8}
+if [ "$knock" != 0 ]; then
+  python3 - "$twin_ctl" "$knock" <<'EOF' || fail "the twin did not take the knock"
+import sys
+sys.path.insert(0, "tests/interop")
+from truth import Twin
+Twin(sys.argv[1]).cmd({"cmd": "knock", "yaw_urad": float(sys.argv[2])})
+EOF
+  echo "resume.sh: the head knocked by $knock µrad of yaw while the service was down"
+fi
 sleep "${DOWN_S:-2}"
 serve 2
 
@@ -157,4 +173,8 @@ if gaps:
           + ", ".join(f"{g:.2f}" for g in gaps) + " µm")
 sys.exit(0 if ok else 1)
 EOF
+grep -h "zero reference\|back at the zero\|knock" "$work"/serve-2.log | sed 's/^/resume.sh: serve-2: /' | cut -c1-240 || true
+python3 tests/interop/truth.py judge --db "$db" --run "$run_id" --twin "$twin_ctl" \
+  --zero "$work/zero-truth.json" --within 1,1,1,0.4,0.4,0.4 --out "$work/truth.json" \
+  | sed 's/^/resume.sh: /' || fail "captures stored far from the truth after the restart (above)"
 awk -v a="$t0" -v b="$t1" 'BEGIN { printf "resume.sh: PASS (run start to finished %.1f s, with the crash)\n", b - a }'

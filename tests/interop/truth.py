@@ -5,9 +5,13 @@ the run's captures are read from the service's store, both relative to the truth
 was taken. Used by storm.py (as a module) and soak.sh (as a command):
 
   truth.py zero TWIN_ADDR OUT.json          # the truth now (the carriage where the zero is taken)
-  truth.py judge --db DB --run N --twin TWIN_ADDR --zero OUT.json [--strict] [--out FILE]
+  truth.py judge --db DB --run N --twin TWIN_ADDR --zero OUT.json [--strict] [--within F]
+                [--out FILE]
 
---strict exits 1 when any stored capture lies outside its U (k = 2) of the truth."""
+--strict exits 1 when any stored capture lies outside its U (k = 2) of the truth. --within
+"1,1,1,0.4,0.4,0.4" exits 1 when any lies further from the truth than its U or that floor
+(µm, µm, µm, ″, ″, ″), whichever is larger: a wrong reference (a lost zero, a turn of the
+head not taken out), not a U a hair too small."""
 import argparse
 import json
 import socket
@@ -111,6 +115,7 @@ def main():
     j.add_argument("--twin", required=True)
     j.add_argument("--zero", required=True)
     j.add_argument("--strict", action="store_true")
+    j.add_argument("--within", default=None)
     j.add_argument("--out", default=None)
     a = ap.parse_args()
     twin = Twin(a.twin)
@@ -126,6 +131,23 @@ def main():
             json.dump(r, f, indent=1)
     if a.strict and r["outside_u"] > 0:
         sys.exit(1)
+    if a.within:
+        floor = [float(x) for x in a.within.split(",")]
+        if len(floor) != 6:
+            sys.exit(f"truth.py: --within takes six numbers (µm, µm, µm, ″, ″, ″), not {a.within}")
+        far = [c for c in r["captures"]
+               if any(abs(c["measured"][k] - c["truth"][k]) > max(c["U"][k], floor[k])
+                      for k in range(6))]
+        for c in far:
+            print(f"truth.py: run {a.run}: FAR from the truth: run {c['run']}, target {c['target']} "
+                  f"({c['mm']:.1f} mm) {c['direction']}: "
+                  + ", ".join(f"{DOFS[k]} {c['measured'][k]:+.2f} vs {c['truth'][k]:+.2f} {UNITS[k]}"
+                              for k in range(6)
+                              if abs(c["measured"][k] - c["truth"][k]) > max(c["U"][k], floor[k])))
+        print(f"truth.py: run {a.run}: {len(far)} of {r['captures_judged']} stored captures further "
+              f"from the truth than their U or {a.within}")
+        if far:
+            sys.exit(1)
 
 
 if __name__ == "__main__":

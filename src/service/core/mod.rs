@@ -71,6 +71,8 @@ enum CoreEvent {
 pub(super) struct Startup {
     pub cached: Cached,
     pub resume: Option<super::procedure::run::Resume>,
+    /// The zero reference in force when the service stopped.
+    pub reference: Option<super::measure::ReferenceState>,
 }
 
 pub(super) struct Core {
@@ -127,6 +129,17 @@ impl Core {
         let (store_alarm_tx, store_alarm_rx) = mpsc::channel(16);
         let s = &p.settings;
         let mut pipeline = Pipeline::new(s.tracking, p.decoupler.clone(), s.head.live_window);
+        if let Some(r) = &startup.reference {
+            match pipeline.measure.restore_reference(r) {
+                Ok(()) => tracing::info!(
+                    turns = r.turn_rad != [0.0; 2],
+                    "the zero reference in force before the restart is taken back; it is checked at the carriage's next return to the zero"
+                ),
+                Err(e) => tracing::warn!(
+                    "the zero reference kept before the restart is not one ({e}): zero again"
+                ),
+            }
+        }
         let shown = startup.cached.follower_map.as_ref().map(|r| {
             tracing::info!(id = r.id, name = %r.name, "follower map in use");
             pipeline.tracker.set_map(Some(Arc::new(r.map.clone())));
@@ -427,6 +440,9 @@ impl Core {
 
     /// Carry out what the pipeline asks, then show it to the procedures.
     fn pump(&mut self) {
+        if let Some(state) = self.pipeline.measure.take_reference_change() {
+            self.keep_reference(state);
+        }
         while let Some(out) = self.pipeline.poll_output() {
             let still = self.procedures.iter().any(|p| p.holds_follower());
             match &out {
@@ -445,6 +461,29 @@ impl Core {
                 _ => {}
             }
             self.for_each_procedure(|p, ctx| p.on_output(&out, ctx));
+        }
+    }
+
+    /// Give the store the zero reference now in force (queued: the loop does not wait); one
+    /// that cannot be queued raises the store alarm, and a restart would zero again.
+    fn keep_reference(&mut self, state: Option<super::measure::ReferenceState>) {
+        let name = super::measure::decoupler_name(self.pipeline.measure.decoupler());
+        let value = state.and_then(|s| serde_json::to_value(s).ok());
+        let now = crate::util::clock::unix_us();
+        let why = |e: String| format!("the zero reference is not kept for a restart: {e}");
+        match self
+            .store
+            .try_call(move |s| s.record_reference(now, &name, value.as_ref()))
+        {
+            Ok(done) => self.later(done, move |core, r| {
+                let r = r
+                    .map_err(|e| e.to_string())
+                    .and_then(|r| r.map_err(|e| e.to_string()));
+                if let Err(e) = r {
+                    core.pipeline.alarms.raise("store", why(e));
+                }
+            }),
+            Err(e) => self.pipeline.alarms.raise("store", why(e.to_string())),
         }
     }
 
