@@ -91,7 +91,7 @@ if [ "${STORM_JUDGE:-0}" = 1 ]; then printf '\n[capture]\njudge = true\n' >>"$wo
 sed -i '/^\[follower\]/a homing_switch_speed_mm_s = 50.0\nhoming_timeout_ms = 40000' "$work/service.toml"
 sed -i "s/^feed_mm_s = .*/feed_mm_s = $carriage_mm_s.0/; s/^accel_mm_s2 = .*/accel_mm_s2 = ${STORM_ACCEL_MM_S2:-250}.0/" "$work/sim.toml"
 serve_cmd="env LD_PRELOAD=$ft FAKETIME_TIMESTAMP_FILE=$work/clock-offset FAKETIME_DONT_FAKE_MONOTONIC=1 \
-FAKETIME_CACHE_DURATION=1 RUST_LOG=${RUST_LOG:-info} $bin serve --config $work/service.toml"
+FAKETIME_CACHE_DURATION=1 RUST_LOG=${RUST_LOG:-info,axiscomp::run=debug,axiscomp::align::revisit=debug} $bin serve --config $work/service.toml"
 
 "$bin" sim --config "$work/sim.toml" >"$work/sim.log" 2>&1 & sim=$!
 sleep 1

@@ -151,7 +151,7 @@ harness() {
     for f in "$work"/*.log; do
       [ -f "$f" ] || continue
       echo "---- $(basename "$f") (tail) ----" >&2
-      tail -n 40 "$f" >&2
+      grep -v "control request" "$f" | tail -n 80 >&2
     done
     exit 1
   }

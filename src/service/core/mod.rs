@@ -569,10 +569,15 @@ impl Core {
             .ok()
             .and_then(|v| v["cmd"].as_str().map(str::to_string))
             .unwrap_or_default();
-        tracing::info!(user = %c.peer.user, uid = c.peer.uid, request = %name, "control request");
-        let audit = c
-            .audit_entry()
-            .map(|e| (e, self.store.clone(), self.store_alarm_tx.clone()));
+        // What changes the machine or the store is said; what only reads (a console polling
+        // the run's status twice a second) is not, or it buries the rest of the log.
+        let audit = c.audit_entry();
+        if audit.is_some() {
+            tracing::info!(user = %c.peer.user, uid = c.peer.uid, request = %name, "control request");
+        } else {
+            tracing::debug!(user = %c.peer.user, uid = c.peer.uid, request = %name, "control request");
+        }
+        let audit = audit.map(|e| (e, self.store.clone(), self.store_alarm_tx.clone()));
         let reply = Reply::new(c.reply, audit);
         if let Err(e) = c.request.check() {
             return reply.send(Err(e));
