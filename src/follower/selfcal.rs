@@ -465,6 +465,8 @@ impl Collector {
         let step = self.plan.spec.step_mm;
         s.average_frames = average_frames.max(10);
         s.edge_mm = s.edge_mm.max(step + 0.45);
+        // Each step stops short of the edge by design: never follow it ahead of time.
+        s.anticipate = std::time::Duration::ZERO;
         s.handover_mm = s.handover_mm.min(step * 0.5);
         // No final approach from below: the passes measure the reversal, so each step ends in
         // the direction it moved.

@@ -42,6 +42,9 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+/// Below this speed (mm/s) the carriage stands: a follower is not sent after it.
+const STANDING_MM_S: f64 = 2.0;
+
 /// How the follower's position is known.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -58,6 +61,9 @@ pub struct TrackSettings {
     pub handover_mm: f64,
     /// Overlap: follow during motion when the spot gets this far out (mm), before it is lost.
     pub edge_mm: f64,
+    /// Overlap: follow already when the spot will be `edge_mm` out within this long at the
+    /// carriage's speed (the follower's time to start following; zero: at the edge only).
+    pub anticipate: Duration,
     /// At rest: the spot stays within ± this of its mean (mm) for `rest_time`.
     pub rest_tolerance_mm: f64,
     pub rest_time: Duration,
@@ -98,6 +104,7 @@ impl Default for TrackSettings {
             strategy: Strategy::Overlap,
             handover_mm: 1.5,
             edge_mm: 3.5,
+            anticipate: Duration::ZERO,
             rest_tolerance_mm: 0.005,
             rest_time: Duration::from_millis(300),
             average_frames: 200,
@@ -581,6 +588,18 @@ impl Tracker {
         (0..2).all(|k| hi[k] - lo[k] <= 2.0 * self.settings.rest_tolerance_mm)
     }
 
+    /// Following is over: the spot stands on PSD2 and the carriage stands too. A follower that
+    /// keeps pace holds the spot as still as a standing carriage does, so the spot alone
+    /// cannot tell; ended on it, following stopped and started again every few tens of
+    /// milliseconds through a move.
+    fn stopped(&self, now: Instant) -> bool {
+        self.at_rest(now)
+            && self
+                .carriage
+                .estimate(now)
+                .is_none_or(|c| c.velocity_mm_s.abs() < STANDING_MM_S)
+    }
+
     /// Variance (along, vertical) of PSD2's position after the follower travelled `moved`
     /// mm by its encoder alone.
     fn encoder_var(&self, moved: f64) -> [f64; 2] {
@@ -828,7 +847,7 @@ impl Tracker {
             .map_or((f.position_mm + p[0], 0.0), |c| {
                 (c.position_mm, c.velocity_mm_s)
             });
-        if p[0].abs() <= self.settings.follow_band_mm && v.abs() < 2.0 {
+        if p[0].abs() <= self.settings.follow_band_mm && v.abs() < STANDING_MM_S {
             return;
         }
         let due = self
@@ -870,7 +889,7 @@ impl Tracker {
         }
         self.follow_step(p, f, now);
         if self.followed
-            && self.at_rest(now)
+            && self.stopped(now)
             && p[0].abs() <= self.settings.follow_band_mm
             && f.target_reached
         {
@@ -886,7 +905,7 @@ impl Tracker {
                 if !f.ready {
                     return;
                 }
-                if p[0].abs() >= s.edge_mm {
+                if self.runs_out(p[0], now) {
                     // The carriage runs the spot towards the edge: follow now, by the encoder.
                     self.phase = Phase::Following {
                         encoder_start: f.position_mm,
@@ -929,7 +948,7 @@ impl Tracker {
             }
             Phase::Following { encoder_start } => {
                 self.follow_step(p, f, now);
-                if self.at_rest(now) && p[0].abs() <= s.follow_band_mm && f.target_reached {
+                if self.stopped(now) && p[0].abs() <= s.follow_band_mm && f.target_reached {
                     self.begin_approach(Some(encoder_start), f.position_mm, now);
                 }
             }
@@ -954,6 +973,27 @@ impl Tracker {
                 }
             }
         }
+    }
+
+    /// The spot at `x2` (mm) is at the edge, or beyond the handover band with the carriage
+    /// running it to the edge within the time the follower needs to start following: at 3.5 mm a carriage accelerating at 500 mm/s² is
+    /// 16 ms from PSD2's edge, less than the drive takes to enter cyclic synchronous position
+    /// and pick it up, and the spot was lost for ~75 ms at most starts (issue 24).
+    fn runs_out(&self, x2: f64, now: Instant) -> bool {
+        let s = &self.settings;
+        if x2.abs() >= s.edge_mm {
+            return true;
+        }
+        // Inside the handover band a carriage may yet stop (a short jog ends in an exact
+        // overlap handover at rest); beyond it, a spot moving outwards fast is followed.
+        if x2.abs() < s.handover_mm {
+            return false;
+        }
+        let Some(c) = self.carriage.estimate(now) else {
+            return false;
+        };
+        let v = c.velocity_mm_s;
+        v * x2 > 0.0 && (x2 + v * s.anticipate.as_secs_f64()).abs() >= s.edge_mm
     }
 
     /// The before-window's spread so far stays within the rest tolerance.

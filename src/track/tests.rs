@@ -123,11 +123,24 @@ fn follower_events(tr: &mut Tracker) -> Vec<String> {
         .collect()
 }
 
-/// Step the carriage 1 mm at a time until the tracker starts a follower move.
+/// Move the carriage by `by` mm at 10 mm/s (a jog: slow enough for the tracker to hand over
+/// at rest after it, not to follow it).
+fn jog(b: &mut Bench, tr: &mut Tracker, by: f64) {
+    let steps = (by.abs() / 0.02).ceil().max(1.0) as usize;
+    for _ in 0..steps {
+        b.carriage += by / steps as f64;
+        b.step(tr);
+    }
+}
+
+/// Jog the carriage 1 mm at a time until the tracker starts a follower move.
 fn until_a_move(b: &mut Bench, tr: &mut Tracker) {
     let moves = b.moves.len();
     while b.moves.len() == moves {
-        b.carriage += 1.0;
+        jog(b, tr, 1.0);
+        if b.moves.len() > moves {
+            return;
+        }
         for _ in 0..750 {
             b.step(tr);
             if b.moves.len() > moves {
@@ -176,9 +189,9 @@ fn a_follower_problem_is_said_once_and_its_end_is_said_when_the_follower_serves_
 fn overlap_stitch_measures_the_followers_true_displacement() {
     let (mut b, mut tr) = referenced(Strategy::Overlap);
     let (u0, v0) = (fu(b.enc), fv(b.enc));
-    // Step the carriage 1 mm at a time to 40 mm, resting 1.5 s at each step.
-    for k in 1..=40 {
-        b.carriage = k as f64;
+    // Jog the carriage 1 mm at a time to 40 mm, resting 1.5 s at each step.
+    for _ in 1..=40 {
+        jog(&mut b, &mut tr, 1.0);
         b.run(&mut tr, 1500);
     }
     let s = tr.stitch();
@@ -509,4 +522,103 @@ fn blocked_beam_invalidates_the_stitch() {
     assert!(!tr.stitch().valid, "still broken until re-referenced");
     assert!(tr.reference());
     assert!(tr.stitch().valid);
+}
+
+/// The spot on PSD2 (half-size 4.5 mm) as the overlap tracker lets it run: the carriage starts
+/// from rest at 500 mm/s² to 100 mm/s over 100 mm, the follower (200 mm/s, 5000 mm/s²) does
+/// nothing for `latency` after each command (the drive entering cyclic synchronous position)
+/// and then goes to the commanded target carried on by its velocity. The largest |X2| seen.
+fn spot_excursion(anticipate: Duration, latency: Duration) -> f64 {
+    let t0 = crate::util::clock::now();
+    let mut rng = Rng::new(21);
+    let mut tr = Tracker::new(TrackSettings {
+        strategy: Strategy::Overlap,
+        anticipate,
+        ..TrackSettings::default()
+    });
+    let (accel, top) = (500.0, 100.0);
+    let carriage = |t: f64| {
+        let t = t - 0.5; // at rest for the first 0.5 s
+        if t <= 0.0 {
+            0.0
+        } else if t < top / accel {
+            0.5 * accel * t * t
+        } else {
+            top * top / (2.0 * accel) + top * (t - top / accel)
+        }
+    };
+    let (mut enc, mut vel) = (0.0_f64, 0.0_f64);
+    // Commands waiting for the drive: (effective from, target at `at`, velocity, `at`).
+    let mut queue: Vec<(f64, f64, f64, f64)> = Vec::new();
+    let mut goal: Option<(f64, f64, f64)> = None;
+    let mut worst = 0.0_f64;
+    for k in 1..1500 {
+        let t = k as f64 * 0.002;
+        while let Some(i) = queue.iter().position(|q| q.0 <= t) {
+            let (_, target, v, at) = queue.remove(i);
+            goal = Some((target, v, at));
+        }
+        // The drive: towards the goal carried on to now, within its speed and acceleration.
+        if let Some((target, v, at)) = goal {
+            let aim = target + v * (t - at);
+            let want = ((aim - enc) / 0.01 + v).clamp(-200.0, 200.0);
+            vel += (want - vel).clamp(-5000.0 * 0.002, 5000.0 * 0.002);
+            enc += vel * 0.002;
+        }
+        tr.handle_follower(
+            FollowerState {
+                position_mm: enc,
+                ready: true,
+                target_reached: goal.is_none(),
+                at: Some(t0 + Duration::from_secs_f64(t)),
+            },
+            t0 + Duration::from_secs_f64(t),
+        );
+        let x = carriage(t) - enc;
+        worst = worst.max(x.abs());
+        let spot = (x.abs() <= 4.5).then(|| Spot {
+            x: x + rng.gauss(1e-3),
+            y: 0.0,
+        });
+        let other = Some(Spot { x: 0.0, y: 0.0 });
+        let f = Frame {
+            seq: k,
+            at: t0 + Duration::from_secs_f64(t),
+            unix_us: 0,
+            spots: [other, spot, other],
+            sums: [5.0; 3],
+        };
+        tr.handle_frame(&f, t0 + Duration::from_secs_f64(t));
+        while let Some(c) = tr.poll_command() {
+            let (target, v, at) = match c {
+                FollowerCommand::MoveTo(m) => (m, 0.0, t),
+                FollowerCommand::Follow {
+                    target_mm,
+                    velocity_mm_s,
+                    at,
+                } => (
+                    target_mm,
+                    velocity_mm_s,
+                    at.saturating_duration_since(t0).as_secs_f64(),
+                ),
+            };
+            let delay = if goal.is_none() && queue.is_empty() {
+                latency.as_secs_f64()
+            } else {
+                0.0
+            };
+            queue.push((t + delay, target, v, at));
+        }
+    }
+    worst
+}
+
+#[test]
+fn a_carriage_starting_fast_keeps_the_spot_on_psd2_while_the_follower_starts() {
+    let latency = Duration::from_millis(40);
+    let kept = spot_excursion(Duration::from_millis(100), latency);
+    assert!(kept < 4.0, "the spot ran to {kept:.2} mm with anticipation");
+    // Following only at the edge (the default): the spot leaves PSD2 (this bench can tell).
+    let lost = spot_excursion(Duration::ZERO, latency);
+    assert!(lost > 4.5, "the spot ran to {lost:.2} mm at the edge only");
 }
