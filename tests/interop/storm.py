@@ -23,7 +23,7 @@ import subprocess
 import sys
 import time
 
-from truth import Twin, judge_by_truth
+from truth import WITHIN_FLOOR, Twin, far_from_truth, judge_by_truth
 
 # Every fault the twin can inject during a run (src/sim/twin.rs), with how it is removed and the
 # alarm codes the service is expected to show for it when held long enough.
@@ -110,9 +110,9 @@ def main():
     ap.add_argument("--run-args", required=True)
     ap.add_argument("--db", required=True)
     ap.add_argument("--disk", default="skip", help="what the state directory is on")
-    ap.add_argument("--truth", default="report", choices=["report", "strict"],
-                    help="strict: fail on any unflagged capture outside its U of the truth, "
-                         "or a U not sharp")
+    ap.add_argument("--truth", default="report", choices=["report", "within", "strict"],
+                    help="within: fail on any stored capture further from the truth than its U "
+                         "or 1 µm / 0.4″; strict: on any outside its U, or a U not sharp")
     ap.add_argument("--truth-json", default="/dev/null",
                     help="where every capture's comparison with the truth is written")
     a = ap.parse_args()
@@ -331,7 +331,10 @@ def main():
                       "truth": {k: v for k, v in truth.items() if k != "captures"}}))
     if proc is not None:
         print(f"SERVICE_PID {proc.pid}", file=sys.stderr)
-    truth_ok = a.truth != "strict" or (truth["outside_u"] == 0 and truth["sharp"])
+    if a.truth == "within":
+        truth_ok = not far_from_truth(truth, WITHIN_FLOOR, log)
+    else:
+        truth_ok = a.truth != "strict" or (truth["outside_u"] == 0 and truth["sharp"])
     sys.exit(0 if survived == len(events) and state == "finished" and lost == 0 and dup == 0
              and tables_ok and len(events) >= a.faults and truth_ok else 1)
 

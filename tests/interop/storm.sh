@@ -15,7 +15,9 @@
 # frozen) and once cleanly; after each the PLC's active table is compared with the store's: the
 # old table or the new one, whole, never a mix.
 # Passes when the run finishes with every capture exactly once, every fault recovered, and no
-# table partially applied. Needs root for the tmpfs (else STORM_DISK=skip says the disk was not
+# table partially applied. Every stored capture is compared with the twin's truth (truth.py) and
+# the figures printed; STORM_TRUTH=within also fails on a capture further from it than its U or
+# 1 µm / 0.4″, STORM_TRUTH=strict on one outside its U or a U not sharp. Needs root for the tmpfs (else STORM_DISK=skip says the disk was not
 # tested), apt-get download + dpkg -x for libfaketime (or FAKETIME_LIB).
 #   bash tests/interop/storm.sh
 #   STORM_FAULTS=80 STORM_SEED=7 KEEP=1 bash tests/interop/storm.sh

@@ -103,6 +103,29 @@ def judge_by_truth(db, run_id, twin, zero_truth, log):
             "flags": flags[0] or 0, "events": dict(events), "captures": caps}
 
 
+# The floor under U for --within (µm, µm, µm, ″, ″, ″): a wrong reference (a lost zero, a turn
+# of the head not taken out) is microns and arcseconds off, a U a hair too small is not.
+WITHIN_FLOOR = [1.0, 1.0, 1.0, 0.4, 0.4, 0.4]
+
+
+def far_from_truth(judged, floor, log):
+    """The captures of a judge_by_truth result further from the truth than their U or `floor`
+    (per DOF, whichever is larger), each logged."""
+    far = []
+    for c in judged["captures"]:
+        bad = [k for k in range(6)
+               if abs(c["measured"][k] - c["truth"][k]) > max(c["U"][k], floor[k])]
+        if bad:
+            far.append(c)
+            log(f"FAR from the truth: run {c['run']}, target {c['target']} ({c['mm']:.1f} mm) "
+                f"{c['direction']}: "
+                + ", ".join(f"{DOFS[k]} {c['measured'][k]:+.2f} vs {c['truth'][k]:+.2f} {UNITS[k]}"
+                            for k in bad))
+    log(f"{len(far)} of {judged['captures_judged']} stored captures further from the truth than "
+        f"their U or {', '.join(f'{f:g}' for f in floor)} µm/″")
+    return far
+
+
 def main():
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="what", required=True)
@@ -135,18 +158,7 @@ def main():
         floor = [float(x) for x in a.within.split(",")]
         if len(floor) != 6:
             sys.exit(f"truth.py: --within takes six numbers (µm, µm, µm, ″, ″, ″), not {a.within}")
-        far = [c for c in r["captures"]
-               if any(abs(c["measured"][k] - c["truth"][k]) > max(c["U"][k], floor[k])
-                      for k in range(6))]
-        for c in far:
-            print(f"truth.py: run {a.run}: FAR from the truth: run {c['run']}, target {c['target']} "
-                  f"({c['mm']:.1f} mm) {c['direction']}: "
-                  + ", ".join(f"{DOFS[k]} {c['measured'][k]:+.2f} vs {c['truth'][k]:+.2f} {UNITS[k]}"
-                              for k in range(6)
-                              if abs(c["measured"][k] - c["truth"][k]) > max(c["U"][k], floor[k])))
-        print(f"truth.py: run {a.run}: {len(far)} of {r['captures_judged']} stored captures further "
-              f"from the truth than their U or {a.within}")
-        if far:
+        if far_from_truth(r, floor, lambda m: print(f"truth.py: run {a.run}: {m}")):
             sys.exit(1)
 
 
