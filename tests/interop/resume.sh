@@ -6,6 +6,10 @@
 # figures; exits non-zero with the logs on failure. Needs python3 (for its sqlite3 module).
 #   bash tests/interop/resume.sh                # from anywhere in the repository
 #   KILL_AFTER=3 KEEP=1 bash tests/interop/resume.sh   # kill earlier; keep the work directory
+# DISTURB=fault (issue 24, must-show 1: the new user's scenario) keeps the service up and instead,
+# over 0–200 mm at 100 mm/s, gives the follower drive a following error while the carriage moves
+# in the middle of a pass (reset as the alarm says), then blocks PSD2 for 1.5 s in a later move:
+# the same checks follow (every capture once, labels by the backlash, the truth).
 # While the service is down the head is knocked on its mount (KNOCK_URAD of yaw, 8 by default,
 # 0: none): the service comes back with the zero reference it had (issue 24) and finds the turn
 # at the carriage's first return to the zero; every capture stored is then judged by the twin's
@@ -18,6 +22,12 @@ cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 command -v python3 >/dev/null || { echo "resume.sh: python3 not found" >&2; exit 1; }
 
 kill_after=${KILL_AFTER:-7}
+disturb=${DISTURB:-kill}
+case "$disturb" in
+  kill) end_mm=20 feed=3000 ;;
+  fault) end_mm=200 feed=6000 ;;
+  *) echo "resume.sh: DISTURB=$disturb: use kill or fault" >&2; exit 2 ;;
+esac
 # AXISCOMP_BIN: a binary built already (.ci/run builds one for every script).
 if [ -n "${AXISCOMP_BIN:-}" ]; then
   bin=$AXISCOMP_BIN
@@ -82,12 +92,12 @@ sys.exit(0 if s["tracking"]["valid"] and s["tracking"]["at_rest"] else 1)' 2>/de
   sleep 0.5
 done
 
-# The pre-run check wants the plan's travel (0–20 mm and 1 mm of overrun) aligned.
-align_cli -1 21 >"$work/align.txt" 2>&1 || { cat "$work/align.txt" >&2; fail "the alignment check did not pass"; }
+# The pre-run check wants the plan's travel (and 1 mm of overrun) aligned.
+align_cli -1 $((end_mm + 1)) >"$work/align.txt" 2>&1 || { cat "$work/align.txt" >&2; fail "the alignment check did not pass"; }
 # The truth where the alignment took the zero (the carriage has not moved since).
 python3 tests/interop/truth.py zero "$twin_ctl" "$work/zero-truth.json" || fail "the twin did not give its truth"
-"$bin" run start --socket "$sock" --axis X --start-mm 0 --end-mm 20 --targets 5 --runs 2 \
-  --dwell-s 1.5 --feed-mm-min 3000 --overrun-mm 1 --lead-mm 5 --dialect linuxcnc \
+"$bin" run start --socket "$sock" --axis X --start-mm 0 --end-mm "$end_mm" --targets 5 --runs 2 \
+  --dwell-s 1.5 --feed-mm-min "$feed" --overrun-mm 1 --lead-mm 5 --dialect linuxcnc \
   >"$work/start.json" 2>&1 || { cat "$work/start.json" >&2; fail "run start refused"; }
 run_id=$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["run_id"])' "$work/start.json")
 expected=$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["captures_expected"])' "$work/start.json")
@@ -100,6 +110,54 @@ while :; do
   [ "$SECONDS" -ge "$end" ] && fail "no $kill_after captures within 120 s (have ${n:-none})"
   sleep 0.1
 done
+# in_a_move: wait (up to 60 s) until the twin's carriage moves.
+in_a_move() {
+  python3 - "$twin_ctl" <<'EOF' || fail "the carriage did not move within 60 s"
+import sys, time
+sys.path.insert(0, "tests/interop")
+from truth import Twin
+twin, end = Twin(sys.argv[1]), time.monotonic() + 60
+while not twin.cmd({"cmd": "truth"})["truth"]["moving"]:
+    if time.monotonic() > end:
+        sys.exit(1)
+    time.sleep(0.02)
+EOF
+}
+# until_captures N: wait (up to 120 s) until the run reports N captures.
+until_captures() {
+  local end=$((SECONDS + 120)) m
+  while :; do
+    m=$(status_field captures)
+    [ -n "$m" ] && [ "$m" -ge "$1" ] && return 0
+    [ "$SECONDS" -ge "$end" ] && fail "no $1 captures within 120 s (have ${m:-none})"
+    sleep 0.1
+  done
+}
+if [ "$disturb" = fault ]; then
+  in_a_move
+  twin_cmd '{"cmd":"drive","fault":34321}' >/dev/null || fail "the twin did not take the drive fault"
+  echo "resume.sh: run $run_id: a following error (EMCY 0x8611) of the follower drive in a move at $n captures"
+  # The operator resets the drive as the alarm says, once it is in Fault.
+  for _ in $(seq 1 100); do
+    st=$("$bin" status --socket "$sock" --json 2>/dev/null | python3 -c '
+import json, sys
+print(json.load(sys.stdin)["follower"].get("state") or "")' 2>/dev/null || true)
+    case "$st" in
+      Fault) svc_cmd '{"cmd":"follower","action":"fault_reset"}' >/dev/null || true ;;
+      "Operation enabled") [ -n "${reset:-}" ] && break ;;
+    esac
+    [ "$st" = Fault ] && reset=1
+    sleep 0.2
+  done
+  [ "$st" = "Operation enabled" ] || fail "the follower drive did not come back from its fault (state ${st:-unknown})"
+  until_captures $((n + 4))
+  in_a_move
+  twin_cmd '{"cmd":"block","psd":2,"on":true}' >/dev/null || fail "the twin did not block PSD2"
+  sleep 1.5
+  twin_cmd '{"cmd":"block","psd":2,"on":false}' >/dev/null || fail "the twin did not unblock PSD2"
+  echo "resume.sh: run $run_id: PSD2 blocked for 1.5 s in a move after $((n + 4)) captures"
+fi
+if [ "$disturb" = kill ]; then
 kill -9 "$svc"
 wait "$svc" 2>/dev/null || true
 svc=""
@@ -123,13 +181,14 @@ EOF
 fi
 sleep "${DOWN_S:-2}"
 serve 2
+fi
 
 state=""
 end=$((SECONDS + 240))
 while :; do
   state=$(status_field state)
   [ "$state" = finished ] || [ "$state" = failed ] || [ "$state" = aborted ] && break
-  [ "$SECONDS" -ge "$end" ] && fail "the resumed run did not end within 240 s (state ${state:-none})"
+  [ "$SECONDS" -ge "$end" ] && fail "the run did not end within 240 s (state ${state:-none})"
   sleep 0.5
 done
 t1=$(date +%s.%N)
@@ -173,8 +232,8 @@ if gaps:
           + ", ".join(f"{g:.2f}" for g in gaps) + " µm")
 sys.exit(0 if ok else 1)
 EOF
-grep -h "zero reference\|back at the zero\|knock" "$work"/serve-2.log | sed 's/^/resume.sh: serve-2: /' | cut -c1-240 || true
+grep -h "zero reference\|back at the zero\|knock\|flagged\|re-referenced\|following error" "$work"/serve-*.log | sed 's/^/resume.sh: service: /' | cut -c1-240 || true
 python3 tests/interop/truth.py judge --db "$db" --run "$run_id" --twin "$twin_ctl" \
   --zero "$work/zero-truth.json" --within 1,1,1,0.4,0.4,0.4 --out "$work/truth.json" \
   | sed 's/^/resume.sh: /' || fail "captures stored far from the truth after the restart (above)"
-awk -v a="$t0" -v b="$t1" 'BEGIN { printf "resume.sh: PASS (run start to finished %.1f s, with the crash)\n", b - a }'
+awk -v a="$t0" -v b="$t1" -v d="$disturb" 'BEGIN { printf "resume.sh: PASS (run start to finished %.1f s, DISTURB=%s)\n", b - a, d }'
