@@ -144,6 +144,10 @@ harness() {
     if [ -n "$svc" ]; then kill "$svc" 2>/dev/null || true; fi
     if [ -n "$sim" ]; then kill "$sim" 2>/dev/null || true; fi
     wait 2>/dev/null || true
+    # KEEP_LOGS=DIR: the logs of the twin and the service kept there (.ci/run: beside its own).
+    if [ -n "${KEEP_LOGS:-}" ]; then
+      mkdir -p "$KEEP_LOGS" && cp "$work"/*.log "$KEEP_LOGS"/ 2>/dev/null || true
+    fi
     if [ -n "${KEEP:-}" ]; then echo "$harness_name: kept $work" >&2; else rm -rf "$work"; fi
   }
   fail() {
