@@ -588,18 +588,6 @@ impl Tracker {
         (0..2).all(|k| hi[k] - lo[k] <= 2.0 * self.settings.rest_tolerance_mm)
     }
 
-    /// Following is over: the spot stands on PSD2 and the carriage stands too. A follower that
-    /// keeps pace holds the spot as still as a standing carriage does, so the spot alone
-    /// cannot tell; ended on it, following stopped and started again every few tens of
-    /// milliseconds through a move.
-    fn stopped(&self, now: Instant) -> bool {
-        self.at_rest(now)
-            && self
-                .carriage
-                .estimate(now)
-                .is_none_or(|c| c.velocity_mm_s.abs() < STANDING_MM_S)
-    }
-
     /// Variance (along, vertical) of PSD2's position after the follower travelled `moved`
     /// mm by its encoder alone.
     fn encoder_var(&self, moved: f64) -> [f64; 2] {
@@ -889,7 +877,7 @@ impl Tracker {
         }
         self.follow_step(p, f, now);
         if self.followed
-            && self.stopped(now)
+            && self.at_rest(now)
             && p[0].abs() <= self.settings.follow_band_mm
             && f.target_reached
         {
@@ -948,7 +936,7 @@ impl Tracker {
             }
             Phase::Following { encoder_start } => {
                 self.follow_step(p, f, now);
-                if self.stopped(now) && p[0].abs() <= s.follow_band_mm && f.target_reached {
+                if self.at_rest(now) && p[0].abs() <= s.follow_band_mm && f.target_reached {
                     self.begin_approach(Some(encoder_start), f.position_mm, now);
                 }
             }
