@@ -124,6 +124,9 @@ pub struct Pipeline {
     paused: Option<String>,
     /// The follower was quick-stopped for a lost heartbeat (re-enabled when it comes back).
     stopped_for_heartbeat: bool,
+    /// Where the carriage stands in the follower's encoder coordinates, less the nominal it
+    /// stands at (mm), from the last capture: where a follower that lost the spot finds it.
+    carriage_offset_mm: Option<f64>,
 }
 
 /// A zero reference on its way (see [`Pipeline::begin_zero`]).
@@ -162,6 +165,7 @@ impl Pipeline {
             no_spot_since: [None; 3],
             stopped_for_heartbeat: false,
             paused: None,
+            carriage_offset_mm: None,
         }
     }
 
@@ -194,7 +198,9 @@ impl Pipeline {
             (None, false) => {
                 // PSD2 alone, with its follower not following: the stage, not the beam.
                 let follower_down = self.follower_state().is_none_or(|f| !f.ready);
-                let what = if lost == ["PSD2"] && follower_down {
+                let what = if lost == ["PSD2"] && !follower_down {
+                    "the follower lost the carriage and goes to it at the next target".to_string()
+                } else if lost == ["PSD2"] && follower_down {
                     let state = self
                         .drive
                         .as_ref()
@@ -386,6 +392,14 @@ impl Pipeline {
     }
 
     fn drain_run(&mut self) {
+        // The carriage in encoder coordinates now, for a capture taken now.
+        let carriage_enc = match (
+            self.follower_state(),
+            self.last_frame.and_then(|fr| fr.spots[1]),
+        ) {
+            (Some(f), Some(spot)) => Some(f.position_mm + spot.x),
+            _ => None,
+        };
         let Some(run) = self.run.as_mut() else {
             return;
         };
@@ -393,7 +407,12 @@ impl Pipeline {
         while let Some(a) = run.poll_action() {
             match a {
                 RunAction::SetNominal(n) => self.measure.set_nominal(n),
-                RunAction::Captured(c) => self.outputs.push_back(Output::Captured(c)),
+                RunAction::Captured(c) => {
+                    if let Some(at) = carriage_enc {
+                        self.carriage_offset_mm = Some(at - c.target_mm);
+                    }
+                    self.outputs.push_back(Output::Captured(c));
+                }
                 RunAction::Acknowledge { code } => {
                     self.outputs.push_back(Output::Acknowledge(code))
                 }
@@ -672,10 +691,31 @@ impl Pipeline {
 
     /// A handshake report from the PLC: the CNC is at the target with this code.
     pub fn handle_at_target(&mut self, code: u32, now: Instant) {
-        if let Some(run) = self.run.as_mut() {
-            run.handle_at_target(code, now);
-            self.drain_run();
+        let Some(run) = self.run.as_mut() else {
+            return;
+        };
+        run.handle_at_target(code, now);
+        self.drain_run();
+        if let Some(nominal) = self.measure.nominal() {
+            self.seek_carriage(nominal, now);
         }
+    }
+
+    /// PSD2 has lost the spot and the carriage went on without the follower (a drive fault,
+    /// a following error): send the follower to where the carriage stands or will stop, at
+    /// `nominal_mm` on the axis, placed by the last capture. A make-up pass visits only the
+    /// missing targets and may never pass the follower where it stood. Whether it was sent
+    /// (not when the spot is not lost, no capture has placed the carriage yet, or the follower
+    /// is not ready).
+    pub fn seek_carriage(&mut self, nominal_mm: f64, now: Instant) -> bool {
+        let Some(offset) = self.carriage_offset_mm.filter(|_| self.tracker.is_lost()) else {
+            return false;
+        };
+        let sent = self.tracker.seek(nominal_mm + offset, now);
+        if sent {
+            self.drain_tracker();
+        }
+        sent
     }
 }
 

@@ -19,13 +19,18 @@
 # the figures printed; STORM_TRUTH=within also fails on a capture further from it than its U or
 # 1 µm / 0.4″, STORM_TRUTH=strict on one outside its U or a U not sharp. Needs root for the tmpfs (else STORM_DISK=skip says the disk was not
 # tested), apt-get download + dpkg -x for libfaketime (or FAKETIME_LIB).
+# STORM_TWIN_SEED (default 1) draws another machine and follower; STORM_MAP=1 maps the twin's
+# follower first (`axiscomp follower map --twin`, in virtual time: the set-up the README
+# recommends) and the run uses the map.
 #   bash tests/interop/storm.sh
 #   STORM_FAULTS=80 STORM_SEED=7 KEEP=1 bash tests/interop/storm.sh
+#   STORM_TWIN_SEED=3 STORM_MAP=1 STORM_TRUTH=strict bash tests/interop/storm.sh
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 command -v python3 >/dev/null || { echo "storm.sh: python3 not found" >&2; exit 1; }
 faults=${STORM_FAULTS:-54}
 seed=${STORM_SEED:-18}
+twin_seed=${STORM_TWIN_SEED:-1}
 disk_mb=${STORM_DISK_MB:-16}
 # Machine speed: the twin's carriage at up to 100 mm/s and 250 mm/s² (configs/sim.toml: 50 mm/s,
 # 500 mm/s²: faster, or harder accelerations, and the follower is left behind at a reversal now and
@@ -92,6 +97,15 @@ echo "+0" >"$work/clock-offset"
 if [ "${STORM_JUDGE:-0}" = 1 ]; then printf '\n[capture]\njudge = true\n' >>"$work/service.toml"; fi
 sed -i '/^\[follower\]/a homing_switch_speed_mm_s = 50.0\nhoming_timeout_ms = 40000' "$work/service.toml"
 sed -i "s/^feed_mm_s = .*/feed_mm_s = $carriage_mm_s.0/; s/^accel_mm_s2 = .*/accel_mm_s2 = ${STORM_ACCEL_MM_S2:-250}.0/" "$work/sim.toml"
+sed -i "0,/^seed = .*/s//seed = $twin_seed/" "$work/sim.toml"
+grep -q "^seed = $twin_seed\$" "$work/sim.toml" || fail "could not set the twin's seed $twin_seed in sim.toml"
+map="none"
+if [ "${STORM_MAP:-0}" = 1 ]; then
+  t0=$SECONDS
+  "$bin" follower map --twin --seed "$twin_seed" --length-mm 1000 --db "$state/axiscomp.db" \
+    >"$work/follower-map.txt" 2>&1 || { cat "$work/follower-map.txt" >&2; fail "the follower map on the twin failed"; }
+  map="the twin's follower mapped in $((SECONDS - t0)) s ($(grep -c . "$work/follower-map.txt") lines: follower-map.txt)"
+fi
 serve_cmd="env LD_PRELOAD=$ft FAKETIME_TIMESTAMP_FILE=$work/clock-offset FAKETIME_DONT_FAKE_MONOTONIC=1 \
 FAKETIME_CACHE_DURATION=1 RUST_LOG=${RUST_LOG:-info,axiscomp::run=debug,axiscomp::align::revisit=debug} $bin serve --config $work/service.toml"
 
@@ -108,6 +122,7 @@ done
 # A whole run needs the travel aligned (0–1000 mm and 2 mm of overrun).
 t0=$SECONDS
 align_cli -2 1002 >"$work/align.txt" 2>&1 || { cat "$work/align.txt" >&2; fail "the alignment check did not pass"; }
+echo "storm.sh: twin seed $twin_seed; follower map: $map"
 echo "storm.sh: aligned over -2..1002 mm in $((SECONDS - t0)) s; state directory on $disk; $(basename "$ft")"
 
 run_args="--axis X --start-mm 0 --end-mm 1000 --targets 11 --runs 5 --dwell-s $dwell \

@@ -339,6 +339,15 @@ impl MeasurementRun {
         });
         let axis = a.session.plan().spec.axis.clone();
         a.cnc.deliver(file, text, a.dialect, &axis, then);
+        // A follower that lost the spot waits for the carriage at the program's first target.
+        if let Some(first) = p.steps.iter().find(|s| s.target.is_some())
+            && ctx.pipeline.seek_carriage(first.position_mm, ctx.now)
+        {
+            tracing::info!(
+                at_mm = first.position_mm,
+                "PSD2 has no spot: the follower waits for the carriage at the program's first target"
+            );
+        }
     }
 
     /// Store a capture through the queue; its answer comes back as news.
@@ -759,8 +768,10 @@ impl Procedure for MeasurementRun {
             // service does not drive goes on: what it missed is the make-up pass's.
             Output::RunPaused(why) => {
                 tracing::warn!("{why}");
-                if ctx.pipeline.beam_lost()
-                    && let Some(a) = self.active.as_mut()
+                // Nothing is captured while paused: the program stops at its next stop and
+                // the rest of the cycle follows once the spots are back (PSD2's found by
+                // sending the follower to the carriage's next stop, `deliver`).
+                if let Some(a) = self.active.as_mut()
                     && a.cnc.twin().is_some()
                 {
                     a.cnc.stop();
@@ -832,7 +843,11 @@ impl Procedure for MeasurementRun {
         }
         // The program has ended: once every spot is back (the beam off the fixed PSDs waits),
         // the rest of the cycle or a make-up pass, or the run fails.
-        if !a.ended || ctx.pipeline.beam_lost() {
+        let follower_down = ctx.pipeline.follower_state().is_none_or(|f| !f.ready);
+        if !a.ended
+            || ctx.pipeline.beam_lost()
+            || (ctx.pipeline.paused().is_some() && follower_down)
+        {
             return;
         }
         a.ended = false;
