@@ -125,7 +125,8 @@ pub struct Pipeline {
     /// The follower was quick-stopped for a lost heartbeat (re-enabled when it comes back).
     stopped_for_heartbeat: bool,
     /// Where the carriage stands in the follower's encoder coordinates, less the nominal it
-    /// stands at (mm), from the last capture: where a follower that lost the spot finds it.
+    /// stands at (mm), from the last rest on a target: where a follower that lost the spot
+    /// finds it.
     carriage_offset_mm: Option<f64>,
 }
 
@@ -308,6 +309,7 @@ impl Pipeline {
         }
         self.drain_tracker();
         self.judge_spots(now);
+        self.place_carriage(f, now);
         if late {
             self.late_frames += 1;
             return;
@@ -391,15 +393,22 @@ impl Pipeline {
         }
     }
 
-    fn drain_run(&mut self) {
-        // The carriage in encoder coordinates now, for a capture taken now.
-        let carriage_enc = match (
-            self.follower_state(),
-            self.last_frame.and_then(|fr| fr.spots[1]),
+    /// The carriage rests on a target of the run (its nominal set) with PSD2 on the spot:
+    /// where it stands in the follower's encoder coordinates, less the nominal.
+    fn place_carriage(&mut self, f: &Frame, now: Instant) {
+        if self.run.is_none() || !self.tracker.stitch().valid || !self.tracker.at_rest(now) {
+            return;
+        }
+        if let (Some(nominal), Some(fs), Some(spot)) = (
+            self.measure.nominal(),
+            self.follower_state().filter(|s| s.ready),
+            f.spots[1],
         ) {
-            (Some(f), Some(spot)) => Some(f.position_mm + spot.x),
-            _ => None,
-        };
+            self.carriage_offset_mm = Some(fs.position_mm + spot.x - nominal);
+        }
+    }
+
+    fn drain_run(&mut self) {
         let Some(run) = self.run.as_mut() else {
             return;
         };
@@ -407,12 +416,7 @@ impl Pipeline {
         while let Some(a) = run.poll_action() {
             match a {
                 RunAction::SetNominal(n) => self.measure.set_nominal(n),
-                RunAction::Captured(c) => {
-                    if let Some(at) = carriage_enc {
-                        self.carriage_offset_mm = Some(at - c.target_mm);
-                    }
-                    self.outputs.push_back(Output::Captured(c));
-                }
+                RunAction::Captured(c) => self.outputs.push_back(Output::Captured(c)),
                 RunAction::Acknowledge { code } => {
                     self.outputs.push_back(Output::Acknowledge(code))
                 }
@@ -703,7 +707,7 @@ impl Pipeline {
 
     /// PSD2 has lost the spot and the carriage went on without the follower (a drive fault,
     /// a following error): send the follower to where the carriage stands or will stop, at
-    /// `nominal_mm` on the axis, placed by the last capture. A make-up pass visits only the
+    /// `nominal_mm` on the axis, placed by the last rest on a target. A make-up pass visits only the
     /// missing targets and may never pass the follower where it stood. Whether it was sent
     /// (not when the spot is not lost, no capture has placed the carriage yet, or the follower
     /// is not ready).
