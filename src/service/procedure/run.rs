@@ -115,6 +115,8 @@ struct Active {
     complete: bool,
     /// The program ended: what comes next is decided once every spot is back.
     ended: bool,
+    /// A program that could not be written (a full disk), written again at this time.
+    undelivered: Option<(Program, Instant)>,
 }
 
 /// The service's measurement run: at most one at a time.
@@ -291,6 +293,7 @@ impl MeasurementRun {
             retry_at: None,
             complete: false,
             ended: false,
+            undelivered: None,
         });
         match resumed_at {
             Some(_) => ctx.pipeline.resume_run(machine),
@@ -325,13 +328,21 @@ impl MeasurementRun {
         let file = match a.cnc.program_file(&dir, &name, a.dialect) {
             Ok((file, _)) => file,
             Err(e) => {
-                ctx.pipeline.alarms.raise("cnc", e.clone());
-                if let Some((reply, _)) = then {
-                    reply.send(Err(e));
+                match then {
+                    Some((reply, _)) => reply.send(Err(e.clone())),
+                    // The run goes on once it can be written: a full disk is freed.
+                    None => a.undelivered = Some((p.clone(), ctx.now + RETRY_EVERY)),
                 }
+                ctx.pipeline.alarms.raise(
+                    "cnc",
+                    format!("{e}; written again every {} s", RETRY_EVERY.as_secs()),
+                );
                 return;
             }
         };
+        if a.undelivered.take().is_some() {
+            ctx.pipeline.alarms.clear("cnc");
+        }
         a.program = file.display().to_string();
         let then = then.map(|(reply, mut answer)| {
             answer["program"] = serde_json::json!(a.program);
@@ -824,6 +835,12 @@ impl Procedure for MeasurementRun {
             for id in records {
                 self.offer_record(id, ctx);
             }
+        }
+        let Some(a) = self.active.as_mut() else {
+            return;
+        };
+        if let Some((p, _)) = a.undelivered.as_ref().filter(|(_, at)| now >= *at).cloned() {
+            self.deliver(&p, None, ctx);
         }
         let Some(a) = self.active.as_mut() else {
             return;
