@@ -84,6 +84,8 @@ pub enum CncNews {
     Refused(String),
     /// The program we sent has ended (the twin's CNC is done with it).
     Ended,
+    /// The program we sent is written (and taken by the twin when it drives it).
+    Taken,
 }
 
 #[derive(Debug)]
@@ -238,9 +240,15 @@ impl CncDriver {
         let mut news = Vec::new();
         while let Ok(h) = self.rx.try_recv() {
             match h {
-                Heard::Delivered(Ok(Some(n))) => self.ours = Some(n),
+                Heard::Delivered(Ok(Some(n))) => {
+                    self.ours = Some(n);
+                    news.push(CncNews::Taken);
+                }
                 // Written for the operator: its end is judged by the carriage.
-                Heard::Delivered(Ok(None)) => self.running = false,
+                Heard::Delivered(Ok(None)) => {
+                    self.running = false;
+                    news.push(CncNews::Taken);
+                }
                 Heard::Delivered(Err(e)) => {
                     self.running = false;
                     news.push(CncNews::Refused(e));

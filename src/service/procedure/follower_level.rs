@@ -593,6 +593,7 @@ impl FollowerLevel {
                         ctx,
                     );
                 }
+                CncNews::Taken => {}
                 CncNews::Ended => {
                     if let Some(a) = self.active.as_mut()
                         && a.cnc_done_at.is_none()

@@ -473,6 +473,7 @@ impl FollowerMapping {
                         ctx,
                     );
                 }
+                CncNews::Taken => {}
                 CncNews::Ended => {
                     if let Some(a) = self.active.as_mut()
                         && a.cnc_done_at.is_none()

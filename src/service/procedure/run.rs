@@ -115,7 +115,9 @@ struct Active {
     complete: bool,
     /// The program ended: what comes next is decided once every spot is back.
     ended: bool,
-    /// A program that could not be written (a full disk), written again at this time.
+    /// The last program sent, and one that could not be written or sent (a full disk),
+    /// sent again at this time.
+    last: Option<Program>,
     undelivered: Option<(Program, Instant)>,
 }
 
@@ -293,6 +295,7 @@ impl MeasurementRun {
             retry_at: None,
             complete: false,
             ended: false,
+            last: None,
             undelivered: None,
         });
         match resumed_at {
@@ -340,9 +343,8 @@ impl MeasurementRun {
                 return;
             }
         };
-        if a.undelivered.take().is_some() {
-            ctx.pipeline.alarms.clear("cnc");
-        }
+        a.undelivered = None;
+        a.last = Some(p.clone());
         a.program = file.display().to_string();
         let then = then.map(|(reply, mut answer)| {
             answer["program"] = serde_json::json!(a.program);
@@ -851,7 +853,18 @@ impl Procedure for MeasurementRun {
         }
         for n in a.cnc.poll(now) {
             match n {
-                CncNews::Refused(e) => ctx.pipeline.alarms.raise("cnc", e),
+                CncNews::Refused(e) => {
+                    // Written or sent again until it goes (a full disk is freed; a twin
+                    // that refuses the text keeps the alarm, and the run's timeout ends it).
+                    let again = RETRY_EVERY.as_secs();
+                    ctx.pipeline
+                        .alarms
+                        .raise("cnc", format!("{e}; sent again every {again} s"));
+                    if let Some(p) = a.last.clone() {
+                        a.undelivered = Some((p, now + RETRY_EVERY));
+                    }
+                }
+                CncNews::Taken => ctx.pipeline.alarms.clear("cnc"),
                 CncNews::Ended => {
                     ctx.pipeline.alarms.clear("cnc");
                     a.ended = true;
