@@ -396,14 +396,16 @@ impl Pipeline {
     /// The carriage rests on a target of the run (its nominal set) with PSD2 on the spot:
     /// where it stands in the follower's encoder coordinates, less the nominal.
     fn place_carriage(&mut self, f: &Frame, now: Instant) {
-        if self.run.is_none() || !self.tracker.stitch().valid || !self.tracker.at_rest(now) {
+        // Cheapest first: a nominal is set only while the run averages on a target.
+        let (Some(nominal), Some(spot), true) =
+            (self.measure.nominal(), f.spots[1], self.run.is_some())
+        else {
             return;
-        }
-        if let (Some(nominal), Some(fs), Some(spot)) = (
-            self.measure.nominal(),
-            self.follower_state().filter(|s| s.ready),
-            f.spots[1],
-        ) {
+        };
+        if let Some(fs) = self.follower_state().filter(|s| s.ready)
+            && self.tracker.at_rest(now)
+            && self.tracker.stitch().valid
+        {
             self.carriage_offset_mm = Some(fs.position_mm + spot.x - nominal);
         }
     }
@@ -707,10 +709,10 @@ impl Pipeline {
 
     /// PSD2 has lost the spot and the carriage went on without the follower (a drive fault,
     /// a following error): send the follower to where the carriage stands or will stop, at
-    /// `nominal_mm` on the axis, placed by the last rest on a target. A make-up pass visits only the
-    /// missing targets and may never pass the follower where it stood. Whether it was sent
-    /// (not when the spot is not lost, no capture has placed the carriage yet, or the follower
-    /// is not ready).
+    /// `nominal_mm` on the axis, placed by the last rest on a target. A make-up pass visits
+    /// only the missing targets and may never pass the follower where it stood. Whether it was
+    /// sent (not when the spot is not lost, no rest has placed the carriage yet, or the
+    /// follower is not ready).
     pub fn seek_carriage(&mut self, nominal_mm: f64, now: Instant) -> bool {
         let Some(offset) = self.carriage_offset_mm.filter(|_| self.tracker.is_lost()) else {
             return false;

@@ -261,6 +261,14 @@ enum Phase {
     },
 }
 
+/// How a move by an approach point went on at one follower status (`Tracker::leg`).
+enum Leg {
+    Going,
+    OnToTarget,
+    Arrived,
+    Late,
+}
+
 /// Running mean and variance (Welford).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 struct Stats2 {
@@ -437,15 +445,22 @@ impl Tracker {
     /// encoder `from` (where the map's correction was `from_corr`) to `to` by its encoder
     /// alone.
     fn encoder_step(&self, from: f64, from_corr: [f64; 2], to: f64) -> ([f64; 2], [f64; 2]) {
+        (
+            self.encoder_delta(from, from_corr, to),
+            self.bridge_var(from, to),
+        )
+    }
+
+    /// PSD2's displacement alone (see `encoder_step`), where its variance is the chain's.
+    fn encoder_delta(&self, from: f64, from_corr: [f64; 2], to: f64) -> [f64; 2] {
         let moved = to - from;
-        let delta = match &self.map {
+        match &self.map {
             None => [moved, 0.0],
             Some(_) => {
                 let c = self.corr(to);
                 [moved + c[0] - from_corr[0], c[1] - from_corr[1]]
             }
-        };
-        (delta, self.bridge_var(from, to))
+        }
     }
 
     /// The variance (mm²: along, vertical) of PSD2's displacement bridged by the encoder
@@ -554,7 +569,7 @@ impl Tracker {
             if self.lost {
                 return false;
             }
-            let (d, _) = self.encoder_step(at, self.stitch_corr, f.position_mm);
+            let d = self.encoder_delta(at, self.stitch_corr, f.position_mm);
             self.follower_mm += d[0];
             self.vertical_mm += d[1];
             self.stitch_encoder = Some(f.position_mm);
@@ -619,7 +634,7 @@ impl Tracker {
                 // handover is measured, PSD2 is where its encoder says (a stale stitch would
                 // read a moving carriage as standing where the handover began).
                 Some(from) => {
-                    let (d, _) = self.encoder_step(from, self.before_corr, f.position_mm);
+                    let d = self.encoder_delta(from, self.before_corr, f.position_mm);
                     let e = self.bridge_var(self.chain_from.unwrap_or(from), f.position_mm);
                     (
                         self.follower_mm + d[0],
@@ -778,9 +793,8 @@ impl Tracker {
                     done(self);
                     return;
                 }
-                match via {
-                    Some(v) if self.reached(&state, v) => {
-                        self.commands.push_back(FollowerCommand::MoveTo(target));
+                match self.leg(&state, via, target, since, now) {
+                    Leg::OnToTarget => {
                         self.phase = Phase::Approach {
                             encoder_start,
                             via: None,
@@ -788,15 +802,15 @@ impl Tracker {
                             since,
                         };
                     }
-                    None if self.reached(&state, target) => {
+                    Leg::Arrived => {
                         if self.problem == Some(Problem::Late) {
                             self.recovered();
                         }
                         self.approached();
                         done(self);
                     }
-                    _ if self.timed_out(since, via.unwrap_or(target), now) => done(self),
-                    _ => {}
+                    Leg::Late => done(self),
+                    Leg::Going => {}
                 }
             }
             Phase::Seek { via, target, since } => {
@@ -804,16 +818,15 @@ impl Tracker {
                     self.phase = Phase::Watch;
                     return;
                 }
-                match via {
-                    Some(v) if self.reached(&state, v) => {
-                        self.commands.push_back(FollowerCommand::MoveTo(target));
+                match self.leg(&state, via, target, since, now) {
+                    Leg::OnToTarget => {
                         self.phase = Phase::Seek {
                             via: None,
                             target,
                             since,
                         };
                     }
-                    None if self.reached(&state, target) => {
+                    Leg::Arrived => {
                         self.approached();
                         self.phase = Phase::Watch;
                         self.recent.clear();
@@ -823,13 +836,33 @@ impl Tracker {
                             self.events.push_back(TrackEvent::SpotFound);
                         }
                     }
-                    _ if self.timed_out(since, via.unwrap_or(target), now) => {
-                        self.phase = Phase::Watch;
-                    }
-                    _ => {}
+                    Leg::Late => self.phase = Phase::Watch,
+                    Leg::Going => {}
                 }
             }
             _ => {}
+        }
+    }
+
+    /// One status of a move to `target` by the approach point `via` below it (none: the
+    /// last leg), begun at `since`: at the approach point (the target is commanded now), at
+    /// the target, late (said as a follower problem), or still going.
+    fn leg(
+        &mut self,
+        state: &FollowerState,
+        via: Option<f64>,
+        target: f64,
+        since: Instant,
+        now: Instant,
+    ) -> Leg {
+        match via {
+            Some(v) if self.reached(state, v) => {
+                self.commands.push_back(FollowerCommand::MoveTo(target));
+                Leg::OnToTarget
+            }
+            None if self.reached(state, target) => Leg::Arrived,
+            _ if self.timed_out(since, via.unwrap_or(target), now) => Leg::Late,
+            _ => Leg::Going,
         }
     }
 

@@ -293,7 +293,7 @@ fn encoder_steps_back_and_forth_state_the_uncertainty_of_one_bridge() {
     let st = tr.stitch();
     assert!(st.valid);
     let s = tr.settings();
-    let one = s.encoder_sd_mm + s.encoder_sd_per_mm * (b.enc - 0.0).abs();
+    let one = s.encoder_sd_mm + s.encoder_sd_per_mm * b.enc.abs();
     let each = s.encoder_sd_mm + s.encoder_sd_per_mm * 25.0;
     assert!(
         (st.variance[0].sqrt() - one).abs() < 1e-9,

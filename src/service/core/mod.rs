@@ -116,11 +116,17 @@ pub(super) struct Core {
     /// The zero reference changes offered to the store so far, and the newest one it did not
     /// keep (a full disk), offered again at `reference_retry_at` until it is or a newer one
     /// replaces it: a restart must not take back a reference without the turn of the head
-    /// found since (issue 24: a knock found while the disk was full, lost, put every capture
-    /// after the restart 0.1–0.2 mm off).
+    /// found since (issue 24: a knock found while the disk was full was lost).
     reference_offers: u64,
-    reference_unkept: Option<(u64, Option<super::measure::ReferenceState>)>,
-    reference_retry_at: Option<Instant>,
+    reference_unkept: Option<Unkept>,
+}
+
+/// A zero reference change the store did not keep: offer number `offer`, offered again at
+/// `again_at`.
+struct Unkept {
+    offer: u64,
+    state: Option<super::measure::ReferenceState>,
+    again_at: Instant,
 }
 
 impl Core {
@@ -210,7 +216,6 @@ impl Core {
             store_alarm_rx,
             reference_offers: 0,
             reference_unkept: None,
-            reference_retry_at: None,
         }
     }
 
@@ -496,7 +501,7 @@ impl Core {
                         if core
                             .reference_unkept
                             .as_ref()
-                            .is_some_and(|(o, _)| *o <= offer)
+                            .is_some_and(|u| u.offer <= offer)
                         {
                             core.reference_unkept = None;
                             tracing::info!("the zero reference is kept for a restart again");
@@ -524,8 +529,11 @@ impl Core {
             ),
         );
         if offer == self.reference_offers {
-            self.reference_unkept = Some((offer, state));
-            self.reference_retry_at = Some(crate::util::clock::now() + Duration::from_secs(1));
+            self.reference_unkept = Some(Unkept {
+                offer,
+                state,
+                again_at: crate::util::clock::now() + Duration::from_secs(1),
+            });
         }
     }
 
@@ -659,11 +667,8 @@ impl Core {
         }
         self.for_each_procedure(|p, ctx| p.tick(ctx));
         self.pump();
-        if self.reference_retry_at.is_some_and(|t| now >= t)
-            && let Some((_, state)) = self.reference_unkept.take()
-        {
-            self.reference_retry_at = None;
-            self.keep_reference(state);
+        if let Some(u) = self.reference_unkept.take_if(|u| now >= u.again_at) {
+            self.keep_reference(u.state);
         }
         if let Some(z) = self.pipeline.zero_ready(now)
             && let Some(reply) = self.zero_reply.take()

@@ -115,10 +115,10 @@ struct Active {
     complete: bool,
     /// The program ended: what comes next is decided once every spot is back.
     ended: bool,
-    /// The last program sent, and one that could not be written or sent (a full disk),
-    /// sent again at this time.
+    /// The last program sent, and when to send it again when it could not be written or
+    /// taken (a full disk).
     last: Option<Program>,
-    undelivered: Option<(Program, Instant)>,
+    send_again_at: Option<Instant>,
 }
 
 /// The service's measurement run: at most one at a time.
@@ -296,7 +296,7 @@ impl MeasurementRun {
             complete: false,
             ended: false,
             last: None,
-            undelivered: None,
+            send_again_at: None,
         });
         match resumed_at {
             Some(_) => ctx.pipeline.resume_run(machine),
@@ -331,19 +331,14 @@ impl MeasurementRun {
         let file = match a.cnc.program_file(&dir, &name, a.dialect) {
             Ok((file, _)) => file,
             Err(e) => {
-                match then {
-                    Some((reply, _)) => reply.send(Err(e.clone())),
-                    // The run goes on once it can be written: a full disk is freed.
-                    None => a.undelivered = Some((p.clone(), ctx.now + RETRY_EVERY)),
+                ctx.pipeline.alarms.raise("cnc", e.clone());
+                if let Some((reply, _)) = then {
+                    reply.send(Err(e));
                 }
-                ctx.pipeline.alarms.raise(
-                    "cnc",
-                    format!("{e}; written again every {} s", RETRY_EVERY.as_secs()),
-                );
                 return;
             }
         };
-        a.undelivered = None;
+        a.send_again_at = None;
         a.last = Some(p.clone());
         a.program = file.display().to_string();
         let then = then.map(|(reply, mut answer)| {
@@ -841,7 +836,10 @@ impl Procedure for MeasurementRun {
         let Some(a) = self.active.as_mut() else {
             return;
         };
-        if let Some((p, _)) = a.undelivered.as_ref().filter(|(_, at)| now >= *at).cloned() {
+        if a.send_again_at.is_some_and(|t| now >= t)
+            && let Some(p) = a.last.clone()
+        {
+            a.send_again_at = None;
             self.deliver(&p, None, ctx);
         }
         let Some(a) = self.active.as_mut() else {
@@ -860,8 +858,8 @@ impl Procedure for MeasurementRun {
                     ctx.pipeline
                         .alarms
                         .raise("cnc", format!("{e}; sent again every {again} s"));
-                    if let Some(p) = a.last.clone() {
-                        a.undelivered = Some((p, now + RETRY_EVERY));
+                    if a.last.is_some() {
+                        a.send_again_at = Some(now + RETRY_EVERY);
                     }
                 }
                 CncNews::Taken => ctx.pipeline.alarms.clear("cnc"),
