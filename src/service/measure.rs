@@ -30,7 +30,7 @@ use crate::align::{
 use crate::decouple::{BetaCache, DecoupleError, Decoupler};
 use crate::optics::Layout;
 use crate::run::FrameSample;
-use crate::track::Stitch;
+use crate::track::{Stitch, StitchAnchor};
 use crate::units::Errors6;
 use nalgebra::{Matrix6, Vector6};
 use std::collections::VecDeque;
@@ -59,6 +59,8 @@ pub struct LiveErrors {
 struct Zero {
     errors: Vector6<f64>,
     cov: Matrix6<f64>,
+    /// Where the stitch stood when the zero was taken.
+    stitch: Option<StitchAnchor>,
 }
 
 /// The zero reference in force, as kept across a restart (internal units).
@@ -72,6 +74,10 @@ pub struct ReferenceState {
     pub turn_var_rad2: [f64; 2],
     /// Where the zero is, for the check of each return to it.
     pub revisit: Option<RevisitState>,
+    /// Where PSD2's stitch stood at the zero: a restarted service bridges from it by the
+    /// follower's encoder (none in a row kept before it was recorded).
+    #[serde(default)]
+    pub stitch: Option<StitchAnchor>,
 }
 
 impl ReferenceState {
@@ -95,7 +101,7 @@ impl ReferenceState {
         if self.turn_var_rad2.iter().any(|v| *v < 0.0) {
             return Err("a turn's variance is negative".into());
         }
-        Ok(())
+        self.stitch.as_ref().map_or(Ok(()), StitchAnchor::check)
     }
 }
 
@@ -267,6 +273,7 @@ impl Measure {
             turn_rad: [self.turned.turn.yaw, self.turned.turn.pitch],
             turn_var_rad2: self.turned.var,
             revisit: self.turned.revisit.state(),
+            stitch: z.stitch,
         })
     }
 
@@ -283,6 +290,7 @@ impl Measure {
         self.zero = Some(Zero {
             errors: Vector6::from_row_slice(&state.errors),
             cov,
+            stitch: state.stitch,
         });
         self.zero_average = None;
         self.turned.reset();
@@ -354,8 +362,8 @@ impl Measure {
 
     /// Take the zero reference of all six errors: the mean of the frames since
     /// [`Measure::start_zero`] when they are more than the live window holds, else the live
-    /// mean.
-    pub fn set_zero(&mut self) -> Option<Errors6> {
+    /// mean. `stitch` is where PSD2's stitch stands, kept with the zero.
+    pub fn set_zero(&mut self, stitch: Option<StitchAnchor>) -> Option<Errors6> {
         self.zero = None;
         let average = self.zero_average.take();
         let live = self.live()?;
@@ -366,7 +374,11 @@ impl Measure {
             }
             _ => (live.errors.to_vector(), self.window_cov()?),
         };
-        self.zero = Some(Zero { errors: e, cov });
+        self.zero = Some(Zero {
+            errors: e,
+            cov,
+            stitch,
+        });
         if let Some(at) = self.position() {
             self.turned.revisit.set_zero(at);
         }
@@ -391,6 +403,7 @@ impl Measure {
                 self.zero = Some(Zero {
                     errors: by,
                     cov: Matrix6::zeros(),
+                    stitch: None,
                 })
             }
         }
@@ -596,6 +609,7 @@ mod tests {
             turn_rad: [0.0; 2],
             turn_var_rad2: [0.0; 2],
             revisit: None,
+            stitch: None,
         };
         let short = ReferenceState {
             cov: vec![0.0; 35],
@@ -611,6 +625,26 @@ mod tests {
                 .contains("35 values")
         );
         assert!(m.restore_reference(&nan).unwrap_err().contains("finite"));
+        let anchor = crate::track::StitchAnchor {
+            encoder_mm: 12.0,
+            corr_mm: [0.0; 2],
+            follower_mm: 12.0,
+            vertical_mm: 0.0,
+            variance_mm2: [0.0, -1e-9],
+        };
+        let negative = ReferenceState {
+            stitch: Some(anchor),
+            ..good.clone()
+        };
+        assert!(
+            m.restore_reference(&negative)
+                .unwrap_err()
+                .contains("negative variance")
+        );
+        // A row kept before the stitch's anchor was recorded loads without one.
+        let old = r#"{"errors":[0,0,0,0,0,0],"cov":[0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0],"turn_rad":[0,0],"turn_var_rad2":[0,0],"revisit":null}"#;
+        let loaded: ReferenceState = serde_json::from_str(old).expect("an older row loads");
+        assert_eq!(loaded.stitch, None);
         assert!(
             m.reference_state().is_none(),
             "nothing taken from a refused state"
@@ -721,7 +755,7 @@ mod tests {
         broken.valid = false;
         assert!(m.handle_frame(&f, &broken, t).unwrap().is_none());
         assert_eq!(m.live().unwrap().frames, 1);
-        assert!(m.set_zero().is_some());
+        assert!(m.set_zero(None).is_some());
         assert!(m.live().unwrap().zeroed);
     }
 
@@ -757,7 +791,7 @@ mod tests {
         }
         let live = m.live().unwrap();
         assert_eq!(live.frames, 126);
-        let z = m.set_zero().unwrap().to_vector();
+        let z = m.set_zero(None).unwrap().to_vector();
         let mean = sum / 1000.0;
         assert!((z - mean).norm() < 1e-12, "{z} against {mean}");
         // The stated uncertainty of the zero: the frame covariance over 1000, so a live mean
@@ -777,7 +811,7 @@ mod tests {
         // Without a zero asked for, the live window is the zero.
         m.clear_zero();
         let live = m.live().unwrap();
-        let z = m.set_zero().unwrap();
+        let z = m.set_zero(None).unwrap();
         assert_eq!(z, live.errors);
     }
 
@@ -816,7 +850,7 @@ mod tests {
             };
             m.start_zero();
             feed(&mut m, 0.0, 0.0, 500);
-            m.set_zero().unwrap();
+            m.set_zero(None).unwrap();
             // Knocked at rest: found within the watch's window, the turn known to its sd.
             feed(&mut m, 0.0, 0.0, 300);
             assert!(m.take_knock().is_none());

@@ -4,7 +4,7 @@
 //! virtual-time lab (`sim::lab`) drives the very same logic on a simulated clock.
 
 use super::api::snapshot::Alarm;
-use super::measure::Measure;
+use super::measure::{Measure, ReferenceState};
 use crate::acquire::Frame;
 use crate::align::Knock;
 use crate::canopen::{DriveStatus, Event, PowerState};
@@ -305,7 +305,19 @@ impl Pipeline {
                 .follower_state()
                 .is_some_and(|s| s.ready && s.target_reached)
         {
-            self.referenced_once = self.tracker.reference();
+            // A zero kept across a restart brings the stitch it was taken with: bridged from
+            // there by the encoder, not referenced afresh where the follower stands now.
+            self.referenced_once = if self.tracker.anchored() {
+                let bridged = self.tracker.reference_by_encoder();
+                if bridged {
+                    tracing::info!(
+                        "PSD2's stitch bridged by the follower's encoder from where it stood at the zero"
+                    );
+                }
+                bridged
+            } else {
+                self.tracker.reference()
+            };
         }
         self.drain_tracker();
         self.judge_spots(now);
@@ -637,7 +649,17 @@ impl Pipeline {
             return None;
         }
         self.zero = None;
-        Some(self.measure.set_zero())
+        Some(self.measure.set_zero(self.tracker.anchor()))
+    }
+
+    /// Take back the zero reference kept across a restart, with the stitch it was taken with
+    /// (bridged by the encoder at the first frame that has the spot).
+    pub fn restore_reference(&mut self, state: &ReferenceState) -> Result<(), String> {
+        self.measure.restore_reference(state)?;
+        if let Some(a) = &state.stitch {
+            self.tracker.restore(a);
+        }
+        Ok(())
     }
 
     /// Start measuring a resumed run: the carriage may be away from PSD2 (it went on while

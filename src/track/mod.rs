@@ -195,6 +195,38 @@ pub struct Stitch {
     pub valid: bool,
 }
 
+/// Where the stitch stood at a zero reference, kept with the zero across a restart: PSD2 was
+/// at `follower_mm` (vertical `vertical_mm`, variance `variance_mm2`) with the follower's
+/// encoder at `encoder_mm`, where the follower map's correction was `corr_mm`. A service
+/// that restarts bridges from here by the encoder (`Tracker::restore`); referencing afresh
+/// where the follower stands after the restart dropped the follower's shape between the two,
+/// and read roll 0.8″ off after a SIGKILL (issue 24).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StitchAnchor {
+    pub encoder_mm: f64,
+    pub corr_mm: [f64; 2],
+    pub follower_mm: f64,
+    pub vertical_mm: f64,
+    pub variance_mm2: [f64; 2],
+}
+
+impl StitchAnchor {
+    /// Refuse an anchor that cannot be one (a damaged row).
+    pub fn check(&self) -> Result<(), String> {
+        let numbers = [self.encoder_mm, self.follower_mm, self.vertical_mm]
+            .into_iter()
+            .chain(self.corr_mm)
+            .chain(self.variance_mm2);
+        if numbers.clone().any(|v| !v.is_finite()) {
+            return Err("the stitch's anchor holds a value that is not a finite number".into());
+        }
+        if self.variance_mm2.iter().any(|v| *v < 0.0) {
+            return Err("the stitch's anchor has a negative variance".into());
+        }
+        Ok(())
+    }
+}
+
 /// Events for the service.
 #[derive(Clone, Debug, PartialEq)]
 pub enum TrackEvent {
@@ -553,9 +585,9 @@ impl Tracker {
     /// Re-reference after the stitch was broken in the middle of something (a service restart
     /// in a run, a spot lost and found again): PSD2 is where the encoder says, the encoder
     /// bridging the gap with its uncertainty over the distance. A stitch referenced before
-    /// keeps what it had measured (overlap: the stitched position and the vertical offset),
-    /// moved on by the encoder's increment since; otherwise the encoder is taken from its
-    /// home.
+    /// (or restored, `restore`) keeps what it had measured (overlap: the stitched position and
+    /// the vertical offset), moved on by the encoder's increment since; the encoder strategy
+    /// keeps its reference. Otherwise the encoder is taken from its home.
     pub fn reference_by_encoder(&mut self) -> bool {
         let Some(f) = self.follower else {
             return false;
@@ -564,6 +596,15 @@ impl Tracker {
             // Not while the follower still moves to the carriage: the seek's end says
             // `SpotFound` again when the spot is there.
             return false;
+        }
+        if let (Strategy::Encoder, Some(_)) = (self.settings.strategy, self.stitch_encoder) {
+            // Every position is the encoder's from the reference: the reference still holds.
+            if self.lost {
+                return false;
+            }
+            self.valid = true;
+            self.phase = Phase::Watch;
+            return true;
         }
         if let (Strategy::Overlap, Some(at)) = (self.settings.strategy, self.stitch_encoder) {
             if self.lost {
@@ -605,6 +646,52 @@ impl Tracker {
         self.valid = !self.lost;
         self.phase = Phase::Watch;
         true
+    }
+
+    /// Where the stitch stands now, to be kept with a zero reference (`StitchAnchor`): none
+    /// while it is not valid or a handover is under way.
+    pub fn anchor(&self) -> Option<StitchAnchor> {
+        if !self.valid || self.lost || self.handing_over() {
+            return None;
+        }
+        match self.settings.strategy {
+            Strategy::Encoder => self.stitch_encoder.map(|_| StitchAnchor {
+                encoder_mm: self.reference_encoder,
+                corr_mm: self.ref_corr,
+                follower_mm: self.reference_encoder,
+                vertical_mm: 0.0,
+                variance_mm2: [0.0; 2],
+            }),
+            Strategy::Overlap => self.stitch_encoder.map(|e| StitchAnchor {
+                encoder_mm: e,
+                corr_mm: self.stitch_corr,
+                follower_mm: self.follower_mm,
+                vertical_mm: self.vertical_mm,
+                variance_mm2: self.total_var(),
+            }),
+        }
+    }
+
+    /// Take back the stitch kept with a zero reference before a restart: it stays invalid
+    /// until `reference_by_encoder` bridges from the anchor to where the follower stands.
+    pub fn restore(&mut self, a: &StitchAnchor) {
+        self.follower_mm = a.follower_mm;
+        self.vertical_mm = a.vertical_mm;
+        self.reference_encoder = a.encoder_mm;
+        self.ref_corr = a.corr_mm;
+        self.stitch_encoder = Some(a.encoder_mm);
+        self.stitch_corr = a.corr_mm;
+        self.variance = a.variance_mm2;
+        self.chain_from = None;
+        self.chain_var = [0.0; 2];
+        self.handovers = 0;
+        self.valid = false;
+        self.phase = Phase::Watch;
+    }
+
+    /// Whether the stitch has a reference to bridge from (taken, or restored).
+    pub fn anchored(&self) -> bool {
+        self.stitch_encoder.is_some()
     }
 
     /// Mark the stitch broken (the follower was moved outside the tracker's control); it stays

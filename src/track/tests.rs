@@ -413,12 +413,12 @@ fn the_map_in_use_comes_back_as_it_was_given() {
 
 /// With a map of the follower's own errors, the encoder strategy's stitch is where PSD2
 /// really is (along and vertically, from the reference), not where the encoder says.
-#[test]
-fn encoder_strategy_applies_the_follower_map() {
+/// A follower map of the bench's own errors (`fu`, `fv`) every 0.25 mm over 100 mm.
+fn bench_map() -> crate::follower::FollowerMap {
     use crate::follower::{FollowerMap, Source, Sources};
     let xs: Vec<f64> = (0..=400).map(|k| k as f64 * 0.25).collect();
     let fus: Vec<f64> = xs.iter().map(|&x| fu(x)).collect();
-    let map = FollowerMap {
+    FollowerMap {
         sources: Sources {
             long: Source::Certificate,
             periodic: Source::None,
@@ -440,9 +440,14 @@ fn encoder_strategy_applies_the_follower_map() {
         vertical_slope: 0.0,
         vertical_line: None,
         vertical_reference: None,
-    };
+    }
+}
+
+#[test]
+fn encoder_strategy_applies_the_follower_map() {
+    use crate::follower::FollowerMap;
     let (mut b, mut tr) = referenced(Strategy::Encoder);
-    let map = Arc::new(map);
+    let map = Arc::new(bench_map());
     tr.set_map(Some(map.clone()));
     assert!(
         tr.map::<FollowerMap>()
@@ -725,4 +730,67 @@ fn a_carriage_starting_fast_keeps_the_spot_on_psd2_while_the_follower_starts() {
     // Following only at the edge (the default): the spot leaves PSD2 (this bench can tell).
     let lost = spot_excursion(Duration::ZERO, latency);
     assert!(lost > 4.5, "the spot ran to {lost:.2} mm at the edge only");
+}
+
+/// A service that restarts mid-run takes its zero back with the stitch it was taken with,
+/// and bridges from there by the encoder: PSD2's vertical offset and position are the
+/// follower's shape between the zero and where it stands now, as if the service had never
+/// stopped. Referencing afresh where the follower stood after the restart dropped that shape
+/// (roll 0.8″ off after a SIGKILL in the storm, issue 24).
+#[test]
+fn a_restarted_tracker_bridges_from_where_the_stitch_stood_at_the_zero() {
+    for strategy in [Strategy::Encoder, Strategy::Overlap] {
+        let map = Arc::new(bench_map());
+        let (mut b, mut tr) = referenced(strategy);
+        tr.set_map(Some(map.clone()));
+        b.run(&mut tr, 100);
+        assert!(tr.reference());
+        let anchor = tr.anchor().expect("a valid stitch has an anchor");
+        let (e0, u0, v0) = (b.enc, fu(b.enc), fv(b.enc));
+        // The carriage runs 50 mm; the service dies there, and a new one starts.
+        for _ in 0..2500 {
+            b.carriage += 10.0 * 0.002;
+            b.step(&mut tr);
+        }
+        b.run(&mut tr, 2000);
+        let kept = tr.stitch();
+        let mut restarted = Tracker::new(TrackSettings {
+            strategy,
+            ..TrackSettings::default()
+        });
+        restarted.set_map(Some(map.clone()));
+        restarted.restore(&anchor);
+        assert!(!restarted.stitch().valid, "invalid until bridged");
+        b.run(&mut restarted, 100);
+        assert!(restarted.anchored());
+        assert!(restarted.reference_by_encoder());
+        let s = restarted.stitch();
+        assert!(s.valid);
+        let true_u = b.enc + fu(b.enc) - u0 + e0;
+        let true_v = fv(b.enc) - v0;
+        assert!(
+            true_v.abs() > 1e-3,
+            "the shape a fresh reference would drop is {:.2} µm",
+            true_v * 1e3
+        );
+        // The map's interpolation is within 2 nm of the bench's sines; the service that
+        // went on stitched with the PSD's 1 µm noise averaged.
+        for (what, got, truth, within) in [
+            ("along", s.follower_mm, true_u, 3e-6),
+            ("vertical", s.vertical_mm, true_v, 3e-6),
+            ("along, as kept", s.follower_mm, kept.follower_mm, 0.3e-3),
+            ("vertical, as kept", s.vertical_mm, kept.vertical_mm, 0.3e-3),
+        ] {
+            assert!(
+                (got - truth).abs() < within,
+                "{strategy:?} {what}: {got:.6} mm vs {truth:.6} mm"
+            );
+        }
+        // One bridge from the zero's place, with the map's uncertainty.
+        assert!(
+            s.variance[0] > 0.0 && s.variance[1] > 0.0,
+            "{:?}",
+            s.variance
+        );
+    }
 }

@@ -144,7 +144,7 @@ impl Core {
         let s = &p.settings;
         let mut pipeline = Pipeline::new(s.tracking, p.decoupler.clone(), s.head.live_window);
         if let Some(r) = &startup.reference {
-            match pipeline.measure.restore_reference(r) {
+            match pipeline.restore_reference(r) {
                 Ok(()) => tracing::info!(
                     turns = r.turn_rad != [0.0; 2],
                     "the zero reference in force before the restart is taken back; it is checked at the carriage's next return to the zero"
