@@ -176,7 +176,22 @@ struct State {
     drift_at: Instant,
     /// The true layout with the current beam drift applied.
     layout: Layout,
+    /// The carriage's last rests, oldest first (at most `RESTS_KEPT`).
+    rests: std::collections::VecDeque<Rest>,
 }
+
+/// The carriage stood at `mm` (nominal) from `from` to `to`, its last move in `direction`:
+/// what a capture taken then was taken at, independent of the service's labels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Rest {
+    pub from: Instant,
+    pub to: Instant,
+    pub mm: f64,
+    pub direction: Direction,
+}
+
+/// Rests kept for `Plant::rests`: two whole runs of 110 captures with their moves between.
+const RESTS_KEPT: usize = 2048;
 
 /// The twin's plant.
 pub struct Plant {
@@ -239,6 +254,7 @@ impl Plant {
                 drift: [0.0; 2],
                 drift_at: now,
                 layout: head.truth.clone(),
+                rests: std::collections::VecDeque::new(),
             }),
             spec: spec.clone(),
             head,
@@ -270,7 +286,38 @@ impl Plant {
 
     /// Command the carriage to nominal position `target` (mm).
     pub fn move_carriage(&self, target: f64, now: Instant) {
-        self.lock().carriage.move_to(target, now);
+        let mut s = self.lock();
+        let end = s.carriage.end();
+        if now > end {
+            let rest = Rest {
+                from: end,
+                to: now,
+                mm: s.carriage.target(),
+                direction: s.carriage.direction(),
+            };
+            if s.rests.len() == RESTS_KEPT {
+                s.rests.pop_front();
+            }
+            s.rests.push_back(rest);
+        }
+        s.carriage.move_to(target, now);
+    }
+
+    /// The carriage's last rests up to `now`, oldest first; the one under way, if any, ends
+    /// at `now`.
+    pub fn rests(&self, now: Instant) -> Vec<Rest> {
+        let s = self.lock();
+        let mut out: Vec<Rest> = s.rests.iter().copied().collect();
+        let end = s.carriage.end();
+        if now > end {
+            out.push(Rest {
+                from: end,
+                to: now,
+                mm: s.carriage.target(),
+                direction: s.carriage.direction(),
+            });
+        }
+        out
     }
 
     /// Apply (or remove) the compensation the PLC accepted.
@@ -526,6 +573,35 @@ mod tests {
         let after = plant.truth(t).errors;
         assert!((after.dy - (before.dy - 0.01)).abs() < 1e-12);
         assert_eq!(after.dx, before.dx);
+    }
+
+    /// Each rest is where the carriage stood between two moves, with the direction of the
+    /// move that ended there; the one under way ends now.
+    #[test]
+    fn the_carriage_rests_are_kept_with_their_approach() {
+        let t0 = crate::util::clock::now();
+        let plant = Plant::new(&Layout::reference(), &PlantSpec::default(), t0).unwrap();
+        let s = Duration::from_secs;
+        plant.move_carriage(100.0, t0 + s(1));
+        let arrived = plant.carriage_move_end();
+        plant.move_carriage(40.0, arrived + s(2));
+        let back = plant.carriage_move_end();
+        let rests = plant.rests(back + s(3));
+        let seen: Vec<(f64, Direction, Duration)> = rests
+            .iter()
+            .map(|r| (r.mm, r.direction, r.to - r.from))
+            .collect();
+        assert_eq!(
+            seen,
+            vec![
+                (0.0, Direction::Up, s(1)),
+                (100.0, Direction::Up, s(2)),
+                (40.0, Direction::Down, s(3)),
+            ]
+        );
+        assert_eq!(rests[1].from, arrived);
+        // Moving: no rest under way.
+        assert_eq!(plant.rests(back - s(1)).len(), 2);
     }
 
     #[test]

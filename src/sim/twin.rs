@@ -9,6 +9,9 @@
 //!   `{"cmd":"truth","mm":500.0,"direction":"+"}` → `{"ok":true,"errors":[dx,dy,dz,ex,ey,ez]}`
 //!   (µm, arcsec): the axis' errors at that position approached that way, now (what a capture
 //!   taken there at rest is judged by)
+//! - `{"cmd":"rests"}` → `{"ok":true,"rests":[{"from_unix_us","to_unix_us","mm","direction"}]}`:
+//!   the carriage's last rests (nominal mm, the direction of the move that ended there, the
+//!   twin's wall clock), what each capture was really taken at
 //! - `{"cmd":"block","psd":2,"on":true}` (PSD 1..3)
 //! - `{"cmd":"io","action":"stop"|"restart"}`, `{"cmd":"io","delay_ms":50}` (a hung module:
 //!   a delay longer than the client waits), `{"cmd":"io","exception":6}` (every request answered
@@ -394,6 +397,34 @@ async fn handle(ctx: &Ctx, v: &serde_json::Value) -> Result<serde_json::Value, S
             }
             let e = ctx.plant.errors_at(mm, dir, now);
             Ok(serde_json::json!({"ok": true, "errors": e.to_user()}))
+        }
+        "rests" => {
+            // Wall-clock times (the twin's own clock, never a service's stepped one) of each
+            // rest, from the monotonic instants the plant keeps.
+            let now = crate::util::clock::now();
+            let wall_us = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_micros() as i64);
+            let unix_us = |t: std::time::Instant| {
+                wall_us - now.saturating_duration_since(t).as_micros() as i64
+            };
+            let rests: Vec<_> = ctx
+                .plant
+                .rests(now)
+                .iter()
+                .map(|r| {
+                    serde_json::json!({
+                        "from_unix_us": unix_us(r.from),
+                        "to_unix_us": unix_us(r.to),
+                        "mm": r.mm,
+                        "direction": match r.direction {
+                            super::axis::Direction::Up => "+",
+                            super::axis::Direction::Down => "-",
+                        },
+                    })
+                })
+                .collect();
+            Ok(serde_json::json!({"ok": true, "rests": rests}))
         }
         "block" => {
             let psd = num("psd").ok_or("block needs \"psd\" (1..3)")? as usize;

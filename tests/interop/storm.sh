@@ -14,8 +14,12 @@
 # (refusal, corrupted payload, commit ignored, link silent mid-publish, not ready, heartbeat
 # frozen) and once cleanly; after each the PLC's active table is compared with the store's: the
 # old table or the new one, whole, never a mix.
-# Passes when the run finishes with every capture exactly once, every fault recovered, and no
-# table partially applied. Every stored capture is compared with the twin's truth (truth.py) and
+# Then the verification run on the compensated axis (the twin's PLC applies the tables it took)
+# under a storm of its own (STORM_VERIFY_FAULTS, default 18; 0: none), judged by the truth, with
+# its ISO 230-2 positioning figures by the service and by the truth (issue 24, must-show 3: E
+# after by the truth within STORM_VERIFY_E_UM, default 1.0 µm).
+# Passes when both runs finish with every capture exactly once, every fault recovered, no
+# table partially applied, and the compensated axis' E within its bound. Every stored capture is compared with the twin's truth (truth.py) and
 # the figures printed; STORM_TRUTH=within also fails on a capture further from it than its U or
 # 1 µm / 0.4″, STORM_TRUTH=strict on one outside its U or a U not sharp. Needs root for the tmpfs (else STORM_DISK=skip says the disk was not
 # tested), apt-get download + dpkg -x for libfaketime (or FAKETIME_LIB).
@@ -133,7 +137,8 @@ python3 tests/interop/storm.py --bin "$bin" --sock "$sock" --twin "$twin_ctl" \
   --state "$state" --clock-file "$work/clock-offset" --events "$work/storm-events.tsv" \
   --faults "$faults" --seed "$seed" --gap-max "${STORM_GAP_MAX_S:-4}" --run-args "$run_args" --db "$state/axiscomp.db" \
   --disk "$disk" --budget "${STORM_BUDGET_S:-900}" --truth "${STORM_TRUTH:-report}" \
-  --truth-json "$work/storm-truth.json" | tee "$work/storm.out" || fail "the storm was not survived (storm-events.tsv)"
+  --truth-json "$work/storm-truth.json" --verify-faults "${STORM_VERIFY_FAULTS:-18}" \
+  --verify-e-um "${STORM_VERIFY_E_UM:-1.0}" | tee "$work/storm.out" || fail "the storm was not survived (storm-events.tsv)"
 echo "storm.sh: run and storm in $((SECONDS - t0)) s"
 column -t -s $'\t' "$work/storm-events.tsv" | sed 's/^/storm.sh:   /'
 echo "storm.sh: PASS"

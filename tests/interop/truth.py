@@ -103,6 +103,38 @@ def judge_by_truth(db, run_id, twin, zero_truth, log):
             "flags": flags[0] or 0, "events": dict(events), "captures": caps}
 
 
+def check_labels(db, run_id, twin, offsets_s, log):
+    """Every stored capture of a run placed by the twin's own record of the carriage's rests
+    (`{"cmd":"rests"}`, the twin's wall clock; the service's may have been stepped by one of
+    `offsets_s`, seconds): mislabelled when it was taken at a rest of another target or
+    approach direction than it is filed under, unplaced when no rest holds its time.
+    (mislabelled, unplaced)"""
+    rests = twin.cmd({"cmd": "rests"})["rests"]
+    rows = sqlite3.connect(db).execute(
+        "SELECT run, target_index, target_mm, direction, unix_us FROM captures WHERE run_id = ?",
+        (run_id,)).fetchall()
+    slack_us = 50_000
+    wrong, unplaced = [], []
+    for run, ti, mm, d, us in rows:
+        at = None
+        for off in offsets_s:
+            t = us - off * 1_000_000
+            at = next((r for r in rests
+                       if r["from_unix_us"] - slack_us <= t <= r["to_unix_us"] + slack_us), None)
+            if at is not None:
+                break
+        if at is None:
+            unplaced.append((run, ti, d))
+        elif abs(at["mm"] - mm) > 0.05 or at["direction"] != d:
+            wrong.append((run, ti, d))
+            log(f"MISLABELLED: run {run}, target {ti} ({mm:.1f} mm) {d} was taken at "
+                f"{at['mm']:.1f} mm approached {at['direction']}")
+    log(f"labels: {len(rows) - len(wrong) - len(unplaced)} of {len(rows)} captures taken at the "
+        f"target and approach they are filed under (the twin's rests); mislabelled {len(wrong)}, "
+        f"at no rest {len(unplaced)}{' ' + str(unplaced[:5]) if unplaced else ''}")
+    return len(wrong), len(unplaced)
+
+
 # The floor under U for --within (µm, µm, µm, ″, ″, ″): a wrong reference (a lost zero, a turn
 # of the head not taken out) is microns and arcseconds off, a U a hair too small is not.
 WITHIN_FLOOR = [1.0, 1.0, 1.0, 0.4, 0.4, 0.4]
