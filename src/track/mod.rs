@@ -385,6 +385,10 @@ pub struct Tracker {
 /// The follower has turned when it is this far back from its furthest point (mm).
 const TURN_MM: f64 = 0.5e-3;
 
+/// An encoder step's recorded start this far from the stitch's (mm) is not where the stitch
+/// stood (the follower's final approach is 20 µm).
+const STEP_START_MM: f64 = 0.05;
+
 impl Tracker {
     /// A tracker that has not yet been referenced (its stitch is invalid until `reference`).
     pub fn new(settings: TrackSettings) -> Self {
@@ -1296,6 +1300,22 @@ impl Tracker {
             .follower
             .map(|f| f.position_mm)
             .unwrap_or(self.encoder_before);
+        // The step is bridged from where the stitch stands. A step whose recorded start is
+        // elsewhere (the follower moved in between without a step the tracker saw end: a
+        // drive's following error mid-step) counted the distance between the two once more:
+        // a storm's stitch stood 3.79 mm off its encoder after one, and no stop was on a
+        // target again (issue 24).
+        if let (Strategy::Overlap, Some(at)) = (self.settings.strategy, self.stitch_encoder)
+            && (at - self.encoder_before).abs() > STEP_START_MM
+        {
+            tracing::warn!(
+                recorded_mm = self.encoder_before,
+                stitch_mm = at,
+                "an encoder step began away from the stitch: bridged from the stitch"
+            );
+            self.encoder_before = at;
+            self.before_corr = self.stitch_corr;
+        }
         let moved = enc_after - self.encoder_before;
         let (delta, variance) = self.encoder_step(self.encoder_before, self.before_corr, enc_after);
         let record = HandoverRecord {

@@ -794,3 +794,23 @@ fn a_restarted_tracker_bridges_from_where_the_stitch_stood_at_the_zero() {
         );
     }
 }
+
+/// An encoder step whose recorded start is not where the stitch stands (the follower moved in
+/// between, a step the tracker never saw end) is bridged from the stitch: counting from the
+/// recorded start put a storm's stitch 3.79 mm off its encoder, and no stop was ever on a
+/// target again (issue 24).
+#[test]
+fn an_encoder_step_is_bridged_from_where_the_stitch_stands() {
+    let (mut b, mut tr) = referenced(Strategy::Overlap);
+    b.run(&mut tr, 100);
+    let before = tr.stitch().follower_mm;
+    // A start recorded 5.79 mm away, as after the storm's following error.
+    tr.encoder_before = b.enc + 5.79;
+    tr.finish_encoder_step(b.now);
+    let after = tr.stitch().follower_mm;
+    assert!(
+        (after - before).abs() < 1e-6,
+        "the stitch moved by {:.3} mm with the follower standing",
+        after - before
+    );
+}
