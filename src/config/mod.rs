@@ -148,6 +148,7 @@ pub struct RawTracking {
     pub lost_after_ms: u64,
     pub encoder_sd_um: f64,
     pub encoder_sd_um_per_m: f64,
+    pub mapped_sd_um: f64,
     pub vertical_sd_um: f64,
     pub vertical_sd_um_per_m: f64,
     pub move_timeout_ms: u64,
@@ -962,6 +963,7 @@ fn validate(
         encoder_sd_mm: tv.range("encoder_sd_um", t.encoder_sd_um, sd_um)? * 1e-3,
         encoder_sd_per_mm: tv.range("encoder_sd_um_per_m", t.encoder_sd_um_per_m, sd_um_per_m)?
             * 1e-6,
+        mapped_sd_mm: tv.range("mapped_sd_um", t.mapped_sd_um, sd_um)? * 1e-3,
         vertical_sd_mm: tv.range("vertical_sd_um", t.vertical_sd_um, sd_um)? * 1e-3,
         vertical_sd_per_mm: tv.range(
             "vertical_sd_um_per_m",

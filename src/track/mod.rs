@@ -83,6 +83,10 @@ pub struct TrackSettings {
     /// Encoder accuracy: standard deviation `a + b·|travelled|` (mm, and mm per mm).
     pub encoder_sd_mm: f64,
     pub encoder_sd_per_mm: f64,
+    /// With a follower map in use, what the stage repeats to beyond its map (mm, standard
+    /// deviation): `encoder_sd_mm` also covers the unmapped screw-periodic and reversal
+    /// errors at short distance, which the map takes out.
+    pub mapped_sd_mm: f64,
     /// The follower's vertical straightness as a standard deviation `a + b·|travelled|` (mm,
     /// and mm per mm): what an encoder step leaves unmeasured across the axis (it reads as
     /// roll, 1.38″ per µm).
@@ -115,6 +119,7 @@ impl Default for TrackSettings {
             lost_after: Duration::from_millis(500),
             encoder_sd_mm: 1e-3,
             encoder_sd_per_mm: 5e-6,
+            mapped_sd_mm: 0.5e-3,
             vertical_sd_mm: 0.2e-3,
             vertical_sd_per_mm: 3e-6,
             move_timeout: Duration::from_secs(10),
@@ -510,7 +515,7 @@ impl Tracker {
                 // Which direction the start was in does not change the map's uncertainty.
                 let dv = m.difference_variance(from, to, self.motion, self.motion);
                 [
-                    s.encoder_sd_mm.powi(2) + dv[0],
+                    s.mapped_sd_mm.powi(2) + dv[0],
                     s.vertical_sd_mm.powi(2) + dv[1],
                 ]
             }
@@ -725,7 +730,9 @@ impl Tracker {
                 // handover is measured, PSD2 is where its encoder says (a stale stitch would
                 // read a moving carriage as standing where the handover began).
                 Some(from) => {
-                    let d = self.encoder_delta(from, self.before_corr, f.position_mm);
+                    let (from, from_corr) =
+                        self.step_origin(from).unwrap_or((from, self.before_corr));
+                    let d = self.encoder_delta(from, from_corr, f.position_mm);
                     let e = self.bridge_var(self.chain_from.unwrap_or(from), f.position_mm);
                     (
                         self.follower_mm + d[0],
@@ -744,6 +751,20 @@ impl Tracker {
             handovers: self.handovers,
             strategy: self.settings.strategy,
             valid: self.valid && !self.lost,
+        }
+    }
+
+    /// Overlap: where a step recorded as begun at encoder `from` really begins, when that is
+    /// not `from`: the stitch's own position (and the map's correction there), the follower
+    /// having moved in between without a step the tracker saw end. Read in flight too: the
+    /// stitch counted from the recorded start placed a carriage 2.5 mm past where it stopped,
+    /// and the run filed a capture approached from below under the other direction (issue 24).
+    fn step_origin(&self, from: f64) -> Option<(f64, [f64; 2])> {
+        match (self.settings.strategy, self.stitch_encoder) {
+            (Strategy::Overlap, Some(at)) if (at - from).abs() > STEP_START_MM => {
+                Some((at, self.stitch_corr))
+            }
+            _ => None,
         }
     }
 
@@ -1305,16 +1326,14 @@ impl Tracker {
         // drive's following error mid-step) counted the distance between the two once more:
         // a storm's stitch stood 3.79 mm off its encoder after one, and no stop was on a
         // target again (issue 24).
-        if let (Strategy::Overlap, Some(at)) = (self.settings.strategy, self.stitch_encoder)
-            && (at - self.encoder_before).abs() > STEP_START_MM
-        {
+        if let Some((at, corr)) = self.step_origin(self.encoder_before) {
             tracing::warn!(
                 recorded_mm = self.encoder_before,
                 stitch_mm = at,
                 "an encoder step began away from the stitch: bridged from the stitch"
             );
             self.encoder_before = at;
-            self.before_corr = self.stitch_corr;
+            self.before_corr = corr;
         }
         let moved = enc_after - self.encoder_before;
         let (delta, variance) = self.encoder_step(self.encoder_before, self.before_corr, enc_after);

@@ -478,10 +478,12 @@ fn encoder_strategy_applies_the_follower_map() {
         (fu(b.enc) - u0).abs() > 1e-3,
         "the encoder alone would be off"
     );
-    // The map's uncertainty replaces the per-mm terms.
+    // The map's uncertainty replaces the per-mm terms, and the stage's repeatability beyond
+    // its map the encoder's own.
     let sd = s.variance.map(f64::sqrt);
+    let mapped = tr.settings().mapped_sd_mm;
     assert!(
-        (sd[0] - (1e-6_f64 + 2.0 * 0.01e-6).sqrt()).abs() < 1e-9,
+        (sd[0] - (mapped * mapped + 2.0 * 0.01e-6).sqrt()).abs() < 1e-9,
         "{sd:?}"
     );
 }
@@ -812,5 +814,28 @@ fn an_encoder_step_is_bridged_from_where_the_stitch_stands() {
         (after - before).abs() < 1e-6,
         "the stitch moved by {:.3} mm with the follower standing",
         after - before
+    );
+}
+
+/// The stitch in flight counts from the same place: with a step's start recorded 2.46 mm
+/// below the stitch's, a carriage the follower followed read 2.46 mm past where it stood,
+/// and the run took the stop as approached from above (issue 24).
+#[test]
+fn the_stitch_in_flight_counts_from_where_the_stitch_stands() {
+    let (mut b, mut tr) = referenced(Strategy::Overlap);
+    b.run(&mut tr, 100);
+    let before = tr.stitch().follower_mm;
+    tr.encoder_before = b.enc - 2.46;
+    tr.phase = Phase::Moving {
+        target: b.enc,
+        via: None,
+        since: b.now,
+        reached_at: None,
+    };
+    let in_flight = tr.stitch().follower_mm;
+    assert!(
+        (in_flight - before).abs() < 1e-6,
+        "in flight the stitch moved by {:.3} mm with the follower standing",
+        in_flight - before
     );
 }
