@@ -190,6 +190,19 @@ pub struct Rest {
     pub direction: Direction,
 }
 
+impl State {
+    /// The rest under way at `now` (since the last move ended), if the carriage stands.
+    fn rest_until(&self, now: Instant) -> Option<Rest> {
+        let end = self.carriage.end();
+        (now > end).then(|| Rest {
+            from: end,
+            to: now,
+            mm: self.carriage.target(),
+            direction: self.carriage.direction(),
+        })
+    }
+}
+
 /// Rests kept for `Plant::rests`: two whole runs of 110 captures with their moves between.
 const RESTS_KEPT: usize = 2048;
 
@@ -287,14 +300,7 @@ impl Plant {
     /// Command the carriage to nominal position `target` (mm).
     pub fn move_carriage(&self, target: f64, now: Instant) {
         let mut s = self.lock();
-        let end = s.carriage.end();
-        if now > end {
-            let rest = Rest {
-                from: end,
-                to: now,
-                mm: s.carriage.target(),
-                direction: s.carriage.direction(),
-            };
+        if let Some(rest) = s.rest_until(now) {
             if s.rests.len() == RESTS_KEPT {
                 s.rests.pop_front();
             }
@@ -307,17 +313,7 @@ impl Plant {
     /// at `now`.
     pub fn rests(&self, now: Instant) -> Vec<Rest> {
         let s = self.lock();
-        let mut out: Vec<Rest> = s.rests.iter().copied().collect();
-        let end = s.carriage.end();
-        if now > end {
-            out.push(Rest {
-                from: end,
-                to: now,
-                mm: s.carriage.target(),
-                direction: s.carriage.direction(),
-            });
-        }
-        out
+        s.rests.iter().copied().chain(s.rest_until(now)).collect()
     }
 
     /// Apply (or remove) the compensation the PLC accepted.

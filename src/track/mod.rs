@@ -218,11 +218,11 @@ pub struct StitchAnchor {
 impl StitchAnchor {
     /// Refuse an anchor that cannot be one (a damaged row).
     pub fn check(&self) -> Result<(), String> {
-        let numbers = [self.encoder_mm, self.follower_mm, self.vertical_mm]
+        let mut numbers = [self.encoder_mm, self.follower_mm, self.vertical_mm]
             .into_iter()
             .chain(self.corr_mm)
             .chain(self.variance_mm2);
-        if numbers.clone().any(|v| !v.is_finite()) {
+        if numbers.any(|v| !v.is_finite()) {
             return Err("the stitch's anchor holds a value that is not a finite number".into());
         }
         if self.variance_mm2.iter().any(|v| *v < 0.0) {

@@ -411,8 +411,6 @@ fn the_map_in_use_comes_back_as_it_was_given() {
     assert!(tr.map::<Flat>().is_none());
 }
 
-/// With a map of the follower's own errors, the encoder strategy's stitch is where PSD2
-/// really is (along and vertically, from the reference), not where the encoder says.
 /// A follower map of the bench's own errors (`fu`, `fv`) every 0.25 mm over 100 mm.
 fn bench_map() -> crate::follower::FollowerMap {
     use crate::follower::{FollowerMap, Source, Sources};
@@ -443,6 +441,8 @@ fn bench_map() -> crate::follower::FollowerMap {
     }
 }
 
+/// With a map of the follower's own errors, the encoder strategy's stitch is where PSD2
+/// really is (along and vertically, from the reference), not where the encoder says.
 #[test]
 fn encoder_strategy_applies_the_follower_map() {
     use crate::follower::FollowerMap;
