@@ -108,7 +108,7 @@ impl Default for TrackSettings {
             strategy: Strategy::Overlap,
             handover_mm: 1.5,
             edge_mm: 3.5,
-            anticipate: Duration::ZERO,
+            anticipate: Duration::from_millis(100),
             rest_tolerance_mm: 0.005,
             rest_time: Duration::from_millis(300),
             average_frames: 200,
@@ -378,6 +378,9 @@ pub struct Tracker {
     motion_anchor: Option<f64>,
     /// The follower has followed the carriage since its last final approach.
     followed: bool,
+    /// The follower is held where it stands (a procedure moves the head itself): no
+    /// anticipated following (see [`Tracker::hold`]).
+    held: bool,
     /// The map's correction at the reference, at `stitch_encoder`, and where the follower
     /// left the stitched position (mm: along, vertical).
     ref_corr: [f64; 2],
@@ -426,10 +429,19 @@ impl Tracker {
             motion: Direction::Up,
             motion_anchor: None,
             followed: false,
+            held: false,
             ref_corr: [0.0; 2],
             stitch_corr: [0.0; 2],
             before_corr: [0.0; 2],
         }
+    }
+
+    /// The follower is held (`true`) or free: a procedure that moves the head itself (a
+    /// hexapod calibration) holds it, and its commands go nowhere. A held follower is not
+    /// sent after a spot by anticipation (`anticipate`): the head's poses move the spot fast
+    /// within PSD2 and stop there, which is not a carriage running out.
+    pub fn hold(&mut self, held: bool) {
+        self.held = held;
     }
 
     /// Apply `map` to every displacement taken from the encoder from now on (`None`: the
@@ -1246,7 +1258,7 @@ impl Tracker {
         }
         // Inside the handover band a carriage may yet stop (a short jog ends in an exact
         // overlap handover at rest); beyond it, a spot moving outwards fast is followed.
-        if x2.abs() < s.handover_mm {
+        if x2.abs() < s.handover_mm || self.held {
             return false;
         }
         let Some(c) = self.carriage.estimate(now) else {

@@ -450,6 +450,8 @@ impl Core {
         for p in &mut self.procedures {
             p.on_frame(f);
         }
+        let held = self.procedures.iter().any(|p| p.holds_follower());
+        self.pipeline.tracker.hold(held);
         self.pipeline.handle_frame(f, late);
         self.pump();
     }
