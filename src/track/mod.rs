@@ -397,6 +397,11 @@ const TURN_MM: f64 = 0.5e-3;
 /// stood (the follower's final approach is 20 µm).
 const STEP_START_MM: f64 = 0.05;
 
+/// An overlap handover's optical step agrees with the encoder's within this floor (mm) plus
+/// `STEP_AGREE_SIGMAS` times the encoder step's standard deviation, or the carriage moved.
+const STEP_AGREE_FLOOR_MM: f64 = 0.005;
+const STEP_AGREE_SIGMAS: f64 = 5.0;
+
 impl Tracker {
     /// A tracker that has not yet been referenced (its stitch is invalid until `reference`).
     pub fn new(settings: TrackSettings) -> Self {
@@ -1238,7 +1243,7 @@ impl Tracker {
                 if self.after.n >= s.average_frames {
                     tracing::debug!(after_mm = ?self.after.mean, "handover: after window");
                     if self.after_is_steady() {
-                        self.finish_overlap_step();
+                        self.finish_overlap_step(now);
                     } else {
                         self.finish_encoder_step(now);
                     }
@@ -1297,12 +1302,31 @@ impl Tracker {
         };
     }
 
-    fn finish_overlap_step(&mut self) {
+    fn finish_overlap_step(&mut self, now: Instant) {
         let enc_after = self
             .follower
             .map(|f| f.position_mm)
             .unwrap_or(self.encoder_before);
         let (b, a) = (self.before, self.after);
+        // PSD2 measures the follower's step only if the carriage stood through it: both
+        // windows steady is not enough (a carriage that moved between them, as from a
+        // program's overrun point to its target, stands in each). The encoder's own step
+        // tells: beyond what the stage's error allows, the step is bridged by the encoder. A
+        // storm's stitch stood 2.0 mm off its encoder after one such, and no intermediate
+        // target was captured again (issue 24).
+        let (enc, enc_var) = self.encoder_step(self.encoder_before, self.before_corr, enc_after);
+        let optical = b.mean[0] - a.mean[0];
+        let limit = STEP_AGREE_FLOOR_MM + STEP_AGREE_SIGMAS * enc_var[0].sqrt();
+        if (optical - enc[0]).abs() > limit {
+            tracing::warn!(
+                optical_mm = optical,
+                encoder_mm = enc[0],
+                limit_mm = limit,
+                "the carriage moved during a handover: the follower's step is bridged by its encoder"
+            );
+            self.finish_encoder_step(now);
+            return;
+        }
         let (vb, va) = (b.var(), a.var());
         let pooled = |k: usize| {
             let dof = (b.n + a.n).saturating_sub(2).max(1) as f64;

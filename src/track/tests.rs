@@ -238,6 +238,49 @@ fn overlap_stitch_measures_the_followers_true_displacement() {
     assert!((enc.follower_mm - b.enc).abs() < 1e-9);
 }
 
+/// The carriage rests 2 mm down (a program's overrun point), the tracker hands over there,
+/// and the carriage goes on to its target while the follower steps: it stands in both
+/// windows, and PSD2's difference is the follower's step plus the carriage's 2 mm. The
+/// encoder tells, and bridges the step.
+#[test]
+fn a_carriage_that_moved_during_a_handover_is_bridged_by_the_encoder() {
+    let (mut b, mut tr) = referenced(Strategy::Overlap);
+    let u0 = fu(b.enc);
+    jog(&mut b, &mut tr, -2.0);
+    let moves = b.moves.len();
+    for _ in 0..1500 {
+        b.step(&mut tr);
+        if b.moves.len() > moves {
+            break;
+        }
+    }
+    assert!(b.moves.len() > moves, "no handover at the overrun point");
+    // Back to the target at 50 mm/s while the follower steps.
+    for _ in 0..20 {
+        b.carriage += 0.1;
+        b.step(&mut tr);
+    }
+    b.run(&mut tr, 1500);
+    let records: Vec<HandoverRecord> = std::iter::from_fn(|| tr.poll_event())
+        .filter_map(|e| match e {
+            TrackEvent::Handover(r) => Some(r),
+            _ => None,
+        })
+        .collect();
+    assert!(
+        records.iter().any(|r| r.kind == HandoverKind::Encoder),
+        "the step is an encoder step"
+    );
+    assert!(records.iter().all(|r| r.kind == HandoverKind::Encoder));
+    let s = tr.stitch();
+    let true_u = b.enc + fu(b.enc) - u0;
+    assert!(
+        (s.follower_mm - true_u).abs() < 0.01,
+        "the stitch at {:.4} mm, the follower at {true_u:.4} mm",
+        s.follower_mm
+    );
+}
+
 #[test]
 fn overlap_follows_by_encoder_when_the_carriage_does_not_stop() {
     let (mut b, mut tr) = referenced(Strategy::Overlap);
