@@ -97,8 +97,9 @@ echo "+0" >"$work/clock-offset"
 # Homing from the far end after the SIGKILL: the default switch speed (5 mm/s) and timeout (30 s)
 # cover 150 mm of the follower's 1110 mm (the service retries, 30 s at a time, from where it got
 # to: about 4 min from 1000 mm); here a stage that homes at 50 mm/s within 40 s.
-# STORM_JUDGE=1: the run judges every capture before it counts ([capture] judge, issue 24).
-if [ "${STORM_JUDGE:-0}" = 1 ]; then printf '\n[capture]\njudge = true\n' >>"$work/service.toml"; fi
+# The run judges every capture before it counts ([capture] judge, on by default);
+# STORM_JUDGE=0 runs it without, to compare.
+if [ "${STORM_JUDGE:-1}" = 0 ]; then printf '\n[capture]\njudge = false\n' >>"$work/service.toml"; fi
 sed -i '/^\[follower\]/a homing_switch_speed_mm_s = 50.0\nhoming_timeout_ms = 40000' "$work/service.toml"
 sed -i "s/^feed_mm_s = .*/feed_mm_s = $carriage_mm_s.0/; s/^accel_mm_s2 = .*/accel_mm_s2 = ${STORM_ACCEL_MM_S2:-250}.0/" "$work/sim.toml"
 sed -i "0,/^seed = .*/s//seed = $twin_seed/" "$work/sim.toml"
