@@ -108,7 +108,7 @@ impl Default for TrackSettings {
             strategy: Strategy::Overlap,
             handover_mm: 1.5,
             edge_mm: 3.5,
-            anticipate: Duration::from_millis(100),
+            anticipate: Duration::ZERO,
             rest_tolerance_mm: 0.005,
             rest_time: Duration::from_millis(300),
             average_frames: 200,
