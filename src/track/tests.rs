@@ -133,6 +133,16 @@ fn follower_events(tr: &mut Tracker) -> Vec<String> {
         .collect()
 }
 
+/// The handover records `tr` gave since the last call (other events are dropped).
+fn handovers(tr: &mut Tracker) -> Vec<HandoverRecord> {
+    std::iter::from_fn(|| tr.poll_event())
+        .filter_map(|e| match e {
+            TrackEvent::Handover(r) => Some(r),
+            _ => None,
+        })
+        .collect()
+}
+
 /// Move the carriage by `by` mm at 10 mm/s (a jog: slow enough for the tracker to hand over
 /// at rest after it, not to follow it).
 fn jog(b: &mut Bench, tr: &mut Tracker, by: f64) {
@@ -207,13 +217,8 @@ fn overlap_stitch_measures_the_followers_true_displacement() {
     let s = tr.stitch();
     assert!(s.valid);
     assert!(s.handovers >= 15, "{} handovers", s.handovers);
-    let mut records = Vec::new();
-    while let Some(e) = tr.poll_event() {
-        if let TrackEvent::Handover(r) = e {
-            assert_eq!(r.kind, HandoverKind::Overlap);
-            records.push(r);
-        }
-    }
+    let records = handovers(&mut tr);
+    assert!(records.iter().all(|r| r.kind == HandoverKind::Overlap));
     assert_eq!(records.len(), s.handovers);
     // Truth: PSD2 is at enc + fu(enc) along, fv(enc) across, relative to the reference.
     let true_u = b.enc + fu(b.enc) - u0;
@@ -253,12 +258,7 @@ fn a_followers_own_error_is_measured_not_bridged() {
         jog(&mut b, &mut tr, 1.0);
         b.run(&mut tr, 1500);
     }
-    let kinds: Vec<HandoverKind> = std::iter::from_fn(|| tr.poll_event())
-        .filter_map(|e| match e {
-            TrackEvent::Handover(r) => Some(r.kind),
-            _ => None,
-        })
-        .collect();
+    let kinds: Vec<HandoverKind> = handovers(&mut tr).iter().map(|r| r.kind).collect();
     assert!(kinds.len() >= 15, "{} handovers", kinds.len());
     assert!(
         kinds.iter().all(|k| *k == HandoverKind::Overlap),
@@ -296,12 +296,7 @@ fn a_carriage_that_moved_during_a_handover_is_bridged_by_the_encoder() {
         b.step(&mut tr);
     }
     b.run(&mut tr, 1500);
-    let records: Vec<HandoverRecord> = std::iter::from_fn(|| tr.poll_event())
-        .filter_map(|e| match e {
-            TrackEvent::Handover(r) => Some(r),
-            _ => None,
-        })
-        .collect();
+    let records = handovers(&mut tr);
     assert!(
         records.iter().any(|r| r.kind == HandoverKind::Encoder),
         "the step is an encoder step"
