@@ -67,6 +67,8 @@ storm_cleanup() {
   if [ -f "$pidfile" ]; then kill "$(cat "$pidfile")" 2>/dev/null || true; fi
   if [ -n "$sim" ]; then kill "$sim" 2>/dev/null || true; fi
   sleep 0.5
+  # KEEP=1 keeps the store beside the logs: the state directory's tmpfs goes with the run.
+  if [ -n "${KEEP:-}" ]; then cp "$state"/axiscomp.db* "$work/" 2>/dev/null || true; fi
   if mountpoint -q "$state" 2>/dev/null; then umount "$state" || umount -l "$state" || true; fi
   harness_cleanup
 }
