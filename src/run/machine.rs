@@ -30,6 +30,15 @@ use std::time::{Duration, Instant};
 /// two of those may be lost).
 const APPROACH_MEDIAN: usize = 3;
 
+/// A gap this long in the positions (no frame reached the machine: a link down, PSD2
+/// without its spot, a paused run, a service that fell behind) ends the history that tells
+/// the approach: the carriage may have gone past the target and back unseen. A reversal of a
+/// 1 mm overrun at 500 mm/s² takes about 180 ms; a storm's slow I/O module (25 ms a reply)
+/// leaves gaps far shorter. Seen in the storm (issue 24): PSD2 lost its spot while the
+/// carriage left the first target upward, the carriage came back to it from below unseen,
+/// and the last position seen (31 mm above) filed the rest as the downward capture.
+const APPROACH_GAP: Duration = Duration::from_millis(250);
+
 /// How captures are taken.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CaptureSettings {
@@ -553,6 +562,16 @@ impl RunMachine {
         {
             self.rest.pop_front();
         }
+        if let Some((t, x)) = self.history.back()
+            && now.saturating_duration_since(*t) > APPROACH_GAP
+        {
+            tracing::debug!(
+                last_mm = *x,
+                unseen_ms = now.saturating_duration_since(*t).as_millis() as u64,
+                "positions unseen: the approach is judged from the positions after the gap"
+            );
+            self.history.clear();
+        }
         let keep = Duration::from_secs(30);
         if self
             .history
@@ -967,6 +986,46 @@ mod tests {
         let want: Vec<TargetKey> = expected.into_iter().filter(|k| *k != lost).collect();
         assert_eq!(got, want, "every later capture keeps its own run number");
         assert_eq!(m.missing(), vec![lost]);
+    }
+
+    #[test]
+    fn an_approach_not_seen_is_not_guessed_from_before_the_gap() {
+        // The storm's mislabel (issue 24): the carriage leaves the first target upward, PSD2
+        // loses its spot at 30 mm, and unseen the carriage goes back to the overrun below
+        // and up onto the first target. The rest seen there is no approach from above.
+        let p = plan();
+        let mut m = fresh(&p);
+        let (t0, dwell) = (p.targets[0], p.spec.dwell_s);
+        let below = t0 - p.spec.overrun_mm;
+        let moves = [
+            (below, 0.2),
+            (t0, dwell),
+            (t0 + 30.0, 0.0),
+            (below, 0.2),
+            (t0, 0.0),
+            (t0, dwell),
+        ];
+        let caps = feed().run(&mut m, &moves, Some((3, 5)));
+        let keys: Vec<TargetKey> = caps.iter().map(TargetKey::of).collect();
+        let first = TargetKey {
+            run: 1,
+            target_index: 0,
+            direction: Direction::Up,
+        };
+        assert_eq!(
+            keys,
+            vec![first],
+            "only the capture whose approach was seen"
+        );
+        assert!(m.missing().contains(&TargetKey {
+            direction: Direction::Down,
+            ..first
+        }));
+        // Seen, the same motion is the next run's upward approach.
+        let mut m = fresh(&p);
+        let caps = feed().run(&mut m, &moves, None);
+        let keys: Vec<TargetKey> = caps.iter().map(TargetKey::of).collect();
+        assert_eq!(keys, vec![first, TargetKey { run: 2, ..first }]);
     }
 
     #[test]
