@@ -88,7 +88,8 @@ def judge_by_truth(db, run_id, twin, zero_truth, log):
     for k in range(6):
         log(f"truth {DOFS[k]}: RMS error {rms[k]:.2f} {UNITS[k]}, worst "
             f"{max((abs(x) for x in err[k]), default=0.0):.2f} {UNITS[k]}, largest U "
-            f"{big_u[k]:.2f} {UNITS[k]} ({'sharp' if sharp_each[k] else 'NOT SHARP: over 3 x the RMS error'}), "
+            f"{big_u[k]:.2f} {UNITS[k]} ({big_u[k] / rms[k] if rms[k] > 0 else float('inf'):.1f} x the RMS error: "
+            f"{'sharp' if sharp_each[k] else 'NOT SHARP: over 3 x the RMS error'}), "
             f"passes of a target and direction within {spread[k]:.2f} {UNITS[k]}")
     for o in out[:20]:
         log(f"  outside U: run {o['run']}, target {o['target']} ({o['mm']:.1f} mm) {o['direction']}: "
