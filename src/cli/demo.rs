@@ -94,6 +94,10 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    // The service's own logs (as `serve` writes them) only when asked for: `RUST_LOG=debug`.
+    if std::env::var_os("RUST_LOG").is_some() {
+        super::service::init_logs();
+    }
     let layout = load_layout(None)?;
     let bench = if a.bench_mm.is_empty() {
         vec![0.0, a.length_mm / 2.0, a.length_mm]
@@ -126,6 +130,22 @@ pub fn run(a: Args) -> Result<()> {
         },
         ..StudySpec::default()
     };
+    let plan = Plan::new(PlanSpec {
+        axis: "X".into(),
+        start_mm: 0.0,
+        end_mm: a.length_mm,
+        targets: a.targets,
+        runs: a.runs,
+        overrun_mm: 2.0,
+        dwell_s: a.dwell_s,
+        feed_mm_min: a.feed_mm_min,
+        lead_mm: plant.axis.lead_mm,
+        reference_mm: None,
+    })?;
+    // A plan the twin cannot capture is refused before an hour of calibration and mapping.
+    LabSpec::standard(plant.clone(), None)?
+        .check_plan(&plan)
+        .map_err(|e| super::InputError(e.to_string()))?;
     println!("axiscomp demo: the digital twin, seed {}", a.seed);
     println!("\n== 1. calibrate the head");
     let head = Plant::draw_head(&layout, &plant)?;
@@ -139,9 +159,15 @@ pub fn run(a: Args) -> Result<()> {
     );
     let w = study.window.half_range.to_user();
     println!(
-        "calibration: {} hexapod poses at bench positions {:?} mm (±{} µm straightness, ±{} mm positioning, ±{}″)",
+        "calibration: {} hexapod poses at bench positions {} mm (±{} µm straightness, ±{} mm positioning, ±{}″)",
         study.poses,
-        study.window.travels,
+        study
+            .window
+            .travels
+            .iter()
+            .map(|t| format!("{t}"))
+            .collect::<Vec<_>>()
+            .join(", "),
         w[0],
         w[1] / 1000.0,
         w[3]
@@ -167,18 +193,6 @@ pub fn run(a: Args) -> Result<()> {
         a_spec.pitch_yaw_arcsec,
         a_spec.roll_arcsec
     );
-    let plan = Plan::new(PlanSpec {
-        axis: "X".into(),
-        start_mm: 0.0,
-        end_mm: a.length_mm,
-        targets: a.targets,
-        runs: a.runs,
-        overrun_mm: 2.0,
-        dwell_s: a.dwell_s,
-        feed_mm_min: a.feed_mm_min,
-        lead_mm: a_spec.lead_mm,
-        reference_mm: None,
-    })?;
     let targets: Vec<String> = plan.targets.iter().map(|t| format!("{t:.3}")).collect();
     println!(
         "plan: {} targets (mm) {}; {} bidirectional runs, {} s dwell, stability capture; {} captures",

@@ -36,7 +36,7 @@ pub struct SimArgs {
     pub config: PathBuf,
 }
 
-fn init_logs() {
+pub(crate) fn init_logs() {
     use tracing_subscriber::EnvFilter;
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
     // Under systemd, journald stamps the time itself and shows no colours.

@@ -89,21 +89,35 @@ impl Default for CaptureSettings {
 }
 
 impl CaptureSettings {
-    /// The shortest dwell that leaves a capture time at `rate_hz` frames per second: the
-    /// settling time, the frames, and half a second for the follower to come to rest after
-    /// the carriage and for frames the link drops.
-    pub fn min_dwell(&self, rate_hz: f64) -> Duration {
-        self.settle + Duration::from_secs_f64(self.frames as f64 / rate_hz.max(1.0) + 0.5)
+    /// The shortest dwell that leaves a capture time at `rate_hz` frames per second, with a
+    /// follower that needs `follower_rest` at each stop (the tracker's rest time and settling:
+    /// after following the carriage it makes its final approach, which changes the stitch
+    /// and restarts the average): the capture's settling, the follower's rest, the frames,
+    /// and half a second for the follower's approach and for frames the link drops. On the
+    /// twin (500 Hz, the default settings: 1.45 s) a dwell of 1.4 s captures and one of 1.3 s
+    /// ends with no capture after the first stops (PSD2 loses its spot when the carriage
+    /// leaves a follower still on its approach).
+    pub fn min_dwell(&self, rate_hz: f64, follower_rest: Duration) -> Duration {
+        self.settle
+            + follower_rest
+            + Duration::from_secs_f64(self.frames as f64 / rate_hz.max(1.0) + 0.5)
     }
 
-    /// Refuse a plan whose dwell cannot hold a capture (it would end in make-up passes).
-    pub fn check_dwell(&self, plan: &Plan, rate_hz: f64) -> Result<(), String> {
-        let need = self.min_dwell(rate_hz).as_secs_f64();
+    /// Refuse a plan whose dwell cannot hold a capture (it would end in make-up passes, or
+    /// with no capture at all), with the least dwell that works and what it is made of.
+    pub fn check_dwell(
+        &self,
+        plan: &Plan,
+        rate_hz: f64,
+        follower_rest: Duration,
+    ) -> Result<(), String> {
+        let need = self.min_dwell(rate_hz, follower_rest).as_secs_f64();
         if plan.spec.dwell_s < need {
             return Err(format!(
-                "dwell_s {} s is too short to capture: settling {} s and {} frames at {rate_hz} Hz need at least {need:.2} s; lengthen the dwell or lower capture.frames",
+                "a dwell of {} s is too short to capture: use at least {need:.2} s (the capture's settling {} s, the follower's rest and settling at each stop {} s, {} frames at {rate_hz} Hz, and 0.5 s for the follower's final approach and dropped frames), or lower capture.frames",
                 plan.spec.dwell_s,
                 self.settle.as_secs_f64(),
+                follower_rest.as_secs_f64(),
                 self.frames
             ));
         }
@@ -986,6 +1000,27 @@ mod tests {
         let want: Vec<TargetKey> = expected.into_iter().filter(|k| *k != lost).collect();
         assert_eq!(got, want, "every later capture keeps its own run number");
         assert_eq!(m.missing(), vec![lost]);
+    }
+
+    #[test]
+    fn a_dwell_too_short_is_refused_with_the_least_that_works() {
+        // Issue 26: a demo with a 1 s dwell mapped its follower for minutes and then took no
+        // capture. 0.25 s settling + 0.4 s of the follower's rest and settling + 150 frames
+        // at 500 Hz (0.3 s) + 0.5 s = 1.45 s.
+        let c = CaptureSettings::default();
+        let rest = Duration::from_millis(400);
+        assert!((c.min_dwell(500.0, rest).as_secs_f64() - 1.45).abs() < 1e-9);
+        let mut p = plan();
+        p.spec.dwell_s = 1.4;
+        let why = c.check_dwell(&p, 500.0, rest).unwrap_err();
+        assert!(
+            why.starts_with("a dwell of 1.4 s is too short to capture: use at least 1.45 s"),
+            "{why}"
+        );
+        p.spec.dwell_s = 1.45;
+        assert_eq!(c.check_dwell(&p, 500.0, rest), Ok(()));
+        // Fewer frames a second need a longer dwell.
+        assert!((c.min_dwell(200.0, rest).as_secs_f64() - 1.9).abs() < 1e-9);
     }
 
     #[test]

@@ -41,10 +41,12 @@ pub enum LabError {
     Drive(#[from] crate::canopen::ConfigError),
     #[error("the follower's {what} failed: {why}")]
     BringUp { what: &'static str, why: String },
-    #[error("{what} did not happen within {within:?} of simulated time")]
+    #[error("{what} did not happen within {:.0} s of simulated time", within.as_secs_f64())]
     Timeout { what: String, within: Duration },
     #[error("part program: {0}")]
     Program(String),
+    #[error("the plan: {0}")]
+    Plan(String),
     #[error("the run failed: {0}")]
     RunFailed(String),
     #[error("the run is incomplete: {0}")]
@@ -57,7 +59,7 @@ pub enum LabError {
     Align(#[from] crate::align::AlignError),
     #[error("I/O map: {0}")]
     Io(String),
-    #[error("the lab's clock stalled at {0:?}: a state machine keeps asking for the same instant")]
+    #[error("the lab's clock stalled at {:.3} s: a state machine keeps asking for the same instant", .0.as_secs_f64())]
     Stalled(Duration),
 }
 
@@ -127,6 +129,15 @@ impl LabSpec {
 }
 
 impl LabSpec {
+    /// Refuse a plan these settings cannot capture (a dwell too short: the service's own
+    /// check, at the lab's frame rate and with its follower's rest at each stop).
+    pub fn check_plan(&self, plan: &Plan) -> Result<(), LabError> {
+        let rate_hz = 1.0 / self.frame_period.as_secs_f64().max(1e-6);
+        self.capture
+            .check_dwell(plan, rate_hz, self.tracking.rest_at_stop())
+            .map_err(LabError::Plan)
+    }
+
     /// The reference head on `plant`, the service's built-in settings and I/O map, the
     /// follower starting 2 mm from its home switch; decoupling with `decoupler`, or with the
     /// nominal layout when `None` (right for a head without installation errors).
@@ -729,6 +740,11 @@ impl Lab {
         mode: CaptureMode,
         mut progress: impl FnMut(Progress),
     ) -> Result<LabRun, LabError> {
+        let rate_hz = 1.0 / self.frame_period.as_secs_f64().max(1e-6);
+        let rest = self.pipeline.tracker.settings().rest_at_stop();
+        self.capture
+            .check_dwell(plan, rate_hz, rest)
+            .map_err(LabError::Plan)?;
         self.pre_run_check(plan)?;
         let text = generate(plan, dialect, mode).map_err(|e| LabError::Program(e.to_string()))?;
         let handshake = matches!(mode, CaptureMode::Handshake(_));

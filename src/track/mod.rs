@@ -102,6 +102,14 @@ pub struct TrackSettings {
     pub approach_mm: f64,
 }
 
+impl TrackSettings {
+    /// What the follower takes at each stop before the stitch stands still for a capture:
+    /// the carriage's rest it waits for, and its own settling after its final approach.
+    pub fn rest_at_stop(&self) -> Duration {
+        self.rest_time + self.settle
+    }
+}
+
 impl Default for TrackSettings {
     fn default() -> Self {
         TrackSettings {

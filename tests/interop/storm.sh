@@ -38,11 +38,12 @@ twin_seed=${STORM_TWIN_SEED:-1}
 disk_mb=${STORM_DISK_MB:-16}
 # Machine speed: the twin's carriage at up to 100 mm/s and 250 mm/s² (configs/sim.toml: 50 mm/s,
 # 500 mm/s²: faster, or harder accelerations, and the follower is left behind at a reversal now and
-# then, which costs a whole pass), the program's feed 6 m/min, dwell 1.2 s (the least for a
-# capture at 500 Hz): about 4 min of machine time for the 110 captures.
+# then, which costs a whole pass), the program's feed 6 m/min, dwell 1.5 s (the service
+# refuses less than 1.45 s at 500 Hz: the follower's rest and settling at each stop come before
+# the capture's frames): about 4.5 min of machine time for the 110 captures.
 carriage_mm_s=${STORM_CARRIAGE_MM_S:-100}
 feed=${STORM_FEED_MM_MIN:-6000}
-dwell=${STORM_DWELL_S:-1.2}
+dwell=${STORM_DWELL_S:-1.5}
 
 if [ -n "${AXISCOMP_BIN:-}" ]; then
   built=$AXISCOMP_BIN

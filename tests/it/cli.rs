@@ -558,3 +558,35 @@ fn a_closed_stdout_ends_a_filter_quietly() {
         o.status
     );
 }
+
+/// Issue 26: a dwell the twin cannot capture in is refused before the calibration and the
+/// follower's map (an hour of machine time), with the least dwell that works.
+#[test]
+fn the_demo_refuses_a_dwell_too_short_up_front() {
+    let dir = TempDir::new("demo-dwell");
+    let out = dir.path("out");
+    let o = run(
+        &[
+            "demo",
+            "--runs",
+            "2",
+            "--dwell-s",
+            "1",
+            "--length-mm",
+            "600",
+            "--targets",
+            "7",
+            "--seed",
+            "7",
+            "--out",
+            out.to_str().expect("a UTF-8 path"),
+        ],
+        "",
+    );
+    assert_input_error(
+        &o,
+        &["a dwell of 1 s is too short to capture: use at least 1.45 s"],
+    );
+    assert!(!stdout(&o).contains("calibrate the head"), "{}", stdout(&o));
+    assert!(!out.exists(), "nothing written");
+}

@@ -220,7 +220,7 @@ impl MeasurementRun {
         } else {
             200.0
         };
-        capture.check_dwell(&plan, rate)?;
+        capture.check_dwell(&plan, rate, ctx.env.settings.tracking.rest_at_stop())?;
         let align = crate::service::align::AlignState::new(ctx.env.settings.align.clone());
         align.pre_run_check(
             ctx.cached.alignments.get(&plan.spec.axis),
