@@ -14,7 +14,9 @@
 //!    every point against its stated uncertainty, and the report (HTML, Markdown, plots,
 //!    tables, the store, `summary.md` and `summary.json`) in `--out`.
 //!
-//! `summary.json`: `{"seed", "length_mm", "follower": {settings}, "figures": [{"name", "unit",
+//! `summary.json`: `{"seed", "length_mm", "follower": {settings}, "machine_time_s":
+//! {"bring_up", "align", "follower_map", "before", "publish", "after", "total", "assumptions"}
+//! (seconds: `sim::machine_time`), "figures": [{"name", "unit",
 //! "before", "after", "truth_before", "truth_after"}], "points": [{"run": "before"|"after",
 //! "target_mm", "direction": "+"|"-", "dof": "dx"|…|"ez", "measured", "truth", "U"}]}` in µm
 //! and arcsec, U expanded with k = 2; straightness points relative to their least-squares
@@ -302,6 +304,10 @@ pub fn run(a: Args) -> Result<()> {
         (result.before.run.duration + result.after.run.duration).as_secs_f64(),
         wall.elapsed().as_secs_f64()
     );
+    println!("\nmachine time (the machine kept from making parts):");
+    for l in result.machine_time.lines() {
+        println!("{l}");
+    }
 
     println!("\n== 5. before and after, with the twin's truth");
     let truth = Truths {
@@ -607,6 +613,7 @@ fn summary_json(
                 "terms": m.map.summary(),
             })),
         },
+        "machine_time_s": r.machine_time.to_json(),
         "figures": figures,
         "points": pts,
     })
@@ -775,6 +782,12 @@ fn summary(r: &LoopResult, truth: &Truths, ids: &[RunId]) -> String {
             p.table.interval_mm
         ));
     }
+    s.push_str("\nMachine time (the machine kept from making parts):\n\n```\n");
+    for l in r.machine_time.lines() {
+        s.push_str(&l);
+        s.push('\n');
+    }
+    s.push_str("```\n");
     s
 }
 

@@ -20,6 +20,7 @@
 
 use super::follower_cal::{Mapping, TwinMap, map_on_lab};
 use super::lab::{AlignRound, Lab, LabError, LabRun, LabSpec, Progress, plan_span};
+use super::machine_time::MachineTime;
 use super::plant::{PlantSpec, Truth};
 use super::plc::{TwinPlc, TwinPlcConfig, TwinPlcError};
 use crate::comp::{
@@ -306,6 +307,8 @@ pub struct LoopResult {
     pub mount: [crate::align::Mount; 2],
     /// The follower's map, when the loop made one, with its machine time.
     pub follower: Option<TwinMap>,
+    /// How long each phase kept the machine.
+    pub machine_time: MachineTime,
 }
 
 /// The figures the loop is judged by (mm and rad, the crate's internal units).
@@ -360,8 +363,11 @@ pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, Lo
         source,
     })?;
     let mount_at_start = lab.plant.mount();
-    let follower = prepare(&mut lab, spec, &mut step)?;
+    let mut machine_time = MachineTime::default();
+    let follower = prepare_timed(&mut lab, spec, &mut step, &mut machine_time)?;
+    let t = lab.now();
     let before = measure(&mut lab, spec, Pass::Before, &mut step)?;
+    machine_time.before = lab.now() - t;
     let mount_aligned = lab.plant.mount();
     let tables = build_tables(
         &before.eval,
@@ -373,8 +379,13 @@ pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, Lo
             functional_point_mm: None,
         },
     )?;
+    // Real Modbus TCP on loopback: the wall clock.
+    let wall = std::time::Instant::now();
     let published = publish_all(&lab, spec, &tables, &mut step)?;
+    machine_time.publish = wall.elapsed();
+    let t = lab.now();
     let after = measure(&mut lab, spec, Pass::After, &mut step)?;
+    machine_time.after = lab.now() - t;
     Ok(LoopResult {
         before,
         tables,
@@ -382,6 +393,7 @@ pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, Lo
         after,
         mount: [mount_at_start, mount_aligned],
         follower,
+        machine_time,
     })
 }
 
@@ -392,20 +404,38 @@ pub fn prepare(
     spec: &LoopSpec,
     step: &mut impl FnMut(Step),
 ) -> Result<Option<TwinMap>, LoopError> {
+    prepare_timed(lab, spec, step, &mut MachineTime::default())
+}
+
+/// [`prepare`], each phase's machine time into `times`.
+fn prepare_timed(
+    lab: &mut Lab,
+    spec: &LoopSpec,
+    step: &mut impl FnMut(Step),
+    times: &mut MachineTime,
+) -> Result<Option<TwinMap>, LoopError> {
     let lab_err = |source| LoopError::Lab {
         pass: Pass::Before,
         source,
     };
+    let t = lab.now();
     lab.bring_up().map_err(lab_err)?;
+    times.bring_up = lab.now() - t;
     if spec.align_rounds > 0 {
-        lab.align(plan_span(&spec.plan), spec.align_rounds, |r| {
-            step(Step::Aligning(Box::new(r.clone())))
-        })
-        .map_err(lab_err)?;
+        let t = lab.now();
+        let rounds = lab
+            .align(plan_span(&spec.plan), spec.align_rounds, |r| {
+                step(Step::Aligning(Box::new(r.clone())))
+            })
+            .map_err(lab_err)?;
+        times.align = lab.now() - t;
+        // The last round passed; the technician turned the screws after each before it.
+        times.align_turns = rounds.len().saturating_sub(1);
     }
     let Some(m) = &spec.follower else {
         return Ok(None);
     };
+    let t = lab.now();
     let mapped = map_on_lab(
         lab,
         m,
@@ -413,6 +443,7 @@ pub fn prepare(
         spec.lab.live_window,
         |stop, stops| step(Step::Mapping { stop, stops }),
     )?;
+    times.follower_map = lab.now() - t;
     Ok(Some(mapped))
 }
 

@@ -36,6 +36,17 @@ def main(out):
     print(f"  the truth inside U at {inside} of {len(points)} points ({100 * share:.1f} %)")
     if share < 0.95:
         failures.append(f"the truth inside U at only {100 * share:.1f} % of the points")
+    # Issue 26: the machine time of every phase, the total at least their sum.
+    mt = summary.get("machine_time_s") or {}
+    phases = ["align", "follower_map", "before", "after"]
+    if any(not isinstance(mt.get(k), (int, float)) for k in phases + ["total"]):
+        failures.append(f"machine_time_s lacks a phase: {sorted(mt)}")
+    else:
+        named = sum(v for k, v in mt.items() if k != "total" and isinstance(v, (int, float)))
+        print("  machine time: " + ", ".join(f"{k} {mt[k] / 60:.1f} min" for k in phases)
+              + f", total {mt['total'] / 60:.1f} min")
+        if mt["total"] < named - 1e-6:
+            failures.append(f"machine time total {mt['total']:.1f} s < its phases' sum {named:.1f} s")
     if failures:
         sys.exit(f"seed {summary['seed']}, {summary['length_mm']} mm: " + "; ".join(failures))
     print(f"seed {summary['seed']}, {summary['length_mm']} mm: PASS")
