@@ -323,10 +323,10 @@ impl RunMachine {
     }
 
     /// An event that can move the positioning reference happened (`run::judge`): the
-    /// captures after it are held until one checks it.
-    pub fn reference_event(&mut self, what: &str, unix_us: i64) {
+    /// captures after it are held until one checks it. `moves`: the errors it can move.
+    pub fn reference_event(&mut self, what: &str, unix_us: i64, moves: [bool; 6]) {
         if self.phase != Phase::Done && self.settings.judge {
-            self.judge.event(what, unix_us);
+            self.judge.event(what, unix_us, moves);
         }
     }
 
@@ -368,7 +368,7 @@ impl RunMachine {
             }
         }
         self.apply(decisions);
-        self.reference_event(what, since_us);
+        self.reference_event(what, since_us, super::judge::MOVES_ALL);
     }
 
     /// Carry out the judge's decisions: stored captures go out, flagged ones are reopened

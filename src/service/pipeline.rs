@@ -494,8 +494,16 @@ impl Pipeline {
         let Some(run) = self.run.as_mut() else {
             return;
         };
-        if matches!(kind, "stitch-rereferenced" | "resumed") {
-            run.reference_event(&detail, crate::util::clock::unix_us());
+        let moves = match kind {
+            "stitch-rereferenced" => Some(stitch_moves(
+                self.measure.decoupler(),
+                self.tracker.stitch().follower_mm,
+            )),
+            "resumed" => Some(crate::run::judge::MOVES_ALL),
+            _ => None,
+        };
+        if let Some(moves) = moves {
+            run.reference_event(&detail, crate::util::clock::unix_us(), moves);
         }
         self.outputs.push_back(Output::RunEvent {
             kind: kind.into(),
@@ -747,6 +755,25 @@ impl Pipeline {
     }
 }
 
+/// The errors a move of PSD2's stitch can move (`run::judge`): those that a micrometre of
+/// PSD2 along or vertically moves by at least 0.01 µm or 0.01″ at `travel` (with the
+/// reference layout: positioning, the vertical straightness and roll). Every error when the
+/// decoupler cannot say.
+fn stitch_moves(decoupler: &Decoupler, travel: f64) -> [bool; 6] {
+    match crate::evaluate::uncertainty::psd2_sensitivity(decoupler, travel) {
+        Ok(s) => std::array::from_fn(|k| {
+            let per_um = (s[k][0] + s[k][1]) * 1e-3;
+            let floor = if k < 3 {
+                1e-5
+            } else {
+                0.01 * crate::units::RAD_PER_ARCSEC
+            };
+            per_um >= floor
+        }),
+        Err(_) => crate::run::judge::MOVES_ALL,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -765,6 +792,18 @@ mod tests {
             decoupler,
             Duration::from_millis(200),
         )
+    }
+
+    #[test]
+    fn a_stitch_moves_positioning_vertical_straightness_and_roll_only() {
+        let p = pipeline();
+        for travel in [0.0, 500.0, 1000.0] {
+            assert_eq!(
+                stitch_moves(p.measure.decoupler(), travel),
+                [false, true, true, false, true, false],
+                "at {travel} mm"
+            );
+        }
     }
 
     fn outputs(p: &mut Pipeline) -> Vec<Output> {

@@ -506,6 +506,10 @@ impl Core {
                             .is_some_and(|u| u.offer <= offer)
                         {
                             core.reference_unkept = None;
+                            // The store takes writes again: its alarm goes (else it stayed
+                            // raised until a capture was stored, past the storm's minute
+                            // when the judge held every capture).
+                            core.pipeline.alarms.clear("store");
                             tracing::info!("the zero reference is kept for a restart again");
                         }
                     }
