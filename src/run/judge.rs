@@ -566,7 +566,7 @@ mod tests {
         // The retake agrees in dy: the reference held, the held capture is stored.
         let d = j.offer(cap(2, 0, Direction::Up, -4.2, 9));
         assert_eq!(stored(&d), [(1, 1), (2, 0)]);
-        // The same dy move with every error movable shifts the zero (as before).
+        // A move in dy, which the stitch can make, still shifts the zero.
         let mut j = Judge::new(
             Repeatability::default(),
             [cap(1, 0, Direction::Up, -4.0, 1)],

@@ -128,14 +128,24 @@ impl LabSpec {
     }
 }
 
+/// The service's dwell check at the lab's frame period, with its follower's rest at each stop.
+fn check_dwell(
+    capture: &CaptureSettings,
+    frame_period: Duration,
+    tracking: &TrackSettings,
+    plan: &Plan,
+) -> Result<(), LabError> {
+    let rate_hz = 1.0 / frame_period.as_secs_f64().max(1e-6);
+    capture
+        .check_dwell(plan, rate_hz, tracking.rest_at_stop())
+        .map_err(LabError::Plan)
+}
+
 impl LabSpec {
     /// Refuse a plan these settings cannot capture (a dwell too short: the service's own
     /// check, at the lab's frame rate and with its follower's rest at each stop).
     pub fn check_plan(&self, plan: &Plan) -> Result<(), LabError> {
-        let rate_hz = 1.0 / self.frame_period.as_secs_f64().max(1e-6);
-        self.capture
-            .check_dwell(plan, rate_hz, self.tracking.rest_at_stop())
-            .map_err(LabError::Plan)
+        check_dwell(&self.capture, self.frame_period, &self.tracking, plan)
     }
 
     /// The reference head on `plant`, the service's built-in settings and I/O map, the
@@ -740,11 +750,12 @@ impl Lab {
         mode: CaptureMode,
         mut progress: impl FnMut(Progress),
     ) -> Result<LabRun, LabError> {
-        let rate_hz = 1.0 / self.frame_period.as_secs_f64().max(1e-6);
-        let rest = self.pipeline.tracker.settings().rest_at_stop();
-        self.capture
-            .check_dwell(plan, rate_hz, rest)
-            .map_err(LabError::Plan)?;
+        check_dwell(
+            &self.capture,
+            self.frame_period,
+            self.pipeline.tracker.settings(),
+            plan,
+        )?;
         self.pre_run_check(plan)?;
         let text = generate(plan, dialect, mode).map_err(|e| LabError::Program(e.to_string()))?;
         let handshake = matches!(mode, CaptureMode::Handshake(_));
