@@ -201,6 +201,30 @@ pub struct SelfCalibration {
     pub chi2_vertical: f64,
     /// Machine time the passes took (s), when known.
     pub machine_time_s: Option<f64>,
+    /// The steps' stated standard deviation, their RMS (mm: along, vertical); zero in a map
+    /// stored before it was kept.
+    #[serde(default)]
+    pub step_sd_mm: [f64; 2],
+}
+
+impl SelfCalibration {
+    /// What the stage repeats to beyond its map (mm, standard deviation: along, vertical), as
+    /// its self-calibration saw it; `None` when the steps' noise was not kept. A step is the
+    /// difference of two positions, each off its map by σ, on top of its stated noise s:
+    /// its residuals scatter as s² + 2σ², so σ² = (χ²_red − 1)·s²/2, with χ²_red taken at
+    /// its upper 95 % bound for the steps there were (+2·√(2/steps)): a fit that agrees with
+    /// its noise still cannot rule out that much.
+    pub fn unmapped_sd_mm(&self) -> Option<[f64; 2]> {
+        if self.steps == 0 || self.step_sd_mm.iter().any(|s| !(*s > 0.0 && s.is_finite())) {
+            return None;
+        }
+        let bound = 2.0 * (2.0 / self.steps as f64).sqrt();
+        let sd = |chi2: f64, s: f64| ((chi2 + bound - 1.0).max(0.0) * s * s / 2.0).sqrt();
+        Some([
+            sd(self.chi2_along, self.step_sd_mm[0]),
+            sd(self.chi2_vertical, self.step_sd_mm[1]),
+        ])
+    }
 }
 
 /// The follower's error map.
@@ -299,6 +323,12 @@ impl StageCorrection for FollowerMap {
 
     fn difference_variance(&self, a: f64, b: f64, dir_a: Direction, dir_b: Direction) -> [f64; 2] {
         FollowerMap::difference_variance(self, a, b, dir_a, dir_b)
+    }
+
+    fn unmapped_sd(&self) -> Option<[f64; 2]> {
+        self.self_calibration
+            .as_ref()
+            .and_then(SelfCalibration::unmapped_sd_mm)
     }
 }
 
@@ -602,6 +632,9 @@ pub fn build_referenced(
                 chi2_along: a.chi2,
                 chi2_vertical: v.chi2,
                 machine_time_s: None,
+                step_sd_mm: [0, 1].map(|k| {
+                    (steps.iter().map(|s| s.variance[k]).sum::<f64>() / steps.len() as f64).sqrt()
+                }),
             }),
         long_positions_mm: Vec::new(),
         long_up_mm: Vec::new(),

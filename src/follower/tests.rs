@@ -78,6 +78,13 @@ fn the_map_recovers_the_followers_errors_from_its_steps_and_certificate() {
     assert_eq!(map.sources.vertical, Source::SelfCalibration);
     let sc = map.self_calibration.unwrap();
     assert!(sc.chi2_along < 2.0 && sc.chi2_vertical < 2.0, "{sc:?}");
+    // The twin's stage repeats exactly: what its steps leave beyond the map is below their
+    // own noise (the χ² bound for this many steps), not the 0.5 µm a certificate alone states.
+    let beyond = sc.unmapped_sd_mm().unwrap();
+    assert!(
+        beyond.iter().all(|b| *b < sd),
+        "{beyond:?} against the steps' {sd} mm"
+    );
     let p = map.periodic.unwrap();
     assert!(
         (p.amplitude() - 1e-3).abs() < 0.05e-3,
@@ -162,4 +169,24 @@ fn a_referenced_line_adds_to_the_vertical_map() {
     assert!((after.vertical_um - before.vertical_um - 0.1).abs() < 1e-9);
     assert!((after.vertical_u_um - 0.025).abs() < 1e-9);
     assert_eq!(after.along_um, before.along_um);
+}
+
+#[test]
+fn the_stage_beyond_its_map_is_the_steps_scatter_beyond_their_noise() {
+    let sc = |chi2: f64, steps: usize, step_sd_mm: [f64; 2]| SelfCalibration {
+        steps,
+        reversals: 0,
+        chi2_along: chi2,
+        chi2_vertical: 1.0,
+        machine_time_s: None,
+        step_sd_mm,
+    };
+    // 200 steps of 0.4 µm noise scattering as 0.4² + 2·0.3² µm²: χ² = 1.5625; its bound adds
+    // 2·√(2/200) = 0.2, so σ² = (1.7625 − 1)·0.16/2 µm².
+    let b = sc(1.5625, 200, [0.4e-3, 0.4e-3]).unmapped_sd_mm().unwrap();
+    assert!((b[0] - (0.7625f64 * 0.16 / 2.0).sqrt() * 1e-3).abs() < 1e-12, "{b:?}");
+    assert!((b[1] - (0.2f64 * 0.16 / 2.0).sqrt() * 1e-3).abs() < 1e-12, "{b:?}");
+    // A map stored before the steps' noise was kept says nothing: the settings state it.
+    assert_eq!(sc(1.0, 200, [0.0; 2]).unmapped_sd_mm(), None);
+    assert_eq!(sc(1.0, 0, [0.4e-3; 2]).unmapped_sd_mm(), None);
 }

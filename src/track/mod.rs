@@ -83,13 +83,16 @@ pub struct TrackSettings {
     /// Encoder accuracy: standard deviation `a + b·|travelled|` (mm, and mm per mm).
     pub encoder_sd_mm: f64,
     pub encoder_sd_per_mm: f64,
-    /// With a follower map in use, what the stage repeats to beyond its map (mm, standard
-    /// deviation): `encoder_sd_mm` also covers the unmapped screw-periodic and reversal
-    /// errors at short distance, which the map takes out.
+    /// With a follower map in use that does not know it from its own self-calibration
+    /// (`StageCorrection::unmapped_sd`: a certificate alone, a map stored before), what the
+    /// stage repeats to beyond its map (mm, standard deviation): `encoder_sd_mm` also covers
+    /// the unmapped screw-periodic and reversal errors at short distance, which the map takes
+    /// out.
     pub mapped_sd_mm: f64,
     /// The follower's vertical straightness as a standard deviation `a + b·|travelled|` (mm,
     /// and mm per mm): what an encoder step leaves unmeasured across the axis (it reads as
-    /// roll, 1.38″ per µm).
+    /// roll, 1.38″ per µm). With a map, `a` alone, unless the map knows it from its
+    /// self-calibration.
     pub vertical_sd_mm: f64,
     pub vertical_sd_per_mm: f64,
     /// A follower move that has not finished after this long is abandoned.
@@ -543,10 +546,10 @@ impl Tracker {
                 let s = &self.settings;
                 // Which direction the start was in does not change the map's uncertainty.
                 let dv = m.difference_variance(from, to, self.motion, self.motion);
-                [
-                    s.mapped_sd_mm.powi(2) + dv[0],
-                    s.vertical_sd_mm.powi(2) + dv[1],
-                ]
+                let beyond = m
+                    .unmapped_sd()
+                    .unwrap_or([s.mapped_sd_mm, s.vertical_sd_mm]);
+                [beyond[0].powi(2) + dv[0], beyond[1].powi(2) + dv[1]]
             }
         }
     }
