@@ -138,8 +138,9 @@ pub struct FrameSample {
     pub errors: Errors6,
     /// Per-frame variance of each error from the PSD noise (internal units squared).
     pub var: Errors6,
-    /// Variance of each error from the stitching of PSD2's position and the zero reference
-    /// (the same for every frame until the next handover).
+    /// Variance of each error that averaging does not reduce: the stitching of PSD2's
+    /// position, the zero reference, the turns of the head taken out and the calibration in
+    /// use (the same for every frame until the next handover).
     pub stitch_var: Errors6,
     pub material_c: Option<f64>,
     pub air_c: Option<f64>,

@@ -28,6 +28,7 @@ use crate::align::{
     Knock, KnockSettings, KnockWatch, Mount, MountGeometry, Revisit, RevisitSettings, RevisitState,
 };
 use crate::decouple::{BetaCache, DecoupleError, Decoupler};
+use crate::evaluate::recorded::{RecordedCalibration, Stated};
 use crate::optics::Layout;
 use crate::run::FrameSample;
 use crate::track::{Stitch, StitchAnchor};
@@ -244,6 +245,9 @@ pub struct Measure {
     turned: Turned,
     /// The reference changed since last taken for the store.
     reference_changed: bool,
+    /// The calibration in use's own variance per error (internal units²): the term the run's
+    /// budget states for it, in every frame's systematic variance.
+    calibration_var: [f64; 6],
 }
 
 impl Measure {
@@ -261,7 +265,18 @@ impl Measure {
             last_input: None,
             turned: Turned::new(),
             reference_changed: false,
+            calibration_var: [0.0; 6],
         }
+    }
+
+    /// The calibration in use's own standard uncertainty (its term in a run's budget,
+    /// `CalibrationFile::budget_term`): every capture's u carries it from now on, as the
+    /// report's budget does. Not stated (the nominal layout): none.
+    pub fn set_calibration_u(&mut self, term: &Stated<RecordedCalibration>) {
+        let u = term
+            .value()
+            .map_or(Errors6::ZERO, |c| Errors6::from_user(c.u_um_arcsec));
+        self.calibration_var = u.to_array().map(|v| v * v);
     }
 
     /// The zero reference in force, as kept across a restart; `None` without a zero.
@@ -533,7 +548,7 @@ impl Measure {
             errors,
             var: Errors6::from_array(std::array::from_fn(|k| est.cov[(k, k)])),
             stitch_var: Errors6::from_array(std::array::from_fn(|k| {
-                stitch_cov[(k, k)] + zero_var[k] + turned_var[k]
+                stitch_cov[(k, k)] + zero_var[k] + turned_var[k] + self.calibration_var[k]
             })),
             material_c: None,
             air_c: None,
@@ -571,7 +586,7 @@ impl Measure {
         let mut e = mean;
         let turned = self.turned.var_at(self.decoupler.layout(), last.travel);
         for (k, v) in turned.iter().enumerate() {
-            cov[(k, k)] += v;
+            cov[(k, k)] += v + self.calibration_var[k];
         }
         if let Some(z) = &self.zero {
             e -= z.errors;
@@ -757,6 +772,35 @@ mod tests {
         assert_eq!(m.live().unwrap().frames, 1);
         assert!(m.set_zero(None).is_some());
         assert!(m.live().unwrap().zeroed);
+    }
+
+    /// The calibration's own term (what the run's budget states for it) is in every frame's
+    /// systematic variance, so in every capture's u, and in the live sd; none without one.
+    #[test]
+    fn the_calibrations_term_is_in_every_frames_systematic_variance() {
+        let layout = Layout::reference();
+        let mut m = Measure::new(nominal(&layout, Method::Linear), Duration::from_millis(250));
+        let t = crate::util::clock::now();
+        let pose = Pose::new(Errors6::ZERO, 0.0, 0.0);
+        let f = frame_at(&layout, &pose, &mut Rng::new(2), t, 0.0);
+        let bare = m.handle_frame(&f, &stitch(0.0, 0.0), t).unwrap().unwrap();
+        assert_eq!(bare.stitch_var.to_array(), [0.0; 6]);
+        let u = [0.05, 0.24, 0.07, 0.02, 0.16, 0.02];
+        m.set_calibration_u(&Stated::Stated(RecordedCalibration {
+            id: Some(1),
+            u_um_arcsec: u,
+            source: "test".into(),
+        }));
+        let s = m.handle_frame(&f, &stitch(0.0, 0.0), t).unwrap().unwrap();
+        let sd = Errors6::from_array(s.stitch_var.to_array().map(f64::sqrt)).to_user();
+        for k in 0..6 {
+            assert!((sd[k] - u[k]).abs() < 1e-12, "{sd:?}");
+        }
+        let live = m.live().unwrap().sd.to_user();
+        assert!(live[1] > 0.24 && live[4] > 0.16, "{live:?}");
+        m.set_calibration_u(&Stated::NotStated("the nominal layout".into()));
+        let s = m.handle_frame(&f, &stitch(0.0, 0.0), t).unwrap().unwrap();
+        assert_eq!(s.stitch_var.to_array(), [0.0; 6]);
     }
 
     /// A zero reference averages every frame since it was asked for, not the live window's

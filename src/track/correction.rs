@@ -20,10 +20,10 @@ pub trait StageCorrection: fmt::Debug + Send + Sync + 'static {
     /// positions `a` and `b`.
     fn difference_variance(&self, a: f64, b: f64, dir_a: Direction, dir_b: Direction) -> [f64; 2];
 
-    /// What the stage repeats to beyond the map at one position (mm, standard deviation:
-    /// along, vertical), when the map knows it from its own data; `None`: the tracker's
-    /// settings state it (`mapped_sd_mm`, `vertical_sd_mm`).
-    fn unmapped_sd(&self) -> Option<[f64; 2]> {
+    /// What the stage repeats to along its axis beyond the map at one position (mm, standard
+    /// deviation), when the map knows it from its own data; `None`: the tracker's settings
+    /// state it (`mapped_sd_mm`).
+    fn unmapped_sd(&self) -> Option<f64> {
         None
     }
 }

@@ -91,8 +91,7 @@ pub struct TrackSettings {
     pub mapped_sd_mm: f64,
     /// The follower's vertical straightness as a standard deviation `a + b·|travelled|` (mm,
     /// and mm per mm): what an encoder step leaves unmeasured across the axis (it reads as
-    /// roll, 1.38″ per µm). With a map, `a` alone, unless the map knows it from its
-    /// self-calibration.
+    /// roll, 1.38″ per µm). With a map, `a` alone.
     pub vertical_sd_mm: f64,
     pub vertical_sd_per_mm: f64,
     /// A follower move that has not finished after this long is abandoned.
@@ -546,10 +545,8 @@ impl Tracker {
                 let s = &self.settings;
                 // Which direction the start was in does not change the map's uncertainty.
                 let dv = m.difference_variance(from, to, self.motion, self.motion);
-                let beyond = m
-                    .unmapped_sd()
-                    .unwrap_or([s.mapped_sd_mm, s.vertical_sd_mm]);
-                [beyond[0].powi(2) + dv[0], beyond[1].powi(2) + dv[1]]
+                let along = m.unmapped_sd().unwrap_or(s.mapped_sd_mm);
+                [along.powi(2) + dv[0], s.vertical_sd_mm.powi(2) + dv[1]]
             }
         }
     }

@@ -173,6 +173,18 @@ impl Core {
             state_dir: s.service.state_dir.clone(),
             cnc: s.cnc.mode.clone(),
         };
+        let calibrations = Calibrations::new(
+            p.layout.clone(),
+            p.calibration.as_ref(),
+            &s.head
+                .calibration
+                .as_ref()
+                .map(|f| f.display().to_string())
+                .unwrap_or_default(),
+        );
+        pipeline
+            .measure
+            .set_calibration_u(calibrations.budget_term());
         Core {
             procedures: procedures(p, startup.resume),
             pipeline,
@@ -200,15 +212,7 @@ impl Core {
             store,
             cached: startup.cached,
             follower_map: shown,
-            calibrations: Calibrations::new(
-                p.layout.clone(),
-                p.calibration.as_ref(),
-                &s.head
-                    .calibration
-                    .as_ref()
-                    .map(|f| f.display().to_string())
-                    .unwrap_or_default(),
-            ),
+            calibrations,
             env,
             events_tx,
             events_rx: Some(events_rx),

@@ -262,6 +262,9 @@ impl Core {
                 );
             }
             core.calibrations.accepted(id, p);
+            core.pipeline
+                .measure
+                .set_calibration_u(core.calibrations.budget_term());
             reply.send(Ok(serde_json::json!({
                 "calibration_id": id.0,
                 "decoupling": decoupling,
