@@ -315,10 +315,11 @@ pub fn build_tables(eval: &AxisEvaluation, spec: &TableSpec) -> Result<TableSet,
 ///
 /// It starts from the measured curve's linear interpolation at the grid's points (end values
 /// held) and adds the smallest change (least norm) that makes the grid's interpolation equal
-/// each measured value at its position: exact whenever the grid has the freedom for it (no
-/// two measured points within one grid interval, the usual case on a grid finer than the
-/// targets), the least-squares fit otherwise. A grid point that is itself a measured position
-/// keeps its measured value, so the reference point stays zero.
+/// each measured value at its position: on a grid at least twice as fine as the targets,
+/// where no two measured points share a grid point of the intervals they lie in (each target
+/// moves its own two points). On a coarser grid the grid samples the measured curve (its
+/// points are the curve's values there) and is left so. A grid point that is itself a
+/// measured position keeps its measured value, so the reference point stays zero.
 pub fn onto_grid(positions: &[f64], values: &[f64], grid: &[f64]) -> Vec<f64> {
     use nalgebra::{DMatrix, DVector};
     let mut y: Vec<f64> = grid
@@ -328,26 +329,37 @@ pub fn onto_grid(positions: &[f64], values: &[f64], grid: &[f64]) -> Vec<f64> {
     let (Some(&lo), Some(&hi)) = (grid.first(), grid.last()) else {
         return y;
     };
-    // One row per measured point inside the grid: its interpolation weights on the grid.
+    // One row per measured point inside the grid: the grid interval it lies in, where, and
+    // its value (a point on a grid point pins that point: f = 0).
+    let last = grid.len().saturating_sub(1);
     let rows: Vec<(usize, f64, f64)> = positions
         .iter()
         .zip(values)
-        .filter(|(x, _)| **x >= lo && **x <= hi && grid.len() >= 2)
+        .filter(|(x, _)| **x >= lo && **x <= hi && last >= 1)
         .map(|(&x, &v)| {
-            let k = grid.partition_point(|&g| g <= x).clamp(1, grid.len() - 1);
+            let k = grid.partition_point(|&g| g <= x).clamp(1, last);
             let f = (x - grid[k - 1]) / (grid[k] - grid[k - 1]);
-            (k - 1, f, v)
+            match f {
+                f if f < 1e-9 => (k - 1, 0.0, v),
+                f if f > 1.0 - 1e-9 => (k, 0.0, v),
+                f => (k - 1, f, v),
+            }
         })
         .collect();
-    if rows.is_empty() {
+    // Each point between grid points is taken by its own two: none shares one with another.
+    let inside: Vec<usize> = rows.iter().filter(|r| r.1 > 0.0).map(|r| r.0).collect();
+    if inside.is_empty() || inside.windows(2).any(|w| w[1] < w[0] + 2) {
         return y;
     }
     let mut a = DMatrix::<f64>::zeros(rows.len(), grid.len());
     let mut miss = DVector::<f64>::zeros(rows.len());
     for (i, &(k, f, v)) in rows.iter().enumerate() {
         a[(i, k)] = 1.0 - f;
-        a[(i, k + 1)] = f;
-        miss[i] = v - ((1.0 - f) * y[k] + f * y[k + 1]);
+        miss[i] = v - (1.0 - f) * y[k];
+        if f > 0.0 {
+            a[(i, k + 1)] = f;
+            miss[i] -= f * y[k + 1];
+        }
     }
     if miss.amax() == 0.0 {
         return y;
@@ -576,6 +588,13 @@ pub fn compose(base: &CompTable, residual: &CompTable) -> Result<CompTable, Comp
 mod tests {
     use super::*;
 
+    /// `t`'s primary profile interpolated at `grid`'s points, as a plain resample.
+    fn onto_grid_plain(t: &CompTable, grid: &[f64]) -> Vec<f64> {
+        grid.iter()
+            .map(|&x| interpolate(&t.positions_mm, t.primary(), x) + x * 1e-4)
+            .collect()
+    }
+
     fn table(pos: Vec<f64>, v: Vec<f64>, r: f64) -> CompTable {
         CompTable {
             kind: TableKind::Positioning,
@@ -631,17 +650,14 @@ mod tests {
             .filter(|&k| (y[k] - lin[k]).abs() > 1e-15)
             .collect();
         assert_eq!(moved, vec![20, 21]);
-        // Two measured points in one interval of a coarse grid: the least-squares fit, which
-        // the plain resample (their end values) is not.
+        // Two measured points between the same two points of a coarse grid: the grid samples
+        // the curve.
         let y = onto_grid(
             &[0.0, 10.0, 30.0, 40.0],
             &[0.0, 1.0, 1.0, 0.0],
             &[0.0, 40.0],
         );
-        assert!(
-            (y[0] - 0.5).abs() < 1e-12 && (y[1] - 0.5).abs() < 1e-12,
-            "{y:?}"
-        );
+        assert_eq!(y, vec![0.0, 0.0]);
     }
 
     #[test]
@@ -698,27 +714,49 @@ mod tests {
 
     #[test]
     fn a_residual_composes_onto_the_active_tables_grid() {
-        // The active table on a 0, 50, 100 mm grid; the residual measured at 0, 40, 90.
+        // The active table on a 0, 50, 100 mm grid; the residual measured at 0, 30, 60, 90:
+        // two between the same grid points, so the grid samples the residual.
         let base = table(vec![0.0, 50.0, 100.0], vec![0.0, 0.010, 0.004], 0.0);
-        let mut residual = table(vec![0.0, 40.0, 90.0], vec![0.0, 0.004, -0.003], 0.0);
+        let mut residual = table(
+            vec![0.0, 30.0, 60.0, 90.0],
+            vec![0.0, 0.003, 0.006, -0.003],
+            0.0,
+        );
         residual.values = TableValues::Single {
-            values: vec![0.0, 0.004, -0.003],
+            values: vec![0.0, 0.003, 0.006, -0.003],
             backlash_mm: Some(0.002),
         };
         let c = compose(&base, &residual).unwrap();
         assert_eq!(c.positions_mm, vec![0.0, 50.0, 100.0]);
-        // The residual r on the grid so that the controller's interpolation passes through
-        // its points: r(0) = 0; 0.2·r(0) + 0.8·r(50) = 0.004, so r(50) = 0.005; 0.2·r(50) +
-        // 0.8·r(100) = −0.003, so r(100) = −0.005.
+        // At 50 mm the residual is 0.003 + (20/30)·0.003 = 0.005; at 100 mm held at −0.003.
         let TableValues::Bidirectional { up, down } = &c.values else {
             panic!("a residual with backlash makes both directions: {c:?}");
         };
-        let want_up = [0.0, 0.015, -0.001];
+        let want_up = [0.0, 0.015, 0.001];
         for (u, w) in up.iter().zip(want_up) {
             assert!((u - w).abs() < 1e-12, "{up:?}");
         }
         for (d, w) in down.iter().zip(want_up) {
             assert!((d - (w + 0.002)).abs() < 1e-12, "{down:?}");
+        }
+        // On a grid twice as fine as the residual's points the composed table adds the
+        // residual exactly at each of them, where the controller interpolates.
+        let fine: Vec<f64> = (0..=10).map(|k| 10.0 * k as f64).collect();
+        let fine_base = table(fine.clone(), fine.iter().map(|x| x * 1e-4).collect(), 0.0);
+        let off = table(
+            vec![0.0, 33.0, 61.0, 94.0],
+            vec![0.0, 0.003, 0.006, -0.003],
+            0.0,
+        );
+        let c = compose(&fine_base, &off).unwrap();
+        let plain_at_33 = interpolate(&fine, &onto_grid_plain(&off, &fine), 33.0) - 33e-4;
+        assert!(
+            (plain_at_33 - 0.003).abs() > 1e-5,
+            "the chord alone would miss it"
+        );
+        for (x, r) in off.positions_mm.iter().zip(off.primary()) {
+            let added = interpolate(&fine, c.primary(), *x) - x * 1e-4;
+            assert!((added - r).abs() < 1e-12, "at {x} mm: {added} against {r}");
         }
         // Single profiles stay single; another error is refused.
         let plain = table(vec![0.0, 100.0], vec![0.0, 0.002], 0.0);
