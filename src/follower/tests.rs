@@ -170,23 +170,23 @@ fn a_referenced_line_adds_to_the_vertical_map() {
 
 #[test]
 fn the_stage_beyond_its_map_is_the_steps_scatter_beyond_their_noise() {
-    let sc = |chi2: f64, steps: usize, step_sd_mm: [f64; 2]| SelfCalibration {
+    let sc = |chi2: f64, steps: usize, step_sd_along_mm: f64| SelfCalibration {
         steps,
         reversals: 0,
         chi2_along: chi2,
         chi2_vertical: 1.0,
         machine_time_s: None,
-        step_sd_mm,
+        step_sd_along_mm,
     };
     // 200 steps of 0.4 µm stated noise scattering as 0.5 µm: χ² = 0.25/0.16 = 1.5625 (the
     // stage 0.21 µm beyond its map); its bound adds 2·√(2/200) = 0.2, so σ² = (1.7625 − 1)·0.16/2
     // µm², 0.25 µm.
-    let b = sc(1.5625, 200, [0.4e-3, 0.4e-3]).unmapped_sd_mm().unwrap();
+    let b = sc(1.5625, 200, 0.4e-3).unmapped_sd_mm().unwrap();
     assert!(
         (b - (0.7625f64 * 0.16 / 2.0).sqrt() * 1e-3).abs() < 1e-12,
         "{b}"
     );
     // A map stored before the steps' noise was kept says nothing: the settings state it.
-    assert_eq!(sc(1.0, 200, [0.0; 2]).unmapped_sd_mm(), None);
-    assert_eq!(sc(1.0, 0, [0.4e-3; 2]).unmapped_sd_mm(), None);
+    assert_eq!(sc(1.0, 200, 0.0).unmapped_sd_mm(), None);
+    assert_eq!(sc(1.0, 0, 0.4e-3).unmapped_sd_mm(), None);
 }
