@@ -39,6 +39,8 @@ pub struct RevisitSettings {
     /// The smallest turn reported (rad): what an axis repeats its pitch and yaw to at one
     /// place, approached from one side.
     pub min_rad: f64,
+    /// The smallest shift across reported (mm): what it repeats its straightnesses to there.
+    pub min_mm: f64,
 }
 
 impl Default for RevisitSettings {
@@ -56,6 +58,7 @@ impl Default for RevisitSettings {
             z: 5.5,
             k_stated: 2.0,
             min_rad: 0.3e-6,
+            min_mm: 0.3e-3,
         }
     }
 }
@@ -190,16 +193,19 @@ impl Revisit {
 
     /// One frame at `unix_us`: the measured position (mm), pitch, yaw (rad), dx and dz (mm)
     /// relative to the zero, the zero's own standard uncertainty of each, and the standard
-    /// uncertainty of pitch and yaw the turns found are stated with now (rad). A turn found
-    /// (beyond the mean's noise, or beyond what was stated): the knock, at the time the head
-    /// last agreed with the zero; a return that agrees leaves its [`Agreement`].
+    /// uncertainty of each the turns found are stated with now. A turn found (beyond the
+    /// mean's noise, or beyond what was stated): the knock, at the time the head last agreed
+    /// with the zero. Pitch and yaw that agree, dx or dz that do not: the head shifted across
+    /// (a reference moved by a translation, as the run's judge shifts the zero for a turn it
+    /// cannot tell from one), a knock of x and z. A return that agrees in all four leaves its
+    /// [`Agreement`].
     pub fn push(
         &mut self,
         unix_us: i64,
         position: f64,
         rel: [f64; REVISIT_CHANNELS],
         zero_sd: [f64; REVISIT_CHANNELS],
-        stated_sd: [f64; 2],
+        stated_sd: [f64; REVISIT_CHANNELS],
     ) -> Option<Knock> {
         if !(position.is_finite() && rel.iter().all(|a| a.is_finite())) {
             return None;
@@ -251,21 +257,39 @@ impl Revisit {
             let var_frame = ((self.sum_sq[k] - n * mean[k] * mean[k]) / (n - 1.0)).max(0.0);
             (var_frame / n + zero_sd[k] * zero_sd[k]).sqrt()
         });
-        let z = (0..2)
+        let z = (0..REVISIT_CHANNELS)
             .map(|k| mean[k].abs() / sd[k].max(f64::MIN_POSITIVE))
             .fold(0.0, f64::max);
-        let turned = (0..2).any(|k| {
+        let off = |k: usize, min: f64| {
             let stated = s.k_stated * stated_sd[k].hypot(sd[k]);
-            mean[k].abs() > (s.z * sd[k]).min(stated).max(s.min_rad)
-        });
+            mean[k].abs() > (s.z * sd[k]).min(stated).max(min)
+        };
+        let turned = (0..2).any(|k| off(k, s.min_rad));
+        let shifted = !turned && (2..4).any(|k| off(k, s.min_mm));
         tracing::debug!(
             pitch_urad = mean[0] * 1e6,
             yaw_urad = mean[1] * 1e6,
             sd_urad = sd[1] * 1e6,
+            dx_um = mean[2] * 1e3,
+            dz_um = mean[3] * 1e3,
             turned,
+            shifted,
             "back at the zero: pitch and yaw against the zero's"
         );
         let since = std::mem::replace(&mut self.agreed_us, unix_us);
+        if shifted {
+            return Some(Knock {
+                unix_us: since,
+                turn: Mount {
+                    x: -mean[2],
+                    z: -mean[3],
+                    ..Mount::default()
+                },
+                sd_rad: [0.0; 2],
+                sd_mm: [sd[2], sd[3]],
+                z,
+            });
+        }
         if !turned {
             self.agreement = Some(Agreement {
                 second_moment: std::array::from_fn(|k| mean[k] * mean[k] + sd[k] * sd[k]),
@@ -279,6 +303,7 @@ impl Revisit {
                 ..Mount::default()
             },
             sd_rad: [sd[1], sd[0]],
+            sd_mm: [0.0; 2],
             z,
         })
     }
@@ -300,7 +325,7 @@ mod tests {
         frames: usize,
     ) -> Option<Knock> {
         let rel = [angles[0], angles[1], 0.0, 0.0];
-        stay_at(r, rng, t0, position, rel, [0.0; 2], frames)
+        stay_at(r, rng, t0, position, rel, [0.0; REVISIT_CHANNELS], frames)
     }
 
     /// As `stay`, with dx and dz (mm) about `rel`'s too, and the turns stated to `stated`.
@@ -310,7 +335,7 @@ mod tests {
         t0: i64,
         position: f64,
         rel: [f64; REVISIT_CHANNELS],
-        stated: [f64; 2],
+        stated: [f64; REVISIT_CHANNELS],
         frames: usize,
     ) -> Option<Knock> {
         let zero_sd = std::array::from_fn(zero_sd_of);
@@ -337,9 +362,9 @@ mod tests {
         assert!(r.take_agreement().is_none());
         assert!(stay(&mut r, &mut rng, 1_000_000, 400.0, [0.0; 2], 10).is_none());
         assert!(stay(&mut r, &mut rng, 2_000_000, -2.0, [0.0; 2], 10).is_none());
-        // Left over: pitch 0.25 µrad, within what was stated (0.3 µrad), dx 0.3 µm.
-        let rel = [0.25e-6, 0.0, 0.3e-3, 0.0];
-        let stated = [0.3e-6, 0.3e-6];
+        // Left over: pitch 0.25 µrad and dx 0.2 µm, within what was stated (0.3 µrad, 0.2 µm).
+        let rel = [0.25e-6, 0.0, 0.2e-3, 0.0];
+        let stated = [0.3e-6, 0.3e-6, 0.2e-3, 0.2e-3];
         assert!(stay_at(&mut r, &mut rng, 3_000_000, 0.0, rel, stated, 500).is_none());
         let a = r.take_agreement().expect("the return agreed");
         assert!(r.take_agreement().is_none(), "taken once");
@@ -362,6 +387,44 @@ mod tests {
         assert!(stay(&mut r, &mut rng, 7_000_000, 0.0, [0.0; 2], 500).is_none());
         r.forget();
         assert!(r.take_agreement().is_none());
+    }
+
+    /// Pitch and yaw agree, dx does not (the run's judge shifted the zero for a turn it could
+    /// not tell from a shift): a knock of x, dated at the last agreement, that the shift's
+    /// undoing takes out; below a straightness' repeatability, none.
+    #[test]
+    fn a_return_that_reads_the_zero_shifted_across_finds_the_shift() {
+        let mut rng = Rng::new(12);
+        let mut r = Revisit::new(RevisitSettings::default());
+        assert!(stay(&mut r, &mut rng, 0, -2.0, [0.0; 2], 10).is_none());
+        r.set_zero(0.0);
+        assert!(stay(&mut r, &mut rng, 1_000_000, 400.0, [0.0; 2], 10).is_none());
+        assert!(stay(&mut r, &mut rng, 2_000_000, -2.0, [0.0; 2], 10).is_none());
+        assert!(stay(&mut r, &mut rng, 3_000_000, 0.0, [0.0; 2], 500).is_none());
+        let agreed = r.agreed_us();
+        let shifted = [0.0, 0.0, -1.37e-3, 0.0];
+        assert!(stay(&mut r, &mut rng, 4_000_000, 400.0, [0.0; 2], 10).is_none());
+        assert!(stay(&mut r, &mut rng, 5_000_000, -2.0, [0.0; 2], 10).is_none());
+        let none = [0.0; REVISIT_CHANNELS];
+        let k = stay_at(&mut r, &mut rng, 6_000_000, 0.0, shifted, none, 500).expect("found");
+        assert_eq!(k.unix_us, agreed);
+        assert_eq!((k.turn.yaw, k.turn.pitch), (0.0, 0.0));
+        assert!(
+            (k.turn.x - 1.37e-3).abs() < 4.0 * k.sd_mm[0],
+            "{}",
+            k.describe()
+        );
+        assert!(k.turn.z.abs() < 4.0 * k.sd_mm[1], "{}", k.describe());
+        assert!(
+            k.describe().starts_with("shifted x +1.3"),
+            "{}",
+            k.describe()
+        );
+        // Below what a straightness repeats to at one place (0.3 µm), none.
+        let within = [0.0, 0.0, 0.2e-3, -0.2e-3];
+        assert!(stay(&mut r, &mut rng, 7_000_000, -2.0, [0.0; 2], 10).is_none());
+        assert!(stay_at(&mut r, &mut rng, 8_000_000, 0.0, within, none, 500).is_none());
+        assert!(r.take_agreement().is_some());
     }
 
     fn noise_of(k: usize) -> f64 {
@@ -407,13 +470,14 @@ mod tests {
         );
         // A turn within what the turns were stated to is no knock (0.6 µrad, stated 0.5 µrad:
         // 2 u is 1.0 µrad, though the mean's noise alone, 0.09 µrad, would call it one).
-        let (small, stated) = ([0.0, 0.6e-6, 0.0, 0.0], [0.5e-6; 2]);
+        let (small, stated) = ([0.0, 0.6e-6, 0.0, 0.0], [0.5e-6, 0.5e-6, 0.0, 0.0]);
         assert!(stay(&mut r, &mut rng, 9_000_000, -2.0, [0.0; 2], 10).is_none());
         assert!(stay_at(&mut r, &mut rng, 9_100_000, 0.0, small, stated, 500).is_none());
         // Beyond what was stated, it is one, small as it is: the captures since were stated
         // without it.
         assert!(stay(&mut r, &mut rng, 9_200_000, -2.0, [0.0; 2], 10).is_none());
-        let found = stay_at(&mut r, &mut rng, 9_300_000, 0.0, small, [0.1e-6; 2], 500);
+        let stated = [0.1e-6, 0.1e-6, 0.0, 0.0];
+        let found = stay_at(&mut r, &mut rng, 9_300_000, 0.0, small, stated, 500);
         assert!(found.is_some_and(|k| (k.turn.yaw + 0.6e-6).abs() < 0.4e-6));
         // Nor is anything a knock without a zero.
         r.forget();
