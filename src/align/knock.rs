@@ -51,34 +51,21 @@ pub struct Knock {
     /// The first frame after the step (µs since the epoch; to within a few frames for a knock
     /// near the limit).
     pub unix_us: i64,
-    /// The head's turn on its mount: yaw and pitch, or (found at a return to the zero) a
-    /// shift across, x and z.
+    /// The head's turn on its mount (yaw and pitch; no offsets).
     pub turn: Mount,
     /// Standard uncertainty of the turn's yaw and pitch (rad).
     pub sd_rad: [f64; 2],
-    /// Standard uncertainty of the shift's x and z (mm).
-    pub sd_mm: [f64; 2],
     /// How many standard deviations the step stood out.
     pub z: f64,
 }
 
 impl Knock {
-    /// The turn in words: "yaw -4.1 µrad, pitch +0.2 µrad (±0.1 µrad)", or a shift:
-    /// "shifted x +1.37 µm, z -0.02 µm (±0.03 µm)".
+    /// The turn in words: "yaw -4.1 µrad, pitch +0.2 µrad".
     pub fn describe(&self) -> String {
-        let t = &self.turn;
-        if t.yaw == 0.0 && t.pitch == 0.0 && (t.x != 0.0 || t.z != 0.0) {
-            return format!(
-                "shifted x {:+.2} µm, z {:+.2} µm (±{:.2} µm)",
-                t.x * 1e3,
-                t.z * 1e3,
-                self.sd_mm[0].max(self.sd_mm[1]) * 1e3
-            );
-        }
         format!(
             "yaw {:+.1} µrad, pitch {:+.1} µrad (±{:.1} µrad)",
-            t.yaw * 1e6,
-            t.pitch * 1e6,
+            self.turn.yaw * 1e6,
+            self.turn.pitch * 1e6,
             self.sd_rad[0].max(self.sd_rad[1]) * 1e6
         )
     }
@@ -275,7 +262,6 @@ impl KnockWatch {
                 z: 0.0,
             },
             sd_rad: [sd[1], sd[0]],
-            sd_mm: [0.0; 2],
             z: chi2.sqrt(),
         })
     }

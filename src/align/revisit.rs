@@ -9,13 +9,8 @@
 //! knock at that return's time, so that everything measured since is taken again, with the
 //! turn taken out.
 //!
-//! A return that agrees measures what is left of the turns taken out since the zero: the
-//! mean's square plus its variance, for pitch and yaw and for the two straightnesses at the
-//! zero ([`Revisit::take_agreement`]). That is the turns' uncertainty from then on, in place
-//! of the model's, which a knock's fit alone can state only loosely.
-//!
-//! Sans-I/O: the caller gives each frame's time, measured position and its pitch, yaw, dx
-//! and dz relative to the zero, and says when the zero is taken or forgotten.
+//! Sans-I/O: the caller gives each frame's time, measured position and its pitch and yaw
+//! relative to the zero, and says when the zero is taken or forgotten.
 
 use super::knock::Knock;
 use super::mount::Mount;
@@ -30,25 +25,16 @@ pub struct RevisitSettings {
     /// Frames skipped after arriving (the carriage settling), then frames averaged.
     pub settle: usize,
     pub frames: usize,
-    /// Significance a turn needs (standard deviations of the mean and the zero together)
-    /// whatever was stated.
+    /// Significance a turn needs (standard deviations of the mean and the zero together).
     pub z: f64,
-    /// A turn beyond this many of what the captures since the last agreement stated for the
-    /// turns (with the mean's own sd) is one: they were stated wrong, and are taken again.
-    pub k_stated: f64,
-    /// The smallest turn reported (rad): what an axis repeats its pitch and yaw to at one
-    /// place, approached from one side.
+    /// The smallest turn reported (rad): an axis' angular repeatability at one place.
     pub min_rad: f64,
-    /// The smallest shift across reported (mm): what it repeats its straightnesses to there.
-    pub min_mm: f64,
 }
 
 impl Default for RevisitSettings {
-    /// 0.2 s to settle and 0.5 s averaged at 500 Hz (inside a capture's dwell). 0.3 µrad,
-    /// 0.06″: a good axis' pitch and yaw at one place, approached from one side (the twin's
-    /// returns without a knock agree within 0.15 µrad); a turn of 1 µrad, which a fixed
-    /// threshold there let pass, moves a straightness by 1.4 µm at a metre from the pivot
-    /// (storm seed 15: five passes 1.5 µm apart in dx).
+    /// 0.2 s to settle and 0.5 s averaged at 500 Hz (inside a capture's dwell); 1 µrad, 0.2″,
+    /// is about what a machine axis repeats its yaw and pitch to at one place, and moves a
+    /// straightness by 1 µm per metre from the pivot.
     fn default() -> Self {
         RevisitSettings {
             tolerance_mm: 0.05,
@@ -56,9 +42,7 @@ impl Default for RevisitSettings {
             settle: 100,
             frames: 250,
             z: 5.5,
-            k_stated: 2.0,
-            min_rad: 0.3e-6,
-            min_mm: 0.3e-3,
+            min_rad: 1.0e-6,
         }
     }
 }
@@ -90,27 +74,13 @@ pub struct Revisit {
     /// The newest frame's time, and the time the head last agreed with the zero (µs).
     last_us: i64,
     agreed_us: i64,
-    /// Frames at the zero since arriving, and the sums of pitch, yaw, dx and dz (and their
-    /// squares) averaged.
+    /// Frames at the zero since arriving, and the sums of pitch and yaw (and squares) averaged.
     seen: usize,
-    sum: [f64; REVISIT_CHANNELS],
-    sum_sq: [f64; REVISIT_CHANNELS],
+    sum: [f64; 2],
+    sum_sq: [f64; 2],
     n: usize,
     /// This stay at the zero is judged.
     judged: bool,
-    /// The newest return that agreed, not yet taken.
-    agreement: Option<Agreement>,
-}
-
-/// Pitch, yaw (rad), dx and dz (mm), relative to the zero: what a return averages.
-pub const REVISIT_CHANNELS: usize = 4;
-
-/// A return to the zero that agreed with it: per channel (pitch, yaw, dx, dz), the mean's
-/// square plus its variance (the frames' over their number and the zero's own): how far the
-/// head may be from the zero's reading there, turns taken out (rad², mm²).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Agreement {
-    pub second_moment: [f64; REVISIT_CHANNELS],
 }
 
 impl Revisit {
@@ -122,11 +92,10 @@ impl Revisit {
             last_us: 0,
             agreed_us: 0,
             seen: 0,
-            sum: [0.0; REVISIT_CHANNELS],
-            sum_sq: [0.0; REVISIT_CHANNELS],
+            sum: [0.0; 2],
+            sum_sq: [0.0; 2],
             n: 0,
             judged: false,
-            agreement: None,
         }
     }
 
@@ -138,7 +107,6 @@ impl Revisit {
             side: self.side,
         });
         self.agreed_us = self.last_us;
-        self.agreement = None;
         self.restart();
         self.judged = true;
     }
@@ -174,40 +142,28 @@ impl Revisit {
     /// No zero (forgotten, or another decoupling): nothing to check against.
     pub fn forget(&mut self) {
         self.zero = None;
-        self.agreement = None;
         self.restart();
     }
 
     /// The frames averaged so far do not count (the head's turn changed under them).
     pub fn restart(&mut self) {
         self.seen = 0;
-        self.sum = [0.0; REVISIT_CHANNELS];
-        self.sum_sq = [0.0; REVISIT_CHANNELS];
+        self.sum = [0.0; 2];
+        self.sum_sq = [0.0; 2];
         self.n = 0;
     }
 
-    /// The newest return that agreed with the zero since last asked.
-    pub fn take_agreement(&mut self) -> Option<Agreement> {
-        self.agreement.take()
-    }
-
-    /// One frame at `unix_us`: the measured position (mm), pitch, yaw (rad), dx and dz (mm)
-    /// relative to the zero, the zero's own standard uncertainty of each, and the standard
-    /// uncertainty of each the turns found are stated with now. A turn found (beyond the
-    /// mean's noise, or beyond what was stated): the knock, at the time the head last agreed
-    /// with the zero. Pitch and yaw that agree, dx or dz that do not: the head shifted across
-    /// (a reference moved by a translation, as the run's judge shifts the zero for a turn it
-    /// cannot tell from one), a knock of x and z. A return that agrees in all four leaves its
-    /// [`Agreement`].
+    /// One frame at `unix_us`: the measured position (mm), pitch and yaw relative to the zero
+    /// (rad), and the zero's own standard uncertainty of each. A turn found: the knock, at
+    /// the time the head last agreed with the zero.
     pub fn push(
         &mut self,
         unix_us: i64,
         position: f64,
-        rel: [f64; REVISIT_CHANNELS],
-        zero_sd: [f64; REVISIT_CHANNELS],
-        stated_sd: [f64; REVISIT_CHANNELS],
+        angles: [f64; 2],
+        zero_sd: [f64; 2],
     ) -> Option<Knock> {
-        if !(position.is_finite() && rel.iter().all(|a| a.is_finite())) {
+        if !(position.is_finite() && angles.iter().all(|a| a.is_finite())) {
             return None;
         }
         self.last_us = unix_us;
@@ -242,7 +198,7 @@ impl Revisit {
         if self.seen <= s.settle {
             return None;
         }
-        for (k, a) in rel.iter().enumerate() {
+        for (k, a) in angles.iter().enumerate() {
             self.sum[k] += a;
             self.sum_sq[k] += a * a;
         }
@@ -252,49 +208,23 @@ impl Revisit {
         }
         self.judged = true;
         let n = self.n as f64;
-        let mean: [f64; REVISIT_CHANNELS] = std::array::from_fn(|k| self.sum[k] / n);
-        let sd: [f64; REVISIT_CHANNELS] = std::array::from_fn(|k| {
+        let mean: [f64; 2] = std::array::from_fn(|k| self.sum[k] / n);
+        let sd: [f64; 2] = std::array::from_fn(|k| {
             let var_frame = ((self.sum_sq[k] - n * mean[k] * mean[k]) / (n - 1.0)).max(0.0);
             (var_frame / n + zero_sd[k] * zero_sd[k]).sqrt()
         });
-        let z = (0..REVISIT_CHANNELS)
+        let z = (0..2)
             .map(|k| mean[k].abs() / sd[k].max(f64::MIN_POSITIVE))
             .fold(0.0, f64::max);
-        let off = |k: usize, min: f64| {
-            let stated = s.k_stated * stated_sd[k].hypot(sd[k]);
-            mean[k].abs() > (s.z * sd[k]).min(stated).max(min)
-        };
-        let turned = (0..2).any(|k| off(k, s.min_rad));
-        let shifted = !turned && (2..4).any(|k| off(k, s.min_mm));
+        let turned = (0..2).any(|k| mean[k].abs() > (s.z * sd[k]).max(s.min_rad));
         tracing::debug!(
             pitch_urad = mean[0] * 1e6,
             yaw_urad = mean[1] * 1e6,
             sd_urad = sd[1] * 1e6,
-            dx_um = mean[2] * 1e3,
-            dz_um = mean[3] * 1e3,
             turned,
-            shifted,
             "back at the zero: pitch and yaw against the zero's"
         );
         let since = std::mem::replace(&mut self.agreed_us, unix_us);
-        if shifted {
-            return Some(Knock {
-                unix_us: since,
-                turn: Mount {
-                    x: -mean[2],
-                    z: -mean[3],
-                    ..Mount::default()
-                },
-                sd_rad: [0.0; 2],
-                sd_mm: [sd[2], sd[3]],
-                z,
-            });
-        }
-        if !turned {
-            self.agreement = Some(Agreement {
-                second_moment: std::array::from_fn(|k| mean[k] * mean[k] + sd[k] * sd[k]),
-            });
-        }
         turned.then_some(Knock {
             unix_us: since,
             turn: Mount {
@@ -303,7 +233,6 @@ impl Revisit {
                 ..Mount::default()
             },
             sd_rad: [sd[1], sd[0]],
-            sd_mm: [0.0; 2],
             z,
         })
     }
@@ -315,7 +244,7 @@ mod tests {
     use crate::sim::Rng;
 
     /// Frames every 2 ms from `t0` (µs) at `position` with pitch and yaw `angles` plus 1.4 µrad
-    /// of noise each (dx and dz: 0.5 µm of noise about none): the knock found, if any.
+    /// of noise each: the knock found, if any.
     fn stay(
         r: &mut Revisit,
         rng: &mut Rng,
@@ -324,115 +253,15 @@ mod tests {
         angles: [f64; 2],
         frames: usize,
     ) -> Option<Knock> {
-        let rel = [angles[0], angles[1], 0.0, 0.0];
-        stay_at(r, rng, t0, position, rel, [0.0; REVISIT_CHANNELS], frames)
-    }
-
-    /// As `stay`, with dx and dz (mm) about `rel`'s too, and the turns stated to `stated`.
-    fn stay_at(
-        r: &mut Revisit,
-        rng: &mut Rng,
-        t0: i64,
-        position: f64,
-        rel: [f64; REVISIT_CHANNELS],
-        stated: [f64; REVISIT_CHANNELS],
-        frames: usize,
-    ) -> Option<Knock> {
-        let zero_sd = std::array::from_fn(zero_sd_of);
         let mut found = None;
         for i in 0..frames {
-            let a: [f64; REVISIT_CHANNELS] =
-                std::array::from_fn(|k| rel[k] + rng.gauss(noise_of(k)));
-            if let Some(k) = r.push(t0 + 2000 * i as i64, position, a, zero_sd, stated) {
+            let a = [angles[0] + rng.gauss(1.4e-6), angles[1] + rng.gauss(1.4e-6)];
+            if let Some(k) = r.push(t0 + 2000 * i as i64, position, a, [0.05e-6; 2]) {
                 assert!(found.is_none(), "one knock a stay");
                 found = Some(k);
             }
         }
         found
-    }
-
-    /// A return that agrees states what is left: the residual's square plus the variance of
-    /// its mean (250 frames of 1.4 µrad and 0.5 µm, and the zero's own), per channel.
-    #[test]
-    fn a_return_that_agrees_measures_what_is_left_of_the_turns() {
-        let mut rng = Rng::new(11);
-        let mut r = Revisit::new(RevisitSettings::default());
-        assert!(stay(&mut r, &mut rng, 0, -2.0, [0.0; 2], 10).is_none());
-        r.set_zero(0.0);
-        assert!(r.take_agreement().is_none());
-        assert!(stay(&mut r, &mut rng, 1_000_000, 400.0, [0.0; 2], 10).is_none());
-        assert!(stay(&mut r, &mut rng, 2_000_000, -2.0, [0.0; 2], 10).is_none());
-        // Left over: pitch 0.25 µrad and dx 0.2 µm, within what was stated (0.3 µrad, 0.2 µm).
-        let rel = [0.25e-6, 0.0, 0.2e-3, 0.0];
-        let stated = [0.3e-6, 0.3e-6, 0.2e-3, 0.2e-3];
-        assert!(stay_at(&mut r, &mut rng, 3_000_000, 0.0, rel, stated, 500).is_none());
-        let a = r.take_agreement().expect("the return agreed");
-        assert!(r.take_agreement().is_none(), "taken once");
-        let mean_var = |k: usize| (noise_of(k) / 250f64.sqrt()).powi(2) + zero_sd_of(k).powi(2);
-        for (k, want) in rel.iter().enumerate() {
-            let expect = want * want + mean_var(k);
-            // The mean scatters by its sd: the second moment within 3 sd of the mean's square.
-            let slack = 2.0 * want.abs() * 3.0 * mean_var(k).sqrt() + 9.0 * mean_var(k);
-            assert!(
-                (a.second_moment[k] - expect).abs() < slack,
-                "channel {k}: {:e} against {expect:e}",
-                a.second_moment[k]
-            );
-        }
-        // A return that finds a turn leaves none; nor does a forgotten zero.
-        assert!(stay(&mut r, &mut rng, 4_000_000, -2.0, [0.0; 2], 10).is_none());
-        assert!(stay(&mut r, &mut rng, 5_000_000, 0.0, [0.0, 3.0e-6], 500).is_some());
-        assert!(r.take_agreement().is_none());
-        assert!(stay(&mut r, &mut rng, 6_000_000, -2.0, [0.0; 2], 10).is_none());
-        assert!(stay(&mut r, &mut rng, 7_000_000, 0.0, [0.0; 2], 500).is_none());
-        r.forget();
-        assert!(r.take_agreement().is_none());
-    }
-
-    /// Pitch and yaw agree, dx does not (the run's judge shifted the zero for a turn it could
-    /// not tell from a shift): a knock of x, dated at the last agreement, that the shift's
-    /// undoing takes out; below a straightness' repeatability, none.
-    #[test]
-    fn a_return_that_reads_the_zero_shifted_across_finds_the_shift() {
-        let mut rng = Rng::new(12);
-        let mut r = Revisit::new(RevisitSettings::default());
-        assert!(stay(&mut r, &mut rng, 0, -2.0, [0.0; 2], 10).is_none());
-        r.set_zero(0.0);
-        assert!(stay(&mut r, &mut rng, 1_000_000, 400.0, [0.0; 2], 10).is_none());
-        assert!(stay(&mut r, &mut rng, 2_000_000, -2.0, [0.0; 2], 10).is_none());
-        assert!(stay(&mut r, &mut rng, 3_000_000, 0.0, [0.0; 2], 500).is_none());
-        let agreed = r.agreed_us();
-        let shifted = [0.0, 0.0, -1.37e-3, 0.0];
-        assert!(stay(&mut r, &mut rng, 4_000_000, 400.0, [0.0; 2], 10).is_none());
-        assert!(stay(&mut r, &mut rng, 5_000_000, -2.0, [0.0; 2], 10).is_none());
-        let none = [0.0; REVISIT_CHANNELS];
-        let k = stay_at(&mut r, &mut rng, 6_000_000, 0.0, shifted, none, 500).expect("found");
-        assert_eq!(k.unix_us, agreed);
-        assert_eq!((k.turn.yaw, k.turn.pitch), (0.0, 0.0));
-        assert!(
-            (k.turn.x - 1.37e-3).abs() < 4.0 * k.sd_mm[0],
-            "{}",
-            k.describe()
-        );
-        assert!(k.turn.z.abs() < 4.0 * k.sd_mm[1], "{}", k.describe());
-        assert!(
-            k.describe().starts_with("shifted x +1.3"),
-            "{}",
-            k.describe()
-        );
-        // Below what a straightness repeats to at one place (0.3 µm), none.
-        let within = [0.0, 0.0, 0.2e-3, -0.2e-3];
-        assert!(stay(&mut r, &mut rng, 7_000_000, -2.0, [0.0; 2], 10).is_none());
-        assert!(stay_at(&mut r, &mut rng, 8_000_000, 0.0, within, none, 500).is_none());
-        assert!(r.take_agreement().is_some());
-    }
-
-    fn noise_of(k: usize) -> f64 {
-        [1.4e-6, 1.4e-6, 0.5e-3, 0.5e-3][k]
-    }
-
-    fn zero_sd_of(k: usize) -> f64 {
-        [0.05e-6, 0.05e-6, 0.02e-3, 0.02e-3][k]
     }
 
     #[test]
@@ -468,18 +297,9 @@ mod tests {
             "{:?}",
             k.sd_rad
         );
-        // A turn within what the turns were stated to is no knock (0.6 µrad, stated 0.5 µrad:
-        // 2 u is 1.0 µrad, though the mean's noise alone, 0.09 µrad, would call it one).
-        let (small, stated) = ([0.0, 0.6e-6, 0.0, 0.0], [0.5e-6, 0.5e-6, 0.0, 0.0]);
+        // A turn below the axis' repeatability is no knock; nor is anything without a zero.
         assert!(stay(&mut r, &mut rng, 9_000_000, -2.0, [0.0; 2], 10).is_none());
-        assert!(stay_at(&mut r, &mut rng, 9_100_000, 0.0, small, stated, 500).is_none());
-        // Beyond what was stated, it is one, small as it is: the captures since were stated
-        // without it.
-        assert!(stay(&mut r, &mut rng, 9_200_000, -2.0, [0.0; 2], 10).is_none());
-        let stated = [0.1e-6, 0.1e-6, 0.0, 0.0];
-        let found = stay_at(&mut r, &mut rng, 9_300_000, 0.0, small, stated, 500);
-        assert!(found.is_some_and(|k| (k.turn.yaw + 0.6e-6).abs() < 0.4e-6));
-        // Nor is anything a knock without a zero.
+        assert!(stay(&mut r, &mut rng, 9_100_000, 0.0, [0.0, 0.6e-6], 500).is_none());
         r.forget();
         assert!(stay(&mut r, &mut rng, 10_000_000, -2.0, [0.0; 2], 10).is_none());
         assert!(stay(&mut r, &mut rng, 11_000_000, 0.0, turned, 500).is_none());
