@@ -423,6 +423,8 @@ impl Measure {
             }
         }
         self.samples.clear();
+        // A return to the zero half averaged reads against the zero in force from here on.
+        self.turned.revisit.restart();
         self.reference_changed = true;
     }
 
@@ -963,6 +965,51 @@ mod tests {
             // A new zero starts from the head as it stands.
             m.start_zero();
             assert_eq!(m.turned.turn, Mount::default());
+        }
+    }
+
+    #[test]
+    fn a_return_to_the_zero_reads_against_the_zero_in_force() {
+        let layout = Layout::reference();
+        let dec = nominal(&layout, Method::Linear);
+        let truth = |d: f64| Errors6::from_user([0.002 * d, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        for seed in [11, 12, 13] {
+            let mut m = Measure::new(dec.clone(), Duration::from_millis(500));
+            let mut rng = Rng::new(seed);
+            let t0 = crate::util::clock::now();
+            let mut i = 0u64;
+            let mut feed = |m: &mut Measure, d: f64, frames: u64| {
+                m.set_nominal(Some(d));
+                for _ in 0..frames {
+                    let t = t0 + Duration::from_millis(2 * i);
+                    let pose = Pose::new(truth(d), d, d);
+                    let f = frame_at(&layout, &pose, &mut rng, t, 1e-3);
+                    m.handle_frame(&f, &stitch(d, 0.0), t).unwrap();
+                    i += 1;
+                }
+            };
+            // Zero at 0 mm, approached from below; away above and back from below.
+            feed(&mut m, -2.0, 20);
+            m.start_zero();
+            feed(&mut m, 0.0, 500);
+            m.set_zero(None).unwrap();
+            feed(&mut m, 300.0, 20);
+            feed(&mut m, -2.0, 20);
+            // Half-way through the return's averaging (0.2 s settling, then 0.2 s of the
+            // 0.5 s), the run's judge shifts the zero by 3 µrad of yaw: the unturned head
+            // reads -3 µrad against it from then on, and the return says so, not the mean of
+            // the two zeros (-1.8 µrad).
+            feed(&mut m, 0.0, 200);
+            assert!(m.take_knock().is_none(), "seed {seed}: judged too early");
+            let shift = 3e-6;
+            m.shift_zero(Errors6::from_array([0.0, 0.0, 0.0, 0.0, 0.0, shift]));
+            feed(&mut m, 0.0, 400);
+            let k = m.take_knock().expect("the shifted yaw found at the return");
+            assert!(
+                (k.turn.yaw - shift).abs() < 0.3e-6,
+                "seed {seed}: {} for a shift of 3 µrad",
+                k.describe()
+            );
         }
     }
 }
