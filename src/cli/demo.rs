@@ -36,7 +36,8 @@ use axiscomp::sim::axis::AxisSpec;
 use axiscomp::sim::closed_loop::{
     self, BudgetSpec, Figures, LoopResult, LoopSpec, Measured, Pass, Step, TruePoint,
 };
-use axiscomp::sim::follower_cal::Mapping;
+use axiscomp::sim::follower::FollowerSpec;
+use axiscomp::sim::follower_cal::{Mapping, map_instrument};
 use axiscomp::sim::lab::LabSpec;
 use axiscomp::sim::plant::{MountSpec, Plant, PlantSpec};
 use axiscomp::sim::study::{StudyResult, StudySpec, study_head};
@@ -90,6 +91,17 @@ pub struct Args {
     /// Frames averaged on each side of a self-calibration handover.
     #[arg(long, default_value_t = 1000)]
     pub map_frames: usize,
+    /// Map the follower on this machine (its passes and level stations, about 100 min for
+    /// 1 m), instead of re-using the instrument's map made once on its bench and checked here
+    /// by the level's stations (a few minutes).
+    #[arg(long)]
+    pub map_on_machine: bool,
+    /// The instrument (its follower's own errors; the same on every machine).
+    #[arg(long, default_value_t = 1)]
+    pub instrument: u64,
+    /// Peak of the follower rail's bend on this machine's bed (µm).
+    #[arg(long, default_value_t = 2.0)]
+    pub bend_um: f64,
     /// Where the report goes.
     #[arg(long, default_value = "demo-out")]
     pub out: PathBuf,
@@ -117,6 +129,11 @@ pub fn run(a: Args) -> Result<()> {
             ..InstallSpec::default()
         },
         mount: MountSpec::by_eye(),
+        follower: FollowerSpec {
+            instrument_seed: Some(a.instrument),
+            bend_um: a.bend_um,
+            ..FollowerSpec::default()
+        },
         ..PlantSpec::default()
     };
     let study = StudySpec {
@@ -205,12 +222,32 @@ pub fn run(a: Args) -> Result<()> {
         plan.capture_count()
     );
     let span = axiscomp::sim::lab::plan_span(&plan);
-    let follower = (a.map_passes > 0).then(|| {
+    let mut follower = (a.map_passes > 0).then(|| {
         let mut m = Mapping::over(span);
         m.cal.passes = a.map_passes;
         m.cal.average_frames = a.map_frames;
         m
     });
+    if let Some(m) = follower.as_mut().filter(|_| !a.map_on_machine) {
+        println!(
+            "\nthe instrument's follower map, made once on its own bench (not this machine's time): {} stop-and-go passes over {:.0} to {:.0} mm, {:.2} mm steps, {} frames a side; its certificate; a level's stations",
+            m.cal.passes, m.cal.from_mm, m.cal.to_mm, m.cal.step_mm, m.cal.average_frames
+        );
+        let mut bar: Option<Progress> = None;
+        let made = map_instrument(plant.follower, a.length_mm, &m.cal, |stop, stops| {
+            bar.get_or_insert_with(|| Progress::new("bench self-calibration, stops", stops as u64))
+                .set(stop as u64)
+        })?;
+        if let Some(b) = bar.take() {
+            b.finish("done");
+        }
+        println!(
+            "  {:.1} min on the bench: {} steps; on this machine it is checked by a level's stations and re-used",
+            made.machine_time.as_secs_f64() / 60.0,
+            made.run.steps.len()
+        );
+        m.reuse = Some(Box::new(made));
+    }
     let spec = LoopSpec {
         lab: LabSpec::standard(plant.clone(), Some(decoupler))?,
         plan,
@@ -243,7 +280,7 @@ pub fn run(a: Args) -> Result<()> {
         }
         Step::Mapping { stop, stops } => {
             let b = mapping.get_or_insert_with(|| {
-                if let Some(m) = &spec.follower {
+                if let Some(m) = spec.follower.as_ref().filter(|m| m.reuse.is_none()) {
                     println!(
                         "\nthe follower's map: {} stop-and-go passes over {:.0} to {:.0} mm, {:.2} mm steps, {} frames a side; its certificate; a level at both ends for the vertical line",
                         m.cal.passes, m.cal.from_mm, m.cal.to_mm, m.cal.step_mm, m.cal.average_frames
@@ -286,7 +323,12 @@ pub fn run(a: Args) -> Result<()> {
         }
     })?;
     print_mount(&result);
-    if let Some(m) = &result.follower {
+    if let Some(m) = result.follower.as_ref().filter(|m| m.map.reuse.is_some()) {
+        println!(
+            "\nthe follower's map: the instrument's, checked on this machine in {:.1} min of machine time and re-used (in use for both runs):",
+            m.machine_time.as_secs_f64() / 60.0,
+        );
+    } else if let Some(m) = &result.follower {
         println!(
             "\nthe follower's map ({:.1} min of machine time: {} steps, {} skipped; in use for both runs):",
             m.machine_time.as_secs_f64() / 60.0,
@@ -611,7 +653,16 @@ fn summary_json(
                 "machine_time_s": m.machine_time.as_secs_f64(),
                 "steps": m.run.steps.len(),
                 "terms": m.map.summary(),
+                "reused": m.map.reuse.as_ref().map(|c| serde_json::json!({
+                    "stations": c.stations,
+                    "bend_range_um": c.bend_range_mm * 1e3,
+                    "bend_u_max_um": c.bend_u_max_mm * 1e3,
+                    "worst_z": c.worst_z,
+                    "limit_z": c.limit_z,
+                })),
             })),
+            "instrument": f.instrument_seed,
+            "bend_um": f.bend_um,
         },
         "machine_time_s": r.machine_time.to_json(),
         "figures": figures,

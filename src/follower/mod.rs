@@ -37,10 +37,12 @@
 pub mod certificate;
 mod fit;
 pub mod level;
+pub mod reuse;
 pub mod selfcal;
 mod stored;
 
 pub use certificate::{Certificate, CertificateError, CertificatePoint};
+pub use reuse::{Reuse, ReuseError, ReuseSettings};
 pub use stored::{STEP_COLUMNS, StoredMap, StoredSteps};
 
 use crate::track::{HandoverKind, HandoverRecord, StageCorrection};
@@ -265,6 +267,10 @@ pub struct FollowerMap {
     /// steps'): then `vertical_mm` is the whole vertical and no line is added.
     #[serde(default)]
     pub vertical_reference: Option<VerticalReference>,
+    /// The instrument's stored map re-used on this set-up: what its check found (the bend
+    /// is in the vertical, its uncertainty in the vertical's).
+    #[serde(default)]
+    pub reuse: Option<Reuse>,
 }
 
 /// One station of a level along the follower's travel: the follower's true vertical there
@@ -550,6 +556,9 @@ impl FollowerMap {
                 l.source
             ));
         }
+        if let Some(r) = &self.reuse {
+            out.push(r.describe());
+        }
         if let Some(s) = &self.self_calibration {
             out.push(format!(
                 "self-calibration: {} steps, {} reversals, reduced χ² {:.2} along, {:.2} vertical{}",
@@ -558,7 +567,11 @@ impl FollowerMap {
                 s.chi2_along,
                 s.chi2_vertical,
                 s.machine_time_s
-                    .map(|t| format!(", {:.1} min of machine time", t / 60.0))
+                    .map(|t| if self.reuse.is_some() {
+                        format!(", {:.1} min on the set-up it was made on (not this one)", t / 60.0)
+                    } else {
+                        format!(", {:.1} min of machine time", t / 60.0)
+                    })
                     .unwrap_or_default()
             ));
         }
@@ -652,6 +665,7 @@ pub fn build_referenced(
         vertical_reference: reference
             .filter(|r| r.stations.len() >= 2 && !steps.is_empty())
             .cloned(),
+        reuse: None,
     };
     if let Some(v) = vertical {
         map.vertical_positions_mm = v.positions;

@@ -444,6 +444,7 @@ fn prepare_timed(
         |stop, stops| step(Step::Mapping { stop, stops }),
     )?;
     times.follower_map = lab.now() - t;
+    times.map_reused = m.reuse.is_some();
     Ok(Some(mapped))
 }
 
@@ -530,6 +531,13 @@ fn map_source(m: &crate::follower::FollowerMap) -> String {
             l.u_slope * 1e6
         )),
         (None, None) => out.push_str(", its line not referenced"),
+    }
+    if let Some(r) = &m.reuse {
+        out.push_str(&format!(
+            "; the instrument's map re-used, this set-up's bend ({:.2} µm range, u ≤ {:.3} µm) in it",
+            r.bend_range_mm * 1e3,
+            r.bend_u_max_mm * 1e3
+        ));
     }
     out
 }

@@ -115,6 +115,12 @@ struct RawFollower {
     #[serde(default = "default_follower_reversal_um")]
     reversal_um: f64,
     start_mm: f64,
+    /// The instrument's identity (its own shapes, the same on every machine).
+    #[serde(default)]
+    instrument_seed: Option<u64>,
+    /// Peak of this set-up's vertical bend of the rail (µm).
+    #[serde(default)]
+    bend_um: f64,
 }
 
 fn default_follower_periodic_um() -> f64 {
@@ -297,6 +303,9 @@ pub fn parse_all(
                 t.follower.reversal_um,
                 um(1000.0),
             )?,
+            instrument_seed: t.follower.instrument_seed,
+            bend_um: rng("twin.follower.bend_um", t.follower.bend_um, um(1000.0))?,
+            kink: None,
         },
         feed: rng(
             "twin.carriage.feed_mm_s",

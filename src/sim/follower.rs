@@ -8,6 +8,13 @@
 //! ±`straightness_um` (it reads as roll, 1.38″ per µm), the same in both directions. Every
 //! term is zero at encoder 0 moving up, so the follower's home is its reference.
 //!
+//! What is the instrument's and what the set-up's (issue 26): the shapes above are the stage's
+//! own, drawn from the instrument's identity (`instrument_seed`, the same stage on every
+//! machine it is set up on); bolted to a machine's bed, the rail also bends with the bed and
+//! its feet (`bend_um`: a smooth vertical shape, a tilt, a sag and an S over the travel, drawn
+//! for each set-up). A damaged rail adds a kink ([`Kink`]): its vertical turns by an angle at
+//! one place, which no smooth bend is.
+//!
 //! The stage can write its own calibration certificate as a vendor would
 //! ([`FollowerModel::certificate`]): its true along-axis error at 10 mm spacing in both
 //! directions, with 0.2 µm measurement noise, in the format `follower::Certificate` reads.
@@ -28,6 +35,20 @@ pub struct FollowerSpec {
     pub lead_mm: f64,
     /// Reversal error (µm): the difference between the two directions.
     pub reversal_um: f64,
+    /// The instrument's identity: its own shapes drawn from this seed, whatever machine it is
+    /// set up on (`None`: from the machine's seed, a new stage for each machine).
+    pub instrument_seed: Option<u64>,
+    /// Peak of the set-up's vertical bend over the travel (µm; drawn from the machine's seed).
+    pub bend_um: f64,
+    /// Damage: a kink in the rail's vertical.
+    pub kink: Option<Kink>,
+}
+
+/// A kink in the rail: from `at_mm` on, its vertical turns by `urad` (µrad).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Kink {
+    pub at_mm: f64,
+    pub urad: f64,
 }
 
 impl Default for FollowerSpec {
@@ -38,6 +59,9 @@ impl Default for FollowerSpec {
             periodic_um: 1.0,
             lead_mm: 5.0,
             reversal_um: 1.0,
+            instrument_seed: None,
+            bend_um: 0.0,
+            kink: None,
         }
     }
 }
@@ -73,6 +97,9 @@ pub struct FollowerModel {
     along: [Sine; 2],
     periodic: Sine,
     vertical: [Sine; 2],
+    /// The set-up's bend: coefficients (mm) of t, t² − 1/3 and t³ − 3t/5 over the travel
+    /// (t from −1 to 1).
+    bend: [f64; 3],
 }
 
 /// The shortest wavelength of the long-wavelength shapes (mm): a stage's guides and screw
@@ -138,7 +165,32 @@ impl FollowerModel {
             along,
             periodic,
             vertical,
+            bend: [0.0; 3],
         }
+    }
+
+    /// The stage as set up on a machine: its bend within ±`spec.bend_um` drawn from `rng`
+    /// (the set-up's own draw).
+    pub fn set_up(mut self, rng: &mut Rng) -> FollowerModel {
+        let peak = self.spec.bend_um * MM_PER_UM;
+        // A tilt, a sag and an S, each up to its share of the peak (|t|, |t² − 1/3| ≤ 2/3,
+        // |t³ − 3t/5| ≤ 2/5 over the travel): together within the peak.
+        self.bend = [
+            rng.uniform(-0.3, 0.3) * peak,
+            rng.uniform(-0.75, 0.75) * peak,
+            rng.uniform(-0.5, 0.5) * peak,
+        ];
+        self
+    }
+
+    fn bend_at(&self, x: f64) -> f64 {
+        let t = 2.0 * x / self.travel_mm - 1.0;
+        let b = &self.bend;
+        let kink = self
+            .spec
+            .kink
+            .map_or(0.0, |k| k.urad * 1e-6 * (x - k.at_mm).max(0.0));
+        b[0] * t + b[1] * (t * t - 1.0 / 3.0) + b[2] * (t * t * t - 0.6 * t) + kink
     }
 
     fn along_raw(&self, d: f64, dir: Motion) -> f64 {
@@ -163,7 +215,7 @@ impl FollowerModel {
 
     /// How far PSD2 is above where it would be on a straight stage (mm), at encoder `d`.
     pub fn vertical(&self, d: f64) -> f64 {
-        let v = |x: f64| self.vertical.iter().map(|s| s.at(x)).sum::<f64>();
+        let v = |x: f64| self.vertical.iter().map(|s| s.at(x)).sum::<f64>() + self.bend_at(x);
         v(d) - v(0.0)
     }
 
@@ -216,6 +268,52 @@ mod tests {
         );
         // The periodic term repeats with the screw's lead.
         assert!((a.periodic(12.0) - a.periodic(17.0)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn the_set_up_bends_the_instruments_own_shape_smoothly_and_a_kink_turns_it() {
+        let spec = FollowerSpec {
+            bend_um: 2.0,
+            ..FollowerSpec::default()
+        };
+        let own = FollowerModel::new(spec, 1000.0, &mut Rng::new(5));
+        let a = own.clone().set_up(&mut Rng::new(1));
+        let b = own.clone().set_up(&mut Rng::new(2));
+        let bend = |m: &FollowerModel, d: f64| m.vertical(d) - own.vertical(d);
+        let (mut peak_a, mut differ) = (0.0f64, 0.0f64);
+        for k in 0..=100 {
+            let d = 10.0 * k as f64;
+            // Along the axis the set-up changes nothing; vertically a bend within the peak
+            // (relative to encoder 0: twice it at most).
+            assert_eq!(a.along(d, Motion::Up), own.along(d, Motion::Up));
+            peak_a = peak_a.max(bend(&a, d).abs());
+            differ = differ.max((bend(&a, d) - bend(&b, d)).abs());
+            // Smooth: its second difference over 10 mm is a few nm (a kink's is its angle
+            // times 10 mm: 50 nm for 5 µrad).
+            if k > 0 && k < 100 {
+                let dd = bend(&a, d - 10.0) - 2.0 * bend(&a, d) + bend(&a, d + 10.0);
+                assert!(dd.abs() < 5e-6, "at {d}: {dd}");
+            }
+        }
+        assert!(peak_a > 0.1e-3 && peak_a <= 4.0e-3, "bend {peak_a}");
+        assert!(differ > 0.1e-3, "two set-ups bend alike: {differ}");
+        let kinked = FollowerModel::new(
+            FollowerSpec {
+                kink: Some(Kink {
+                    at_mm: 400.0,
+                    urad: 5.0,
+                }),
+                ..spec
+            },
+            1000.0,
+            &mut Rng::new(5),
+        );
+        assert_eq!(kinked.vertical(300.0), own.vertical(300.0));
+        let dd =
+            |m: &FollowerModel| m.vertical(390.0) - 2.0 * m.vertical(400.0) + m.vertical(410.0);
+        assert!((dd(&kinked) - dd(&own) - 5e-5).abs() < 1e-12);
+        let d = kinked.vertical(600.0) - own.vertical(600.0);
+        assert!((d - 1e-3).abs() < 1e-12, "{d}");
     }
 
     #[test]

@@ -366,6 +366,9 @@ pub struct Mapping {
     pub settings: crate::follower::MapSettings,
     pub certificate: Option<crate::follower::Certificate>,
     pub level: Option<LevelSpec>,
+    /// The instrument's map made on another set-up (issue 26): checked on this one by the
+    /// level's stations and re-used, instead of the stop-and-go passes.
+    pub reuse: Option<Box<TwinMap>>,
 }
 
 impl Mapping {
@@ -381,6 +384,7 @@ impl Mapping {
             settings: crate::follower::MapSettings::default(),
             certificate: None,
             level: Some(LevelSpec::default()),
+            reuse: None,
         }
     }
 }
@@ -395,6 +399,11 @@ pub fn map_on_lab(
     window: Duration,
     progress: impl FnMut(usize, usize),
 ) -> Result<TwinMap, MapTwinError> {
+    if let Some(stored) = &m.reuse {
+        let level = m.level.as_ref().ok_or(MapTwinError::NoLevel)?;
+        let span = (m.cal.from_mm, m.cal.to_mm);
+        return reuse_on_lab(lab, stored, span, level, decoupler, window);
+    }
     let started = lab.now();
     let seed = lab.plant.spec.seed;
     let run = self_calibrate(lab, &m.cal, progress)?;
@@ -437,6 +446,40 @@ pub fn map_on_lab(
     })
 }
 
+/// Re-use the instrument's map `stored` (made on another set-up) on the lab's twin: with it
+/// in tracking, the level's stations over `span` (carriage, mm), the check
+/// (`follower::reuse`), and the map re-referenced by this set-up's bend put in use. The
+/// machine time is the stations'.
+pub fn reuse_on_lab(
+    lab: &mut Lab,
+    stored: &TwinMap,
+    span: (f64, f64),
+    level: &LevelSpec,
+    decoupler: &crate::decouple::Decoupler,
+    window: Duration,
+) -> Result<TwinMap, MapTwinError> {
+    let started = lab.now();
+    let reference = reference_level(lab, &stored.map, span, level, decoupler, window)?;
+    let (map, _) = crate::follower::reuse::reuse(
+        &stored.map,
+        &reference,
+        &crate::follower::ReuseSettings::default(),
+    )?;
+    let machine_time = lab.now() - started;
+    lab.pipeline.tracker.set_map(Some(Arc::new(map.clone())));
+    Ok(TwinMap {
+        map,
+        run: CalRun {
+            steps: Vec::new(),
+            skipped: 0,
+            machine_time: Duration::ZERO,
+        },
+        certificate: stored.certificate.clone(),
+        certificate_text: stored.certificate_text.clone(),
+        machine_time,
+    })
+}
+
 /// Why mapping the twin's follower failed.
 #[derive(Debug, thiserror::Error)]
 pub enum MapTwinError {
@@ -444,6 +487,10 @@ pub enum MapTwinError {
     Lab(#[from] LabError),
     #[error(transparent)]
     Map(#[from] crate::follower::MapError),
+    #[error("the instrument's stored map cannot be used on this set-up: {0}")]
+    Reuse(#[from] crate::follower::ReuseError),
+    #[error("re-using a stored map needs a level for its check on this set-up")]
+    NoLevel,
 }
 
 /// What mapping the twin's follower gave.
@@ -479,6 +526,46 @@ pub fn map_twin(
         settings: *settings,
         certificate,
         level,
+        reuse: None,
     };
     map_on_lab(&mut lab, &m, &spec.decoupler, spec.live_window, progress)
+}
+
+/// The plant seed of an instrument's own bench (its bend there drawn from it).
+const BENCH_SEED: u64 = 0x00be_7c4a;
+
+/// Map an instrument once on its own bench (issue 26), as its maker or the first machine
+/// would: the follower `follower` (with its `instrument_seed`) set up on a bench of
+/// `length_mm`, aligned, with the reference head set to its nominal layout (no installation
+/// errors: the nominal decoupling is exact); the whole mapping
+/// ([`map_twin`]: the passes of `cal`, the certificate, the level). The machine's own set-up
+/// then only checks it ([`reuse_on_lab`]).
+pub fn map_instrument(
+    follower: super::follower::FollowerSpec,
+    length_mm: f64,
+    cal: &CalSpec,
+    progress: impl FnMut(usize, usize),
+) -> Result<TwinMap, MapTwinError> {
+    let plant = super::plant::PlantSpec {
+        seed: BENCH_SEED ^ follower.instrument_seed.unwrap_or(0),
+        axis: super::axis::AxisSpec {
+            length_mm,
+            ..super::axis::AxisSpec::default()
+        },
+        follower,
+        install: super::InstallSpec {
+            offset_mm: 0.0,
+            tilt_deg: 0.0,
+            gain_error: 0.0,
+        },
+        ..super::plant::PlantSpec::default()
+    };
+    map_twin(
+        plant,
+        cal,
+        None,
+        &crate::follower::MapSettings::default(),
+        Some(LevelSpec::default()),
+        progress,
+    )
 }

@@ -21,8 +21,10 @@ pub struct MachineTime {
     pub align: Duration,
     /// Alignment rounds after which the technician turned the screws.
     pub align_turns: usize,
-    /// The follower's self-calibration passes and level stations.
+    /// The follower's self-calibration passes and level stations; or, with the instrument's
+    /// map re-used, its check on this set-up (the level's stations).
     pub follower_map: Duration,
+    pub map_reused: bool,
     /// The first ISO 230-2 pass: to the reference, the zero, the drift check, the cycle and
     /// its make-up passes.
     pub before: Duration,
@@ -68,6 +70,7 @@ impl MachineTime {
             serde_json::json!({
                 "technician_s_per_round": TECHNICIAN_S_PER_ROUND,
                 "align_rounds_turned": self.align_turns,
+                "follower_map_reused": self.map_reused,
             }),
         );
         serde_json::Value::Object(m)
@@ -82,6 +85,9 @@ impl MachineTime {
                 self.align_turns,
                 TECHNICIAN_S_PER_ROUND / 60.0
             ),
+            "follower_map" if self.map_reused => {
+                "the follower map's check on this set-up (level stations)".to_string()
+            }
             "follower_map" => "the follower's map and level stations".to_string(),
             "before" => "ISO 230-2 run (zero, drift check, cycle, make-up)".to_string(),
             "publish" => "tables into the PLC".to_string(),
@@ -113,6 +119,7 @@ mod tests {
             align: Duration::from_secs(30),
             align_turns: 2,
             follower_map: Duration::from_secs(600),
+            map_reused: false,
             before: Duration::from_secs(340),
             publish: Duration::from_millis(500),
             after: Duration::from_secs(341),

@@ -229,7 +229,13 @@ impl Plant {
         let root = Rng::new(spec.seed);
         let head = Plant::draw_head(nominal, spec)?;
         let axis = AxisProfile::random(&spec.axis, &mut root.fork(12));
-        let follower = FollowerModel::new(spec.follower, spec.axis.length_mm, &mut root.fork(13));
+        // The stage's own shapes are the instrument's; its bend is this set-up's.
+        let mut own = match spec.follower.instrument_seed {
+            Some(s) => Rng::new(s).fork(13),
+            None => root.fork(13),
+        };
+        let follower = FollowerModel::new(spec.follower, spec.axis.length_mm, &mut own)
+            .set_up(&mut root.fork(19));
         let mut r = root.fork(15);
         let (ma, mo) = (spec.mount.angle_deg.to_radians(), spec.mount.offset_mm);
         let mount = Mount {

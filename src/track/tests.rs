@@ -511,6 +511,7 @@ fn bench_map() -> crate::follower::FollowerMap {
         vertical_slope: 0.0,
         vertical_line: None,
         vertical_reference: None,
+        reuse: None,
     }
 }
 

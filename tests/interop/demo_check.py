@@ -4,7 +4,9 @@
 On the run before compensation: |measured - truth| at every target and direction within
 1.0 um for positioning, 0.5 um for the straightnesses, 0.3" for pitch and yaw, 0.5" for
 roll; the truth inside the stated U at >= 95 % of all points; U <= 1.5 um for positioning
-and <= 1.0" for roll at every point. Usage: demo_check.py DEMO_OUT_DIR
+and <= 1.0" for roll at every point. Issue 26: every phase's machine time, at most 30 min in
+all for up to 1 m with the instrument's map re-used, and the truth's positioning E after
+compensation <= 1.0 um. Usage: demo_check.py DEMO_OUT_DIR
 """
 import json
 import sys
@@ -47,6 +49,18 @@ def main(out):
               + f", total {mt['total'] / 60:.1f} min")
         if mt["total"] < named - 1e-6:
             failures.append(f"machine time total {mt['total']:.1f} s < its phases' sum {named:.1f} s")
+        # Issue 26: with the instrument's map re-used, an axis of up to 1 m in 30 min.
+        reused = ((summary.get("follower") or {}).get("map") or {}).get("reused")
+        if reused and summary["length_mm"] <= 1000.0 and mt["total"] > 1800.0:
+            failures.append(f"machine time {mt['total'] / 60:.1f} min > 30 min with the map re-used")
+    # Issue 26: the compensated axis by the truth.
+    e_after = [f["truth_after"] for f in summary.get("figures", []) if f["name"] == "positioning E"]
+    if not e_after or e_after[0] is None:
+        failures.append("no truth for positioning E after")
+    else:
+        print(f"  positioning E after, by the truth: {e_after[0]:.2f} µm (limit 1.0)")
+        if e_after[0] > 1.0:
+            failures.append(f"positioning E after {e_after[0]:.2f} µm > 1.0 µm by the truth")
     if failures:
         sys.exit(f"seed {summary['seed']}, {summary['length_mm']} mm: " + "; ".join(failures))
     print(f"seed {summary['seed']}, {summary['length_mm']} mm: PASS")
