@@ -59,8 +59,9 @@ pub struct Reuse {
 }
 
 impl Reuse {
-    /// In words: "re-used on this set-up: a bend of 1.52 µm range (u ≤ 0.03 µm) from 12
-    /// level stations, each within 1.9 of its u (limit 4.0)".
+    /// In words: "the instrument's stored map, re-used on this set-up: a bend of 6.30 µm
+    /// range (u ≤ 0.112 µm, degree 3) from 12 level stations, each within 1.9 u of it (limit
+    /// 4.0)".
     pub fn describe(&self) -> String {
         format!(
             "the instrument's stored map, re-used on this set-up: a bend of {:.2} µm range (u ≤ {:.3} µm, degree {}) from {} level stations, each within {:.1} u of it (limit {:.1})",
