@@ -42,7 +42,7 @@ pub(super) struct VerticalFit {
 }
 
 /// Legendre polynomials P_1..P_k at t (k ≥ 1).
-fn legendre(t: f64, k: usize) -> Vec<f64> {
+pub(super) fn legendre(t: f64, k: usize) -> Vec<f64> {
     let mut out = Vec::with_capacity(k);
     let (mut p0, mut p1) = (1.0, t);
     out.push(p1);

@@ -119,15 +119,12 @@ pub enum ReuseError {
 /// there the map's end values hold (the rail's shape over a few mm is nanometres).
 pub const END_SLACK_MM: f64 = 5.0;
 
-/// Legendre polynomials P0..=Pdegree at `t` (−1..1).
+/// Legendre polynomials P0..=Pdegree at `t` (−1..1): the constant, then `fit`'s P1..Pdegree.
 fn legendre(t: f64, degree: usize) -> Vec<f64> {
-    let mut p = vec![1.0, t];
-    for n in 1..degree {
-        let n_f = n as f64;
-        let next = ((2.0 * n_f + 1.0) * t * p[n] - n_f * p[n - 1]) / (n_f + 1.0);
-        p.push(next);
+    let mut p = vec![1.0];
+    if degree > 0 {
+        p.extend(super::fit::legendre(t, degree));
     }
-    p.truncate(degree + 1);
     p
 }
 
@@ -336,17 +333,6 @@ pub fn reuse(
 mod tests {
     use super::*;
     use crate::follower::{LevelStation, MapSettings, build_referenced};
-
-    #[test]
-    fn legendre_polynomials_match_their_closed_forms() {
-        for t in [-1.0, -0.3, 0.0, 0.5, 1.0] {
-            let p = legendre(t, 3);
-            assert_eq!(p.len(), 4);
-            assert!((p[2] - (3.0 * t * t - 1.0) / 2.0).abs() < 1e-12);
-            assert!((p[3] - (5.0 * t * t * t - 3.0 * t) / 2.0).abs() < 1e-12);
-        }
-        assert_eq!(legendre(0.2, 1).len(), 2);
-    }
 
     /// A stored map whose vertical is `shape` at 3.75 mm spacing over 0..1001 mm, built from
     /// steps up that read it exactly and a level's stations every 100 mm (as the instrument

@@ -7,7 +7,7 @@ use axiscomp::follower::{self, Certificate, Direction, FollowerMap, MapSettings,
 use axiscomp::run::Dialect;
 use axiscomp::run::program::CaptureMode;
 use axiscomp::sim::Rng;
-use axiscomp::sim::follower::Motion;
+use axiscomp::sim::follower::{FollowerSpec, Motion};
 use axiscomp::sim::follower_cal::{CalSpec, LevelSpec, reference_level, self_calibrate};
 use axiscomp::sim::lab::{Lab, LabSpec, plan_span};
 use axiscomp::sim::plant::PlantSpec;
@@ -28,8 +28,15 @@ fn lab(seed: u64, length_mm: f64) -> Lab {
 
 /// The same with the lab's spec (its decoupler and live window, for the level's line).
 fn lab_and_spec(seed: u64, length_mm: f64) -> (Lab, LabSpec) {
+    lab_with(seed, length_mm, FollowerSpec::default())
+}
+
+/// The same with the follower `follower` (the head at its nominal layout, so the nominal
+/// decoupling is exact and the rail is what is judged).
+fn lab_with(seed: u64, length_mm: f64, follower: FollowerSpec) -> (Lab, LabSpec) {
     let mut plant = PlantSpec {
         seed,
+        follower,
         ..PlantSpec::default()
     };
     plant.axis.length_mm = length_mm;
@@ -536,7 +543,7 @@ fn the_followers_map_alone_over_1000_mm_two_light_passes() {
 #[test]
 fn the_instruments_map_is_reused_on_a_bent_set_up_and_refused_on_a_kinked_rail() {
     use axiscomp::follower::ReuseError;
-    use axiscomp::sim::follower::{FollowerSpec, Kink};
+    use axiscomp::sim::follower::Kink;
     use axiscomp::sim::follower_cal::{MapTwinError, map_instrument, reuse_on_lab};
     let length = 400.0;
     let cal = CalSpec {
@@ -557,19 +564,7 @@ fn the_instruments_map_is_reused_on_a_bent_set_up_and_refused_on_a_kinked_rail()
         };
         let bench = map_instrument(own, length, &cal, |_, _| {}).expect("the bench's map");
         let machine = |seed: u64, follower: FollowerSpec| {
-            let mut plant = PlantSpec {
-                seed,
-                follower,
-                ..PlantSpec::default()
-            };
-            plant.axis.length_mm = length;
-            // The head at its nominal layout: the nominal decoupling is exact (a head's own
-            // calibration is the demo's; here the rail is judged).
-            plant.install.offset_mm = 0.0;
-            plant.install.tilt_deg = 0.0;
-            let spec = LabSpec::standard(plant, None).expect("spec");
-            let mut lab = Lab::new(&spec).expect("lab");
-            lab.bring_up().expect("bring-up");
+            let (mut lab, spec) = lab_with(seed, length, follower);
             let got = reuse_on_lab(
                 &mut lab,
                 &bench,
