@@ -1,6 +1,7 @@
 //! `axiscomp follower level`: a level's stations along the follower's map on the running
 //! service (`service::follower_level`), thin over the control API: start them and follow them
-//! to the refitted map, or `--status`, `--stop`, `--finish` them, or type the level's reading
+//! to the refitted map (with `--check`: to the map in use checked on this set-up), or
+//! `--status`, `--stop`, `--finish` them, or type the level's reading
 //! at the station being read (`--reading ARCSEC`, `[follower] level = "manual"`). Exit codes:
 //! 2 for a refused request, 1 for anything else.
 
@@ -57,6 +58,11 @@ pub struct LevelArgs {
     /// configuration's).
     #[arg(long)]
     pub dialect: Option<String>,
+    /// Check the map in use on this set-up (the instrument's map from its bench) instead of
+    /// fitting it again: re-used with this set-up's smooth bend when the stations fit it,
+    /// refused with the span to map again when they do not (six stations at least).
+    #[arg(long, conflicts_with_all = ["status", "stop", "finish", "reading"])]
+    pub check: bool,
 }
 
 fn num(v: &serde_json::Value, k: &str) -> String {
@@ -87,7 +93,12 @@ fn print_status(v: &serde_json::Value) {
         println!("no level stations since the service started");
         return;
     }
-    println!("follower level stations {}", progress_line(v));
+    let what = if v["check_map"].as_bool() == Some(true) {
+        "follower level stations, checking the map in use on this set-up,"
+    } else {
+        "follower level stations"
+    };
+    println!("{what} {}", progress_line(v));
     println!(
         "  axis {} {:.1} to {:.1} mm, a station every {} mm at most, {} readings each; the map in use then: {} ({}); started {} by {}",
         v["axis"].as_str().unwrap_or_default(),
@@ -159,6 +170,7 @@ pub fn run(a: LevelArgs) -> Result<()> {
         feed_mm_min: a.feed_mm_min,
         axis: a.axis.clone(),
         dialect: a.dialect.clone(),
+        check_map: a.check,
     };
     runtime()?.block_on(async move {
         let mut c = Client::connect(&socket).await?;

@@ -128,8 +128,8 @@ fn legendre(t: f64, degree: usize) -> Vec<f64> {
     p
 }
 
-/// A weighted least-squares fit of (position, value, variance) data by a basis, with a kink
-/// at `kink` (a turn of the vertical there) when asked for.
+/// A weighted least-squares fit of (position, value, variance) data by a basis, with a
+/// change of the rail (`Change`) when asked for.
 struct Fit {
     coef: DVector<f64>,
     cov: DMatrix<f64>,
@@ -138,16 +138,26 @@ struct Fit {
     leverage: Vec<f64>,
 }
 
+/// A change of the rail at one place, added to the bend to find where it changed: a kink
+/// (its vertical turns there) or a step (it shifts there: a foot moved, a chip under it).
+#[derive(Clone, Copy, Debug)]
+enum Change {
+    Kink(f64),
+    Step(f64),
+}
+
 impl Fit {
     fn new(
         data: &[(f64, f64, f64)],
         basis: impl Fn(f64) -> Vec<f64>,
-        kink: Option<f64>,
+        change: Option<Change>,
     ) -> Result<Fit, ReuseError> {
         let row = |x: f64| {
             let mut b = basis(x);
-            if let Some(c) = kink {
-                b.push((x - c).max(0.0));
+            match change {
+                Some(Change::Kink(c)) => b.push((x - c).max(0.0)),
+                Some(Change::Step(c)) => b.push(if x > c { 1.0 } else { 0.0 }),
+                None => {}
             }
             b
         };
@@ -265,12 +275,13 @@ pub fn reuse(
     let (wi, wz) = fit.worst();
 
     if wz.abs() > limit {
-        // Where the rail changed: the kink (a turn of its vertical at one place) that, added
-        // to the bend, explains the stations best, between two neighbouring stations.
-        let kinked = |c: f64| Fit::new(&data, |x| legendre(t_of(x), degree), Some(c)).ok();
+        // Where the rail changed: the kink or the step between two neighbouring stations
+        // that, added to the bend, explains the stations best.
+        let changed = |c: Change| Fit::new(&data, |x| legendre(t_of(x), degree), Some(c)).ok();
         let at = (0..n - 1)
             .map(|i| (data[i].0 + data[i + 1].0) / 2.0)
-            .filter_map(|c| kinked(c).map(|f| (c, f.chi2())))
+            .flat_map(|c| [(c, Change::Kink(c)), (c, Change::Step(c))])
+            .filter_map(|(c, change)| changed(change).map(|f| (c, f.chi2())))
             .min_by(|a, b| a.1.total_cmp(&b.1))
             .map_or(data[wi].0, |(c, _)| c);
         let below = data.iter().rev().find(|d| d.0 < at).map_or(lo, |d| d.0);

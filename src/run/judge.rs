@@ -378,13 +378,8 @@ impl Judge {
                 out.push(Decision::Store(c));
             }
             Some(off) => {
-                let by: [f64; 6] = std::array::from_fn(|k| {
-                    if d[k].abs() > lim[k] {
-                        d[k]
-                    } else {
-                        0.0
-                    }
-                });
+                let by: [f64; 6] =
+                    std::array::from_fn(|k| if d[k].abs() > lim[k] { d[k] } else { 0.0 });
                 let reason = format!(
                     "after {what}, {key} {} read {off} off the captures of its target and direction from before: the reference moved",
                     c.direction.sign()
@@ -670,7 +665,9 @@ mod tests {
             panic!("{d:?}")
         };
         assert!(
-            reason.contains("by dx -4.6 µm (limit 2.0), which PSD2's stitch re-referenced cannot move"),
+            reason.contains(
+                "by dx -4.6 µm (limit 2.0), which PSD2's stitch re-referenced cannot move"
+            ),
             "{reason}"
         );
         assert_eq!((j.held(), j.unverified().is_some()), (1, true));
@@ -760,7 +757,14 @@ mod tests {
     /// units as `Errors6`) per error.
     fn noisy(rng: &mut crate::sim::Rng, run: u32, t: u32, noise: [f64; 6]) -> Capture {
         let mut c = cap(run, t, Direction::Up, 0.0, (run * 100 + t) as i64);
-        let truth = [t as f64 * 1e-3, -2e-3, 1e-3, 0.0, 3.0 * ARCSEC, -(t as f64) * ARCSEC];
+        let truth = [
+            t as f64 * 1e-3,
+            -2e-3,
+            1e-3,
+            0.0,
+            3.0 * ARCSEC,
+            -(t as f64) * ARCSEC,
+        ];
         c.errors = Errors6::from_array(std::array::from_fn(|k| truth[k] + rng.gauss(noise[k])));
         c
     }
@@ -770,7 +774,14 @@ mod tests {
         // 11 targets × 5 runs with a known scatter per error: the pooled robust estimate
         // within 40 % of it on every seed and unbiased over them, and the limit six of it, at
         // least the floor, at most the stated repeatability.
-        let sd = [0.15e-3, 0.08e-3, 0.01e-3, 0.02 * ARCSEC, 0.3 * ARCSEC, 0.02 * ARCSEC];
+        let sd = [
+            0.15e-3,
+            0.08e-3,
+            0.01e-3,
+            0.02 * ARCSEC,
+            0.3 * ARCSEC,
+            0.02 * ARCSEC,
+        ];
         let mut ratio = [0.0; 6];
         let seeds = 1..=40;
         for seed in seeds.clone() {
@@ -824,7 +835,14 @@ mod tests {
         // more undid it before the carriage came back to the zero from its side; the
         // captures between read ez 1.8″ off, inside the stated 2″. The twin repeats to
         // 0.02″: the run's own scatter flags them, at once and in the review.
-        let sd = [0.1e-3, 0.1e-3, 0.1e-3, 0.02 * ARCSEC, 0.1 * ARCSEC, 0.02 * ARCSEC];
+        let sd = [
+            0.1e-3,
+            0.1e-3,
+            0.1e-3,
+            0.02 * ARCSEC,
+            0.1 * ARCSEC,
+            0.02 * ARCSEC,
+        ];
         let mut rng = crate::sim::Rng::new(16);
         let mut j = Judge::new(Repeatability::default(), []);
         for r in 1..=3 {

@@ -27,6 +27,48 @@ fn short_mapping() -> MappingRequest {
     }
 }
 
+/// A rig whose service reads the twin's level and sends programs to the twin's CNC.
+async fn level_rig() -> ServiceRig {
+    ServiceRig::start(RigOptions {
+        service_toml: SERVICE.into(),
+        follower_toml: Some("level = \"twin\"\n".into()),
+        twin_cnc: true,
+        ..RigOptions::default()
+    })
+    .await
+}
+
+/// The twin's certificate (its noise drawn from seed 5) imported through the control API.
+async fn import_twin_certificate(rig: &ServiceRig) {
+    let cert_text = rig
+        .twin
+        .plant
+        .follower
+        .certificate(&mut axiscomp::sim::Rng::new(5));
+    rig.request(Request::FollowerCertificate(CertificateImport {
+        csv: Some(cert_text),
+        name: Some("twin-stage.csv".into()),
+        ..CertificateImport::default()
+    }))
+    .await
+    .expect("certificate import");
+}
+
+/// The short mapping run through the control API to its end: the map stored, its id.
+async fn map_short(rig: &ServiceRig) -> i64 {
+    rig.request(Request::FollowerMapStart(short_mapping()))
+        .await
+        .expect("mapping start");
+    let s = rig
+        .wait_for(180, "the mapping done", |s| {
+            s.follower_mapping.as_ref().is_some_and(|m| !m.active())
+        })
+        .await;
+    let m = s.follower_mapping.expect("the mapping's view");
+    assert_eq!(m.state, "done", "{m:#?}");
+    m.map_id.expect("the mapping's map")
+}
+
 /// Over 40 mm (one pass up, a probe every four stops: 14 stops of 200 frames a side), through
 /// the control API: the map is stored with the twin's certificate, in use and in the
 /// snapshot; its vertical is the twin's true follower vertical (to the end-point line over
@@ -548,13 +590,7 @@ async fn with_a_manual_cnc_the_mapping_ends_when_every_stop_was_seen() {
 async fn the_service_reads_the_twins_level_at_stations_and_refits_the_map() {
     use axiscomp::service::api::LevelRequest;
     let wall = std::time::Instant::now();
-    let rig = ServiceRig::start(RigOptions {
-        service_toml: SERVICE.into(),
-        follower_toml: Some("level = \"twin\"\n".into()),
-        twin_cnc: true,
-        ..RigOptions::default()
-    })
-    .await;
+    let rig = level_rig().await;
     // Before any map with steps: refused in words.
     let e = rig
         .request(Request::FollowerLevelStart(LevelRequest::default()))
@@ -562,29 +598,8 @@ async fn the_service_reads_the_twins_level_at_stations_and_refits_the_map() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("map the follower first"), "{e}");
-    let cert_text = rig
-        .twin
-        .plant
-        .follower
-        .certificate(&mut axiscomp::sim::Rng::new(5));
-    rig.request(Request::FollowerCertificate(CertificateImport {
-        csv: Some(cert_text),
-        name: Some("twin-stage.csv".into()),
-        ..CertificateImport::default()
-    }))
-    .await
-    .expect("certificate import");
-    rig.request(Request::FollowerMapStart(short_mapping()))
-        .await
-        .expect("mapping start");
-    let s = rig
-        .wait_for(180, "the mapping done", |s| {
-            s.follower_mapping.as_ref().is_some_and(|m| !m.active())
-        })
-        .await;
-    let m = s.follower_mapping.expect("the mapping's view");
-    assert_eq!(m.state, "done", "{m:#?}");
-    let mapped = m.map_id.expect("the mapping's map");
+    import_twin_certificate(&rig).await;
+    let mapped = map_short(&rig).await;
     let mapped_at = wall.elapsed().as_secs_f64();
     // The stations: every 10 mm over the map's span.
     let req = LevelRequest {
@@ -715,6 +730,189 @@ async fn the_service_reads_the_twins_level_at_stations_and_refits_the_map() {
     assert!(n > 0);
     assert!(rms_z <= 2.0, "RMS (map − truth)/u {rms_z:.2}");
     assert!(worst_u <= 5.0, "a point {worst_u:.2} u from the truth");
+    rig.stop().await;
+}
+
+/// The map in use checked on this set-up by the level's stations (`check_map`, issue 26): a
+/// map made here passes, is stored with the set-up's bend ("… + checked on a set-up at N
+/// stations", its check kept with it) and put in use, its vertical against the twin's true
+/// one within its u. The same map with a step of 3 µm put into its vertical beyond 20 mm (the
+/// rail changed since it was mapped) is refused, naming the span, nothing stored and the map
+/// in use unchanged. Too few stations, and a map without a vertical, refused at the start.
+#[tokio::test(start_paused = true)]
+async fn the_service_checks_the_map_in_use_on_this_set_up_and_refuses_a_changed_rail() {
+    use axiscomp::service::api::LevelRequest;
+    let rig = level_rig().await;
+    let check = |station_mm: f64| LevelRequest {
+        station_mm: Some(station_mm),
+        readings: Some(10),
+        check_map: true,
+        ..LevelRequest::default()
+    };
+    // The twin's certificate alone: no vertical to check.
+    import_twin_certificate(&rig).await;
+    let e = rig
+        .request(Request::FollowerLevelStart(check(5.0)))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("has no vertical map to check on this set-up: map the follower"),
+        "{e}"
+    );
+    let mapped = map_short(&rig).await;
+    // Three stations cannot judge a cubic bend: refused before the carriage moves.
+    let e = rig
+        .request(Request::FollowerLevelStart(check(20.0)))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("3 stations from")
+            && e.contains("needs 6 at least")
+            && e.contains("smaller spacing"),
+        "{e}"
+    );
+    let v = rig
+        .request(Request::FollowerLevelStart(check(5.0)))
+        .await
+        .expect("check start");
+    assert_eq!(
+        (v["state"].as_str(), v["check_map"].as_bool()),
+        (Some("stations"), Some(true)),
+        "{v}"
+    );
+    let planned = v["stations"].as_array().map_or(0, Vec::len);
+    assert!(planned >= 6, "{v}");
+    let l = rig
+        .wait_for(180, "the stations done", |s| {
+            s.follower_level.as_ref().is_some_and(|l| !l.active())
+        })
+        .await
+        .follower_level
+        .expect("the stations' view");
+    assert_eq!(l.state, "done", "{l:#?}");
+    let id = l.map_id.expect("the checked map stored");
+    let rec = {
+        let store = axiscomp::store::Store::open_read_only(&rig.store).expect("store");
+        store.follower_map(id).expect("stored map")
+    };
+    assert!(rec.in_use, "the checked map in use");
+    assert!(
+        rec.name
+            .ends_with(&format!(" + checked on a set-up at {planned} stations")),
+        "{}",
+        rec.name
+    );
+    let reuse = rec.map.reuse.as_ref().expect("the check kept with the map");
+    assert_eq!(reuse.stations, planned);
+    assert!(reuse.worst_z <= reuse.limit_z, "{reuse:?}");
+    assert!(
+        rec.map.summary().iter().any(|l| l.contains("re-used")),
+        "{:?}",
+        rec.map.summary()
+    );
+    // Its vertical, relative to its first point, against the truth, as the level's test.
+    let truth = &rig.twin.plant.follower;
+    let (vp, v, u) = (
+        &rec.map.vertical_positions_mm,
+        &rec.map.vertical_mm,
+        &rec.map.vertical_u_mm,
+    );
+    let (mut z2, mut worst) = (0.0f64, 0.0f64);
+    for i in 0..vp.len() {
+        let err = v[i] - (truth.vertical(vp[i]) - truth.vertical(vp[0]));
+        let z = if u[i] > 0.0 { err / u[i] } else { 0.0 };
+        z2 += z * z;
+        worst = worst.max(z.abs());
+    }
+    let rms_z = (z2 / vp.len() as f64).sqrt();
+    eprintln!(
+        "checked on this set-up: {}; RMS (map − truth)/u {rms_z:.2}, worst {worst:.2} u",
+        reuse.describe()
+    );
+    assert!(
+        rms_z <= 2.0 && worst <= 5.0,
+        "RMS {rms_z:.2} u, worst {worst:.2} u"
+    );
+
+    // The rail changed since it was mapped: a step of 3 µm in the stored vertical beyond
+    // 20 mm. Put in use, then checked: refused, naming where.
+    let mut changed = {
+        let store = axiscomp::store::Store::open_read_only(&rig.store).expect("store");
+        store.follower_map(mapped).expect("the mapped map")
+    };
+    for (x, v) in changed
+        .map
+        .vertical_positions_mm
+        .iter()
+        .zip(changed.map.vertical_mm.iter_mut())
+    {
+        if *x > 20.0 {
+            *v += 3.0e-3;
+        }
+    }
+    let changed_id = {
+        let mut store = axiscomp::store::Store::open(&rig.store).expect("store");
+        let stored = axiscomp::follower::StoredMap {
+            map: changed.map.clone(),
+            certificate: changed.certificate.clone(),
+            steps: changed.steps.clone(),
+        };
+        store
+            .insert_stored_follower_map(&stored, "mapped, then the rail changed", false)
+            .expect("store the changed map")
+    };
+    rig.request(Request::FollowerMap {
+        id: Some(changed_id),
+    })
+    .await
+    .expect("the changed map put in use");
+    rig.request(Request::FollowerLevelStart(check(5.0)))
+        .await
+        .expect("check start");
+    let l = rig
+        .wait_for(180, "the changed map's check done", |s| {
+            s.follower_level
+                .as_ref()
+                .is_some_and(|l| l.map_from == changed_id && !l.active())
+        })
+        .await
+        .follower_level
+        .expect("the stations' view");
+    let e = l.error.clone().unwrap_or_default();
+    assert_eq!(l.state, "failed", "{l:#?}");
+    assert!(
+        e.contains("the map in use does not fit this set-up")
+            && e.contains("the rail changed since it was mapped, most likely between")
+            && e.contains("the map in use is unchanged"),
+        "{e}"
+    );
+    eprintln!("refused: {e}");
+    // The span named holds the step (encoder 20 mm; the carriage's stations a few tenths of
+    // a millimetre off the encoder's).
+    let span: Vec<f64> = e
+        .split("most likely between ")
+        .nth(1)
+        .and_then(|t| t.split(" mm").next())
+        .map(|t| t.split(" and ").filter_map(|x| x.parse().ok()).collect())
+        .unwrap_or_default();
+    assert!(
+        span.len() == 2 && span[0] <= 20.0 && span[1] >= 20.0,
+        "the span {span:?} does not hold the step at 20 mm"
+    );
+    let store = axiscomp::store::Store::open_read_only(&rig.store).expect("store");
+    let in_use = store
+        .follower_maps()
+        .expect("maps")
+        .into_iter()
+        .find(|m| m.in_use)
+        .map(|m| m.id);
+    assert_eq!(
+        in_use,
+        Some(changed_id),
+        "nothing stored, the map in use unchanged"
+    );
     rig.stop().await;
 }
 

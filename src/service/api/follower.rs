@@ -143,6 +143,13 @@ pub struct LevelRequest {
     /// The program's dialect (default: the configured one).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dialect: Option<String>,
+    /// Check the map in use on this set-up instead of fitting it again: the stations are
+    /// fitted as its vertical plus a smooth bend of this set-up (`follower::reuse`); a map
+    /// that fits is stored with the bend and put in use, one that does not (the rail
+    /// changed) is refused with the span to map again. No self-calibration's steps needed:
+    /// the instrument's map from its bench does.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub check_map: bool,
 }
 
 /// One station as the view shows it.
@@ -170,6 +177,9 @@ pub struct StationView {
 pub struct LevelView {
     /// "stations" (under way), "done", "stopped", "failed".
     pub state: String,
+    /// The stations check the map in use on this set-up (`LevelRequest::check_map`) rather
+    /// than fit it again.
+    pub check_map: bool,
     /// "manual" or "twin".
     pub level: String,
     /// The instrument in words.

@@ -26,6 +26,11 @@
 //! stations"), put in use and the zero taken again. A measurement run, a hexapod run and a
 //! follower mapping refuse to start under it, and it under them. Not resumed after a
 //! restart (nothing is stored until the end).
+//!
+//! With `check_map` (issue 26) the stations check the map in use on this set-up instead of
+//! fitting it again (`follower::reuse`): no steps needed, six stations at least; a map that
+//! fits is stored with the set-up's bend and put in use, one that does not is refused with
+//! the span where the rail changed, nothing stored.
 
 use super::{Ctx, Procedure, Reply, Who};
 use crate::config::{CncMode, LevelSource};
@@ -119,7 +124,9 @@ struct Taken {
 #[derive(Debug)]
 struct Active {
     source: FollowerMapRecord,
-    steps: StoredSteps,
+    /// The self-calibration's steps the stations are fitted with; none for a check of the
+    /// map in use on this set-up (`LevelRequest::check_map`).
+    steps: Option<StoredSteps>,
     /// The map the tracker applies (the map in use): its vertical is the stations' base.
     applied: Arc<FollowerMap>,
     stations: Vec<f64>,
@@ -291,7 +298,14 @@ impl FollowerLevel {
             .follower_map
             .clone()
             .ok_or("map the follower first: no follower map is in use, and the level's stations are fitted with the self-calibration's steps (axiscomp follower map, or m on the console's Align screen)")?;
-        let Some(steps) = rec.steps.clone() else {
+        let steps = rec.steps.clone();
+        if req.check_map && rec.map.vertical_positions_mm.len() < 2 {
+            return Err(format!(
+                "the map in use (map {}, {}) has no vertical map to check on this set-up: map the follower (axiscomp follower map, or m on the console's Align screen)",
+                rec.id, rec.name
+            ));
+        }
+        if steps.is_none() && !req.check_map {
             return Err(format!(
                 "map the follower first: the map in use (map {}, {}) was stored without its self-calibration's steps ({}), so a level cannot be fitted with them; run the self-calibration (axiscomp follower map, or m on the console's Align screen), then the level's stations",
                 rec.id,
@@ -302,7 +316,7 @@ impl FollowerLevel {
                     "a certificate alone has none"
                 }
             ));
-        };
+        }
         let applied = ctx
             .pipeline
             .tracker
@@ -370,11 +384,23 @@ impl FollowerLevel {
             return Err("the twin's CNC runs iso or linuxcnc programs".into());
         }
         let stations = crate::follower::level::stations((from_mm, to_mm), station_mm);
+        let needed = crate::follower::ReuseSettings::default().degree + 3;
+        if req.check_map && stations.len() < needed {
+            return Err(format!(
+                "station_mm {station_mm}: {} stations from {from_mm:.1} to {to_mm:.1} mm, and checking the map in use on this set-up needs {needed} at least (a smooth bend fitted, and stations to spare to judge it by); give a smaller spacing",
+                stations.len()
+            ));
+        }
         let (dwell, dwell_text) = self.dwell(readings, ctx.frames_per_s, ctx);
         let started_us = crate::store::now_us();
         let started = crate::util::time::rfc3339(started_us.div_euclid(1_000_000));
         let title = format!(
-            "axiscomp follower level stations {axis} {from_mm:.3} to {to_mm:.3} mm, {} stations, {readings} readings each, dwell {dwell:.1} s",
+            "axiscomp follower level stations{} {axis} {from_mm:.3} to {to_mm:.3} mm, {} stations, {readings} readings each, dwell {dwell:.1} s",
+            if req.check_map {
+                " (check of the map in use)"
+            } else {
+                ""
+            },
             stations.len()
         );
         let n = stations.len();
@@ -394,6 +420,7 @@ impl FollowerLevel {
         let (level, instrument) = self.instrument();
         let view = LevelView {
             state: "stations".into(),
+            check_map: req.check_map,
             level,
             instrument,
             axis,
@@ -417,14 +444,15 @@ impl FollowerLevel {
             map_from_name: rec.name.clone(),
             started,
             started_by: who.to_string(),
-            u_mid_steps_um: crate::follower::build(
-                &steps.steps,
-                rec.certificate.as_ref(),
-                &steps.settings,
-            )
-            .ok()
-            .as_ref()
-            .and_then(u_mid_um),
+            u_mid_steps_um: match (&steps, req.check_map) {
+                (Some(steps), false) => {
+                    crate::follower::build(&steps.steps, rec.certificate.as_ref(), &steps.settings)
+                        .ok()
+                        .as_ref()
+                        .and_then(u_mid_um)
+                }
+                _ => u_mid_um(&rec.map),
+            },
             ..LevelView::default()
         };
         tracing::info!(
@@ -432,6 +460,7 @@ impl FollowerLevel {
             to_mm,
             stations = n,
             dwell_s = dwell,
+            check = req.check_map,
             program = %file.display(),
             "follower level stations started by {who}"
         );
@@ -439,7 +468,7 @@ impl FollowerLevel {
         self.view = Some(view);
         self.active = Some(Active {
             source: rec,
-            steps,
+            steps: if req.check_map { None } else { steps },
             applied,
             taken: vec![None; n],
             stations,
@@ -1101,7 +1130,36 @@ impl FollowerLevel {
             ),
             stations,
         };
-        let s = &a.steps;
+        let base = a
+            .source
+            .name
+            .split(" + level at ")
+            .next()
+            .and_then(|b| b.split(" + checked on a set-up at ").next())
+            .unwrap_or(&a.source.name);
+        let Some(s) = &a.steps else {
+            // A check of the map in use on this set-up: re-used with the set-up's bend, or
+            // refused with the span where the rail changed.
+            let (map, check) = crate::follower::reuse::reuse(
+                &a.source.map,
+                &reference,
+                &crate::follower::ReuseSettings::default(),
+            )
+            .map_err(|e| format!("the map in use does not fit this set-up: {e}"))?;
+            tracing::info!(
+                "the map in use checked on this set-up: {}",
+                check.describe()
+            );
+            let stored = StoredMap {
+                map,
+                certificate: a.source.certificate.clone(),
+                steps: a.source.steps.clone(),
+            };
+            return Ok((
+                stored,
+                format!("{base} + checked on a set-up at {n} stations"),
+            ));
+        };
         let cert = a.source.certificate.as_ref();
         let mut map =
             crate::follower::build_referenced(&s.steps, cert, &s.settings, Some(&reference))
@@ -1112,17 +1170,11 @@ impl FollowerLevel {
         ) {
             new.machine_time_s = old.machine_time_s;
         }
-        let base = a
-            .source
-            .name
-            .split(" + level at ")
-            .next()
-            .unwrap_or(&a.source.name);
         let name = format!("{base} + level at {n} stations");
         let stored = StoredMap {
             map,
             certificate: a.source.certificate.clone(),
-            steps: Some(a.steps.clone()),
+            steps: Some(s.clone()),
         };
         Ok((stored, name))
     }
