@@ -1,7 +1,9 @@
 //! The Align screen's level stations along the follower's map (issue 14,
 //! `service::follower_level`): `l` starts them over the map in use's span (asked first); while
 //! they are under way `l` types the level's reading at the station being read when the service
-//! awaits it (a level read by hand), else asks to stop them; `L` always asks to stop them.
+//! awaits it (a level read by hand), else asks to stop them; `L` always asks to stop them;
+//! `u` checks the map in use on this set-up with the stations instead (`check_map`: the
+//! instrument's map re-used with this set-up's bend, or refused with the span to map again).
 //! Their progress and outcome come from the snapshots (`follower_map_lines`).
 
 use super::*;
@@ -89,23 +91,37 @@ impl App {
                     self.overlay = Overlay::Confirm(Confirm::LevelStop);
                 }
             }
-            'l' => {
-                if !self.may_operate("reading the level at stations") {
-                    return Some(Vec::new());
-                }
-                if self.run_active() || self.mapping_active() {
-                    self.say(
-                        Level::Warn,
-                        "a run or the follower mapping is under way: read the level's stations when it has ended",
-                    );
-                    return Some(Vec::new());
-                }
-                self.follower.panel = AlignPanel::Follower;
-                self.overlay = Overlay::Confirm(Confirm::LevelStart);
+            'l' => self.ask_level_start(Confirm::LevelStart, "reading the level at stations"),
+            'u' if self.level_active() => {
+                self.say(
+                    Level::Warn,
+                    "the level stations are under way: stop them (L) or let them finish first",
+                );
             }
+            'u' => self.ask_level_start(
+                Confirm::LevelCheck,
+                "checking the map in use on this set-up",
+            ),
             _ => return None,
         }
         Some(Vec::new())
+    }
+
+    /// Ask to start the level stations (`confirm`: to fit the map again or to check it on
+    /// this set-up), unless the operator may not or a run or the mapping is under way.
+    fn ask_level_start(&mut self, confirm: Confirm, what: &str) {
+        if !self.may_operate(what) {
+            return;
+        }
+        if self.run_active() || self.mapping_active() {
+            self.say(
+                Level::Warn,
+                "a run or the follower mapping is under way: read the level's stations when it has ended",
+            );
+            return;
+        }
+        self.follower.panel = AlignPanel::Follower;
+        self.overlay = Overlay::Confirm(confirm);
     }
 
     /// The level's reading typed into the input box.
@@ -135,6 +151,16 @@ impl App {
                 self.log(Level::Info, "→ read the level at stations");
                 vec![self.send(
                     Request::FollowerLevelStart(LevelRequest::default()),
+                    Pending::LevelStart,
+                )]
+            }
+            Confirm::LevelCheck => {
+                self.log(Level::Info, "→ check the map in use on this set-up");
+                vec![self.send(
+                    Request::FollowerLevelStart(LevelRequest {
+                        check_map: true,
+                        ..LevelRequest::default()
+                    }),
                     Pending::LevelStart,
                 )]
             }

@@ -135,6 +135,8 @@ pub enum Confirm {
     MapStop,
     /// Read a level at stations along the map in use's span.
     LevelStart,
+    /// Check the map in use on this set-up with a level's stations.
+    LevelCheck,
     /// Stop the level stations under way.
     LevelStop,
 }
@@ -850,7 +852,9 @@ impl App {
             }
             Confirm::HexapodStart(plan) => self.hexapod_start(plan),
             c @ (Confirm::MapStart(_) | Confirm::MapStop) => self.follower_map_confirmed(c),
-            c @ (Confirm::LevelStart | Confirm::LevelStop) => self.follower_level_confirmed(c),
+            c @ (Confirm::LevelStart | Confirm::LevelCheck | Confirm::LevelStop) => {
+                self.follower_level_confirmed(c)
+            }
             Confirm::Accept(force) => {
                 self.log(
                     Level::Info,

@@ -751,7 +751,7 @@ fn align_imports_a_certificate_maps_the_follower_and_shows_progress_at_80x24() {
     );
     let t = screen_text(&a);
     assert!(
-        t.contains("Follower map: i certificate  m map / stop  l level  v alignment"),
+        t.contains("Follower map: i certificate  m map / stop  l level  u check  v alignment"),
         "{t}"
     );
     assert!(t.contains("map 3 (stage-7.csv):"), "{t}");
@@ -1026,4 +1026,59 @@ fn align_starts_the_level_stations_takes_a_typed_reading_and_stops_them() {
     assert!(t.contains("map 6 fitted with the level and in use:"), "{t}");
     assert_eq!(parse_level_reading(" 0.5″ "), Ok(0.5));
     assert!(parse_level_reading("NaN").is_err());
+}
+
+#[test]
+fn align_checks_the_map_in_use_on_this_set_up_with_u() {
+    use crate::service::api::{LevelRequest, LevelView};
+    let (mut a, t0) = app();
+    a.handle_key(ch('2'));
+    // u asks, in its own words, then starts the stations as a check of the map in use.
+    a.handle_key(ch('u'));
+    assert_eq!(a.overlay, Overlay::Confirm(Confirm::LevelCheck));
+    let text = screen_text(&a);
+    assert!(
+        text.contains("Check the map in use on this set-up?")
+            && text.contains("the map in use stays."),
+        "{text}"
+    );
+    let (id, r) = sent(&a.handle_key(ch('y')));
+    assert_eq!(
+        r,
+        Request::FollowerLevelStart(LevelRequest {
+            check_map: true,
+            ..LevelRequest::default()
+        })
+    );
+    a.handle_reply(
+        id,
+        Ok(
+            serde_json::json!({"state": "stations", "stations": [{}, {}, {}, {}, {}, {}],
+            "dwell_s": 25.5, "cnc": "sent to the twin's CNC"}),
+        ),
+        t0,
+    );
+    assert!(
+        a.message
+            .as_ref()
+            .is_some_and(|m| m.text.starts_with("level stations started: 6 stations"))
+    );
+    // Under way: u says so and sends nothing.
+    a.handle_snapshot(
+        Snapshot {
+            follower_level: Some(LevelView {
+                state: "stations".into(),
+                check_map: true,
+                ..LevelView::default()
+            }),
+            ..Snapshot::default()
+        },
+        t0,
+    );
+    assert!(a.handle_key(ch('u')).is_empty());
+    assert!(
+        a.message
+            .as_ref()
+            .is_some_and(|m| m.text.starts_with("the level stations are under way"))
+    );
 }

@@ -191,7 +191,7 @@ fn render_lower(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
 
 fn render_follower_map(frame: &mut Frame, area: Rect, app: &App, more: &str, theme: Theme) {
     let width = area.width.saturating_sub(2) as usize;
-    let title = format!("Follower map: i certificate  m map / stop  l level{more}");
+    let title = format!("Follower map: i certificate  m map / stop  l level  u check{more}");
     frame.render_widget(
         Paragraph::new(follower_map_lines(app, width, theme))
             .wrap(Wrap { trim: true })

@@ -473,6 +473,17 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
                 "Its steps are discarded and nothing is stored; the map in use stays.",
             )],
         ),
+        Confirm::LevelCheck => (
+            " Check the map in use on this set-up? ",
+            vec![
+                Line::raw(
+                    "A station every 100 mm over the map in use's span, 20 readings of the head and the level at each.",
+                ),
+                Line::raw(
+                    "The stations are fitted as the map's vertical plus this set-up's smooth bend: a map that fits is stored with the bend, put in use, and the zero taken again; one that does not is refused with the span to map again, and the map in use stays.",
+                ),
+            ],
+        ),
         Confirm::LevelStart => (
             " Read the level at stations? ",
             vec![
