@@ -34,6 +34,14 @@ pub struct ReuseSettings {
     pub confidence: f64,
 }
 
+impl ReuseSettings {
+    /// The stations a check needs: the bend's coefficients and the constant, and two to spare
+    /// to judge the fit by.
+    pub fn stations_needed(&self) -> usize {
+        self.degree + 3
+    }
+}
+
 impl Default for ReuseSettings {
     fn default() -> Self {
         ReuseSettings {
@@ -219,7 +227,7 @@ pub fn reuse(
     }
     let degree = settings.degree;
     let st = &reference.stations;
-    let needed = degree + 3;
+    let needed = settings.stations_needed();
     if st.len() < needed {
         return Err(ReuseError::TooFewStations {
             found: st.len(),

@@ -7,7 +7,7 @@
 //!   groups), at least 0.5 µm and 0.2″, and never more than the stated repeatability
 //!   (`[capture] repeatability_um`, `repeatability_arcsec`): a stated 2″ let a knock of
 //!   9 µrad (1.8″), undone by later knocks before any return to the zero saw it, store
-//!   captures 1.8″ off on a twin that repeats to 0.02″. Checked as each capture comes when
+//!   captures 1.8″ off on a twin whose passes agree in yaw within 0.1″. Checked as each capture comes when
 //!   its group has two others, and over every group once the run has all its captures (a
 //!   first capture that was the odd one is found then).
 //! - **Across reference events.** An event that takes the positioning reference again (PSD2
@@ -833,8 +833,8 @@ mod tests {
     fn a_turn_undone_before_any_return_is_flagged_by_the_runs_scatter() {
         // The storm (twin seed 16): a knock turned the head by 9 µrad (1.86″ of yaw), two
         // more undid it before the carriage came back to the zero from its side; the
-        // captures between read ez 1.8″ off, inside the stated 2″. The twin repeats to
-        // 0.02″: the run's own scatter flags them, at once and in the review.
+        // captures between read ez 1.8″ off, inside the stated 2″. The twin's passes
+        // agree in yaw within 0.1″: the run's own scatter flags them, at once and in the review.
         let sd = [
             0.1e-3,
             0.1e-3,

@@ -298,7 +298,12 @@ impl FollowerLevel {
             .follower_map
             .clone()
             .ok_or("map the follower first: no follower map is in use, and the level's stations are fitted with the self-calibration's steps (axiscomp follower map, or m on the console's Align screen)")?;
-        let steps = rec.steps.clone();
+        // A check re-uses the map as it is: its steps are not fitted again.
+        let steps = if req.check_map {
+            None
+        } else {
+            rec.steps.clone()
+        };
         if req.check_map && rec.map.vertical_positions_mm.len() < 2 {
             return Err(format!(
                 "the map in use (map {}, {}) has no vertical map to check on this set-up: map the follower (axiscomp follower map, or m on the console's Align screen)",
@@ -384,7 +389,7 @@ impl FollowerLevel {
             return Err("the twin's CNC runs iso or linuxcnc programs".into());
         }
         let stations = crate::follower::level::stations((from_mm, to_mm), station_mm);
-        let needed = crate::follower::ReuseSettings::default().degree + 3;
+        let needed = crate::follower::ReuseSettings::default().stations_needed();
         if req.check_map && stations.len() < needed {
             return Err(format!(
                 "station_mm {station_mm}: {} stations from {from_mm:.1} to {to_mm:.1} mm, and checking the map in use on this set-up needs {needed} at least (a smooth bend fitted, and stations to spare to judge it by); give a smaller spacing",
@@ -444,14 +449,14 @@ impl FollowerLevel {
             map_from_name: rec.name.clone(),
             started,
             started_by: who.to_string(),
-            u_mid_steps_um: match (&steps, req.check_map) {
-                (Some(steps), false) => {
+            u_mid_steps_um: match &steps {
+                Some(steps) => {
                     crate::follower::build(&steps.steps, rec.certificate.as_ref(), &steps.settings)
                         .ok()
                         .as_ref()
                         .and_then(u_mid_um)
                 }
-                _ => u_mid_um(&rec.map),
+                None => u_mid_um(&rec.map),
             },
             ..LevelView::default()
         };
@@ -468,7 +473,7 @@ impl FollowerLevel {
         self.view = Some(view);
         self.active = Some(Active {
             source: rec,
-            steps: if req.check_map { None } else { steps },
+            steps,
             applied,
             taken: vec![None; n],
             stations,
