@@ -18,7 +18,7 @@ pub mod revisit;
 
 pub use knock::{Knock, KnockSettings, KnockWatch};
 pub use mount::{Mount, MountGeometry, Screw};
-pub use revisit::{Revisit, RevisitSettings, RevisitState};
+pub use revisit::{Agreement, Revisit, RevisitSettings, RevisitState};
 
 use crate::optics::{Layout, Pose, Spot};
 use crate::units::Errors6;
