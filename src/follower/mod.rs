@@ -178,6 +178,15 @@ impl Periodic {
         (self.sin_mm * b[0] + self.cos_mm * b[1], var.max(0.0).sqrt())
     }
 
+    /// The variance of the term's difference between `a` and `b` (mm²): its coefficients'
+    /// errors are the same at both.
+    pub fn difference_variance(&self, a: f64, b: f64) -> f64 {
+        let (ba, bb) = (self.basis(a), self.basis(b));
+        let d = [ba[0] - bb[0], ba[1] - bb[1]];
+        let c = self.cov_mm2;
+        (d[0] * d[0] * c[0][0] + 2.0 * d[0] * d[1] * c[0][1] + d[1] * d[1] * c[1][1]).max(0.0)
+    }
+
     /// Its amplitude (mm).
     pub fn amplitude(&self) -> f64 {
         self.sin_mm.hypot(self.cos_mm)
@@ -228,6 +237,49 @@ impl SelfCalibration {
         let bound = 2.0 * (2.0 / self.steps as f64).sqrt();
         Some(((self.chi2_along + bound - 1.0).max(0.0) * s * s / 2.0).sqrt())
     }
+}
+
+/// The weights linear interpolation over `positions` gives its points at `x` (the end
+/// point's value held outside, as `util::interpolate`).
+fn interpolation_weights(positions: &[f64], x: f64) -> [(usize, f64); 2] {
+    let n = positions.len();
+    if n == 0 {
+        return [(0, 0.0); 2];
+    }
+    if x <= positions[0] {
+        return [(0, 1.0), (0, 0.0)];
+    }
+    if x >= positions[n - 1] {
+        return [(n - 1, 1.0), (n - 1, 0.0)];
+    }
+    let k = positions.partition_point(|&p| p <= x).clamp(1, n - 1);
+    let t = (x - positions[k - 1]) / (positions[k] - positions[k - 1]);
+    [(k - 1, 1.0 - t), (k, t)]
+}
+
+/// The variance of a tabulated curve's difference between `a` and `b`, its points' errors
+/// independent with standard uncertainties `u` (mm²).
+fn difference_of_points(positions: &[f64], u: &[f64], a: f64, b: f64) -> f64 {
+    let n = positions.len().min(u.len());
+    let mut weights: Vec<(usize, f64)> = interpolation_weights(&positions[..n], a).to_vec();
+    for (i, w) in interpolation_weights(&positions[..n], b) {
+        weights.push((i, -w));
+    }
+    weights.sort_by_key(|(i, _)| *i);
+    let mut var = 0.0;
+    let mut k = 0;
+    while k < weights.len() {
+        let i = weights[k].0;
+        let mut w = 0.0;
+        while k < weights.len() && weights[k].0 == i {
+            w += weights[k].1;
+            k += 1;
+        }
+        if i < n {
+            var += w * w * u[i] * u[i];
+        }
+    }
+    var
 }
 
 /// The follower's error map.
@@ -417,8 +469,12 @@ impl FollowerMap {
     }
 
     /// Variance (mm²: along, vertical) of the correction's difference between encoder
-    /// positions `a` and `b`: the along terms as independent, the vertical as its own (a
-    /// bound: the random walk makes neighbours' errors alike).
+    /// positions `a` and `b`. Each tabulated curve (the long-wavelength term, the vertical)
+    /// as points with independent errors, interpolated linearly: what two positions share of
+    /// a point cancels, so a position against itself differs by nothing and two far apart by
+    /// both their variances (for the vertical a bound: its random walk makes neighbours'
+    /// errors alike). The screw-periodic term through its coefficients' covariance, a
+    /// referenced line through its slope's, the reversal only between two directions.
     pub fn difference_variance(
         &self,
         a: f64,
@@ -426,9 +482,21 @@ impl FollowerMap {
         dir_a: Direction,
         dir_b: Direction,
     ) -> [f64; 2] {
-        let pa = self.point_mm(a, dir_a);
-        let pb = self.point_mm(b, dir_b);
-        [pa.1 * pa.1 + pb.1 * pb.1, pa.3 * pa.3 + pb.3 * pb.3]
+        let mut along = difference_of_points(&self.long_positions_mm, &self.long_u_mm, a, b);
+        if let Some(p) = &self.periodic {
+            along += p.difference_variance(a, b);
+        }
+        if let Some(r) = &self.reversal
+            && dir_a != dir_b
+        {
+            along += r.u_mm * r.u_mm;
+        }
+        let mut vertical =
+            difference_of_points(&self.vertical_positions_mm, &self.vertical_u_mm, a, b);
+        if let (Some(l), None) = (&self.vertical_line, &self.vertical_reference) {
+            vertical += (l.u_slope * (b - a)).powi(2);
+        }
+        [along, vertical]
     }
 
     /// The span of encoder positions the map covers (mm).

@@ -190,3 +190,40 @@ fn the_stage_beyond_its_map_is_the_steps_scatter_beyond_their_noise() {
     assert_eq!(sc(1.0, 200, 0.0).unmapped_sd_mm(), None);
     assert_eq!(sc(1.0, 0, 0.4e-3).unmapped_sd_mm(), None);
 }
+
+/// What two positions share of the map cancels in their difference: a position against
+/// itself differs by nothing, two far apart by both their variances, two in one interval by
+/// what their weights differ; the reversal only between directions.
+#[test]
+fn the_maps_difference_between_two_positions_cancels_what_they_share() {
+    let m = FollowerModel::new(FollowerSpec::default(), 200.0, &mut Rng::new(5));
+    let cert = Certificate::parse(&m.certificate(&mut Rng::new(6)), "twin.csv").unwrap();
+    let mut map = build(&[], Some(&cert), &MapSettings::default()).unwrap();
+    map.vertical_positions_mm = vec![0.0, 50.0, 100.0, 150.0];
+    map.vertical_mm = vec![0.0; 4];
+    map.vertical_u_mm = vec![0.0, 30e-6, 40e-6, 50e-6];
+    map.reversal = Some(Estimate {
+        value_mm: 1e-3,
+        u_mm: 4e-6,
+    });
+    let (up, down) = (Direction::Up, Direction::Down);
+    assert_eq!(map.difference_variance(42.0, 42.0, up, up), [0.0, 0.0]);
+    // 0.5 of one long point (10 mm apart) moves between 40 and 45 mm; the vertical's 50 mm
+    // point by 0.1 of its weight.
+    let u_long = map.long_u_mm[4];
+    let near = map.difference_variance(40.0, 45.0, up, up);
+    assert!(
+        (near[0] - 2.0 * (0.5 * u_long).powi(2)).abs() < 1e-18,
+        "{near:?}"
+    );
+    let v = 0.1f64.powi(2) * (30e-6f64.powi(2) + 0.0);
+    assert!((near[1] - v).abs() < 1e-20, "{near:?} against {v:e}");
+    // Far apart: both points' variances, as `point` states them.
+    let far = map.difference_variance(50.0, 150.0, up, up);
+    let (pa, pb) = (map.point(50.0, up), map.point(150.0, up));
+    let both = (pa.vertical_u_um.powi(2) + pb.vertical_u_um.powi(2)) * 1e-6;
+    assert!((far[1] - both).abs() < 1e-18, "{far:?} against {both:e}");
+    // The reversal between two directions.
+    let turned = map.difference_variance(42.0, 42.0, up, down);
+    assert!((turned[0] - 16e-12).abs() < 1e-20, "{turned:?}");
+}

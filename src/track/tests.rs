@@ -553,13 +553,16 @@ fn encoder_strategy_applies_the_follower_map() {
         "the encoder alone would be off"
     );
     // The map's uncertainty replaces the per-mm terms, and the stage's repeatability beyond
-    // its map the encoder's own.
+    // its map the encoder's own. The map's points (0.1 µm each, independent) enter by the
+    // weights linear interpolation gives them at each end of the bridge.
     let sd = s.variance.map(f64::sqrt);
     let mapped = tr.settings().mapped_sd_mm;
-    assert!(
-        (sd[0] - (mapped * mapped + 2.0 * 0.01e-6).sqrt()).abs() < 1e-9,
-        "{sd:?}"
-    );
+    let points = |x: f64| {
+        let t = (x / 0.25).fract();
+        (1.0 - t).powi(2) + t * t
+    };
+    let want = (mapped * mapped + 0.01e-6 * (points(e0) + points(b.enc))).sqrt();
+    assert!((sd[0] - want).abs() < 1e-9, "{sd:?} against {want:e}");
 }
 
 /// The follow target is the carriage, whatever the follower does and however late its
