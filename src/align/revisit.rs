@@ -72,9 +72,7 @@ pub struct RevisitState {
 /// (`service::measure` bounds their variance by it).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Agreement {
-    /// Which agreement it is (counted from 1 by the check): one a stay.
-    pub count: u64,
-    /// When the head agreed (µs).
+    /// When the head agreed (µs): one agreement a stay.
     pub unix_us: i64,
     /// The mean pitch and yaw (rad) and the straightnesses dx and dz (mm) against the zero's.
     pub mean: [f64; READ],
@@ -104,8 +102,6 @@ pub struct Revisit {
     judged: bool,
     /// This stay agreed: its frames go on refining what it read.
     agreement: Option<Agreement>,
-    /// The stays that agreed so far.
-    agreements: u64,
 }
 
 impl Revisit {
@@ -122,7 +118,6 @@ impl Revisit {
             n: 0,
             judged: false,
             agreement: None,
-            agreements: 0,
         }
     }
 
@@ -273,13 +268,7 @@ impl Revisit {
         );
         let since = std::mem::replace(&mut self.agreed_us, unix_us);
         if !turned {
-            self.agreements += 1;
-            self.agreement = Some(Agreement {
-                count: self.agreements,
-                unix_us,
-                mean,
-                sd,
-            });
+            self.agreement = Some(Agreement { unix_us, mean, sd });
         }
         turned.then_some(Knock {
             unix_us: since,
@@ -416,10 +405,10 @@ mod tests {
         assert!(r.agreement().is_none(), "not judged yet");
         assert!(stay(&mut r, &mut rng, 3_698_000, 0.0, left, 1).is_none());
         let first = r.agreement().expect("agreed");
-        assert_eq!((first.count, first.unix_us), (1, 3_698_000));
+        assert_eq!(first.unix_us, 3_698_000);
         assert!(stay(&mut r, &mut rng, 3_700_000, 0.0, left, 650).is_none());
         let last = r.agreement().expect("still agreed");
-        assert_eq!(last.count, 1, "one agreement a stay");
+        assert_eq!(last.unix_us, first.unix_us, "one agreement a stay");
         // 250 frames, then 900: the frames' part of the sd falls by √(900/250).
         let frames = |a: Agreement| (a.sd[0].powi(2) - 0.05e-6f64.powi(2)).sqrt();
         let ratio = frames(first) / frames(last);
@@ -438,7 +427,8 @@ mod tests {
         assert!(stay(&mut r, &mut rng, 5_000_000, -2.0, [0.0; 2], 10).is_none());
         assert!(r.agreement().is_none());
         assert!(stay(&mut r, &mut rng, 6_000_000, 0.0, [0.0; 2], 400).is_none());
-        assert_eq!(r.agreement().map(|a| a.count), Some(2));
+        let next = r.agreement().expect("the next stay agreed");
+        assert!(next.unix_us > last.unix_us);
     }
 
     #[test]

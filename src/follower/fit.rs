@@ -218,8 +218,9 @@ fn nodes(steps: &[Step], merge: f64) -> Vec<f64> {
     out
 }
 
-/// Linear-interpolation weights of `x` on `nodes`: (index, weight) pairs.
-fn weights(nodes: &[f64], x: f64) -> [(usize, f64); 2] {
+/// Linear-interpolation weights of `x` on `nodes` (not empty): (index, weight) pairs, the
+/// end node's value held outside (as `util::interpolate`).
+pub(super) fn weights(nodes: &[f64], x: f64) -> [(usize, f64); 2] {
     let n = nodes.len();
     if n == 1 || x <= nodes[0] {
         return [(0, 1.0), (0, 0.0)];

@@ -239,47 +239,21 @@ impl SelfCalibration {
     }
 }
 
-/// The weights linear interpolation over `positions` gives its points at `x` (the end
-/// point's value held outside, as `util::interpolate`).
-fn interpolation_weights(positions: &[f64], x: f64) -> [(usize, f64); 2] {
-    let n = positions.len();
-    if n == 0 {
-        return [(0, 0.0); 2];
-    }
-    if x <= positions[0] {
-        return [(0, 1.0), (0, 0.0)];
-    }
-    if x >= positions[n - 1] {
-        return [(n - 1, 1.0), (n - 1, 0.0)];
-    }
-    let k = positions.partition_point(|&p| p <= x).clamp(1, n - 1);
-    let t = (x - positions[k - 1]) / (positions[k] - positions[k - 1]);
-    [(k - 1, 1.0 - t), (k, t)]
-}
-
 /// The variance of a tabulated curve's difference between `a` and `b`, its points' errors
-/// independent with standard uncertainties `u` (mm²).
+/// independent with standard uncertainties `u` (mm²): what the two share of a point cancels.
 fn difference_of_points(positions: &[f64], u: &[f64], a: f64, b: f64) -> f64 {
     let n = positions.len().min(u.len());
-    let mut weights: Vec<(usize, f64)> = interpolation_weights(&positions[..n], a).to_vec();
-    for (i, w) in interpolation_weights(&positions[..n], b) {
-        weights.push((i, -w));
+    if n == 0 {
+        return 0.0;
     }
-    weights.sort_by_key(|(i, _)| *i);
-    let mut var = 0.0;
-    let mut k = 0;
-    while k < weights.len() {
-        let i = weights[k].0;
-        let mut w = 0.0;
-        while k < weights.len() && weights[k].0 == i {
-            w += weights[k].1;
-            k += 1;
-        }
-        if i < n {
-            var += w * w * u[i] * u[i];
-        }
+    let mut w = std::collections::BTreeMap::new();
+    for (i, x) in fit::weights(&positions[..n], a) {
+        *w.entry(i).or_insert(0.0) += x;
     }
-    var
+    for (i, x) in fit::weights(&positions[..n], b) {
+        *w.entry(i).or_insert(0.0) -= x;
+    }
+    w.iter().map(|(&i, x)| x * x * u[i] * u[i]).sum()
 }
 
 /// The follower's error map.

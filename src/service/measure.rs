@@ -758,6 +758,20 @@ mod tests {
         }
     }
 
+    /// What a head turned by `yaw` on its mount reads of `truth` at travel `d`.
+    fn turned_pose(layout: &Layout, truth: &Errors6, d: f64, yaw: f64) -> Pose {
+        let m = Mount {
+            yaw,
+            ..Mount::default()
+        };
+        let pivot = MountGeometry::default().pivot();
+        Pose::new(
+            m.head_pose(pivot, layout.c, layout.travel_axis, d, truth),
+            d,
+            d,
+        )
+    }
+
     /// The layout's nominal model with 1 µm of reading noise.
     fn nominal(layout: &Layout, method: Method) -> Decoupler {
         Decoupler {
@@ -933,21 +947,10 @@ mod tests {
     fn a_knock_is_taken_out_of_every_later_frame_along_the_travel() {
         let layout = Layout::reference();
         let dec = nominal(&layout, Method::Linear);
-        let pivot = MountGeometry::default().pivot();
         // The truth at a travel, as a head turned by `yaw` on its mount reads it.
         let truth =
             |d: f64| Errors6::from_user([3.0 + 0.01 * d, -4.0, 1.0, 2.0, -1.0, 1.5 + 0.002 * d]);
-        let read = |d: f64, yaw: f64| {
-            let m = Mount {
-                yaw,
-                ..Mount::default()
-            };
-            Pose::new(
-                m.head_pose(pivot, layout.c, layout.travel_axis, d, &truth(d)),
-                d,
-                d,
-            )
-        };
+        let read = |d: f64, yaw: f64| turned_pose(&layout, &truth(d), d, yaw);
         for (seed, yaw) in [(1, 6e-6), (2, -3e-6), (3, 12e-6)] {
             let mut m = Measure::new(dec.clone(), Duration::from_millis(500));
             let mut rng = Rng::new(seed);
@@ -1045,19 +1048,8 @@ mod tests {
     fn a_return_that_agrees_bounds_what_the_turns_are_known_to() {
         let layout = Layout::reference();
         let dec = nominal(&layout, Method::Linear);
-        let pivot = MountGeometry::default().pivot();
         let truth = |d: f64| Errors6::from_user([0.004 * d, 0.0, 0.0, 1.0, 0.0, -1.0]);
-        let read = |d: f64, yaw: f64| {
-            let m = Mount {
-                yaw,
-                ..Mount::default()
-            };
-            Pose::new(
-                m.head_pose(pivot, layout.c, layout.travel_axis, d, &truth(d)),
-                d,
-                d,
-            )
-        };
+        let read = |d: f64, yaw: f64| turned_pose(&layout, &truth(d), d, yaw);
         let mut ratios = Vec::new();
         for (seed, yaw) in [(21, 7e-6), (22, -5e-6), (23, 9e-6), (24, -8e-6)] {
             let mut m = Measure::new(dec.clone(), Duration::from_millis(500));
