@@ -80,6 +80,26 @@ pub struct Agreement {
     pub sd: [f64; READ],
 }
 
+impl Agreement {
+    /// What it read, in words: "pitch +0.12 ± 0.05 µrad, yaw …, dx +0.03 ± 0.02 µm, dz …".
+    pub fn words(&self) -> String {
+        let name = ["pitch", "yaw", "dx", "dz"];
+        let (unit, scale) = (["µrad", "µrad", "µm", "µm"], [1e6, 1e6, 1e3, 1e3]);
+        (0..READ)
+            .map(|k| {
+                format!(
+                    "{} {:+.2} ± {:.2} {}",
+                    name[k],
+                    self.mean[k] * scale[k],
+                    self.sd[k] * scale[k],
+                    unit[k]
+                )
+            })
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
+
 /// What a return reads against the zero: pitch, yaw (rad), dx, dz (mm).
 pub const READ: usize = 4;
 

@@ -247,6 +247,34 @@ impl Judge {
         (self.held.len() < before).then_some(false)
     }
 
+    /// State the u of the capture of `key` taken at `unix_us` again: `change` is added to each
+    /// error's variance (a later check bounded a term it was taken with: `RunMachine::
+    /// turns_bounded`). The capture as the judge now has it, its u before, and whether it is
+    /// stored; `None` when the judge has no such capture (flagged, or another one taken since).
+    pub fn restate(
+        &mut self,
+        key: TargetKey,
+        unix_us: i64,
+        change: &[f64; 6],
+    ) -> Option<(Capture, Errors6, bool)> {
+        let (c, stored) = match self.accepted.get_mut(&key) {
+            Some(c) => (c, true),
+            None => (
+                self.held
+                    .iter_mut()
+                    .map(|(c, _)| c)
+                    .find(|c| TargetKey::of(c) == key)?,
+                false,
+            ),
+        };
+        if c.unix_us != unix_us {
+            return None;
+        }
+        let was = c.u;
+        c.u = restated_u(&c.u, change);
+        Some((*c, was, stored))
+    }
+
     /// The accepted captures of the group of (`target_index`, `direction`), `key` left out.
     fn group(&self, target_index: u32, direction: Direction, but: TargetKey) -> Vec<&Capture> {
         self.accepted
@@ -510,6 +538,14 @@ fn rereferenced(mut c: Capture, by: &[f64; 6], u_by: &[f64; 6]) -> Capture {
         }
     }));
     c
+}
+
+/// `u` with `change` added to each error's variance (never below none).
+pub fn restated_u(u: &Errors6, change: &[f64; 6]) -> Errors6 {
+    let u = u.to_array();
+    Errors6::from_array(std::array::from_fn(|k| {
+        (u[k] * u[k] + change[k]).max(0.0).sqrt()
+    }))
 }
 
 /// "the other capture" or "the other `n` captures".

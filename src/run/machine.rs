@@ -142,6 +142,11 @@ pub struct FrameSample {
     /// position, the zero reference, the turns of the head taken out and the calibration in
     /// use (the same for every frame until the next handover).
     pub stitch_var: Errors6,
+    /// The turns' part of `stitch_var` while turns of the head found since the last return to
+    /// the zero that agreed are known only by their own variance: the next return that agrees
+    /// bounds them, and the u of the captures read through them is stated again
+    /// (`RunMachine::turns_bounded`). `None` otherwise.
+    pub turns_var: Option<Errors6>,
     pub material_c: Option<f64>,
     pub air_c: Option<f64>,
 }
@@ -168,6 +173,13 @@ pub enum RunAction {
     },
     /// The reference moved by `by` (internal units): shift the zero by it.
     ShiftZero { by: Errors6, reason: String },
+    /// A stored capture's u stated again (`RunMachine::turns_bounded`): `capture` as it is
+    /// now, `was` its u before; keep it with the reason.
+    Restated {
+        capture: Capture,
+        was: Errors6,
+        reason: String,
+    },
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -194,10 +206,30 @@ struct Acc {
     sum_sq: [f64; 6],
     var: [f64; 6],
     stitch_var: [f64; 6],
+    turns_var: Option<[f64; 6]>,
     material: (f64, usize),
     air: (f64, usize),
     first_us: i64,
     last_us: i64,
+}
+
+/// The standard uncertainties that changed from `was` to `now`, in words
+/// ("dx 0.52 → 0.18 µm, ez 0.31 → 0.12″").
+fn u_change(was: &Errors6, now: &Errors6) -> String {
+    const NAMES: [&str; 6] = ["dx", "dy", "dz", "ex", "ey", "ez"];
+    let (was, now) = (was.to_user(), now.to_user());
+    let words: Vec<String> = (0..6)
+        .filter(|&k| (was[k] - now[k]).abs() > 5e-3 * was[k].abs().max(1e-9))
+        .map(|k| {
+            let unit = if k < 3 { "µm" } else { "″" };
+            format!("{} {:.2} → {:.2} {unit}", NAMES[k], was[k], now[k])
+        })
+        .collect();
+    if words.is_empty() {
+        "no change".into()
+    } else {
+        words.join(", ")
+    }
 }
 
 /// The run machine.
@@ -228,6 +260,10 @@ pub struct RunMachine {
     /// The newest captures with their last frame's time: a knock found after them may have
     /// moved their last frames.
     recent: VecDeque<(Capture, i64)>,
+    /// The captures taken since the last knock through turns known only by their own
+    /// variance, with that variance (the turns' part of their u², internal units²): the next
+    /// return to the zero that agrees bounds it (`RunMachine::turns_bounded`).
+    turns_pending: Vec<(Capture, [f64; 6])>,
 }
 
 /// How many of the newest captures a knock found late may reach back to: half a window
@@ -295,6 +331,7 @@ impl RunMachine {
             cycle: Vec::new(),
             cursor: 0,
             recent: VecDeque::new(),
+            turns_pending: Vec::new(),
         };
         m.cycle = m.plan.steps().iter().filter_map(|s| s.target).collect();
         if m.done.len() >= m.total {
@@ -348,6 +385,9 @@ impl RunMachine {
             .map(|(c, _)| *c)
             .collect();
         self.recent.retain(|(_, last_us)| *last_us < since_us);
+        // Those before it read through turns this one changed: the next return cannot tell
+        // what they read through, and their u stays as stated.
+        self.turns_pending.clear();
         let mut decisions = Vec::new();
         for c in hit {
             let key = TargetKey::of(&c);
@@ -370,6 +410,54 @@ impl RunMachine {
         }
         self.apply(decisions);
         self.reference_event(what, since_us, super::judge::MOVES_ALL);
+    }
+
+    /// A return to the zero agreed (`service::measure::Measure::take_bounded`): the turns
+    /// found since the one before are bounded by what it read, and `var_at(target)` is their
+    /// variance now at a target (internal units²). The captures taken since the last knock
+    /// read through those very turns (a knock between would have been found, or the return
+    /// would not agree): the turns' part of each one's u² is replaced by the bound. A capture
+    /// the judge holds is stored with it; one stored is restated (`RunAction::Restated`).
+    /// `what` says what the return read.
+    pub fn turns_bounded(&mut self, var_at: impl Fn(f64) -> Errors6, what: &str) {
+        for (c, was) in std::mem::take(&mut self.turns_pending) {
+            let key = TargetKey::of(&c);
+            let now = var_at(c.target_mm).to_array();
+            let change: [f64; 6] = std::array::from_fn(|k| now[k] - was[k]);
+            let restated = if self.settings.judge {
+                self.judge.restate(key, c.unix_us, &change)
+            } else {
+                Some((
+                    Capture {
+                        u: super::judge::restated_u(&c.u, &change),
+                        ..c
+                    },
+                    c.u,
+                    true,
+                ))
+            };
+            let Some((now, was, stored)) = restated else {
+                continue;
+            };
+            if let Some((r, _)) = self
+                .recent
+                .iter_mut()
+                .find(|(r, _)| TargetKey::of(r) == key && r.unix_us == c.unix_us)
+            {
+                r.u = now.u;
+            }
+            if stored {
+                self.actions.push_back(RunAction::Restated {
+                    capture: now,
+                    was,
+                    reason: format!(
+                        "{key} {}: u stated again by the return to the zero that agreed ({what}): {}",
+                        c.direction.sign(),
+                        u_change(&was, &now.u)
+                    ),
+                });
+            }
+        }
     }
 
     /// Carry out the judge's decisions: stored captures go out, flagged ones are reopened
@@ -702,6 +790,7 @@ impl RunMachine {
             s.stitch_var.to_array(),
         );
         a.stitch_var = sv;
+        a.turns_var = s.turns_var.map(|v| v.to_array());
         for k in 0..6 {
             a.sum[k] += e[k];
             a.sum_sq[k] += e[k] * e[k];
@@ -758,6 +847,9 @@ impl RunMachine {
             unix_us: a.first_us,
         };
         self.done.insert(key);
+        if let Some(v) = a.turns_var {
+            self.turns_pending.push((capture, v));
+        }
         self.recent.push_back((capture, a.last_us));
         if self.recent.len() > RECENT {
             self.recent.pop_front();
@@ -825,6 +917,7 @@ mod tests {
     use super::*;
     use crate::run::plan::PlanSpec;
     use crate::sim::Rng;
+    use std::collections::BTreeMap;
 
     fn plan() -> Plan {
         Plan::new(PlanSpec {
@@ -850,6 +943,10 @@ mod tests {
         now: Instant,
         nominal: Option<f64>,
         rng: Rng,
+        /// The turns' part of each frame's systematic variance, while turns found are pending.
+        turns_var: Option<Errors6>,
+        /// The captures restated, as they came.
+        restated: Vec<Capture>,
     }
 
     impl Feed {
@@ -865,7 +962,10 @@ mod tests {
                     ..Errors6::ZERO
                 },
                 var: Errors6::from_array([1e-6; 6]),
-                stitch_var: Errors6::from_array([1e-8; 6]),
+                stitch_var: Errors6::from_array(std::array::from_fn(|k| {
+                    1e-8 + self.turns_var.map_or(0.0, |v| v.to_array()[k])
+                })),
+                turns_var: self.turns_var,
                 material_c: Some(20.5),
                 air_c: None,
             }
@@ -903,6 +1003,7 @@ mod tests {
                 match a {
                     RunAction::SetNominal(n) => self.nominal = n,
                     RunAction::Captured(c) => out.push(c),
+                    RunAction::Restated { capture, .. } => self.restated.push(capture),
                     _ => {}
                 }
             }
@@ -958,6 +1059,8 @@ mod tests {
             now: t0,
             nominal: None,
             rng: Rng::new(8),
+            turns_var: None,
+            restated: Vec::new(),
         }
     }
 
@@ -1207,6 +1310,118 @@ mod tests {
                     .iter()
                     .any(|c| TargetKey::of(c) == TargetKey::of(&last))
             );
+        }
+    }
+
+    /// Captures taken after a knock carry the turns' own variance; the return that agrees
+    /// bounds it, and each of them is stated again: its u² less what the turns added, plus the
+    /// bound at its target. Stored ones are restated, held ones stored with it; those before
+    /// the knock, and those before a later knock, keep their u.
+    #[test]
+    fn a_return_that_agrees_states_again_the_u_of_the_captures_read_through_the_turns() {
+        let pending = Errors6::from_array([4e-8, 0.0, 9e-8, 1e-12, 0.0, 4e-12]);
+        // The bound grows along the travel, as a turn's effect does.
+        let bound = |t: f64| Errors6::from_array([1e-10 * (1.0 + t), 0.0, 2e-9, 1e-14, 0.0, 2e-14]);
+        for judge in [false, true] {
+            let p = plan();
+            let steps = cycle(&p);
+            let settings = CaptureSettings {
+                judge,
+                ..CaptureSettings::default()
+            };
+            // The knock after the sixth stop; the return after the twelfth.
+            let knocked_run = |later_knock: bool| {
+                let mut m = RunMachine::new(p.clone(), settings, false, BTreeSet::new());
+                let mut f = feed();
+                let mut out = f.run(&mut m, &steps[..6], None);
+                let before: Vec<Capture> = out.clone();
+                m.knocked((f.now - f.t0).as_micros() as i64, "a knock at rest");
+                f.turns_var = Some(pending);
+                out.extend(f.run(&mut m, &steps[6..12], None));
+                // The captures as taken since the knock: their u carries the pending variance.
+                let taken: BTreeMap<(TargetKey, i64), Errors6> = m
+                    .turns_pending
+                    .iter()
+                    .map(|(c, _)| ((TargetKey::of(c), c.unix_us), c.u))
+                    .collect();
+                if later_knock {
+                    m.knocked((f.now - f.t0).as_micros() as i64, "another knock");
+                    assert!(m.turns_pending.is_empty());
+                }
+                f.turns_var = None;
+                m.turns_bounded(bound, "pitch +0.10 ± 0.05 µrad");
+                assert!(m.turns_pending.is_empty());
+                out.extend(f.run(&mut m, &steps[11..], None));
+                let missing = m.missing();
+                if !missing.is_empty() {
+                    out.extend(f.run(&mut m, &makeup(&p, &missing), None));
+                }
+                assert!(m.is_finished(), "judge {judge}: missing {:?}", m.missing());
+                (before, taken, out, f.restated)
+            };
+            let (before, taken, stored, restated) = knocked_run(false);
+            assert!(
+                taken.len() >= 3,
+                "judge {judge}: {} after the knock",
+                taken.len()
+            );
+            // Each capture since the knock ends with its u stated again: restated once when
+            // it was stored before the return, stored with it when held until after.
+            let mut last: BTreeMap<(TargetKey, i64), Errors6> = BTreeMap::new();
+            let mut times: BTreeMap<(TargetKey, i64), usize> = BTreeMap::new();
+            for c in stored.iter().chain(&restated) {
+                last.insert((TargetKey::of(c), c.unix_us), c.u);
+            }
+            for c in &restated {
+                *times.entry((TargetKey::of(c), c.unix_us)).or_default() += 1;
+            }
+            assert!(
+                times.values().all(|n| *n == 1),
+                "judge {judge}: restated twice"
+            );
+            for (id, was) in &taken {
+                let Some(u) = last.get(id) else {
+                    // Flagged and retaken since: the retake has its own u.
+                    continue;
+                };
+                let (w, u, b, v) = (
+                    was.to_array(),
+                    u.to_array(),
+                    bound(id.0.target_index as f64 * 25.0).to_array(),
+                    pending.to_array(),
+                );
+                for k in 0..6 {
+                    let want = (w[k] * w[k] - v[k] + b[k]).sqrt();
+                    assert!(
+                        (u[k] - want).abs() <= 1e-9 * want.max(1e-12),
+                        "judge {judge}: {} error {k}: u {:e}, want {want:e} (was {:e})",
+                        id.0,
+                        u[k],
+                        w[k]
+                    );
+                }
+                assert!(u[0] < w[0] && u[2] < w[2], "judge {judge}: sharper");
+            }
+            assert!(
+                taken.keys().filter(|id| last.contains_key(id)).count() >= 3,
+                "judge {judge}: the captures since the knock are kept"
+            );
+            if !judge {
+                assert_eq!(restated.len(), taken.len(), "all stored as they came");
+            }
+            // Those before the knock are not touched.
+            assert!(restated.iter().all(|c| !before.contains(c)));
+            // Through turns a later knock changed, the captures keep their u as taken.
+            let (_, taken, stored, restated) = knocked_run(true);
+            assert!(
+                restated.is_empty(),
+                "judge {judge}: restated after a later knock"
+            );
+            for c in &stored {
+                if let Some(was) = taken.get(&(TargetKey::of(c), c.unix_us)) {
+                    assert_eq!(c.u, *was, "judge {judge}: {}", TargetKey::of(c));
+                }
+            }
         }
     }
 

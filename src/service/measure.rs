@@ -165,6 +165,9 @@ struct Turned {
     seen: Option<Agreement>,
     /// A knock found and not yet taken by the caller.
     found: Option<Knock>,
+    /// A return agreed while turns found since the last one were known only by their own
+    /// variance, not yet taken by the caller (`Measure::take_bounded`).
+    bounded: Option<Agreement>,
 }
 
 impl Turned {
@@ -176,6 +179,7 @@ impl Turned {
             var: [0.0; 2],
             seen: None,
             found: None,
+            bounded: None,
         }
     }
 
@@ -267,8 +271,17 @@ impl Turned {
         if self.var == [0.0; 2] && self.seen.is_none() {
             return;
         }
+        if self.var != [0.0; 2] {
+            self.bounded = Some(a);
+        }
         self.var = [0.0; 2];
         self.seen = Some(a);
+    }
+
+    /// Whether turns found since the last return that agreed are known only by their own
+    /// variance (a later return bounds them).
+    fn pending(&self) -> bool {
+        self.var != [0.0; 2]
     }
 
     fn add(&mut self, k: Knock) {
@@ -382,6 +395,20 @@ impl Measure {
     /// from it on).
     pub fn take_knock(&mut self) -> Option<Knock> {
         self.turned.found.take()
+    }
+
+    /// A return to the zero agreed since last asked, while the turns found since the last one
+    /// were known only by their own variance: from now on they are bounded by what it read.
+    /// The captures taken since the last knock read through the same turns, and their u may
+    /// be stated again by [`Measure::turns_var`] (`RunMachine::turns_bounded`).
+    pub fn take_bounded(&mut self) -> Option<Agreement> {
+        self.turned.bounded.take()
+    }
+
+    /// The variance the turns found add to each error at `travel` (internal units²), as they
+    /// are known now.
+    pub fn turns_var(&self, travel: f64) -> Errors6 {
+        Errors6::from_array(self.turned_var(travel))
     }
 
     /// Set or clear the nominal travel; the averaging window restarts.
@@ -612,6 +639,10 @@ impl Measure {
             stitch_var: Errors6::from_array(std::array::from_fn(|k| {
                 stitch_cov[(k, k)] + zero_var[k] + turned_var[k] + self.calibration_var[k]
             })),
+            turns_var: self
+                .turned
+                .pending()
+                .then(|| Errors6::from_array(turned_var)),
             material_c: None,
             air_c: None,
         }))
@@ -1077,6 +1108,7 @@ mod tests {
             m.set_zero(None).unwrap();
             feed(&mut m, 0.0, yaw, 600);
             let k = m.take_knock().expect("a knock");
+            assert!(m.take_bounded().is_none(), "seed {seed}: no return yet");
             // Pitch and yaw's variance from the turns (rad²).
             let angles = |m: &Measure| {
                 let v = m.turned_var(800.0);
@@ -1089,6 +1121,10 @@ mod tests {
             feed(&mut m, -2.0, yaw, 20);
             feed(&mut m, 0.0, yaw, 900);
             assert!(m.take_knock().is_none(), "seed {seed}: the turn was found");
+            // Said once, for the captures since the knock to be stated again.
+            let a = m.take_bounded().expect("the return bounds the turn");
+            assert!(a.sd.iter().all(|s| *s > 0.0), "seed {seed}: {}", a.words());
+            assert!(m.take_bounded().is_none(), "seed {seed}: said once");
             let after = angles(&m);
             // The pitch the fit found (no pitch was made) is bounded as the yaw is: by what
             // the return read, which may be more than the fit stated.
@@ -1114,6 +1150,10 @@ mod tests {
             feed(&mut m, -2.0, yaw + more, 20);
             feed(&mut m, 0.0, yaw + more, 900);
             assert!(m.take_knock().is_none(), "seed {seed}: under a turn");
+            assert!(
+                m.take_bounded().is_none(),
+                "seed {seed}: no turn found since the last return: nothing to state again"
+            );
             let missed = (k.turn.yaw - yaw - more).abs();
             let stated = angles(&m)[0].sqrt();
             assert!(

@@ -100,6 +100,9 @@ pub enum Output {
     /// Something that can move the positioning reference happened during the run, or the
     /// judge found that it did and shifted the zero back: record it with the run.
     RunEvent { kind: String, detail: String },
+    /// A stored capture's u stated again (`RunMachine::turns_bounded`): `capture` as it is
+    /// now; keep it with the reason.
+    Restated { capture: Capture, reason: String },
 }
 
 /// The measurement logic.
@@ -332,6 +335,14 @@ impl Pipeline {
                 if let Some(k) = self.measure.take_knock() {
                     self.knocked(&k);
                 }
+                if let Some(a) = self.measure.take_bounded()
+                    && let Some(run) = self.run.as_mut()
+                {
+                    let what = a.words();
+                    let measure = &self.measure;
+                    run.turns_bounded(|travel| measure.turns_var(travel), &what);
+                    self.drain_run();
+                }
                 if let (Some(run), Some(s), None) = (self.run.as_mut(), sample, &self.paused) {
                     run.handle_sample(&s, now);
                     run.handle_timeout(now);
@@ -448,6 +459,14 @@ impl Pipeline {
                         reason,
                         stored,
                     });
+                }
+                RunAction::Restated {
+                    capture,
+                    was: _,
+                    reason,
+                } => {
+                    tracing::info!("{reason}");
+                    self.outputs.push_back(Output::Restated { capture, reason });
                 }
                 RunAction::ShiftZero { by, reason } => {
                     tracing::warn!("zero shifted back: {reason}");

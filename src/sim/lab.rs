@@ -600,6 +600,15 @@ impl Lab {
                     self.flags.push((TrueCapture { capture, truth }, reason));
                 }
                 Output::RunEvent { kind, detail } => self.events.push((kind, detail)),
+                Output::Restated { capture, reason } => {
+                    let key = TargetKey::of(&capture);
+                    if let Some(t) = self.captures.iter_mut().find(|t| {
+                        TargetKey::of(&t.capture) == key && t.capture.unix_us == capture.unix_us
+                    }) {
+                        t.capture.u = capture.u;
+                    }
+                    self.events.push(("u-restated".into(), reason));
+                }
                 Output::Acknowledge(code) => self.plc.acknowledged = Some(code),
                 Output::RunPaused(why) => {
                     self.pauses.push(why);

@@ -134,6 +134,85 @@ impl Store {
         tx.commit().map_err(fail)
     }
 
+    /// State the u of a stored capture of run `run` again (`run::RunMachine::turns_bounded`):
+    /// `c` is the capture as it is now, matched by its key and its time. The row as taken
+    /// stays (captures are immutable); a restatement row keeps the new u with `reason` (what
+    /// it was, what bounded it), and [`Store::captures`] reads the newest. `Ok(false)` when
+    /// no such capture is stored (flagged since, or not yet stored: the capture offered later
+    /// carries the new u), and nothing is written.
+    pub fn restate_capture(
+        &mut self,
+        run: RunId,
+        c: &Capture,
+        reason: &str,
+        unix_us: i64,
+    ) -> Result<bool, StoreError> {
+        let u = c.u.to_array();
+        if u.iter().any(|v| !v.is_finite() || *v < 0.0) || reason.is_empty() {
+            return Err(StoreError::Invalid {
+                what: "restated capture",
+                problem: format!(
+                    "{} {}: a u that is not a finite, non-negative number, or no reason",
+                    TargetKey::of(c),
+                    c.direction.sign()
+                ),
+            });
+        }
+        let what = "state a capture's u again";
+        let n = self
+            .conn
+            .execute(
+                "INSERT INTO capture_restatements (run_id, run, target_index, direction, \
+                 capture_us, u_dx_mm, u_dy_mm, u_dz_mm, u_ex_rad, u_ey_rad, u_ez_rad, unix_us, \
+                 reason) SELECT ?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13 \
+                 WHERE EXISTS (SELECT 1 FROM captures WHERE run_id = ?1 AND run = ?2 \
+                 AND target_index = ?3 AND direction = ?4 AND unix_us = ?5)",
+                params![
+                    run.0,
+                    c.run,
+                    c.target_index,
+                    Sign(c.direction),
+                    c.unix_us,
+                    u[0],
+                    u[1],
+                    u[2],
+                    u[3],
+                    u[4],
+                    u[5],
+                    unix_us,
+                    reason
+                ],
+            )
+            .map_err(|e| self.fk_or(run, what, e))?;
+        Ok(n == 1)
+    }
+
+    /// The restatements of run `run`'s captures, in order: each capture (as restated), when,
+    /// and why.
+    pub fn restatements(&self, run: RunId) -> Result<Vec<(TargetKey, i64, String)>, StoreError> {
+        let what = "read a run's restated captures";
+        let mut stmt = self
+            .conn
+            .prepare_cached(
+                "SELECT run, target_index, direction, unix_us, reason FROM capture_restatements \
+                 WHERE run_id = ?1 ORDER BY id",
+            )
+            .map_err(|e| self.fail(what, e))?;
+        stmt.query_map([run.0], |r| {
+            Ok((
+                TargetKey {
+                    run: r.get(0)?,
+                    target_index: r.get(1)?,
+                    direction: r.get::<_, Sign>(2)?.0,
+                },
+                r.get(3)?,
+                r.get(4)?,
+            ))
+        })
+        .and_then(|rows| rows.collect())
+        .map_err(|e| self.fail(what, e))
+    }
+
     /// The events of run `run`, in order.
     pub fn run_events(&self, run: RunId) -> Result<Vec<RunEvent>, StoreError> {
         let what = "read a run's events";

@@ -802,13 +802,30 @@ impl Store {
         Ok(n == 1)
     }
 
-    /// A run's captures, in the order they were stored (the order they were taken).
+    /// A run's captures, in the order they were stored (the order they were taken), each
+    /// with its u in force: the newest restatement's (`Store::restate_capture`), else as taken.
     pub fn captures(&self, run: RunId) -> Result<Vec<Capture>, StoreError> {
         let what = "read captures";
+        let columns: Vec<String> = CAPTURE_COLUMNS
+            .split(',')
+            .map(str::trim)
+            .map(|col| {
+                if col.starts_with("u_") {
+                    format!("COALESCE(r.{col}, c.{col})")
+                } else {
+                    format!("c.{col}")
+                }
+            })
+            .collect();
         let mut stmt = self
             .conn
             .prepare_cached(&format!(
-                "SELECT {CAPTURE_COLUMNS} FROM captures WHERE run_id = ?1 ORDER BY id"
+                "SELECT {} FROM captures c LEFT JOIN capture_restatements r ON r.id = \
+                 (SELECT max(x.id) FROM capture_restatements x WHERE x.run_id = c.run_id \
+                 AND x.run = c.run AND x.target_index = c.target_index \
+                 AND x.direction = c.direction AND x.capture_us = c.unix_us) \
+                 WHERE c.run_id = ?1 ORDER BY c.id",
+                columns.join(", ")
             ))
             .map_err(|e| self.fail(what, e))?;
         stmt.query_map([run.0], capture_row)

@@ -27,6 +27,7 @@ pub const MIGRATIONS: &[&str] = &[
     V5_AUDIT_OUTCOME,
     V6_FLAGS,
     V7_REFERENCES,
+    V8_RESTATEMENTS,
 ];
 
 /// Version 1: the first schema.
@@ -278,6 +279,29 @@ CREATE TABLE zero_references (
 ) STRICT;
 "#;
 
+/// Version 8: a stored capture's u stated again (issue 24), captures staying as taken
+/// (`captures_immutable`): each row is the u of one capture (its key and time) as a later check
+/// bounds it, and why; the newest for a capture is its u in force (`Store::captures`).
+const V8_RESTATEMENTS: &str = r#"
+CREATE TABLE capture_restatements (
+    id           INTEGER PRIMARY KEY,
+    run_id       INTEGER NOT NULL REFERENCES runs (id),
+    run          INTEGER NOT NULL CHECK (run >= 1),
+    target_index INTEGER NOT NULL CHECK (target_index >= 0),
+    direction    TEXT    NOT NULL CHECK (direction IN ('+', '-')),
+    capture_us   INTEGER NOT NULL,
+    u_dx_mm      REAL    NOT NULL CHECK (u_dx_mm >= 0),
+    u_dy_mm      REAL    NOT NULL CHECK (u_dy_mm >= 0),
+    u_dz_mm      REAL    NOT NULL CHECK (u_dz_mm >= 0),
+    u_ex_rad     REAL    NOT NULL CHECK (u_ex_rad >= 0),
+    u_ey_rad     REAL    NOT NULL CHECK (u_ey_rad >= 0),
+    u_ez_rad     REAL    NOT NULL CHECK (u_ez_rad >= 0),
+    unix_us      INTEGER NOT NULL,
+    reason       TEXT    NOT NULL CHECK (reason <> '')
+) STRICT;
+CREATE INDEX capture_restatements_run ON capture_restatements (run_id, run, target_index, direction);
+"#;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -286,6 +310,6 @@ mod tests {
     fn application_id_literal_matches_the_constant() {
         // The pragma cannot take a bound parameter, so V1 spells the number out.
         assert!(V1.contains(&format!("PRAGMA application_id = {APPLICATION_ID};")));
-        assert_eq!(LATEST, 7);
+        assert_eq!(LATEST, 8);
     }
 }

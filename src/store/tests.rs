@@ -319,6 +319,76 @@ fn captures_cannot_be_updated() {
     assert!(err.to_string().contains("immutable"), "{err}");
 }
 
+/// A capture's u stated again leaves the row as taken and is read back as its u in force,
+/// the newest of several; a capture not stored (or another one since) takes nothing.
+#[test]
+fn a_restated_u_is_read_in_force_and_the_capture_kept_as_taken() {
+    let db = TempDb::new("restated");
+    let mut store = Store::open(&db.path).unwrap();
+    let run = store.create_run(&new_run()).unwrap();
+    let (c1, c2) = (
+        capture(1, 0, Direction::Up, 1.0),
+        capture(1, 1, Direction::Up, 2.0),
+    );
+    store.insert_capture(run, &c1).unwrap();
+    store.insert_capture(run, &c2).unwrap();
+    let mut r = c2;
+    r.u = Errors6::from_array([4e-6, 2e-5, 1e-5, 5e-9, 2e-8, 1e-8]);
+    assert!(
+        store
+            .restate_capture(run, &r, "bounded by a return", 7)
+            .unwrap()
+    );
+    let mut r2 = r;
+    r2.u.dx = 3e-6;
+    assert!(store.restate_capture(run, &r2, "bounded again", 8).unwrap());
+    assert_eq!(store.captures(run).unwrap(), [c1, r2]);
+    // The row as taken is there still.
+    let u_dx: f64 = store
+        .conn
+        .query_row(
+            "SELECT u_dx_mm FROM captures WHERE run_id = ?1 AND target_index = 1",
+            [run.0],
+            |row| row.get(0),
+        )
+        .unwrap();
+    assert_eq!(u_dx, c2.u.dx);
+    // Another capture of the key (another time), or one not stored: nothing written.
+    let mut other = r;
+    other.unix_us += 1;
+    assert!(
+        !store
+            .restate_capture(run, &other, "not this one", 9)
+            .unwrap()
+    );
+    let mut absent = capture(2, 0, Direction::Down, 1.0);
+    absent.u = r.u;
+    assert!(
+        !store
+            .restate_capture(run, &absent, "not stored", 9)
+            .unwrap()
+    );
+    let why: Vec<String> = store
+        .restatements(run)
+        .unwrap()
+        .into_iter()
+        .map(|(k, _, why)| format!("{k}: {why}"))
+        .collect();
+    assert_eq!(
+        why,
+        [
+            "run 1, target 2: bounded by a return",
+            "run 1, target 2: bounded again"
+        ]
+    );
+    let mut bad = r;
+    bad.u.dz = f64::NAN;
+    assert!(matches!(
+        store.restate_capture(run, &bad, "bad", 9),
+        Err(StoreError::Invalid { .. })
+    ));
+}
+
 #[test]
 fn handovers_by_run_and_outside_runs() {
     let db = TempDb::new("handovers");

@@ -83,6 +83,11 @@ enum Record {
         detail: String,
         unix_us: i64,
     },
+    Restate {
+        capture: Capture,
+        reason: String,
+        unix_us: i64,
+    },
 }
 
 /// A run the store created (or could not): the reply owed, the plan, its dialect.
@@ -412,6 +417,13 @@ impl MeasurementRun {
                 detail,
                 unix_us,
             } => s.record_run_event(run, unix_us, &kind, &detail),
+            Record::Restate {
+                capture,
+                reason,
+                unix_us,
+            } => s
+                .restate_capture(run, &capture, &reason, unix_us)
+                .map(|_| ()),
         });
         match job {
             Ok(done) => {
@@ -754,6 +766,25 @@ impl Procedure for MeasurementRun {
                         capture: *capture,
                         reason: reason.clone(),
                         stored: *stored,
+                        unix_us: crate::util::clock::unix_us(),
+                    },
+                    ctx,
+                );
+            }
+            Output::Restated { capture, reason } => {
+                let Some(a) = self.active.as_mut() else {
+                    return;
+                };
+                // Not stored yet: it is offered with its new u; else the store keeps both.
+                if let Some((c, _)) = a.unstored.get_mut(&TargetKey::of(capture))
+                    && c.unix_us == capture.unix_us
+                {
+                    c.u = capture.u;
+                }
+                self.record(
+                    Record::Restate {
+                        capture: *capture,
+                        reason: reason.clone(),
                         unix_us: crate::util::clock::unix_us(),
                     },
                     ctx,
