@@ -50,10 +50,17 @@ def judge_by_truth(db, run_id, twin, zero_truth, log):
     direction's passes, and how many captures were flagged."""
     c = sqlite3.connect(db)
     t0 = zero_truth["errors"]
-    cols = ", ".join([f"{d}_{'mm' if i < 3 else 'rad'}" for i, d in enumerate(DOFS)]
-                     + [f"u_{d}_{'mm' if i < 3 else 'rad'}" for i, d in enumerate(DOFS)])
-    rows = c.execute(f"SELECT run, target_index, target_mm, direction, {cols} FROM captures "
-                     "WHERE run_id = ? ORDER BY target_index, direction, run", (run_id,)).fetchall()
+    # Each capture's u in force: the newest restatement's (a later return to the zero bounded
+    # the turns it was read through), else as taken.
+    cols = ", ".join([f"c.{d}_{'mm' if i < 3 else 'rad'}" for i, d in enumerate(DOFS)]
+                     + [f"COALESCE(r.u_{d}_{'mm' if i < 3 else 'rad'}, c.u_{d}_{'mm' if i < 3 else 'rad'})"
+                        for i, d in enumerate(DOFS)])
+    rows = c.execute(f"SELECT c.run, c.target_index, c.target_mm, c.direction, {cols} FROM captures c "
+                     "LEFT JOIN capture_restatements r ON r.id = (SELECT max(x.id) FROM "
+                     "capture_restatements x WHERE x.run_id = c.run_id AND x.run = c.run AND "
+                     "x.target_index = c.target_index AND x.direction = c.direction AND "
+                     "x.capture_us = c.unix_us) "
+                     "WHERE c.run_id = ? ORDER BY c.target_index, c.direction, c.run", (run_id,)).fetchall()
     flags = c.execute("SELECT COUNT(*), SUM(was_stored), SUM(excluded_by IS NOT NULL) "
                       "FROM capture_flags WHERE run_id = ?", (run_id,)).fetchone()
     events = c.execute("SELECT kind, COUNT(*) FROM run_events WHERE run_id = ? GROUP BY kind",
