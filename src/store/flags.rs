@@ -1,6 +1,7 @@
 //! Every stored capture true or flagged (issue 24): the events of a run that could move its
 //! positioning reference (`run_events`), and the captures its judge flagged (`capture_flags`)
-//! with their values and the reason. A flagged capture is never in `captures`: it was kept
+//! with their values and the reason, and the captures whose u a later check stated again
+//! (`capture_restatements`). A flagged capture is never in `captures`: it was kept
 //! out, or (found by the review at the run's end) moved out in the same transaction as its
 //! flag was written, so nothing is lost and every reader of `captures` sees judged captures
 //! only. A flag is *open* until its capture is retaken (a capture of the same run, target and
@@ -19,6 +20,15 @@ pub struct RunEvent {
     /// "following-ended", "drive-fault", "stitch-rereferenced", "resumed", "zero-shifted"…
     pub kind: String,
     pub detail: String,
+}
+
+/// A capture's u stated again, as stored: the capture (its key and time), when, and why.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Restatement {
+    pub key: TargetKey,
+    pub capture_us: i64,
+    pub unix_us: i64,
+    pub reason: String,
 }
 
 /// A flagged capture, as stored.
@@ -187,27 +197,27 @@ impl Store {
         Ok(n == 1)
     }
 
-    /// The restatements of run `run`'s captures, in order: each capture (as restated), when,
-    /// and why.
-    pub fn restatements(&self, run: RunId) -> Result<Vec<(TargetKey, i64, String)>, StoreError> {
+    /// The restatements of run `run`'s captures, in order.
+    pub fn restatements(&self, run: RunId) -> Result<Vec<Restatement>, StoreError> {
         let what = "read a run's restated captures";
         let mut stmt = self
             .conn
             .prepare_cached(
-                "SELECT run, target_index, direction, unix_us, reason FROM capture_restatements \
-                 WHERE run_id = ?1 ORDER BY id",
+                "SELECT run, target_index, direction, capture_us, unix_us, reason \
+                 FROM capture_restatements WHERE run_id = ?1 ORDER BY id",
             )
             .map_err(|e| self.fail(what, e))?;
         stmt.query_map([run.0], |r| {
-            Ok((
-                TargetKey {
+            Ok(Restatement {
+                key: TargetKey {
                     run: r.get(0)?,
                     target_index: r.get(1)?,
                     direction: r.get::<_, Sign>(2)?.0,
                 },
-                r.get(3)?,
-                r.get(4)?,
-            ))
+                capture_us: r.get(3)?,
+                unix_us: r.get(4)?,
+                reason: r.get(5)?,
+            })
         })
         .and_then(|rows| rows.collect())
         .map_err(|e| self.fail(what, e))

@@ -30,7 +30,7 @@ mod run_tables;
 pub mod schema;
 
 pub use alignments::{AlignmentRecord, NewAlignment};
-pub use flags::{CaptureFlag, RunEvent};
+pub use flags::{CaptureFlag, Restatement, RunEvent};
 pub use follower::FollowerMapRecord;
 pub use queue::{QueueError, StoreQueue};
 pub use records::{

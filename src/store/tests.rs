@@ -372,7 +372,7 @@ fn a_restated_u_is_read_in_force_and_the_capture_kept_as_taken() {
         .restatements(run)
         .unwrap()
         .into_iter()
-        .map(|(k, _, why)| format!("{k}: {why}"))
+        .map(|r| format!("{}: {}", r.key, r.reason))
         .collect();
     assert_eq!(
         why,

@@ -85,10 +85,12 @@ impl Core {
                     s.run(run).map_err(|e| e.to_string())?;
                     let flags = s.capture_flags(run).map_err(|e| e.to_string())?;
                     let events = s.run_events(run).map_err(|e| e.to_string())?;
+                    let restated = s.restatements(run).map_err(|e| e.to_string())?;
                     Ok(serde_json::json!({
                         "run_id": run_id,
                         "flags": flags.iter().map(crate::service::results::flag_view).collect::<Vec<_>>(),
                         "events": events,
+                        "restated": restated,
                     }))
                 },
                 reply,
