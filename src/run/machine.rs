@@ -341,11 +341,6 @@ impl RunMachine {
         m
     }
 
-    /// The time of the newest frame of the captures it knows (µs), if any.
-    pub fn latest_us(&self) -> Option<i64> {
-        self.recent.iter().map(|(_, last_us)| *last_us).max()
-    }
-
     /// Captures taken and expected.
     pub fn progress(&self) -> (usize, usize) {
         (self.done.len(), self.total)

@@ -14,7 +14,6 @@ use crate::track::{
     FollowerCommand, FollowerState, HandoverRecord, TrackEvent, TrackSettings, Tracker,
 };
 use crate::units::Errors6;
-use crate::util::clock::SteadyWall;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
@@ -132,8 +131,6 @@ pub struct Pipeline {
     /// stands at (mm), from the last rest on a target: where a follower that lost the spot
     /// finds it.
     carriage_offset_mm: Option<f64>,
-    /// The frames' wall times as ordered (`util::clock::SteadyWall`).
-    wall: SteadyWall,
 }
 
 /// A zero reference on its way (see [`Pipeline::begin_zero`]).
@@ -173,7 +170,6 @@ impl Pipeline {
             stopped_for_heartbeat: false,
             paused: None,
             carriage_offset_mm: None,
-            wall: SteadyWall::default(),
         }
     }
 
@@ -277,12 +273,6 @@ impl Pipeline {
     /// A frame, judged at its own time `f.at`. A `late` frame (the driver fell behind) is
     /// tracked but not decoupled.
     pub fn handle_frame(&mut self, f: &Frame, late: bool) {
-        // The frame's wall time as the service orders things by it: never before an earlier
-        // frame's (a wall clock stepped back), nor before what was stamped before a restart.
-        let f = &Frame {
-            unix_us: self.wall.stamp(f.at, f.unix_us),
-            ..*f
-        };
         let now = f.at;
         self.last_frame = Some(*f);
         for (k, since) in self.no_spot_since.iter_mut().enumerate() {
@@ -532,11 +522,7 @@ impl Pipeline {
             _ => None,
         };
         if let Some(moves) = moves {
-            // In the frames' time: the newest frame's.
-            let us = self
-                .last_frame
-                .map_or_else(crate::util::clock::unix_us, |f| f.unix_us);
-            run.reference_event(&detail, us, moves);
+            run.reference_event(&detail, crate::util::clock::unix_us(), moves);
         }
         self.outputs.push_back(Output::RunEvent {
             kind: kind.into(),
@@ -697,13 +683,6 @@ impl Pipeline {
     /// (bridged by the encoder at the first frame that has the spot).
     pub fn restore_reference(&mut self, state: &ReferenceState) -> Result<(), String> {
         self.measure.restore_reference(state)?;
-        // Frames from now on are after the returns it keeps, whatever the wall clock did.
-        if let Some(r) = &state.revisit {
-            self.wall.floor(r.agreed_us);
-        }
-        if let Some(a) = &state.seen {
-            self.wall.floor(a.unix_us);
-        }
         if let Some(a) = &state.stitch {
             self.tracker.restore(a);
         }
@@ -714,10 +693,6 @@ impl Pipeline {
     /// the service was down), so the spot is awaited, not failed on, and the stitch is
     /// re-referenced by the encoder when it comes (at once when PSD2 sees it already).
     pub fn resume_run(&mut self, machine: RunMachine) {
-        // Frames from now on are after the captures stored before the restart.
-        if let Some(us) = machine.latest_us() {
-            self.wall.floor(us);
-        }
         self.start_run(machine);
         self.reference_event("resumed", "a resume after a restart".into());
         self.rereference_on_spot = true;

@@ -279,16 +279,11 @@ pub struct Lab {
     pub flags: Vec<(TrueCapture, String)>,
     /// The last run's events that could move the reference (kind, what).
     pub events: Vec<(String, String)>,
-    /// The truth every 100 ms over the last hour, by the time the service gave the frame then
-    /// (µs since the epoch): a capture held until the judge checked it is compared with the
-    /// truth of when it was taken.
+    /// The truth every 100 ms over the last hour (µs since the epoch): a capture held until
+    /// the judge checked it is compared with the truth of when it was taken.
     truths: std::collections::VecDeque<(i64, Truth)>,
     /// The last run's programs after the first (resumed and make-up ones).
     pub extra_programs: usize,
-    /// How far the I/O module's wall clock has been stepped (µs; `Lab::wall_step`).
-    wall_step: Arc<std::sync::atomic::AtomicI64>,
-    /// When the newest truth was kept.
-    truth_at: Option<Instant>,
 }
 
 /// The truth is kept every this often (µs), this many times (an hour).
@@ -338,8 +333,6 @@ impl Lab {
             layout: spec.layout.clone(),
             t0,
             unix0_us: now_us(),
-            wall_step: Arc::default(),
-            truth_at: None,
             now: t0,
             plant,
             drive,
@@ -482,9 +475,17 @@ impl Lab {
             spots: s.spots,
             sums: s.sums,
         };
-        let unix_us = self.unix0_us
-            + (now - self.t0).as_micros() as i64
-            + self.wall_step.load(std::sync::atomic::Ordering::Relaxed);
+        let unix_us = self.unix0_us + (now - self.t0).as_micros() as i64;
+        if self
+            .truths
+            .back()
+            .is_none_or(|(t, _)| unix_us - t >= TRUTH_EVERY_US)
+        {
+            if self.truths.len() >= TRUTHS_KEPT {
+                self.truths.pop_front();
+            }
+            self.truths.push_back((unix_us, self.plant.truth(now)));
+        }
         let f = encode(&self.map, &reading)
             .and_then(|block| frame(&self.map, &block, self.seq, now, unix_us));
         self.seq += 1;
@@ -495,18 +496,6 @@ impl Lab {
                     log.push(f.spots);
                 }
                 self.pipeline.handle_frame(&f, false);
-                // Kept by the time the service gave the frame, as its captures carry it.
-                if self
-                    .truth_at
-                    .is_none_or(|t| now - t >= Duration::from_micros(TRUTH_EVERY_US as u64))
-                {
-                    if self.truths.len() >= TRUTHS_KEPT {
-                        self.truths.pop_front();
-                    }
-                    let key = self.pipeline.last_frame.map_or(unix_us, |f| f.unix_us);
-                    self.truths.push_back((key, self.plant.truth(now)));
-                    self.truth_at = Some(now);
-                }
                 if let Some(rows) = self.trace.as_mut() {
                     let st = self.pipeline.tracker.stitch();
                     rows.push(TraceRow {
@@ -636,12 +625,6 @@ impl Lab {
 
     /// The truth when capture `c` was taken: at the end of its frames (when the run machine
     /// had it), from the history.
-    /// A handle that steps the wall clock the frames are stamped with by its value (µs), as
-    /// an NTP step or an operator setting the clock does; a run's callback may step it.
-    pub fn wall_step(&self) -> Arc<std::sync::atomic::AtomicI64> {
-        self.wall_step.clone()
-    }
-
     fn truth_of(&self, c: &Capture) -> Truth {
         let end = c.unix_us + (self.frame_period * c.frames).as_micros() as i64;
         self.truths

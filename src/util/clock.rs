@@ -48,69 +48,9 @@ pub fn unix_us_of(t: SystemTime) -> i64 {
         .unwrap_or(0)
 }
 
-/// Wall times that never step back, for ordering what the service measures (issue 24): a
-/// knock found at a return to the zero reaches back to every capture since the last return
-/// that agreed by their times, and a wall clock stepped back by an hour between the two put
-/// the captures before it: three captures read through a 13 µrad turn were kept. Each stamp
-/// is the wall clock's, or, where that stepped back, the last stamp plus the monotonic time
-/// since; it runs on from there until the wall clock catches up. A step forward is followed.
-/// `floor` keeps stamps after what a service before a restart stamped. Sans-I/O.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct SteadyWall {
-    last: Option<(Instant, i64)>,
-    floor_us: i64,
-}
-
-impl SteadyWall {
-    /// No stamp from now on at or before `us` (what was stamped before a restart).
-    pub fn floor(&mut self, us: i64) {
-        self.floor_us = self.floor_us.max(us);
-    }
-
-    /// The stamp of an event at monotonic `at` that the wall clock put at `wall_us`.
-    pub fn stamp(&mut self, at: Instant, wall_us: i64) -> i64 {
-        let steady = self.last.map(|(t, us)| {
-            let dt = i64::try_from(at.saturating_duration_since(t).as_micros()).unwrap_or(i64::MAX);
-            us.saturating_add(dt)
-        });
-        let floor = if self.floor_us > 0 {
-            self.floor_us.saturating_add(1)
-        } else {
-            i64::MIN
-        };
-        let us = wall_us.max(steady.unwrap_or(i64::MIN)).max(floor);
-        self.last = Some((at, us));
-        us
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn steady_wall_times_never_step_back_and_follow_a_step_forward() {
-        let t0 = Instant::now();
-        let at = |ms: u64| t0 + Duration::from_millis(ms);
-        let mut w = SteadyWall::default();
-        let base = 1_700_000_000_000_000_i64;
-        assert_eq!(w.stamp(at(0), base), base);
-        assert_eq!(w.stamp(at(2), base + 2_000), base + 2_000);
-        // The wall clock steps back an hour: the stamps run on by the monotonic clock.
-        let back = base - 3_600_000_000;
-        assert_eq!(w.stamp(at(4), back + 4_000), base + 4_000);
-        assert_eq!(w.stamp(at(6), back + 6_000), base + 6_000);
-        // Two events at one instant share a stamp.
-        assert_eq!(w.stamp(at(6), back + 6_000), base + 6_000);
-        // Forward by an hour: followed.
-        let fwd = base + 3_600_000_000;
-        assert_eq!(w.stamp(at(8), fwd), fwd);
-        // After a restart, nothing at or before what the last service stamped.
-        let mut w = SteadyWall::default();
-        w.floor(fwd);
-        assert_eq!(w.stamp(at(10), back), fwd + 1);
-        assert_eq!(w.stamp(at(12), back + 2_000), fwd + 2_001);
-    }
 
     /// On a paused runtime the clock moves only as the runtime advances it, and the wall
     /// clock moves with it.

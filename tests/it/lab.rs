@@ -229,12 +229,6 @@ fn a_slipped_encoder_mid_run_is_found_and_its_captures_retaken() {
 /// the second on a target after a move) or while the carriage moves (`in_moves`: found only
 /// at the next return to the zero). Each found, and every capture within 3 u of the truth.
 fn knocked_mid_run(seed: u64, knocks: [Mount; 2], in_moves: bool) {
-    knocked_mid_run_stepping(seed, knocks, in_moves, 0);
-}
-
-/// As `knocked_mid_run`, the wall clock the frames are stamped with stepped by `step_us` right
-/// after the first knock.
-fn knocked_mid_run_stepping(seed: u64, knocks: [Mount; 2], in_moves: bool, step_us: i64) {
     crate::helpers::init_test_log();
     let _machine = crate::helpers::heavy();
     let mut spec = LabSpec::standard(perfect_head(seed), None).expect("spec");
@@ -249,7 +243,6 @@ fn knocked_mid_run_stepping(seed: u64, knocks: [Mount; 2], in_moves: bool, step_
     let mut done = 0;
     let mut moved = false;
     let mut first_at = f64::INFINITY;
-    let wall = lab.wall_step();
     let run = lab.measure(&plan, Dialect::LinuxCnc, CaptureMode::Stability, |p| {
         let on_target = targets.iter().any(|t| (t - p.position_mm).abs() < 1e-3);
         if in_moves {
@@ -259,15 +252,11 @@ fn knocked_mid_run_stepping(seed: u64, knocks: [Mount; 2], in_moves: bool, step_
                 && p.moving
             {
                 plant.knock(knocks[done]);
-                if done == 0 {
-                    wall.store(step_us, std::sync::atomic::Ordering::Relaxed);
-                }
                 first_at = first_at.min(p.elapsed_s);
                 done += 1;
             }
         } else if done == 0 && p.captures >= 6 && !p.moving {
             plant.knock(knocks[0]);
-            wall.store(step_us, std::sync::atomic::Ordering::Relaxed);
             done = 1;
         } else if done == 1 && p.captures >= 14 {
             moved |= p.moving;
@@ -390,19 +379,6 @@ fn knocks_mid_run_are_found_and_taken_out_of_the_captures() {
         ],
         false,
     );
-}
-
-/// A knock in a move found back at the zero reaches every capture since the last return that
-/// agreed, though the wall clock was stepped back an hour in between (a storm kept three
-/// captures read through a 13 µrad turn when it was): the frames' times never step back
-/// (`util::clock::SteadyWall`).
-#[test]
-fn a_knock_found_at_the_zero_reaches_back_across_a_wall_clock_stepped_back() {
-    let yaw = |urad: f64| Mount {
-        yaw: urad * 1e-6,
-        ..Mount::default()
-    };
-    knocked_mid_run_stepping(5, [yaw(9.0), yaw(-4.0)], true, -3_600_000_000);
 }
 
 #[test]
