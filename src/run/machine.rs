@@ -174,12 +174,8 @@ pub enum RunAction {
     /// The reference moved by `by` (internal units): shift the zero by it.
     ShiftZero { by: Errors6, reason: String },
     /// A stored capture's u stated again (`RunMachine::turns_bounded`): `capture` as it is
-    /// now, `was` its u before; keep it with the reason.
-    Restated {
-        capture: Capture,
-        was: Errors6,
-        reason: String,
-    },
+    /// now; keep it with the reason (which gives its u before).
+    Restated { capture: Capture, reason: String },
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -449,7 +445,6 @@ impl RunMachine {
             if stored {
                 self.actions.push_back(RunAction::Restated {
                     capture: now,
-                    was,
                     reason: format!(
                         "{key} {}: u stated again by the return to the zero that agreed ({what}): {}",
                         c.direction.sign(),

@@ -460,11 +460,7 @@ impl Pipeline {
                         stored,
                     });
                 }
-                RunAction::Restated {
-                    capture,
-                    was: _,
-                    reason,
-                } => {
+                RunAction::Restated { capture, reason } => {
                     tracing::info!("{reason}");
                     self.outputs.push_back(Output::Restated { capture, reason });
                 }
