@@ -37,6 +37,14 @@ pub struct Frame {
 }
 
 impl Frame {
+    /// When it was read, to order it (monotonic) and to name it (wall clock).
+    pub fn stamp(&self) -> crate::util::clock::Stamp {
+        crate::util::clock::Stamp {
+            at: self.at,
+            unix_us: self.unix_us,
+        }
+    }
+
     /// The six readings (mm) when every PSD has its spot.
     pub fn readings(&self) -> Option<Vector6<f64>> {
         let mut v = Vector6::zeros();

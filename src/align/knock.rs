@@ -18,6 +18,7 @@
 
 use super::mount::Mount;
 use crate::units::Errors6;
+use crate::util::clock::{FrameTime, Stamp};
 use nalgebra::{Matrix4, Vector4};
 use std::collections::VecDeque;
 
@@ -49,8 +50,12 @@ impl Default for KnockSettings {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Knock {
     /// The first frame after the step (µs since the epoch; to within a few frames for a knock
-    /// near the limit).
+    /// near the limit), or from the return to the zero that found it, the last agreement
+    /// before: in words.
     pub unix_us: i64,
+    /// The same frame in the order frames were read: the frames from it on read through the
+    /// turn. The wall clock can step back between two frames; this cannot.
+    pub since: FrameTime,
     /// The head's turn on its mount (yaw and pitch; no offsets).
     pub turn: Mount,
     /// Standard uncertainty of the turn's yaw and pitch (rad).
@@ -73,7 +78,7 @@ impl Knock {
 
 #[derive(Clone, Copy, Debug)]
 struct Point {
-    unix_us: i64,
+    stamp: Stamp,
     position: f64,
     /// Pitch (ex) and yaw (ez), rad.
     angles: [f64; 2],
@@ -123,16 +128,16 @@ impl KnockWatch {
         self.pending = None;
     }
 
-    /// One frame at `unix_us`, the carriage at `position` (mm) and `errors` (the head's frame,
-    /// internal units). Returns a knock once its step has passed the window's middle.
+    /// One frame read at `stamp`, the carriage at `position` (mm) and `errors` (the head's
+    /// frame, internal units). Returns a knock once its step has passed the window's middle.
     /// After a knock the watch starts again: the caller corrects what follows by its turn.
-    pub fn push(&mut self, unix_us: i64, position: f64, errors: &Errors6) -> Option<Knock> {
+    pub fn push(&mut self, stamp: Stamp, position: f64, errors: &Errors6) -> Option<Knock> {
         if !(position.is_finite() && errors.ex.is_finite() && errors.ez.is_finite()) {
             return None;
         }
         let n = 2 * self.settings.half;
         self.window.push_back(Point {
-            unix_us,
+            stamp,
             position,
             angles: [errors.ex, errors.ez],
         });
@@ -254,7 +259,8 @@ impl KnockWatch {
         let first = self.window[split];
         // The head turned by t: it reads pitch and yaw less by t (Mount::head_pose).
         Some(Knock {
-            unix_us: first.unix_us,
+            unix_us: first.stamp.unix_us,
+            since: first.stamp.order(),
             turn: Mount {
                 yaw: -c[1],
                 pitch: -c[0],
@@ -271,6 +277,7 @@ impl KnockWatch {
 mod tests {
     use super::*;
     use crate::sim::Rng;
+    use crate::util::clock::stamp_us;
 
     /// Frames at 500 Hz of a carriage at `speed` mm/s from 0 mm whose true pitch and yaw
     /// wave with the position (8″ over 300 mm wavelengths), 1.4 µrad of noise, the head
@@ -299,7 +306,7 @@ mod tests {
                 ez: amp * (1.3 * k).cos() - turned.0 + rng.gauss(1.4e-6),
                 ..Errors6::ZERO
             };
-            if let Some(found) = w.push(i as i64, pos + rng.gauss(1e-3), &e) {
+            if let Some(found) = w.push(stamp_us(i as i64), pos + rng.gauss(1e-3), &e) {
                 out.push((i, found));
             }
         }
@@ -370,7 +377,7 @@ mod tests {
                 ex: rng.gauss(1.4e-6),
                 ..Errors6::ZERO
             };
-            assert!(w.push(i as i64, pos, &e).is_none(), "at {s} s");
+            assert!(w.push(stamp_us(i as i64), pos, &e).is_none(), "at {s} s");
         }
         // Nor a knock in a move at the feed (the axis' own waves would pass for knocks).
         let got = watch(16, 50.0, 3000, Some((1500, 10e-6, 0.0)));
@@ -382,7 +389,7 @@ mod tests {
         let mut w = KnockWatch::new(KnockSettings::default());
         let e = Errors6::ZERO;
         for i in 0..100 {
-            assert!(w.push(i, 0.0, &e).is_none());
+            assert!(w.push(stamp_us(i), 0.0, &e).is_none());
         }
         w.reset();
         assert!(w.window.is_empty());
@@ -390,8 +397,8 @@ mod tests {
             ez: f64::NAN,
             ..Errors6::ZERO
         };
-        assert!(w.push(0, 0.0, &nan).is_none());
-        assert!(w.push(0, f64::INFINITY, &e).is_none());
+        assert!(w.push(stamp_us(0), 0.0, &nan).is_none());
+        assert!(w.push(stamp_us(0), f64::INFINITY, &e).is_none());
         assert!(w.window.is_empty());
     }
 }

@@ -14,6 +14,7 @@
 
 use super::knock::Knock;
 use super::mount::Mount;
+use crate::util::clock::{FrameTime, Stamp};
 
 /// How the check decides.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -110,9 +111,11 @@ pub struct Revisit {
     zero: Option<Place>,
     /// The side of the zero the carriage was last away on.
     side: Option<i8>,
-    /// The newest frame's time, and the time the head last agreed with the zero (µs).
-    last_us: i64,
+    /// The newest frame's stamp, and when the head last agreed with the zero (the wall clock
+    /// in µs to keep and say, and in the order frames were read).
+    last: Option<Stamp>,
     agreed_us: i64,
+    agreed_at: FrameTime,
     /// Frames at the zero since arriving, and the sums of pitch and yaw (and squares) averaged.
     seen: usize,
     sum: [f64; READ],
@@ -130,8 +133,9 @@ impl Revisit {
             settings,
             zero: None,
             side: None,
-            last_us: 0,
+            last: None,
             agreed_us: 0,
+            agreed_at: FrameTime::Kept(0),
             seen: 0,
             sum: [0.0; READ],
             sum_sq: [0.0; READ],
@@ -148,7 +152,10 @@ impl Revisit {
             position,
             side: self.side,
         });
-        self.agreed_us = self.last_us;
+        (self.agreed_us, self.agreed_at) = match self.last {
+            Some(s) => (s.unix_us, s.order()),
+            None => (0, FrameTime::Kept(0)),
+        };
         self.restart();
         self.judged = true;
     }
@@ -172,6 +179,7 @@ impl Revisit {
         });
         self.side = None;
         self.agreed_us = state.agreed_us;
+        self.agreed_at = FrameTime::Kept(state.agreed_us);
         self.restart();
         self.judged = false;
     }
@@ -214,13 +222,13 @@ impl Revisit {
         (mean, sd)
     }
 
-    /// One frame at `unix_us`: the measured position (mm), what the head reads relative to the
-    /// zero (pitch and yaw in rad, dx and dz in mm: the angles judge a turn, all four are
-    /// what an agreement read), and the zero's own standard uncertainty of each. A turn
+    /// One frame read at `stamp`: the measured position (mm), what the head reads relative
+    /// to the zero (pitch and yaw in rad, dx and dz in mm: the angles judge a turn, all four
+    /// are what an agreement read), and the zero's own standard uncertainty of each. A turn
     /// found: the knock, at the time the head last agreed with the zero.
     pub fn push(
         &mut self,
-        unix_us: i64,
+        stamp: Stamp,
         position: f64,
         read: [f64; READ],
         zero_sd: [f64; READ],
@@ -228,7 +236,8 @@ impl Revisit {
         if !(position.is_finite() && read.iter().all(|a| a.is_finite())) {
             return None;
         }
-        self.last_us = unix_us;
+        self.last = Some(stamp);
+        let unix_us = stamp.unix_us;
         let s = self.settings;
         let place = self.zero.as_mut()?;
         let d = position - place.position;
@@ -286,12 +295,14 @@ impl Revisit {
             turned,
             "back at the zero: pitch and yaw against the zero's"
         );
-        let since = std::mem::replace(&mut self.agreed_us, unix_us);
+        let since_us = std::mem::replace(&mut self.agreed_us, unix_us);
+        let since = std::mem::replace(&mut self.agreed_at, stamp.order());
         if !turned {
             self.agreement = Some(Agreement { unix_us, mean, sd });
         }
         turned.then_some(Knock {
-            unix_us: since,
+            unix_us: since_us,
+            since,
             turn: Mount {
                 yaw: -mean[1],
                 pitch: -mean[0],
@@ -307,6 +318,7 @@ impl Revisit {
 mod tests {
     use super::*;
     use crate::sim::Rng;
+    use crate::util::clock::stamp_us;
 
     /// Frames every 2 ms from `t0` (µs) at `position` with pitch and yaw `angles` plus 1.4 µrad
     /// of noise each: the knock found, if any.
@@ -326,7 +338,7 @@ mod tests {
                 rng.gauss(0.5e-3),
                 rng.gauss(0.5e-3),
             ];
-            if let Some(k) = r.push(t0 + 2000 * i as i64, position, a, [0.05e-6; READ]) {
+            if let Some(k) = r.push(stamp_us(t0 + 2000 * i as i64), position, a, [0.05e-6; READ]) {
                 assert!(found.is_none(), "one knock a stay");
                 found = Some(k);
             }
@@ -356,6 +368,7 @@ mod tests {
         assert!(stay(&mut r, &mut rng, 7_000_000, -2.0, turned, 10).is_none());
         let k = stay(&mut r, &mut rng, 8_000_000, 0.0, turned, 500).expect("the turn found");
         assert_eq!(k.unix_us, agreed);
+        assert_eq!(k.since, stamp_us(agreed).order());
         assert!((k.turn.yaw + 3.0e-6).abs() < 0.5e-6, "yaw {:e}", k.turn.yaw);
         assert!(
             (k.turn.pitch - 2.0e-6).abs() < 0.5e-6,
@@ -398,6 +411,8 @@ mod tests {
         assert!(stay(&mut back, &mut rng, 10_000_000, -2.0, turned, 10).is_none());
         let k = stay(&mut back, &mut rng, 11_000_000, 0.0, turned, 500).expect("found");
         assert_eq!(k.unix_us, kept.agreed_us);
+        // Before every frame of the new process, whatever its wall clock says.
+        assert_eq!(k.since, FrameTime::Kept(kept.agreed_us));
         assert!((k.turn.yaw + 4.0e-6).abs() < 0.5e-6, "yaw {:e}", k.turn.yaw);
         // Unturned, it agrees at that return instead, and the agreement moves on.
         let mut calm = Revisit::new(RevisitSettings::default());

@@ -135,7 +135,6 @@ pub enum Decision {
 #[derive(Clone, Debug, PartialEq)]
 struct Event {
     what: String,
-    unix_us: i64,
     moves: [bool; 6],
 }
 
@@ -216,16 +215,15 @@ impl Judge {
         })
     }
 
-    /// An event that can move the reference happened at `unix_us`; `moves`: the errors it
+    /// An event that can move the reference happened; `moves`: the errors it
     /// can move (PSD2's stitch moves those read through PSD2, not the straightness PSD1 and
     /// PSD3 read). A capture after it that is off its group in another error is not taken as
     /// the event's move: in the storm, a knock of the head not yet found (dx 4.6 µm) was taken
     /// for a stitch's move, the zero shifted by it, and once the knock was found and taken
     /// out, every later capture read dx 4.5 µm off the truth.
-    pub fn event(&mut self, what: &str, unix_us: i64, moves: [bool; 6]) {
+    pub fn event(&mut self, what: &str, moves: [bool; 6]) {
         self.events.push(Event {
             what: what.to_string(),
-            unix_us,
             moves,
         });
     }
@@ -451,7 +449,6 @@ impl Judge {
                 // shift are held and checked again, until one agrees with those from before.
                 self.events = vec![Event {
                     what: format!("the zero was shifted back by {off}"),
-                    unix_us: c.unix_us,
                     moves,
                 }];
                 return out;
@@ -643,7 +640,7 @@ mod tests {
                 1
             );
         }
-        j.event("a following error", 20, MOVES_ALL);
+        j.event("a following error", MOVES_ALL);
         assert_eq!(j.unverified(), Some("a following error"));
         // Run 1 down has no capture from before: held.
         for t in (0..3).rev() {
@@ -687,7 +684,7 @@ mod tests {
             Repeatability::default(),
             [cap(1, 0, Direction::Up, -4.0, 1)],
         );
-        j.event("PSD2's stitch re-referenced", 5, stitch);
+        j.event("PSD2's stitch re-referenced", stitch);
         assert!(j.offer(cap(1, 1, Direction::Up, 7.0, 6)).is_empty());
         let mut knocked = cap(2, 0, Direction::Up, -4.1, 7);
         knocked.errors.dx = -4.6e-3;
@@ -715,7 +712,7 @@ mod tests {
             Repeatability::default(),
             [cap(1, 0, Direction::Up, -4.0, 1)],
         );
-        j.event("PSD2's stitch re-referenced", 5, stitch);
+        j.event("PSD2's stitch re-referenced", stitch);
         let d = j.offer(cap(2, 0, Direction::Up, 1.0, 7));
         assert!(matches!(d[0], Decision::ShiftZero { .. }), "{d:?}");
     }
@@ -723,9 +720,9 @@ mod tests {
     #[test]
     fn captures_held_before_a_second_event_are_retaken_when_the_reference_moved() {
         let mut j = Judge::new(Repeatability::default(), [cap(1, 0, Direction::Up, 0.0, 1)]);
-        j.event("PSD2's stitch re-referenced", 5, MOVES_ALL);
+        j.event("PSD2's stitch re-referenced", MOVES_ALL);
         assert!(j.offer(cap(1, 1, Direction::Up, 10.0, 6)).is_empty());
-        j.event("a resume after a restart", 7, MOVES_ALL);
+        j.event("a resume after a restart", MOVES_ALL);
         assert!(j.offer(cap(1, 2, Direction::Up, 20.0, 8)).is_empty());
         // 5 µm off run 1: the reference since the resume moved by 5 µm; what came before the
         // resume was under a reference nothing measured.
@@ -744,7 +741,7 @@ mod tests {
             Repeatability::default(),
             [cap(1, 0, Direction::Up, -4.0, 1)],
         );
-        j.event("PSD2 re-referenced by the encoder", 5, MOVES_ALL);
+        j.event("PSD2 re-referenced by the encoder", MOVES_ALL);
         assert!(j.offer(cap(1, 1, Direction::Up, 7.0, 6)).is_empty());
         let d = j.offer(cap(2, 0, Direction::Up, -4.2, 7));
         assert_eq!(stored(&d), [(1, 1), (2, 0)]);
@@ -757,9 +754,9 @@ mod tests {
             Repeatability::default(),
             [cap(1, 0, Direction::Up, -4.0, 1)],
         );
-        j.event("PSD2's stitch re-referenced", 5, MOVES_ALL);
+        j.event("PSD2's stitch re-referenced", MOVES_ALL);
         assert!(j.offer(cap(1, 1, Direction::Up, 7.0, 6)).is_empty());
-        j.event("a resume after a restart", 7, MOVES_ALL);
+        j.event("a resume after a restart", MOVES_ALL);
         assert!(j.offer(cap(1, 2, Direction::Up, 8.0, 8)).is_empty());
         let d = j.offer(cap(2, 0, Direction::Up, -4.1, 9));
         assert_eq!(stored(&d), [(1, 1), (1, 2), (2, 0)]);
@@ -770,7 +767,7 @@ mod tests {
     fn the_review_stores_a_first_epoch_and_flags_the_odd_one_of_a_group() {
         // An event before any capture: the run's reference is the one after it.
         let mut j = Judge::new(Repeatability::default(), []);
-        j.event("a resume after a restart", 1, MOVES_ALL);
+        j.event("a resume after a restart", MOVES_ALL);
         assert!(j.offer(cap(1, 0, Direction::Up, -4.0, 2)).is_empty());
         assert_eq!(stored(&j.review()), [(1, 0)]);
         // The first capture was the odd one: three agree against it at the end.

@@ -570,7 +570,7 @@ impl Measure {
         self.frame_cov = est.cov;
         let layout = self.decoupler.layout();
         let mut read = self.turned.undo(layout, travel, est.errors);
-        if let Some(k) = self.turned.watch.push(frame.unix_us, travel, &read) {
+        if let Some(k) = self.turned.watch.push(frame.stamp(), travel, &read) {
             // The frames since the knock read through a turn not taken out yet: dropped.
             self.turned.add(k);
             read = self.turned.undo(layout, travel, est.errors);
@@ -592,7 +592,7 @@ impl Measure {
         if let Some(k) = self
             .turned
             .revisit
-            .push(frame.unix_us, at, order.map(|k| rel[k]), zero_sd)
+            .push(frame.stamp(), at, order.map(|k| rel[k]), zero_sd)
         {
             // Found back at the zero: the frames of this stay read through it too.
             self.turned.add(k);

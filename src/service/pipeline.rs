@@ -144,9 +144,9 @@ struct PendingZero {
 /// A zero is retaken at most this many times for follower steps in its window.
 const ZERO_RETAKES: u8 = 3;
 
-/// A knock's step is placed to within this (µs): the captures it may have reached are
-/// counted from this much before it.
-const KNOCK_PLACED_US: i64 = 100_000;
+/// A knock's step is placed to within this: the captures it may have reached are counted
+/// from this much before it.
+const KNOCK_PLACED: Duration = Duration::from_millis(100);
 
 /// A PSD without a spot for this long pauses a run (a beam cut for a moment does not).
 pub const PAUSE_AFTER: Duration = Duration::from_millis(500);
@@ -518,7 +518,7 @@ impl Pipeline {
             _ => None,
         };
         if let Some(moves) = moves {
-            run.reference_event(&detail, crate::util::clock::unix_us(), moves);
+            run.reference_event(&detail, moves);
         }
         self.outputs.push_back(Output::RunEvent {
             kind: kind.into(),
@@ -535,7 +535,7 @@ impl Pipeline {
         let Some(run) = self.run.as_mut() else {
             return;
         };
-        run.knocked(k.unix_us - KNOCK_PLACED_US, &what);
+        run.knocked(k.since.earlier(KNOCK_PLACED), &what);
         self.drain_run();
         self.outputs.push_back(Output::RunEvent {
             kind: "knock".into(),

@@ -48,6 +48,57 @@ pub fn unix_us_of(t: SystemTime) -> i64 {
         .unwrap_or(0)
 }
 
+/// When a frame was read: by the monotonic clock, which orders frames, and by the wall clock,
+/// which names them for people and the store. The wall clock can step back (an NTP
+/// correction, a clock set by hand): what came before what is never judged by it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Stamp {
+    pub at: Instant,
+    pub unix_us: i64,
+}
+
+impl Stamp {
+    /// Where this frame stands in the order frames were read.
+    pub fn order(&self) -> FrameTime {
+        FrameTime::Read(self.at)
+    }
+}
+
+/// A place in the order frames were read: a frame of this process by its monotonic time, or
+/// a time kept from before a restart (wall clock, µs), which comes before every frame of this
+/// process. Times kept are ordered among themselves by the wall clock they were stored with.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum FrameTime {
+    Kept(i64),
+    Read(Instant),
+}
+
+impl FrameTime {
+    /// `d` earlier: a kept time by as much on the wall clock; a frame's so early that the
+    /// monotonic clock cannot say it (the first moments after boot) before everything.
+    pub fn earlier(self, d: Duration) -> FrameTime {
+        let us = i64::try_from(d.as_micros()).unwrap_or(i64::MAX);
+        match self {
+            FrameTime::Kept(t) => FrameTime::Kept(t.saturating_sub(us)),
+            FrameTime::Read(t) => t
+                .checked_sub(d)
+                .map_or(FrameTime::Kept(i64::MIN), FrameTime::Read),
+        }
+    }
+}
+
+/// A frame read `us` µs after a fixed instant, the wall clock reading `us` too: for tests of
+/// the state machines that take frames' stamps.
+#[cfg(test)]
+pub fn stamp_us(us: i64) -> Stamp {
+    static BASE: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
+    // An hour ahead of the first call, so that times a little before zero can be said.
+    let base = *BASE.get_or_init(|| Instant::now() + Duration::from_secs(3600));
+    let d = Duration::from_micros(us.unsigned_abs());
+    let at = if us >= 0 { base + d } else { base - d };
+    Stamp { at, unix_us: us }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -71,5 +122,34 @@ mod tests {
         let c = Instant::now();
         assert!(a <= b && b <= c);
         assert!((unix_us() - unix_us_of(SystemTime::now())).abs() < 1_000_000);
+    }
+
+    /// Frames order by their monotonic time, whatever the wall clock did; a time kept from
+    /// before a restart comes before every frame of this process.
+    #[test]
+    fn frames_order_by_the_monotonic_clock_and_kept_times_before_them() {
+        let t = Instant::now() + Duration::from_secs(10);
+        let later = Stamp {
+            at: t + Duration::from_millis(2),
+            unix_us: 1_000,
+        };
+        let earlier = Stamp {
+            at: t,
+            unix_us: 3_600_000_000,
+        };
+        assert!(
+            later.order() > earlier.order(),
+            "a wall clock stepped back an hour"
+        );
+        assert!(FrameTime::Kept(i64::MAX) < earlier.order());
+        assert!(FrameTime::Kept(5) < FrameTime::Kept(6));
+        assert_eq!(
+            later.order().earlier(Duration::from_millis(2)),
+            earlier.order()
+        );
+        assert_eq!(
+            FrameTime::Kept(1_000).earlier(Duration::from_millis(2)),
+            FrameTime::Kept(-1_000)
+        );
     }
 }
