@@ -75,36 +75,17 @@ pub struct RevisitState {
 pub struct Agreement {
     /// When the head agreed (µs): one agreement a stay.
     pub unix_us: i64,
-    /// The mean pitch and yaw (rad), the straightnesses dx and dz and the positioning dy (mm)
-    /// against the zero's. An agreement kept before dy was read has none (read as 0 ± 0).
-    #[serde(deserialize_with = "read_or_without_dy")]
+    /// The mean pitch and yaw (rad) and the straightnesses dx and dz (mm) against the zero's.
     pub mean: [f64; READ],
     /// The mean's standard uncertainty: the frames' and the zero's own.
-    #[serde(deserialize_with = "read_or_without_dy")]
     pub sd: [f64; READ],
-}
-
-/// What an agreement read, as kept: all of `READ`, or the four before dy was read.
-fn read_or_without_dy<'de, D: serde::Deserializer<'de>>(d: D) -> Result<[f64; READ], D::Error> {
-    let v: Vec<f64> = serde::Deserialize::deserialize(d)?;
-    match v.len() {
-        READ => Ok(std::array::from_fn(|k| v[k])),
-        4 => Ok(std::array::from_fn(|k| v.get(k).copied().unwrap_or(0.0))),
-        n => Err(serde::de::Error::invalid_length(
-            n,
-            &"pitch, yaw, dx, dz and (since issue 24) dy",
-        )),
-    }
 }
 
 impl Agreement {
     /// What it read, in words: "pitch +0.12 ± 0.05 µrad, yaw …, dx +0.03 ± 0.02 µm, dz …".
     pub fn words(&self) -> String {
-        let name = ["pitch", "yaw", "dx", "dz", "dy"];
-        let (unit, scale) = (
-            ["µrad", "µrad", "µm", "µm", "µm"],
-            [1e6, 1e6, 1e3, 1e3, 1e3],
-        );
+        let name = ["pitch", "yaw", "dx", "dz"];
+        let (unit, scale) = (["µrad", "µrad", "µm", "µm"], [1e6, 1e6, 1e3, 1e3]);
         (0..READ)
             .map(|k| {
                 format!(
@@ -120,12 +101,8 @@ impl Agreement {
     }
 }
 
-/// What a return reads against the zero: pitch, yaw (rad), dx, dz and dy (mm). A turn of the
-/// head undone about the mount's nominal pivot, not its own, leaves a translation the angles
-/// do not show: across the travel in dx and dz, and along it in dy (a yaw θ about a pivot Δx
-/// across the axis moves dy by θ·Δx at every target). The return reads what is left there,
-/// from the zero's side, where the axis repeats.
-pub const READ: usize = 5;
+/// What a return reads against the zero: pitch, yaw (rad), dx, dz (mm).
+pub const READ: usize = 4;
 
 /// The check of each return to the zero.
 #[derive(Clone, Debug)]
@@ -246,8 +223,8 @@ impl Revisit {
     }
 
     /// One frame read at `stamp`: the measured position (mm), what the head reads relative
-    /// to the zero (pitch and yaw in rad, dx, dz and dy in mm: the angles judge a turn, all
-    /// five are what an agreement read), and the zero's own standard uncertainty of each. A turn
+    /// to the zero (pitch and yaw in rad, dx and dz in mm: the angles judge a turn, all four
+    /// are what an agreement read), and the zero's own standard uncertainty of each. A turn
     /// found: the knock, at the time the head last agreed with the zero.
     pub fn push(
         &mut self,
@@ -360,7 +337,6 @@ mod tests {
                 angles[1] + rng.gauss(1.4e-6),
                 rng.gauss(0.5e-3),
                 rng.gauss(0.5e-3),
-                rng.gauss(1.2e-3),
             ];
             if let Some(k) = r.push(stamp_us(t0 + 2000 * i as i64), position, a, [0.05e-6; READ]) {
                 assert!(found.is_none(), "one knock a stay");

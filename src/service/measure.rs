@@ -237,9 +237,8 @@ impl Turned {
             v = std::array::from_fn(|k| y[k] * y[k] + p[k] * p[k]);
         }
         if let Some(a) = &self.seen {
-            // pitch, yaw, dx, dz, dy as read: each bounded by its square plus its variance.
-            let b: [f64; crate::align::revisit::READ] =
-                std::array::from_fn(|k| a.mean[k].hypot(a.sd[k]));
+            // pitch, yaw, dx, dz as read: each bounded by its square plus its variance.
+            let b: [f64; 4] = std::array::from_fn(|k| a.mean[k].hypot(a.sd[k]));
             // The straightness off at the zero, and the turn's part that grows from there.
             let unit = 1e-6;
             let (y, y0) = (
@@ -252,9 +251,6 @@ impl Turned {
             );
             v[0] += (b[2] + b[1] * ((y[0] - y0[0]) / unit).abs()).powi(2);
             v[2] += (b[3] + b[0] * ((p[2] - p0[2]) / unit).abs()).powi(2);
-            // Along the travel, what a turn undone about another pivot leaves is the same at
-            // every target: as read at the zero.
-            v[1] += b[4] * b[4];
             v[3] += b[0] * b[0];
             v[5] += b[1] * b[1];
         }
@@ -266,9 +262,9 @@ impl Turned {
     /// is read), it reads `a.mean` ± `a.sd`. Each reading's square plus its variance (its
     /// expectation: the error's variance and the noise's twice) bounds the turns' error from
     /// then on, in place of their own variance: in pitch and yaw as read, in dx and dz as
-    /// read at the zero plus the turn's part growing with the distance from it, in dy as read
-    /// at the zero (a turn found about a pivot a little off the head's true one leaves
-    /// straightness and positioning offsets that the angles do not show). The turn itself is left as found, so that neither the noise of
+    /// read at the zero plus the turn's part growing with the distance from it (a turn found
+    /// about a pivot a little off the head's true one leaves a straightness offset that the
+    /// angles do not show). The turn itself is left as found, so that neither the noise of
     /// one stay nor the axis' own return is taken for a turn. Refined as the stay's frames
     /// come in. Without a turn found since the zero, there is nothing to bound.
     fn bound(&mut self, a: Agreement) {
@@ -587,14 +583,14 @@ impl Measure {
             self.turned.revisit.restart();
             self.reference_changed = true;
         }
-        // Pitch, yaw, dx, dz and dy relative to the zero, for the check of each return to it.
-        let order = [3, 5, 0, 2, 1];
+        // Pitch, yaw, dx and dz relative to the zero, for the check of each return to it.
+        let order = [3, 5, 0, 2];
         let (rel, zero_sd) = match &self.zero {
             Some(z) => (
                 read.to_vector() - z.errors,
                 order.map(|k| z.cov[(k, k)].sqrt()),
             ),
-            None => (read.to_vector(), [0.0; crate::align::revisit::READ]),
+            None => (read.to_vector(), [0.0; 4]),
         };
         let at = travel + read.dy;
         let agreed = self.turned.revisit.agreed_us();
@@ -1215,101 +1211,6 @@ mod tests {
         eprintln!("dx's sd at 800 mm after the return / before: {ratios:.2?}");
         let mean = ratios.iter().sum::<f64>() / ratios.len() as f64;
         assert!(mean < 0.7, "dx's sd fell to {mean:.2} of itself on average");
-    }
-
-    /// The head turns about its own pivot, 15 mm across the axis from the mount's nominal one
-    /// the service undoes turns about: a 30 µrad yaw leaves dy 0.45 µm off at every target,
-    /// which the angles do not show. The return that agrees reads it at the zero, and the bound
-    /// carries it into dy's variance from then on: the live dy at 600 mm is within 3 sd of
-    /// the truth. Without dy in the bound, dy's sd stayed 0.09 µm against 0.49 µm off.
-    #[test]
-    fn a_turn_about_another_pivot_leaves_dy_that_the_return_bounds() {
-        let layout = Layout::reference();
-        let dec = nominal(&layout, Method::Linear);
-        let truth = |d: f64| Errors6::from_user([0.004 * d, -0.002 * d, 0.0, 1.0, 0.0, -1.0]);
-        let mut own = MountGeometry::default().pivot();
-        own.x += 15.0;
-        let read = |d: f64, yaw: f64| {
-            let m = Mount {
-                yaw,
-                ..Mount::default()
-            };
-            Pose::new(
-                m.head_pose(own, layout.c, layout.travel_axis, d, &truth(d)),
-                d,
-                d,
-            )
-        };
-        let yaw = 30e-6;
-        let mut left = Vec::new();
-        for seed in [31, 32, 33] {
-            let mut m = Measure::new(dec.clone(), Duration::from_millis(500));
-            let mut rng = Rng::new(seed);
-            let t0 = crate::util::clock::now();
-            let mut i = 0u64;
-            let mut feed = |m: &mut Measure, d: f64, yaw: f64, frames: u64| {
-                m.set_nominal(Some(d));
-                for _ in 0..frames {
-                    let t = t0 + Duration::from_millis(2 * i);
-                    let f = frame_at(&layout, &read(d, yaw), &mut rng, t, 1e-3);
-                    m.handle_frame(&f, &stitch(d, 0.0), t).unwrap();
-                    i += 1;
-                }
-            };
-            feed(&mut m, -2.0, 0.0, 20);
-            m.start_zero();
-            feed(&mut m, 0.0, 0.0, 500);
-            m.set_zero(None).unwrap();
-            feed(&mut m, 0.0, yaw, 600);
-            assert!(m.take_knock().is_some(), "seed {seed}: the knock found");
-            feed(&mut m, -2.0, yaw, 20);
-            feed(&mut m, 0.0, yaw, 900);
-            let a = m
-                .take_bounded()
-                .expect("the return agrees and bounds the turn");
-            // What the turn about the other pivot left, as the return read it (mm).
-            let dy_read = a.mean[4];
-            feed(&mut m, 600.0, yaw, 250);
-            let live = m.live().unwrap();
-            let off = live.errors.dy - (truth(600.0).dy - truth(0.0).dy);
-            left.push(off * 1e3);
-            assert!(
-                off.abs() > 0.3e-3,
-                "seed {seed}: the other pivot leaves dy {:.2} µm",
-                off * 1e3
-            );
-            // Both means of frames that read dy to 1.2 µm: the return's over its 250 frames
-            // as first judged, the live window's over 250.
-            assert!(
-                (off - dy_read).abs() < 3.0 * a.sd[4].hypot(1.2e-3 / 250f64.sqrt()),
-                "seed {seed}: dy {:.2} µm off at 600 mm, {:.2} µm read at the zero",
-                off * 1e3,
-                dy_read * 1e3
-            );
-            assert!(
-                off.abs() <= 3.0 * live.sd.dy,
-                "seed {seed}: dy {:.2} µm off, sd {:.2} µm",
-                off * 1e3,
-                live.sd.dy * 1e3
-            );
-        }
-        eprintln!("dy left by the other pivot at 600 mm (µm): {left:.2?}");
-    }
-
-    /// An agreement kept before the return read dy (four numbers) is read with dy 0 ± 0.
-    #[test]
-    fn an_agreement_kept_before_dy_was_read_is_read_without_it() {
-        let kept = r#"{"unix_us":5,"mean":[1e-7,2e-7,1e-5,2e-5],"sd":[1e-8,1e-8,1e-6,1e-6]}"#;
-        let a: Agreement = serde_json::from_str(kept).expect("an agreement of four");
-        assert_eq!(a.mean, [1e-7, 2e-7, 1e-5, 2e-5, 0.0]);
-        assert_eq!(a.sd[4], 0.0);
-        let now = serde_json::to_string(&a).unwrap();
-        assert_eq!(serde_json::from_str::<Agreement>(&now).unwrap(), a);
-        let bad = r#"{"unix_us":5,"mean":[1e-7,2e-7],"sd":[1e-8,1e-8]}"#;
-        let e = serde_json::from_str::<Agreement>(bad)
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("dy"), "{e}");
     }
 
     #[test]
