@@ -10,8 +10,11 @@
 //! carriage's position (an axis' waviness over the window) plus a step between the two halves, and tests the step against the
 //! scatter about that fit. It reports a knock where the step's significance peaks (the step
 //! in the middle of the window), with the turn that explains it and that turn's standard
-//! uncertainty. A knock that only shifts the head (no turn) is not seen here: the run's judge
-//! finds such a shift against the captures from before (`run::judge`).
+//! uncertainty. The same fit gives the steps dx, dy and dz took with it ([`Step`]): a turn about
+//! a pivot off the nominal one moves the head across and along the beam as well, by the turn
+//! times the pivot's error (a real mount's pivot is known to a few centimetres), which the
+//! turn alone does not undo. A knock that only shifts the head (no turn) is not seen here: the
+//! run's judge finds such a shift against the captures from before (`run::judge`).
 //!
 //! Sans-I/O: the caller gives each frame's time, position and errors, and resets the watch
 //! where the errors it gives step for another reason (a new zero, another decoupler).
@@ -62,6 +65,17 @@ pub struct Knock {
     pub sd_rad: [f64; 2],
     /// How many standard deviations the step stood out.
     pub z: f64,
+    /// What dx, dy and dz stepped by with the turn, as read (found in the frames; none for a
+    /// turn found at a return to the zero, where the carriage came back from a move).
+    pub step: Option<Step>,
+}
+
+/// The steps of dx, dy and dz (mm) at a knock, as the head read them, and their standard
+/// uncertainties.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Step {
+    pub mm: [f64; 3],
+    pub sd_mm: [f64; 3],
 }
 
 impl Knock {
@@ -80,8 +94,8 @@ impl Knock {
 struct Point {
     stamp: Stamp,
     position: f64,
-    /// Pitch (ex) and yaw (ez), rad.
-    angles: [f64; 2],
+    /// Pitch (ex) and yaw (ez), rad, then dx, dy, dz, mm: the angles decide, all five step.
+    read: [f64; 5],
 }
 
 /// Below this spread of positions (mm) the window is at rest: no slope is fitted.
@@ -132,14 +146,15 @@ impl KnockWatch {
     /// frame, internal units). Returns a knock once its step has passed the window's middle.
     /// After a knock the watch starts again: the caller corrects what follows by its turn.
     pub fn push(&mut self, stamp: Stamp, position: f64, errors: &Errors6) -> Option<Knock> {
-        if !(position.is_finite() && errors.ex.is_finite() && errors.ez.is_finite()) {
+        let read = [errors.ex, errors.ez, errors.dx, errors.dy, errors.dz];
+        if !(position.is_finite() && read.iter().all(|v| v.is_finite())) {
             return None;
         }
         let n = 2 * self.settings.half;
         self.window.push_back(Point {
             stamp,
             position,
-            angles: [errors.ex, errors.ez],
+            read,
         });
         if self.window.len() > n {
             self.window.pop_front();
@@ -183,8 +198,9 @@ impl KnockWatch {
         }
     }
 
-    /// The step before frame `split` of the window, each angle fitted as a + b·x + q·x² +
-    /// c·step (x the position from the window's mean; at rest, a + c·step).
+    /// The step before frame `split` of the window, each angle (and each straightness and dy)
+    /// fitted as a + b·x + q·x² + c·step (x the position from the window's mean; at rest,
+    /// a + c·step).
     fn step_at(&self, split: usize) -> Option<Knock> {
         let n = self.window.len();
         let mean_pos = self.window.iter().map(|p| p.position).sum::<f64>() / n as f64;
@@ -215,12 +231,12 @@ impl KnockWatch {
             Vector4::new(1.0, x, x * x, if i >= split { 1.0 } else { 0.0 })
         };
         let mut xtx = Matrix4::zeros();
-        let mut xty = [Vector4::zeros(); 2];
+        let mut xty = [Vector4::zeros(); 5];
         for (i, p) in self.window.iter().enumerate() {
             let x = row(i, p);
             xtx += x * x.transpose();
-            for (sum, angle) in xty.iter_mut().zip(p.angles) {
-                *sum += x * angle;
+            for (sum, v) in xty.iter_mut().zip(p.read) {
+                *sum += x * v;
             }
         }
         if !moving {
@@ -237,25 +253,25 @@ impl KnockWatch {
             return None;
         }
         let dof = n as f64 - if moving { 4.0 } else { 2.0 };
-        let mut c = [0.0; 2];
-        let mut sd = [0.0; 2];
-        let mut chi2 = 0.0;
-        for a in 0..2 {
+        let mut c = [0.0; 5];
+        let mut sd = [0.0; 5];
+        for a in 0..5 {
             let beta = inv * xty[a];
             let rss: f64 = self
                 .window
                 .iter()
                 .enumerate()
-                .map(|(i, p)| (p.angles[a] - row(i, p).dot(&beta)).powi(2))
+                .map(|(i, p)| (p.read[a] - row(i, p).dot(&beta)).powi(2))
                 .sum();
             let var_c = rss / dof * inv[(3, 3)];
-            if var_c.is_nan() || var_c <= 0.0 {
+            // The angles decide: without scatter there is no significance to test.
+            if var_c.is_nan() || a < 2 && var_c <= 0.0 {
                 return None;
             }
             c[a] = beta[3];
-            sd[a] = var_c.sqrt();
-            chi2 += c[a] * c[a] / var_c;
+            sd[a] = var_c.max(0.0).sqrt();
         }
+        let chi2 = (0..2).map(|a| c[a] * c[a] / (sd[a] * sd[a])).sum::<f64>();
         let first = self.window[split];
         // The head turned by t: it reads pitch and yaw less by t (Mount::head_pose).
         Some(Knock {
@@ -269,6 +285,10 @@ impl KnockWatch {
             },
             sd_rad: [sd[1], sd[0]],
             z: chi2.sqrt(),
+            step: Some(Step {
+                mm: [c[2], c[3], c[4]],
+                sd_mm: [sd[2], sd[3], sd[4]],
+            }),
         })
     }
 }
@@ -288,22 +308,40 @@ mod tests {
         frames: usize,
         knock: Option<(usize, f64, f64)>,
     ) -> Vec<(usize, Knock)> {
+        watch_shifted(seed, speed, frames, knock, [0.0; 3])
+    }
+
+    /// As [`watch`], the straightnesses and dy waving too (a micrometre over the same
+    /// wavelengths, 0.3 µm of noise), and stepping by `shift` (mm) with the knock.
+    fn watch_shifted(
+        seed: u64,
+        speed: f64,
+        frames: usize,
+        knock: Option<(usize, f64, f64)>,
+        shift: [f64; 3],
+    ) -> Vec<(usize, Knock)> {
         let mut rng = Rng::new(seed);
         let mut w = KnockWatch::new(KnockSettings::default());
         let amp = 8.0 * 4.848e-6;
         let mut out = Vec::new();
         let mut turned = (0.0, 0.0);
+        let mut moved = [0.0; 3];
         for i in 0..frames {
             if let Some((at, yaw, pitch)) = knock
                 && i == at
             {
                 turned = (yaw, pitch);
+                moved = shift;
             }
             let pos = speed * i as f64 / 500.0;
             let k = std::f64::consts::TAU * pos / 300.0;
+            let wave = |j: f64| 1e-3 * (j * k).sin();
             let e = Errors6 {
                 ex: amp * k.sin() - turned.1 + rng.gauss(1.4e-6),
                 ez: amp * (1.3 * k).cos() - turned.0 + rng.gauss(1.4e-6),
+                dx: wave(0.7) + moved[0] + rng.gauss(0.3e-3),
+                dy: wave(1.1) + moved[1] + rng.gauss(0.3e-3),
+                dz: wave(0.9) + moved[2] + rng.gauss(0.3e-3),
                 ..Errors6::ZERO
             };
             if let Some(found) = w.push(stamp_us(i as i64), pos + rng.gauss(1e-3), &e) {
@@ -346,6 +384,29 @@ mod tests {
                         "at {speed} mm/s: {est:e} for {truth:e} (sd {sd:e})"
                     );
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn a_knock_s_steps_in_the_straightnesses_and_dy_are_read_with_its_turn() {
+        // A 10 µrad yaw about a pivot 15 mm off: dx steps by the turn's lever (here stated
+        // as read), dy by 0.15 µm, dz not; at rest and creeping, each within 4 of its sd.
+        for (seed, speed) in [(21, 0.0), (22, 2.0), (23, 0.0)] {
+            let shift = [-2.1e-3, 0.15e-3, 0.0];
+            let got = watch_shifted(seed, speed, 2000, Some((1000, 10e-6, 0.0)), shift);
+            assert_eq!(got.len(), 1, "seed {seed} at {speed} mm/s: {got:?}");
+            let step = got[0]
+                .1
+                .step
+                .expect("a knock in the frames reads its steps");
+            for ((got, sd), want) in step.mm.iter().zip(step.sd_mm).zip(shift) {
+                // 0.3 µm a frame over 160 frames a side: 0.034 µm at rest.
+                assert!(sd > 0.01e-3 && sd < 0.1e-3, "sd {:?}", step.sd_mm);
+                assert!(
+                    (got - want).abs() < 4.0 * sd,
+                    "seed {seed} at {speed} mm/s: step {got:e} for {want:e} (sd {sd:e})"
+                );
             }
         }
     }

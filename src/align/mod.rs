@@ -16,7 +16,7 @@ pub mod knock;
 pub mod mount;
 pub mod revisit;
 
-pub use knock::{Knock, KnockSettings, KnockWatch};
+pub use knock::{Knock, KnockSettings, KnockWatch, Step};
 pub use mount::{Mount, MountGeometry, Screw};
 pub use revisit::{Agreement, Revisit, RevisitSettings, RevisitState};
 

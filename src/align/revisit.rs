@@ -310,6 +310,7 @@ impl Revisit {
             },
             sd_rad: [sd[1], sd[0]],
             z,
+            step: None,
         })
     }
 }

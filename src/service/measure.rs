@@ -85,6 +85,44 @@ pub struct ReferenceState {
     /// was recorded).
     #[serde(default)]
     pub seen: Option<Agreement>,
+    /// What the knocks moved the head by beyond their turns (none in a row kept before it was
+    /// recorded: every turn's move is then taken as unread).
+    #[serde(default)]
+    pub shifts: Option<Shifts>,
+}
+
+/// The head's moves at its knocks beyond what their turns about the mount's nominal pivot
+/// explain: read where the knock was found in the frames (`align::Step`), and for the turns
+/// found at a return to the zero, which read no step, what the pivot's uncertainty leaves.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Shifts {
+    /// dx, dy, dz (mm) read beyond the turns, taken out of every frame with them.
+    pub mm: [f64; 3],
+    /// Their variance (mm²).
+    pub var_mm2: [f64; 3],
+    /// The yaw and pitch (rad) of the turns whose move was not read: since the zero, and since
+    /// the last return to the zero that agreed (which reads dx and dz, not dy).
+    pub unread_rad: [f64; 2],
+    pub unread_since_agreed_rad: [f64; 2],
+}
+
+impl Shifts {
+    /// Every turn's move unread: a row kept before the moves were recorded.
+    fn unread(turn_rad: [f64; 2], pending: bool) -> Shifts {
+        Shifts {
+            unread_rad: turn_rad,
+            unread_since_agreed_rad: if pending { turn_rad } else { [0.0; 2] },
+            ..Shifts::default()
+        }
+    }
+
+    fn numbers(&self) -> impl Iterator<Item = &f64> {
+        self.mm
+            .iter()
+            .chain(&self.var_mm2)
+            .chain(&self.unread_rad)
+            .chain(&self.unread_since_agreed_rad)
+    }
 }
 
 impl ReferenceState {
@@ -112,6 +150,11 @@ impl ReferenceState {
             && (a.mean.iter().chain(&a.sd).any(|v| !v.is_finite()) || a.sd.iter().any(|v| *v < 0.0))
         {
             return Err("the last return's reading is not a finite mean and sd".into());
+        }
+        if let Some(m) = &self.shifts
+            && (m.numbers().any(|v| !v.is_finite()) || m.var_mm2.iter().any(|v| *v < 0.0))
+        {
+            return Err("the knocks' moves are not finite numbers with a variance".into());
         }
         self.stitch.as_ref().map_or(Ok(()), StitchAnchor::check)
     }
@@ -150,6 +193,12 @@ struct ZeroAverage {
 /// estimate by as much. Until the next return to the zero that agrees (`Turned::bound`).
 const TURN_MODEL_SD_RAD: f64 = 0.25e-6;
 
+/// How far the mount's true pivot may lie from its nominal place, as a standard uncertainty
+/// in each axis (mm): a screw mount's base puts it where its drawing says within ±20 mm
+/// (rectangular). A turn θ about a pivot Δ off moves the head by θ·Δ: 10 µrad of yaw, 0.2 µm
+/// in dy for a pivot 20 mm off across the axis, which no return to the zero reads.
+const PIVOT_SD_MM: f64 = 20.0 / 1.732_050_807_568_877_2;
+
 /// The head's turns on its mount found since the zero (knocks), taken out of every frame.
 #[derive(Clone, Debug)]
 struct Turned {
@@ -168,6 +217,8 @@ struct Turned {
     /// A return agreed while turns found since the last one were known only by their own
     /// variance, not yet taken by the caller (`Measure::take_bounded`).
     bounded: Option<Agreement>,
+    /// What the knocks moved the head by beyond their turns.
+    shifts: Shifts,
 }
 
 impl Turned {
@@ -180,6 +231,7 @@ impl Turned {
             seen: None,
             found: None,
             bounded: None,
+            shifts: Shifts::default(),
         }
     }
 
@@ -205,7 +257,7 @@ impl Turned {
 
     /// `e` as the head read it before its turns, at `travel`.
     fn undo(&self, layout: &Layout, travel: f64, e: Errors6) -> Errors6 {
-        if self.turn == Mount::default() {
+        if self.turn == Mount::default() && self.shifts.mm == [0.0; 3] {
             return e;
         }
         let back = Mount {
@@ -213,7 +265,11 @@ impl Turned {
             pitch: -self.turn.pitch,
             ..Mount::default()
         };
-        Self::head_pose(back, layout, travel, &e)
+        let mut e = Self::head_pose(back, layout, travel, &e);
+        e.dx -= self.shifts.mm[0];
+        e.dy -= self.shifts.mm[1];
+        e.dz -= self.shifts.mm[2];
+        e
     }
 
     /// What a turn of `yaw` and `pitch` does to each error at `travel`.
@@ -254,6 +310,17 @@ impl Turned {
             v[3] += b[0] * b[0];
             v[5] += b[1] * b[1];
         }
+        // The moves read at the knocks, and what the pivot's uncertainty leaves of the turns
+        // whose move was not read: in dy always (a return reads no dy), across the beam until
+        // a return reads dx and dz (yaw about z moves x by the pivot's y, y by its x; pitch
+        // about x moves z by its y, y by its z).
+        let m = &self.shifts;
+        let (yaw, pitch) = (m.unread_rad[0], m.unread_rad[1]);
+        let (yaw_since, pitch_since) = (m.unread_since_agreed_rad[0], m.unread_since_agreed_rad[1]);
+        let p2 = PIVOT_SD_MM * PIVOT_SD_MM;
+        v[0] += m.var_mm2[0] + yaw_since * yaw_since * p2;
+        v[1] += m.var_mm2[1] + (yaw * yaw + pitch * pitch) * p2;
+        v[2] += m.var_mm2[2] + pitch_since * pitch_since * p2;
         v
     }
 
@@ -276,6 +343,7 @@ impl Turned {
         }
         self.var = [0.0; 2];
         self.seen = Some(a);
+        self.shifts.unread_since_agreed_rad = [0.0; 2];
     }
 
     /// Whether turns found since the last return that agreed are known only by their own
@@ -284,7 +352,31 @@ impl Turned {
         self.var != [0.0; 2]
     }
 
-    fn add(&mut self, k: Knock) {
+    /// A knock found with the carriage at `travel`: its turn taken out of every frame from now
+    /// on, and the move it read beyond what the turn about the nominal pivot explains there.
+    fn add(&mut self, k: Knock, layout: &Layout, travel: f64) {
+        match k.step {
+            Some(step) => {
+                let explained = Self::effect(layout, travel, k.turn.yaw, k.turn.pitch);
+                let beyond: [f64; 3] = std::array::from_fn(|i| step.mm[i] - explained[i]);
+                let m = &mut self.shifts;
+                m.mm = std::array::from_fn(|i| m.mm[i] + beyond[i]);
+                m.var_mm2 = std::array::from_fn(|i| m.var_mm2[i] + step.sd_mm[i].powi(2));
+                tracing::debug!(
+                    dx_um = beyond[0] * 1e3,
+                    dy_um = beyond[1] * 1e3,
+                    dz_um = beyond[2] * 1e3,
+                    "a knock's move beyond its turn about the nominal pivot"
+                );
+            }
+            None => {
+                let m = &mut self.shifts;
+                for a in [&mut m.unread_rad, &mut m.unread_since_agreed_rad] {
+                    a[0] += k.turn.yaw;
+                    a[1] += k.turn.pitch;
+                }
+            }
+        }
         self.turn = self.turn.plus(k.turn);
         // The fit's sd is its noise alone; the turn's reading of the head's pose is known to
         // TURN_MODEL_SD_RAD beyond it.
@@ -355,6 +447,7 @@ impl Measure {
             turn_rad: [self.turned.turn.yaw, self.turned.turn.pitch],
             turn_var_rad2: self.turned.var,
             seen: self.turned.seen,
+            shifts: Some(self.turned.shifts),
             revisit: self.turned.revisit.state(),
             stitch: z.stitch,
         })
@@ -384,6 +477,9 @@ impl Measure {
         };
         self.turned.var = state.turn_var_rad2;
         self.turned.seen = state.seen;
+        self.turned.shifts = state
+            .shifts
+            .unwrap_or_else(|| Shifts::unread(state.turn_rad, state.turn_var_rad2 != [0.0; 2]));
         if let Some(r) = state.revisit {
             self.turned.revisit.restore(r);
         }
@@ -577,7 +673,7 @@ impl Measure {
         let mut read = self.turned.undo(layout, travel, est.errors);
         if let Some(k) = self.turned.watch.push(frame.stamp(), travel, &read) {
             // The frames since the knock read through a turn not taken out yet: dropped.
-            self.turned.add(k);
+            self.turned.add(k, layout, travel);
             read = self.turned.undo(layout, travel, est.errors);
             self.restart();
             self.turned.revisit.restart();
@@ -600,7 +696,7 @@ impl Measure {
             .push(frame.stamp(), at, order.map(|k| rel[k]), zero_sd)
         {
             // Found back at the zero: the frames of this stay read through it too.
-            self.turned.add(k);
+            self.turned.add(k, self.decoupler.layout(), travel);
             read = self
                 .turned
                 .undo(self.decoupler.layout(), travel, est.errors);
@@ -731,6 +827,7 @@ mod tests {
             seen: None,
             revisit: None,
             stitch: None,
+            shifts: Some(Shifts::default()),
         };
         let short = ReferenceState {
             cov: vec![0.0; 35],
@@ -762,10 +859,23 @@ mod tests {
                 .unwrap_err()
                 .contains("negative variance")
         );
+        let unsure = ReferenceState {
+            shifts: Some(Shifts {
+                var_mm2: [0.0, -1e-9, 0.0],
+                ..Shifts::default()
+            }),
+            ..good.clone()
+        };
+        assert!(
+            m.restore_reference(&unsure)
+                .unwrap_err()
+                .contains("knocks' moves")
+        );
         // A row kept before the stitch's anchor was recorded loads without one.
         let old = r#"{"errors":[0,0,0,0,0,0],"cov":[0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0,0],"turn_rad":[0,0],"turn_var_rad2":[0,0],"revisit":null}"#;
         let loaded: ReferenceState = serde_json::from_str(old).expect("an older row loads");
         assert_eq!(loaded.stitch, None);
+        assert_eq!(loaded.shifts, None);
         assert!(
             m.reference_state().is_none(),
             "nothing taken from a refused state"
@@ -796,11 +906,21 @@ mod tests {
 
     /// What a head turned by `yaw` on its mount reads of `truth` at travel `d`.
     fn turned_pose(layout: &Layout, truth: &Errors6, d: f64, yaw: f64) -> Pose {
+        turned_about(layout, truth, d, yaw, MountGeometry::default().pivot())
+    }
+
+    /// As [`turned_pose`], the head turned about `pivot` (head frame, mm).
+    fn turned_about(
+        layout: &Layout,
+        truth: &Errors6,
+        d: f64,
+        yaw: f64,
+        pivot: crate::optics::geometry::V3,
+    ) -> Pose {
         let m = Mount {
             yaw,
             ..Mount::default()
         };
-        let pivot = MountGeometry::default().pivot();
         Pose::new(
             m.head_pose(pivot, layout.c, layout.travel_axis, d, truth),
             d,
@@ -1113,6 +1233,155 @@ mod tests {
             m.start_zero();
             assert_eq!(m.turned.turn, Mount::default());
         }
+    }
+
+    /// A real mount's pivot is not where its drawing puts it: a turn about a pivot 15 mm off
+    /// across the axis moves the head along the beam by the turn times 15 mm, which the turn
+    /// about the nominal pivot does not undo (30 µrad: dy 0.45 µm off at every target after
+    /// it). A knock found in the frames reads that move with its turn and takes it out; one
+    /// found at a return to the zero reads none, and dy's u carries what the pivot's
+    /// uncertainty leaves of it.
+    #[test]
+    fn a_knock_about_a_pivot_off_the_nominal_has_its_move_read_or_stated() {
+        let layout = Layout::reference();
+        let dec = nominal(&layout, Method::Linear);
+        let truth =
+            |d: f64| Errors6::from_user([1.0 + 0.002 * d, -2.0 + 0.003 * d, 0.5, 1.0, 0.5, -1.0]);
+        let pivot =
+            MountGeometry::default().pivot() + crate::optics::geometry::V3::new(-15.0, 7.0, -9.0);
+        for (seed, yaw) in [(31, 30e-6), (32, -25e-6)] {
+            let read = |d: f64, yaw: f64| turned_about(&layout, &truth(d), d, yaw, pivot);
+            // 2 s of frames averaged, 0.25 µm of noise on the spots: dy to a few hundredths of
+            // a micrometre.
+            let mut m = Measure::new(dec.clone(), Duration::from_millis(2000));
+            let mut rng = Rng::new(seed);
+            let t0 = crate::util::clock::now();
+            let mut i = 0u64;
+            let mut feed = |m: &mut Measure, d: f64, yaw: f64, frames: u64| {
+                m.set_nominal(Some(d));
+                for _ in 0..frames {
+                    let t = t0 + Duration::from_millis(2 * i);
+                    let f = frame_at(&layout, &read(d, yaw), &mut rng, t, 0.25e-3);
+                    m.handle_frame(&f, &stitch(d, 0.0), t).unwrap();
+                    i += 1;
+                }
+            };
+            m.start_zero();
+            feed(&mut m, 0.0, 0.0, 1000);
+            m.set_zero(None).unwrap();
+            feed(&mut m, 0.0, 0.0, 300);
+            feed(&mut m, 0.0, yaw, 600);
+            let k = m.take_knock().expect("a knock");
+            let step = k.step.expect("its move read");
+            // About the nominal pivot (on the beam's line across) a yaw moves nothing along it.
+            assert!(
+                (step.mm[1] + yaw * 15.0).abs() < 4.0 * step.sd_mm[1],
+                "seed {seed}: dy stepped {:+.3} µm for {:+.3} (sd {:.3})",
+                step.mm[1] * 1e3,
+                -yaw * 15.0e3,
+                step.sd_mm[1] * 1e3
+            );
+            for d in [0.0, 400.0, 800.0] {
+                feed(&mut m, d, yaw, 1000);
+                let live = m.live().unwrap();
+                let want = truth(d).to_vector() - truth(0.0).to_vector();
+                let (e, sd) = (live.errors.to_vector(), live.sd.to_array());
+                for k in 0..6 {
+                    assert!(
+                        (e[k] - want[k]).abs() < 4.5 * sd[k],
+                        "seed {seed} at {d} mm: {} {:e} against {:e} (sd {:e})",
+                        ["dx", "dy", "dz", "ex", "ey", "ez"][k],
+                        e[k],
+                        want[k],
+                        sd[k]
+                    );
+                }
+                let untaken = yaw * 15.0;
+                assert!(
+                    untaken.abs() > 5.0 * sd[1],
+                    "the test can tell: {untaken:e} against sd {:e}",
+                    sd[1]
+                );
+            }
+        }
+        // Found at a return (no step read): dy's variance carries the turn times the pivot's
+        // standard uncertainty, and across the beam until a return reads dx and dz.
+        let mut t = Turned::new();
+        let knock = |yaw: f64| Knock {
+            unix_us: 0,
+            since: crate::util::clock::FrameTime::Kept(0),
+            turn: Mount {
+                yaw,
+                ..Mount::default()
+            },
+            sd_rad: [0.0; 2],
+            z: 10.0,
+            step: None,
+        };
+        t.add(knock(10e-6), &layout, 200.0);
+        // What the pivot adds: against the same turns with their moves read as nothing.
+        let added = |t: &Turned| {
+            let read = Turned {
+                shifts: Shifts::default(),
+                ..t.clone()
+            };
+            let (v, w) = (
+                t.var_at(&layout, 600.0, 0.0),
+                read.var_at(&layout, 600.0, 0.0),
+            );
+            [v[0] - w[0], v[1] - w[1], v[2] - w[2]]
+        };
+        let want = (10e-6 * PIVOT_SD_MM).powi(2);
+        let v = added(&t);
+        assert!(
+            (v[1] - want).abs() < 1e-6 * want,
+            "dy {:e} for {want:e}",
+            v[1]
+        );
+        assert!(
+            (v[0] - want).abs() < 1e-6 * want,
+            "dx {:e} for {want:e}",
+            v[0]
+        );
+        assert!(v[2].abs() < 1e-6 * want, "dz {:e}: no pitch", v[2]);
+        t.bound(Agreement {
+            unix_us: 1,
+            mean: [0.0; 4],
+            sd: [0.0; 4],
+        });
+        let v = added(&t);
+        assert!(
+            (v[1] - want).abs() < 1e-6 * want,
+            "dy after a return: {:e}",
+            v[1]
+        );
+        assert!(
+            v[0].abs() < 1e-6 * want,
+            "dx read by the return: {:e}",
+            v[0]
+        );
+        // Read at the knock instead: only the reading's own variance.
+        let mut r = Turned::new();
+        r.add(
+            Knock {
+                step: Some(crate::align::Step {
+                    mm: [0.0, 0.2e-3, 0.0],
+                    sd_mm: [0.01e-3; 3],
+                }),
+                ..knock(10e-6)
+            },
+            &layout,
+            200.0,
+        );
+        let v = r.var_at(&layout, 600.0, 0.0);
+        let w = Turned {
+            shifts: Shifts::default(),
+            ..r.clone()
+        }
+        .var_at(&layout, 600.0, 0.0);
+        assert!((v[1] - w[1] - 1e-10).abs() < 1e-16, "dy {:e}", v[1] - w[1]);
+        let explained = Turned::effect(&layout, 200.0, 10e-6, 0.0)[1];
+        assert!((r.shifts.mm[1] - (0.2e-3 - explained)).abs() < 1e-12);
     }
 
     /// A knock found at rest leaves its turn known to its fit and the model's 0.25 µrad: far
