@@ -197,7 +197,18 @@ const TURN_MODEL_SD_RAD: f64 = 0.25e-6;
 /// in each axis (mm): a screw mount's base puts it where its drawing says within ±20 mm
 /// (rectangular). A turn θ about a pivot Δ off moves the head by θ·Δ: 10 µrad of yaw, 0.2 µm
 /// in dy for a pivot 20 mm off across the axis, which no return to the zero reads.
-const PIVOT_SD_MM: f64 = 20.0 / 1.732_050_807_568_877_2;
+const PIVOT_SD_MM: f64 = PIVOT_TOLERANCE_MM / 1.732_050_807_568_877_2;
+const PIVOT_TOLERANCE_MM: f64 = 20.0;
+
+/// A knock's steps in dx, dy and dz are taken as its move only when each is read to this
+/// (mm, standard deviation; at rest the reference head reads them to about 0.03 µm) and lies
+/// within what a turn about a pivot inside its tolerance can move (half as much again, and 4
+/// sd). Else something else moved in the frames the step was fitted on: a storm's knock in the
+/// dwell where the follower's drive had faulted read dy stepping by -10.8 ± 1.0 µm with a
+/// 3.7 µrad turn, and taken out it put every later capture 10.4 µm off the truth. Such a
+/// turn's move counts as unread.
+const STEP_SD_MAX_MM: f64 = 0.1e-3;
+const STEP_REACH: f64 = 1.5;
 
 /// The head's turns on its mount found since the zero (knocks), taken out of every frame.
 #[derive(Clone, Debug)]
@@ -355,9 +366,27 @@ impl Turned {
     /// A knock found with the carriage at `travel`: its turn taken out of every frame from now
     /// on, and the move it read beyond what the turn about the nominal pivot explains there.
     fn add(&mut self, k: Knock, layout: &Layout, travel: f64) {
-        match k.step {
+        let explained = Self::effect(layout, travel, k.turn.yaw, k.turn.pitch);
+        let reach = (k.turn.yaw.abs() + k.turn.pitch.abs()) * PIVOT_TOLERANCE_MM * STEP_REACH;
+        let read = k.step.filter(|step| {
+            let ok = (0..3).all(|i| {
+                let sd = step.sd_mm[i];
+                sd <= STEP_SD_MAX_MM && (step.mm[i] - explained[i]).abs() <= reach + 4.0 * sd
+            });
+            if !ok {
+                tracing::info!(
+                    dx_um = step.mm[0] * 1e3,
+                    dy_um = step.mm[1] * 1e3,
+                    dz_um = step.mm[2] * 1e3,
+                    sd_um = step.sd_mm.iter().fold(0.0f64, |a, b| a.max(*b)) * 1e3,
+                    "a knock's move not read: its steps are not what a turn about the mount's \
+                     pivot makes; the pivot's uncertainty is stated instead"
+                );
+            }
+            ok
+        });
+        match read {
             Some(step) => {
-                let explained = Self::effect(layout, travel, k.turn.yaw, k.turn.pitch);
                 let beyond: [f64; 3] = std::array::from_fn(|i| step.mm[i] - explained[i]);
                 let m = &mut self.shifts;
                 m.mm = std::array::from_fn(|i| m.mm[i] + beyond[i]);
@@ -1360,12 +1389,14 @@ mod tests {
             "dx read by the return: {:e}",
             v[0]
         );
-        // Read at the knock instead: only the reading's own variance.
+        // Read at the knock instead: only the reading's own variance. Steps as the turn about
+        // the nominal pivot makes them at 200 mm, and 0.2 µm more along the beam.
+        let ex = Turned::effect(&layout, 200.0, 10e-6, 0.0);
         let mut r = Turned::new();
         r.add(
             Knock {
                 step: Some(crate::align::Step {
-                    mm: [0.0, 0.2e-3, 0.0],
+                    mm: [ex[0], ex[1] + 0.2e-3, ex[2]],
                     sd_mm: [0.01e-3; 3],
                 }),
                 ..knock(10e-6)
@@ -1380,8 +1411,30 @@ mod tests {
         }
         .var_at(&layout, 600.0, 0.0);
         assert!((v[1] - w[1] - 1e-10).abs() < 1e-16, "dy {:e}", v[1] - w[1]);
-        let explained = Turned::effect(&layout, 200.0, 10e-6, 0.0)[1];
-        assert!((r.shifts.mm[1] - (0.2e-3 - explained)).abs() < 1e-12);
+        let moved = r.shifts.mm;
+        assert!(
+            (moved[1] - 0.2e-3).abs() < 1e-12 && moved[0].abs() < 1e-12,
+            "{moved:?}"
+        );
+        // Steps no turn about the pivot makes, or read too loosely (something else moved in
+        // the frames fitted: the storm's -10.8 ± 1.0 µm of dy with a 3.7 µrad turn): not
+        // taken; the turn's move is unread.
+        for (mm, sd) in [(-10.8e-3, 1.0e-3), (0.5e-3, 0.01e-3), (0.0, 0.2e-3)] {
+            let mut w = Turned::new();
+            w.add(
+                Knock {
+                    step: Some(crate::align::Step {
+                        mm: [ex[0], ex[1] + mm, ex[2]],
+                        sd_mm: [0.01e-3, sd, 0.01e-3],
+                    }),
+                    ..knock(10e-6)
+                },
+                &layout,
+                200.0,
+            );
+            assert_eq!(w.shifts.mm, [0.0; 3], "{mm:e} ± {sd:e} taken");
+            assert_eq!(w.shifts.unread_rad, [10e-6, 0.0]);
+        }
     }
 
     /// A knock found at rest leaves its turn known to its fit and the model's 0.25 µrad: far
