@@ -203,8 +203,8 @@ const PIVOT_TOLERANCE_MM: f64 = 20.0;
 /// A knock's steps in dx, dy and dz are taken as its move only when each is read to this
 /// (mm, standard deviation; at rest the reference head reads them to about 0.03 µm) and lies
 /// within what a turn about a pivot inside its tolerance can move (half as much again, and 4
-/// sd). Else something else moved in the frames the step was fitted on: a storm's knock in the
-/// dwell where the follower's drive had faulted read dy stepping by -10.8 ± 1.0 µm with a
+/// sd). Else something else moved in the frames the step was fitted on: a storm's knock in a
+/// dwell 0.8 s before the follower's drive faulted read dy stepping by -10.8 ± 1.0 µm with a
 /// 3.7 µrad turn, and taken out it put every later capture 10.4 µm off the truth. Such a
 /// turn's move counts as unread.
 const STEP_SD_MAX_MM: f64 = 0.1e-3;
