@@ -95,6 +95,39 @@ fn frame_at(layout: &Layout, pose: &Pose, rng: &mut Rng, t: Instant, noise: f64)
     }
 }
 
+/// Frames every 2 ms from the clock's now, their spots read with `noise` (mm): a test's stream
+/// of frames into a pipeline, the carriage standing where each call puts it.
+struct Frames<'a> {
+    layout: &'a Layout,
+    rng: Rng,
+    t0: Instant,
+    i: u64,
+    noise: f64,
+}
+
+impl<'a> Frames<'a> {
+    fn new(layout: &'a Layout, seed: u64, noise: f64) -> Self {
+        Frames {
+            layout,
+            rng: Rng::new(seed),
+            t0: crate::util::clock::now(),
+            i: 0,
+            noise,
+        }
+    }
+
+    /// `frames` frames of a head reading `pose`, at the nominal travel `d`.
+    fn feed(&mut self, m: &mut Measure, d: f64, pose: &Pose, frames: u64) {
+        m.set_nominal(Some(d));
+        for _ in 0..frames {
+            let t = self.t0 + Duration::from_millis(2 * self.i);
+            let f = frame_at(self.layout, pose, &mut self.rng, t, self.noise);
+            m.handle_frame(&f, &stitch(d, 0.0), t).unwrap();
+            self.i += 1;
+        }
+    }
+}
+
 /// What a head turned by `yaw` on its mount reads of `truth` at travel `d`.
 fn turned_pose(layout: &Layout, truth: &Errors6, d: f64, yaw: f64) -> Pose {
     turned_about(layout, truth, d, yaw, MountGeometry::default().pivot())
@@ -340,18 +373,9 @@ fn a_knock_is_taken_out_of_every_later_frame_along_the_travel() {
     let read = |d: f64, yaw: f64| turned_pose(&layout, &truth(d), d, yaw);
     for (seed, yaw) in [(1, 6e-6), (2, -3e-6), (3, 12e-6)] {
         let mut m = Measure::new(dec.clone(), Duration::from_millis(500));
-        let mut rng = Rng::new(seed);
-        let t0 = crate::util::clock::now();
-        let mut i = 0u64;
-        let mut feed = |m: &mut Measure, d: f64, yaw: f64, frames: u64| {
-            m.set_nominal(Some(d));
-            for _ in 0..frames {
-                let t = t0 + Duration::from_millis(2 * i);
-                let f = frame_at(&layout, &read(d, yaw), &mut rng, t, 1e-3);
-                m.handle_frame(&f, &stitch(d, 0.0), t).unwrap();
-                i += 1;
-            }
-        };
+        let mut frames = Frames::new(&layout, seed, 1e-3);
+        let mut feed =
+            |m: &mut Measure, d: f64, yaw: f64, n: u64| frames.feed(m, d, &read(d, yaw), n);
         m.start_zero();
         feed(&mut m, 0.0, 0.0, 500);
         m.set_zero(None).unwrap();
@@ -445,18 +469,9 @@ fn a_knock_about_a_pivot_off_the_nominal_has_its_move_read_or_stated() {
         // 2 s of frames averaged, 0.25 µm of noise on the spots: dy to a few hundredths of
         // a micrometre.
         let mut m = Measure::new(dec.clone(), Duration::from_millis(2000));
-        let mut rng = Rng::new(seed);
-        let t0 = crate::util::clock::now();
-        let mut i = 0u64;
-        let mut feed = |m: &mut Measure, d: f64, yaw: f64, frames: u64| {
-            m.set_nominal(Some(d));
-            for _ in 0..frames {
-                let t = t0 + Duration::from_millis(2 * i);
-                let f = frame_at(&layout, &read(d, yaw), &mut rng, t, 0.25e-3);
-                m.handle_frame(&f, &stitch(d, 0.0), t).unwrap();
-                i += 1;
-            }
-        };
+        let mut frames = Frames::new(&layout, seed, 0.25e-3);
+        let mut feed =
+            |m: &mut Measure, d: f64, yaw: f64, n: u64| frames.feed(m, d, &read(d, yaw), n);
         m.start_zero();
         feed(&mut m, 0.0, 0.0, 1000);
         m.set_zero(None).unwrap();
@@ -613,18 +628,9 @@ fn a_return_that_agrees_bounds_what_the_turns_are_known_to() {
     let mut ratios = Vec::new();
     for (seed, yaw) in [(21, 7e-6), (22, -5e-6), (23, 9e-6), (24, -8e-6)] {
         let mut m = Measure::new(dec.clone(), Duration::from_millis(500));
-        let mut rng = Rng::new(seed);
-        let t0 = crate::util::clock::now();
-        let mut i = 0u64;
-        let mut feed = |m: &mut Measure, d: f64, yaw: f64, frames: u64| {
-            m.set_nominal(Some(d));
-            for _ in 0..frames {
-                let t = t0 + Duration::from_millis(2 * i);
-                let f = frame_at(&layout, &read(d, yaw), &mut rng, t, 1e-3);
-                m.handle_frame(&f, &stitch(d, 0.0), t).unwrap();
-                i += 1;
-            }
-        };
+        let mut frames = Frames::new(&layout, seed, 1e-3);
+        let mut feed =
+            |m: &mut Measure, d: f64, yaw: f64, n: u64| frames.feed(m, d, &read(d, yaw), n);
         let dx_at_800 = |m: &mut Measure, feed: &mut dyn FnMut(&mut Measure, f64, f64, u64)| {
             feed(m, 800.0, yaw, 250);
             let live = m.live().unwrap();
@@ -704,19 +710,9 @@ fn a_return_to_the_zero_reads_against_the_zero_in_force() {
     let truth = |d: f64| Errors6::from_user([0.002 * d, 0.0, 0.0, 0.0, 0.0, 0.0]);
     for seed in [11, 12, 13] {
         let mut m = Measure::new(dec.clone(), Duration::from_millis(500));
-        let mut rng = Rng::new(seed);
-        let t0 = crate::util::clock::now();
-        let mut i = 0u64;
-        let mut feed = |m: &mut Measure, d: f64, frames: u64| {
-            m.set_nominal(Some(d));
-            for _ in 0..frames {
-                let t = t0 + Duration::from_millis(2 * i);
-                let pose = Pose::new(truth(d), d, d);
-                let f = frame_at(&layout, &pose, &mut rng, t, 1e-3);
-                m.handle_frame(&f, &stitch(d, 0.0), t).unwrap();
-                i += 1;
-            }
-        };
+        let mut frames = Frames::new(&layout, seed, 1e-3);
+        let mut feed =
+            |m: &mut Measure, d: f64, n: u64| frames.feed(m, d, &Pose::new(truth(d), d, d), n);
         // Zero at 0 mm, approached from below; away above and back from below.
         feed(&mut m, -2.0, 20);
         m.start_zero();
