@@ -14,6 +14,7 @@
 //! | repeatability | `s/√n` | the run-to-run scatter s (ISO 230-2's s) of the n runs |
 //! | calibration | `u_cal` per DOF | the calibration record: `√(max(0, h² − b²) + √(2/N)·b²)`, h the hold-out RMS over N poses, each the mean of many frames (a bench's dwell), b the Cramér–Rao bound of such a mean: what the fit adds beyond noise, and what N poses cannot rule out |
 //! | follower map | `√((S_x·u_along)² + (S_y·u_vert)²)` | the follower's own errors at the point ([`FollowerInput`]), through PSD2's sensitivities S |
+//! | follower map, this set-up's bend | `S_y·u_bend` | an instrument's stored map re-used on this set-up: the bend the rail takes from this machine's bed, fitted to a level's stations here (`follower::reuse`); zero for a map made on this set-up, whose vertical holds it |
 //! | stitching | `√(mean_j(S_x²·v_x,j + S_y²·v_y,j))` | the overlap handovers' accumulated variance v at each capture (a random walk) |
 //! | misalignment | `L·(1 − cos φ)/√12` (dy only) | φ the beam's angle to the travel, from the measured straightness slopes: the cosine error lies between 0 and L(1 − cos φ) (rectangular) |
 //! | thermal, temperature | `α·u(T)·L` (dy only) | the material temperature sensor's standard uncertainty u(T) |
@@ -45,6 +46,7 @@ pub enum Component {
     Repeatability,
     Calibration,
     Follower,
+    Bend,
     Stitching,
     Misalignment,
     ThermalTemperature,
@@ -53,7 +55,7 @@ pub enum Component {
 }
 
 /// How many components.
-pub const COMPONENTS: usize = 9;
+pub const COMPONENTS: usize = 10;
 
 impl Component {
     pub const ALL: [Component; COMPONENTS] = [
@@ -61,6 +63,7 @@ impl Component {
         Component::Repeatability,
         Component::Calibration,
         Component::Follower,
+        Component::Bend,
         Component::Stitching,
         Component::Misalignment,
         Component::ThermalTemperature,
@@ -80,6 +83,7 @@ impl Component {
             Component::Repeatability => "repeatability",
             Component::Calibration => "calibration",
             Component::Follower => "follower map",
+            Component::Bend => "follower map, this set-up's bend",
             Component::Stitching => "stitching",
             Component::Misalignment => "misalignment",
             Component::ThermalTemperature => "thermal, temperature",
@@ -95,6 +99,7 @@ impl Component {
             Component::Repeatability => "s/√n",
             Component::Calibration => "√(max(0, h² − b²) + √(2/N)·b²)",
             Component::Follower => "S·u(follower) at the point",
+            Component::Bend => "S·u(bend) at the point",
             Component::Stitching => "S·√(Σ overlap handover variances)",
             Component::Misalignment => "L·(1 − cos φ)/√12",
             Component::ThermalTemperature => "α·u(T)·L",
@@ -105,11 +110,13 @@ impl Component {
 }
 
 /// Standard uncertainties (mm) of the follower stage's own errors at one position: along its
-/// axis (PSD2's X: positioning) and vertical (PSD2's Y: roll, 1.38″ per µm).
+/// axis (PSD2's X: positioning) and vertical (PSD2's Y: roll, 1.38″ per µm); and apart from
+/// the vertical, what this set-up's bend adds to it (a re-used map's check).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct FollowerU {
     pub along_mm: f64,
     pub vertical_mm: f64,
+    pub bend_mm: f64,
 }
 
 /// What is known of the follower's own errors. A follower error map replaces the
@@ -125,12 +132,15 @@ pub enum FollowerInput {
         straightness_mm: f64,
     },
     /// A map's standard uncertainty per encoder position (linear between, held beyond the
-    /// ends), with where it came from (certificate, self-calibration, date).
+    /// ends), with where it came from (certificate, self-calibration, date). `bend_mm`: the
+    /// part of the vertical's that this set-up's bend adds, kept apart (empty: none, the map
+    /// was made on this set-up).
     Map {
         source: String,
         positions_mm: Vec<f64>,
         along_mm: Vec<f64>,
         vertical_mm: Vec<f64>,
+        bend_mm: Vec<f64>,
     },
 }
 
@@ -145,15 +155,18 @@ impl FollowerInput {
             } => FollowerU {
                 along_mm: positioning_mm.abs() / 3f64.sqrt(),
                 vertical_mm: straightness_mm.abs() / 3f64.sqrt(),
+                bend_mm: 0.0,
             },
             FollowerInput::Map {
                 positions_mm,
                 along_mm,
                 vertical_mm,
+                bend_mm,
                 ..
             } => FollowerU {
                 along_mm: crate::util::interpolate(positions_mm, along_mm, mm),
                 vertical_mm: crate::util::interpolate(positions_mm, vertical_mm, mm),
+                bend_mm: crate::util::interpolate(positions_mm, bend_mm, mm),
             },
         }
     }
@@ -162,7 +175,8 @@ impl FollowerInput {
     /// span, in carriage coordinates (the encoder reads `encoder_offset_mm` more than the
     /// carriage's nominal position), each combined in quadrature with the map's uncertainty
     /// at `reference_mm`: a measured error is relative to the zero reference, so it carries
-    /// the map's error at the point and at the reference.
+    /// the map's error at the point and at the reference. The bend of a re-used map comes out
+    /// of the vertical into `bend_mm` (in quadrature: the map's vertical u holds it so).
     pub fn of_map(
         map: &crate::follower::FollowerMap,
         encoder_offset_mm: f64,
@@ -173,30 +187,38 @@ impl FollowerInput {
         use crate::follower::Direction;
         let u = |x: f64| {
             let (up, down) = (map.point(x, Direction::Up), map.point(x, Direction::Down));
+            let (vertical, bend) = (up.vertical_u_um * 1e-3, map.bend_u_mm(x));
             (
                 up.along_u_um.max(down.along_u_um) * 1e-3,
-                up.vertical_u_um * 1e-3,
+                (vertical * vertical - bend * bend).max(0.0).sqrt(),
+                bend,
             )
         };
         let (lo, hi) = map.span();
         if !(lo.is_finite() && hi.is_finite() && step_mm > 0.0) {
             return FollowerInput::Unstated;
         }
-        let (ra, rv) = u(reference_mm + encoder_offset_mm);
+        let (ra, rv, rb) = u(reference_mm + encoder_offset_mm);
         let n = ((hi - lo) / step_mm).ceil() as usize;
         let (mut positions_mm, mut along_mm, mut vertical_mm) = (vec![], vec![], vec![]);
+        let mut bend_mm = vec![];
         for k in 0..=n {
             let x = (lo + k as f64 * step_mm).min(hi);
-            let (a, v) = u(x);
+            let (a, v, b) = u(x);
             positions_mm.push(x - encoder_offset_mm);
             along_mm.push(a.hypot(ra));
             vertical_mm.push(v.hypot(rv));
+            bend_mm.push(b.hypot(rb));
+        }
+        if map.reuse.is_none() {
+            bend_mm.clear();
         }
         FollowerInput::Map {
             source,
             positions_mm,
             along_mm,
             vertical_mm,
+            bend_mm,
         }
     }
 
@@ -377,7 +399,7 @@ impl Budget {
         let i = &self.inputs;
         match component {
             Component::Calibration => i.calibration.is_some(),
-            Component::Follower => i.follower != FollowerInput::Unstated,
+            Component::Follower | Component::Bend => i.follower != FollowerInput::Unstated,
             Component::ThermalTemperature | Component::ThermalCoefficient => i.thermal.is_some(),
             Component::Environment => i.drift_range.is_some(),
             _ => true,
@@ -396,6 +418,16 @@ impl Budget {
                 None => "not stated: no calibration record with the run".into(),
             },
             Component::Follower => i.follower.describe(),
+            Component::Bend => match &i.follower {
+                FollowerInput::Map { bend_mm, .. } if !bend_mm.is_empty() => {
+                    "the bend this machine's bed gives the instrument's re-used map, fitted to a level's stations on this set-up".into()
+                }
+                FollowerInput::Map { .. } => {
+                    "none apart: the follower map was made on this set-up, its vertical holds the bend".into()
+                }
+                FollowerInput::Specification { .. } => "in the follower's specification".into(),
+                FollowerInput::Unstated => "not stated: no follower map or specification".into(),
+            },
             Component::Stitching => "overlap handovers since the zero (random walk)".into(),
             Component::Misalignment => {
                 "φ from the least-squares straightness slopes (positioning only)".into()
@@ -523,6 +555,7 @@ pub fn budget(
             t[Component::Calibration.index()] = inputs.calibration.as_ref().map_or(0.0, |c| c.0[k]);
             let f = inputs.follower.at(pos);
             t[Component::Follower.index()] = (sens[0] * f.along_mm).hypot(sens[1] * f.vertical_mm);
+            t[Component::Bend.index()] = sens[1] * f.bend_mm;
             t[Component::Stitching.index()] =
                 (sens[0] * sens[0] * stitch_var[0] + sens[1] * sens[1] * stitch_var[1]).sqrt();
             if k == 1 {
@@ -775,6 +808,7 @@ mod tests {
             positions_mm: vec![0.0, 1000.0],
             along_mm: vec![0.2e-3, 0.4e-3],
             vertical_mm: vec![0.0, 0.0],
+            bend_mm: vec![],
         };
         let with = run(&caps, &i);
         only(&base, &with, Component::Follower, |p| {
@@ -782,6 +816,23 @@ mod tests {
                 0.2e-3 * (1.0 + p.position_mm / 1000.0)
             } else {
                 0.0
+            }
+        });
+        // A re-used map's bend: its own term, through PSD2's vertical sensitivity alone.
+        i.follower = FollowerInput::Map {
+            source: "test".into(),
+            positions_mm: vec![0.0, 1000.0],
+            along_mm: vec![0.0, 0.0],
+            vertical_mm: vec![0.0, 0.0],
+            bend_mm: vec![0.1e-3, 0.3e-3],
+        };
+        let with = run(&caps, &i);
+        only(&base, &with, Component::Bend, |p| {
+            let b = 0.1e-3 + 0.2e-3 * p.position_mm / 1000.0;
+            match p.dof {
+                4 => b / 150.0,
+                2 => b * 0.02,
+                _ => 0.0,
             }
         });
 

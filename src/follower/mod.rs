@@ -442,6 +442,45 @@ impl FollowerMap {
         }
     }
 
+    /// What the map is made of, in words, for the budget's follower terms: "long-wavelength
+    /// positioning from the certificate, …, its line and shape referenced by 12 level
+    /// stations; the instrument's map re-used on this set-up (its bend: the bend's own term)".
+    pub fn describe_sources(&self) -> String {
+        let s = &self.sources;
+        let mut out = format!(
+            "long-wavelength positioning from the {}, screw-periodic and reversal from the {}, vertical straightness from the {}",
+            s.long, s.periodic, s.vertical
+        );
+        match (&self.vertical_reference, &self.vertical_line) {
+            (Some(r), _) => out.push_str(&format!(
+                ", its line and shape referenced by {} level stations",
+                r.stations.len()
+            )),
+            (None, Some(l)) => out.push_str(&format!(
+                ", its line from a level ({:+.2} ± {:.2} µm/m)",
+                l.slope * 1e6,
+                l.u_slope * 1e6
+            )),
+            (None, None) => out.push_str(", its line not referenced"),
+        }
+        if self.reuse.is_some() {
+            out.push_str("; the instrument's map re-used on this set-up (its bend: the bend's own term)");
+        }
+        out
+    }
+
+    /// The standard uncertainty (mm) this set-up's bend adds to the vertical at encoder
+    /// position `x` (already inside [`FollowerMap::point`]'s vertical u): zero for a map made
+    /// on this set-up, or one kept before the bend's u was stored per position.
+    pub fn bend_u_mm(&self, x: f64) -> f64 {
+        match &self.reuse {
+            Some(r) if r.bend_u_mm.len() == self.vertical_positions_mm.len() => {
+                crate::util::interpolate(&self.vertical_positions_mm, &r.bend_u_mm, x)
+            }
+            _ => 0.0,
+        }
+    }
+
     /// Variance (mm²: along, vertical) of the correction's difference between encoder
     /// positions `a` and `b`. Each tabulated curve (the long-wavelength term, the vertical)
     /// as points with independent errors, interpolated linearly: what two positions share of

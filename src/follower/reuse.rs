@@ -61,6 +61,11 @@ pub struct Reuse {
     /// largest standard uncertainty it adds to the vertical (mm).
     pub bend_range_mm: f64,
     pub bend_u_max_mm: f64,
+    /// The bend's standard uncertainty (mm) at each of the map's vertical positions: its own
+    /// term in the budget (empty in a map kept before it was stored; then the budget finds it
+    /// only inside the vertical's).
+    #[serde(default)]
+    pub bend_u_mm: Vec<f64>,
     /// The station furthest off the bend (standard uncertainties) and the limit.
     pub worst_z: f64,
     pub limit_z: f64,
@@ -322,6 +327,7 @@ pub fn reuse(
         }
     }
     let (mut bmin, mut bmax, mut umax) = (f64::INFINITY, f64::NEG_INFINITY, 0.0f64);
+    let mut bend_u_mm = Vec::with_capacity(vp.len());
     for (k, &x) in vp.iter().enumerate() {
         let b = bend_basis(x);
         let bend = b.dot(coef);
@@ -331,12 +337,14 @@ pub fn reuse(
         bmin = bmin.min(bend);
         bmax = bmax.max(bend);
         umax = umax.max(u);
+        bend_u_mm.push(u);
     }
     let check = Reuse {
         stations: n,
         degree,
         bend_range_mm: bmax - bmin,
         bend_u_max_mm: umax,
+        bend_u_mm,
         worst_z: wz.abs(),
         limit_z: limit,
     };
@@ -426,6 +434,32 @@ mod tests {
                 );
             }
             assert_eq!(m.reuse.as_ref(), Some(&check));
+            // The bend's u, kept per position, is what the re-use added to the vertical's,
+            // and the budget takes it out into its own term (relative to the zero at 0 mm).
+            let up = super::super::Direction::Up;
+            let v = |m: &FollowerMap, x: f64| m.point(x, up).vertical_u_um * 1e-3;
+            let input = crate::evaluate::uncertainty::FollowerInput::of_map(
+                &m,
+                0.0,
+                0.0,
+                2.5,
+                "test".into(),
+            );
+            // (The bend is relative to the map's first point: nothing there.)
+            assert_eq!(m.bend_u_mm(m.vertical_positions_mm[0]), 0.0);
+            for &x in m.vertical_positions_mm.iter().skip(1).step_by(25) {
+                let b = m.bend_u_mm(x);
+                assert!(b > 0.0 && b <= check.bend_u_max_mm, "at {x}: {b}");
+                let added = (v(&m, x).powi(2) - v(&map, x).powi(2)).sqrt();
+                assert!((b - added).abs() < 1e-9, "at {x}: {b} for {added}");
+            }
+            for x in (1..40).map(|k| 25.0 * k as f64) {
+                let b = m.bend_u_mm(x);
+                let at = input.at(x);
+                let whole = v(&m, x).hypot(v(&m, 0.0));
+                assert!((at.bend_mm - b.hypot(m.bend_u_mm(0.0))).abs() < 1e-12);
+                assert!((at.vertical_mm.hypot(at.bend_mm) - whole).abs() < 1e-9 * whole.max(1e-6));
+            }
             // The rail kinked by 10 µrad (2″) at 430 mm: refused, the span around it named.
             // (5 µrad is about what 11 stations with 0.03 µm of noise tell from a bend.)
             let kinked = |x: f64| bent(x) + 10e-6 * (x - 430.0).max(0.0);

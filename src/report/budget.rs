@@ -35,24 +35,6 @@ pub struct Fallbacks {
     pub follower_spec: Option<FollowerInput>,
 }
 
-/// What a follower map is made of, in words, for the budget's follower term.
-pub fn map_words(m: &FollowerMap) -> String {
-    let s = &m.sources;
-    let mut out = format!(
-        "long-wavelength positioning from the {}, screw-periodic and reversal from the {}, vertical straightness from the {}",
-        s.long, s.periodic, s.vertical
-    );
-    match &m.vertical_line {
-        Some(l) => out.push_str(&format!(
-            ", its line from a level ({:+.2} ± {:.2} µm/m)",
-            l.slope * 1e6,
-            l.u_slope * 1e6
-        )),
-        None => out.push_str(", its line not referenced"),
-    }
-    out
-}
-
 /// The follower term's input and, when it is not stated, why.
 fn follower_term(
     store: &Store,
@@ -84,7 +66,7 @@ fn follower_term(
                     rec.id,
                     rec.name,
                     rec.source,
-                    map_words(&rec.map)
+                    rec.map.describe_sources()
                 );
                 let input =
                     FollowerInput::of_map(&rec.map, offset, reference_mm, MAP_STEP_MM, words);
@@ -182,7 +164,10 @@ pub fn run_budget(store: &Store, run: &RunData, fb: &Fallbacks) -> Result<Budget
         reference_mm,
         fb.follower_spec.as_ref(),
     )?;
-    notes.extend(why.map(|w| (Component::Follower, w)));
+    if let Some(w) = why {
+        notes.push((Component::Bend, w.clone()));
+        notes.push((Component::Follower, w));
+    }
 
     let calibration = match calibration(store, run)? {
         Ok(c) => Some(c),

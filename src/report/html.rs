@@ -147,6 +147,19 @@ pub fn render(r: &RunReport, svgs: &Svgs) -> String {
                 })
                 .collect();
             grid(&mut out, &text::budget_headings(d.dof), &rows);
+            if !b.points.is_empty() {
+                out.push_str("<h4>Per point: what each term puts into U</h4>\n");
+                let rows: Vec<Vec<(String, bool)>> = text::budget_point_rows(b)
+                    .into_iter()
+                    .map(|r| {
+                        r.into_iter()
+                            .enumerate()
+                            .map(|(j, c)| (c, j != 1))
+                            .collect()
+                    })
+                    .collect();
+                grid(&mut out, &text::budget_point_headings(d.dof, b), &rows);
+            }
         }
         if !d.series.is_empty() {
             out.push_str("<h3>Points</h3>\n");

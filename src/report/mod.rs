@@ -149,17 +149,32 @@ pub struct BudgetTable {
     /// The largest combined standard uncertainty and expanded uncertainty over the points.
     pub largest_combined: f64,
     pub largest_expanded: f64,
-    /// Expanded uncertainty per (position mm, direction) point.
-    pub expanded: Vec<(f64, Direction, f64)>,
+    /// Every point of one direction: each term, the combined and expanded uncertainty.
+    pub points: Vec<BudgetPoint>,
+}
+
+/// One point of a budget, display-ready, in the DOF's user unit.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BudgetPoint {
+    pub position_mm: f64,
+    pub direction: Direction,
+    /// Each term's standard uncertainty, in [`BudgetTable::terms`]' order.
+    pub terms: Vec<f64>,
+    pub combined: f64,
+    pub expanded: f64,
 }
 
 impl BudgetTable {
+    /// The point at `position_mm` in `direction`, when stated.
+    pub fn at(&self, position_mm: f64, direction: Direction) -> Option<&BudgetPoint> {
+        self.points
+            .iter()
+            .find(|p| p.direction == direction && (p.position_mm - position_mm).abs() < 1e-9)
+    }
+
     /// The expanded uncertainty at `position_mm` in `direction`, when stated.
     pub fn expanded_at(&self, position_mm: f64, direction: Direction) -> Option<f64> {
-        self.expanded
-            .iter()
-            .find(|(p, d, _)| *d == direction && (p - position_mm).abs() < 1e-9)
-            .map(|e| e.2)
+        self.at(position_mm, direction).map(|p| p.expanded)
     }
 }
 

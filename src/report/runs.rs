@@ -2,7 +2,7 @@
 //! mean over the runs at each target with its standard deviation and the captures' standard
 //! uncertainty, and the ISO 230-2 / 230-1 figures in user units.
 
-use super::{BudgetTable, BudgetTerm, DofResult, EnvSample, Figure, RunMeta, RunReport, Series};
+use super::{BudgetPoint, BudgetTable, BudgetTerm, DofResult, EnvSample, Figure, RunMeta, RunReport, Series};
 use crate::evaluate::AxisEvaluation;
 use crate::evaluate::iso230_1::ReferenceLine;
 use crate::evaluate::uncertainty::{Budget, Component};
@@ -147,13 +147,18 @@ pub fn add_budget(report: &mut RunReport, budget: &Budget) {
                 .collect(),
             largest_combined: d.dof.to_user(uc),
             largest_expanded: d.dof.to_user(big),
-            expanded: budget
+            points: budget
                 .points
                 .iter()
                 .filter(|p| p.dof == k)
                 .filter_map(|p| {
-                    p.direction
-                        .map(|dir| (p.position_mm, dir, d.dof.to_user(p.expanded)))
+                    p.direction.map(|direction| BudgetPoint {
+                        position_mm: p.position_mm,
+                        direction,
+                        terms: p.terms.iter().map(|&t| d.dof.to_user(t)).collect(),
+                        combined: d.dof.to_user(p.combined),
+                        expanded: d.dof.to_user(p.expanded),
+                    })
                 })
                 .collect(),
         });

@@ -97,7 +97,13 @@ fn budget_table() -> BudgetTable {
         ],
         largest_combined: 0.5,
         largest_expanded: 1.0,
-        expanded: vec![(0.0, Direction::Up, 1.0)],
+        points: vec![BudgetPoint {
+            position_mm: 0.0,
+            direction: Direction::Up,
+            terms: vec![0.3, 0.4],
+            combined: 0.5,
+            expanded: 1.0,
+        }],
     }
 }
 
@@ -286,8 +292,10 @@ fn html_is_well_formed_self_contained_and_escaped() {
     assert_eq!(doc.root, "html");
     assert_eq!(doc.count("svg"), 1 + 6 + 1);
     assert_eq!(doc.count("h2"), 4 + 1 + 6 + 1 + 1);
-    // The run's tables, figures and points per DOF, the environment, and dy's budget.
-    assert_eq!(doc.count("table"), 3 + 6 * 2 + 1 + 1);
+    // The run's tables, figures and points per DOF, the environment, and dy's budget with
+    // its per-point table.
+    assert_eq!(doc.count("table"), 3 + 6 * 2 + 1 + 2);
+    assert_eq!(doc.count("h4"), 1);
     // No scripts, no external resources.
     assert!(!page.to_ascii_lowercase().contains("<script"));
     for banned in ["script", "link", "img", "iframe", "object", "embed"] {

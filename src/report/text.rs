@@ -143,13 +143,16 @@ pub struct PointRow {
     pub mean: String,
     pub s: String,
     pub two_s: String,
+    /// The budget's combined standard uncertainty at the point, when the result has a
+    /// budget (one uncertainty: U is k times it); else the captures' stated u (their mean).
     pub u: String,
     /// The budget's expanded uncertainty, when the result has a budget.
     pub expanded: Option<String>,
 }
 
-/// Column headings of the per-point table: u is the captures' standard uncertainty; U, when
-/// a budget is given (`budget_k`), the budget's expanded uncertainty.
+/// Column headings of the per-point table: u the standard uncertainty (the budget's
+/// combined, or without one the captures' own); U, when a budget is given (`budget_k`), the
+/// budget's expanded uncertainty.
 pub fn point_headings(dof: Dof, budget_k: Option<f64>) -> Vec<String> {
     let u = dof.unit();
     let mut h = vec![
@@ -224,10 +227,16 @@ pub fn point_rows(dof: Dof, series: &[Series], budget: Option<&BudgetTable>) -> 
                 mean: user(dof, s.mean[i]),
                 s: user(dof, s.s[i]),
                 two_s: user(dof, 2.0 * s.s[i]),
-                u: s.u
-                    .as_ref()
-                    .and_then(|u| u.get(i))
-                    .map_or_else(|| "—".to_string(), |&u| user(dof, u)),
+                u: match budget {
+                    Some(b) => b
+                        .at(s.positions_mm[i], s.direction)
+                        .map_or_else(|| "—".to_string(), |p| fixed(p.combined, 3)),
+                    None => s
+                        .u
+                        .as_ref()
+                        .and_then(|u| u.get(i))
+                        .map_or_else(|| "—".to_string(), |&u| user(dof, u)),
+                },
                 expanded: budget.map(|b| {
                     b.expanded_at(s.positions_mm[i], s.direction)
                         .map_or_else(|| "—".to_string(), |x| fixed(x, 3))
@@ -236,6 +245,50 @@ pub fn point_rows(dof: Dof, series: &[Series], budget: Option<&BudgetTable>) -> 
         }
     }
     rows
+}
+
+/// The terms a DOF's budget states anywhere (a term zero at every point is left out of the
+/// per-point table; the budget table names it and why).
+fn stated_terms(b: &BudgetTable) -> Vec<usize> {
+    (0..b.terms.len())
+        .filter(|&j| b.points.iter().any(|p| p.terms.get(j).is_some_and(|&t| t > 0.0)))
+        .collect()
+}
+
+/// Column headings of the per-point budget: target, direction, each stated term's u, the
+/// combined u and U.
+pub fn budget_point_headings(dof: Dof, b: &BudgetTable) -> Vec<String> {
+    let u = dof.unit();
+    let mut h = vec!["Target (mm)".to_string(), "Dir".into()];
+    h.extend(stated_terms(b).into_iter().map(|j| b.terms[j].name.clone()));
+    h.push(format!("u ({u})"));
+    h.push(format!("U, k = {} ({u})", b.k));
+    h
+}
+
+/// The per-point budget, one row per point (↑ first, then by position): what each term
+/// puts into that point's U.
+pub fn budget_point_rows(b: &BudgetTable) -> Vec<Vec<String>> {
+    let cols = stated_terms(b);
+    let mut points: Vec<&super::BudgetPoint> = b.points.iter().collect();
+    points.sort_by(|a, c| {
+        a.direction
+            .cmp(&c.direction)
+            .then(a.position_mm.total_cmp(&c.position_mm))
+    });
+    points
+        .into_iter()
+        .map(|p| {
+            let mut row = vec![fixed(p.position_mm, 3), arrow(p.direction).to_string()];
+            row.extend(
+                cols.iter()
+                    .map(|&j| p.terms.get(j).map_or_else(|| "—".into(), |&t| fixed(t, 3))),
+            );
+            row.push(fixed(p.combined, 3));
+            row.push(fixed(p.expanded, 3));
+            row
+        })
+        .collect()
 }
 
 /// Column headings of the environment table.

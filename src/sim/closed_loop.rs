@@ -495,7 +495,7 @@ pub fn measure(
         psd2_sensitivity: psd2_sensitivity(&spec.lab.decoupler, mid)
             .map_err(LoopError::Sensitivity)?,
         follower: match lab.pipeline.tracker.map::<crate::follower::FollowerMap>() {
-            Some(m) => FollowerInput::of_map(m, encoder_offset, reference, 2.5, map_source(m)),
+            Some(m) => FollowerInput::of_map(m, encoder_offset, reference, 2.5, m.describe_sources()),
             None => b.follower.clone(),
         },
         calibration: b.calibration.clone(),
@@ -511,35 +511,6 @@ pub fn measure(
         zero_truth,
         drift_range,
     })
-}
-
-/// What the budget says the follower map is made of.
-fn map_source(m: &crate::follower::FollowerMap) -> String {
-    let s = &m.sources;
-    let mut out = format!(
-        "long-wavelength positioning from the {}, screw-periodic and reversal from the {}, vertical straightness from the {}",
-        s.long, s.periodic, s.vertical
-    );
-    match (&m.vertical_reference, &m.vertical_line) {
-        (Some(r), _) => out.push_str(&format!(
-            ", its line and shape referenced by {} level stations",
-            r.stations.len()
-        )),
-        (None, Some(l)) => out.push_str(&format!(
-            ", its line from a level ({:+.2} ± {:.2} µm/m)",
-            l.slope * 1e6,
-            l.u_slope * 1e6
-        )),
-        (None, None) => out.push_str(", its line not referenced"),
-    }
-    if let Some(r) = &m.reuse {
-        out.push_str(&format!(
-            "; the instrument's map re-used, this set-up's bend ({:.2} µm range, u ≤ {:.3} µm) in it",
-            r.bend_range_mm * 1e3,
-            r.bend_u_max_mm * 1e3
-        ));
-    }
-    out
 }
 
 /// ISO 230-2's drift check: the head reads the carriage at rest at `reference` for `d`; the

@@ -6,6 +6,7 @@
 
 use crate::helpers::{TempDir, bin, stderr, stdout};
 use axiscomp::evaluate::axis::synthetic_capture;
+use axiscomp::evaluate::uncertainty::Component;
 use axiscomp::evaluate::recorded::{
     KEY, RecordedBudget, RecordedCalibration, RecordedDrift, RecordedMap, RecordedThermal, Stated,
 };
@@ -354,14 +355,14 @@ fn the_report_states_the_budget_the_run_recorded() {
             sources[3]
         );
         assert!(
-            sources[8].contains("drift check") && sources[8].contains("600 s"),
+            sources[Component::Environment.index()].contains("drift check") && sources[Component::Environment.index()].contains("600 s"),
             "{}",
-            sources[8]
+            sources[Component::Environment.index()]
         );
         assert!(
-            sources[6].contains("11.50") && sources[6].contains("+0.20 K"),
+            sources[Component::ThermalTemperature.index()].contains("11.50") && sources[Component::ThermalTemperature.index()].contains("+0.20 K"),
             "{}",
-            sources[6]
+            sources[Component::ThermalTemperature.index()]
         );
     }
     assert_eq!(
@@ -624,13 +625,13 @@ fn a_term_the_run_could_not_state_is_named_with_its_reason() {
         source(2),
         "not stated: the calibration has no hold-out error"
     );
-    assert_eq!(source(8), "not stated: the service runs no drift check");
+    assert_eq!(source(Component::Environment.index()), "not stated: the service runs no drift check");
     assert!(
         source(3).contains("follower map id 99 \"stage-1.csv\", which is no longer in the store"),
         "{}",
         source(3)
     );
-    for i in [2, 3, 8] {
+    for i in [2, 3, Component::Bend.index(), Component::Environment.index()] {
         assert_eq!(terms[i]["largest_u"], 0.0, "{}", source(i));
     }
 }
@@ -962,8 +963,8 @@ async fn a_service_run_reports_the_follower_map_it_used() {
         says(2)
     );
     assert!(
-        says(8).starts_with("not stated: the service runs no drift check"),
+        says(Component::Environment.index()).starts_with("not stated: the service runs no drift check"),
         "{}",
-        says(8)
+        says(Component::Environment.index())
     );
 }
