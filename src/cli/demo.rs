@@ -689,11 +689,16 @@ fn write_out(dir: &Path, spec: &LoopSpec, r: &LoopResult, truth: &Truths) -> Res
     let before_caps: Vec<Capture> = r.before.run.captures.iter().map(|c| c.capture).collect();
     let after_caps: Vec<Capture> = r.after.run.captures.iter().map(|c| c.capture).collect();
     let mut ids = Vec::new();
-    for (pass, caps, run) in [
+    for ((pass, caps, run), [from, to]) in [
         ("before", &before_caps, &r.before.run),
         ("after", &after_caps, &r.after.run),
-    ] {
+    ]
+    .into_iter()
+    .zip(r.passes_unix_us)
+    {
         let id = store_run(&mut store, spec, pass, caps)?;
+        // Dated by the twin's clock, as its captures are: the run's machine time.
+        store.set_run_times(id, from, to)?;
         for h in &run.handovers {
             store.insert_handover(Some(id), h)?;
         }

@@ -464,7 +464,9 @@ impl FollowerMap {
             (None, None) => out.push_str(", its line not referenced"),
         }
         if self.reuse.is_some() {
-            out.push_str("; the instrument's map re-used on this set-up (its bend: the bend's own term)");
+            out.push_str(
+                "; the instrument's map re-used on this set-up (its bend: the bend's own term)",
+            );
         }
         out
     }

@@ -160,7 +160,12 @@ fn identification(a: &Acceptance, b: &mut Vec<Block>) {
         ("Run".into(), format!("{} ({})", r.id.0, r.state)),
         (
             "Measured".into(),
-            format!("{} to {}", when(r.created_us), when(r.updated_us)),
+            format!(
+                "{} to {} ({:.1} min of machine time)",
+                when(r.created_us),
+                when(r.updated_us),
+                (r.updated_us - r.created_us).max(0) as f64 / 60e6
+            ),
         ),
         ("Operator".into(), operator),
     ];

@@ -2,7 +2,9 @@
 //! mean over the runs at each target with its standard deviation and the captures' standard
 //! uncertainty, and the ISO 230-2 / 230-1 figures in user units.
 
-use super::{BudgetPoint, BudgetTable, BudgetTerm, DofResult, EnvSample, Figure, RunMeta, RunReport, Series};
+use super::{
+    BudgetPoint, BudgetTable, BudgetTerm, DofResult, EnvSample, Figure, RunMeta, RunReport, Series,
+};
 use crate::evaluate::AxisEvaluation;
 use crate::evaluate::iso230_1::ReferenceLine;
 use crate::evaluate::uncertainty::{Budget, Component};

@@ -124,15 +124,29 @@ pub fn json_rows(name: &str, v: &serde_json::Value) -> Vec<(String, String)> {
     }
 }
 
-/// The run's metadata rows.
+/// The run's metadata rows: with its machine time once it started (from its start to its
+/// end, or to now for a run still on the machine).
 pub fn meta_rows(m: &RunMeta) -> Vec<(&'static str, String)> {
-    vec![
+    let mut rows = vec![
         ("Run", m.run_id.to_string()),
         ("Axis", m.axis.clone()),
         ("State", m.state.clone()),
         ("Created", date(m.created_us)),
         ("Updated", date(m.updated_us)),
-    ]
+    ];
+    let minutes = (m.updated_us - m.created_us).max(0) as f64 / 60e6;
+    match m.state.as_str() {
+        "planned" => {}
+        "running" => rows.push((
+            "Machine time",
+            format!("{minutes:.1} min so far (to its last update)"),
+        )),
+        _ => rows.push((
+            "Machine time",
+            format!("{minutes:.1} min, from its start to its end"),
+        )),
+    }
+    rows
 }
 
 /// One row of a per-point table.
@@ -231,11 +245,11 @@ pub fn point_rows(dof: Dof, series: &[Series], budget: Option<&BudgetTable>) -> 
                     Some(b) => b
                         .at(s.positions_mm[i], s.direction)
                         .map_or_else(|| "—".to_string(), |p| fixed(p.combined, 3)),
-                    None => s
-                        .u
-                        .as_ref()
-                        .and_then(|u| u.get(i))
-                        .map_or_else(|| "—".to_string(), |&u| user(dof, u)),
+                    None => {
+                        s.u.as_ref()
+                            .and_then(|u| u.get(i))
+                            .map_or_else(|| "—".to_string(), |&u| user(dof, u))
+                    }
                 },
                 expanded: budget.map(|b| {
                     b.expanded_at(s.positions_mm[i], s.direction)
@@ -251,7 +265,11 @@ pub fn point_rows(dof: Dof, series: &[Series], budget: Option<&BudgetTable>) -> 
 /// per-point table; the budget table names it and why).
 fn stated_terms(b: &BudgetTable) -> Vec<usize> {
     (0..b.terms.len())
-        .filter(|&j| b.points.iter().any(|p| p.terms.get(j).is_some_and(|&t| t > 0.0)))
+        .filter(|&j| {
+            b.points
+                .iter()
+                .any(|p| p.terms.get(j).is_some_and(|&t| t > 0.0))
+        })
         .collect()
 }
 

@@ -309,6 +309,9 @@ pub struct LoopResult {
     pub follower: Option<TwinMap>,
     /// How long each phase kept the machine.
     pub machine_time: MachineTime,
+    /// When each pass (before, after) started and ended on the lab's clock (µs since the
+    /// Unix epoch, as its captures are dated): the runs' times in a store.
+    pub passes_unix_us: [[i64; 2]; 2],
 }
 
 /// The figures the loop is judged by (mm and rad, the crate's internal units).
@@ -365,9 +368,10 @@ pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, Lo
     let mount_at_start = lab.plant.mount();
     let mut machine_time = MachineTime::default();
     let follower = prepare_timed(&mut lab, spec, &mut step, &mut machine_time)?;
-    let t = lab.now();
+    let (t, u0) = (lab.now(), lab.unix_us());
     let before = measure(&mut lab, spec, Pass::Before, &mut step)?;
     machine_time.before = lab.now() - t;
+    let before_us = [u0, lab.unix_us()];
     let mount_aligned = lab.plant.mount();
     let tables = build_tables(
         &before.eval,
@@ -383,9 +387,10 @@ pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, Lo
     let wall = std::time::Instant::now();
     let published = publish_all(&lab, spec, &tables, &mut step)?;
     machine_time.publish = wall.elapsed();
-    let t = lab.now();
+    let (t, u0) = (lab.now(), lab.unix_us());
     let after = measure(&mut lab, spec, Pass::After, &mut step)?;
     machine_time.after = lab.now() - t;
+    let after_us = [u0, lab.unix_us()];
     Ok(LoopResult {
         before,
         tables,
@@ -394,6 +399,7 @@ pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, Lo
         mount: [mount_at_start, mount_aligned],
         follower,
         machine_time,
+        passes_unix_us: [before_us, after_us],
     })
 }
 
@@ -495,7 +501,9 @@ pub fn measure(
         psd2_sensitivity: psd2_sensitivity(&spec.lab.decoupler, mid)
             .map_err(LoopError::Sensitivity)?,
         follower: match lab.pipeline.tracker.map::<crate::follower::FollowerMap>() {
-            Some(m) => FollowerInput::of_map(m, encoder_offset, reference, 2.5, m.describe_sources()),
+            Some(m) => {
+                FollowerInput::of_map(m, encoder_offset, reference, 2.5, m.describe_sources())
+            }
             None => b.follower.clone(),
         },
         calibration: b.calibration.clone(),

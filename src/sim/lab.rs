@@ -375,6 +375,11 @@ impl Lab {
         self.now
     }
 
+    /// The lab's clock as the frames and captures are dated (µs since the Unix epoch).
+    pub fn unix_us(&self) -> i64 {
+        self.unix0_us + (self.now - self.t0).as_micros() as i64
+    }
+
     /// The twin's truth now.
     pub fn truth(&self) -> Truth {
         self.plant.truth(self.now)

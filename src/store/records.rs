@@ -147,6 +147,14 @@ pub struct RunRecord {
     pub notes: String,
 }
 
+impl RunRecord {
+    /// Its machine time (s): from its start to its last change of state (for an ended run,
+    /// its end), pauses and any restart of the service included.
+    pub fn machine_time_s(&self) -> f64 {
+        (self.updated_us - self.created_us).max(0) as f64 * 1e-6
+    }
+}
+
 const RUN_COLUMNS: &str =
     "id, created_us, updated_us, state, axis, plan_json, config_json, calibration_id, notes";
 
@@ -668,6 +676,28 @@ impl Store {
     }
 
     /// Move a run to `to` (see `RunState::may_become`), stamping `updated`.
+    /// Date a run measured on another clock (the twin's simulated one) as that clock read its
+    /// start and end (µs since the Unix epoch).
+    pub fn set_run_times(
+        &mut self,
+        id: RunId,
+        created_us: i64,
+        updated_us: i64,
+    ) -> Result<(), StoreError> {
+        let path = self.label();
+        let n = self
+            .conn
+            .execute(
+                "UPDATE runs SET created_us = ?2, updated_us = ?3 WHERE id = ?1",
+                params![id.0, created_us, updated_us],
+            )
+            .map_err(|e| super::classify(&path, "date a run", e))?;
+        if n == 0 {
+            return Err(StoreError::NoSuchRun(id));
+        }
+        Ok(())
+    }
+
     pub fn set_run_state(&mut self, id: RunId, to: RunState) -> Result<(), StoreError> {
         let what = "change a run's state";
         let path = self.label();

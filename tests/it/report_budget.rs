@@ -6,10 +6,10 @@
 
 use crate::helpers::{TempDir, bin, stderr, stdout};
 use axiscomp::evaluate::axis::synthetic_capture;
-use axiscomp::evaluate::uncertainty::Component;
 use axiscomp::evaluate::recorded::{
     KEY, RecordedBudget, RecordedCalibration, RecordedDrift, RecordedMap, RecordedThermal, Stated,
 };
+use axiscomp::evaluate::uncertainty::Component;
 use axiscomp::follower::{self, Certificate, MapSettings};
 use axiscomp::run::{Direction, Plan, PlanSpec};
 use axiscomp::store::{NewRun, RunId, RunState, Store};
@@ -355,12 +355,14 @@ fn the_report_states_the_budget_the_run_recorded() {
             sources[3]
         );
         assert!(
-            sources[Component::Environment.index()].contains("drift check") && sources[Component::Environment.index()].contains("600 s"),
+            sources[Component::Environment.index()].contains("drift check")
+                && sources[Component::Environment.index()].contains("600 s"),
             "{}",
             sources[Component::Environment.index()]
         );
         assert!(
-            sources[Component::ThermalTemperature.index()].contains("11.50") && sources[Component::ThermalTemperature.index()].contains("+0.20 K"),
+            sources[Component::ThermalTemperature.index()].contains("11.50")
+                && sources[Component::ThermalTemperature.index()].contains("+0.20 K"),
             "{}",
             sources[Component::ThermalTemperature.index()]
         );
@@ -456,6 +458,7 @@ fn an_old_run_reports_its_terms_as_not_recorded() {
                 name,
                 "calibration"
                     | "follower map"
+                    | "follower map, this set-up's bend"
                     | "thermal, temperature"
                     | "thermal, coefficient"
                     | "environmental variation"
@@ -625,13 +628,21 @@ fn a_term_the_run_could_not_state_is_named_with_its_reason() {
         source(2),
         "not stated: the calibration has no hold-out error"
     );
-    assert_eq!(source(Component::Environment.index()), "not stated: the service runs no drift check");
+    assert_eq!(
+        source(Component::Environment.index()),
+        "not stated: the service runs no drift check"
+    );
     assert!(
         source(3).contains("follower map id 99 \"stage-1.csv\", which is no longer in the store"),
         "{}",
         source(3)
     );
-    for i in [2, 3, Component::Bend.index(), Component::Environment.index()] {
+    for i in [
+        2,
+        3,
+        Component::Bend.index(),
+        Component::Environment.index(),
+    ] {
         assert_eq!(terms[i]["largest_u"], 0.0, "{}", source(i));
     }
 }
@@ -904,11 +915,30 @@ async fn a_service_run_reports_the_follower_map_it_used() {
         .expect("the run starts");
     let id = started["run_id"].as_i64().expect("run id");
     let t0 = axiscomp::util::clock::now();
-    loop {
+    // The machine time the status states: so far while it runs (never more than the time
+    // since it was started, and growing), then from its start to its end.
+    let mut so_far = 0.0f64;
+    let ended_s = loop {
         let st = rig.request(Request::RunStatus).await.expect("run status");
+        let elapsed = axiscomp::util::clock::since(t0).as_secs_f64();
         match st["state"].as_str() {
-            Some("running") => {}
-            Some("finished") => break,
+            Some("running") => {
+                let m = st["machine_s"].as_f64().expect("machine time so far");
+                assert!(
+                    m >= so_far && m <= elapsed + 1e-3,
+                    "{m} s after {elapsed} s"
+                );
+                assert_eq!(st["resumed"], false);
+                so_far = m;
+            }
+            Some("finished") => {
+                let m = st["machine_time_s"].as_f64().expect("machine time");
+                assert!(
+                    m >= so_far && m <= elapsed + 1e-3,
+                    "{m} s after {elapsed} s"
+                );
+                break m;
+            }
             _ => panic!("the run ended so: {st}"),
         }
         assert!(
@@ -916,11 +946,13 @@ async fn a_service_run_reports_the_follower_map_it_used() {
             "not finished: {st}"
         );
         tokio::time::sleep(Duration::from_millis(200)).await;
-    }
+    };
+    assert!(so_far > 0.0 && ended_s > 0.0, "{so_far} s, {ended_s} s");
     let run = Store::open_read_only(&rig.store)
         .expect("store")
         .run(RunId(id))
         .expect("run");
+    assert!((run.machine_time_s() - ended_s).abs() < 1e-6);
     let r = &run.config[KEY];
     let offset = r["follower_map"]["stated"]["encoder_offset_mm"]
         .as_f64()
@@ -963,7 +995,8 @@ async fn a_service_run_reports_the_follower_map_it_used() {
         says(2)
     );
     assert!(
-        says(Component::Environment.index()).starts_with("not stated: the service runs no drift check"),
+        says(Component::Environment.index())
+            .starts_with("not stated: the service runs no drift check"),
         "{}",
         says(Component::Environment.index())
     );

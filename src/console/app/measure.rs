@@ -170,6 +170,11 @@ pub struct RunProgress {
     /// The plan's machine time left (s) as the service said it, and when.
     pub left_s: Option<f64>,
     left_at: Option<Instant>,
+    /// The run's machine time as the service said it (s: so far while it runs, since it
+    /// started or the service took it up again; from its start to its end once it ended),
+    /// and when.
+    pub machine_s: Option<f64>,
+    machine_at: Option<Instant>,
     first_seen: Instant,
     first_captures: usize,
     last_change: Instant,
@@ -186,6 +191,8 @@ impl RunProgress {
             missing: None,
             left_s: None,
             left_at: None,
+            machine_s: None,
+            machine_at: None,
             program: None,
             notes: None,
             paused: None,
@@ -221,6 +228,16 @@ impl RunProgress {
     /// Time since this console first saw the run.
     pub fn watched(&self) -> Duration {
         self.now.saturating_duration_since(self.first_seen)
+    }
+
+    /// The run's machine time: while it runs, what the service last said and the time since;
+    /// once it ended, from its start to its end; `None` when the service did not say.
+    pub fn machine_time(&self) -> Option<Duration> {
+        let said = Duration::from_secs_f64(self.machine_s?.max(0.0));
+        Some(match (self.running(), self.machine_at) {
+            (true, Some(at)) => said + self.now.saturating_duration_since(at),
+            _ => said,
+        })
     }
 
     /// Time left: the plan's motion and dwell for the captures still to come (from the
@@ -276,6 +293,10 @@ impl App {
         r.missing = v["missing"].as_u64().map(|m| m as usize);
         r.left_s = v["left_s"].as_f64();
         r.left_at = r.left_s.map(|_| now);
+        r.machine_s = v["machine_s"]
+            .as_f64()
+            .or_else(|| v["machine_time_s"].as_f64());
+        r.machine_at = r.machine_s.map(|_| now);
         if let Some(p) = v["program"].as_str() {
             r.program = Some(p.to_string());
         }

@@ -208,13 +208,18 @@ fn start_confirms_then_sends_the_plan_and_progress_gives_an_eta() {
     // Once the service says what is left of the plan's motion and dwell, that is the ETA.
     a.apply_run_status(
         &serde_json::json!({"run_id": 4, "state": "running", "captures": 5, "expected": 20,
-            "plan_s": 82.0, "left_s": 61.5}),
+            "plan_s": 82.0, "left_s": 61.5, "machine_s": 30.0}),
         t0 + Duration::from_secs(12),
     );
     a.tick(t0 + Duration::from_secs(14));
     assert_eq!(
         a.run.as_ref().unwrap().eta(),
         Some(Duration::from_millis(59_500))
+    );
+    // The machine time so far: what the service said, and the 2 s since.
+    assert_eq!(
+        a.run.as_ref().unwrap().machine_time(),
+        Some(Duration::from_secs(32))
     );
     // The run ends: the console asks how.
     let out = a.handle_snapshot(Snapshot::default(), t0 + Duration::from_secs(50));
@@ -229,11 +234,18 @@ fn start_confirms_then_sends_the_plan_and_progress_gives_an_eta() {
     };
     a.handle_reply(
         *id,
-        Ok(serde_json::json!({"run_id": 4, "state": "complete", "captures": 20})),
+        Ok(
+            serde_json::json!({"run_id": 4, "state": "complete", "captures": 20,
+            "machine_time_s": 68.0}),
+        ),
         t0 + Duration::from_secs(50),
     );
     let r = a.run.as_ref().unwrap();
     assert_eq!((r.state.as_str(), r.captures), ("complete", 20));
+    // Ended: from its start to its end, as the store dated it, however long ago.
+    a.tick(t0 + Duration::from_secs(90));
+    let r = a.run.as_ref().unwrap();
+    assert_eq!(r.machine_time(), Some(Duration::from_secs(68)));
     assert!(!a.run_active());
 }
 

@@ -190,14 +190,25 @@ fn head_lines(r: &RunProgress, width: u16, theme: Theme) -> Vec<Line<'static>> {
     if let (true, Some(why)) = (r.running(), &r.paused) {
         lines.push(Line::styled(format!("PAUSED: {why}"), theme.warn()));
     }
-    lines.push(Line::raw(match (r.running(), r.eta()) {
-        (true, Some(eta)) => format!(
+    let machine = r.machine_time();
+    lines.push(Line::raw(match (r.running(), r.eta(), machine) {
+        (true, Some(eta), Some(m)) => {
+            format!("ETA {}; machine time {} so far", duration(eta), duration(m))
+        }
+        (true, Some(eta), None) => format!(
             "ETA {} (watched for {})",
             duration(eta),
             duration(r.watched())
         ),
-        (true, None) => "ETA after the next capture".into(),
-        (false, _) => "ended".into(),
+        (true, None, Some(m)) => {
+            format!(
+                "ETA after the next capture; machine time {} so far",
+                duration(m)
+            )
+        }
+        (true, None, None) => "ETA after the next capture".into(),
+        (false, _, Some(m)) => format!("ended after {} of machine time", duration(m)),
+        (false, _, None) => "ended".into(),
     }));
     if let Some(n) = &r.notes {
         lines.push(Line::styled(n.clone(), theme.dim()));

@@ -124,6 +124,10 @@ struct Active {
     /// taken (a full disk).
     last: Option<Program>,
     send_again_at: Option<Instant>,
+    /// When this process started the run or took it up again after a restart: its machine
+    /// time so far is counted from here.
+    started: Instant,
+    resumed: bool,
 }
 
 /// The service's measurement run: at most one at a time.
@@ -302,6 +306,8 @@ impl MeasurementRun {
             ended: false,
             last: None,
             send_again_at: None,
+            started: ctx.now,
+            resumed: resumed_at.is_some(),
         });
         match resumed_at {
             Some(_) => ctx.pipeline.resume_run(machine),
@@ -558,8 +564,11 @@ impl MeasurementRun {
             .raise("run-failed", format!("run {} cannot resume: {why}", id.0));
     }
 
-    /// `run_status`: while running, the plan's machine time (`plan_s`) and what is left of it
-    /// (`left_s`), for the ETA; else the newest stored run (read off the loop).
+    /// `run_status`: while running, the plan's machine time (`plan_s`), what is left of it
+    /// (`left_s`), for the ETA, and the machine time so far (`machine_s`, since the run started
+    /// or this process took it up again: `resumed`); else the newest stored run (read off the
+    /// loop), with its machine time from its start to its end when it ended
+    /// (`machine_time_s`).
     fn status(&self, reply: Reply, ctx: &mut Ctx) {
         if let (Some(a), Some((done, total))) = (&self.active, ctx.pipeline.run_progress()) {
             let plan = a.session.plan();
@@ -576,6 +585,8 @@ impl MeasurementRun {
                 "paused": ctx.pipeline.paused(),
                 "plan_s": plan_s,
                 "left_s": left_s,
+                "machine_s": ctx.now.saturating_duration_since(a.started).as_secs_f64(),
+                "resumed": a.resumed,
             })));
         }
         let store = ctx.store.clone();
@@ -592,12 +603,17 @@ impl MeasurementRun {
                             } else {
                                 r.state.as_str()
                             };
+                            let ended = matches!(
+                                r.state,
+                                RunState::Finished | RunState::Failed | RunState::Aborted
+                            );
                             serde_json::json!({
                                 "run_id": r.id.0, "state": state,
                                 "captures": s.captures(r.id).map(|c| c.len()).unwrap_or(0),
                                 "flagged": flags.len(),
                                 "flags_open": open,
                                 "notes": r.notes,
+                                "machine_time_s": ended.then(|| r.machine_time_s()),
                             })
                         }
                         None => serde_json::json!({"state": "none"}),
