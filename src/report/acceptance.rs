@@ -164,7 +164,7 @@ fn identification(a: &Acceptance, b: &mut Vec<Block>) {
                 "{} to {} ({:.1} min of machine time)",
                 when(r.created_us),
                 when(r.updated_us),
-                (r.updated_us - r.created_us).max(0) as f64 / 60e6
+                r.machine_time_s() / 60.0
             ),
         ),
         ("Operator".into(), operator),

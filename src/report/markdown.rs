@@ -92,8 +92,8 @@ pub fn render(r: &RunReport) -> String {
                 .map(|r| r.to_vec())
                 .collect();
             table(&mut out, &text::budget_headings(d.dof), &rows, &[2]);
-            let heads = text::budget_point_headings(d.dof, b);
             if !b.points.is_empty() {
+                let heads = text::budget_point_headings(d.dof, b);
                 out.push_str("#### Per point: what each term puts into U\n\n");
                 let right: Vec<usize> = (0..heads.len()).filter(|&j| j != 1).collect();
                 table(&mut out, &heads, &text::budget_point_rows(b), &right);

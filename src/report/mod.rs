@@ -149,7 +149,8 @@ pub struct BudgetTable {
     /// The largest combined standard uncertainty and expanded uncertainty over the points.
     pub largest_combined: f64,
     pub largest_expanded: f64,
-    /// Every point of one direction: each term, the combined and expanded uncertainty.
+    /// Every point of each approach direction (the bidirectional mean left out): each term,
+    /// the combined and expanded uncertainty.
     pub points: Vec<BudgetPoint>,
 }
 
