@@ -9,7 +9,8 @@
 //!    (`optics`) and its calibration (`calibrate`);
 //! 4. `run`: the ISO 230-2 test cycle and the captures at each target;
 //! 5. `evaluate`: ISO 230-2 / 230-1 figures from the captures;
-//! 6. `comp`: compensation tables and controller exports;
+//! 6. `comp`: compensation tables and controller exports; `machine`: the three axes together,
+//!    their 21 errors and the controls' volumetric compensation;
 //! 7. `plc`: tables into the CNC's PLC over Modbus TCP (push with handshake, pull server).
 //!
 //! Around them: `service` (the live service: tasks, snapshot, control API), `console` (the
@@ -29,6 +30,7 @@ pub mod decouple;
 pub mod evaluate;
 pub mod follower;
 pub mod hexapod;
+pub mod machine;
 pub mod modbus;
 pub mod optics;
 pub mod plc;

@@ -23,6 +23,7 @@ pub mod hexapod;
 pub mod hexapod_servers;
 pub mod iomodule;
 pub mod lab;
+pub mod machine;
 pub mod machine_time;
 pub mod plant;
 pub mod plc;

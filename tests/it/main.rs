@@ -22,6 +22,7 @@ mod hexapod;
 mod hexapod_along;
 mod hexapod_service;
 mod links;
+mod machine;
 mod maintenance;
 mod modbus;
 mod plc;

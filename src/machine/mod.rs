@@ -1,0 +1,38 @@
+//! The whole machine (issue 27): three linear axes in a kinematic chain, their 21 geometric
+//! errors after ISO 230-1 (`model`), the tool point's volumetric error anywhere in the volume,
+//! and the controls' volumetric compensation files (`isg_csv`: Beckhoff TwinCAT's).
+//!
+//! So far the model, its first-order error at the tool and the Beckhoff file, held against
+//! the twin's machine (`sim::machine`), which composes the same chain exactly and applies a
+//! loaded file as its CNC would. Measuring the 21 errors with the head (each axis's six, the
+//! squarenesses with an optical square) and the other controls' exports come next.
+
+pub mod isg_csv;
+pub mod model;
+
+pub use model::{Chain, ComponentTable, MachineModel, Squareness, component_names};
+
+use crate::comp::mapping::MachineAxis;
+use thiserror::Error;
+
+/// Why a machine model or its file could not be built or read.
+#[derive(Debug, Error)]
+pub enum MachineError {
+    #[error("component errors of {axis}: {problem}")]
+    Table { axis: MachineAxis, problem: String },
+    #[error("chain {chain}: {problem}")]
+    Chain { chain: String, problem: String },
+    #[error("machine model: {0}")]
+    Missing(String),
+    #[error("{path}, line {line}: {problem}")]
+    File {
+        path: String,
+        line: usize,
+        problem: String,
+    },
+    #[error("{path}: {problem}")]
+    Io { path: String, problem: String },
+}
+
+#[cfg(test)]
+mod tests;

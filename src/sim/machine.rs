@@ -1,0 +1,191 @@
+//! The twin's three-axis machine (issue 27): three linear axes in a kinematic chain, each with
+//! the six component errors of a mid-size machine, three squarenesses, and a CNC that applies
+//! a volumetric compensation to its setpoints as Beckhoff's does (the tool point, not its
+//! orientation). It composes the chain exactly (rotation matrices, unit axis lines), so the
+//! truth after a compensation is known at any point of the volume with any tool offset.
+//!
+//! Each axis is drawn as the single-axis twin draws one (`sim::axis::AxisProfile`, in the
+//! head's frame, put on the machine by the standard mounting `AxisMapping::standard`), with
+//! neither screw-periodic term nor reversal: those stay with each axis's own compensation
+//! (issue 15), a volumetric model takes the smooth geometry. Conventions: `machine::model`.
+
+use super::Rng;
+use super::axis::{AxisProfile, AxisSpec, Direction};
+use crate::comp::mapping::{AxisMapping, MachineAxis};
+use crate::machine::{Chain, ComponentTable, MachineError, MachineModel, Squareness};
+use crate::units::RAD_PER_ARCSEC;
+use nalgebra::{Rotation3, Vector3};
+
+/// How large the twin machine and its errors are: each axis's peak drawn uniformly from its
+/// range, each squareness's magnitude from its range with a random sign.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MachineSpec {
+    /// Travel of X, Y, Z (mm), each from 0.
+    pub travel_mm: [f64; 3],
+    pub chain: Chain,
+    /// Peak positioning error (µm).
+    pub positioning_um: (f64, f64),
+    /// Peak of each straightness (µm).
+    pub straightness_um: (f64, f64),
+    /// Peak of each angular error, roll included (arcsec).
+    pub angle_arcsec: (f64, f64),
+    /// |squareness| (arcsec).
+    pub squareness_arcsec: (f64, f64),
+}
+
+impl MachineSpec {
+    /// A vertical machining centre with a cross table, X 1000 × Y 600 × Z 500 mm.
+    pub fn vertical_mc() -> MachineSpec {
+        MachineSpec {
+            travel_mm: [1000.0, 600.0, 500.0],
+            chain: Chain::cross_table(),
+            positioning_um: (15.0, 30.0),
+            straightness_um: (10.0, 20.0),
+            angle_arcsec: (5.0, 10.0),
+            squareness_arcsec: (5.0, 20.0),
+        }
+    }
+
+    /// A gantry, X 2000 × Y 1500 × Z 600 mm.
+    pub fn gantry() -> MachineSpec {
+        MachineSpec {
+            travel_mm: [2000.0, 1500.0, 600.0],
+            chain: Chain::gantry(),
+            ..MachineSpec::vertical_mc()
+        }
+    }
+}
+
+/// The twin machine, drawn once from its spec and a seed.
+#[derive(Clone, Debug)]
+pub struct TwinMachine {
+    pub spec: MachineSpec,
+    /// X, Y, Z.
+    axes: [AxisProfile; 3],
+    squareness: Squareness,
+}
+
+/// A rotation vector (rad) as the exact rotation Rz(c)·Ry(b)·Rx(a).
+fn rotation(e: [f64; 3]) -> Rotation3<f64> {
+    Rotation3::from_euler_angles(e[0], e[1], e[2])
+}
+
+impl TwinMachine {
+    pub fn new(spec: &MachineSpec, seed: u64) -> TwinMachine {
+        let mut rng = Rng::new(seed);
+        let axes = std::array::from_fn(|i| {
+            let angle = rng.uniform(spec.angle_arcsec.0, spec.angle_arcsec.1);
+            let a = AxisSpec {
+                length_mm: spec.travel_mm[i],
+                positioning_um: rng.uniform(spec.positioning_um.0, spec.positioning_um.1),
+                periodic_um: 0.0,
+                backlash_um: 0.0,
+                straightness_um: rng.uniform(spec.straightness_um.0, spec.straightness_um.1),
+                pitch_yaw_arcsec: angle,
+                roll_arcsec: rng.uniform(spec.angle_arcsec.0, spec.angle_arcsec.1),
+                thermal_um_per_m_per_h: 0.0,
+                ..AxisSpec::default()
+            };
+            AxisProfile::random(&a, &mut rng)
+        });
+        let mut square = || {
+            let m = rng.uniform(spec.squareness_arcsec.0, spec.squareness_arcsec.1);
+            let sign = if rng.unit() < 0.5 { -1.0 } else { 1.0 };
+            sign * m * RAD_PER_ARCSEC
+        };
+        let squareness = Squareness {
+            c0y: square(),
+            b0z: square(),
+            a0z: square(),
+        };
+        TwinMachine {
+            spec: *spec,
+            axes,
+            squareness,
+        }
+    }
+
+    /// The true squarenesses (rad).
+    pub fn squareness(&self) -> Squareness {
+        self.squareness
+    }
+
+    /// The true six component errors of `axis` at `q` (mm): translations along X, Y, Z (mm),
+    /// rotations about X, Y, Z (rad).
+    pub fn component_errors(&self, axis: MachineAxis, q: f64) -> [f64; 6] {
+        let e = self.axes[axis.index()]
+            .errors(q, Direction::Up, 0.0)
+            .to_array();
+        let m = AxisMapping::standard(axis);
+        let t = m.to_machine([e[0], e[1], e[2]]);
+        let r = m.to_machine([e[3], e[4], e[5]]);
+        [t[0], t[1], t[2], r[0], r[1], r[2]]
+    }
+
+    /// `axis`' unit line, exactly.
+    fn direction(&self, axis: MachineAxis) -> Vector3<f64> {
+        let s = self.squareness;
+        match axis {
+            MachineAxis::X => Vector3::x(),
+            MachineAxis::Y => rotation([0.0, 0.0, s.c0y]) * Vector3::y(),
+            MachineAxis::Z => {
+                rotation([s.a0z, 0.0, 0.0]) * rotation([0.0, s.b0z, 0.0]) * Vector3::z()
+            }
+        }
+    }
+
+    /// Where the tool's point is in the workpiece frame (mm) when the axes stand at `cmd`
+    /// (mm) with tool offset `tool` (mm): the chain composed exactly.
+    pub fn tool_point(&self, cmd: [f64; 3], tool: [f64; 3]) -> [f64; 3] {
+        let mut p = Vector3::from(tool);
+        for &axis in self.spec.chain.order().iter().rev() {
+            let q = cmd[axis.index()];
+            let e = self.component_errors(axis, q);
+            p = rotation([e[3], e[4], e[5]]) * p
+                + self.direction(axis) * q
+                + Vector3::new(e[0], e[1], e[2]);
+        }
+        [p.x, p.y, p.z]
+    }
+
+    /// The tool point's error (mm) at `cmd` with `tool`, uncompensated.
+    pub fn error(&self, cmd: [f64; 3], tool: [f64; 3]) -> [f64; 3] {
+        let p = self.tool_point(cmd, tool);
+        std::array::from_fn(|k| p[k] - cmd[k] - tool[k])
+    }
+
+    /// The tool point's error (mm) at `cmd` with `tool` when the CNC compensates by `model`:
+    /// each axis's setpoint shifted by the model's error at the programmed point, taken back.
+    pub fn error_compensated(
+        &self,
+        cmd: [f64; 3],
+        tool: [f64; 3],
+        model: &MachineModel,
+    ) -> [f64; 3] {
+        let e = model.error_at(cmd, tool);
+        let set = std::array::from_fn(|k| cmd[k] - e[k]);
+        let p = self.tool_point(set, tool);
+        std::array::from_fn(|k| p[k] - cmd[k] - tool[k])
+    }
+
+    /// The model of the true errors, each axis's table sampled every `step_mm` over its
+    /// travel: what a perfect measurement would give.
+    pub fn truth_model(&self, step_mm: f64) -> Result<MachineModel, MachineError> {
+        let tables = MachineAxis::ALL
+            .into_iter()
+            .map(|a| {
+                ComponentTable::sample(a, 0.0, self.spec.travel_mm[a.index()], step_mm, |q| {
+                    self.component_errors(a, q)
+                })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        MachineModel::new(self.spec.chain, tables, self.squareness)
+    }
+
+    /// `n` points drawn uniformly in the volume (mm).
+    pub fn random_points(&self, n: usize, rng: &mut Rng) -> Vec<[f64; 3]> {
+        (0..n)
+            .map(|_| std::array::from_fn(|k| rng.uniform(0.0, self.spec.travel_mm[k])))
+            .collect()
+    }
+}
