@@ -1,19 +1,34 @@
 //! The whole machine (issue 27): three linear axes in a kinematic chain, their 21 geometric
 //! errors after ISO 230-1 (`model`), the tool point's volumetric error anywhere in the volume,
-//! and the controls' volumetric compensation files (`isg_csv`: Beckhoff TwinCAT's).
+//! and the controls' volumetric compensation files (`isg_csv`: Beckhoff TwinCAT's; `grid`: the model at a grid's corners, as FANUC's
+//! three-dimensional compensation interpolates them).
 //!
 //! So far the model, its first-order error at the tool and the Beckhoff file, held against
 //! the twin's machine (`sim::machine`), which composes the same chain exactly and applies a
 //! loaded file as its CNC would. Measuring the 21 errors with the head (each axis's six, the
 //! squarenesses with an optical square) and the other controls' exports come next.
 
+pub mod grid;
 pub mod isg_csv;
 pub mod model;
 
+pub use grid::Grid;
 pub use model::{Chain, ComponentTable, MachineModel, Squareness, component_names};
 
 use crate::comp::mapping::MachineAxis;
 use thiserror::Error;
+
+/// What a control compensates by: the tool point's error (mm, machine X, Y, Z) it expects at
+/// a commanded position (mm) with a tool offset (mm).
+pub trait Volumetric {
+    fn error_at(&self, cmd: [f64; 3], tool: [f64; 3]) -> [f64; 3];
+}
+
+impl Volumetric for MachineModel {
+    fn error_at(&self, cmd: [f64; 3], tool: [f64; 3]) -> [f64; 3] {
+        MachineModel::error_at(self, cmd, tool)
+    }
+}
 
 /// Why a machine model or its file could not be built or read.
 #[derive(Debug, Error)]

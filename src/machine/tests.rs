@@ -276,3 +276,57 @@ fn the_manual_s_example_reads_and_what_the_model_cannot_take_is_refused() {
         "v.csv, line 1: position errors take one data row, found 2"
     );
 }
+
+/// Trilinear between corners reproduces a field linear in each axis exactly: constant angles
+/// and squarenesses make the model's error such a field (products of one position with a
+/// constant), so the grid must equal the model everywhere, beyond its faces held.
+#[test]
+fn a_grid_reproduces_a_linear_field_and_its_corners() {
+    let row = |a: f64| [1e-3 * a, -2e-3, 0.5e-3, 1e-5 * a, -2e-5, 3e-5];
+    let tables = MachineAxis::ALL
+        .iter()
+        .map(|&a| flat(a, 1000.0, row(a.index() as f64 + 1.0)))
+        .collect();
+    let s = Squareness {
+        c0y: 4e-5,
+        b0z: -3e-5,
+        a0z: 2e-5,
+    };
+    let model = MachineModel::new(Chain::cross_table(), tables, s).unwrap();
+    let tool = [10.0, 0.0, -120.0];
+    let grid = Grid::of_model(&model, [0.0; 3], [1000.0, 600.0, 500.0], [70.0; 3], tool).unwrap();
+    // 1000 / 70 rounds up to 15 cells of 66.7 mm.
+    assert_eq!(grid.counts(), [16, 10, 9]);
+    assert!((grid.step_mm()[0] - 1000.0 / 15.0).abs() < 1e-12);
+    let mut rng = Rng::new(5);
+    for _ in 0..200 {
+        let p = [
+            rng.uniform(0.0, 1000.0),
+            rng.uniform(0.0, 600.0),
+            rng.uniform(0.0, 500.0),
+        ];
+        let (g, m) = (grid.at(p), model.error_at(p, tool));
+        for k in 0..3 {
+            assert!((g[k] - m[k]).abs() < 1e-12, "{p:?}: {g:?} against {m:?}");
+        }
+    }
+    assert_eq!(
+        grid.at([1200.0, -5.0, 250.0]),
+        grid.at([1000.0, 0.0, 250.0])
+    );
+    // A curved field is met at the corners and not between them.
+    let twin = TwinMachine::new(&MachineSpec::vertical_mc(), 3);
+    let truth = twin.truth_model(5.0).unwrap();
+    let grid = Grid::of_model(&truth, [0.0; 3], [1000.0, 600.0, 500.0], [100.0; 3], tool).unwrap();
+    let corner = [300.0, 200.0, 100.0];
+    let (g, m) = (grid.at(corner), truth.error_at(corner, tool));
+    assert!((0..3).all(|k| (g[k] - m[k]).abs() < 1e-12));
+    let mid = [350.0, 250.0, 150.0];
+    let (g, m) = (grid.at(mid), truth.error_at(mid, tool));
+    assert!((0..3).any(|k| (g[k] - m[k]).abs() > 1e-5), "{g:?} {m:?}");
+    let e = Grid::of_model(&truth, [0.0; 3], [1000.0, 0.0, 500.0], [10.0; 3], tool).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "machine model: a grid from 0 to 0 mm every 10 mm along Y: give a positive span and step"
+    );
+}

@@ -12,7 +12,7 @@
 use super::Rng;
 use super::axis::{AxisProfile, AxisSpec, Direction};
 use crate::comp::mapping::{AxisMapping, MachineAxis};
-use crate::machine::{Chain, ComponentTable, MachineError, MachineModel, Squareness};
+use crate::machine::{Chain, ComponentTable, MachineError, MachineModel, Squareness, Volumetric};
 use crate::units::RAD_PER_ARCSEC;
 use nalgebra::{Rotation3, Vector3};
 
@@ -154,13 +154,14 @@ impl TwinMachine {
         std::array::from_fn(|k| p[k] - cmd[k] - tool[k])
     }
 
-    /// The tool point's error (mm) at `cmd` with `tool` when the CNC compensates by `model`:
-    /// each axis's setpoint shifted by the model's error at the programmed point, taken back.
+    /// The tool point's error (mm) at `cmd` with `tool` when the CNC compensates by `model`
+    /// (a model or a grid): each axis's setpoint shifted by the error it expects at the
+    /// programmed point, taken back.
     pub fn error_compensated(
         &self,
         cmd: [f64; 3],
         tool: [f64; 3],
-        model: &MachineModel,
+        model: &dyn Volumetric,
     ) -> [f64; 3] {
         let e = model.error_at(cmd, tool);
         let set = std::array::from_fn(|k| cmd[k] - e[k]);

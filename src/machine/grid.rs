@@ -1,0 +1,121 @@
+//! The model evaluated onto a 3-D grid of the axes' positions, as the controls that take
+//! correction vectors at a grid's corners interpolate them (FANUC's three-dimensional error
+//! compensation: trilinear between the eight corners around the point). The grid is taken
+//! at one tool offset: the angular errors' share at another offset is not in it.
+//!
+//! The grid's file for a control is not written here yet; this is what it will carry.
+
+use super::{MachineError, MachineModel, Volumetric};
+
+/// Error vectors (mm, machine X, Y, Z) at the corners of a regular grid over the volume.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Grid {
+    origin_mm: [f64; 3],
+    step_mm: [f64; 3],
+    counts: [usize; 3],
+    tool_mm: [f64; 3],
+    /// X fastest, then Y, then Z.
+    vectors: Vec<[f64; 3]>,
+}
+
+impl Grid {
+    /// `model` at every corner of a grid from `from_mm` to `to_mm` (each axis's ends
+    /// included) no wider than `step_mm`, with tool offset `tool_mm`.
+    pub fn of_model(
+        model: &MachineModel,
+        from_mm: [f64; 3],
+        to_mm: [f64; 3],
+        step_mm: [f64; 3],
+        tool_mm: [f64; 3],
+    ) -> Result<Grid, MachineError> {
+        let mut counts = [0usize; 3];
+        let mut step = [0.0; 3];
+        for k in 0..3 {
+            let span = to_mm[k] - from_mm[k];
+            if !(span > 0.0 && step_mm[k] > 0.0 && span.is_finite()) {
+                return Err(MachineError::Missing(format!(
+                    "a grid from {} to {} mm every {} mm along {}: give a positive span and step",
+                    from_mm[k],
+                    to_mm[k],
+                    step_mm[k],
+                    ["X", "Y", "Z"][k]
+                )));
+            }
+            let cells = (span / step_mm[k]).ceil().max(1.0) as usize;
+            counts[k] = cells + 1;
+            step[k] = span / cells as f64;
+        }
+        let mut vectors = Vec::with_capacity(counts.iter().product());
+        for k in 0..counts[2] {
+            for j in 0..counts[1] {
+                for i in 0..counts[0] {
+                    let p = [
+                        from_mm[0] + i as f64 * step[0],
+                        from_mm[1] + j as f64 * step[1],
+                        from_mm[2] + k as f64 * step[2],
+                    ];
+                    vectors.push(model.error_at(p, tool_mm));
+                }
+            }
+        }
+        Ok(Grid {
+            origin_mm: from_mm,
+            step_mm: step,
+            counts,
+            tool_mm,
+            vectors,
+        })
+    }
+
+    /// Corners along X, Y, Z.
+    pub fn counts(&self) -> [usize; 3] {
+        self.counts
+    }
+
+    /// The spacing along X, Y, Z (mm).
+    pub fn step_mm(&self) -> [f64; 3] {
+        self.step_mm
+    }
+
+    /// The tool offset the grid was taken with (mm).
+    pub fn tool_mm(&self) -> [f64; 3] {
+        self.tool_mm
+    }
+
+    fn corner(&self, i: usize, j: usize, k: usize) -> [f64; 3] {
+        self.vectors[(k * self.counts[1] + j) * self.counts[0] + i]
+    }
+
+    /// The error vector at `p` (mm): trilinear between the corners around it, the grid's
+    /// faces held beyond it.
+    pub fn at(&self, p: [f64; 3]) -> [f64; 3] {
+        let mut cell = [0usize; 3];
+        let mut w = [0.0; 3];
+        for k in 0..3 {
+            let cells = self.counts[k] - 1;
+            let u = ((p[k] - self.origin_mm[k]) / self.step_mm[k]).clamp(0.0, cells as f64);
+            cell[k] = (u.floor() as usize).min(cells - 1);
+            w[k] = u - cell[k] as f64;
+        }
+        let mut out = [0.0; 3];
+        for (dk, wk) in [(0, 1.0 - w[2]), (1, w[2])] {
+            for (dj, wj) in [(0, 1.0 - w[1]), (1, w[1])] {
+                for (di, wi) in [(0, 1.0 - w[0]), (1, w[0])] {
+                    let c = self.corner(cell[0] + di, cell[1] + dj, cell[2] + dk);
+                    for m in 0..3 {
+                        out[m] += wi * wj * wk * c[m];
+                    }
+                }
+            }
+        }
+        out
+    }
+}
+
+impl Volumetric for Grid {
+    /// The grid's vector at `cmd`; the tool is the grid's own (a control with a grid knows
+    /// no other).
+    fn error_at(&self, cmd: [f64; 3], _tool: [f64; 3]) -> [f64; 3] {
+        self.at(cmd)
+    }
+}
