@@ -330,3 +330,68 @@ fn a_grid_reproduces_a_linear_field_and_its_corners() {
         "machine model: a grid from 0 to 0 mm every 10 mm along Y: give a positive span and step"
     );
 }
+
+/// The machine's frame is its axes' reference lines: every straightness table has no
+/// least-squares line left over its travel. The single-axis twin of `plant_spec` carries the
+/// very axis, and its straightness differs from the machine's by a line alone.
+#[test]
+fn the_twin_machine_s_axes_are_the_single_axis_twin_s_on_their_reference_lines() {
+    use crate::optics::Layout;
+    use crate::sim::plant::{Plant, PlantSpec};
+    let twin = TwinMachine::new(&MachineSpec::vertical_mc(), 21);
+    let layout = Layout::reference();
+    for axis in MachineAxis::ALL {
+        let len = twin.spec.travel_mm[axis.index()];
+        let spec = twin.plant_spec(axis, PlantSpec::default());
+        let plant = Plant::new(&layout, &spec, std::time::Instant::now()).unwrap();
+        assert_eq!(&plant.axis, twin.axis_profile(axis), "{axis}");
+        let m = crate::comp::mapping::AxisMapping::standard(axis);
+        let qs: Vec<f64> = (0..=1000).map(|i| len * i as f64 / 1000.0).collect();
+        // The two straightness directions of this axis in the machine's frame.
+        let across: Vec<usize> = MachineAxis::ALL
+            .iter()
+            .filter(|a| **a != axis)
+            .map(|a| a.index())
+            .collect();
+        for &k in &across {
+            let y: Vec<f64> = qs
+                .iter()
+                .map(|&q| twin.component_errors(axis, q)[k])
+                .collect();
+            let (mx, my) = (len / 2.0, y.iter().sum::<f64>() / y.len() as f64);
+            let slope = qs
+                .iter()
+                .zip(&y)
+                .map(|(x, v)| (x - mx) * (v - my))
+                .sum::<f64>()
+                / qs.iter().map(|x| (x - mx).powi(2)).sum::<f64>();
+            assert!(
+                my.abs() < 1e-12 && slope.abs() < 1e-15,
+                "{axis} {k}: {my} {slope}"
+            );
+            // The plant's straightness minus the machine's is a line.
+            let d: Vec<f64> = qs
+                .iter()
+                .map(|&q| {
+                    let h = plant.axis.errors(q, crate::sim::axis::Direction::Up, 0.0);
+                    let h = h.to_array();
+                    m.to_machine([h[0], h[1], h[2]])[k] - twin.component_errors(axis, q)[k]
+                })
+                .collect();
+            let step = d[1] - d[0];
+            assert!(d.windows(2).all(|w| ((w[1] - w[0]) - step).abs() < 1e-12));
+        }
+        // Positioning and the angles are the plant's own.
+        let q = 0.37 * len;
+        let h = plant
+            .axis
+            .errors(q, crate::sim::axis::Direction::Up, 0.0)
+            .to_array();
+        let e = twin.component_errors(axis, q);
+        assert_eq!(m.to_machine([h[3], h[4], h[5]]), [e[3], e[4], e[5]]);
+        assert_eq!(
+            m.to_machine([0.0, h[1], 0.0])[axis.index()],
+            e[axis.index()]
+        );
+    }
+}

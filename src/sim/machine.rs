@@ -4,13 +4,16 @@
 //! orientation). It composes the chain exactly (rotation matrices, unit axis lines), so the
 //! truth after a compensation is known at any point of the volume with any tool offset.
 //!
-//! Each axis is drawn as the single-axis twin draws one (`sim::axis::AxisProfile`, in the
+//! The machine's frame is its axes' reference lines (ISO 230-1): every straightness is
+//! taken from its axis's least-squares line, and the squarenesses are the angles between
+//! those lines. Each axis is drawn as the single-axis twin draws one (`sim::axis::AxisProfile`, in the
 //! head's frame, put on the machine by the standard mounting `AxisMapping::standard`), with
 //! neither screw-periodic term nor reversal: those stay with each axis's own compensation
 //! (issue 15), a volumetric model takes the smooth geometry. Conventions: `machine::model`.
 
 use super::Rng;
 use super::axis::{AxisProfile, AxisSpec, Direction};
+use super::plant::PlantSpec;
 use crate::comp::mapping::{AxisMapping, MachineAxis};
 use crate::machine::{Chain, ComponentTable, MachineError, MachineModel, Squareness, Volumetric};
 use crate::units::RAD_PER_ARCSEC;
@@ -60,9 +63,27 @@ impl MachineSpec {
 #[derive(Clone, Debug)]
 pub struct TwinMachine {
     pub spec: MachineSpec,
-    /// X, Y, Z.
+    /// X, Y, Z: each axis as the single-axis twin draws it from `seeds` and `axis_specs`.
     axes: [AxisProfile; 3],
+    axis_specs: [AxisSpec; 3],
+    seeds: [u64; 3],
+    /// Each axis's two straightnesses' least-squares lines over its travel, in the head's
+    /// frame (dx, dz): (intercept mm, slope).
+    lines: [[(f64, f64); 2]; 3],
     squareness: Squareness,
+}
+
+/// The least-squares line (intercept, slope) of `f` over `[0, len]`, from 1001 samples.
+fn line_of(len: f64, f: impl Fn(f64) -> f64) -> (f64, f64) {
+    let n = 1001;
+    let xs: Vec<f64> = (0..n).map(|i| len * i as f64 / (n - 1) as f64).collect();
+    let mx = xs.iter().sum::<f64>() / n as f64;
+    let ys: Vec<f64> = xs.iter().map(|&x| f(x)).collect();
+    let my = ys.iter().sum::<f64>() / n as f64;
+    let sxy: f64 = xs.iter().zip(&ys).map(|(x, y)| (x - mx) * (y - my)).sum();
+    let sxx: f64 = xs.iter().map(|x| (x - mx).powi(2)).sum();
+    let slope = sxy / sxx;
+    (my - slope * mx, slope)
 }
 
 /// A rotation vector (rad) as the exact rotation Rz(c)·Ry(b)·Rx(a).
@@ -73,9 +94,9 @@ fn rotation(e: [f64; 3]) -> Rotation3<f64> {
 impl TwinMachine {
     pub fn new(spec: &MachineSpec, seed: u64) -> TwinMachine {
         let mut rng = Rng::new(seed);
-        let axes = std::array::from_fn(|i| {
+        let axis_specs: [AxisSpec; 3] = std::array::from_fn(|i| {
             let angle = rng.uniform(spec.angle_arcsec.0, spec.angle_arcsec.1);
-            let a = AxisSpec {
+            AxisSpec {
                 length_mm: spec.travel_mm[i],
                 positioning_um: rng.uniform(spec.positioning_um.0, spec.positioning_um.1),
                 periodic_um: 0.0,
@@ -85,8 +106,18 @@ impl TwinMachine {
                 roll_arcsec: rng.uniform(spec.angle_arcsec.0, spec.angle_arcsec.1),
                 thermal_um_per_m_per_h: 0.0,
                 ..AxisSpec::default()
-            };
-            AxisProfile::random(&a, &mut rng)
+            }
+        });
+        let seeds: [u64; 3] = std::array::from_fn(|_| rng.next_u64() >> 11);
+        // As `sim::plant::Plant::new` draws its axis from its seed: the single-axis twin of
+        // `plant_spec` carries this very axis.
+        let axes: [AxisProfile; 3] = std::array::from_fn(|i| {
+            AxisProfile::random(&axis_specs[i], &mut Rng::new(seeds[i]).fork(12))
+        });
+        let lines = std::array::from_fn(|i| {
+            let len = spec.travel_mm[i];
+            let e = |q: f64| axes[i].errors(q, Direction::Up, 0.0).to_array();
+            [line_of(len, |q| e(q)[0]), line_of(len, |q| e(q)[2])]
         });
         let mut square = || {
             let m = rng.uniform(spec.squareness_arcsec.0, spec.squareness_arcsec.1);
@@ -101,8 +132,26 @@ impl TwinMachine {
         TwinMachine {
             spec: *spec,
             axes,
+            axis_specs,
+            seeds,
+            lines,
             squareness,
         }
+    }
+
+    /// The single-axis twin's plant for `axis` (the rest from `base`): its axis is this
+    /// machine's, as the head measures it on its own.
+    pub fn plant_spec(&self, axis: MachineAxis, base: PlantSpec) -> PlantSpec {
+        PlantSpec {
+            seed: self.seeds[axis.index()],
+            axis: self.axis_specs[axis.index()],
+            ..base
+        }
+    }
+
+    /// `axis` as the single-axis twin draws it, in the head's frame.
+    pub fn axis_profile(&self, axis: MachineAxis) -> &AxisProfile {
+        &self.axes[axis.index()]
     }
 
     /// The true squarenesses (rad).
@@ -111,11 +160,16 @@ impl TwinMachine {
     }
 
     /// The true six component errors of `axis` at `q` (mm): translations along X, Y, Z (mm),
-    /// rotations about X, Y, Z (rad).
+    /// rotations about X, Y, Z (rad). The straightnesses are those from the axis's reference
+    /// line (ISO 230-1: its least-squares line), so the squarenesses are the angles between
+    /// the reference lines, as an optical square measures them; the single-axis twin's
+    /// straightness is this plus a line (where its beam happens to point).
     pub fn component_errors(&self, axis: MachineAxis, q: f64) -> [f64; 6] {
-        let e = self.axes[axis.index()]
-            .errors(q, Direction::Up, 0.0)
-            .to_array();
+        let i = axis.index();
+        let mut e = self.axes[i].errors(q, Direction::Up, 0.0).to_array();
+        for (k, (a, b)) in [0, 2].into_iter().zip(self.lines[i]) {
+            e[k] -= a + b * q;
+        }
         let m = AxisMapping::standard(axis);
         let t = m.to_machine([e[0], e[1], e[2]]);
         let r = m.to_machine([e[3], e[4], e[5]]);

@@ -75,7 +75,7 @@ fn the_beckhoff_file_applied_by_the_twin_s_cnc_cuts_the_volumetric_error_to_a_te
             assert!((after.0 - in_memory.0).abs() < 1e-3 && (after.1 - in_memory.1).abs() < 1e-3);
             // The same model onto a 20 mm grid over the volume, as FANUC's 3-D compensation
             // takes it, with the same tool: between the corners the grid is linear where the
-            // errors are not (max after at 50 mm 4.0-13.3 µm; at 10 mm 0.17-0.63 µm).
+            // errors are not (max after at 50 mm 3.8-15.5 µm; at 10 mm 0.18-0.91 µm).
             let t = spec.travel_mm;
             let grid = Grid::of_model(&loaded, [0.0; 3], t, [20.0; 3], tool).expect("grid");
             let gridded = volumetric(&twin, &points, tool, Some(&grid));
