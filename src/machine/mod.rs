@@ -1,13 +1,16 @@
 //! The whole machine (issue 27): three linear axes in a kinematic chain, their 21 geometric
 //! errors after ISO 230-1 (`model`), the tool point's volumetric error anywhere in the volume,
-//! and the controls' volumetric compensation files (`isg_csv`: Beckhoff TwinCAT's; `grid`: the model at a grid's corners, as FANUC's
+//! an axis's table from what the head measured on it (`from_head`), and the controls'
+//! volumetric compensation files (`isg_csv`: Beckhoff TwinCAT's; `grid`: the model at a grid's corners, as FANUC's
 //! three-dimensional compensation interpolates them).
 //!
-//! So far the model, its first-order error at the tool and the Beckhoff file, held against
-//! the twin's machine (`sim::machine`), which composes the same chain exactly and applies a
-//! loaded file as its CNC would. Measuring the 21 errors with the head (each axis's six, the
-//! squarenesses with an optical square) and the other controls' exports come next.
+//! So far the model, its first-order error at the tool, the grid and the Beckhoff file, held
+//! against the twin's machine (`sim::machine`), which composes the same chain exactly and
+//! applies a loaded file or a grid as its CNC would. Running each axis through the measuring
+//! path into `from_head`, the squarenesses with an optical square, and the other controls'
+//! files come next.
 
+pub mod from_head;
 pub mod grid;
 pub mod isg_csv;
 pub mod model;

@@ -1,5 +1,5 @@
-use super::isg_csv;
 use super::*;
+use super::{from_head, isg_csv};
 use crate::sim::Rng;
 use crate::sim::machine::{MachineSpec, TwinMachine};
 use MachineAxis::*;
@@ -393,5 +393,47 @@ fn the_twin_machine_s_axes_are_the_single_axis_twin_s_on_their_reference_lines()
             m.to_machine([0.0, h[1], 0.0])[axis.index()],
             e[axis.index()]
         );
+    }
+}
+
+/// The head on Z (x = +X, z = −Y): its dx is EXZ, its dz is −EYZ, its dy EZZ; rotations
+/// likewise. A line in a straightness (the beam's pointing) and a constant vanish; the
+/// positioning and the angles stay as measured.
+#[test]
+fn a_head_s_table_goes_onto_the_machine_on_its_reference_line() {
+    let m = crate::comp::mapping::AxisMapping::standard(Z);
+    let positions = [0.0, 100.0, 250.0, 400.0, 500.0];
+    let bow = |q: f64| 1e-3 * ((q - 250.0) / 250.0).powi(2);
+    let head: Vec<[f64; 6]> = positions
+        .iter()
+        .map(|&q| {
+            [
+                bow(q) + 2e-3 + 3e-6 * q,
+                -5e-6 * q,
+                -(0.5 * bow(q)) - 1e-6 * q,
+                2e-6,
+                q * 1e-9,
+                -3e-6,
+            ]
+        })
+        .collect();
+    let t = from_head::table_from_head(&m, &positions, &head).unwrap();
+    assert_eq!(t.axis(), Z);
+    // The bow's least-squares line over these positions, by hand: its mean and slope.
+    let b: Vec<f64> = positions.iter().map(|&q| bow(q)).collect();
+    let mb = b.iter().sum::<f64>() / 5.0;
+    let mx = positions.iter().sum::<f64>() / 5.0;
+    let slope = positions
+        .iter()
+        .zip(&b)
+        .map(|(x, v)| (x - mx) * (v - mb))
+        .sum::<f64>()
+        / positions.iter().map(|x| (x - mx).powi(2)).sum::<f64>();
+    for (i, (&q, row)) in positions.iter().zip(t.values()).enumerate() {
+        let rest = bow(q) - mb - slope * (q - mx);
+        assert!((row[0] - rest).abs() < 1e-15, "EXZ at {i}");
+        assert!((row[1] - 0.5 * rest).abs() < 1e-15, "EYZ at {i}");
+        assert_eq!(row[2], -5e-6 * q);
+        assert_eq!([row[3], row[4], row[5]], [2e-6, 3e-6, q * 1e-9]);
     }
 }

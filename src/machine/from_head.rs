@@ -1,0 +1,63 @@
+//! An axis's six component errors from what the head measured on it: the mean of both
+//! directions at each target (the reversal is the axis compensation's, not the volumetric
+//! model's), put on the machine by the head's mounting, each straightness taken from its
+//! least-squares line (the beam's pointing and the axis's reference line cannot be told
+//! apart on one axis: the squarenesses carry the lines, measured with an optical square).
+//! Positioning and the angles stay relative to the zero, where the head took it.
+
+use super::{ComponentTable, MachineError};
+use crate::comp::mapping::AxisMapping;
+use crate::evaluate::AxisEvaluation;
+
+/// `axis`' table from the head's errors (mm, rad; `Errors6` order, relative to the zero) at
+/// `positions_mm`, the head mounted as `mapping` says.
+pub fn table_from_head(
+    mapping: &AxisMapping,
+    positions_mm: &[f64],
+    head: &[[f64; 6]],
+) -> Result<ComponentTable, MachineError> {
+    let axis = mapping.axis();
+    let mut rows: Vec<[f64; 6]> = head
+        .iter()
+        .map(|e| {
+            let t = mapping.to_machine([e[0], e[1], e[2]]);
+            let r = mapping.to_machine([e[3], e[4], e[5]]);
+            [t[0], t[1], t[2], r[0], r[1], r[2]]
+        })
+        .collect();
+    let n = positions_mm.len().min(rows.len()) as f64;
+    if n >= 2.0 {
+        let mx = positions_mm.iter().sum::<f64>() / n;
+        let sxx: f64 = positions_mm.iter().map(|x| (x - mx).powi(2)).sum();
+        for k in (0..3).filter(|&k| k != axis.index()) {
+            let my = rows.iter().map(|r| r[k]).sum::<f64>() / n;
+            let sxy: f64 = positions_mm
+                .iter()
+                .zip(&rows)
+                .map(|(x, r)| (x - mx) * (r[k] - my))
+                .sum();
+            let slope = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+            for (x, r) in positions_mm.iter().zip(rows.iter_mut()) {
+                r[k] -= my + slope * (x - mx);
+            }
+        }
+    }
+    ComponentTable::new(axis, positions_mm.to_vec(), rows)
+}
+
+/// `table_from_head` of an evaluated run: the mean of both directions at each target.
+pub fn table_from_evaluation(
+    mapping: &AxisMapping,
+    eval: &AxisEvaluation,
+) -> Result<ComponentTable, MachineError> {
+    if eval.profiles.len() < 6 {
+        return Err(MachineError::Missing(format!(
+            "the run's evaluation holds {} of the six errors: the table needs all six",
+            eval.profiles.len()
+        )));
+    }
+    let head: Vec<[f64; 6]> = (0..eval.positions_mm.len())
+        .map(|i| std::array::from_fn(|k| eval.profiles[k].mean[i]))
+        .collect();
+    table_from_head(mapping, &eval.positions_mm, &head)
+}
