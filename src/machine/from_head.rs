@@ -5,7 +5,8 @@
 //! apart on one axis: the squarenesses carry the lines, measured with an optical square).
 //! Positioning and the angles stay relative to the zero, where the head took it.
 
-use super::{ComponentTable, MachineError};
+use super::error::MachineError;
+use super::model::ComponentTable;
 use crate::comp::mapping::AxisMapping;
 use crate::evaluate::AxisEvaluation;
 

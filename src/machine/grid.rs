@@ -5,7 +5,8 @@
 //!
 //! The grid's file for a control is not written here yet; this is what it will carry.
 
-use super::{MachineError, MachineModel, Volumetric};
+use super::error::MachineError;
+use super::model::{MachineModel, Volumetric};
 
 /// Error vectors (mm, machine X, Y, Z) at the corners of a regular grid over the volume.
 #[derive(Clone, Debug, PartialEq)]

@@ -21,7 +21,7 @@
 //! absent one is zero). A block that depends on two arguments (the manual's `Z X EXX …`) is
 //! refused: the model here is ISO 230-1's rigid body, one argument per table.
 
-use super::MachineError;
+use super::error::MachineError;
 use super::model::{ComponentTable, Squareness, component_names};
 use crate::comp::mapping::MachineAxis;
 use std::fmt::Write as _;
@@ -103,20 +103,28 @@ fn fields(line: &str) -> Vec<&str> {
         .collect()
 }
 
-/// A block being read: its header's columns and its rows.
+/// A block: its header's columns and its rows of values, with the lines they stand on.
 struct Block {
     line: usize,
     columns: Vec<Column>,
-    rows: Vec<(usize, Vec<f64>)>,
+    rows: Vec<Vec<f64>>,
 }
 
-/// Read `text` (from `path`, named in every error).
-pub fn parse(text: &str, path: &str) -> Result<IsgCsv, MachineError> {
-    let at = |line: usize, problem: String| MachineError::File {
-        path: path.to_string(),
-        line,
-        problem,
-    };
+/// Where an error lies: the file and the line.
+struct At<'a>(&'a str);
+
+impl At<'_> {
+    fn err(&self, line: usize, problem: String) -> MachineError {
+        MachineError::File {
+            path: self.0.to_string(),
+            line,
+            problem,
+        }
+    }
+}
+
+/// The file's blocks (a header and its rows each), comments and blank lines dropped.
+fn blocks(text: &str, at: &At) -> Result<Vec<Block>, MachineError> {
     let mut blocks: Vec<Block> = Vec::new();
     let mut open: Option<Block> = None;
     for (i, raw) in text.lines().enumerate() {
@@ -130,64 +138,135 @@ pub fn parse(text: &str, path: &str) -> Result<IsgCsv, MachineError> {
             continue;
         }
         let f = fields(content);
-        match open.as_mut() {
-            None => {
-                let columns = f
-                    .iter()
-                    .map(|name| {
-                        column(name).ok_or_else(|| {
-                            at(
-                                n,
-                                format!(
-                                    "column {name} is not an argument (X, Y, Z), a component error of a linear axis (EXX … ECZ) or a squareness ({})",
-                                    Squareness::NAMES.join(", ")
-                                ),
-                            )
-                        })
+        let Some(b) = open.as_mut() else {
+            let columns = f
+                .iter()
+                .map(|name| {
+                    column(name).ok_or_else(|| {
+                        at.err(
+                            n,
+                            format!(
+                                "column {name} is not an argument (X, Y, Z), a component error of a linear axis (EXX … ECZ) or a squareness ({})",
+                                Squareness::NAMES.join(", ")
+                            ),
+                        )
                     })
-                    .collect::<Result<Vec<_>, _>>()?;
-                open = Some(Block {
-                    line: n,
-                    columns,
-                    rows: Vec::new(),
-                });
-            }
-            Some(b) => {
-                if f.len() != b.columns.len() {
-                    return Err(at(
-                        n,
-                        format!(
-                            "{} values under a header of {} columns (line {})",
-                            f.len(),
-                            b.columns.len(),
-                            b.line
-                        ),
-                    ));
-                }
-                let values = f
-                    .iter()
-                    .map(|s| {
-                        s.parse::<f64>()
-                            .ok()
-                            .filter(|v| v.is_finite())
-                            .ok_or_else(|| {
-                                at(
-                                    n,
-                                    format!(
-                                        "{s} is not a number (mm or rad, with a decimal point)"
-                                    ),
-                                )
-                            })
-                    })
-                    .collect::<Result<Vec<_>, _>>()?;
-                b.rows.push((n, values));
-            }
+                })
+                .collect::<Result<Vec<_>, _>>()?;
+            open = Some(Block {
+                line: n,
+                columns,
+                rows: Vec::new(),
+            });
+            continue;
+        };
+        if f.len() != b.columns.len() {
+            return Err(at.err(
+                n,
+                format!(
+                    "{} values under a header of {} columns (line {})",
+                    f.len(),
+                    b.columns.len(),
+                    b.line
+                ),
+            ));
         }
+        let values = f
+            .iter()
+            .map(|s| {
+                s.parse::<f64>()
+                    .ok()
+                    .filter(|v| v.is_finite())
+                    .ok_or_else(|| {
+                        at.err(
+                            n,
+                            format!("{s} is not a number (mm or rad, with a decimal point)"),
+                        )
+                    })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        b.rows.push(values);
     }
     blocks.extend(open);
+    Ok(blocks)
+}
+
+/// A block of position errors alone: the squarenesses, one row.
+fn squareness_of(b: &Block, at: &At) -> Result<Squareness, MachineError> {
+    if b.columns.iter().any(|c| !matches!(c, Column::Square(_))) {
+        return Err(at.err(
+            b.line,
+            "component errors without their argument: name the axis (X, Y or Z) as the first column".into(),
+        ));
+    }
+    let [row] = b.rows.as_slice() else {
+        return Err(at.err(
+            b.line,
+            format!("position errors take one data row, found {}", b.rows.len()),
+        ));
+    };
+    let mut s = [0.0; 3];
+    for (c, v) in b.columns.iter().zip(row) {
+        if let Column::Square(k) = c {
+            s[*k] = *v;
+        }
+    }
+    Ok(Squareness::from_array(s))
+}
+
+/// A block against one axis (its argument in column `arg`): that axis's table.
+fn table_of(
+    b: &Block,
+    axis: MachineAxis,
+    arg: usize,
+    at: &At,
+) -> Result<ComponentTable, MachineError> {
+    for c in &b.columns {
+        match *c {
+            Column::Component(a, k) if a != axis => {
+                return Err(at.err(
+                    b.line,
+                    format!(
+                        "{} is a component error of {a}, in a block against {axis}: give each axis a block of its own",
+                        component_names(a)[k]
+                    ),
+                ));
+            }
+            Column::Square(k) => {
+                return Err(at.err(
+                    b.line,
+                    format!(
+                        "the squareness {} in a block against {axis}: give it a block of its own",
+                        Squareness::NAMES[k]
+                    ),
+                ));
+            }
+            _ => {}
+        }
+    }
+    let positions = b.rows.iter().map(|row| row[arg]).collect();
+    let values = b
+        .rows
+        .iter()
+        .map(|row| {
+            let mut v = [0.0; 6];
+            for (c, x) in b.columns.iter().zip(row) {
+                if let Column::Component(_, k) = c {
+                    v[*k] = *x;
+                }
+            }
+            v
+        })
+        .collect();
+    ComponentTable::new(axis, positions, values).map_err(|e| at.err(b.line, e.to_string()))
+}
+
+/// Read `text` (from `path`, named in every error).
+pub fn parse(text: &str, path: &str) -> Result<IsgCsv, MachineError> {
+    let at = At(path);
     let mut tables: Vec<ComponentTable> = Vec::new();
     let mut squareness: Option<Squareness> = None;
-    for b in blocks {
+    for b in blocks(text, &at)? {
         let arguments: Vec<(usize, MachineAxis)> = b
             .columns
             .iter()
@@ -199,79 +278,23 @@ pub fn parse(text: &str, path: &str) -> Result<IsgCsv, MachineError> {
             .collect();
         match arguments.as_slice() {
             [] => {
-                let mut s = [0.0; 3];
-                if b.columns.iter().any(|c| !matches!(c, Column::Square(_))) {
-                    return Err(at(
-                        b.line,
-                        "component errors without their argument: name the axis (X, Y or Z) as the first column".into(),
-                    ));
-                }
-                let [(_, row)] = b.rows.as_slice() else {
-                    return Err(at(
-                        b.line,
-                        format!("position errors take one data row, found {}", b.rows.len()),
-                    ));
-                };
-                for (c, v) in b.columns.iter().zip(row) {
-                    if let Column::Square(k) = c {
-                        s[*k] = *v;
-                    }
-                }
                 if squareness.is_some() {
-                    return Err(at(b.line, "the squarenesses are given twice".into()));
+                    return Err(at.err(b.line, "the squarenesses are given twice".into()));
                 }
-                squareness = Some(Squareness::from_array(s));
+                squareness = Some(squareness_of(&b, &at)?);
             }
-            [(ai, axis)] => {
-                for c in &b.columns {
-                    match *c {
-                        Column::Argument(_) => {}
-                        Column::Component(a, _) if a == *axis => {}
-                        Column::Component(a, k) => {
-                            return Err(at(
-                                b.line,
-                                format!(
-                                    "{} is a component error of {a}, in a block against {axis}: give each axis a block of its own",
-                                    component_names(a)[k]
-                                ),
-                            ));
-                        }
-                        Column::Square(k) => {
-                            return Err(at(
-                                b.line,
-                                format!(
-                                    "the squareness {} in a block against {axis}: give it a block of its own",
-                                    Squareness::NAMES[k]
-                                ),
-                            ));
-                        }
-                    }
-                }
-                let mut positions = Vec::with_capacity(b.rows.len());
-                let mut values = Vec::with_capacity(b.rows.len());
-                for (_, row) in &b.rows {
-                    let mut v = [0.0; 6];
-                    for (c, x) in b.columns.iter().zip(row) {
-                        if let Column::Component(_, k) = c {
-                            v[*k] = *x;
-                        }
-                    }
-                    positions.push(row[*ai]);
-                    values.push(v);
-                }
+            [(arg, axis)] => {
                 if tables.iter().any(|t| t.axis() == *axis) {
-                    return Err(at(
+                    return Err(at.err(
                         b.line,
                         format!("the component errors of {axis} are given twice"),
                     ));
                 }
-                let table = ComponentTable::new(*axis, positions, values)
-                    .map_err(|e| at(b.line, e.to_string()))?;
-                tables.push(table);
+                tables.push(table_of(&b, *axis, *arg, &at)?);
             }
             more => {
                 let names: Vec<&str> = more.iter().map(|(_, a)| a.letter()).collect();
-                return Err(at(
+                return Err(at.err(
                     b.line,
                     format!(
                         "a block against {} arguments ({}): axiscomp's model takes each table against its own axis alone",

@@ -21,7 +21,7 @@
 //!   in the errors (they are 10⁻⁴ of the travel); `sim::machine` composes the same chain
 //!   exactly, and the tests hold the two together.
 
-use super::MachineError;
+use super::error::MachineError;
 use crate::comp::mapping::MachineAxis;
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -352,5 +352,17 @@ impl MachineModel {
             }
         }
         e
+    }
+}
+
+/// What a control compensates by: the tool point's error (mm, machine X, Y, Z) it expects at
+/// a commanded position (mm) with a tool offset (mm).
+pub trait Volumetric {
+    fn error_at(&self, cmd: [f64; 3], tool: [f64; 3]) -> [f64; 3];
+}
+
+impl Volumetric for MachineModel {
+    fn error_at(&self, cmd: [f64; 3], tool: [f64; 3]) -> [f64; 3] {
+        MachineModel::error_at(self, cmd, tool)
     }
 }

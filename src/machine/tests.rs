@@ -1,5 +1,6 @@
 use super::*;
 use super::{from_head, isg_csv};
+use crate::comp::mapping::MachineAxis;
 use crate::sim::Rng;
 use crate::sim::machine::{MachineSpec, TwinMachine};
 use MachineAxis::*;
