@@ -305,6 +305,7 @@ pub fn parse_all(
             )?,
             instrument_seed: t.follower.instrument_seed,
             bend_um: rng("twin.follower.bend_um", t.follower.bend_um, um(1000.0))?,
+            rail_mm: None,
             kink: None,
         },
         feed: rng(

@@ -40,6 +40,9 @@ pub struct FollowerSpec {
     pub instrument_seed: Option<u64>,
     /// Peak of the set-up's vertical bend over the travel (µm; drawn from the machine's seed).
     pub bend_um: f64,
+    /// The instrument's rail (mm): its own shapes are drawn over this length, whatever axis
+    /// it is set up on (`None`: over the axis's travel, a stage made for each axis).
+    pub rail_mm: Option<f64>,
     /// Damage: a kink in the rail's vertical.
     pub kink: Option<Kink>,
 }
@@ -61,6 +64,7 @@ impl Default for FollowerSpec {
             reversal_um: 1.0,
             instrument_seed: None,
             bend_um: 0.0,
+            rail_mm: None,
             kink: None,
         }
     }
@@ -133,21 +137,23 @@ pub const CERTIFICATE_NOISE_UM: f64 = 0.2;
 pub const CERTIFICATE_STEP_MM: f64 = 10.0;
 
 impl FollowerModel {
-    /// Draw the follower's error shapes over `travel_mm` from `rng`.
+    /// Draw the follower's error shapes from `rng` over its rail (`spec.rail_mm`, else
+    /// `travel_mm`), for an axis of `travel_mm`.
     pub fn new(spec: FollowerSpec, travel_mm: f64, rng: &mut Rng) -> FollowerModel {
         let len = travel_mm.max(1.0);
+        let rail = spec.rail_mm.unwrap_or(len).max(1.0);
         let long = |peak_um: f64, r: &mut Rng| {
             // Two long waves: one of 0.5 to 2 cycles over the travel, a smaller one of 2 to 4,
             // neither shorter than the stage's build allows (LONG_MIN_MM).
             [
                 Sine {
                     amp: 0.35 * peak_um * MM_PER_UM,
-                    wavelength: (len / r.uniform(0.5, 2.0)).max(2.0 * LONG_MIN_MM),
+                    wavelength: (rail / r.uniform(0.5, 2.0)).max(2.0 * LONG_MIN_MM),
                     phase: r.uniform(0.0, 2.0 * PI),
                 },
                 Sine {
                     amp: 0.15 * peak_um * MM_PER_UM,
-                    wavelength: (len / r.uniform(2.0, 4.0)).max(LONG_MIN_MM),
+                    wavelength: (rail / r.uniform(2.0, 4.0)).max(LONG_MIN_MM),
                     phase: r.uniform(0.0, 2.0 * PI),
                 },
             ]
@@ -268,6 +274,28 @@ mod tests {
         );
         // The periodic term repeats with the screw's lead.
         assert!((a.periodic(12.0) - a.periodic(17.0)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn an_instrument_s_rail_keeps_its_shape_on_any_axis() {
+        let spec = FollowerSpec {
+            rail_mm: Some(1000.0),
+            ..FollowerSpec::default()
+        };
+        let bench = FollowerModel::new(spec, 1000.0, &mut Rng::new(8));
+        let short = FollowerModel::new(spec, 600.0, &mut Rng::new(8));
+        for k in 0..=60 {
+            let d = 10.0 * k as f64;
+            assert_eq!(short.along(d, Motion::Up), bench.along(d, Motion::Up));
+            assert_eq!(short.vertical(d), bench.vertical(d));
+        }
+        // Without a rail the stage is drawn over the axis: another shape on a shorter one.
+        let own = |len| FollowerModel::new(FollowerSpec::default(), len, &mut Rng::new(8));
+        let (a, b) = (own(1000.0), own(600.0));
+        assert!(
+            (0..=60)
+                .any(|k| (a.vertical(10.0 * k as f64) - b.vertical(10.0 * k as f64)).abs() > 1e-5)
+        );
     }
 
     #[test]
