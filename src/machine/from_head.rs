@@ -18,6 +18,16 @@ pub fn table_from_head(
     head: &[[f64; 6]],
 ) -> Result<ComponentTable, MachineError> {
     let axis = mapping.axis();
+    if positions_mm.len() != head.len() {
+        return Err(MachineError::Table {
+            axis,
+            problem: format!(
+                "{} positions but {} rows of the head's errors",
+                positions_mm.len(),
+                head.len()
+            ),
+        });
+    }
     let mut rows: Vec<[f64; 6]> = head
         .iter()
         .map(|e| {
@@ -26,7 +36,7 @@ pub fn table_from_head(
             [t[0], t[1], t[2], r[0], r[1], r[2]]
         })
         .collect();
-    let n = positions_mm.len().min(rows.len()) as f64;
+    let n = positions_mm.len() as f64;
     if n >= 2.0 {
         let mx = positions_mm.iter().sum::<f64>() / n;
         let sxx: f64 = positions_mm.iter().map(|x| (x - mx).powi(2)).sum();

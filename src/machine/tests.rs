@@ -437,4 +437,9 @@ fn a_head_s_table_goes_onto_the_machine_on_its_reference_line() {
         assert_eq!(row[2], -5e-6 * q);
         assert_eq!([row[3], row[4], row[5]], [2e-6, 3e-6, q * 1e-9]);
     }
+    let e = from_head::table_from_head(&m, &positions[..4], &head).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "component errors of Z: 4 positions but 5 rows of the head's errors"
+    );
 }
