@@ -8,7 +8,8 @@
 use super::error::MachineError;
 use super::model::ComponentTable;
 use crate::comp::mapping::AxisMapping;
-use crate::evaluate::AxisEvaluation;
+use crate::evaluate::iso230_1::fit_line;
+use crate::evaluate::{AxisEvaluation, ReferenceLine};
 
 /// `axis`' table from the head's errors (mm, rad; `Errors6` order, relative to the zero) at
 /// `positions_mm`, the head mounted as `mapping` says.
@@ -36,20 +37,12 @@ pub fn table_from_head(
             [t[0], t[1], t[2], r[0], r[1], r[2]]
         })
         .collect();
-    let n = positions_mm.len() as f64;
-    if n >= 2.0 {
-        let mx = positions_mm.iter().sum::<f64>() / n;
-        let sxx: f64 = positions_mm.iter().map(|x| (x - mx).powi(2)).sum();
-        for k in (0..3).filter(|&k| k != axis.index()) {
-            let my = rows.iter().map(|r| r[k]).sum::<f64>() / n;
-            let sxy: f64 = positions_mm
-                .iter()
-                .zip(&rows)
-                .map(|(x, r)| (x - mx) * (r[k] - my))
-                .sum();
-            let slope = if sxx > 0.0 { sxy / sxx } else { 0.0 };
-            for (x, r) in positions_mm.iter().zip(rows.iter_mut()) {
-                r[k] -= my + slope * (x - mx);
+    for k in (0..3).filter(|&k| k != axis.index()) {
+        let values: Vec<f64> = rows.iter().map(|r| r[k]).collect();
+        // Positions that do not spread fit no line: the table refuses them below.
+        if let Some(line) = fit_line(positions_mm, &values, ReferenceLine::LeastSquares) {
+            for (r, v) in rows.iter_mut().zip(line.residuals) {
+                r[k] = v;
             }
         }
     }

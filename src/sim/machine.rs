@@ -15,6 +15,8 @@ use super::Rng;
 use super::axis::{AxisProfile, AxisSpec, Direction};
 use super::plant::PlantSpec;
 use crate::comp::mapping::{AxisMapping, MachineAxis};
+use crate::evaluate::ReferenceLine;
+use crate::evaluate::iso230_1::fit_line;
 use crate::machine::{Chain, ComponentTable, MachineError, MachineModel, Squareness, Volumetric};
 use crate::units::RAD_PER_ARCSEC;
 use nalgebra::{Rotation3, Vector3};
@@ -75,15 +77,10 @@ pub struct TwinMachine {
 
 /// The least-squares line (intercept, slope) of `f` over `[0, len]`, from 1001 samples.
 fn line_of(len: f64, f: impl Fn(f64) -> f64) -> (f64, f64) {
-    let n = 1001;
-    let xs: Vec<f64> = (0..n).map(|i| len * i as f64 / (n - 1) as f64).collect();
-    let mx = xs.iter().sum::<f64>() / n as f64;
+    let xs: Vec<f64> = (0..=1000).map(|i| len * i as f64 / 1000.0).collect();
     let ys: Vec<f64> = xs.iter().map(|&x| f(x)).collect();
-    let my = ys.iter().sum::<f64>() / n as f64;
-    let sxy: f64 = xs.iter().zip(&ys).map(|(x, y)| (x - mx) * (y - my)).sum();
-    let sxx: f64 = xs.iter().map(|x| (x - mx).powi(2)).sum();
-    let slope = sxy / sxx;
-    (my - slope * mx, slope)
+    fit_line(&xs, &ys, ReferenceLine::LeastSquares)
+        .map_or((0.0, 0.0), |l| (l.intercept_mm, l.slope))
 }
 
 /// A rotation vector (rad) as the exact rotation Rz(c)·Ry(b)·Rx(a).
