@@ -105,9 +105,17 @@ pub struct Args {
     /// Where the report goes.
     #[arg(long, default_value = "demo-out")]
     pub out: PathBuf,
+    /// The whole machine instead of one axis: the twin's vertical machining centre, its three
+    /// axes and their squarenesses through an optical square, the 21-error model exported for
+    /// Beckhoff's volumetric compensation (`--seed` and `--out` apply; the rest do not).
+    #[arg(long)]
+    pub machine: bool,
 }
 
 pub fn run(a: Args) -> Result<()> {
+    if a.machine {
+        return super::demo_machine::run(a.seed, &a.out);
+    }
     // The service's own logs (as `serve` writes them) only when asked for: `RUST_LOG=debug`.
     if std::env::var_os("RUST_LOG").is_some() {
         super::service::init_logs();

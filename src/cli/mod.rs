@@ -7,6 +7,7 @@ mod client;
 mod console;
 mod decouple;
 mod demo;
+mod demo_machine;
 mod evaluate;
 mod export;
 mod follower;

@@ -9,6 +9,7 @@ pub mod geometry;
 pub mod install;
 pub mod layout;
 pub mod model;
+pub mod square;
 pub mod trace;
 
 pub use geometry::{Frame, V3};

@@ -17,9 +17,12 @@ use super::plant::PlantSpec;
 use crate::comp::mapping::{AxisMapping, MachineAxis};
 use crate::evaluate::ReferenceLine;
 use crate::evaluate::iso230_1::fit_line;
+use crate::machine::squareness::{SquareCertificate, SquarePair};
 use crate::machine::{Chain, ComponentTable, MachineError, MachineModel, Squareness, Volumetric};
+use crate::optics::square::OpticalSquare;
 use crate::units::RAD_PER_ARCSEC;
 use nalgebra::{Rotation3, Vector3};
+use std::time::Instant;
 
 /// How large the twin machine and its errors are: each axis's peak drawn uniformly from its
 /// range, each squareness's magnitude from its range with a random sign.
@@ -59,6 +62,14 @@ impl MachineSpec {
             ..MachineSpec::vertical_mc()
         }
     }
+}
+
+/// The tool point's volumetric error over a set of points (mm).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct VolumetricFigures {
+    pub points: usize,
+    pub max_mm: f64,
+    pub rms_mm: f64,
 }
 
 /// The twin machine, drawn once from its spec and a seed.
@@ -174,7 +185,7 @@ impl TwinMachine {
     }
 
     /// `axis`' unit line, exactly.
-    fn direction(&self, axis: MachineAxis) -> Vector3<f64> {
+    pub fn direction(&self, axis: MachineAxis) -> Vector3<f64> {
         let s = self.squareness;
         match axis {
             MachineAxis::X => Vector3::x(),
@@ -234,10 +245,179 @@ impl TwinMachine {
         MachineModel::new(self.spec.chain, tables, self.squareness)
     }
 
+    /// The largest |measured − truth| of each of `table`'s six errors at its positions:
+    /// positioning and angles relative to the truth at 0 mm (where the head took its zero),
+    /// each straightness after the least-squares line through the difference (the truth over
+    /// these positions keeps a small line of its own).
+    pub fn worst_off(&self, table: &ComponentTable) -> [f64; 6] {
+        let axis = table.axis();
+        let p = table.positions_mm();
+        let at0 = self.component_errors(axis, 0.0);
+        std::array::from_fn(|k| {
+            let straight = k < 3 && k != axis.index();
+            let d: Vec<f64> = p
+                .iter()
+                .zip(table.values())
+                .map(|(&q, m)| {
+                    let t = self.component_errors(axis, q)[k];
+                    m[k] - if straight { t } else { t - at0[k] }
+                })
+                .collect();
+            let left = match fit_line(p, &d, ReferenceLine::LeastSquares) {
+                Some(line) if straight => line.residuals,
+                _ => d,
+            };
+            left.iter().fold(0.0f64, |a, v| a.max(v.abs()))
+        })
+    }
+
+    /// The tool point's error over `points` with `tool` (mm), uncompensated (`None`) or with
+    /// the CNC compensating by `model`: its largest and RMS magnitude.
+    pub fn volumetric(
+        &self,
+        points: &[[f64; 3]],
+        tool: [f64; 3],
+        model: Option<&dyn Volumetric>,
+    ) -> VolumetricFigures {
+        let e: Vec<f64> = points
+            .iter()
+            .map(|&p| {
+                let v = match model {
+                    Some(m) => self.error_compensated(p, tool, m),
+                    None => self.error(p, tool),
+                };
+                v.iter().map(|x| x * x).sum::<f64>().sqrt()
+            })
+            .collect();
+        let n = e.len().max(1) as f64;
+        VolumetricFigures {
+            points: e.len(),
+            max_mm: e.iter().fold(0.0f64, |a, &b| a.max(b)),
+            rms_mm: (e.iter().map(|v| v * v).sum::<f64>() / n).sqrt(),
+        }
+    }
+
     /// `n` points drawn uniformly in the volume (mm).
     pub fn random_points(&self, n: usize, rng: &mut Rng) -> Vec<[f64; 3]> {
         (0..n)
             .map(|_| std::array::from_fn(|k| rng.uniform(0.0, self.spec.travel_mm[k])))
             .collect()
     }
+}
+
+/// A twin's optical square: the pentaprism as it is (its true deviation from 90°, its axis
+/// tilted as a technician sets it down) and what its certificate says of it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TwinSquare {
+    pub prism: OpticalSquare,
+    pub certificate: SquareCertificate,
+}
+
+/// A square's true deviation from 90° is drawn within ± this (arcsec); its certificate states
+/// it within ± this tolerance (arcsec: rectangular, u = a/√3), the truth anywhere inside it;
+/// its axis is set down within ± this of the pair's (degrees, about the incoming beam).
+const SQUARE_DEVIATION_ARCSEC: f64 = 3.0;
+const SQUARE_TOLERANCE_ARCSEC: f64 = 0.5;
+const SQUARE_TILT_DEG: f64 = 0.05;
+
+impl TwinSquare {
+    /// A square for `pair`, drawn from `seed`.
+    pub fn draw(pair: SquarePair, seed: u64) -> TwinSquare {
+        let mut rng = Rng::new(seed);
+        let truth = rng.uniform(-SQUARE_DEVIATION_ARCSEC, SQUARE_DEVIATION_ARCSEC) * RAD_PER_ARCSEC;
+        let a = SQUARE_TOLERANCE_ARCSEC * RAD_PER_ARCSEC;
+        let stated = truth + rng.uniform(-a, a);
+        let u = a / 3f64.sqrt();
+        let (first, _) = pair.axes();
+        let tilt = rng.uniform(-SQUARE_TILT_DEG, SQUARE_TILT_DEG).to_radians();
+        let incoming = Vector3::from(AxisMapping::standard(first).to_machine([0.0, 1.0, 0.0]));
+        let axis = Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(incoming), tilt)
+            * pair.square_axis();
+        TwinSquare {
+            prism: OpticalSquare::new(axis, truth).unwrap_or_else(|| {
+                unreachable!("a unit axis and a finite deviation make a square")
+            }),
+            certificate: SquareCertificate {
+                id: format!("twin square {seed}"),
+                deviation_rad: stated,
+                u_rad: u,
+            },
+        }
+    }
+}
+
+/// The head's frame on a set-up of `axis` whose beam runs along `beam` (machine frame): y the
+/// beam, x and z the standard mounting's, squared to it.
+fn head_frame(axis: MachineAxis, beam: Vector3<f64>) -> [Vector3<f64>; 3] {
+    let m = AxisMapping::standard(axis);
+    let y = beam.normalize();
+    let x0 = Vector3::from(m.to_machine([1.0, 0.0, 0.0]));
+    let x = (x0 - y * x0.dot(&y)).normalize();
+    [x, y, x.cross(&y)]
+}
+
+impl TwinMachine {
+    /// The slopes (along the head's x and z) a head on `axis` reads when its beam runs along
+    /// `beam` (machine frame): the axis's line against the beam.
+    pub fn slopes_for_beam(&self, axis: MachineAxis, beam: Vector3<f64>) -> [f64; 2] {
+        let [x, y, z] = head_frame(axis, beam);
+        let line = self.direction(axis);
+        [line.dot(&x) / line.dot(&y), line.dot(&z) / line.dot(&y)]
+    }
+
+    /// The beam (machine frame, unit) of a set-up on `axis` whose head reads the true slopes
+    /// `slopes`: the inverse of [`TwinMachine::slopes_for_beam`].
+    pub fn beam_of(&self, axis: MachineAxis, slopes: [f64; 2]) -> Vector3<f64> {
+        let line = self.direction(axis);
+        let mut beam = line;
+        // The head's frame depends on the beam: a few fixed-point steps (each error shrinks
+        // by the slopes' size, 1e-4).
+        for _ in 0..4 {
+            let [x, y, z] = head_frame(axis, beam);
+            let along = line.dot(&y);
+            beam = (line - x * slopes[0] * along - z * slopes[1] * along).normalize();
+        }
+        beam
+    }
+}
+
+/// The head on a plant set up through an optical square: its beam's direction in the square's
+/// plane is the square's, not the technician's. After the usual alignment (every screw), the
+/// mount's angle that turns the beam in that plane (yaw for the head's x, pitch for its z) is
+/// set so that the head reads `slope` along head axis `head_axis` (0: x, 2: z) over `span`.
+/// The set slope, as the plant's truth gives it.
+pub fn hold_in_plane(
+    plant: &super::plant::Plant,
+    span: (f64, f64),
+    head_axis: usize,
+    slope: f64,
+    now: Instant,
+) -> f64 {
+    use crate::align::Mount;
+    let j = if head_axis == 0 { 0 } else { 1 };
+    let turn = |a: f64| {
+        if head_axis == 0 {
+            Mount {
+                yaw: a,
+                ..Mount::default()
+            }
+        } else {
+            Mount {
+                pitch: a,
+                ..Mount::default()
+            }
+        }
+    };
+    let probe = 1e-5;
+    for _ in 0..3 {
+        let before = plant.true_slopes(span, now)[j];
+        plant.knock(turn(probe));
+        let gain = (plant.true_slopes(span, now)[j] - before) / probe;
+        plant.knock(turn(-probe));
+        if gain.is_nan() || gain.abs() <= 1e-3 {
+            break;
+        }
+        plant.knock(turn((slope - before) / gain));
+    }
+    plant.true_slopes(span, now)[j]
 }

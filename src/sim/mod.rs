@@ -24,6 +24,7 @@ pub mod hexapod_servers;
 pub mod iomodule;
 pub mod lab;
 pub mod machine;
+pub mod machine_lab;
 pub mod machine_time;
 pub mod plant;
 pub mod plc;

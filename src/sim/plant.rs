@@ -458,6 +458,35 @@ impl Plant {
         Pose::new(e, t.travel, t.follower_true)
     }
 
+    /// The least-squares slopes (along the head's x and z, per mm of travel) of the
+    /// straightness the head sees over `span` with its mount as it is at `now`, without noise:
+    /// which way the axis runs against the beam (the line a squareness is measured from).
+    pub fn true_slopes(&self, span: (f64, f64), now: Instant) -> [f64; 2] {
+        let s = self.lock();
+        let l = &self.head.truth;
+        let travels: Vec<f64> = (0..=100)
+            .map(|i| span.0 + (span.1 - span.0) * i as f64 / 100.0)
+            .collect();
+        let (mut x, mut z) = (Vec::new(), Vec::new());
+        for &p in &travels {
+            let e = self.errors_locked(&s, p, Direction::Up, now);
+            let seen = s
+                .mount
+                .head_pose(self.mount_geometry.pivot(), l.c, l.travel_axis, p, &e);
+            x.push(seen.dx);
+            z.push(seen.dz);
+        }
+        let slope = |v: &[f64]| {
+            crate::evaluate::iso230_1::fit_line(
+                &travels,
+                v,
+                crate::evaluate::ReferenceLine::LeastSquares,
+            )
+            .map_or(f64::NAN, |f| f.slope)
+        };
+        [slope(&x), slope(&z)]
+    }
+
     /// The truth at `now`.
     pub fn truth(&self, now: Instant) -> Truth {
         let s = self.lock();

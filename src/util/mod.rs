@@ -8,6 +8,7 @@ pub mod pace;
 pub mod progress;
 pub mod range;
 pub mod sock;
+pub mod spline;
 pub mod time;
 
 /// A TOML error on one line, with its line number in front.
