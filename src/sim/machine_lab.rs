@@ -191,7 +191,7 @@ pub fn measure_machine(
     let made = bench_map(spec.base.follower)?;
     let squares: Vec<TwinSquare> = SquarePair::ALL
         .iter()
-        .map(|&p| TwinSquare::draw(p, spec.seed * 10 + p.index() as u64))
+        .map(|&p| TwinSquare::draw(p, spec.seed.wrapping_mul(10).wrapping_add(p.index() as u64)))
         .collect();
     let mut setups: Vec<SetupResult> = Vec::new();
     let mut beams = Vec::new();
