@@ -384,19 +384,18 @@ impl TwinMachine {
 /// The head on a plant set up through an optical square: its beam's direction in the square's
 /// plane is the square's, not the technician's. After the usual alignment (every screw), the
 /// mount's angle that turns the beam in that plane (yaw for the head's x, pitch for its z) is
-/// set so that the head reads `slope` along head axis `head_axis` (0: x, 2: z) over `span`.
-/// The set slope, as the plant's truth gives it.
+/// set so that the head reads `slope` over `span` along its x (`j` 0) or its z (`j` 1), as
+/// `Plant::true_slopes` indexes them. The set slope, as the plant's truth gives it.
 pub fn hold_in_plane(
     plant: &super::plant::Plant,
     span: (f64, f64),
-    head_axis: usize,
+    j: usize,
     slope: f64,
     now: Instant,
 ) -> f64 {
     use crate::align::Mount;
-    let j = if head_axis == 0 { 0 } else { 1 };
     let turn = |a: f64| {
-        if head_axis == 0 {
+        if j == 0 {
             Mount {
                 yaw: a,
                 ..Mount::default()

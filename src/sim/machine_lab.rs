@@ -245,17 +245,13 @@ pub fn measure_machine(
             let along = twin.direction(pair.axes().0);
             let hx =
                 nalgebra::Vector3::from(AxisMapping::standard(axis).to_machine([1.0, 0.0, 0.0]));
-            let (head_axis, j) = if hx.dot(&along).abs() > 0.5 {
-                (0, 0)
-            } else {
-                (2, 1)
-            };
+            let j = if hx.dot(&along).abs() > 0.5 { 0 } else { 1 };
             let incoming = beams
                 .get(from)
                 .copied()
                 .ok_or_else(|| setup(format!("set-up {from}'s beam is not measured yet")))?;
             let want = twin.slopes_for_beam(axis, squares[pair.index()].prism.turn(incoming))[j];
-            let set = hold_in_plane(&lab.plant, span, head_axis, want, lab.now());
+            let set = hold_in_plane(&lab.plant, span, j, want, lab.now());
             if (set - want).abs() > 1e-9 {
                 return Err(setup(format!(
                     "the square's slope {want:e} could not be set on the mount ({set:e})"
