@@ -2,19 +2,21 @@
 //! machining centre (X 1000 × Y 600 × Z 500 mm, a cross table) measured set-up by set-up
 //! through the product's path on the lab (`sim::machine_lab`): X with its beam aligned, Y and Z
 //! through an optical square from X's beam, Z again through a square from Y's beam; the 21
-//! errors into the model, exported as Beckhoff's `ISG_CSV`, read back, and applied by the
-//! twin's CNC; judged by the twin's truth.
+//! errors into the model, exported for each control (Beckhoff's `ISG_CSV`, HEIDENHAIN's
+//! KinematicsComp, FANUC's grid, Siemens's EEC and CEC tables; `exports`), each read back and
+//! applied by the twin's CNC; judged by the twin's truth.
 //!
 //! `summary.json`: `{"seed", "machine": {"chain", "travel_mm", "machine_time_s", "axes":
 //! [{"axis", "setup", "targets", "machine_time_s", "worst_off": {name: value}}], "squareness":
 //! [{"pair", "name", "measured_arcsec", "truth_arcsec", "U_arcsec", "terms": [{"name",
 //! "u_arcsec", "source"}]}], "volumetric": {"points", "tool_mm", "before_max_um",
 //! "before_rms_um", "after_max_um", "after_rms_um", "model_after_max_um",
-//! "model_after_rms_um"}, "exports": [{"control", "path"}]}}`; `worst_off` in µm and arcsec
+//! "model_after_rms_um"}, "exports": [{"control", "path", "carries", "after_max_um",
+//! "after_rms_um"}]}}`, the volumetric "after" that of the Beckhoff file; `worst_off` in µm and arcsec
 //! (straightness from its reference line, the rest relative to the zero).
 
 use anyhow::{Context, Result};
-use axiscomp::machine::{MachineModel, component_names, isg_csv};
+use axiscomp::machine::{component_names, exports};
 use axiscomp::sim::Rng;
 use axiscomp::sim::machine::MachineSpec;
 use axiscomp::sim::machine_lab::{MachineLabSpec, measure_machine};
@@ -59,33 +61,38 @@ pub fn run(seed: u64, out: &Path) -> Result<()> {
         println!("  {}; the truth {:+.2}″", sq.measured, arcsec(sq.truth_rad));
     }
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    // Beckhoff's file, read back: the twin's CNC applies what the file says.
-    let path = out.join("volumetric-beckhoff.csv");
-    let text = isg_csv::write(
-        r.model.tables(),
-        r.model.squareness,
-        &format!("axiscomp demo --machine, twin seed {seed}"),
-    );
-    std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
-    let file = isg_csv::read(&path)?;
-    let squareness = file
-        .squareness
-        .with_context(|| format!("{}: no squarenesses read back", path.display()))?;
-    let loaded = MachineModel::new(m.chain, file.tables, squareness)?;
+    let title = format!("axiscomp demo --machine, twin seed {seed}");
     let points = r.twin.random_points(POINTS, &mut Rng::new(seed ^ 0x5eed));
     let before = r.twin.volumetric(&points, TOOL_MM, None);
-    let after = r.twin.volumetric(&points, TOOL_MM, Some(&loaded));
     let in_memory = r.twin.volumetric(&points, TOOL_MM, Some(&r.model));
+    // Each control's files, written and read back: the twin's CNC applies what the files say.
+    let exports = exports::write_and_read_back(&r.model, out, &title, TOOL_MM)?;
     println!(
-        "Volumetric error of the tool point ({} points, a {:.0} mm tool), by the twin's truth: {:.1} µm largest, {:.1} µm RMS before; {:.2} µm largest, {:.2} µm RMS with {} applied by its CNC.",
+        "Volumetric error of the tool point ({} points, a {:.0} mm tool), by the twin's truth: {:.1} µm largest, {:.1} µm RMS before; with the model in memory {:.2} µm largest, {:.2} µm RMS. Each control's files written, read back and applied by the twin's CNC:",
         before.points,
         -TOOL_MM[2],
         before.max_mm * 1e3,
         before.rms_mm * 1e3,
-        after.max_mm * 1e3,
-        after.rms_mm * 1e3,
-        path.display()
+        in_memory.max_mm * 1e3,
+        in_memory.rms_mm * 1e3,
     );
+    let mut applied = Vec::new();
+    for e in &exports {
+        let after = r
+            .twin
+            .volumetric(&points, TOOL_MM, Some(e.applied.as_ref()));
+        println!(
+            "  {}: {:.2} µm largest, {:.2} µm RMS ({}; {})",
+            e.control,
+            after.max_mm * 1e3,
+            after.rms_mm * 1e3,
+            e.carries,
+            e.path.display()
+        );
+        applied.push(after);
+    }
+    // The volumetric figures after are the Beckhoff file's, the first written.
+    let after = *applied.first().context("no control's files were written")?;
     println!(
         "Machine time: {:.1} min for the four set-ups.",
         r.machine_s() / 60.0
@@ -151,12 +158,18 @@ pub fn run(seed: u64, out: &Path) -> Result<()> {
                 "model_after_max_um": in_memory.max_mm * 1e3,
                 "model_after_rms_um": in_memory.rms_mm * 1e3,
             },
-            "exports": [{"control": "Beckhoff TwinCAT CNC (TF5280, ISG_CSV)", "path": path.display().to_string()}],
+            "exports": exports.iter().zip(&applied).map(|(e, a)| serde_json::json!({
+                "control": e.control,
+                "path": e.path.display().to_string(),
+                "carries": e.carries,
+                "after_max_um": a.max_mm * 1e3,
+                "after_rms_um": a.rms_mm * 1e3,
+            })).collect::<Vec<_>>(),
         },
     });
     let json = out.join("summary.json");
     std::fs::write(&json, serde_json::to_string_pretty(&summary)? + "\n")
         .with_context(|| format!("writing {}", json.display()))?;
-    println!("Written: {} and {}.", path.display(), json.display());
+    println!("Written: the files above and {}.", json.display());
     Ok(())
 }

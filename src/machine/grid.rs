@@ -3,7 +3,7 @@
 //! compensation: trilinear between the eight corners around the point). The grid is taken
 //! at one tool offset: the angular errors' share at another offset is not in it.
 //!
-//! The grid's file for a control is not written here yet; this is what it will carry.
+//! Its file for the control: `fanuc_grid`.
 
 use super::error::MachineError;
 use super::model::{MachineModel, Volumetric};
@@ -66,6 +66,98 @@ impl Grid {
             tool_mm,
             vectors,
         })
+    }
+
+    /// This grid with each corner moved by a sixteenth of its second differences, taken back:
+    /// between two corners a linear blend lies off a curve by up to h²f″/8 at the middle and 0
+    /// at the corners; moved so, it lies off by h²f″/16 at both, half the largest, for a field
+    /// whose curvature changes little over a cell. A corner on a face takes its neighbour's
+    /// second difference along that axis. What the controls that blend corners should be given,
+    /// rather than the model at them.
+    pub fn curvature_balanced(&self) -> Grid {
+        let n = self.counts;
+        let mut out = self.clone();
+        for k in 0..n[2] {
+            for j in 0..n[1] {
+                for i in 0..n[0] {
+                    let mut shift = [0.0; 3];
+                    for (axis, &count) in n.iter().enumerate() {
+                        if count < 3 {
+                            continue;
+                        }
+                        let at = [i, j, k][axis].clamp(1, count - 2);
+                        let mut idx = [i, j, k];
+                        let mut v = [[0.0; 3]; 3];
+                        for (d, slot) in v.iter_mut().enumerate() {
+                            idx[axis] = at + d - 1;
+                            *slot = self.corner(idx[0], idx[1], idx[2]);
+                        }
+                        for m in 0..3 {
+                            shift[m] += (v[0][m] - 2.0 * v[1][m] + v[2][m]) / 16.0;
+                        }
+                    }
+                    let c = &mut out.vectors[(k * n[1] + j) * n[0] + i];
+                    for m in 0..3 {
+                        c[m] -= shift[m];
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// A grid of `vectors` (X fastest, then Y, then Z) at the corners from `origin_mm` every
+    /// `step_mm`, `counts` corners along each axis (at least two), taken with `tool_mm`: what a
+    /// grid's file holds.
+    pub fn from_corners(
+        origin_mm: [f64; 3],
+        step_mm: [f64; 3],
+        counts: [usize; 3],
+        tool_mm: [f64; 3],
+        vectors: Vec<[f64; 3]>,
+    ) -> Result<Grid, MachineError> {
+        for k in 0..3 {
+            let axis = ["X", "Y", "Z"][k];
+            if counts[k] < 2 {
+                return Err(MachineError::Missing(format!(
+                    "a grid of {} corner(s) along {axis}: it needs at least two to interpolate between",
+                    counts[k]
+                )));
+            }
+            if !(step_mm[k] > 0.0 && step_mm[k].is_finite() && origin_mm[k].is_finite()) {
+                return Err(MachineError::Missing(format!(
+                    "a grid from {} mm every {} mm along {axis}: give a finite origin and a positive step",
+                    origin_mm[k], step_mm[k]
+                )));
+            }
+        }
+        let n: usize = counts.iter().product();
+        if vectors.len() != n {
+            return Err(MachineError::Missing(format!(
+                "a grid of {} × {} × {} corners with {} vectors: give one per corner",
+                counts[0],
+                counts[1],
+                counts[2],
+                vectors.len()
+            )));
+        }
+        Ok(Grid {
+            origin_mm,
+            step_mm,
+            counts,
+            tool_mm,
+            vectors,
+        })
+    }
+
+    /// The first corner (mm).
+    pub fn origin_mm(&self) -> [f64; 3] {
+        self.origin_mm
+    }
+
+    /// The error vector (mm) at corner `(i, j, k)` (along X, Y, Z).
+    pub fn vector(&self, i: usize, j: usize, k: usize) -> [f64; 3] {
+        self.corner(i, j, k)
     }
 
     /// Corners along X, Y, Z.

@@ -2,20 +2,26 @@
 //! errors after ISO 230-1 (`model`), the tool point's volumetric error anywhere in the volume,
 //! an axis's table from what the head measured on it (`from_head`, refined between the targets
 //! by a spline), the squarenesses from two axes' straightness against one beam turned by an
-//! optical square (`squareness`), and what the controls compensate by (`isg_csv`: Beckhoff
-//! TwinCAT's file; `grid`: the model at a grid's corners, as FANUC's three-dimensional
-//! compensation interpolates them).
+//! optical square (`squareness`), and what the controls compensate by, each file with its one
+//! reader: `isg_csv` (Beckhoff TwinCAT's volumetric file), `heidenhain` (KinematicsComp's COM
+//! tables and the kinematics excerpt), `fanuc_grid` (the model at a grid's corners, `grid`, as
+//! FANUC's three-dimensional compensation interpolates them), `siemens` (EEC and CEC tables).
+//! Each module states what of its format is confirmed from which manual page and what is not.
 //!
 //! Held against the twin's machine (`sim::machine`), which composes the same chain exactly and
 //! applies a loaded file or a grid as its CNC would; `sim::machine_lab` measures it set-up by
-//! set-up through the product's path. The other controls' files (HEIDENHAIN, FANUC, Siemens),
-//! the machine record and the commissioning plan in the service come next.
+//! set-up through the product's path. The machine record and the commissioning plan in the
+//! service come next.
 
 mod error;
+pub mod exports;
+pub mod fanuc_grid;
 pub mod from_head;
 pub mod grid;
+pub mod heidenhain;
 pub mod isg_csv;
 pub mod model;
+pub mod siemens;
 pub mod squareness;
 
 pub use error::MachineError;
@@ -24,3 +30,5 @@ pub use model::{Chain, ComponentTable, MachineModel, Squareness, Volumetric, com
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_exports;
