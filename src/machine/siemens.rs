@@ -41,11 +41,15 @@ pub fn axis_name(axis: MachineAxis) -> String {
     format!("{}1", axis.letter())
 }
 
+/// `X1`, `Y1`, `Z1`, or the general names `AX1`, `AX2`, `AX3` (the manual's example on page
+/// 222 of the 802D sl manual calls AX2 "basic axis Y1" and AX1 "compensation axis X1"), with or
+/// without parentheses.
 fn axis_of(name: &str) -> Option<MachineAxis> {
     let n = name.trim_matches(|c| c == '(' || c == ')').trim();
-    MachineAxis::ALL
-        .into_iter()
-        .find(|a| axis_name(*a).eq_ignore_ascii_case(n))
+    MachineAxis::ALL.into_iter().find(|a| {
+        axis_name(*a).eq_ignore_ascii_case(n)
+            || format!("AX{}", a.index() + 1).eq_ignore_ascii_case(n)
+    })
 }
 
 /// The equidistant points over `table`'s span, no further apart than `step_mm`.
@@ -208,7 +212,7 @@ fn tables(text: &str, path: &str, eec: bool) -> Result<Vec<(usize, Table)>, Mach
                     path,
                     n,
                     format!(
-                        "{name}: the last index names no axis of X1, Y1, Z1 ({})",
+                        "{name}: the last index names no axis of X1, Y1, Z1 (AX1, AX2, AX3) ({})",
                         idx.join(",")
                     ),
                 )
@@ -255,16 +259,22 @@ fn tables(text: &str, path: &str, eec: bool) -> Result<Vec<(usize, Table)>, Mach
             ("_MIN", None) => t.min = Some(num()?),
             ("_MAX", None) => t.max = Some(num()?),
             ("_INPUT_AXIS", None) if !eec => {
-                t.input =
-                    Some(axis_of(&value).ok_or_else(|| {
-                        err(path, n, format!("{name}: {value} is not X1, Y1 or Z1"))
-                    })?)
+                t.input = Some(axis_of(&value).ok_or_else(|| {
+                    err(
+                        path,
+                        n,
+                        format!("{name}: {value} is not X1, Y1 or Z1 (AX1, AX2, AX3)"),
+                    )
+                })?)
             }
             ("_OUTPUT_AXIS", None) if !eec => {
-                t.output =
-                    Some(axis_of(&value).ok_or_else(|| {
-                        err(path, n, format!("{name}: {value} is not X1, Y1 or Z1"))
-                    })?)
+                t.output = Some(axis_of(&value).ok_or_else(|| {
+                    err(
+                        path,
+                        n,
+                        format!("{name}: {value} is not X1, Y1 or Z1 (AX1, AX2, AX3)"),
+                    )
+                })?)
             }
             ("_IS_MODULO", None) | ("_DIRECTION", None) | ("_MULT_BY_TABLE", None) => {
                 if num()? != 0.0 {

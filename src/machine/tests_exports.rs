@@ -387,3 +387,48 @@ fn a_curvature_balanced_grid_halves_the_blend_s_largest_deviation() {
     let (before, after) = (largest(&g), largest(&g.curvature_balanced()));
     assert!(after < 0.65 * before, "{after} against {before} mm");
 }
+
+/// The manuals' examples, cut to their first points (the manuals elide the rest with "…"):
+/// EEC of X1 (Function Manual Extended Functions 03/2013, p. 242: +3, +10, +12 µm from −200 mm
+/// every 1 mm) and CEC table 0 of the 802D sl manual (p. 222: X1 against AX2, "basic axis Y1",
+/// 0, +10, +12 µm from −400 mm every 6.73 mm, with its comments). Read back as compensations,
+/// so the errors are their negatives.
+#[test]
+fn the_siemens_manual_s_examples_read() {
+    let eec = "%_N_AX_EEC_INI\nCHANDATA(1)\n\
+               $AA_ENC_COMP[0,0,X1]=0.003 ; 1st compensation value (interpolation point 0): +3µm\n\
+               $AA_ENC_COMP[0,1,X1]=0.01 ; 2nd compensation value (interpolation point 1): +10µm\n\
+               $AA_ENC_COMP[0,2,X1]=0.012 ; 3rd compensation value (interpolation point 2): +12µm\n\
+               $AA_ENC_COMP_STEP[0,X1]=1.0 ; Distance between interpolation points 1.0 mm\n\
+               $AA_ENC_COMP_MIN[0,X1]=-200.0 ; Compensation starts at -200.0 mm\n\
+               $AA_ENC_COMP_MAX[0,X1]=-198.0 ; (the manual's ends at 600.0 mm, point 800)\n\
+               $AA_ENC_COMP_IS_MODULO[0,X1]=0 ; Compensation without modulo function\n\
+               M17\n";
+    let cec = "%_N_NC_CEC_INI\nCHANDATA(1)\n\
+               $AN_CEC[0,0]=0 ; 1. Compensation value (interpolation point 0) for X1: ± 0 µm\n\
+               $AN_CEC[0,1]=0.01 ; for X1: + 10 µm\n\
+               $AN_CEC[0,2]=0.012 ; for X1: + 12 µm\n\
+               $AN_CEC_INPUT_AXIS[0]=(AX2) ; basic axis Y1\n\
+               $AN_CEC_OUTPUT_AXIS[0]=(AX1) ; compensation axis X1\n\
+               $AN_CEC_STEP[0]=6.73 ; distance between interpolation points 6.73 mm\n\
+               $AN_CEC_MIN[0]=-400.0 ; compensation starts at Y1 = -400 mm\n\
+               $AN_CEC_MAX[0]=-386.54 ; (the manual's ends at +400 mm)\n\
+               $AN_CEC_DIRECTION[0]=0 ; table applies in both traversing directions of Y1\n\
+               $AN_CEC_MULT_BY_TABLE[0]=0\n\
+               $AN_CEC_IS_MODULO[0]=0 ; compensation without modulo function\n\
+               M17\n";
+    // The model needs Z too: a table of Z1 into X1 of two points.
+    let cec = cec.replace(
+        "M17\n",
+        "$AN_CEC[1,0]=0\n$AN_CEC[1,1]=0\n$AN_CEC_INPUT_AXIS[1]=(Z1)\n$AN_CEC_OUTPUT_AXIS[1]=(X1)\n\
+         $AN_CEC_STEP[1]=500\n$AN_CEC_MIN[1]=0\n$AN_CEC_MAX[1]=500\nM17\n",
+    );
+    let t = siemens::parse(eec, "eec", &cec, "cec").unwrap();
+    assert_eq!(t[0].positions_mm(), [-200.0, -199.0, -198.0]);
+    assert_eq!(t[0].values()[1], [-0.01, 0.0, 0.0, 0.0, 0.0, 0.0]);
+    let y = &t[1];
+    assert_eq!(y.axis(), Y);
+    assert!((y.positions_mm()[2] - (-386.54)).abs() < 1e-9);
+    assert_eq!(y.values()[2], [-0.012, 0.0, 0.0, 0.0, 0.0, 0.0]);
+    assert_eq!(t[2].positions_mm(), [0.0, 500.0]);
+}
