@@ -30,5 +30,3 @@ pub use model::{Chain, ComponentTable, MachineModel, Squareness, Volumetric, com
 
 #[cfg(test)]
 mod tests;
-#[cfg(test)]
-mod tests_exports;

@@ -258,23 +258,19 @@ fn tables(text: &str, path: &str, eec: bool) -> Result<Vec<(usize, Table)>, Mach
             ("_STEP", None) => t.step = Some(num()?),
             ("_MIN", None) => t.min = Some(num()?),
             ("_MAX", None) => t.max = Some(num()?),
-            ("_INPUT_AXIS", None) if !eec => {
-                t.input = Some(axis_of(&value).ok_or_else(|| {
+            ("_INPUT_AXIS" | "_OUTPUT_AXIS", None) if !eec => {
+                let axis = axis_of(&value).ok_or_else(|| {
                     err(
                         path,
                         n,
                         format!("{name}: {value} is not X1, Y1 or Z1 (AX1, AX2, AX3)"),
                     )
-                })?)
-            }
-            ("_OUTPUT_AXIS", None) if !eec => {
-                t.output = Some(axis_of(&value).ok_or_else(|| {
-                    err(
-                        path,
-                        n,
-                        format!("{name}: {value} is not X1, Y1 or Z1 (AX1, AX2, AX3)"),
-                    )
-                })?)
+                })?;
+                if field == "_INPUT_AXIS" {
+                    t.input = Some(axis);
+                } else {
+                    t.output = Some(axis);
+                }
             }
             ("_IS_MODULO", None) | ("_DIRECTION", None) | ("_MULT_BY_TABLE", None) => {
                 if num()? != 0.0 {

@@ -2,9 +2,9 @@
 //! to the same model within the file's rounding, a value checked by hand, bad files refused in
 //! words. (Beckhoff's `ISG_CSV` is tested in `tests.rs`.)
 
-use super::*;
-use super::{fanuc_grid, heidenhain, siemens};
 use crate::comp::mapping::MachineAxis;
+use crate::machine::*;
+use crate::machine::{fanuc_grid, heidenhain, siemens};
 use crate::sim::Rng;
 use crate::sim::machine::{MachineSpec, TwinMachine};
 use MachineAxis::*;

@@ -1,5 +1,7 @@
 use super::*;
 use super::{from_head, isg_csv};
+
+mod exports;
 use crate::comp::mapping::MachineAxis;
 use crate::sim::Rng;
 use crate::sim::machine::{MachineSpec, TwinMachine};
