@@ -10,7 +10,8 @@
 //! 4. `run`: the ISO 230-2 test cycle and the captures at each target;
 //! 5. `evaluate`: ISO 230-2 / 230-1 figures from the captures;
 //! 6. `comp`: compensation tables and controller exports; `machine`: the three axes together,
-//!    their 21 errors and the controls' volumetric compensation;
+//!    their 21 errors and the controls' volumetric compensation; `commission`: a machine's
+//!    record, its commissioning plan set-up by set-up, the model from the stored runs;
 //! 7. `plc`: tables into the CNC's PLC over Modbus TCP (push with handshake, pull server).
 //!
 //! Around them: `service` (the live service: tasks, snapshot, control API), `console` (the
@@ -23,6 +24,7 @@ pub mod align;
 pub mod calibrate;
 pub mod can;
 pub mod canopen;
+pub mod commission;
 pub mod comp;
 pub mod config;
 pub mod console;

@@ -39,9 +39,10 @@ use axiscomp::sim::closed_loop::{
 use axiscomp::sim::follower::FollowerSpec;
 use axiscomp::sim::follower_cal::{Mapping, map_instrument};
 use axiscomp::sim::lab::LabSpec;
+use axiscomp::sim::lab_store::{LabRunRecord, store_lab_run};
 use axiscomp::sim::plant::{MountSpec, Plant, PlantSpec};
 use axiscomp::sim::study::{StudyResult, StudySpec, study_head};
-use axiscomp::store::{NewRun, RunId, RunState, Store};
+use axiscomp::store::{RunId, Store};
 use axiscomp::units::{DOF_NAMES, DOF_TO_USER, DOF_UNITS};
 use axiscomp::util::progress::Progress;
 use std::path::{Path, PathBuf};
@@ -685,13 +686,7 @@ fn write_out(dir: &Path, spec: &LoopSpec, r: &LoopResult, truth: &Truths) -> Res
         .with_context(|| format!("creating {}; choose another --out", dir.display()))?;
     let mut files = 0;
     let db = dir.join("axiscomp.db");
-    for suffix in ["", "-wal", "-shm"] {
-        let p = PathBuf::from(format!("{}{suffix}", db.display()));
-        if p.exists() {
-            std::fs::remove_file(&p)
-                .with_context(|| format!("replacing {}; remove it by hand", p.display()))?;
-        }
-    }
+    super::remove_store(&db)?;
     let mut store = Store::open(&db)?;
     files += 1;
     let before_caps: Vec<Capture> = r.before.run.captures.iter().map(|c| c.capture).collect();
@@ -704,27 +699,42 @@ fn write_out(dir: &Path, spec: &LoopSpec, r: &LoopResult, truth: &Truths) -> Res
     .into_iter()
     .zip(r.passes_unix_us)
     {
-        let id = store_run(&mut store, spec, pass, caps)?;
-        // Dated by the twin's clock, as its captures are: the run's machine time.
-        store.set_run_times(id, from, to)?;
-        for h in &run.handovers {
-            store.insert_handover(Some(id), h)?;
-        }
-        ids.push(id);
-        let rec = store.run(id)?;
         let m = if pass == "before" {
             &r.before
         } else {
             &r.after
         };
-        // What the run's budget was made of, with the follower map it applied, so that
-        // `axiscomp report` on this store states the same budget.
-        axiscomp::report::budget::record_lab_run(
+        // The twin's PLC applied nothing when the first run started: recorded, as the service
+        // records it, so tables made from this run are the axis's own. The verification run
+        // (tables active, not in this store) has no such record: a table from it is refused
+        // unless its residual is asked for by name. What the run's budget was made of, with
+        // the follower map it applied, so that `axiscomp report` on this store states the
+        // same budget.
+        let id = store_lab_run(
             &mut store,
-            id,
-            &m.budget.inputs,
-            r.follower.as_ref().map(|f| &f.map),
+            &LabRunRecord {
+                plan: &spec.plan,
+                config: serde_json::json!({ "twin": "axiscomp demo", "pass": pass }),
+                notes: match pass {
+                    "before" => "demo: the axis as it is".into(),
+                    _ => "demo: verification with the tables active in the PLC".into(),
+                },
+                captures: caps,
+                times_us: [from, to],
+                budget: Some((&m.budget.inputs, r.follower.as_ref().map(|f| &f.map))),
+                tables: (pass == "before").then(|| axiscomp::store::RunTables {
+                    unix_us: axiscomp::store::now_us(),
+                    known: true,
+                    source: "the demo's twin PLC, before any table was published".into(),
+                    tables: Vec::new(),
+                }),
+            },
         )?;
+        for h in &run.handovers {
+            store.insert_handover(Some(id), h)?;
+        }
+        ids.push(id);
+        let rec = store.run(id)?;
         let mut report = run_report(RunMeta::from_record(&rec), caps, &m.eval);
         add_budget(&mut report, &m.budget);
         if pass == "after" {
@@ -757,40 +767,6 @@ fn write_out(dir: &Path, spec: &LoopSpec, r: &LoopResult, truth: &Truths) -> Res
     write(&dir.join("program.ngc"), &r.before.run.program)?;
     write(&dir.join("summary.md"), &summary(r, truth, &ids))?;
     Ok(files + 3)
-}
-
-fn store_run(store: &mut Store, spec: &LoopSpec, pass: &str, caps: &[Capture]) -> Result<RunId> {
-    let id = store.create_run(&NewRun {
-        axis: spec.plan.spec.axis.clone(),
-        plan: serde_json::to_value(&spec.plan)?,
-        config: serde_json::json!({ "twin": "axiscomp demo", "pass": pass }),
-        calibration: None,
-        notes: match pass {
-            "before" => "demo: the axis as it is".into(),
-            _ => "demo: verification with the tables active in the PLC".into(),
-        },
-    })?;
-    store.set_run_state(id, RunState::Running)?;
-    if pass == "before" {
-        // The twin's PLC applied nothing when the first run started: recorded, as the service
-        // records it, so tables made from this run are the axis's own. The verification run
-        // (tables active, not in this store) has no such record: a table from it is refused
-        // unless its residual is asked for by name.
-        store.record_run_tables(
-            id,
-            &axiscomp::store::RunTables {
-                unix_us: axiscomp::store::now_us(),
-                known: true,
-                source: "the demo's twin PLC, before any table was published".into(),
-                tables: Vec::new(),
-            },
-        )?;
-    }
-    for c in caps {
-        store.insert_capture(id, c)?;
-    }
-    store.set_run_state(id, RunState::Finished)?;
-    Ok(id)
 }
 
 fn comparisons(before: &[Capture], after: &[Capture]) -> Vec<Comparison> {

@@ -16,10 +16,12 @@
 //! (straightness from its reference line, the rest relative to the zero).
 
 use anyhow::{Context, Result};
+use axiscomp::commission::stored;
 use axiscomp::machine::{component_names, exports};
 use axiscomp::sim::Rng;
 use axiscomp::sim::machine::MachineSpec;
 use axiscomp::sim::machine_lab::{MachineLabSpec, measure_machine};
+use axiscomp::store::Store;
 use axiscomp::units::RAD_PER_ARCSEC;
 use std::path::Path;
 
@@ -57,18 +59,48 @@ pub fn run(seed: u64, out: &Path) -> Result<()> {
         );
     })
     .context("measuring the machine")?;
-    for sq in &r.squareness {
-        println!("  {}; the truth {:+.2}″", sq.measured, arcsec(sq.truth_rad));
-    }
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    // The machine as the product keeps it: its record, each set-up's run stored and attached
+    // in the plan's order; the model and the exports are the stored machine's.
+    let record_path = out.join("machine.toml");
+    std::fs::write(&record_path, r.record.to_toml())
+        .with_context(|| format!("writing {}", record_path.display()))?;
+    let db = out.join("axiscomp.db");
+    super::remove_store(&db)?;
+    let mut store = Store::open(&db)?;
+    let id = r.store(&mut store, axiscomp::store::now_us())?;
+    let state = stored::state(&store, id)?;
+    let model = state
+        .model()
+        .map_err(|e| anyhow::anyhow!("the stored machine: {e}"))?
+        .clone();
+    println!(
+        "Stored: machine {id} ({}) in {}, its record in {}, the four set-ups' runs ({}) attached in the plan's order; the model below is the stored machine's.",
+        r.record.name,
+        db.display(),
+        record_path.display(),
+        state.runs_words()
+    );
+    let truth = r.twin.squareness().to_array();
+    let fitted = state
+        .fit
+        .as_ref()
+        .map_err(|e| anyhow::anyhow!("the stored machine: {e}"))?;
+    for sq in &fitted.squareness {
+        println!(
+            "  {}; the truth {:+.2}″",
+            sq,
+            arcsec(truth[sq.pair.index()])
+        );
+    }
     let title = format!("axiscomp demo --machine, twin seed {seed}");
     let points = r.twin.random_points(POINTS, &mut Rng::new(seed ^ 0x5eed));
     let before = r.twin.volumetric(&points, TOOL_MM, None);
-    let in_memory = r.twin.volumetric(&points, TOOL_MM, Some(&r.model));
+    let in_memory = r.twin.volumetric(&points, TOOL_MM, Some(&model));
     // Each control's files, written and read back: the twin's CNC applies what the files say.
-    let exports = exports::write_and_read_back(&r.model, out, &title, TOOL_MM)?;
+    let exports = exports::write_and_read_back(&model, out, &title, TOOL_MM)?;
     println!(
-        "Volumetric error of the tool point ({} points, a {:.0} mm tool), by the twin's truth: {:.1} µm largest, {:.1} µm RMS before; with the model in memory {:.2} µm largest, {:.2} µm RMS. Each control's files written, read back and applied by the twin's CNC:",
+        "Volumetric error of the tool point ({} points, a {:.0} mm tool), by the twin's truth: {:.1} µm largest, {:.1} µm RMS before; with the stored machine's model applied exactly {:.2} µm largest, {:.2} µm RMS. Each control's files written, read back and applied by the twin's CNC:",
         before.points,
         -TOOL_MM[2],
         before.max_mm * 1e3,
@@ -121,16 +153,15 @@ pub fn run(seed: u64, out: &Path) -> Result<()> {
             })
         })
         .collect();
-    let squares: Vec<serde_json::Value> = r
+    let squares: Vec<serde_json::Value> = fitted
         .squareness
         .iter()
-        .map(|sq| {
-            let m = &sq.measured;
+        .map(|m| {
             serde_json::json!({
                 "pair": m.pair.to_string(),
                 "name": m.pair.name(),
                 "measured_arcsec": arcsec(m.value_rad),
-                "truth_arcsec": arcsec(sq.truth_rad),
+                "truth_arcsec": arcsec(truth[m.pair.index()]),
                 "U_arcsec": arcsec(m.expanded_rad),
                 "terms": m.terms.iter().map(|t| serde_json::json!({
                     "name": t.name,
@@ -143,6 +174,9 @@ pub fn run(seed: u64, out: &Path) -> Result<()> {
     let summary = serde_json::json!({
         "seed": seed,
         "machine": {
+            "id": id,
+            "store": db.display().to_string(),
+            "record": record_path.display().to_string(),
             "chain": m.chain.to_string(),
             "travel_mm": m.travel_mm,
             "machine_time_s": r.machine_s(),

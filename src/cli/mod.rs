@@ -12,6 +12,7 @@ mod evaluate;
 mod export;
 mod follower;
 mod follower_level;
+mod machine;
 mod optics;
 mod report;
 mod run;
@@ -82,6 +83,10 @@ enum Command {
     /// self-calibration), show and export the map in use.
     #[command(subcommand)]
     Follower(follower::Command),
+    /// The whole machine: its record, the commissioning plan set-up by set-up, the runs that
+    /// measured each set-up, the 21-error model and every control's files.
+    #[command(subcommand)]
+    Machine(machine::Command),
 }
 
 /// Let a closed standard output end the process quietly, as it ends `cat` or `grep`
@@ -145,6 +150,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Table(c) => table::run(c),
         Command::Align(c) => align::run(c),
         Command::Follower(c) => follower::run(c),
+        Command::Machine(c) => machine::run(c),
     }
 }
 
@@ -207,6 +213,19 @@ pub fn load_layout(path: Option<&Path>) -> Result<axiscomp::optics::Layout> {
             }
         }
     })
+}
+
+/// Remove the store at `db` with its -wal and -shm files, for a demo that writes a new one.
+pub fn remove_store(db: &Path) -> Result<()> {
+    use anyhow::Context;
+    for suffix in ["", "-wal", "-shm"] {
+        let p = PathBuf::from(format!("{}{suffix}", db.display()));
+        if p.exists() {
+            std::fs::remove_file(&p)
+                .with_context(|| format!("replacing {}; remove it by hand", p.display()))?;
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

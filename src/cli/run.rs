@@ -215,7 +215,7 @@ pub(super) fn open_store(a: &StoreArgs) -> Result<Store> {
 }
 
 /// The store at `db`, or in the state directory `config` names, read-only.
-fn open_store_at(db: Option<&PathBuf>, config: Option<&PathBuf>) -> Result<Store> {
+pub(super) fn open_store_at(db: Option<&PathBuf>, config: Option<&PathBuf>) -> Result<Store> {
     let path = match db {
         Some(p) => p.clone(),
         None => super::service::settings(config.map(PathBuf::as_path))?

@@ -12,6 +12,7 @@ pub mod composition;
 pub mod control;
 mod core;
 pub mod follower;
+pub mod machine;
 pub mod measure;
 pub mod notify;
 pub mod peer;

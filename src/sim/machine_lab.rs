@@ -13,52 +13,29 @@
 //! the first Z set-up's tables.
 
 use super::InstallSpec;
-use super::closed_loop::{BudgetSpec, LoopError, LoopSpec, Pass, measure, prepare};
+use super::closed_loop::{BudgetSpec, LoopError, LoopSpec, Measured, Pass, measure, prepare};
 use super::follower::FollowerSpec;
 use super::follower_cal::{MapTwinError, Mapping, TwinMap, map_instrument};
 use super::lab::{Lab, LabError, LabSpec, plan_span};
 use super::machine::{MachineSpec, TwinMachine, TwinSquare, hold_in_plane};
 use super::plant::{MountSpec, PlantSpec};
+use crate::commission::fit::{MeasuredSetup, fit};
+use crate::commission::plan::run_plan;
+use crate::commission::record::MachineRecord;
 use crate::comp::PositioningMode;
 use crate::comp::mapping::{AxisMapping, MachineAxis};
 use crate::evaluate::ReferenceLine;
 use crate::machine::from_head::table_from_evaluation;
-use crate::machine::squareness::{self, MeasuredSquareness, SetupSlopes, SquarePair};
-use crate::machine::{ComponentTable, MachineError, MachineModel, Squareness};
+use crate::machine::squareness::{MeasuredSquareness, SetupSlopes, SquarePair};
+use crate::machine::{ComponentTable, MachineError, MachineModel};
 use crate::plc::CncMap;
 use crate::run::program::CaptureMode;
-use crate::run::{Dialect, Plan, PlanSpec};
+use crate::run::{Dialect, Plan};
 use std::time::Duration;
 use thiserror::Error;
 
-/// How a set-up's beam comes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Beam {
-    /// Aligned to its axis by the technician.
-    Aligned,
-    /// Another set-up's beam (its index in [`SETUPS`]) turned by an optical square.
-    Through(SquarePair, usize),
-}
-
-impl std::fmt::Display for Beam {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Beam::Aligned => f.write_str("beam aligned"),
-            Beam::Through(pair, _) => write!(f, "through the optical square for {pair}"),
-        }
-    }
-}
-
-/// The model's tables: every this far (mm), from a spline through the measured targets.
-pub const TABLE_STEP_MM: f64 = 5.0;
-
-/// The commissioning order of the set-ups.
-pub const SETUPS: [(MachineAxis, Beam); 4] = [
-    (MachineAxis::X, Beam::Aligned),
-    (MachineAxis::Y, Beam::Through(SquarePair::XY, 0)),
-    (MachineAxis::Z, Beam::Through(SquarePair::ZX, 0)),
-    (MachineAxis::Z, Beam::Through(SquarePair::YZ, 1)),
-];
+pub use crate::commission::plan::{Beam, SETUPS};
+pub use crate::machine::exports::TABLE_STEP_MM;
 
 /// Why the machine could not be measured.
 #[derive(Debug, Error)]
@@ -130,6 +107,20 @@ impl MachineLabSpec {
             runs: 2,
         }
     }
+
+    /// The machine's record as its builder would write it for the twin: the twin's chain and
+    /// travels, a 150 mm tool, the squares' certificates.
+    pub fn record(&self, squares: &[TwinSquare]) -> MachineRecord {
+        MachineRecord {
+            name: format!("twin machine, seed {}", self.seed),
+            chain: self.machine.chain,
+            travel_mm: self.machine.travel_mm,
+            tool_mm: [0.0, 0.0, -150.0],
+            target_every_mm: self.target_every_mm,
+            runs: self.runs,
+            squares: std::array::from_fn(|i| squares[i].certificate.clone()),
+        }
+    }
 }
 
 /// One set-up as measured.
@@ -147,6 +138,13 @@ pub struct SetupResult {
     /// Each component error's largest difference from the truth at the measured targets (mm,
     /// rad; straightness from its reference line, the rest relative to the zero).
     pub worst_off: [f64; 6],
+    /// The run as measured (its captures, evaluation and budget), to store it.
+    pub plan: Plan,
+    pub run: Measured,
+    /// The run's first and last moment by the twin's clock (µs since the Unix epoch).
+    pub times_us: [i64; 2],
+    /// The follower map the run applied.
+    pub map: Option<crate::follower::FollowerMap>,
 }
 
 /// A squareness as measured, with the twin's truth.
@@ -159,6 +157,8 @@ pub struct SquarenessResult {
 /// The whole machine as measured.
 #[derive(Clone, Debug)]
 pub struct MachineLabResult {
+    /// The record the plan was walked with.
+    pub record: MachineRecord,
     pub setups: Vec<SetupResult>,
     pub squareness: Vec<SquarenessResult>,
     pub squares: Vec<TwinSquare>,
@@ -182,6 +182,42 @@ pub fn bench_map(follower: FollowerSpec) -> Result<TwinMap, MapTwinError> {
     map_instrument(follower, 1000.0, &bench.cal, |_, _| {})
 }
 
+impl MachineLabResult {
+    /// The machine in `store` as a technician leaves it after the plan: its record, each
+    /// set-up's run stored as the service stores a live one (its budget's inputs and follower
+    /// map with it), attached to its set-up in the plan's order (`commission::stored`, which
+    /// checks each run); the machine's id.
+    pub fn store(
+        &self,
+        store: &mut crate::store::Store,
+        unix_us: i64,
+    ) -> Result<i64, crate::commission::CommissionError> {
+        use crate::commission::stored;
+        use crate::sim::lab_store::{LabRunRecord, store_lab_run};
+        let id = stored::create(store, &self.record.to_toml(), "the twin's record", unix_us)?;
+        for (i, s) in self.setups.iter().enumerate() {
+            let captures: Vec<_> = s.run.run.captures.iter().map(|c| c.capture).collect();
+            let run = store_lab_run(
+                store,
+                &LabRunRecord {
+                    plan: &s.plan,
+                    config: serde_json::json!({ "twin": "axiscomp demo --machine", "setup": i + 1 }),
+                    notes: format!(
+                        "demo --machine: set-up {}",
+                        crate::commission::plan::title(i)
+                    ),
+                    captures: &captures,
+                    times_us: s.times_us,
+                    budget: Some((&s.run.budget.inputs, s.map.as_ref())),
+                    tables: None,
+                },
+            )?;
+            stored::attach(store, id, i, run.0, unix_us)?;
+        }
+        Ok(id)
+    }
+}
+
 /// Measure the whole machine; `progress` hears of each set-up as it ends.
 pub fn measure_machine(
     spec: &MachineLabSpec,
@@ -193,6 +229,7 @@ pub fn measure_machine(
         .iter()
         .map(|&p| TwinSquare::draw(p, spec.seed.wrapping_mul(10).wrapping_add(p.index() as u64)))
         .collect();
+    let record = spec.record(&squares);
     let mut setups: Vec<SetupResult> = Vec::new();
     let mut beams = Vec::new();
     for (axis, beam) in SETUPS {
@@ -203,22 +240,9 @@ pub fn measure_machine(
             beam,
             source: Box::new(source),
         };
-        let len = spec.machine.travel_mm[axis.index()];
         let plant = twin.plant_spec(axis, spec.base.clone());
-        let targets = (len / spec.target_every_mm).round() as usize + 1;
-        let plan = Plan::new(PlanSpec {
-            axis: axis.to_string(),
-            start_mm: 0.0,
-            end_mm: len,
-            targets,
-            runs: spec.runs,
-            overrun_mm: 2.0,
-            dwell_s: 2.0,
-            feed_mm_min: 6000.0,
-            lead_mm: 10.0,
-            reference_mm: None,
-        })
-        .map_err(|e| setup(format!("the plan: {e}")))?;
+        let plan = Plan::new(run_plan(&record, setups.len()))
+            .map_err(|e| setup(format!("the plan: {e}")))?;
         let span = plan_span(&plan);
         let mut follower = Mapping::over(span);
         follower.reuse = Some(Box::new(made.clone()));
@@ -238,7 +262,7 @@ pub fn measure_machine(
         };
         let mut lab = Lab::new(&loop_spec.lab).map_err(lab_err)?;
         let started = lab.now();
-        prepare(&mut lab, &loop_spec, &mut |_| {}).map_err(loop_err)?;
+        let map = prepare(&mut lab, &loop_spec, &mut |_| {}).map_err(loop_err)?;
         if let Beam::Through(pair, from) = beam {
             // The head's axis that lies along the pair's first axis reads the slope the
             // turned beam gives.
@@ -258,7 +282,9 @@ pub fn measure_machine(
                 )));
             }
         }
+        let u0 = lab.unix_us();
         let m = measure(&mut lab, &loop_spec, Pass::Before, &mut |_| {}).map_err(loop_err)?;
+        let times_us = [u0, lab.unix_us()];
         beams.push(twin.beam_of(axis, lab.plant.true_slopes(span, lab.now())));
         let mapping = AxisMapping::standard(axis);
         let measured = table_from_evaluation(&mapping, &m.eval)?;
@@ -272,33 +298,37 @@ pub fn measure_machine(
             measured,
             table,
             machine_s: (lab.now() - started).as_secs_f64(),
+            plan: loop_spec.plan.clone(),
+            run: m,
+            times_us,
+            map: map.map(|t| t.map),
         };
         progress(&result);
         setups.push(result);
     }
     let truth = twin.squareness().to_array();
-    let mut measured = [0.0; 3];
-    let mut squareness = Vec::new();
-    for (i, (_, beam)) in SETUPS.iter().enumerate() {
-        let Beam::Through(pair, from) = *beam else {
-            continue;
-        };
-        let sq = squareness::measure(
-            pair,
-            &setups[from].slopes,
-            &setups[i].slopes,
-            &squares[pair.index()].certificate,
-            None,
-        )?;
-        measured[pair.index()] = sq.value_rad;
-        squareness.push(SquarenessResult {
+    let measured: [Option<MeasuredSetup>; 4] = std::array::from_fn(|i| {
+        setups.get(i).map(|s| MeasuredSetup {
+            table: s.table.clone(),
+            slopes: s.slopes,
+        })
+    });
+    let fitted = fit(&record, &measured)?;
+    let squareness = fitted
+        .squareness
+        .into_iter()
+        .map(|sq| SquarenessResult {
+            truth_rad: truth[sq.pair.index()],
             measured: sq,
-            truth_rad: truth[pair.index()],
-        });
-    }
-    let tables = setups.iter().take(3).map(|s| s.table.clone()).collect();
-    let model = MachineModel::new(spec.machine.chain, tables, Squareness::from_array(measured))?;
+        })
+        .collect();
+    let model = fitted.model.ok_or_else(|| MachineLabError::Setup {
+        axis: SETUPS[0].0,
+        beam: SETUPS[0].1,
+        what: "the model needs every set-up measured".into(),
+    })?;
     Ok(MachineLabResult {
+        record,
         setups,
         squareness,
         squares,

@@ -23,6 +23,7 @@ pub mod hexapod;
 pub mod hexapod_servers;
 pub mod iomodule;
 pub mod lab;
+pub mod lab_store;
 pub mod machine;
 pub mod machine_lab;
 pub mod machine_time;

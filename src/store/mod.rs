@@ -22,6 +22,7 @@
 mod alignments;
 mod flags;
 mod follower;
+mod machines;
 pub mod queue;
 mod records;
 mod references;
@@ -32,6 +33,7 @@ pub mod schema;
 pub use alignments::{AlignmentRecord, NewAlignment};
 pub use flags::{CaptureFlag, Restatement, RunEvent};
 pub use follower::FollowerMapRecord;
+pub use machines::StoredMachine;
 pub use queue::{QueueError, StoreQueue};
 pub use records::{
     Actor, AuditEntry, AuditOutcome, AuditRecord, CalibrationId, CalibrationRecord,
@@ -157,6 +159,8 @@ pub enum StoreError {
     NoSuchTable(TableId),
     #[error("follower map {0} is not in the store; list the maps to find its id")]
     NoSuchFollowerMap(i64),
+    #[error("machine {0} is not in the store; list the machines to find its id")]
+    NoSuchMachine(i64),
     #[error("invalid {what}: {problem}")]
     Invalid { what: &'static str, problem: String },
     #[error("run {run} is {from}: it cannot become {to}")]

@@ -28,6 +28,7 @@ pub const MIGRATIONS: &[&str] = &[
     V6_FLAGS,
     V7_REFERENCES,
     V8_RESTATEMENTS,
+    V9_MACHINES,
 ];
 
 /// Version 1: the first schema.
@@ -302,6 +303,27 @@ CREATE TABLE capture_restatements (
 CREATE INDEX capture_restatements_run ON capture_restatements (run_id, run, target_index, direction);
 "#;
 
+/// Version 9: machine records and their commissioning (issue 27). A machine is its record as
+/// the builder wrote it (TOML, `commission::record`); each set-up's run is a row, attached or
+/// (run_id NULL) detached, the newest row per set-up the one in force, so the history of what
+/// measured the machine stays.
+const V9_MACHINES: &str = r#"
+CREATE TABLE machines (
+    id          INTEGER PRIMARY KEY,
+    name        TEXT    NOT NULL CHECK (name <> ''),
+    record_toml TEXT    NOT NULL CHECK (record_toml <> ''),
+    created_us  INTEGER NOT NULL
+) STRICT;
+CREATE TABLE machine_setups (
+    id         INTEGER PRIMARY KEY,
+    machine_id INTEGER NOT NULL REFERENCES machines (id),
+    setup      INTEGER NOT NULL CHECK (setup >= 0),
+    run_id     INTEGER REFERENCES runs (id),
+    unix_us    INTEGER NOT NULL
+) STRICT;
+CREATE INDEX machine_setups_machine ON machine_setups (machine_id, setup);
+"#;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -310,6 +332,6 @@ mod tests {
     fn application_id_literal_matches_the_constant() {
         // The pragma cannot take a bound parameter, so V1 spells the number out.
         assert!(V1.contains(&format!("PRAGMA application_id = {APPLICATION_ID};")));
-        assert_eq!(LATEST, 8);
+        assert_eq!(LATEST, 9);
     }
 }

@@ -90,23 +90,7 @@ sys.exit(0 if s["follower"]["homed"] and s["tracking"]["valid"] and s["tracking"
 done
 [ -n "$ready" ] || { tail -n 20 "$work/serve.log" >&2; echo "console.sh: the service did not come up" >&2; exit 1; }
 
-screen() { "${tmx[@]}" capture-pane -p -t console; }
-# expect SECONDS TEXT...: wait until the screen shows every TEXT.
-expect() {
-  local secs=$1; shift
-  local end=$((SECONDS + secs)) text missing
-  while :; do
-    text=$(screen)
-    missing=""
-    for want in "$@"; do
-      grep -qF -- "$want" <<<"$text" || { missing=$want; break; }
-    done
-    [ -z "$missing" ] && return 0
-    [ "$SECONDS" -ge "$end" ] && fail "within ${secs} s the screen did not show \"$missing\""
-    sleep 0.3
-  done
-}
-keys() { "${tmx[@]}" send-keys -t console "$@"; sleep 0.2; }
+source tests/interop/tmux-screen.sh
 # field VALUE: type VALUE into the selected plan field, then select the next one.
 field() {
   keys Enter

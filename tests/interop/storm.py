@@ -398,8 +398,19 @@ def main():
     if proc is not None:
         print(f"SERVICE_PID {proc.pid}", file=sys.stderr)
     first = [ev for ev in events if ev["run_id"] == run_id]
-    sys.exit(0 if survived == len(first) and state == "finished" and lost == 0 and dup == 0
-             and wrong == 0 and unplaced == 0 and tables_ok and len(first) >= a.faults and truth_ok and verified else 1)
+    checks = [
+        (f"every fault recovered ({survived} of {len(first)})", survived == len(first)),
+        (f"the run finished ({state})", state == "finished"),
+        (f"no capture lost ({lost}) or duplicated ({dup})", lost == 0 and dup == 0),
+        (f"none mislabelled ({wrong}) or at no rest ({unplaced})", wrong == 0 and unplaced == 0),
+        ("the tables published whole", tables_ok),
+        (f"every fault injected ({len(first)} of {a.faults})", len(first) >= a.faults),
+        ("every capture within the truth's bound", truth_ok),
+        ("the verification run", verified),
+    ]
+    failed = [name for name, ok in checks if not ok]
+    log("storm: " + ("every check passed" if not failed else "FAILED: " + "; ".join(failed)))
+    sys.exit(0 if not failed else 1)
 
 
 def truth_holds(a, truth, log):

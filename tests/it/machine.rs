@@ -12,6 +12,7 @@ use axiscomp::machine::{
 use axiscomp::sim::Rng;
 use axiscomp::sim::machine::{MachineSpec, TwinMachine};
 use axiscomp::sim::machine_lab::{MachineLabSpec, measure_machine};
+use axiscomp::store::Store;
 use axiscomp::units::RAD_PER_ARCSEC;
 
 /// Max and RMS (µm) of the tool point's error over `points` with `tool`, uncompensated or
@@ -266,6 +267,27 @@ fn the_machine_measured_with_an_optical_square_compensates_the_machine() {
         after.0 <= 0.1 * before.0 && after.1 <= 1.5,
         "{after:?} after, {before:?} before"
     );
+    // The machine as the product keeps it (must-show 3's record): each set-up's run stored
+    // and attached in the plan's order, the model fitted again from the store, the same as the
+    // lab's in memory (the stored captures evaluated and budgeted as a report does).
+    let db = TempDir::new("machine-store");
+    let mut store = Store::open(db.path("axiscomp.db")).expect("store");
+    let id = r
+        .store(&mut store, 1_700_000_000_000_000)
+        .expect("stored and attached");
+    let state = axiscomp::commission::stored::state(&store, id).expect("state");
+    let stored = state.model().expect("the stored machine's model");
+    assert_eq!(stored.squareness.to_array(), model.squareness.to_array());
+    for (a, b) in stored.tables().iter().zip(model.tables()) {
+        for q in [0.0, 123.4, 400.0] {
+            let (x, y) = (a.at(q), b.at(q));
+            assert!(
+                (0..6).all(|k| (x[k] - y[k]).abs() <= 1e-12),
+                "{}: {x:?} stored, {y:?} in memory at {q} mm",
+                a.axis()
+            );
+        }
+    }
     // The measured model's files for every control, read back and applied (must-show 2):
     // the measured tables are smooth between their targets, so FANUC's 10 mm grid follows them.
     let dir = TempDir::new("machine-exports");

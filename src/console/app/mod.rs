@@ -13,6 +13,7 @@ mod align;
 mod calibrate;
 mod follower_level;
 mod follower_map;
+mod machine;
 mod measure;
 mod publish;
 mod reply;
@@ -24,6 +25,7 @@ pub use align::{AdviceView, AlignProc, StationSpot, StationView};
 pub use calibrate::{CalSummary, CalibrateState, HexapodView};
 pub use follower_level::parse_level_reading;
 pub use follower_map::{AlignPanel, FollowerPanel, parse_mapping};
+pub use machine::MachinePanel;
 pub use measure::{Field, PlanForm, RunProgress};
 pub use publish::PublishState;
 pub use results::ResultsView;
@@ -38,7 +40,7 @@ use crossterm::event::{KeyCode, KeyEvent, KeyEventKind, KeyModifiers};
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
-/// The screens, in tab order (number keys 1–7).
+/// The screens, in tab order (number keys 1–8).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Screen {
     Live,
@@ -48,10 +50,11 @@ pub enum Screen {
     Results,
     Publish,
     Events,
+    Machine,
 }
 
 impl Screen {
-    pub const ALL: [Screen; 7] = [
+    pub const ALL: [Screen; 8] = [
         Screen::Live,
         Screen::Align,
         Screen::Calibrate,
@@ -59,6 +62,7 @@ impl Screen {
         Screen::Results,
         Screen::Publish,
         Screen::Events,
+        Screen::Machine,
     ];
 
     pub fn title(self) -> &'static str {
@@ -70,6 +74,7 @@ impl Screen {
             Screen::Results => "Results",
             Screen::Publish => "Publish",
             Screen::Events => "Events",
+            Screen::Machine => "Machine",
         }
     }
 
@@ -243,6 +248,10 @@ enum Pending {
     LevelStart,
     LevelStop,
     LevelReading,
+    /// The Machine screen's machine.
+    Machine,
+    /// Attaching this run to the next set-up.
+    MachineAttach(i64),
     Other(String),
 }
 
@@ -270,6 +279,7 @@ impl Pending {
                 | Pending::TableStatus
                 | Pending::Calibration
                 | Pending::HexapodStatus
+                | Pending::Machine
         )
     }
 }
@@ -327,6 +337,8 @@ pub struct App {
     pub align: AlignProc,
     /// The follower error map on the Align screen.
     pub follower: FollowerPanel,
+    /// The whole machine's commissioning plan (the Machine screen).
+    pub machine: MachinePanel,
     /// Where the part program was last saved, or why not.
     pub saved: Option<Result<String, String>>,
     pub log: VecDeque<LogLine>,
@@ -375,6 +387,7 @@ impl App {
             calibrate: CalibrateState::default(),
             align: AlignProc::default(),
             follower: FollowerPanel::default(),
+            machine: MachinePanel::default(),
             saved: None,
             log: VecDeque::new(),
             now,
@@ -501,6 +514,7 @@ impl App {
             Screen::Calibrate if !self.calibrate.loaded && !self.waiting(&Pending::Calibration) => {
                 out.push(self.send(Request::Calibration, Pending::Calibration));
             }
+            Screen::Machine => out.extend(self.machine_need()),
             _ => {}
         }
         out.extend(self.calibrate_need_hexapod());
@@ -674,7 +688,7 @@ impl App {
                 }
                 return vec![Action::Quit];
             }
-            (_, Some(c @ '1'..='7')) => {
+            (_, Some(c @ '1'..='8')) => {
                 return self.show(Screen::ALL[(c as u8 - b'1') as usize]);
             }
             (KeyCode::Tab, _) => return self.show(self.screen.step(1)),
@@ -691,6 +705,7 @@ impl App {
             Screen::Results => self.results_key(key),
             Screen::Publish => self.publish_key(key),
             Screen::Calibrate => self.calibrate_key(key),
+            Screen::Machine => self.machine_key(key),
             _ => Vec::new(),
         }
     }
@@ -940,12 +955,17 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
             ("r", "reload the tables and the PLC's status"),
         ],
         Screen::Events => &[],
+        Screen::Machine => &[
+            ("↑ / ↓", "select a set-up: its steps show"),
+            ("a", "attach a finished run to the next set-up (pick it)"),
+            ("r", "reload the machine"),
+        ],
     }
 }
 
 /// The keys every screen has.
 pub const GLOBAL_KEYS: &[(&str, &str)] = &[
-    ("1–7", "screens"),
+    ("1–8", "screens"),
     ("Tab / S-Tab", "next / previous screen"),
     ("?", "this help"),
     ("Esc", "clear the message"),

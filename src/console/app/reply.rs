@@ -14,6 +14,11 @@ impl App {
         let Some(pending) = self.pending.remove(&id) else {
             return Vec::new();
         };
+        if matches!(pending, Pending::Machine | Pending::MachineAttach(_))
+            && !result.as_ref().is_err_and(ClientError::is_role_refusal)
+        {
+            return self.machine_reply(&pending, result.map_err(|e| e.to_string()));
+        }
         let v = match result {
             Ok(v) => v,
             Err(e) => {
@@ -22,6 +27,7 @@ impl App {
                         Pending::Publish(_) => self.publish.publishing = None,
                         Pending::Generate(_) => self.publish.generating = None,
                         Pending::Fit => self.calibrate.fitting = false,
+                        Pending::MachineAttach(_) => self.machine.attaching = None,
                         _ => {}
                     }
                     self.access = Access::Viewer;
@@ -284,6 +290,8 @@ impl App {
                 self.log(Level::Info, format!("✓ {text}"));
                 self.say(Level::Info, text);
             }
+            // Answered by `machine_reply` above.
+            Pending::Machine | Pending::MachineAttach(_) => {}
             Pending::Other(what) => {
                 let detail = if v.is_null() {
                     String::new()

@@ -39,6 +39,8 @@ fn tabs_by_number_tab_and_backtab() {
     assert_eq!(a.screen, Screen::Calibrate);
     a.handle_key(ch('1'));
     a.handle_key(key(KeyCode::BackTab));
+    assert_eq!(a.screen, Screen::Machine);
+    a.handle_key(ch('7'));
     assert_eq!(a.screen, Screen::Events);
 }
 
@@ -1093,4 +1095,114 @@ fn align_checks_the_map_in_use_on_this_set_up_with_u() {
             .as_ref()
             .is_some_and(|m| m.text.starts_with("the level stations are under way"))
     );
+}
+
+#[test]
+fn machine_screen_walks_the_plan_and_attaches_the_picked_run_to_the_next_set_up() {
+    let (mut a, t0) = app();
+    let (id, req) = sent(&a.handle_key(ch('8')));
+    assert_eq!(req, Request::Machine { id: None });
+    let setup = |n: usize, axis: &str, state: &str, run: Option<i64>| {
+        serde_json::json!({"number": n, "title": format!("{n} of 4"), "axis": axis,
+            "state": state, "run_id": run, "steps": [format!("step of {n}")],
+            "targets": 26, "runs": 2, "travel_mm": 500.0})
+    };
+    let view = |setups: Vec<serde_json::Value>| {
+        serde_json::json!({"id": 2, "name": "VMC", "chain": "X Y bed Z",
+            "travel_mm": [1000.0, 600.0, 500.0], "tool_mm": [0.0, 0.0, -150.0],
+            "created": "2026-11-30T00:00:00Z", "setups": setups, "squareness": [],
+            "no_model": "2 to go"})
+    };
+    a.handle_reply(
+        id,
+        Ok(view(vec![
+            setup(1, "X", "measured", Some(1)),
+            setup(2, "Y", "measured", Some(2)),
+            setup(3, "Z", "next", None),
+            setup(4, "Z", "waiting", None),
+        ])),
+        t0,
+    );
+    // The steps shown are the next set-up's.
+    assert_eq!(a.machine.selected, 2);
+    assert_eq!(a.machine.next().map(|s| s.number), Some(3));
+    let text = screen_text(&a);
+    for want in [
+        "8 Machine",
+        "Machine 2: VMC",
+        "3 of 4",
+        "▶ next",
+        "step of 3",
+        "2 to go",
+    ] {
+        assert!(text.contains(want), "{want} not on\n{text}");
+    }
+    // a: the runs are asked for; the picker offers the finished runs of Z not attached.
+    let (id, req) = sent(&a.handle_key(ch('a')));
+    assert_eq!(req, Request::Runs { limit: None });
+    let run = |id: i64, axis: &str, state: &str| {
+        serde_json::json!({"id": id, "date": "", "created_us": 0, "axis": axis, "plan": "",
+            "updated_us": 0, "captures": 52, "notes": "", "tables_active": "none", "state": state})
+    };
+    a.handle_reply(
+        id,
+        Ok(
+            serde_json::json!({"runs": [run(5, "Z", "running"), run(4, "Z", "finished"),
+            run(3, "Z", "finished"), run(2, "Y", "finished"), run(1, "X", "finished")]}),
+        ),
+        t0,
+    );
+    let offered: Vec<i64> = a.machine.runs(&a.results).iter().map(|r| r.id).collect();
+    assert_eq!(offered, [4, 3]);
+    // Down to run 3, Enter: attached to set-up 3 of machine 2.
+    a.handle_key(key(KeyCode::Down));
+    let (id, req) = sent(&a.handle_key(key(KeyCode::Enter)));
+    assert_eq!(
+        req,
+        Request::MachineAttach {
+            id: 2,
+            setup: 3,
+            run_id: 3
+        }
+    );
+    // While it is attached, a second a waits.
+    assert!(a.handle_key(ch('a')).is_empty());
+    // Attached: the machine is asked for again, and the steps follow the plan to set-up 4.
+    let (id, req) = sent(&a.handle_reply(id, Ok(view(vec![])), t0));
+    assert_eq!(req, Request::Machine { id: Some(2) });
+    a.handle_reply(
+        id,
+        Ok(view(vec![
+            setup(1, "X", "measured", Some(1)),
+            setup(2, "Y", "measured", Some(2)),
+            setup(3, "Z", "measured", Some(3)),
+            setup(4, "Z", "next", None),
+        ])),
+        t0,
+    );
+    assert_eq!(a.machine.selected, 3);
+    // A refusal is said, and the plan stays.
+    let (id, _) = sent(&a.handle_key(ch('a')));
+    a.handle_reply(
+        id,
+        Ok(serde_json::json!({"runs": [run(4, "Z", "finished")]})),
+        t0,
+    );
+    let (id, req) = sent(&a.handle_key(key(KeyCode::Enter)));
+    assert_eq!(
+        req,
+        Request::MachineAttach {
+            id: 2,
+            setup: 4,
+            run_id: 4
+        }
+    );
+    let why = "machine 2, set-up 4 of 4: run 4 has flags open (1 capture): retake or exclude them first (run flags)";
+    assert!(
+        a.handle_reply(id, Err(ClientError::Refused(why.into())), t0)
+            .is_empty()
+    );
+    assert_eq!(a.machine.attaching, None);
+    assert_eq!(a.message.as_ref().map(|m| m.text.as_str()), Some(why));
+    assert_eq!(a.machine.next().map(|s| s.number), Some(4));
 }

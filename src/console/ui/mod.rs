@@ -7,6 +7,7 @@ mod calibrate;
 mod chart;
 mod events;
 mod live;
+mod machine;
 mod measure;
 mod psd;
 mod publish;
@@ -108,6 +109,7 @@ pub fn render(frame: &mut Frame, app: &App) {
         Screen::Results => results::render(frame, body, app),
         Screen::Publish => publish::render(frame, body, app),
         Screen::Events => events::render(frame, body, app),
+        Screen::Machine => machine::render(frame, body, app),
     }
     render_status(frame, status, app, theme);
     match &app.overlay {
@@ -241,8 +243,11 @@ fn warning_popup<'a>(
 
 fn render_tabs(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
     let mut spans = Vec::new();
+    // Eight screens fit 80 columns with one space between them, not two.
+    let wide: usize = Screen::ALL.iter().map(|s| s.title().len() + 4).sum();
+    let pad = if wide <= area.width as usize { " " } else { "" };
     for s in Screen::ALL {
-        let label = format!(" {} {} ", s.index() + 1, s.title());
+        let label = format!(" {} {}{pad}", s.index() + 1, s.title());
         spans.push(if s == app.screen {
             Span::styled(label, theme.selected().add_modifier(Modifier::BOLD))
         } else {

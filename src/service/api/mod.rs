@@ -5,6 +5,7 @@
 
 pub mod follower;
 pub mod hexapod;
+pub mod machine;
 pub mod snapshot;
 
 use crate::track::Strategy;
@@ -213,6 +214,26 @@ pub enum Request {
     FollowerLevelStop,
     /// Fit the map now with the stations taken (two at least).
     FollowerLevelFinish,
+    /// The stored machines, newest first (issue 27).
+    Machines,
+    /// Stored machine `id` (or the newest): its plan set-up by set-up, the squarenesses so far,
+    /// the model's predicted volumetric error when every set-up is measured.
+    Machine {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        id: Option<i64>,
+    },
+    /// Store a machine from its record (the TOML text, `commission::record`); `origin` names
+    /// it in errors (its file, say).
+    MachineNew {
+        record: String,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        origin: Option<String>,
+    },
+    /// Attach stored run `run_id` to set-up `setup` (1-based) of machine `id`: in the plan's
+    /// order, and only a finished run of the set-up's axis over its travel with no flag open.
+    MachineAttach { id: i64, setup: usize, run_id: i64 },
+    /// Detach the run of set-up `setup` (1-based) of machine `id`, and of every set-up after it.
+    MachineDetach { id: i64, setup: usize },
 }
 
 impl Request {
@@ -232,7 +253,9 @@ impl Request {
             | Request::TableStatus
             | Request::FollowerMap { id: None }
             | Request::FollowerMapStatus
-            | Request::FollowerLevelStatus => Role::Viewer,
+            | Request::FollowerLevelStatus
+            | Request::Machines
+            | Request::Machine { .. } => Role::Viewer,
             _ => Role::Operator,
         }
     }
@@ -279,6 +302,24 @@ impl Request {
             Request::TableGenerate { run_id, .. } => id("run_id", Some(*run_id)),
             Request::TablePublish { table_id, .. } => id("table_id", Some(*table_id)),
             Request::FollowerMap { id: map } => id("id", *map),
+            Request::Machine { id: m } => id("id", *m),
+            Request::MachineAttach {
+                id: m,
+                setup,
+                run_id,
+            } => {
+                id("id", Some(*m))?;
+                id("run_id", Some(*run_id))?;
+                int_field("setup", Some(*setup), 1, crate::commission::SETUPS.len())
+            }
+            Request::MachineDetach { id: m, setup } => {
+                id("id", Some(*m))?;
+                int_field("setup", Some(*setup), 1, crate::commission::SETUPS.len())
+            }
+            Request::MachineNew { record, .. } if record.len() > 64 * 1024 => Err(format!(
+                "\"record\": {} bytes: a machine record is a short TOML file (64 KiB at most)",
+                record.len()
+            )),
             Request::HexapodStart { poses, .. } => {
                 use hexapod::{MAX_POSES, MIN_POSES};
                 int_field("poses", *poses, MIN_POSES, MAX_POSES)
@@ -322,7 +363,9 @@ impl Request {
             | Request::FollowerLevelStatus
             | Request::FollowerLevelReading { .. }
             | Request::FollowerLevelStop
-            | Request::FollowerLevelFinish => Ok(()),
+            | Request::FollowerLevelFinish
+            | Request::Machines
+            | Request::MachineNew { .. } => Ok(()),
         }
     }
 }
@@ -505,6 +548,13 @@ mod tests {
             Request::FollowerLevelReading {
                 arcsec: serde_json::json!(1.5),
             },
+            Request::Machine { id: Some(1) },
+            Request::MachineAttach {
+                id: 1,
+                setup: 2,
+                run_id: 3,
+            },
+            Request::MachineDetach { id: 1, setup: 4 },
         ]
     }
 
@@ -568,7 +618,7 @@ mod tests {
                 }
             }
         }
-        assert_eq!(fields, 43, "numeric fields covered");
+        assert_eq!(fields, 49, "numeric fields covered");
         assert!(refused > 100, "{refused}");
         let r: Request = serde_json::from_str(r#"{"cmd":"subscribe","hz":1e-300}"#).unwrap();
         assert_eq!(

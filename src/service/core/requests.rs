@@ -127,6 +127,31 @@ impl Core {
                     Err(e) => reply.send(Err(e.to_string())),
                 }
             }
+            Request::Machines => self.read(
+                |s| {
+                    crate::service::machine::list(s).map(|v| serde_json::json!({ "machines": v }))
+                },
+                reply,
+            ),
+            Request::Machine { id } => self.read(
+                move |s| json(crate::service::machine::view(s, id)?),
+                reply,
+            ),
+            Request::MachineNew { record, origin } => self.read(
+                move |s| {
+                    let origin = origin.unwrap_or_else(|| "sent to the service".into());
+                    json(crate::service::machine::create(s, &record, &origin)?)
+                },
+                reply,
+            ),
+            Request::MachineAttach { id, setup, run_id } => self.read(
+                move |s| json(crate::service::machine::attach(s, id, setup, run_id)?),
+                reply,
+            ),
+            Request::MachineDetach { id, setup } => self.read(
+                move |s| json(crate::service::machine::detach(s, id, setup)?),
+                reply,
+            ),
             Request::Calibration => reply.send(Ok(self.calibrations.status())),
             Request::CalibrationFit { poses } => self.calibration_fit(poses, reply),
             Request::CalibrationAccept { force } => self.calibration_accept(force, reply),
@@ -283,4 +308,9 @@ fn flatten<T>(r: Result<Result<T, String>, QueueError>) -> Result<T, String> {
         Ok(r) => r,
         Err(e) => Err(e.to_string()),
     }
+}
+
+/// A view as the reply's JSON.
+fn json(v: impl serde::Serialize) -> Result<serde_json::Value, String> {
+    serde_json::to_value(v).map_err(|e| format!("internal: the reply does not serialise: {e}"))
 }
