@@ -65,7 +65,7 @@ pub fn record(stored: &StoredMachine) -> Result<MachineRecord, CommissionError> 
 }
 
 /// The runs in force on each set-up.
-fn attached(store: &Store, machine: i64) -> Result<[Option<i64>; 4], CommissionError> {
+pub fn attached(store: &Store, machine: i64) -> Result<[Option<i64>; 4], CommissionError> {
     let runs = store.machine_setups(machine, SETUPS.len())?;
     Ok(std::array::from_fn(|i| {
         runs.get(i).copied().flatten().map(|r| r.0)

@@ -18,15 +18,15 @@ pub fn list(store: &Store) -> Result<Vec<MachineSummary>, String> {
     machines
         .into_iter()
         .map(|m| {
-            let s = stored::state(store, m.id).map_err(|e| e.to_string())?;
+            // What is attached, not fitted: a list does not evaluate every machine's runs.
+            let attached = stored::attached(store, m.id).map_err(|e| e.to_string())?;
             Ok(MachineSummary {
                 id: m.id,
                 name: m.name,
                 created: iso_utc(m.created_us),
-                measured: s.attached.iter().flatten().count(),
+                measured: attached.iter().flatten().count(),
                 setups: SETUPS.len(),
-                next: s
-                    .states
+                next: plan::states(&attached)
                     .iter()
                     .position(|st| *st == SetupState::Next)
                     .map(plan::title),
@@ -73,6 +73,7 @@ pub fn machine_view(s: &MachineState) -> MachineView {
                 targets: p.targets,
                 runs: p.runs,
                 travel_mm: p.end_mm - p.start_mm,
+                plan: p,
             }
         })
         .collect();

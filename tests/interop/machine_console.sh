@@ -6,8 +6,8 @@
 # twin's truth (summary.json). The store goes to the service (`axiscomp sim` + `axiscomp
 # serve`); a second machine is stored from the same record through the CLI (`machine new`), and
 # on the console's Machine screen (tmux, 100×32) the plan is walked set-up by set-up: the screen
-# shows the next set-up and its steps (the square's certificate on a square's set-up), `a`
-# picks the run that measured it, Enter attaches it, the service checks it and the plan moves
+# shows the next set-up and its steps (the square's certificate on a square's set-up), `p`
+# puts its run on the Measure screen, `a` picks the run that measured it, Enter attaches it, the service checks it and the plan moves
 # on. A run of another axis, or out of order, is refused on screen with the reason. After the
 # fourth set-up the screen shows the three squarenesses, which must be the demo's (the stored
 # machine 1's, judged by the truth there) to the hundredth of an arcsecond, and the model's
@@ -94,6 +94,12 @@ echo "machine_console.sh: the Machine screen shows machine 2's plan"
 keys 8
 expect 10 "Machine 2:" "1 of 4: X beam aligned" "▶ next" "2 of 4: Y through the optical square for XY" \
   "Align the beam over X's travel" "51 targets"
+
+echo "machine_console.sh: p puts set-up 1's run on the Measure screen"
+keys p
+expect 10 "the plan of set-up 1 of 4: X beam aligned" "1000"
+keys 8
+expect 10 "Machine 2:"
 
 # pick RUN: move the picker to run RUN (the list is newest first) and attach it.
 pick() {

@@ -1,7 +1,8 @@
 //! The Machine screen's state and keys (issue 27): a stored machine's commissioning plan set-up
 //! by set-up, what the technician does on the one selected (the next, unless another is
 //! chosen), the run that measured each, the squarenesses so far and the model's prediction.
-//! `a` picks a finished run of the next set-up's axis and attaches it; the service checks it
+//! `p` puts the next set-up's run into the Measure screen's plan, to start there; `a` picks a
+//! finished run of the next set-up's axis and attaches it; the service checks it
 //! (`commission::stored`) and the plan moves on.
 
 use super::*;
@@ -106,6 +107,23 @@ impl App {
                 self.machine.loaded = false;
                 return self.screens_need();
             }
+            (_, Some('p')) => match self
+                .machine
+                .next()
+                .map(|s| (s.plan.clone(), s.title.clone()))
+            {
+                Some((plan, title)) => {
+                    // The set-up's run into the Measure screen's form, to check and start (s).
+                    self.plan.spec = plan;
+                    self.plan.selected = 0;
+                    self.say(
+                        Level::Info,
+                        format!("the plan of set-up {title}: check it and start it with s"),
+                    );
+                    return self.show(Screen::Measure);
+                }
+                None => self.say(Level::Info, "no set-up is waiting for its run"),
+            },
             (_, Some('a')) => {
                 if self.machine.attaching.is_some() {
                     self.say(Level::Warn, "a run is being attached: wait for the answer");

@@ -957,6 +957,10 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
         Screen::Events => &[],
         Screen::Machine => &[
             ("↑ / ↓", "select a set-up: its steps show"),
+            (
+                "p",
+                "the next set-up's run into Measure's plan (start it there)",
+            ),
             ("a", "attach a finished run to the next set-up (pick it)"),
             ("r", "reload the machine"),
         ],

@@ -1105,7 +1105,9 @@ fn machine_screen_walks_the_plan_and_attaches_the_picked_run_to_the_next_set_up(
     let setup = |n: usize, axis: &str, state: &str, run: Option<i64>| {
         serde_json::json!({"number": n, "title": format!("{n} of 4"), "axis": axis,
             "state": state, "run_id": run, "steps": [format!("step of {n}")],
-            "targets": 26, "runs": 2, "travel_mm": 500.0})
+            "targets": 26, "runs": 2, "travel_mm": 500.0,
+            "plan": {"axis": axis, "start_mm": 0.0, "end_mm": 500.0, "targets": 26, "runs": 2,
+                "overrun_mm": 2.0, "dwell_s": 2.0, "feed_mm_min": 6000.0, "lead_mm": 10.0}})
     };
     let view = |setups: Vec<serde_json::Value>| {
         serde_json::json!({"id": 2, "name": "VMC", "chain": "X Y bed Z",
@@ -1137,6 +1139,11 @@ fn machine_screen_walks_the_plan_and_attaches_the_picked_run_to_the_next_set_up(
     ] {
         assert!(text.contains(want), "{want} not on\n{text}");
     }
+    // p: the set-up's run into the Measure screen's form; back to the Machine screen.
+    a.handle_key(ch('p'));
+    assert_eq!(a.screen, Screen::Measure);
+    assert_eq!((a.plan.spec.axis.as_str(), a.plan.spec.targets), ("Z", 26));
+    a.handle_key(ch('8'));
     // a: the runs are asked for; the picker offers the finished runs of Z not attached.
     let (id, req) = sent(&a.handle_key(ch('a')));
     assert_eq!(req, Request::Runs { limit: None });

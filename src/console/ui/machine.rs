@@ -108,7 +108,7 @@ pub fn render(frame: &mut Frame, area: Rect, app: &App) {
             match (s.run_id, s.state.as_str()) {
                 (Some(r), _) => format!("Measured by run {r}."),
                 (None, "next") => format!(
-                    "Plan: {} targets, {} bidirectional runs over {:.0} mm (screen 4); then a attaches the run.",
+                    "Plan: {} targets, {} bidirectional runs over {:.0} mm: p puts it on Measure (4) to start; then a attaches the run.",
                     s.targets, s.runs, s.travel_mm
                 ),
                 _ => "After the set-ups before it.".into(),

@@ -37,6 +37,9 @@ pub struct SetupView {
     pub targets: usize,
     pub runs: u32,
     pub travel_mm: f64,
+    /// The run's plan, to start it with (`run_start`; the console's Measure screen).
+    #[serde(default)]
+    pub plan: crate::run::PlanSpec,
 }
 
 /// A squareness as measured.
