@@ -69,6 +69,24 @@ pub fn title(setup: usize) -> String {
     format!("{} of {}: {axis} {beam}", setup + 1, SETUPS.len())
 }
 
+/// The notes a run started for `setup` of machine `machine` carries (`run_start`'s notes), so
+/// that it is attached nowhere else: "machine 2, set-up 3 of 4: Z through the optical square
+/// for ZX".
+pub fn run_notes(machine: i64, setup: usize) -> String {
+    format!("machine {machine}, set-up {}", title(setup))
+}
+
+/// The set-up (0-based) a run's notes name ("set-up K of 4"), when they name one.
+pub fn setup_named(notes: &str) -> Option<usize> {
+    let at = notes.find("set-up ")? + "set-up ".len();
+    let rest = &notes[at..];
+    let digits: String = rest.chars().take_while(char::is_ascii_digit).collect();
+    let after = &rest[digits.len()..];
+    let k: usize = digits.parse().ok()?;
+    (after.starts_with(&format!(" of {}", SETUPS.len())) && (1..=SETUPS.len()).contains(&k))
+        .then(|| k - 1)
+}
+
 /// What the technician does at the machine for `setup`, step by step, in words.
 pub fn steps(record: &MachineRecord, setup: usize) -> Vec<String> {
     let (axis, beam) = SETUPS[setup.min(SETUPS.len() - 1)];

@@ -34,7 +34,7 @@ pub enum CommissionError {
         #[source]
         source: MachineError,
     },
-    #[error("machine {machine}, set-up {title}: run {run} {problem}")]
+    #[error("run {run} {problem} (machine {machine}, set-up {title})")]
     Run {
         machine: i64,
         title: String,
@@ -100,6 +100,16 @@ pub fn measured_setup(
         return Err(refuse(format!(
             "measured axis {}: this set-up measures {axis}",
             rec.axis
+        )));
+    }
+    // A run started from the plan names its set-up; it stands for no other.
+    if let Some(k) = plan::setup_named(&rec.notes)
+        && k != setup
+    {
+        return Err(refuse(format!(
+            "was measured for set-up {} (its notes: \"{}\"): attach it there",
+            plan::title(k),
+            rec.notes
         )));
     }
     if let Some(why) = store.open_flags(RunId(run))? {

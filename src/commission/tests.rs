@@ -274,6 +274,23 @@ fn a_stored_machine_takes_only_a_run_that_can_stand_for_its_set_up() {
         "is running: attach a finished run",
         &mut store,
     );
+    // A Z run started for set-up 4 stands for no other set-up of Z.
+    let z = store
+        .create_run(&NewRun {
+            notes: plan::run_notes(id, 3),
+            ..new_run("Z")
+        })
+        .expect("run");
+    store.set_run_state(z, RunState::Running).expect("running");
+    store
+        .set_run_state(z, RunState::Finished)
+        .expect("finished");
+    let e = stored::measured_setup(&store, id, &record(), 2, z.0).unwrap_err();
+    assert!(
+        e.to_string()
+            .contains("was measured for set-up 4 of 4: Z through the optical square for YZ"),
+        "{e}"
+    );
     refused(
         0,
         y.0,

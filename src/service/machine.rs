@@ -74,6 +74,7 @@ pub fn machine_view(s: &MachineState) -> MachineView {
                 runs: p.runs,
                 travel_mm: p.end_mm - p.start_mm,
                 plan: p,
+                run_notes: plan::run_notes(s.id, i),
             }
         })
         .collect();

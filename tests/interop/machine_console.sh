@@ -8,7 +8,8 @@
 # on the console's Machine screen (tmux, 100×32) the plan is walked set-up by set-up: the screen
 # shows the next set-up and its steps (the square's certificate on a square's set-up), `p`
 # puts its run on the Measure screen, `a` picks the run that measured it, Enter attaches it, the service checks it and the plan moves
-# on. A run of another axis, or out of order, is refused on screen with the reason. After the
+# on. A run measured for another set-up (its notes name it) is refused on screen with the
+# reason, one out of order through the CLI. After the
 # fourth set-up the screen shows the three squarenesses, which must be the demo's (the stored
 # machine 1's, judged by the truth there) to the hundredth of an arcsecond, and the model's
 # prediction; `machine show` and `machine export` (every control's files, read back) agree.
@@ -133,6 +134,10 @@ grep -q "set-up 2 comes first" "$work/refused.txt" || fail "the refusal does not
 echo "machine_console.sh: set-up 2 of 4: Y through the square for XY, run 2"
 pick 2
 expect 15 "run 2 attached" "✓ measured by run 2" "C0Y (XY)" "3 of 4: Z through the optical square for ZX"
+
+echo "machine_console.sh: set-up 3 of 4: run 4, measured for set-up 4 (its notes say), refused on screen"
+pick 4
+expect 15 "was measured for set-up 4 of 4" "▶ next"
 
 echo "machine_console.sh: set-up 3 of 4: Z through the square for ZX, run 3"
 pick 3

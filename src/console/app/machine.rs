@@ -110,10 +110,12 @@ impl App {
             (_, Some('p')) => match self
                 .machine
                 .next()
-                .map(|s| (s.plan.clone(), s.title.clone()))
+                .map(|s| (s.plan.clone(), s.title.clone(), s.run_notes.clone()))
             {
-                Some((plan, title)) => {
-                    // The set-up's run into the Measure screen's form, to check and start (s).
+                Some((plan, title, notes)) => {
+                    // The set-up's run into the Measure screen's form, to check and start (s),
+                    // its notes naming the set-up.
+                    self.plan.notes = Some((plan.axis.clone(), notes));
                     self.plan.spec = plan;
                     self.plan.selected = 0;
                     self.say(

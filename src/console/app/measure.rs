@@ -137,6 +137,19 @@ pub struct PlanForm {
     pub selected: usize,
     /// The text being typed into the selected field.
     pub editing: Option<String>,
+    /// The notes a run of this plan is started with, and the axis they are for: a machine's
+    /// set-up (the Machine screen's `p`) names itself so that its run is attached nowhere else.
+    pub notes: Option<(String, String)>,
+}
+
+impl PlanForm {
+    /// The notes to start the plan with: the set-up's while the plan is still on its axis.
+    pub fn notes_for(&self, spec: &PlanSpec) -> Option<String> {
+        self.notes
+            .as_ref()
+            .filter(|(axis, _)| *axis == spec.axis)
+            .map(|(_, n)| n.clone())
+    }
 }
 
 impl PlanForm {

@@ -373,6 +373,7 @@ impl App {
                 spec: PlanSpec::default(),
                 selected: 0,
                 editing: None,
+                notes: None,
             },
             run: None,
             // Positioning first: the ISO 230-2 result.
@@ -836,9 +837,9 @@ impl App {
             Confirm::StartRun(spec) => match Plan::new(spec.clone()) {
                 Ok(plan) => {
                     let request = Request::RunStart {
+                        notes: self.plan.notes_for(&spec),
                         plan: spec,
                         dialect: None,
-                        notes: None,
                     };
                     self.log(
                         Level::Info,

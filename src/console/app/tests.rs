@@ -1107,7 +1107,8 @@ fn machine_screen_walks_the_plan_and_attaches_the_picked_run_to_the_next_set_up(
             "state": state, "run_id": run, "steps": [format!("step of {n}")],
             "targets": 26, "runs": 2, "travel_mm": 500.0,
             "plan": {"axis": axis, "start_mm": 0.0, "end_mm": 500.0, "targets": 26, "runs": 2,
-                "overrun_mm": 2.0, "dwell_s": 2.0, "feed_mm_min": 6000.0, "lead_mm": 10.0}})
+                "overrun_mm": 2.0, "dwell_s": 2.0, "feed_mm_min": 6000.0, "lead_mm": 10.0},
+            "run_notes": format!("machine 2, set-up {n} of 4")})
     };
     let view = |setups: Vec<serde_json::Value>| {
         serde_json::json!({"id": 2, "name": "VMC", "chain": "X Y bed Z",
@@ -1143,6 +1144,14 @@ fn machine_screen_walks_the_plan_and_attaches_the_picked_run_to_the_next_set_up(
     a.handle_key(ch('p'));
     assert_eq!(a.screen, Screen::Measure);
     assert_eq!((a.plan.spec.axis.as_str(), a.plan.spec.targets), ("Z", 26));
+    // Started from there, the run's notes name the set-up (not once its axis changed).
+    assert_eq!(
+        a.plan.notes_for(&a.plan.spec).as_deref(),
+        Some("machine 2, set-up 3 of 4")
+    );
+    let mut other = a.plan.spec.clone();
+    other.axis = "X".into();
+    assert_eq!(a.plan.notes_for(&other), None);
     a.handle_key(ch('8'));
     // a: the runs are asked for; the picker offers the finished runs of Z not attached.
     let (id, req) = sent(&a.handle_key(ch('a')));
@@ -1204,7 +1213,7 @@ fn machine_screen_walks_the_plan_and_attaches_the_picked_run_to_the_next_set_up(
             run_id: 4
         }
     );
-    let why = "machine 2, set-up 4 of 4: run 4 has flags open (1 capture): retake or exclude them first (run flags)";
+    let why = "run 4 has flags open (1 capture): retake or exclude them first (run flags) (machine 2, set-up 4 of 4)";
     assert!(
         a.handle_reply(id, Err(ClientError::Refused(why.into())), t0)
             .is_empty()

@@ -40,6 +40,9 @@ pub struct SetupView {
     /// The run's plan, to start it with (`run_start`; the console's Measure screen).
     #[serde(default)]
     pub plan: crate::run::PlanSpec,
+    /// The notes its run carries (`run_start`'s), which tie the run to this set-up.
+    #[serde(default)]
+    pub run_notes: String,
 }
 
 /// A squareness as measured.
