@@ -40,6 +40,12 @@ pub const SETUPS: [(MachineAxis, Beam); 4] = [
     (MachineAxis::Z, Beam::Through(SquarePair::YZ, 1)),
 ];
 
+/// Set-up `index` of [`SETUPS`] (the last for an index beyond it: callers check the range
+/// where it comes in, `refuse_attach`, the API's `check`).
+pub fn setup_at(index: usize) -> (MachineAxis, Beam) {
+    SETUPS[index.min(SETUPS.len() - 1)]
+}
+
 /// How many set-ups of [`SETUPS`] feed the model's tables (X, Y, the first Z).
 pub const MODEL_SETUPS: usize = 3;
 
@@ -47,7 +53,7 @@ pub const MODEL_SETUPS: usize = 3;
 /// the capture its frames at 500 Hz (the service refuses less than 1.45 s there); the lead
 /// spreads the targets off the screw's period (ISO 230-2).
 pub fn run_plan(record: &MachineRecord, setup: usize) -> PlanSpec {
-    let (axis, _) = SETUPS[setup.min(SETUPS.len() - 1)];
+    let (axis, _) = setup_at(setup);
     let len = record.travel_mm[axis.index()];
     PlanSpec {
         axis: axis.to_string(),
@@ -65,7 +71,7 @@ pub fn run_plan(record: &MachineRecord, setup: usize) -> PlanSpec {
 
 /// A set-up's title: "2 of 4: Y through the optical square for XY".
 pub fn title(setup: usize) -> String {
-    let (axis, beam) = SETUPS[setup.min(SETUPS.len() - 1)];
+    let (axis, beam) = setup_at(setup);
     format!("{} of {}: {axis} {beam}", setup + 1, SETUPS.len())
 }
 
@@ -89,7 +95,7 @@ pub fn setup_named(notes: &str) -> Option<usize> {
 
 /// What the technician does at the machine for `setup`, step by step, in words.
 pub fn steps(record: &MachineRecord, setup: usize) -> Vec<String> {
-    let (axis, beam) = SETUPS[setup.min(SETUPS.len() - 1)];
+    let (axis, beam) = setup_at(setup);
     let plan = run_plan(record, setup);
     let mut out = Vec::new();
     match beam {

@@ -88,7 +88,7 @@ pub fn measured_setup(
         run,
         problem,
     };
-    let (axis, _) = SETUPS[setup.min(SETUPS.len() - 1)];
+    let (axis, _) = plan::setup_at(setup);
     let rec = store.run(RunId(run))?;
     if rec.state.as_str() != "finished" {
         return Err(refuse(format!(
@@ -117,7 +117,7 @@ pub fn measured_setup(
             "has flags open ({why}): retake or exclude them first (run flags)"
         )));
     }
-    let mut data = run_data(store, RunId(run), None)?;
+    let data = run_data(store, RunId(run), None)?;
     let travel = record.travel_mm[axis.index()];
     let (lo, hi) = data
         .eval
@@ -147,18 +147,13 @@ pub fn measured_setup(
         follower_spec: None,
     };
     let budget = run_budget(store, &data, &fb)?;
-    data.budget = Some(budget);
     let machine_err = |source| CommissionError::Machine { machine, source };
     // The head mounted as the standard mounting says (`AxisMapping::standard`): its y along
     // the axis, x and z as the commissioning plan's steps set it.
     let mapping = AxisMapping::standard(axis);
     let measured = table_from_evaluation(&mapping, &data.eval).map_err(machine_err)?;
     let table = measured.refined(TABLE_STEP_MM).map_err(machine_err)?;
-    let budget = data
-        .budget
-        .as_ref()
-        .ok_or_else(|| refuse("has no budget".into()))?;
-    let slopes = SetupSlopes::from_evaluation(mapping, &data.eval, budget).map_err(machine_err)?;
+    let slopes = SetupSlopes::from_evaluation(mapping, &data.eval, &budget).map_err(machine_err)?;
     Ok(MeasuredSetup { table, slopes })
 }
 

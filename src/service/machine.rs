@@ -70,9 +70,6 @@ pub fn machine_view(s: &MachineState) -> MachineView {
                 .into(),
                 run_id: s.attached[i],
                 steps: plan::steps(r, i),
-                targets: p.targets,
-                runs: p.runs,
-                travel_mm: p.end_mm - p.start_mm,
                 plan: p,
                 run_notes: plan::run_notes(s.id, i),
             }

@@ -15,6 +15,16 @@ pub struct StoredMachine {
     pub created_us: i64,
 }
 
+/// A `machines` row: id, name, record_toml, created_us.
+fn machine_row(r: &rusqlite::Row<'_>) -> rusqlite::Result<StoredMachine> {
+    Ok(StoredMachine {
+        id: r.get(0)?,
+        name: r.get(1)?,
+        record_toml: r.get(2)?,
+        created_us: r.get(3)?,
+    })
+}
+
 impl Store {
     /// Store a machine's record; its id.
     pub fn create_machine(
@@ -41,14 +51,7 @@ impl Store {
             .prepare("SELECT id, name, record_toml, created_us FROM machines ORDER BY id DESC")
             .map_err(|e| self.fail(what, e))?;
         let rows = stmt
-            .query_map([], |r| {
-                Ok(StoredMachine {
-                    id: r.get(0)?,
-                    name: r.get(1)?,
-                    record_toml: r.get(2)?,
-                    created_us: r.get(3)?,
-                })
-            })
+            .query_map([], machine_row)
             .and_then(|rows| rows.collect::<Result<Vec<_>, _>>())
             .map_err(|e| self.fail(what, e))?;
         Ok(rows)
@@ -61,14 +64,7 @@ impl Store {
             .query_row(
                 "SELECT id, name, record_toml, created_us FROM machines WHERE id = ?1",
                 params![id],
-                |r| {
-                    Ok(StoredMachine {
-                        id: r.get(0)?,
-                        name: r.get(1)?,
-                        record_toml: r.get(2)?,
-                        created_us: r.get(3)?,
-                    })
-                },
+                machine_row,
             )
             .optional()
             .map_err(|e| self.fail(what, e))?

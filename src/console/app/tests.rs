@@ -1105,7 +1105,6 @@ fn machine_screen_walks_the_plan_and_attaches_the_picked_run_to_the_next_set_up(
     let setup = |n: usize, axis: &str, state: &str, run: Option<i64>| {
         serde_json::json!({"number": n, "title": format!("{n} of 4"), "axis": axis,
             "state": state, "run_id": run, "steps": [format!("step of {n}")],
-            "targets": 26, "runs": 2, "travel_mm": 500.0,
             "plan": {"axis": axis, "start_mm": 0.0, "end_mm": 500.0, "targets": 26, "runs": 2,
                 "overrun_mm": 2.0, "dwell_s": 2.0, "feed_mm_min": 6000.0, "lead_mm": 10.0},
             "run_notes": format!("machine 2, set-up {n} of 4")})

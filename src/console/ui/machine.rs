@@ -109,7 +109,9 @@ pub fn render(frame: &mut Frame, area: Rect, app: &App) {
                 (Some(r), _) => format!("Measured by run {r}."),
                 (None, "next") => format!(
                     "Plan: {} targets, {} bidirectional runs over {:.0} mm: p puts it on Measure (4) to start; then a attaches the run.",
-                    s.targets, s.runs, s.travel_mm
+                    s.plan.targets,
+                    s.plan.runs,
+                    s.plan.end_mm - s.plan.start_mm
                 ),
                 _ => "After the set-ups before it.".into(),
             },

@@ -33,10 +33,6 @@ pub struct SetupView {
     pub run_id: Option<i64>,
     /// What the technician does, step by step.
     pub steps: Vec<String>,
-    /// The run it needs: targets, runs, travel (mm).
-    pub targets: usize,
-    pub runs: u32,
-    pub travel_mm: f64,
     /// The run's plan, to start it with (`run_start`; the console's Measure screen).
     #[serde(default)]
     pub plan: crate::run::PlanSpec,
