@@ -245,6 +245,8 @@ pub struct ServerStats {
     pub refused: u64,
     pub requests: u64,
     pub exceptions: u64,
+    /// Connections being served now.
+    pub open: u64,
 }
 
 #[derive(Clone, Copy, Debug, Default)]
@@ -488,6 +490,7 @@ impl ServerHandle {
             refused: i.refused.load(Ordering::Relaxed),
             requests: i.requests.load(Ordering::Relaxed),
             exceptions: i.exceptions.load(Ordering::Relaxed),
+            open: i.open.load(Ordering::Relaxed),
         }
     }
 }

@@ -468,11 +468,14 @@ for _ in $(seq 1 50); do
 done
 rc=$(cat "$work/console.rc" 2>/dev/null || echo "none within 10 s")
 [ "$rc" = 0 ] || fail "q did not end the console with status 0 (status: $rc)"
-"${tmx[@]}" kill-session -t console
 
 echo "console.sh: NO_COLOR"
-"${tmx[@]}" new-session -d -s console -x 80 -y 24 \
+# The new session opens before the old one closes: a tmux server whose last session ends exits,
+# and a new-session sent while it exits fails ("server exited unexpectedly").
+"${tmx[@]}" new-session -d -s nocolor -x 80 -y 24 \
   "NO_COLOR=1 $bin console --socket $work/control.sock"
+"${tmx[@]}" kill-session -t console
+"${tmx[@]}" rename-session -t nocolor console
 expect 20 "Six errors" "● connected"
 if "${tmx[@]}" capture-pane -e -p -t console | grep -qE $'\e\\[[0-9;]*(3[0-7]|38;|4[0-7]|48;)'; then
   fail "NO_COLOR=1 still draws colours"

@@ -518,8 +518,18 @@ async fn the_pull_server_closes_idle_peers_and_refuses_beyond_its_limit() {
     assert!(matches!(n, Ok(0) | Err(_)), "{n:?}");
     let mut plc = poller.await.unwrap();
     assert_eq!(raw_request(&mut plc, 20, 1, &read).await, [3, 2, 0, 0]);
-    // Two places are free again.
-    tokio::time::sleep(Duration::from_millis(100)).await;
+    // Two places are free again (the server closed both itself; wait until it counts them).
+    for _ in 0..1000 {
+        if srv.server().stats().open <= 1 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    assert_eq!(
+        srv.server().stats().open,
+        1,
+        "the idle peers' places are freed"
+    );
     let mut again = TcpStream::connect(addr).await.unwrap();
     assert_eq!(raw_request(&mut again, 21, 1, &read).await, [3, 2, 0, 0]);
 }
