@@ -16,8 +16,8 @@
 //! (straightness from its reference line, the rest relative to the zero).
 
 use anyhow::{Context, Result};
-use axiscomp::commission::stored;
-use axiscomp::machine::{component_names, exports};
+use axiscomp::commission::{report, stored};
+use axiscomp::machine::component_names;
 use axiscomp::sim::Rng;
 use axiscomp::sim::machine::MachineSpec;
 use axiscomp::sim::machine_lab::{MachineLabSpec, measure_machine};
@@ -25,8 +25,6 @@ use axiscomp::store::Store;
 use axiscomp::units::RAD_PER_ARCSEC;
 use std::path::Path;
 
-/// The tool offset the volumetric figures are taken with (mm): 150 mm below the spindle.
-const TOOL_MM: [f64; 3] = [0.0, 0.0, -150.0];
 /// Random points of the volume the figures are taken at.
 const POINTS: usize = 1000;
 
@@ -93,16 +91,19 @@ pub fn run(seed: u64, out: &Path) -> Result<()> {
             arcsec(truth[sq.pair.index()])
         );
     }
-    let title = format!("axiscomp demo --machine, twin seed {seed}");
+    let tool = r.record.tool_mm;
     let points = r.twin.random_points(POINTS, &mut Rng::new(seed ^ 0x5eed));
-    let before = r.twin.volumetric(&points, TOOL_MM, None);
-    let in_memory = r.twin.volumetric(&points, TOOL_MM, Some(&model));
-    // Each control's files, written and read back: the twin's CNC applies what the files say.
-    let exports = exports::write_and_read_back(&model, out, &title, TOOL_MM)?;
+    let before = r.twin.volumetric(&points, tool, None);
+    let in_memory = r.twin.volumetric(&points, tool, Some(&model));
+    // Each control's files, written and read back (the twin's CNC applies what the files
+    // say), and the machine acceptance report that names them, from the store.
+    let report_dir = out.join("report");
+    let written = report::write(&store, id, &report_dir, out, axiscomp::store::now_us())?;
+    let exports = written.exports;
     println!(
         "Volumetric error of the tool point ({} points, a {:.0} mm tool), by the twin's truth: {:.1} µm largest, {:.1} µm RMS before; with the stored machine's model applied exactly {:.2} µm largest, {:.2} µm RMS. Each control's files written, read back and applied by the twin's CNC:",
         before.points,
-        -TOOL_MM[2],
+        -tool[2],
         before.max_mm * 1e3,
         before.rms_mm * 1e3,
         in_memory.max_mm * 1e3,
@@ -110,9 +111,7 @@ pub fn run(seed: u64, out: &Path) -> Result<()> {
     );
     let mut applied = Vec::new();
     for e in &exports {
-        let after = r
-            .twin
-            .volumetric(&points, TOOL_MM, Some(e.applied.as_ref()));
+        let after = r.twin.volumetric(&points, tool, Some(e.applied.as_ref()));
         println!(
             "  {}: {:.2} µm largest, {:.2} µm RMS ({}; {})",
             e.control,
@@ -184,7 +183,7 @@ pub fn run(seed: u64, out: &Path) -> Result<()> {
             "squareness": squares,
             "volumetric": {
                 "points": before.points,
-                "tool_mm": TOOL_MM,
+                "tool_mm": tool,
                 "before_max_um": before.max_mm * 1e3,
                 "before_rms_um": before.rms_mm * 1e3,
                 "after_max_um": after.max_mm * 1e3,
@@ -204,6 +203,16 @@ pub fn run(seed: u64, out: &Path) -> Result<()> {
     let json = out.join("summary.json");
     std::fs::write(&json, serde_json::to_string_pretty(&summary)? + "\n")
         .with_context(|| format!("writing {}", json.display()))?;
+    let report: Vec<String> = written
+        .report
+        .iter()
+        .filter(|p| p.extension().is_some_and(|e| e != "svg"))
+        .map(|p| p.display().to_string())
+        .collect();
+    println!(
+        "The machine acceptance report, from the store: {}.",
+        report.join(", ")
+    );
     println!("Written: the files above and {}.", json.display());
     Ok(())
 }

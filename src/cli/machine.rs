@@ -1,7 +1,8 @@
-//! `axiscomp machine new|list|show|attach|detach|export`: the whole machine (issue 27). The
-//! record and the commissioning plan through the running service's control API
-//! (`service::machine` does the work); `export` reads the store itself, as `axiscomp export`
-//! does, and writes every control's files with the stored machine's model, each read back.
+//! `axiscomp machine new|list|show|attach|detach|export|report`: the whole machine (issue 27).
+//! The record and the commissioning plan through the running service's control API
+//! (`service::machine` does the work); `export` and `report` read the store themselves, as
+//! `axiscomp export` does: every control's files with the stored machine's model, each read
+//! back, and the machine acceptance report (`commission::report`).
 //!
 //! Exit codes: 0 done; 1 the service is unreachable or a file could not be written; 2 the
 //! request was refused (a bad record, a run that cannot stand for its set-up, a set-up out of
@@ -32,6 +33,9 @@ pub enum Command {
     Detach(DetachArgs),
     /// Write every control's files from a stored machine's model (read from the store).
     Export(ExportArgs),
+    /// Write the machine acceptance report (HTML, Markdown, PDF) from the store, with every
+    /// control's files in OUT/controls.
+    Report(ExportArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -97,6 +101,7 @@ pub struct ExportArgs {
 pub fn run(c: Command) -> Result<()> {
     let (at, req) = match c {
         Command::Export(a) => return export(&a),
+        Command::Report(a) => return report(&a),
         Command::New(a) => {
             let text = std::fs::read_to_string(&a.record).map_err(|e| {
                 InputError(format!(
@@ -236,6 +241,28 @@ fn export(a: &ExportArgs) -> Result<()> {
     );
     for f in &files {
         println!("  {}: {} ({})", f.control, f.path.display(), f.carries);
+    }
+    Ok(())
+}
+
+/// `machine report`: the stored machine's acceptance report and every control's files.
+fn report(a: &ExportArgs) -> Result<()> {
+    let store = open_store_at(a.db.as_ref(), a.config.as_ref())?;
+    let written = axiscomp::commission::report::write(
+        &store,
+        a.id,
+        &a.out,
+        &a.out.join("controls"),
+        axiscomp::util::clock::unix_us(),
+    )?;
+    super::stdout_closes_quietly();
+    println!("machine {}: the acceptance report", a.id);
+    for p in &written.report {
+        println!("  {}", p.display());
+    }
+    println!("and each control's files, read back:");
+    for e in &written.exports {
+        println!("  {}: {} ({})", e.control, e.path.display(), e.carries);
     }
     Ok(())
 }

@@ -182,6 +182,15 @@ pub fn exit_code(e: &anyhow::Error) -> u8 {
         {
             return 2;
         }
+        if let Some(c) = cause.downcast_ref::<axiscomp::commission::CommissionError>() {
+            use axiscomp::commission::CommissionError as C;
+            use axiscomp::store::StoreError;
+            return match c {
+                C::NoModel(_) | C::Run { .. } | C::Refused { .. } | C::Record(_) => 2,
+                C::Store(StoreError::NoSuchMachine(_)) => 2,
+                _ => 1,
+            };
+        }
         if let Some(c) = cause.downcast_ref::<CalError>() {
             return match c {
                 CalError::Csv(_)

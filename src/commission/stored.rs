@@ -10,12 +10,13 @@ use super::fit::{MachineFit, MeasuredSetup, fit};
 use super::plan::{self, SETUPS, SetupState};
 use super::record::{MachineRecord, RecordError};
 use crate::comp::mapping::AxisMapping;
+use crate::evaluate::uncertainty::Budget;
 use crate::machine::exports::TABLE_STEP_MM;
 use crate::machine::from_head::table_from_evaluation;
 use crate::machine::squareness::SetupSlopes;
 use crate::machine::{MachineError, MachineModel};
 use crate::report::budget::{Fallbacks, run_budget};
-use crate::report::source::{SourceError, run_data};
+use crate::report::source::{RunData, SourceError, run_data};
 use crate::store::{RunId, Store, StoreError, StoredMachine};
 use thiserror::Error;
 
@@ -43,6 +44,11 @@ pub enum CommissionError {
     },
     #[error("machine {machine}: {problem}")]
     Refused { machine: i64, problem: String },
+    #[error(transparent)]
+    Report(#[from] crate::report::ReportError),
+    /// The machine has no model yet; the message names it and what is missing.
+    #[error("{0}")]
+    NoModel(String),
 }
 
 /// Store a machine from its record's text (checked first); its id.
@@ -72,15 +78,24 @@ pub fn attached(store: &Store, machine: i64) -> Result<[Option<i64>; 4], Commiss
     }))
 }
 
-/// What set-up `setup` of `record` takes from stored run `run`: its table and slopes, or why
-/// the run cannot stand for the set-up.
-pub fn measured_setup(
+/// A stored run that can stand for a set-up: its data, evaluated, and its budget.
+pub struct SetupRun {
+    /// The set-up (0-based, [`SETUPS`] order) and the run.
+    pub setup: usize,
+    pub run: i64,
+    pub data: RunData,
+    pub budget: Budget,
+}
+
+/// Stored run `run` as set-up `setup` of `record` takes it, or why it cannot stand for the
+/// set-up.
+pub fn setup_run(
     store: &Store,
     machine: i64,
     record: &MachineRecord,
     setup: usize,
     run: i64,
-) -> Result<MeasuredSetup, CommissionError> {
+) -> Result<SetupRun, CommissionError> {
     let title = plan::title(setup);
     let refuse = |problem: String| CommissionError::Run {
         machine,
@@ -147,6 +162,25 @@ pub fn measured_setup(
         follower_spec: None,
     };
     let budget = run_budget(store, &data, &fb)?;
+    Ok(SetupRun {
+        setup,
+        run,
+        data,
+        budget,
+    })
+}
+
+/// What set-up `setup` of `record` takes from stored run `run`: its table and slopes, or why
+/// the run cannot stand for the set-up ([`setup_run`]).
+pub fn measured_setup(
+    store: &Store,
+    machine: i64,
+    record: &MachineRecord,
+    setup: usize,
+    run: i64,
+) -> Result<MeasuredSetup, CommissionError> {
+    let SetupRun { data, budget, .. } = setup_run(store, machine, record, setup, run)?;
+    let (axis, _) = plan::setup_at(setup);
     let machine_err = |source| CommissionError::Machine { machine, source };
     // The head mounted as the standard mounting says (`AxisMapping::standard`): its y along
     // the axis, x and z as the commissioning plan's steps set it.

@@ -322,3 +322,33 @@ fn a_stored_machine_takes_only_a_run_that_can_stand_for_its_set_up() {
     assert_eq!(store.machine_setups(id, 4).expect("read"), [None; 4]);
     assert_eq!(store.machines().expect("list").len(), 1);
 }
+
+#[test]
+fn a_report_of_a_machine_not_measured_yet_is_refused_naming_what_is_missing() {
+    let (dir, mut store) = TempStore::new("report");
+    let id = stored::create(&mut store, RECORD, "machine.toml", 1).expect("created");
+    let out = dir.0.join("report");
+    let e = match super::report::write(&store, id, &out, &out.join("controls"), 2) {
+        Err(e) => e,
+        Ok(_) => panic!("a report without a model"),
+    };
+    assert!(matches!(e, CommissionError::NoModel(_)), "{e}");
+    let text = e.to_string();
+    assert!(
+        text.contains(&format!("machine {id} is not measured yet: 4 to go"))
+            && text.contains("1 of 4: X beam aligned"),
+        "{text}"
+    );
+    // Nothing written: no report of a machine that has none, no control's files.
+    assert!(!out.exists());
+    let e = super::report::write(&store, id + 1, &out, &out.join("controls"), 2).err();
+    assert!(
+        matches!(
+            e,
+            Some(CommissionError::Store(
+                crate::store::StoreError::NoSuchMachine(_)
+            ))
+        ),
+        "{e:?}"
+    );
+}

@@ -5,13 +5,15 @@
 //! optical square (`squareness`), and what the controls compensate by, each file with its one
 //! reader: `isg_csv` (Beckhoff TwinCAT's volumetric file), `heidenhain` (KinematicsComp's COM
 //! tables and the kinematics excerpt), `fanuc_grid` (the model at a grid's corners, `grid`, as
-//! FANUC's three-dimensional compensation interpolates them), `siemens` (EEC and CEC tables).
+//! FANUC's three-dimensional compensation interpolates them), `siemens` (EEC and CEC tables);
+//! `volume` surveys the tool point's error over the volume, uncompensated or as a control's
+//! compensation leaves it.
 //! Each module states what of its format is confirmed from which manual page and what is not.
 //!
 //! Held against the twin's machine (`sim::machine`), which composes the same chain exactly and
 //! applies a loaded file or a grid as its CNC would; `sim::machine_lab` measures it set-up by
-//! set-up through the product's path. The machine record and the commissioning plan in the
-//! service come next.
+//! set-up through the product's path; `commission` keeps the machine record, its plan and its
+//! report.
 
 mod error;
 pub mod exports;
@@ -23,6 +25,7 @@ pub mod isg_csv;
 pub mod model;
 pub mod siemens;
 pub mod squareness;
+pub mod volume;
 
 pub use error::MachineError;
 pub use grid::Grid;

@@ -7,7 +7,7 @@
 use super::doc::{Block, Chart, ChartLine, Column, Document, Table};
 use super::settings::{AcceptanceSettings, MachineSettings};
 use super::source::{ActiveTables, FollowerMapInfo, RunData};
-use super::text::{date, fixed};
+use super::text::{fixed, when};
 use super::{Dof, text::arrow};
 use crate::evaluate::iso230_1::{DirectionalStraightness, ReferenceLine, fit_line};
 use crate::evaluate::recorded::{Recorded, Stated};
@@ -53,11 +53,6 @@ fn opt(dof: Dof, v: Option<f64>) -> String {
 /// A position in mm.
 fn mm(v: f64) -> String {
     fixed(v, 3).replace('-', "−")
-}
-
-/// An ISO 8601 UTC date and time (to the second).
-fn when(unix_us: i64) -> String {
-    date(unix_us).replace('T', " ").replace('Z', " UTC")
 }
 
 /// The expanded uncertainty (k) of one DOF: the largest over its points.
@@ -115,23 +110,10 @@ pub fn document(a: &Acceptance) -> Document {
         comparison(c, r, b);
     }
     uncertainty(r, b);
-    b.push(Block::Heading("Signatures".into()));
-    b.push(Block::Paragraph(
+    doc.sign_and_number(
         "The figures above were measured and evaluated as stated; signing accepts the axis \
-         against the tolerances in section 9."
-            .into(),
-    ));
-    b.push(Block::Signatures(vec![
-        "Measured by".into(),
-        "Accepted for the customer by".into(),
-    ]));
-    let mut n = 0;
-    for block in &mut doc.blocks {
-        if let Block::Heading(h) = block {
-            n += 1;
-            *h = format!("{n} {h}");
-        }
-    }
+         against the tolerances in section 9.",
+    );
     doc
 }
 

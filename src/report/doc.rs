@@ -12,6 +12,26 @@ pub struct Document {
     pub blocks: Vec<Block>,
 }
 
+impl Document {
+    /// End the document with its signature block (a "Signatures" section: `statement`, then a
+    /// line for who measured and who accepts for the customer) and number its sections.
+    pub fn sign_and_number(&mut self, statement: &str) {
+        self.blocks.push(Block::Heading("Signatures".into()));
+        self.blocks.push(Block::Paragraph(statement.into()));
+        self.blocks.push(Block::Signatures(vec![
+            "Measured by".into(),
+            "Accepted for the customer by".into(),
+        ]));
+        let mut n = 0;
+        for block in &mut self.blocks {
+            if let Block::Heading(h) = block {
+                n += 1;
+                *h = format!("{n} {h}");
+            }
+        }
+    }
+}
+
 /// One block, in reading order.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Block {

@@ -27,7 +27,7 @@ pub mod render;
 pub mod runs;
 pub mod settings;
 pub mod source;
-mod text;
+pub(crate) mod text;
 #[cfg(test)]
 mod xml_check;
 

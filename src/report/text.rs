@@ -46,6 +46,11 @@ pub fn date(unix_us: i64) -> String {
     rfc3339(unix_us.div_euclid(1_000_000))
 }
 
+/// An ISO 8601 UTC date and time to the second, for reading: "2026-11-30 12:14:54 UTC".
+pub fn when(unix_us: i64) -> String {
+    date(unix_us).replace('T', " ").replace('Z', " UTC")
+}
+
 /// `v` with `decimals` decimals, never "-0.000".
 pub fn fixed(v: f64, decimals: usize) -> String {
     let s = format!("{v:.decimals$}");

@@ -5,12 +5,9 @@
 use super::api::machine::{MachineSummary, MachineView, PredictedView, SetupView, SquarenessView};
 use crate::commission::plan::{self, SETUPS, SetupState};
 use crate::commission::stored::{self, MachineState};
-use crate::machine::MachineModel;
+use crate::machine::{MachineModel, volume};
 use crate::store::{Store, iso_utc};
 use crate::units::RAD_PER_ARCSEC;
-
-/// Points a side of the grid the model's prediction is taken on.
-const GRID_SIDE: usize = 11;
 
 /// The stored machines, newest first.
 pub fn list(store: &Store) -> Result<Vec<MachineSummary>, String> {
@@ -109,28 +106,13 @@ pub fn machine_view(s: &MachineState) -> MachineView {
 
 /// The model's error of the tool point, uncompensated, on a regular grid over the volume.
 pub fn predicted(model: &MachineModel, travel_mm: [f64; 3], tool_mm: [f64; 3]) -> PredictedView {
-    let (mut max, mut sum2, mut at, mut n) = (0.0f64, 0.0, [0.0; 3], 0usize);
-    let step = |k: usize, i: usize| travel_mm[k] * i as f64 / (GRID_SIDE - 1) as f64;
-    for i in 0..GRID_SIDE {
-        for j in 0..GRID_SIDE {
-            for l in 0..GRID_SIDE {
-                let p = [step(0, i), step(1, j), step(2, l)];
-                let e = model.error_at(p, tool_mm);
-                let norm = (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt();
-                sum2 += norm * norm;
-                n += 1;
-                if norm > max {
-                    (max, at) = (norm, p);
-                }
-            }
-        }
-    }
+    let s = volume::survey(model, None, travel_mm, tool_mm);
     PredictedView {
-        points: n,
+        points: s.points,
         tool_mm,
-        max_um: max * 1e3,
-        rms_um: (sum2 / n.max(1) as f64).sqrt() * 1e3,
-        at_mm: at,
+        max_um: s.max_mm * 1e3,
+        rms_um: s.rms_mm * 1e3,
+        at_mm: s.at_mm,
     }
 }
 

@@ -194,9 +194,32 @@ impl MachineLabResult {
     ) -> Result<i64, crate::commission::CommissionError> {
         use crate::commission::stored;
         use crate::sim::lab_store::{LabRunRecord, store_lab_run};
-        let id = stored::create(store, &self.record.to_toml(), "the twin's record", unix_us)?;
-        for (i, s) in self.setups.iter().enumerate() {
-            let captures: Vec<_> = s.run.run.captures.iter().map(|c| c.capture).collect();
+        // Each set-up's lab keeps its own clock. On the machine they follow one another, each
+        // set-up's preparation (mount, alignment, the follower's check) before its run, the
+        // last run ending at `unix_us`; the record is stored as the first preparation begins.
+        let mut rel = Vec::with_capacity(self.setups.len());
+        let mut t = 0i64;
+        for s in &self.setups {
+            let run_us = s.times_us[1] - s.times_us[0];
+            t += ((s.machine_s * 1e6) as i64 - run_us).max(0);
+            rel.push(t);
+            t += run_us;
+        }
+        let base = unix_us - t;
+        let id = stored::create(store, &self.record.to_toml(), "the twin's record", base)?;
+        for (i, (s, start)) in self.setups.iter().zip(rel).enumerate() {
+            let shift = base + start - s.times_us[0];
+            let times_us = [s.times_us[0] + shift, s.times_us[1] + shift];
+            let captures: Vec<_> = s
+                .run
+                .run
+                .captures
+                .iter()
+                .map(|c| crate::run::Capture {
+                    unix_us: c.capture.unix_us + shift,
+                    ..c.capture
+                })
+                .collect();
             let run = store_lab_run(
                 store,
                 &LabRunRecord {
@@ -207,12 +230,12 @@ impl MachineLabResult {
                         crate::commission::plan::title(i)
                     ),
                     captures: &captures,
-                    times_us: s.times_us,
+                    times_us,
                     budget: Some((&s.run.budget.inputs, s.map.as_ref())),
                     tables: None,
                 },
             )?;
-            stored::attach(store, id, i, run.0, unix_us)?;
+            stored::attach(store, id, i, run.0, times_us[1])?;
         }
         Ok(id)
     }

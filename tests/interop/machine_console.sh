@@ -12,7 +12,8 @@
 # reason, one out of order through the CLI. After the
 # fourth set-up the screen shows the three squarenesses, which must be the demo's (the stored
 # machine 1's, judged by the truth there) to the hundredth of an arcsecond, and the model's
-# prediction; `machine show` and `machine export` (every control's files, read back) agree.
+# prediction; `machine show` and `machine export` (every control's files, read back) agree;
+# `machine report` writes the machine acceptance report with the demo's squarenesses.
 # MACHINE_SEED (default 103) draws another machine.
 # Needs tmux and python3.
 #   bash tests/interop/machine_console.sh     # from anywhere in the repository
@@ -177,6 +178,30 @@ done
 # The same runs, the same model: machine 2's Beckhoff file is the demo's but for its title.
 if ! diff <(tail -n +2 "$work/export/volumetric-beckhoff.csv") <(tail -n +2 "$work/demo/volumetric-beckhoff.csv") >/dev/null; then
   fail "machine 2's Beckhoff file differs from the demo's machine 1"
+fi
+
+echo "machine_console.sh: machine report (the machine acceptance report from the store)"
+"$bin" machine report --db "$work/state/axiscomp.db" --id 2 --out "$work/report" | tee "$work/report.txt"
+for f in acceptance.html acceptance.md acceptance.pdf controls/volumetric-beckhoff.csv; do
+  [ -s "$work/report/$f" ] || fail "machine report did not write $f"
+done
+python3 - "$work/report/acceptance.md" "$work/demo/summary.json" <<'EOF2' || fail "the report's squarenesses are not the demo's"
+import json, sys
+md = open(sys.argv[1], encoding="utf-8").read().splitlines()
+summary = json.load(open(sys.argv[2], encoding="utf-8"))
+for sq in summary["machine"]["squareness"]:
+    row = next((l for l in md if l.startswith(f"| {sq['name']} | {sq['pair']} |")), None)
+    if row is None:
+        sys.exit(f"no row for {sq['name']} in the report")
+    value = float(row.split("|")[3].strip().replace("−", "-"))
+    u = float(row.split("|")[5].strip())
+    if abs(value - sq["measured_arcsec"]) > 0.006 or abs(u - sq["U_arcsec"]) > 0.006:
+        sys.exit(f"{sq['name']}: the report says {value:+.2f}″ ± {u:.2f}″, the demo {sq['measured_arcsec']:+.2f}″ ± {sq['U_arcsec']:.2f}″")
+    print(f"machine_console.sh: the report's {sq['name']} {value:+.2f}″ ± {u:.2f}″ is the demo's")
+EOF2
+if command -v pdftotext >/dev/null; then
+  pdftotext "$work/report/acceptance.pdf" - | grep -q "The tool point's error over the volume" \
+    || fail "the report's PDF has no volumetric section"
 fi
 
 keys q

@@ -288,6 +288,66 @@ fn the_machine_measured_with_an_optical_square_compensates_the_machine() {
             );
         }
     }
+    // The machine acceptance report from the store: the set-ups' runs one after another by
+    // the machine's clock, the squarenesses as fitted, the uncompensated figure the model's
+    // survey, and what each control's files leave of the model (Beckhoff's file carries it
+    // exactly, Siemens's tables not the angles).
+    let rep = TempDir::new("machine-report");
+    let written = axiscomp::commission::report::write(
+        &store,
+        id,
+        &rep.path("report"),
+        &rep.path("controls"),
+        1_700_000_000_000_000,
+    )
+    .expect("the report");
+    let md = std::fs::read_to_string(rep.path("report/acceptance.md")).expect("acceptance.md");
+    let pdf = std::fs::read(rep.path("report/acceptance.pdf")).expect("acceptance.pdf");
+    assert!(pdf.starts_with(b"%PDF-") && written.report.len() >= 3);
+    let mut last = i64::MIN;
+    for run in state.attached.iter().flatten() {
+        let rec = store.run(axiscomp::store::RunId(*run)).expect("run");
+        assert!(rec.created_us > last && rec.created_us <= 1_700_000_000_000_000);
+        last = rec.created_us;
+    }
+    let fitted = state.fit.as_ref().expect("fit");
+    for q in &fitted.squareness {
+        let row = md
+            .lines()
+            .find(|l| l.starts_with(&format!("| {} | {} |", q.pair.name(), q.pair)))
+            .unwrap_or_else(|| panic!("no row for {}", q.pair.name()));
+        let cell: f64 = row
+            .split('|')
+            .nth(3)
+            .expect("value")
+            .trim()
+            .replace('−', "-")
+            .parse()
+            .expect("a number");
+        assert!(
+            (cell - q.value_rad / RAD_PER_ARCSEC).abs() <= 0.005,
+            "{row}"
+        );
+    }
+    let cell = |prefix: &str| -> f64 {
+        let row = md
+            .lines()
+            .find(|l| l.starts_with(prefix))
+            .unwrap_or_else(|| panic!("no row {prefix}"));
+        row.split('|')
+            .nth(2)
+            .expect("largest")
+            .trim()
+            .parse()
+            .expect("a number")
+    };
+    let survey = axiscomp::machine::volume::survey(stored, None, spec.travel_mm, tool);
+    assert!((cell("| uncompensated |") - survey.max_mm * 1e3).abs() <= 0.005);
+    assert!(cell("| after Beckhoff") <= 0.01);
+    assert!(
+        cell("| after Siemens") > 5.0,
+        "Siemens's tables carry no angles"
+    );
     // The measured model's files for every control, read back and applied (must-show 2):
     // the measured tables are smooth between their targets, so FANUC's 10 mm grid follows them.
     let dir = TempDir::new("machine-exports");
