@@ -409,7 +409,7 @@ fn squareness(state: &MachineState, b: &mut Vec<Block>) {
 
 /// A map in µm: a row per Y, a column per X.
 fn map_table(m: &PlaneMap) -> Table {
-    let mut columns = vec![Column::text("Y ↓ X → (mm)")];
+    let mut columns = vec![Column::text("Y / X (mm)")];
     columns.extend(m.x_mm.iter().map(|x| Column::number(&format!("{x:.0}"))));
     let rows = m
         .y_mm
@@ -455,33 +455,32 @@ fn volumetric(r: &MachineReport, model: &MachineModel, b: &mut Vec<Block>) {
         ),
         "–".into(),
     ]];
+    let mut files = Vec::new();
     for e in r.exports {
         let after = volume::survey(model, Some(e.applied.as_ref()), t, tool);
+        let short = e.control.split_whitespace().next().unwrap_or(e.control);
         rows.push(vec![
-            format!("after {}", e.control),
+            format!("after {short}"),
             num(after.max_mm * 1e3, 2),
             num(after.rms_mm * 1e3, 2),
             format!(
                 "({:.0}, {:.0}, {:.0})",
                 after.at_mm[0], after.at_mm[1], after.at_mm[2]
             ),
-            format!(
-                "{} ({})",
-                e.path
-                    .file_name()
-                    .map(|n| n.to_string_lossy().into_owned())
-                    .unwrap_or_default(),
-                e.carries
-            ),
         ]);
+        let name = e
+            .path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        files.push((e.control.to_string(), format!("{name}: {}", e.carries)));
     }
     b.push(Block::Table(Table {
         columns: vec![
             Column::text("Compensation"),
             Column::number("Largest (µm)"),
             Column::number("RMS (µm)"),
-            Column::text("Largest at (mm)"),
-            Column::text("Files"),
+            Column::text("Largest at X, Y, Z (mm)"),
         ],
         rows,
         note: Some(if r.exports.is_empty() {
@@ -495,6 +494,10 @@ fn volumetric(r: &MachineReport, model: &MachineModel, b: &mut Vec<Block>) {
                 .into()
         }),
     }));
+    if !files.is_empty() {
+        b.push(Block::Subheading("The controls' files".into()));
+        b.push(Block::Fields(files));
+    }
     for z in [0.0, t[2] / 2.0, t[2]] {
         b.push(Block::Subheading(format!(
             "Map at Z = {z:.0} mm, uncompensated (µm)"

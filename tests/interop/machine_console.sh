@@ -13,7 +13,8 @@
 # fourth set-up the screen shows the three squarenesses, which must be the demo's (the stored
 # machine 1's, judged by the truth there) to the hundredth of an arcsecond, and the model's
 # prediction; `machine show` and `machine export` (every control's files, read back) agree;
-# `machine report` writes the machine acceptance report with the demo's squarenesses.
+# `machine report` writes the machine acceptance report with the demo's squarenesses. On the
+# way, `d` detaches set-ups 2 and 3 (asked first) and they are attached again.
 # MACHINE_SEED (default 103) draws another machine.
 # Needs tmux and python3.
 #   bash tests/interop/machine_console.sh     # from anywhere in the repository
@@ -141,6 +142,20 @@ pick 4
 expect 15 "was measured for set-up 4 of 4" "▶ next"
 
 echo "machine_console.sh: set-up 3 of 4: Z through the square for ZX, run 3"
+pick 3
+expect 15 "run 3 attached" "✓ measured by run 3" "B0Z (ZX)"
+
+echo "machine_console.sh: d detaches set-up 2 and 3 (asked first), then they are attached again"
+# The next set-up (4) is selected: up twice to set-up 2.
+keys Up
+keys Up
+keys d
+expect 10 "Detach the set-up's run?" "Runs 2, 3 leave set-up 2 of machine 2"
+keys y
+expect 15 "detached from set-up 2 on" "2 of 4: Y through the optical square for XY" "▶ next"
+if screen | grep -q "C0Y (XY)"; then fail "C0Y still shown with set-up 2 detached"; fi
+pick 2
+expect 15 "run 2 attached" "✓ measured by run 2" "C0Y (XY)"
 pick 3
 expect 15 "run 3 attached" "✓ measured by run 3" "B0Z (ZX)"
 

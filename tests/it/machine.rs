@@ -343,9 +343,9 @@ fn the_machine_measured_with_an_optical_square_compensates_the_machine() {
     };
     let survey = axiscomp::machine::volume::survey(stored, None, spec.travel_mm, tool);
     assert!((cell("| uncompensated |") - survey.max_mm * 1e3).abs() <= 0.005);
-    assert!(cell("| after Beckhoff") <= 0.01);
+    assert!(cell("| after Beckhoff |") <= 0.01);
     assert!(
-        cell("| after Siemens") > 5.0,
+        cell("| after Siemens |") > 5.0,
         "Siemens's tables carry no angles"
     );
     // The measured model's files for every control, read back and applied (must-show 2):

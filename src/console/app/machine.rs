@@ -3,7 +3,8 @@
 //! chosen), the run that measured each, the squarenesses so far and the model's prediction.
 //! `p` puts the next set-up's run into the Measure screen's plan, to start there; `a` picks a
 //! finished run of the next set-up's axis and attaches it; the service checks it
-//! (`commission::stored`) and the plan moves on.
+//! (`commission::stored`) and the plan moves on. `d` detaches the selected set-up's run and
+//! those after it (asked first): a set-up measured again takes its place in the plan.
 
 use super::*;
 use crate::service::api::machine::{MachineView, SetupView};
@@ -126,6 +127,7 @@ impl App {
                 }
                 None => self.say(Level::Info, "no set-up is waiting for its run"),
             },
+            (_, Some('d')) => self.ask_detach(),
             (_, Some('a')) => {
                 if self.machine.attaching.is_some() {
                     self.say(Level::Warn, "a run is being attached: wait for the answer");
@@ -149,6 +151,34 @@ impl App {
             _ => {}
         }
         Vec::new()
+    }
+
+    /// Ask before detaching the selected set-up's run and those after it.
+    fn ask_detach(&mut self) {
+        let Some(v) = self.machine.view.as_ref() else {
+            self.say(Level::Info, "no machine stored");
+            return;
+        };
+        let Some(sel) = v.setups.get(self.machine.selected) else {
+            return;
+        };
+        let runs: Vec<i64> = v
+            .setups
+            .iter()
+            .filter(|s| s.number >= sel.number)
+            .filter_map(|s| s.run_id)
+            .collect();
+        if sel.run_id.is_none() {
+            self.say(
+                Level::Info,
+                format!("set-up {} has no run to detach", sel.title),
+            );
+            return;
+        }
+        let (id, setup) = (v.id, sel.number);
+        if self.may_operate("detaching a run") {
+            self.overlay = Overlay::Confirm(Confirm::Detach { id, setup, runs });
+        }
     }
 
     /// What the Machine screen shows, once (until `r`, or an attachment, makes it old).
@@ -204,6 +234,19 @@ impl App {
                 );
                 self.machine.loaded = false;
                 return self.machine_need();
+            }
+            (Pending::MachineDetach(setup), Ok(_)) => {
+                self.log(Level::Info, format!("✓ detached from set-up {setup} on"));
+                self.say(
+                    Level::Info,
+                    format!("detached from set-up {setup} on: measure it again and attach its run"),
+                );
+                self.machine.loaded = false;
+                return self.machine_need();
+            }
+            (Pending::MachineDetach(setup), Err(e)) => {
+                self.log(Level::Error, format!("✗ detach set-up {setup}: {e}"));
+                self.say(Level::Error, e);
             }
             (Pending::MachineAttach(run), Err(e)) => {
                 self.machine.attaching = None;

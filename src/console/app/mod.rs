@@ -144,6 +144,13 @@ pub enum Confirm {
     LevelCheck,
     /// Stop the level stations under way.
     LevelStop,
+    /// Detach the run of set-up `setup` (1-based) of machine `id` and those of the set-ups
+    /// after it (`runs`, for the question).
+    Detach {
+        id: i64,
+        setup: usize,
+        runs: Vec<i64>,
+    },
 }
 
 /// What a line typed into the input box is for.
@@ -252,6 +259,8 @@ enum Pending {
     Machine,
     /// Attaching this run to the next set-up.
     MachineAttach(i64),
+    /// Detaching from this set-up (1-based) on.
+    MachineDetach(usize),
     Other(String),
 }
 
@@ -882,6 +891,16 @@ impl App {
                 );
                 vec![self.send(Request::CalibrationAccept { force }, Pending::CalAccept)]
             }
+            Confirm::Detach { id, setup, .. } => {
+                self.log(
+                    Level::Info,
+                    format!("→ detach set-up {setup} of machine {id} and those after it"),
+                );
+                vec![self.send(
+                    Request::MachineDetach { id, setup },
+                    Pending::MachineDetach(setup),
+                )]
+            }
             Confirm::AbortRun(id) => {
                 self.log(
                     Level::Info,
@@ -963,6 +982,10 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
                 "the next set-up's run into Measure's plan (start it there)",
             ),
             ("a", "attach a finished run to the next set-up (pick it)"),
+            (
+                "d",
+                "detach the selected set-up's run and those after it (asked first)",
+            ),
             ("r", "reload the machine"),
         ],
     }

@@ -14,8 +14,10 @@ impl App {
         let Some(pending) = self.pending.remove(&id) else {
             return Vec::new();
         };
-        if matches!(pending, Pending::Machine | Pending::MachineAttach(_))
-            && !result.as_ref().is_err_and(ClientError::is_role_refusal)
+        if matches!(
+            pending,
+            Pending::Machine | Pending::MachineAttach(_) | Pending::MachineDetach(_)
+        ) && !result.as_ref().is_err_and(ClientError::is_role_refusal)
         {
             return self.machine_reply(&pending, result.map_err(|e| e.to_string()));
         }
@@ -291,7 +293,7 @@ impl App {
                 self.say(Level::Info, text);
             }
             // Answered by `machine_reply` above.
-            Pending::Machine | Pending::MachineAttach(_) => {}
+            Pending::Machine | Pending::MachineAttach(_) | Pending::MachineDetach(_) => {}
             Pending::Other(what) => {
                 let detail = if v.is_null() {
                     String::new()

@@ -1221,3 +1221,74 @@ fn machine_screen_walks_the_plan_and_attaches_the_picked_run_to_the_next_set_up(
     assert_eq!(a.message.as_ref().map(|m| m.text.as_str()), Some(why));
     assert_eq!(a.machine.next().map(|s| s.number), Some(4));
 }
+
+#[test]
+fn machine_screen_detaches_the_selected_set_up_and_those_after_it_once_asked() {
+    let (mut a, t0) = app();
+    let (id, _) = sent(&a.handle_key(ch('8')));
+    let setup = |n: usize, state: &str, run: Option<i64>| {
+        serde_json::json!({"number": n, "title": format!("{n} of 4"), "axis": "X",
+            "state": state, "run_id": run, "steps": [],
+            "plan": {"axis": "X", "start_mm": 0.0, "end_mm": 500.0, "targets": 26, "runs": 2,
+                "overrun_mm": 2.0, "dwell_s": 2.0, "feed_mm_min": 6000.0, "lead_mm": 10.0},
+            "run_notes": ""})
+    };
+    let view = |setups: Vec<serde_json::Value>| {
+        serde_json::json!({"id": 7, "name": "VMC", "chain": "X Y bed Z",
+            "travel_mm": [1000.0, 600.0, 500.0], "tool_mm": [0.0, 0.0, -150.0],
+            "created": "2026-11-30T00:00:00Z", "setups": setups, "squareness": [],
+            "no_model": "1 to go"})
+    };
+    a.handle_reply(
+        id,
+        Ok(view(vec![
+            setup(1, "measured", Some(11)),
+            setup(2, "measured", Some(12)),
+            setup(3, "measured", Some(13)),
+            setup(4, "next", None),
+        ])),
+        t0,
+    );
+    assert_eq!(a.machine.selected, 3);
+    // The next set-up has no run: nothing to ask.
+    assert!(a.handle_key(ch('d')).is_empty());
+    assert_eq!(a.overlay, Overlay::None);
+    assert!(
+        a.message
+            .as_ref()
+            .is_some_and(|m| m.text == "set-up 4 of 4 has no run to detach"),
+        "{:?}",
+        a.message
+    );
+    // Set-up 2 selected: asked first, naming the runs that go.
+    a.handle_key(key(KeyCode::Up));
+    a.handle_key(key(KeyCode::Up));
+    assert!(a.handle_key(ch('d')).is_empty());
+    assert_eq!(
+        a.overlay,
+        Overlay::Confirm(Confirm::Detach {
+            id: 7,
+            setup: 2,
+            runs: vec![12, 13]
+        })
+    );
+    let text = screen_text(&a);
+    assert!(
+        text.contains("Runs 12, 13 leave set-up 2 of machine 7"),
+        "{text}"
+    );
+    // n keeps everything; d then y sends the request.
+    assert!(a.handle_key(ch('n')).is_empty());
+    assert_eq!(a.overlay, Overlay::None);
+    a.handle_key(ch('d'));
+    let (id, req) = sent(&a.handle_key(ch('y')));
+    assert_eq!(req, Request::MachineDetach { id: 7, setup: 2 });
+    // Done: the machine is asked for again.
+    let (_, req) = sent(&a.handle_reply(id, Ok(view(vec![])), t0));
+    assert_eq!(req, Request::Machine { id: Some(7) });
+    assert!(
+        a.message
+            .as_ref()
+            .is_some_and(|m| m.text.starts_with("detached from set-up 2 on"))
+    );
+}

@@ -506,6 +506,21 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
                 "The stations read are discarded and nothing is stored; the map in use stays.",
             )],
         ),
+        Confirm::Detach { id, setup, runs } => (
+            " Detach the set-up's run? ",
+            vec![
+                Line::raw(format!(
+                    "Runs {} leave set-up {setup} of machine {id} and the set-ups after it; the squarenesses and the model made with them go too.",
+                    runs.iter()
+                        .map(i64::to_string)
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )),
+                Line::raw(format!(
+                    "The runs stay stored; the plan goes on from set-up {setup}, where a run can be attached again."
+                )),
+            ],
+        ),
         Confirm::AbortRun(id) => (
             " Abort the run? ",
             vec![Line::raw(format!(
