@@ -263,7 +263,7 @@ impl<T: CanTransport> Faulty<T> {
                         continue;
                     }
                     if let Err(e) = inner.send(&frame).await {
-                        tracing::warn!("delayed send of {frame:?} failed: {e}");
+                        tracing::warn!("delayed send of {frame} failed: {e}");
                     }
                 }
             });

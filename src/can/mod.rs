@@ -114,6 +114,12 @@ impl CanFrame {
 }
 
 impl fmt::Debug for CanFrame {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        fmt::Display::fmt(self, f)
+    }
+}
+
+impl fmt::Display for CanFrame {
     /// candump style: `181#0102030405060708`, `1ABCDEF0#..`, `181#R2`.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         if self.extended {

@@ -72,7 +72,7 @@ pub fn to_kernel(frame: &CanFrame) -> Result<::socketcan::CanFrame, CanError> {
             .and_then(StandardId::new)
             .map(Id::Standard)
     };
-    let bad = || CanError::Malformed(format!("frame {frame:?} does not fit a classic CAN frame"));
+    let bad = || CanError::Malformed(format!("frame {frame} does not fit a classic CAN frame"));
     let id = id.ok_or_else(bad)?;
     let k = if frame.is_remote() {
         ::socketcan::CanFrame::new_remote(id, frame.len())

@@ -256,7 +256,7 @@ fn nonzero(key: &'static str, d: Duration) -> Result<(), ConfigError> {
     if d.is_zero() {
         Err(ConfigError::Invalid {
             key,
-            value: format!("{d:?}"),
+            value: crate::util::time::span(d),
             why: "must be longer than 0",
         })
     } else {
@@ -283,14 +283,14 @@ impl DriveConfig {
         if !hb.subsec_nanos().is_multiple_of(1_000_000) || hb.as_millis() > u16::MAX as u128 {
             return Err(ConfigError::Invalid {
                 key: "heartbeat_period",
-                value: format!("{hb:?}"),
+                value: crate::util::time::span(hb),
                 why: "0x1017 holds whole milliseconds, 1..=65535 ms",
             });
         }
         if self.heartbeat_timeout <= hb {
             return Err(ConfigError::Invalid {
                 key: "heartbeat_timeout",
-                value: format!("{:?}", self.heartbeat_timeout),
+                value: crate::util::time::span(self.heartbeat_timeout),
                 why: "must be longer than heartbeat_period (CiA 301: consumer time > producer time)",
             });
         }
@@ -298,7 +298,7 @@ impl DriveConfig {
         if quiet < sync || !quiet.as_nanos().is_multiple_of(sync.as_nanos()) {
             return Err(ConfigError::Invalid {
                 key: "quiet_sync_period",
-                value: format!("{quiet:?}"),
+                value: crate::util::time::span(quiet),
                 why: "must be a whole multiple of the SYNC period (equal to it: one rate)",
             });
         }
@@ -462,7 +462,7 @@ mod tests {
                     heartbeat_period: Duration::from_micros(1500),
                     ..Default::default()
                 },
-                "canopen.heartbeat_period = 1.5ms",
+                "canopen.heartbeat_period = 1.5 ms",
             ),
             (
                 DriveConfig {
@@ -477,14 +477,14 @@ mod tests {
                     heartbeat_timeout: Duration::from_millis(100),
                     ..Default::default()
                 },
-                "canopen.heartbeat_timeout = 100ms",
+                "canopen.heartbeat_timeout = 100 ms",
             ),
             (
                 DriveConfig {
                     sdo_timeout: Duration::ZERO,
                     ..Default::default()
                 },
-                "canopen.sdo_timeout = 0ns",
+                "canopen.sdo_timeout = 0 ms",
             ),
             (
                 DriveConfig {

@@ -170,7 +170,7 @@ pub enum SdoError {
         obj: ObjAddr,
         code: AbortCode,
     },
-    #[error("SDO {dir} of {obj}: no response within {timeout:?} (sent abort {code})")]
+    #[error("SDO {dir} of {obj}: no response within {} (sent abort {code})", crate::util::time::span(*timeout))]
     Timeout {
         dir: Direction,
         obj: ObjAddr,

@@ -94,7 +94,7 @@ async fn drive<T: CanTransport>(
                 Ok(()) => {}
                 Err(CanError::Closed) => return Err(CanError::Closed),
                 // A frame lost on a busy bus is recovered by the protocols' own timeouts.
-                Err(e) => tracing::warn!("CANopen master could not send {f:?}: {e}"),
+                Err(e) => tracing::warn!("CANopen master could not send {f}: {e}"),
             }
         }
         // The status first: a caller woken by a completion sees the status that completed it.

@@ -8,6 +8,7 @@ use axiscomp::calibrate::{
 use axiscomp::optics::Layout;
 use axiscomp::sim::{Hexapod, InstallSpec, PoseWindow, Rng, TwinHead};
 use axiscomp::units::{Errors6, MM_PER_UM};
+use axiscomp::util::numbers;
 use axiscomp::util::progress::Progress;
 use clap::{Subcommand, ValueEnum};
 use std::path::{Path, PathBuf};
@@ -155,10 +156,10 @@ pub fn truth_comments(head: &TwinHead) -> Vec<String> {
         .iter()
         .map(|(name, e)| {
             format!(
-                "truth {name}: offset_mm={:?} tilt_deg={:?} gain_error={:?}",
-                e.offset,
-                e.tilt.map(f64::to_degrees),
-                e.gain_error
+                "truth {name}: offset_mm={} tilt_deg={} gain_error={}",
+                numbers(&e.offset),
+                numbers(&e.tilt.map(f64::to_degrees)),
+                numbers(&e.gain_error)
             )
         })
         .collect()

@@ -656,7 +656,7 @@ fn summary_json(
         "follower": {
             "positioning_um": f.positioning_um,
             "straightness_um": f.straightness_um,
-            "strategy": format!("{:?}", spec.lab.tracking.strategy).to_lowercase(),
+            "strategy": spec.lab.tracking.strategy.name(),
             "uncertainty": r.before.budget.inputs.follower.describe(),
             "map": r.follower.as_ref().map(|m| serde_json::json!({
                 "machine_time_s": m.machine_time.as_secs_f64(),

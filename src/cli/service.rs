@@ -162,7 +162,7 @@ pub fn check(a: ServeArgs) -> Result<()> {
         _ => println!("calibration: none (the layout's own model)"),
     }
     println!(
-        "I/O module: {} unit {} via map {} ({} registers from {}, {:?})",
+        "I/O module: {} unit {} via map {} ({} {} registers from {})",
         settings.io.link.addr,
         if settings.io.unit == 0 {
             p.map.unit_id
@@ -171,11 +171,11 @@ pub fn check(a: ServeArgs) -> Result<()> {
         },
         resource(&settings.io.map),
         p.map.block.count(),
-        p.map.block.start(),
-        p.map.kind
+        p.map.kind,
+        p.map.block.start()
     );
     println!(
-        "CAN: {:?}, follower node {}",
+        "CAN: {}, follower node {}",
         settings.can, settings.follower.drive.node_id
     );
     let m = &p.cnc_map;
@@ -204,10 +204,10 @@ pub fn check(a: ServeArgs) -> Result<()> {
             pull.bind,
             pull.allow
                 .as_ref()
-                .map_or("everyone".into(), |a| format!("{a:?}")),
+                .map_or("everyone".into(), |a| addresses(a)),
             pull.writers
                 .as_ref()
-                .map_or("every connected peer".into(), |a| format!("{a:?}"))
+                .map_or("every connected peer".into(), |a| addresses(a))
         ),
         None => println!("PLC pull server: off"),
     }
@@ -448,4 +448,10 @@ async fn start_twin_hexapod(
             Ok(None)
         }
     }
+}
+
+/// Addresses for reading: "192.0.2.1, 127.0.0.1".
+fn addresses(a: &[std::net::IpAddr]) -> String {
+    let all: Vec<String> = a.iter().map(ToString::to_string).collect();
+    all.join(", ")
 }

@@ -184,7 +184,7 @@ pub fn build_tables(eval: &AxisEvaluation, spec: &TableSpec) -> Result<TableSet,
     {
         return Err(CompError::Option {
             name: "functional_point_mm",
-            problem: format!("{r:?} is not a finite vector"),
+            problem: format!("{} is not a finite vector", crate::util::numbers(&r)),
         });
     }
     let m = &spec.mapping;
@@ -224,7 +224,8 @@ pub fn build_tables(eval: &AxisEvaluation, spec: &TableSpec) -> Result<TableSet,
             return Err(CompError::Option {
                 name: "positioning",
                 problem: format!(
-                    "a bidirectional table needs both directions; the data has {d:?}: use Unidirectional"
+                    "a bidirectional table needs both directions; the data has {}: use Unidirectional",
+                    d.words()
                 ),
             });
         }

@@ -298,6 +298,21 @@ pub enum CanSettings {
     },
 }
 
+impl std::fmt::Display for CanSettings {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            CanSettings::SocketCan { interface } => write!(f, "SocketCAN on {interface}"),
+            CanSettings::Cannelloni { local, remote } => {
+                write!(f, "cannelloni over UDP from {local} to {remote}")
+            }
+            CanSettings::PyCan { group, port, iface } => write!(
+                f,
+                "python-can's UDP multicast, group {group} port {port} on {iface}"
+            ),
+        }
+    }
+}
+
 /// `[follower]`, validated.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FollowerSettings {

@@ -31,7 +31,7 @@ pub enum ClientError {
     Io(String),
     #[error("the service closed the connection")]
     Closed,
-    #[error("no reply within {0:?}")]
+    #[error("no reply within {}", crate::util::time::span(*.0))]
     Timeout(Duration),
     #[error("bad reply from the service: {0}")]
     Reply(String),

@@ -27,6 +27,15 @@ pub enum Directions {
 }
 
 impl Directions {
+    /// In words, for messages.
+    pub fn words(self) -> &'static str {
+        match self {
+            Directions::Both => "both directions",
+            Directions::UpOnly => "the increasing direction only",
+            Directions::DownOnly => "the decreasing direction only",
+        }
+    }
+
     pub fn has_up(self) -> bool {
         self != Directions::DownOnly
     }

@@ -57,7 +57,7 @@ pub enum ReplyFault {
 /// Why a call failed. Copyable, so it can sit in [`LinkState`] and be counted.
 #[derive(Clone, Copy, Debug, Error, PartialEq, Eq)]
 pub enum LinkError {
-    #[error("no reply within {0:?}")]
+    #[error("no reply within {}", crate::util::time::span(*.0))]
     Timeout(Duration),
     #[error("not connected (the link is reconnecting)")]
     Disconnected,

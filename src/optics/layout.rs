@@ -5,6 +5,7 @@
 //! exactly one path). Errors name the element or the step and say what to change.
 
 use super::geometry::{Frame, V3};
+use crate::util::numbers;
 use serde::{Deserialize, Serialize};
 use std::path::Path as FsPath;
 use thiserror::Error;
@@ -121,6 +122,21 @@ pub enum Kind {
         depth: f64,
     },
     Psd,
+}
+
+impl Kind {
+    /// Its `kind` in a layout file.
+    pub fn file_name(&self) -> &'static str {
+        match self {
+            Kind::Laser => "laser",
+            Kind::Bs => "bs",
+            Kind::Pbs => "pbs",
+            Kind::Mirror => "mirror",
+            Kind::Qwp => "qwp",
+            Kind::CornerCube { .. } => "cc",
+            Kind::Psd => "psd",
+        }
+    }
 }
 
 /// Which rigid body an element belongs to.
@@ -436,10 +452,10 @@ fn check_finite(a: &[f64; 3]) -> Result<(), ()> {
 fn unit_axis(a: [f64; 3]) -> Result<V3, String> {
     let v = V3::from(a);
     if check_finite(&a).is_err() {
-        return Err(format!("{a:?} has a non-finite value"));
+        return Err(format!("{} has a non-finite value", numbers(&a)));
     }
     if (v.norm() - 1.0).abs() > FRAME_TOL {
-        return Err(format!("{a:?} has length {:.9}, not 1", v.norm()));
+        return Err(format!("{} has length {:.9}, not 1", numbers(&a), v.norm()));
     }
     Ok(v)
 }
@@ -486,7 +502,7 @@ fn validate_element(re: &RawElement) -> Result<Element, String> {
         ("v", &re.v),
         ("n", &re.n),
     ] {
-        check_finite(a).map_err(|_| format!("{name} {a:?} has a non-finite value"))?;
+        check_finite(a).map_err(|_| format!("{name} {} has a non-finite value", numbers(a)))?;
     }
     let (u, v, n) = (V3::from(re.u), V3::from(re.v), V3::from(re.n));
     for (name, x) in [("u", u), ("v", v), ("n", n)] {
@@ -530,7 +546,7 @@ fn validate_element(re: &RawElement) -> Result<Element, String> {
         (None, _) => [1.0, 1.0],
         (Some(g), Kind::Psd) => {
             if !g.iter().all(|x| x.is_finite() && *x > 0.0) {
-                return Err(format!("gain {g:?} must be two positive numbers"));
+                return Err(format!("gain {} must be two positive numbers", numbers(&g)));
             }
             g
         }
@@ -591,7 +607,7 @@ fn validate_path(
                 i,
                 el_name,
                 act_name,
-                format!("a {kind:?} element cannot {act_name}"),
+                format!("a {} element cannot {act_name}", kind.file_name()),
             ));
         }
         if (i == 0) != (action == Action::Source) {

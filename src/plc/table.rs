@@ -44,6 +44,16 @@ pub enum TableDirection {
 }
 
 impl TableDirection {
+    /// In words, for messages: "both directions", "increasing only", …
+    pub fn words(self) -> &'static str {
+        match self {
+            TableDirection::Both => "both directions, one profile",
+            TableDirection::Positive => "increasing only",
+            TableDirection::Negative => "decreasing only",
+            TableDirection::Bidirectional => "bidirectional, two profiles",
+        }
+    }
+
     pub fn code(self) -> u16 {
         match self {
             TableDirection::Both => 0,
@@ -201,7 +211,7 @@ pub enum TableError {
         "the table has {points} points; the PLC takes 2..={max} (limits.max_points): refit the grid"
     )]
     Points { points: usize, max: u16 },
-    #[error("a {direction:?} table needs {need} profile(s) of equal length; got {got}")]
+    #[error("a table of {} needs {need} profile(s) of equal length; got {got}", direction.words())]
     Profiles {
         direction: TableDirection,
         need: usize,
@@ -415,7 +425,10 @@ pub fn encode(table: &PlcTable, map: &CncMap, sequence: u32) -> Result<Encoded, 
             return Err(TableError::Profiles {
                 direction: table.direction,
                 need: 2,
-                got: format!("{n} and {:?}", d.as_ref().map(Vec::len)),
+                got: match d {
+                    Some(d) => format!("{n} and {}", d.len()),
+                    None => format!("{n} and none"),
+                },
             });
         }
         (dir, None) => {

@@ -98,7 +98,7 @@ pub enum CaptureMode {
 #[derive(Clone, Debug, Error, PartialEq)]
 pub enum ProgramError {
     #[error(
-        "the {0:?} dialect has no handshake here: use stability capture (dwell) or the ISO/Fanuc or LinuxCNC dialect"
+        "the {} dialect has no handshake here: use stability capture (dwell) or the ISO/Fanuc or LinuxCNC dialect", .0.name()
     )]
     NoHandshake(Dialect),
 }

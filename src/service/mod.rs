@@ -186,7 +186,7 @@ async fn start_drive(
 /// Run the service until `shutdown` fires. Returns when every task has stopped.
 pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
     let s = &p.settings;
-    tracing::info!(sources = ?s.sources, "axiscomp service starting");
+    tracing::info!(sources = %s.sources.join(", "), "axiscomp service starting");
     let listener = control::bind(&s.service.socket)?;
     let mut map = p.map.clone();
     if s.io.unit != 0 {

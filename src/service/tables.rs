@@ -894,7 +894,11 @@ impl Tables {
             Err(e) => return Err(e.to_string()),
         };
         let views: Vec<TableView> = stored.iter().map(|rec| table_view(rec, &[])).collect();
-        tracing::info!(run = run_id, tables = ?views.iter().map(|v| v.id).collect::<Vec<_>>(), "tables generated");
+        tracing::info!(
+            run = run_id,
+            tables = %views.iter().map(|v| v.id.to_string()).collect::<Vec<_>>().join(", "),
+            "tables generated"
+        );
         self.audit_outcome(
             "",
             "tables_generated",

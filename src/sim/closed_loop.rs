@@ -596,7 +596,16 @@ fn publish_all(
                 Ok(other) => {
                     return Err(LoopError::Rejected {
                         table: name,
-                        detail: format!("{other:?}"),
+                        detail: match other {
+                            PublishOutcome::Rejected {
+                                code,
+                                active_sequence,
+                                ..
+                            } => format!(
+                                "refused with {code}; the PLC keeps sequence {active_sequence}"
+                            ),
+                            PublishOutcome::Accepted { .. } => "accepted".into(),
+                        },
                     });
                 }
                 Err(source) => {

@@ -71,7 +71,10 @@ pub fn parse(text: &str, dialect: Dialect, axis: &str) -> Result<Vec<Op>, Progra
         return Err(err(
             0,
             "",
-            format!("the twin's CNC runs ISO/Fanuc and LinuxCNC programs, not {dialect:?}"),
+            format!(
+                "the twin's CNC runs ISO/Fanuc and LinuxCNC programs, not {}",
+                dialect.name()
+            ),
         ));
     }
     let axis = axis.chars().next().unwrap_or('X').to_ascii_uppercase();

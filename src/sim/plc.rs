@@ -119,8 +119,8 @@ impl Axis {
             TableDirection::Both | TableDirection::Bidirectional
         ) {
             return Err(unsupported(format!(
-                "{:?} tables (one direction only) are not handled",
-                t.direction
+                "tables of {} are not handled (one direction only)",
+                t.direction.words()
             )));
         }
         let head = mapping.head_axes();
@@ -498,7 +498,7 @@ impl TwinPlc {
         let restarter = tokio::spawn(async move {
             while let Some(down) = down_rx.recv().await {
                 srv.stop().await;
-                tracing::info!(?down, "twin PLC: off (fault injection)");
+                tracing::info!(down = %crate::util::time::span(down), "twin PLC: off (fault injection)");
                 tokio::time::sleep(down).await;
                 sh.silent.store(false, Ordering::SeqCst);
                 if let Err(e) = srv.restart().await {

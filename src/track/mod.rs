@@ -53,6 +53,16 @@ pub enum Strategy {
     Encoder,
 }
 
+impl Strategy {
+    /// Its name in the configuration and the API: "overlap" or "encoder".
+    pub fn name(self) -> &'static str {
+        match self {
+            Strategy::Overlap => "overlap",
+            Strategy::Encoder => "encoder",
+        }
+    }
+}
+
 /// Tracking settings (validated by the config layer).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TrackSettings {

@@ -63,6 +63,12 @@ fn unknown_key_hint(msg: &str) -> String {
 }
 
 /// Levenshtein distance of two short strings (characters).
+/// Numbers as a user reads them, in brackets: "[0.1, 0, 1]".
+pub fn numbers(v: &[f64]) -> String {
+    let parts: Vec<String> = v.iter().map(f64::to_string).collect();
+    format!("[{}]", parts.join(", "))
+}
+
 pub fn edit_distance(a: &str, b: &str) -> usize {
     let b: Vec<char> = b.chars().collect();
     let mut row: Vec<usize> = (0..=b.len()).collect();

@@ -50,3 +50,38 @@ mod tests {
         assert_eq!(rfc3339(-1), "1969-12-31T23:59:59Z");
     }
 }
+
+/// A span of time for reading: "300 ms", "2.5 s", "14 min 05 s", "1 h 02 min".
+pub fn span(d: std::time::Duration) -> String {
+    let s = d.as_secs_f64();
+    if s < 1.0 {
+        // To the microsecond: "300 ms", "1.5 ms", "0 ms".
+        format!("{} ms", (s * 1e6).round() / 1e3)
+    } else if s < 60.0 {
+        let t = format!("{s:.1}");
+        format!("{} s", t.strip_suffix(".0").unwrap_or(&t))
+    } else if s < 3600.0 {
+        let whole = d.as_secs();
+        format!("{} min {:02} s", whole / 60, whole % 60)
+    } else {
+        let whole = d.as_secs();
+        format!("{} h {:02} min", whole / 3600, (whole % 3600) / 60)
+    }
+}
+
+#[cfg(test)]
+mod span_tests {
+    use super::span;
+    use std::time::Duration;
+
+    #[test]
+    fn spans_read_in_their_unit() {
+        assert_eq!(span(Duration::from_millis(300)), "300 ms");
+        assert_eq!(span(Duration::from_micros(1500)), "1.5 ms");
+        assert_eq!(span(Duration::ZERO), "0 ms");
+        assert_eq!(span(Duration::from_millis(2500)), "2.5 s");
+        assert_eq!(span(Duration::from_secs(30)), "30 s");
+        assert_eq!(span(Duration::from_secs_f64(871.456313235)), "14 min 31 s");
+        assert_eq!(span(Duration::from_secs(3720)), "1 h 02 min");
+    }
+}

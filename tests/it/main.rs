@@ -32,3 +32,4 @@ mod report_budget;
 mod service;
 mod socketcan;
 mod store;
+mod user_text;

@@ -43,7 +43,11 @@ impl Master {
         if let Some(to) = st
             && self.status.state != Some(to)
         {
-            tracing::info!(from = ?self.status.state, to = %to, "follower drive power state");
+            tracing::info!(
+                from = %self.status.state.map_or_else(|| "unknown".to_string(), |s| s.to_string()),
+                to = %to,
+                "follower drive power state"
+            );
             self.events.push_back(Event::PowerState {
                 from: self.status.state,
                 to,

@@ -168,7 +168,7 @@ impl Core {
                 last_emcy: st.last_emcy.map(|e| e.to_string()),
             },
             tracking: TrackingView {
-                strategy: format!("{:?}", stitch.strategy).to_lowercase(),
+                strategy: stitch.strategy.name().into(),
                 valid: stitch.valid,
                 at_rest: p.tracker.at_rest(now),
                 follower_mm: stitch.follower_mm,

@@ -76,7 +76,7 @@ async fn twin_task<T: CanTransport>(
             match bus.send(&f).await {
                 Ok(()) => {}
                 Err(CanError::Closed) => return Err(CanError::Closed),
-                Err(e) => tracing::warn!("twin drive could not send {f:?}: {e}"),
+                Err(e) => tracing::warn!("twin drive could not send {f}: {e}"),
             }
         }
         let s = d.status();
