@@ -155,6 +155,18 @@ def main():
             sys.exit(f"storm.py: run start refused: {r.stdout}{r.stderr}")
         start = json.loads(r.stdout)
         log(f"run {start['run_id']} started: {start['captures_expected']} captures expected")
+        if a.disk != "skip":
+            # What the state directory holds (its file system is the disk-full fault's).
+            files = []
+            for root, _, names in os.walk(a.state):
+                for n in names:
+                    p = os.path.join(root, n)
+                    try:
+                        files.append(f"{os.path.relpath(p, a.state)} {os.path.getsize(p) // 1024} KiB")
+                    except OSError:
+                        pass
+            st = os.statvfs(a.state)
+            log(f"state directory: {st.f_bavail * st.f_frsize // 1024} KiB free; " + ", ".join(sorted(files)))
         return start["run_id"], start["captures_expected"]
 
     def draw(n):
@@ -224,15 +236,18 @@ def main():
                 hold = 0.0
             elif kind == "disk-full":
                 ballast = os.path.join(a.state, "ballast")
-                with open(ballast, "wb") as f:
-                    try:
+                st = os.statvfs(a.state)
+                free0 = st.f_bavail * st.f_frsize
+                try:
+                    # Opening can fail too: a file system the store has filled already.
+                    with open(ballast, "wb") as f:
                         while True:
                             f.write(b"\0" * (1 << 20))
                             f.flush()
-                    except OSError:
-                        pass
+                except OSError:
+                    pass
                 st = os.statvfs(a.state)
-                detail = f"{st.f_bavail * st.f_frsize} bytes left"
+                detail = f"{st.f_bavail * st.f_frsize} bytes left ({free0} before the ballast)"
                 hold = max(hold, 4.0)
             elif kind == "clock-step":
                 step = rng.choice([-1, 1]) * 3600 * rng.randint(1, 3)
@@ -260,7 +275,10 @@ def main():
                 t_clear = time.monotonic()
                 proc = start_service(f"{tag}{i + 1}")
             elif kind == "disk-full" and a.disk != "skip":
-                os.unlink(os.path.join(a.state, "ballast"))
+                try:
+                    os.unlink(os.path.join(a.state, "ballast"))
+                except FileNotFoundError:
+                    pass
             # Recovered?
             deadline = t_clear + a.recovery_timeout
             st = status()

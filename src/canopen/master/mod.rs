@@ -184,7 +184,7 @@ pub enum DriveError {
     },
     #[error("the drive reports a following error (statusword bit 13)")]
     FollowingError,
-    #[error("homing failed: {0}")]
+    #[error("the drive reports {0}")]
     Homing(HomingStatus),
     #[error("interrupted by {by}")]
     Interrupted { by: &'static str },
