@@ -113,6 +113,7 @@ pub fn run(c: Command) -> Result<()> {
                 a.at,
                 Request::MachineNew {
                     record: text,
+                    path: None,
                     origin: Some(a.record.display().to_string()),
                 },
             )

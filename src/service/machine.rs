@@ -116,6 +116,25 @@ pub fn predicted(model: &MachineModel, travel_mm: [f64; 3], tool_mm: [f64; 3]) -
     }
 }
 
+/// The machine record's text from its file on this host (at most 64 KiB), or why not.
+pub fn read_record(path: &str) -> Result<String, String> {
+    let too_big = || format!("{path}: a machine record is a short TOML file (64 KiB at most)");
+    match std::fs::metadata(path) {
+        Ok(m) if m.len() > 64 * 1024 => return Err(too_big()),
+        Ok(m) if !m.is_file() => {
+            return Err(format!(
+                "{path}: not a file; give the path of the machine's record (TOML) on the service's host"
+            ));
+        }
+        _ => {}
+    }
+    std::fs::read_to_string(path).map_err(|e| {
+        format!(
+            "{path}: cannot read the machine record ({e}); give the path of its TOML file on the service's host"
+        )
+    })
+}
+
 /// Store a machine from its record's text; its view.
 pub fn create(store: &mut Store, text: &str, origin: &str) -> Result<MachineView, String> {
     let id = stored::create(store, text, origin, crate::util::clock::unix_us())

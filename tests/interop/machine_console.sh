@@ -14,7 +14,8 @@
 # machine 1's, judged by the truth there) to the hundredth of an arcsecond, and the model's
 # prediction; `machine show` and `machine export` (every control's files, read back) agree;
 # `machine report` writes the machine acceptance report with the demo's squarenesses. On the
-# way, `d` detaches set-ups 2 and 3 (asked first) and they are attached again.
+# way, `d` detaches set-ups 2 and 3 (asked first) and they are attached again; at the end `n`
+# stores a third machine from the record's file.
 # MACHINE_SEED (default 103) draws another machine.
 # Needs tmux and python3.
 #   bash tests/interop/machine_console.sh     # from anywhere in the repository
@@ -218,6 +219,14 @@ if command -v pdftotext >/dev/null; then
   pdftotext "$work/report/acceptance.pdf" - | grep -q "The tool point's error over the volume" \
     || fail "the report's PDF has no volumetric section"
 fi
+
+echo "machine_console.sh: n stores a third machine from its record on the service's host"
+keys 8
+keys n
+expect 10 "A new machine" "Path of the machine's record"
+keys -l "$work/demo/machine.toml"
+keys Enter
+expect 15 "machine 3 (twin machine, seed $seed) stored" "Machine 3:" "▶ next" "Align the beam over X's travel"
 
 keys q
 for _ in $(seq 1 20); do [ -s "$work/console.rc" ] && break; sleep 0.2; done

@@ -4,7 +4,8 @@
 //! `p` puts the next set-up's run into the Measure screen's plan, to start there; `a` picks a
 //! finished run of the next set-up's axis and attaches it; the service checks it
 //! (`commission::stored`) and the plan moves on. `d` detaches the selected set-up's run and
-//! those after it (asked first): a set-up measured again takes its place in the plan.
+//! those after it (asked first): a set-up measured again takes its place in the plan. `n`
+//! stores a new machine from its record, a TOML file on the service's host, and shows its plan.
 
 use super::*;
 use crate::service::api::machine::{MachineView, SetupView};
@@ -128,6 +129,13 @@ impl App {
                 None => self.say(Level::Info, "no set-up is waiting for its run"),
             },
             (_, Some('d')) => self.ask_detach(),
+            // (A viewer is told so by `may_operate`.)
+            (_, Some('n')) if self.may_operate("storing a machine") => {
+                self.overlay = Overlay::Input(Input {
+                    purpose: InputFor::MachineRecord,
+                    text: String::new(),
+                });
+            }
             (_, Some('a')) => {
                 if self.machine.attaching.is_some() {
                     self.say(Level::Warn, "a run is being attached: wait for the answer");
@@ -137,7 +145,7 @@ impl App {
                         if self.machine.view.is_some() {
                             "every set-up is measured: export the controls' files (axiscomp machine export)"
                         } else {
-                            "no machine stored: store its record (axiscomp machine new FILE)"
+                            "no machine stored: store its record with n (or axiscomp machine new FILE)"
                         },
                     );
                 } else if self.may_operate("attaching a run") {
@@ -151,6 +159,27 @@ impl App {
             _ => {}
         }
         Vec::new()
+    }
+
+    /// Store a machine from the record typed (a path on the service's host).
+    pub(super) fn machine_new(&mut self, path: &str) -> Vec<Action> {
+        if path.is_empty() {
+            self.say(
+                Level::Warn,
+                "type the path of the machine's record (TOML) on the service's host",
+            );
+            return Vec::new();
+        }
+        self.overlay = Overlay::None;
+        self.log(Level::Info, format!("→ store a machine from {path}"));
+        vec![self.send(
+            Request::MachineNew {
+                record: String::new(),
+                path: Some(path.to_string()),
+                origin: None,
+            },
+            Pending::MachineNew,
+        )]
     }
 
     /// Ask before detaching the selected set-up's run and those after it.
@@ -234,6 +263,24 @@ impl App {
                 );
                 self.machine.loaded = false;
                 return self.machine_need();
+            }
+            (Pending::MachineNew, Ok(v)) => {
+                // The new machine's plan, from its first set-up.
+                self.machine.view = None;
+                let out = self.machine_reply(&Pending::Machine, Ok(v));
+                if let Some(v) = &self.machine.view {
+                    let text = format!(
+                        "machine {} ({}) stored: its plan starts with set-up 1",
+                        v.id, v.name
+                    );
+                    self.log(Level::Info, format!("✓ {text}"));
+                    self.say(Level::Info, text);
+                }
+                return out;
+            }
+            (Pending::MachineNew, Err(e)) => {
+                self.log(Level::Error, format!("✗ store a machine: {e}"));
+                self.say(Level::Error, e);
             }
             (Pending::MachineDetach(setup), Ok(_)) => {
                 self.log(Level::Info, format!("✓ detached from set-up {setup} on"));

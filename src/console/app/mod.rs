@@ -174,6 +174,8 @@ pub enum InputFor {
     Mapping,
     /// The level's reading at the station being read (arcsec).
     LevelReading,
+    /// A machine's record (TOML) on the service's host, to store the machine.
+    MachineRecord,
 }
 
 /// A line being typed (Enter takes it, Esc drops it).
@@ -261,6 +263,8 @@ enum Pending {
     MachineAttach(i64),
     /// Detaching from this set-up (1-based) on.
     MachineDetach(usize),
+    /// Storing a machine from its record's file.
+    MachineNew,
     Other(String),
 }
 
@@ -817,6 +821,7 @@ impl App {
                 self.follower_map_input(&input.purpose, &text)
             }
             InputFor::LevelReading => self.follower_level_input(&text),
+            InputFor::MachineRecord => self.machine_new(&text),
         }
     }
 
@@ -982,6 +987,10 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
                 "the next set-up's run into Measure's plan (start it there)",
             ),
             ("a", "attach a finished run to the next set-up (pick it)"),
+            (
+                "n",
+                "store a new machine from its record (a TOML file on the service's host)",
+            ),
             (
                 "d",
                 "detach the selected set-up's run and those after it (asked first)",

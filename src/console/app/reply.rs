@@ -16,7 +16,10 @@ impl App {
         };
         if matches!(
             pending,
-            Pending::Machine | Pending::MachineAttach(_) | Pending::MachineDetach(_)
+            Pending::Machine
+                | Pending::MachineAttach(_)
+                | Pending::MachineDetach(_)
+                | Pending::MachineNew
         ) && !result.as_ref().is_err_and(ClientError::is_role_refusal)
         {
             return self.machine_reply(&pending, result.map_err(|e| e.to_string()));
@@ -293,7 +296,10 @@ impl App {
                 self.say(Level::Info, text);
             }
             // Answered by `machine_reply` above.
-            Pending::Machine | Pending::MachineAttach(_) | Pending::MachineDetach(_) => {}
+            Pending::Machine
+            | Pending::MachineAttach(_)
+            | Pending::MachineDetach(_)
+            | Pending::MachineNew => {}
             Pending::Other(what) => {
                 let detail = if v.is_null() {
                     String::new()

@@ -1292,3 +1292,62 @@ fn machine_screen_detaches_the_selected_set_up_and_those_after_it_once_asked() {
             .is_some_and(|m| m.text.starts_with("detached from set-up 2 on"))
     );
 }
+
+#[test]
+fn machine_screen_stores_a_new_machine_from_its_record_on_the_service_s_host() {
+    let (mut a, t0) = app();
+    let (id, _) = sent(&a.handle_key(ch('8')));
+    // No machine stored yet: the screen says how to store one.
+    a.handle_reply(
+        id,
+        Err(ClientError::Refused("no machine is stored".into())),
+        t0,
+    );
+    assert!(screen_text(&a).contains("n and its path"));
+    assert!(a.handle_key(ch('n')).is_empty());
+    assert!(matches!(&a.overlay, Overlay::Input(i) if i.purpose == InputFor::MachineRecord));
+    // Empty: asked again, nothing sent.
+    assert!(a.handle_key(key(KeyCode::Enter)).is_empty());
+    for c in "/srv/vmc.toml".chars() {
+        a.handle_key(ch(c));
+    }
+    let (id, req) = sent(&a.handle_key(key(KeyCode::Enter)));
+    assert_eq!(
+        req,
+        Request::MachineNew {
+            record: String::new(),
+            path: Some("/srv/vmc.toml".into()),
+            origin: None
+        }
+    );
+    let setup = |n: usize, state: &str| {
+        serde_json::json!({"number": n, "title": format!("{n} of 4"), "axis": "X",
+            "state": state, "run_id": null, "steps": [format!("step of {n}")],
+            "plan": {"axis": "X", "start_mm": 0.0, "end_mm": 500.0, "targets": 26, "runs": 2,
+                "overrun_mm": 2.0, "dwell_s": 2.0, "feed_mm_min": 6000.0, "lead_mm": 10.0},
+            "run_notes": ""})
+    };
+    let view = serde_json::json!({"id": 3, "name": "VMC 1000", "chain": "X Y bed Z",
+        "travel_mm": [1000.0, 600.0, 500.0], "tool_mm": [0.0, 0.0, -150.0],
+        "created": "2026-11-30T00:00:00Z",
+        "setups": [setup(1, "next"), setup(2, "waiting"), setup(3, "waiting"), setup(4, "waiting")],
+        "squareness": [], "no_model": "4 to go"});
+    assert!(a.handle_reply(id, Ok(view), t0).is_empty());
+    assert_eq!(a.machine.view.as_ref().map(|v| v.id), Some(3));
+    assert_eq!(a.machine.selected, 0);
+    assert_eq!(
+        a.message.as_ref().map(|m| m.text.as_str()),
+        Some("machine 3 (VMC 1000) stored: its plan starts with set-up 1")
+    );
+    assert!(screen_text(&a).contains("step of 1"));
+    // A record the service refuses: said as the service says it.
+    a.handle_key(ch('n'));
+    for c in "/srv/bad.toml".chars() {
+        a.handle_key(ch(c));
+    }
+    let (id, _) = sent(&a.handle_key(key(KeyCode::Enter)));
+    let why = "/srv/bad.toml: \"travel_mm\": 3 numbers (X, Y, Z) in mm";
+    a.handle_reply(id, Err(ClientError::Refused(why.into())), t0);
+    assert_eq!(a.message.as_ref().map(|m| m.text.as_str()), Some(why));
+    assert_eq!(a.machine.view.as_ref().map(|v| v.id), Some(3));
+}

@@ -19,7 +19,9 @@ pub fn render(frame: &mut Frame, area: Rect, app: &App) {
             Some(e) => vec![
                 Line::styled(e.clone(), theme.warn()),
                 Line::raw(""),
-                Line::raw("Store the machine's record with: axiscomp machine new FILE, then r."),
+                Line::raw(
+                    "Store the machine's record: n and its path on the service's host, or axiscomp machine new FILE, then r.",
+                ),
             ],
             None => vec![Line::styled("asking the service…", theme.dim())],
         };

@@ -163,6 +163,12 @@ fn render_input(frame: &mut Frame, input: &Input, selected: bool, theme: Theme) 
                 "The PSD with no spot and what its target shows, X and Y in mm (e.g. 2 1.5 -0.5):",
             )],
         ),
+        InputFor::MachineRecord => (
+            " A new machine ".to_string(),
+            vec![Line::raw(
+                "Path of the machine's record (TOML: name, chain, travels, tool, the squares' certificates) on the service's host:",
+            )],
+        ),
         InputFor::CertificatePath => (
             " Import the follower's certificate ".to_string(),
             vec![Line::raw(

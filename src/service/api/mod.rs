@@ -222,10 +222,14 @@ pub enum Request {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         id: Option<i64>,
     },
-    /// Store a machine from its record (the TOML text, `commission::record`); `origin` names
-    /// it in errors (its file, say).
+    /// Store a machine from its record (the TOML text, `commission::record`), or from the
+    /// record's file at `path` on the service's host (the console's way); `origin` names it in
+    /// errors (its file, say).
     MachineNew {
+        #[serde(default, skip_serializing_if = "String::is_empty")]
         record: String,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        path: Option<String>,
         #[serde(default, skip_serializing_if = "Option::is_none")]
         origin: Option<String>,
     },
@@ -316,6 +320,12 @@ impl Request {
                 id("id", Some(*m))?;
                 int_field("setup", Some(*setup), 1, crate::commission::SETUPS.len())
             }
+            Request::MachineNew { record, path, .. } if record.is_empty() == path.is_none() => {
+                Err(
+                    "give the machine record as \"record\" (its TOML text) or \"path\" (its file on the service's host), one of them"
+                        .into(),
+                )
+            }
             Request::MachineNew { record, .. } if record.len() > 64 * 1024 => Err(format!(
                 "\"record\": {} bytes: a machine record is a short TOML file (64 KiB at most)",
                 record.len()
@@ -373,6 +383,33 @@ impl Request {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_machine_comes_as_its_record_or_its_file_one_of_them() {
+        let r: Request =
+            serde_json::from_str(r#"{"cmd":"machine_new","path":"/etc/axiscomp/vmc.toml"}"#)
+                .unwrap();
+        assert_eq!(
+            r,
+            Request::MachineNew {
+                record: String::new(),
+                path: Some("/etc/axiscomp/vmc.toml".into()),
+                origin: None
+            }
+        );
+        assert_eq!((r.needs(), r.check()), (Role::Operator, Ok(())));
+        let r: Request =
+            serde_json::from_str(r#"{"cmd":"machine_new","record":"name = \"VMC\""}"#).unwrap();
+        assert_eq!(r.check(), Ok(()));
+        for neither_or_both in [
+            r#"{"cmd":"machine_new"}"#,
+            r#"{"cmd":"machine_new","record":"name = 1","path":"/m.toml"}"#,
+        ] {
+            let r: Request = serde_json::from_str(neither_or_both).unwrap();
+            let e = r.check().unwrap_err();
+            assert!(e.contains("\"record\"") && e.contains("\"path\""), "{e}");
+        }
+    }
 
     #[test]
     fn requests_parse_and_name_their_role() {

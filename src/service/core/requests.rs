@@ -137,9 +137,22 @@ impl Core {
                 move |s| json(crate::service::machine::view(s, id)?),
                 reply,
             ),
-            Request::MachineNew { record, origin } => self.read(
+            Request::MachineNew {
+                record,
+                path,
+                origin,
+            } => self.read(
                 move |s| {
-                    let origin = origin.unwrap_or_else(|| "sent to the service".into());
+                    let (record, origin) = match path {
+                        Some(p) => (
+                            crate::service::machine::read_record(&p)?,
+                            origin.unwrap_or(p),
+                        ),
+                        None => (
+                            record,
+                            origin.unwrap_or_else(|| "sent to the service".into()),
+                        ),
+                    };
                     json(crate::service::machine::create(s, &record, &origin)?)
                 },
                 reply,
