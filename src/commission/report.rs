@@ -12,8 +12,9 @@
 use super::plan::{self, MODEL_SETUPS};
 use super::stored::{CommissionError, MachineState, SetupRun, setup_run};
 use crate::machine::exports::{self, Export};
+use crate::machine::squareness::SquarePair;
 use crate::machine::volume::{self, PlaneMap};
-use crate::machine::{MachineModel, component_names};
+use crate::machine::{MachineModel, Squareness, component_names};
 use crate::report::doc::{Block, Column, Document, Table};
 use crate::report::text::{fixed, when};
 use crate::report::{Format, write_acceptance};
@@ -169,8 +170,8 @@ fn identification(r: &MachineReport, b: &mut Vec<Block>) {
             format!("axiscomp {}", env!("CARGO_PKG_VERSION")),
         ),
     ];
-    for s in rec.squares.iter().zip(["XY", "ZX", "YZ"]) {
-        let (sq, pair) = s;
+    for pair in SquarePair::ALL {
+        let sq = &rec.squares[pair.index()];
         fields.push((
             format!("Optical square for {pair}"),
             format!(
@@ -329,7 +330,7 @@ fn components(model: &MachineModel, b: &mut Vec<Block>) {
         }
     }
     let sq = model.squareness.to_array();
-    for (name, v) in ["C0Y", "B0Z", "A0Z"].iter().zip(sq) {
+    for (name, v) in Squareness::NAMES.iter().zip(sq) {
         rows.push(vec![(*name).into(), "–".into(), arcsec(v), "″".into()]);
     }
     b.push(Block::Table(Table {
