@@ -10,7 +10,7 @@
 //! measures the truth.
 
 use super::plan::{self, MODEL_SETUPS};
-use super::stored::{CommissionError, MachineState, SetupRun, setup_run};
+use super::stored::{CommissionError, MachineState, SetupRun};
 use crate::machine::exports::{self, Export};
 use crate::machine::squareness::SquarePair;
 use crate::machine::volume::{self, PlaneMap};
@@ -39,17 +39,6 @@ fn arcsec(rad: f64) -> String {
     num(rad / RAD_PER_ARCSEC, 2)
 }
 
-/// Every attached set-up's run as its set-up takes it.
-pub fn setup_runs(store: &Store, state: &MachineState) -> Result<Vec<SetupRun>, CommissionError> {
-    state
-        .attached
-        .iter()
-        .enumerate()
-        .filter_map(|(i, r)| r.map(|r| (i, r)))
-        .map(|(i, r)| setup_run(store, state.id, &state.record, i, r))
-        .collect()
-}
-
 /// What [`write`] wrote.
 pub struct Written {
     /// The report's files: `acceptance.html`, `acceptance.md` and its charts, `acceptance.pdf`.
@@ -68,9 +57,9 @@ pub fn write(
     controls: &Path,
     generated_us: i64,
 ) -> Result<Written, CommissionError> {
-    let state = super::stored::state(store, id)?;
+    // Each set-up's run is read and evaluated once: for the fit and for the report.
+    let (state, runs) = super::stored::state_with_runs(store, id)?;
     let model = state.model().map_err(CommissionError::NoModel)?;
-    let runs = setup_runs(store, &state)?;
     let machine_err = |source| CommissionError::Machine {
         machine: id,
         source,
@@ -98,7 +87,7 @@ pub fn write(
 /// What the report is made of.
 pub struct MachineReport<'a> {
     pub state: &'a MachineState,
-    /// The attached set-ups' runs, in the plan's order ([`setup_runs`]).
+    /// The attached set-ups' runs, in the plan's order (`stored::state_with_runs`).
     pub runs: &'a [SetupRun],
     /// Each control's files as written for this model and read back, when they were.
     pub exports: &'a [Export],

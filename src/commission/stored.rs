@@ -179,15 +179,20 @@ pub fn measured_setup(
     setup: usize,
     run: i64,
 ) -> Result<MeasuredSetup, CommissionError> {
-    let SetupRun { data, budget, .. } = setup_run(store, machine, record, setup, run)?;
-    let (axis, _) = plan::setup_at(setup);
+    measured_of(machine, &setup_run(store, machine, record, setup, run)?)
+}
+
+/// What a set-up's run gives the fit: its axis's table and its slopes.
+fn measured_of(machine: i64, r: &SetupRun) -> Result<MeasuredSetup, CommissionError> {
+    let (axis, _) = plan::setup_at(r.setup);
     let machine_err = |source| CommissionError::Machine { machine, source };
     // The head mounted as the standard mounting says (`AxisMapping::standard`): its y along
     // the axis, x and z as the commissioning plan's steps set it.
     let mapping = AxisMapping::standard(axis);
-    let measured = table_from_evaluation(&mapping, &data.eval).map_err(machine_err)?;
+    let measured = table_from_evaluation(&mapping, &r.data.eval).map_err(machine_err)?;
     let table = measured.refined(TABLE_STEP_MM).map_err(machine_err)?;
-    let slopes = SetupSlopes::from_evaluation(mapping, &data.eval, &budget).map_err(machine_err)?;
+    let slopes =
+        SetupSlopes::from_evaluation(mapping, &r.data.eval, &r.budget).map_err(machine_err)?;
     Ok(MeasuredSetup { table, slopes })
 }
 
@@ -233,15 +238,29 @@ impl MachineState {
 
 /// Machine `id` as stored, fitted from its set-ups' runs.
 pub fn state(store: &Store, id: i64) -> Result<MachineState, CommissionError> {
+    Ok(state_with_runs(store, id)?.0)
+}
+
+/// Machine `id` as [`state`] gives it, with the attached set-ups' runs it was fitted from
+/// (those that could stand for their set-up), in the plan's order.
+pub fn state_with_runs(
+    store: &Store,
+    id: i64,
+) -> Result<(MachineState, Vec<SetupRun>), CommissionError> {
     let stored = store.machine(id)?;
     let record = record(&stored)?;
     let attached = attached(store, id)?;
     let mut setups: [Option<MeasuredSetup>; 4] = Default::default();
+    let mut runs = Vec::new();
     let mut why = None;
     for (i, run) in attached.iter().enumerate() {
         if let Some(run) = *run {
-            match measured_setup(store, id, &record, i, run) {
-                Ok(m) => setups[i] = Some(m),
+            match setup_run(store, id, &record, i, run).and_then(|r| Ok((measured_of(id, &r)?, r)))
+            {
+                Ok((m, r)) => {
+                    setups[i] = Some(m);
+                    runs.push(r);
+                }
                 Err(e) => {
                     why.get_or_insert(e.to_string());
                 }
@@ -252,14 +271,15 @@ pub fn state(store: &Store, id: i64) -> Result<MachineState, CommissionError> {
         Some(w) => Err(w),
         None => fit(&record, &setups).map_err(|e| format!("machine {id}: {e}")),
     };
-    Ok(MachineState {
+    let state = MachineState {
         id,
         record,
         created_us: stored.created_us,
         attached,
         states: plan::states(&attached),
         fit,
-    })
+    };
+    Ok((state, runs))
 }
 
 /// Attach run `run` to set-up `setup` (0-based) of machine `machine`: in the plan's order, and
