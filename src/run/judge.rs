@@ -5,7 +5,8 @@
 //!   captures of its target and direction by more than the limit is flagged and retaken.
 //!   The limit is six of the run's own scatter (a robust pooled standard deviation over its
 //!   groups), at least 0.5 µm and 0.2″, and never more than the stated repeatability
-//!   (`[capture] repeatability_um`, `repeatability_arcsec`): a stated 2″ let a knock of
+//!   (`[capture] repeatability_um`, `repeatability_arcsec`), nor more than the capture's own
+//!   U (`own_limits`): a stated 2″ let a knock of
 //!   9 µrad (1.8″), undone by later knocks before any return to the zero saw it, store
 //!   captures 1.8″ off on a twin whose passes agree in yaw within 0.1″. Checked as each capture comes when
 //!   its group has two others, and over every group once the run has all its captures (a
@@ -341,7 +342,7 @@ impl Judge {
             // with itself waits for the review.
             if group.len() >= 2
                 && Self::agrees(&lim, &group)
-                && let Some(off) = Self::beyond(&lim, &Self::offset(&c, &group))
+                && let Some(off) = Self::beyond(&own_limits(&lim, &c), &Self::offset(&c, &group))
             {
                 return vec![Decision::Flag {
                     reason: format!(
@@ -366,7 +367,7 @@ impl Judge {
         let full = Self::offset(&c, &group);
         let moves = self.moved_by_events();
         let other: [f64; 6] = std::array::from_fn(|k| if moves[k] { 0.0 } else { full[k] });
-        if let Some(off) = Self::beyond(&lim, &other) {
+        if let Some(off) = Self::beyond(&own_limits(&lim, &c), &other) {
             // Off in an error no event since the check can move: this capture is wrong (or
             // something else moved, as a knock not yet found), not the reference. It is
             // retaken; the held captures wait for a capture that checks the events' errors.
@@ -498,7 +499,7 @@ impl Judge {
             if group.len() < 2 {
                 continue;
             }
-            if let Some(off) = Self::beyond(&lim, &Self::offset(&c, &group)) {
+            if let Some(off) = Self::beyond(&own_limits(&lim, &c), &Self::offset(&c, &group)) {
                 flagged.push(Decision::Flag {
                     reason: format!(
                         "{key} {}: off {} of its target and direction by {off}, found when the run had every capture",
@@ -520,6 +521,17 @@ impl Judge {
         out.extend(flagged);
         out
     }
+}
+
+/// The limits `lim` for the capture `c` against its group: never more than the U (k = 2) it
+/// states, nor less than `FLOOR`. A capture off the others of its target and direction by
+/// more than its own U is not within that U of what they measured. Six of the run's scatter
+/// alone let the storm store a pitch 0.68″ off the truth with a U of 0.62″ (the five passes of
+/// its target and direction within 0.74″). With U 3.6 of the scatter and normal errors, a
+/// right capture is flagged about once in five hundred, and its retake costs one stop.
+fn own_limits(lim: &[f64; 6], c: &Capture) -> [f64; 6] {
+    let u = c.u.to_array();
+    std::array::from_fn(|k| lim[k].min((2.0 * u[k]).max(FLOOR[k])))
 }
 
 /// `c` read through a reference that had moved by `by`: its errors less the move, the move's
@@ -577,7 +589,16 @@ mod tests {
             direction: dir,
             errors: Errors6::from_array([0.0, dy_um * 1e-3, 0.0, 0.0, 0.0, 0.0]),
             frame_sd: Errors6::default(),
-            u: Errors6::default(),
+            // A u wider than the stated repeatability: the limits below are the run's and the
+            // stated ones unless a test sets u (`own_limits`).
+            u: Errors6::from_array([
+                1.5e-3,
+                1.5e-3,
+                1.5e-3,
+                1.5 * ARCSEC,
+                1.5 * ARCSEC,
+                1.5 * ARCSEC,
+            ]),
             frames: 150,
             material_c: None,
             air_c: None,
@@ -603,6 +624,87 @@ mod tests {
                 _ => None,
             })
             .collect()
+    }
+
+    #[test]
+    fn a_capture_off_its_group_by_more_than_its_own_u_is_flagged() {
+        // Ten groups of five with a pitch scatter of 0.17″ (the storm's run: limit six of it,
+        // 1.0″) and each capture's U 0.62″: a capture 0.7″ off its group is inside the run's
+        // limit and outside its own U: flagged, at once and in the review; one 0.5″ off is
+        // inside both and stored.
+        let mut rng = crate::sim::Rng::new(24);
+        let sd = [
+            0.05e-3,
+            0.05e-3,
+            0.05e-3,
+            0.02 * ARCSEC,
+            0.17 * ARCSEC,
+            0.02 * ARCSEC,
+        ];
+        let with_u = |mut c: Capture| {
+            c.u = Errors6::from_array([
+                0.3e-3,
+                0.3e-3,
+                0.3e-3,
+                0.1 * ARCSEC,
+                0.31 * ARCSEC,
+                0.1 * ARCSEC,
+            ]);
+            c
+        };
+        let mut j = Judge::new(Repeatability::default(), []);
+        for r in 1..=4 {
+            for t in 0..10 {
+                let mut c = with_u(noisy(&mut rng, r, t, sd));
+                // The groups' pitch exactly at the truth (3″): the offsets below are the test's.
+                c.errors.ey = 3.0 * ARCSEC + [-0.15, 0.05, -0.05, 0.15][r as usize - 1] * ARCSEC;
+                assert_eq!(stored(&j.offer(c)), [(r, t)]);
+            }
+        }
+        let lim = j.limits();
+        assert!(
+            lim[4] > 0.62 * ARCSEC,
+            "the run's limit {}″",
+            lim[4] / ARCSEC
+        );
+        let mut off = with_u(noisy(&mut rng, 5, 3, sd));
+        off.errors.ey = 3.7 * ARCSEC;
+        let d = j.offer(off);
+        assert_eq!(flagged(&d), [(5, 3, false)], "{d:?}");
+        let Decision::Flag { reason, .. } = &d[0] else {
+            unreachable!()
+        };
+        assert!(reason.contains("ey +0.70″ (limit 0.62)"), "{reason}");
+        let mut near = with_u(noisy(&mut rng, 5, 4, sd));
+        near.errors.ey = 3.5 * ARCSEC;
+        assert_eq!(stored(&j.offer(near)), [(5, 4)]);
+        // Without its own U (a wide one), the same capture is stored: the run's limit alone.
+        let mut wide = off;
+        wide.u = Errors6::from_array([
+            0.3e-3,
+            0.3e-3,
+            0.3e-3,
+            0.1 * ARCSEC,
+            2.0 * ARCSEC,
+            0.1 * ARCSEC,
+        ]);
+        assert_eq!(stored(&j.offer(wide)), [(5, 3)]);
+        // The review judges it by its own U as well: stated tighter since (a return to the
+        // zero bounded its turns), it comes out of the store.
+        j.restate(
+            TargetKey::of(&wide),
+            wide.unix_us,
+            &[
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                (0.31 * ARCSEC).powi(2) - (2.0 * ARCSEC).powi(2),
+                0.0,
+            ],
+        );
+        let d = j.review();
+        assert_eq!(flagged(&d), [(5, 3, true)], "{d:?}");
     }
 
     #[test]
