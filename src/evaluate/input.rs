@@ -1,8 +1,8 @@
 //! The positioning-deviation CSV of `axiscomp evaluate`:
 //! `target_index,target_mm,run,direction,deviation_um`, rows in any order, `direction` `+` or
-//! `-`, `#` comment lines allowed. Numbers go through `util::csv` (same errors everywhere); the
-//! direction column, the one text column, is checked and mapped here first, and the integer
-//! columns are checked after, each error naming the line and the column.
+//! `-`, `#` comment lines allowed, read by `util::csv` (`,` or `;`, quoted fields, the same
+//! errors everywhere); the direction column, the one text column, is read as `+` or `-`, and
+//! the integer columns are checked after, each error naming the line and the column.
 
 use super::EvalError;
 use super::iso230_2::Sample;
@@ -22,8 +22,19 @@ pub const COLUMNS: [&str; 5] = [
 
 /// Parse the deviation CSV into samples (deviations in mm).
 pub fn parse_deviation_csv(text: &str, source_name: &str) -> Result<Vec<Sample>, EvalError> {
-    let mapped = map_direction_column(text, source_name)?;
-    let csv = NumericCsv::parse(&mapped, source_name, &COLUMNS, &[])?;
+    let direction = |f: &str| match f {
+        "+" => Ok(1.0),
+        "-" => Ok(-1.0),
+        "" => Err("empty field: give + or -".to_string()),
+        _ => Err(format!("\"{f}\" is not a direction: give + or -")),
+    };
+    let csv = NumericCsv::parse_with(
+        text,
+        source_name,
+        &COLUMNS,
+        &[],
+        &[("direction", &direction)],
+    )?;
     // A deviation beyond 10 mm is a wrong unit or a crash, not a positioning error.
     csv.check_ranges(&[
         ("target_mm", POSITION_MM),
@@ -70,60 +81,6 @@ pub fn parse_deviation_csv(text: &str, source_name: &str) -> Result<Vec<Sample>,
             })
         })
         .collect()
-}
-
-/// Replace `+`/`-` in the direction column by `1`/`-1` so the numeric reader can take the
-/// rest; refuse anything else there. Lines keep their numbers; malformed lines are left for the
-/// numeric reader to report.
-fn map_direction_column(text: &str, source_name: &str) -> Result<String, EvalError> {
-    let mut out = String::with_capacity(text.len() + 16);
-    let mut dcol: Option<(usize, usize)> = None; // (column index, field count)
-    for (i, raw) in text.lines().enumerate() {
-        let l = raw.trim();
-        if l.is_empty() || l.starts_with('#') {
-            out.push_str(raw);
-            out.push('\n');
-            continue;
-        }
-        match dcol {
-            None => {
-                let fields: Vec<&str> = l.split(',').map(str::trim).collect();
-                dcol = Some((
-                    fields
-                        .iter()
-                        .position(|f| *f == "direction")
-                        .unwrap_or(usize::MAX),
-                    fields.len(),
-                ));
-                out.push_str(raw);
-            }
-            Some((c, width)) => {
-                let mut fields: Vec<&str> = l.split(',').collect();
-                if c < fields.len() && fields.len() == width {
-                    let f = fields[c].trim();
-                    fields[c] = match f {
-                        "+" => "1",
-                        "-" => "-1",
-                        _ => {
-                            return Err(EvalError::Field {
-                                source_name: source_name.into(),
-                                line: i + 1,
-                                column: "direction".into(),
-                                problem: if f.is_empty() {
-                                    "empty field: give + or -".into()
-                                } else {
-                                    format!("\"{f}\" is not a direction: give + or -")
-                                },
-                            });
-                        }
-                    };
-                }
-                out.push_str(&fields.join(","));
-            }
-        }
-        out.push('\n');
-    }
-    Ok(out)
 }
 
 #[cfg(test)]

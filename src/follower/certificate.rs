@@ -1,7 +1,8 @@
 //! The follower encoder's calibration certificate: the length reference along the axis.
 //!
-//! Format (CSV, UTF-8): lines starting with `#` are comments, blank lines are skipped; the
-//! first other line is the header, exactly
+//! Format (CSV, UTF-8, read by `util::csv`: `,` or `;`, quoted fields, a decimal comma in a
+//! `;` file): lines starting with `#` are comments, blank lines are skipped; the first other
+//! line is the header, these four columns in any order,
 //!
 //! ```text
 //! position_mm,error_um,direction,uncertainty_um
@@ -13,9 +14,10 @@
 //! in increasing position; the two directions may come in either order, one after the other
 //! or interleaved. A certificate with one direction only applies to both.
 //!
-//! Every refused row names the file and the line.
+//! Every refused row names the file, the line and (for a field) the column.
 
 use super::Direction;
+use crate::util::csv::{CsvError, CsvTable};
 use crate::util::range::{POSITION_MM, Range};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -23,8 +25,11 @@ use thiserror::Error;
 /// The smallest standard uncertainty a certificate row may state (µm).
 pub const MIN_UNCERTAINTY_UM: f64 = 0.001;
 
-/// The header a certificate starts with.
+/// The header a certificate starts with, as the simulator writes it (any order is read).
 pub const HEADER: &str = "position_mm,error_um,direction,uncertainty_um";
+
+/// The columns of a certificate.
+const COLUMNS: [&str; 4] = ["position_mm", "error_um", "direction", "uncertainty_um"];
 
 /// Why a certificate was refused.
 #[derive(Debug, Error, PartialEq)]
@@ -37,6 +42,8 @@ pub enum CertificateError {
     },
     #[error("{file}: {problem}")]
     File { file: String, problem: String },
+    #[error(transparent)]
+    Csv(#[from] CsvError),
 }
 
 /// One calibrated point (internal units: mm).
@@ -65,77 +72,56 @@ impl Certificate {
             line,
             problem,
         };
-        let mut header_seen = false;
+        let table = CsvTable::read(text, file, &COLUMNS, &[])?;
+        let at = |name: &str| table.col(name).unwrap_or(0);
+        let (cp, ce, cd, cu) = (
+            at("position_mm"),
+            at("error_um"),
+            at("direction"),
+            at("uncertainty_um"),
+        );
         let (mut up, mut down): (Vec<CertificatePoint>, Vec<CertificatePoint>) = (vec![], vec![]);
         let mut last_line = [0usize; 2];
-        for (i, raw) in text.lines().enumerate() {
-            let line = i + 1;
-            let l = raw.trim();
-            if l.is_empty() || l.starts_with('#') {
-                continue;
-            }
-            let fields: Vec<&str> = l.split(',').map(str::trim).collect();
-            if !header_seen {
-                if fields.join(",") != HEADER {
-                    return Err(row(
-                        line,
-                        format!("the first line must be the header {HEADER}, found \"{l}\""),
-                    ));
-                }
-                header_seen = true;
-                continue;
-            }
-            if fields.len() != 4 {
-                return Err(row(
-                    line,
-                    format!("{} fields, a row has 4 ({HEADER})", fields.len()),
-                ));
-            }
-            let number = |k: usize, name: &str| -> Result<f64, CertificateError> {
-                let f = fields[k];
-                match f.parse::<f64>() {
-                    Ok(v) if v.is_finite() => Ok(v),
-                    _ if f.is_empty() => Err(row(line, format!("{name} is missing"))),
-                    _ => Err(row(line, format!("{name} \"{f}\" is not a finite number"))),
-                }
-            };
-            let in_range = |name: &str, v: f64, r: Range| {
-                r.check(v).map_err(|p| row(line, format!("{name} {p}")))
-            };
-            let position_mm = in_range("position_mm", number(0, "position_mm")?, POSITION_MM)?;
+        for (line, fields) in &table.rows {
+            let line = *line;
+            let number = |k: usize, name: &str| table.number(line, name, &fields[k]);
+            let in_range =
+                |name: &str, v: f64, r: Range| r.check(v).map_err(|p| table.error(line, name, p));
+            let position_mm = in_range("position_mm", number(cp, "position_mm")?, POSITION_MM)?;
             // A stage's error beyond 10 mm is a wrong unit, not an error to map.
             let error_um = in_range(
                 "error_um",
-                number(1, "error_um")?,
+                number(ce, "error_um")?,
                 Range::symmetric(10_000.0, "µm"),
             )?;
-            let direction = match fields[2] {
+            let direction = match fields[cd].as_str() {
                 "+" => Direction::Up,
                 "-" => Direction::Down,
                 "" => {
-                    return Err(row(
-                        line,
-                        "the direction is missing: write + or -".to_string(),
-                    ));
+                    return Err(table
+                        .error(line, "direction", "empty field: write + or -".into())
+                        .into());
                 }
                 other => {
-                    return Err(row(
-                        line,
-                        format!("direction \"{other}\" is neither + nor -"),
-                    ));
+                    return Err(table
+                        .error(line, "direction", format!("\"{other}\" is neither + nor -"))
+                        .into());
                 }
             };
-            let u = number(3, "uncertainty_um")?;
+            let u = number(cu, "uncertainty_um")?;
             // A laser certificate states tenths of a micrometre; below a nanometre the figure is
             // a typo (and would vanish in the conversion to millimetres).
             if u < MIN_UNCERTAINTY_UM {
-                return Err(row(
-                    line,
-                    format!(
-                        "uncertainty_um {} is below {MIN_UNCERTAINTY_UM} µm: write the point's standard uncertainty in micrometres",
-                        fields[3]
-                    ),
-                ));
+                return Err(table
+                    .error(
+                        line,
+                        "uncertainty_um",
+                        format!(
+                            "{} is below {MIN_UNCERTAINTY_UM} µm: write the point's standard uncertainty in micrometres",
+                            fields[cu]
+                        ),
+                    )
+                    .into());
             }
             let u = in_range(
                 "uncertainty_um",
@@ -171,11 +157,6 @@ impl Certificate {
             file: file.to_string(),
             problem,
         };
-        if !header_seen {
-            return Err(file_err(format!(
-                "empty: a certificate starts with the header {HEADER}"
-            )));
-        }
         if up.len().max(down.len()) < 2
             || (!up.is_empty() && up.len() < 2)
             || (!down.is_empty() && down.len() < 2)
@@ -261,25 +242,29 @@ mod tests {
         );
         assert_eq!(
             err(&format!("{h}0,0,+,0.2\n10,0,,0.2\n")),
-            "cert.csv line 3: the direction is missing: write + or -"
+            "cert.csv line 3, column direction: empty field: write + or -"
         );
         assert_eq!(
             err(&format!("{h}0,NaN,+,0.2\n")),
-            "cert.csv line 2: error_um \"NaN\" is not a finite number"
+            "cert.csv line 2, column error_um: \"NaN\" is not a finite number"
         );
         assert_eq!(
             err(&format!("{h}0,1,+\n")),
-            "cert.csv line 2: 3 fields, a row has 4 (position_mm,error_um,direction,uncertainty_um)"
+            "cert.csv line 2: 3 fields, the header has 4"
         );
         assert_eq!(
             err("x,y\n"),
-            "cert.csv line 1: the first line must be the header position_mm,error_um,direction,uncertainty_um, found \"x,y\""
+            "cert.csv line 1: unknown column \"x\": the columns are position_mm,error_um,direction,uncertainty_um"
         );
         assert!(err(&format!("{h}0,1,+,0.2\n")).contains("at least two points"));
+        assert_eq!(
+            err(""),
+            "cert.csv: no header line: the first line must name the columns (position_mm,error_um,direction,uncertainty_um)"
+        );
         // A vanishing uncertainty (found by the fuzzer: 0.201e-320 µm became 0 mm).
         assert_eq!(
             err(&format!("{h}0,1,+,0.201e-320\n")),
-            "cert.csv line 2: uncertainty_um 0.201e-320 is below 0.001 µm: write the point's standard uncertainty in micrometres"
+            "cert.csv line 2, column uncertainty_um: 0.201e-320 is below 0.001 µm: write the point's standard uncertainty in micrometres"
         );
     }
 }

@@ -6,6 +6,7 @@
 
 use super::{AXES, HexPose, Workspace};
 use crate::units::Errors6;
+use crate::util::csv::{CsvError, NumericCsv};
 use crate::util::range::{POSITION_MM, Range};
 use std::fmt::Write as _;
 use thiserror::Error;
@@ -48,12 +49,6 @@ impl Default for PlanSpec {
 
 #[derive(Clone, Debug, Error, PartialEq)]
 pub enum PlanError {
-    #[error("{source_name} line {line}: {problem}")]
-    Parse {
-        source_name: String,
-        line: usize,
-        problem: String,
-    },
     #[error(
         "pose {index} of the plan: {axis} = {value} is outside the hexapod's workspace ({min} to {max}); no pose was moved to: change the plan or [hexapod] workspace"
     )]
@@ -66,6 +61,8 @@ pub enum PlanError {
     },
     #[error("the plan has no poses")]
     Empty,
+    #[error(transparent)]
+    Csv(#[from] CsvError),
     #[error(
         "pose {index} of the plan is at travel {travel_mm} mm with the follower at {follower_mm} mm, pose 1 at {first_travel_mm} mm and {first_follower_mm} mm: nothing here moves the carriage and the follower (the service does, with [cnc] mode = \"twin\"); give a plan at one position and bring the carriage and the follower there first"
     )]
@@ -220,75 +217,32 @@ impl PosePlan {
     /// Read a plan: the header names the columns (`travel_mm`, `follower_mm` optional, 0 when
     /// absent); `#` lines and blank lines are skipped.
     pub fn parse(text: &str, source_name: &str) -> Result<PosePlan, PlanError> {
-        let err = |line: usize, problem: String| PlanError::Parse {
-            source_name: source_name.to_string(),
-            line,
-            problem,
-        };
-        let mut lines = text
-            .lines()
-            .enumerate()
-            .map(|(i, l)| (i + 1, l.trim()))
-            .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
-        let Some((hl, header)) = lines.next() else {
+        if text.lines().all(|l| {
+            let l = l.trim();
+            l.is_empty() || l.starts_with('#')
+        }) {
             return Err(PlanError::Empty);
-        };
-        let names: Vec<&str> = header.split(',').map(str::trim).collect();
-        let mut cols = [None; 8];
-        for (i, n) in names.iter().enumerate() {
-            match PLAN_COLUMNS.iter().position(|c| c == n) {
-                Some(k) => cols[k] = Some(i),
-                None => {
-                    return Err(err(
-                        hl,
-                        format!(
-                            "unknown column \"{n}\": the columns are {}",
-                            PLAN_COLUMNS.join(",")
-                        ),
-                    ));
+        }
+        let csv = NumericCsv::parse(text, source_name, &PLAN_COLUMNS[..6], &PLAN_COLUMNS[6..])?;
+        let ranges: Vec<(&str, Range)> = PLAN_COLUMNS
+            .iter()
+            .enumerate()
+            .map(|(k, c)| (*c, column_range(k)))
+            .collect();
+        csv.check_ranges(&ranges)?;
+        let cols: [Option<usize>; 8] = std::array::from_fn(|k| csv.col(PLAN_COLUMNS[k]));
+        let poses: Vec<PlanPose> = csv
+            .rows
+            .iter()
+            .map(|(_, row)| {
+                let v: [f64; 8] = std::array::from_fn(|k| cols[k].map_or(0.0, |c| row[c]));
+                PlanPose {
+                    pose: HexPose([v[0], v[1], v[2], v[3], v[4], v[5]]),
+                    travel_mm: v[6],
+                    follower_mm: v[7],
                 }
-            }
-        }
-        if let Some(k) = (0..6).find(|&k| cols[k].is_none()) {
-            return Err(err(hl, format!("column {} missing", PLAN_COLUMNS[k])));
-        }
-        let mut poses = Vec::new();
-        for (ln, line) in lines {
-            let fields: Vec<&str> = line.split(',').map(str::trim).collect();
-            if fields.len() != names.len() {
-                return Err(err(
-                    ln,
-                    format!(
-                        "{} fields where the header has {}",
-                        fields.len(),
-                        names.len()
-                    ),
-                ));
-            }
-            let mut v = [0.0; 8];
-            for k in 0..8 {
-                if let Some(c) = cols[k] {
-                    v[k] = fields[c]
-                        .parse::<f64>()
-                        .ok()
-                        .filter(|x| x.is_finite())
-                        .ok_or_else(|| {
-                            err(
-                                ln,
-                                format!("{} = \"{}\" is not a number", PLAN_COLUMNS[k], fields[c]),
-                            )
-                        })?;
-                    column_range(k)
-                        .check(v[k])
-                        .map_err(|p| err(ln, format!("{} = {p}", PLAN_COLUMNS[k])))?;
-                }
-            }
-            poses.push(PlanPose {
-                pose: HexPose([v[0], v[1], v[2], v[3], v[4], v[5]]),
-                travel_mm: v[6],
-                follower_mm: v[7],
-            });
-        }
+            })
+            .collect();
         if poses.is_empty() {
             return Err(PlanError::Empty);
         }
@@ -367,7 +321,13 @@ mod tests {
             .expect_err("bad");
         assert_eq!(
             e.to_string(),
-            "p.csv line 2: w_deg = \"abc\" is not a number"
+            "p.csv line 2, column w_deg: \"abc\" is not a number"
+        );
+        let e = PosePlan::parse("x_mm,y_mm,z_mm,u_deg,v_deg,w_deg\n0,0,0,0,0,200\n", "p.csv")
+            .expect_err("bad");
+        assert_eq!(
+            e.to_string(),
+            "p.csv line 2, column w_deg: 200 degrees is out of range: use -180 to 180 degrees"
         );
         let e = PosePlan::parse("x_mm,y_mm,q\n", "p.csv").expect_err("bad");
         assert!(e.to_string().contains("unknown column \"q\""), "{e}");

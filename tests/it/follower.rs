@@ -355,24 +355,28 @@ fn certificates_with_bad_rows_are_refused_with_the_line() {
             5,
             "not above the previous + row's 10 mm",
         ),
-        ("0,0.1,+,0.2\n10,0.2,,0.2\n", 4, "the direction is missing"),
+        (
+            "0,0.1,+,0.2\n10,0.2,,0.2\n",
+            4,
+            "column direction: empty field: write + or -",
+        ),
         (
             "0,0.1,+,0.2\n10,NaN,+,0.2\n",
             4,
-            "error_um \"NaN\" is not a finite number",
+            "column error_um: \"NaN\" is not a finite number",
         ),
-        ("0,0.1,+,0.2\n10,0.2,+\n", 4, "3 fields, a row has 4"),
-        ("0,0.1,+,0.2\n10,0.2,+,0.2,7\n", 4, "5 fields, a row has 4"),
+        ("0,0.1,+,0.2\n10,0.2,+\n", 4, "3 fields, the header has 4"),
+        ("0,0.1,+,0.2\n10,0.2,+,0.2,7\n", 4, "5 fields, the header has 4"),
         (
             "0,0.1,+,0.2\n10,0.2,x,0.2\n",
             4,
-            "direction \"x\" is neither + nor -",
+            "column direction: \"x\" is neither + nor -",
         ),
     ] {
         let e = Certificate::parse(&format!("{h}{body}"), "cert.csv")
             .unwrap_err()
             .to_string();
-        assert!(e.starts_with(&format!("cert.csv line {line}: ")), "{e}");
+        assert!(e.starts_with(&format!("cert.csv line {line}")), "{e}");
         assert!(e.contains(what), "{e}");
     }
     // The twin's own certificate reads back.
@@ -411,7 +415,7 @@ fn the_command_line_imports_shows_and_exports() {
     let err = stderr(&o);
     assert!(
         err.contains(&format!(
-            "{} line 3: the direction is missing",
+            "{} line 3, column direction: empty field",
             bad.display()
         )),
         "{err}"

@@ -95,7 +95,7 @@ async fn the_service_maps_the_twins_follower_through_the_control_api() {
         .unwrap_err()
         .to_string();
     assert!(
-        e.contains("bad.csv line 3: the direction is missing"),
+        e.contains("bad.csv line 3, column direction: empty field"),
         "{e}"
     );
     let e = rig

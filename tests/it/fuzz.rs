@@ -1067,7 +1067,7 @@ fn fuzz_plan_files() {
                     prop_assert!(pose.pose.0.iter().all(|x| x.is_finite()));
                 }
             }
-            Err(e @ PlanError::Parse { .. }) => names_input(Err::<(), _>(e), "fuzz-plan.csv")?,
+            Err(e @ PlanError::Csv(_)) => names_input(Err::<(), _>(e), "fuzz-plan.csv")?,
             Err(_) => {}
         }
         Ok(())

@@ -12,6 +12,7 @@ mod cli;
 mod comp;
 mod comp_export;
 mod console;
+mod csv_inputs;
 mod decoupling;
 mod evaluate;
 mod follower;

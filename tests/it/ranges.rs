@@ -400,15 +400,15 @@ fn csv_numbers_out_of_range_name_line_and_column() {
     for (row, message) in [
         (
             "100,1e300,+,0.2",
-            "cert.csv line 3: error_um 1e300 µm is out of range: use -10000 to 10000 µm",
+            "cert.csv line 3, column error_um: 1e300 µm is out of range: use -10000 to 10000 µm",
         ),
         (
             "1e300,0,+,0.2",
-            "cert.csv line 3: position_mm 1e300 mm is out of range: use -10000 to 10000 mm",
+            "cert.csv line 3, column position_mm: 1e300 mm is out of range: use -10000 to 10000 mm",
         ),
         (
             "100,0,+,1e300",
-            "cert.csv line 3: uncertainty_um 1e300 µm is out of range: use 0.001 to 1000 µm",
+            "cert.csv line 3, column uncertainty_um: 1e300 µm is out of range: use 0.001 to 1000 µm",
         ),
     ] {
         let e = axiscomp::follower::Certificate::parse(&format!("{cert}{row}\n"), "cert.csv")
@@ -423,7 +423,7 @@ fn csv_numbers_out_of_range_name_line_and_column() {
         .to_string();
     assert_eq!(
         e,
-        "plan.csv line 3: w_deg = 1e300 degrees is out of range: use -180 to 180 degrees"
+        "plan.csv line 3, column w_deg: 1e300 degrees is out of range: use -180 to 180 degrees"
     );
 
     let e = axiscomp::evaluate::input::parse_deviation_csv(
