@@ -374,7 +374,7 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
         r
     })?;
     if let Some(p) = fit_progress.take() {
-        p.finish("fitted");
+        p.finish("done");
     }
     let j = &out.judgement;
     let bound = j.calibration.crlb(&layout)?;

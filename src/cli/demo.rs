@@ -378,12 +378,33 @@ pub fn run(a: Args) -> Result<()> {
         &format!("{}\n", serde_json::to_string_pretty(&json)?),
     )?;
     println!("\nreport: {} ({} files)", a.out.display(), files + 1);
-    println!(
-        "  {}/after/report.html, the verification run against the first; {}/axiscomp.db: both runs (axiscomp report --db … --run 1|2)",
-        a.out.display(),
-        a.out.display()
-    );
+    println!("{}", report_hint(&a.out));
     Ok(())
+}
+
+/// Where the demo's reports are, and the commands that write them again from its store, each
+/// one that can be pasted as it stands (the path quoted when the shell would split it).
+fn report_hint(out: &std::path::Path) -> String {
+    let dir = out.display().to_string();
+    let quoted = if dir
+        .chars()
+        .all(|c| c.is_ascii_alphanumeric() || "/._-+,:@".contains(c))
+    {
+        dir.clone()
+    } else {
+        format!("'{}'", dir.replace('\'', r"'\''"))
+    };
+    let db = if quoted.starts_with('\'') {
+        format!("{}/axiscomp.db'", &quoted[..quoted.len() - 1])
+    } else {
+        format!("{quoted}/axiscomp.db")
+    };
+    format!(
+        "  {dir}/after/report.html: the verification run against the first\n  \
+         both runs are in {dir}/axiscomp.db; their acceptance reports, with the PDF:\n    \
+         axiscomp report --db {db} --run 1 --out {quoted}/run-1\n    \
+         axiscomp report --db {db} --run 2 --compare 1 --out {quoted}/run-2"
+    )
 }
 
 /// One round of alignment as the technician reads it.
@@ -838,4 +859,29 @@ fn write(path: &Path, text: &str) -> Result<()> {
             path.display()
         )
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::report_hint;
+    use std::path::Path;
+
+    #[test]
+    fn the_report_commands_can_be_pasted() {
+        // The demo printed "axiscomp report --db … --run 1|2".
+        let h = report_hint(Path::new("/tmp/demo-out"));
+        assert!(
+            h.contains("axiscomp report --db /tmp/demo-out/axiscomp.db --run 1 --out /tmp/demo-out/run-1\n")
+                && h.ends_with(
+                    "axiscomp report --db /tmp/demo-out/axiscomp.db --run 2 --compare 1 --out /tmp/demo-out/run-2"
+                ),
+            "{h}"
+        );
+        // A path the shell would split is quoted.
+        let h = report_hint(Path::new("/tmp/my demo's out"));
+        assert!(
+            h.contains(r"--db '/tmp/my demo'\''s out/axiscomp.db' --run 1 --out '/tmp/my demo'\''s out'/run-1"),
+            "{h}"
+        );
+    }
 }

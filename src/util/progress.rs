@@ -55,23 +55,19 @@ impl Progress {
         self.set(self.done + 1);
     }
 
-    /// Finish the stage with a closing note.
+    /// Finish the stage with a closing note ("200 poses"; "done" or "" for none).
     pub fn finish(mut self, note: &str) {
         self.done = self.total;
         if !self.enabled {
             return;
         }
         let secs = self.started.elapsed().as_secs_f64();
+        let line = closing(note, secs);
         let mut err = std::io::stderr().lock();
         if self.tty {
-            let _ = writeln!(
-                err,
-                "\r{} {} {note} ({secs:.1} s)\x1b[K",
-                self.label,
-                bar(1.0)
-            );
+            let _ = writeln!(err, "\r{} {} {line}\x1b[K", self.label, bar(1.0));
         } else {
-            let _ = writeln!(err, "{}: done, {note} ({secs:.1} s)", self.label);
+            let _ = writeln!(err, "{}: {line}", self.label);
         }
     }
 
@@ -109,8 +105,29 @@ impl Drop for Progress {
     }
 }
 
+/// What a stage's closing line says after its label: "done" and the note, once, with the time.
+fn closing(note: &str, secs: f64) -> String {
+    match note.trim() {
+        "" | "done" => format!("done ({secs:.1} s)"),
+        note => format!("done, {note} ({secs:.1} s)"),
+    }
+}
+
 fn bar(frac: f64) -> String {
     let width = 30;
     let full = ((frac.clamp(0.0, 1.0)) * width as f64).round() as usize;
     format!("[{}{}]", "#".repeat(full), "-".repeat(width - full))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::closing;
+
+    #[test]
+    fn a_stage_says_done_once() {
+        // The demo printed "calibration fit: done, done (0.1 s)".
+        assert_eq!(closing("done", 0.12), "done (0.1 s)");
+        assert_eq!(closing("", 2.0), "done (2.0 s)");
+        assert_eq!(closing("200 poses", 0.0), "done, 200 poses (0.0 s)");
+    }
 }

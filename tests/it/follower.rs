@@ -366,7 +366,11 @@ fn certificates_with_bad_rows_are_refused_with_the_line() {
             "column error_um: \"NaN\" is not a finite number",
         ),
         ("0,0.1,+,0.2\n10,0.2,+\n", 4, "3 fields, the header has 4"),
-        ("0,0.1,+,0.2\n10,0.2,+,0.2,7\n", 4, "5 fields, the header has 4"),
+        (
+            "0,0.1,+,0.2\n10,0.2,+,0.2,7\n",
+            4,
+            "5 fields, the header has 4",
+        ),
         (
             "0,0.1,+,0.2\n10,0.2,x,0.2\n",
             4,
