@@ -279,15 +279,15 @@ fn build(
     if let Some(s) = o.step_mm
         && s < min_step * (1.0 - 1e-9)
     {
-        return Err(CompError::Limit {
+        return Err(CompError::Unsupported {
             format: F,
-            limit: format!(
-                "the minimum interval {} mm (max feed {} mm/min / 7500, parameter 3624)",
+            problem: format!(
+                "the interval {} mm is below the minimum interval {} mm (max feed {} mm/min / 7500, parameter 3624): give a --step-mm of at least {} mm, or check comp.fanuc.max_feed_mm_min",
+                trimmed(s, 4),
                 trimmed(min_step, 4),
-                trimmed(o.max_feed_mm_min.unwrap_or(0.0), 1)
+                trimmed(o.max_feed_mm_min.unwrap_or(0.0), 1),
+                trimmed(min_step, 4)
             ),
-            value: format!("the interval {} mm", trimmed(s, 4)),
-            setting: "give a larger --step-mm or check comp.fanuc.max_feed_mm_min".into(),
         });
     }
     let (backlash, bidirectional) = match &table.values {

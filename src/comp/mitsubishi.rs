@@ -102,7 +102,7 @@ fn build(table: &CompTable, o: &MecOptions) -> Result<(Exported, MecData), CompE
     if matches!(table.values, TableValues::Bidirectional { .. }) {
         return Err(CompError::Unsupported {
             format: F,
-            problem: "one table serves both directions: build a unidirectional table (the backlash goes to the backlash parameter)".into(),
+            problem: "one table serves both directions: export without --bidirectional (one table; the backlash goes to the backlash parameter)".into(),
         });
     }
     let grid = super::fit_checked(

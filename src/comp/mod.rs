@@ -80,8 +80,14 @@ pub enum CompError {
     },
 }
 
-/// The controller's grid for `table` within `limits`, refused when it had to be made coarser
-/// than the spacing asked for: the controller's point limit (named by `limit`; `setting` is the
+/// How much coarser than the measured targets' spacing a controller's grid may be without a
+/// spacing asked for: a quantised spacing (a power of two for TNC 4xx) rounds up, short of
+/// twice.
+const MAX_COARSENING: f64 = 2.0;
+
+/// The controller's grid for `table` within `limits`, refused when its reference point lies
+/// more than a spacing outside the measured range, when it had to be made coarser than the
+/// measured spacing with none asked for (`MAX_COARSENING`), or coarser than the spacing asked for: the controller's point limit (named by `limit`; `setting` is the
 /// key that raises it) does not hold the table at that spacing.
 pub(crate) fn fit_checked(
     format: &'static str,
@@ -90,11 +96,54 @@ pub(crate) fn fit_checked(
     limit: String,
     setting: &str,
 ) -> Result<Grid, CompError> {
+    // A reference point far outside the measured range would zero the table where nothing
+    // was measured and hold the end values over the gap (`--reference-mm 5000` on a 1000 mm
+    // axis zeroed the table 4 m past the travel).
+    let r = table.reference_mm;
+    let measured = table.mean_step_mm();
+    if let (Some(&first), Some(&last)) = (table.positions_mm.first(), table.positions_mm.last()) {
+        let reach = measured.max(limits.step_mm.unwrap_or(0.0));
+        let beyond = (first - r).max(r - last);
+        if beyond > reach * (1.0 + 1e-9) {
+            return Err(CompError::Unsupported {
+                format,
+                problem: format!(
+                    "the reference point {} mm is {} mm outside the measured range {} to {} mm (more than one spacing, {} mm): the table would be zero where nothing was measured; give the machine position of the reference point on the measured travel (--reference-mm)",
+                    trimmed(r, 3),
+                    trimmed(beyond, 3),
+                    trimmed(first, 3),
+                    trimmed(last, 3),
+                    trimmed(reach, 3)
+                ),
+            });
+        }
+    }
     let grid = fit_grid(table, limits, format)?;
+    // Without a spacing asked for, the table is not made coarser than the targets were
+    // measured: a 5-point limit resampled a 1000 mm table 264 mm apart, losing what the
+    // targets between showed. A coarser table is written when --step-mm asks for it.
+    if limits.step_mm.is_none()
+        && measured > 0.0
+        && grid.step_mm > MAX_COARSENING * measured.max(limits.min_step_mm)
+    {
+        return Err(CompError::Limit {
+            format,
+            limit,
+            value: format!(
+                "{} points at the measured targets' spacing of {} mm (they would be {} mm apart)",
+                table.positions_mm.len(),
+                trimmed(measured, 3),
+                trimmed(grid.step_mm, 3)
+            ),
+            setting: format!(
+                "raise {setting}, or ask for the coarser table with --step-mm {}",
+                trimmed(grid.step_mm, 3)
+            ),
+        });
+    }
     if let Some(w) = limits.step_mm
         && grid.step_mm > w * (1.0 + 1e-9)
     {
-        let r = table.reference_mm;
         let (lo, hi) = match (table.positions_mm.first(), table.positions_mm.last()) {
             (Some(a), Some(b)) => (a.min(r), b.max(r)),
             _ => (r, r),

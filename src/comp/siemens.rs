@@ -255,7 +255,7 @@ pub fn lec(table: &CompTable, o: &LecOptions) -> Result<Exported, CompError> {
         TableValues::Bidirectional { .. } => {
             return Err(CompError::Unsupported {
                 format: F,
-                problem: "LEC is not direction-dependent: build a unidirectional table (backlash to MD32450) or export both directions with cec ($AN_CEC_DIRECTION)".into(),
+                problem: "LEC is not direction-dependent: export without --bidirectional (one table, the backlash to MD32450), or both directions with --format siemens-cec ($AN_CEC_DIRECTION)".into(),
             });
         }
     };

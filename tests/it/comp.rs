@@ -591,17 +591,45 @@ fn one_point_sign_rule_of_every_controller() {
 #[test]
 fn limits_and_refusals() {
     let uni = tables(PositioningMode::Unidirectional);
-    // Point count fitted: 3 points at most → the spacing grows to cover 0..500 mm.
-    let x = siemens::lec(
+    // 3 points at most cannot hold the table at its measured spacing: refused (a 5-point
+    // limit resampled a 1000 mm table 264 mm apart), with the spacing that would fit.
+    let mean = uni.positioning.mean_step_mm();
+    let e = siemens::lec(
         &uni.positioning,
         &LecOptions {
             max_points: 3,
             ..LecOptions::new("AX2")
         },
     )
+    .unwrap_err()
+    .to_string();
+    assert_eq!(mean, 100.0);
+    assert_eq!(
+        e,
+        "Siemens LEC: 6 points at the measured targets' spacing of 100.0 mm (they would be 266.667 mm apart) exceeds MD38000 $MA_MM_ENC_COMP_MAX_POINTS = 3: raise comp.siemens.enc_comp_max_points (--max-points) with MD38000 on the control, or ask for the coarser table with --step-mm 266.667"
+    );
+    // Asked for by --step-mm, the coarser table is written: 3 points over 0..500 mm.
+    let x = siemens::lec(
+        &uni.positioning,
+        &LecOptions {
+            max_points: 3,
+            step_mm: Some(250.0),
+            ..LecOptions::new("AX2")
+        },
+    )
     .unwrap();
     let g = x.grid.unwrap();
     assert!(g.count <= 3 && g.end_mm() >= 500.0, "{g:?}");
+    // A reference point far outside the measured range is refused.
+    let mut far = uni.positioning.clone();
+    far.reference_mm = 5000.0;
+    let e = siemens::lec(&far, &LecOptions::new("AX2"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.starts_with("Siemens LEC: the reference point 5000.0 mm is 4500.0 mm outside the measured range 0.0 to 500.0 mm (more than one spacing, 100.0 mm)"),
+        "{e}"
+    );
     // int8 overflow is refused with a hint; a magnification makes it fit.
     let mut big = overshoot();
     if let TableValues::Single { values, .. } = &mut big.values {

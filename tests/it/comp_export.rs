@@ -291,7 +291,7 @@ fn fanuc_minimum_interval_is_checked() {
     let e = fanuc::pitch(&overshoot(), &o).unwrap_err().to_string();
     assert_eq!(
         e,
-        "Fanuc pitch error: the interval 1.0 mm exceeds the minimum interval 4.0 mm (max feed 30000.0 mm/min / 7500, parameter 3624): give a larger --step-mm or check comp.fanuc.max_feed_mm_min"
+        "Fanuc pitch error: the interval 1.0 mm is below the minimum interval 4.0 mm (max feed 30000.0 mm/min / 7500, parameter 3624): give a --step-mm of at least 4.0 mm, or check comp.fanuc.max_feed_mm_min"
     );
     // Automatic spacing: at least 4 mm.
     let t = table(
