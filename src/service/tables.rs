@@ -1094,7 +1094,8 @@ impl Tables {
             StatusView {
                 source: format!("read back from {target}"),
                 plc: PlcStatusView::from(&rb.status),
-                staged: Some(StagedView {
+                // A staging area never written (sequence 0) holds no table: not an invalid one.
+                staged: (rb.header.sequence != 0).then(|| StagedView {
                     sequence: rb.header.sequence,
                     crc: format!("0x{:08X}", rb.header.crc),
                     points: rb.header.points,

@@ -1095,6 +1095,13 @@ async fn the_service_generates_publishes_and_reads_back_tables() {
         serde_json::from_value(rig.request(Request::TableStatus).await.expect("status"))
             .expect("status view");
     assert_eq!(st.verdict, "empty", "{}", st.message);
+    // A staging area never written is no staged table, not an invalid one (the console read
+    // "staged table invalid: code 3 (point count out of range): 0 points" on a healthy PLC).
+    assert!(
+        st.staged.is_none(),
+        "{:?}",
+        st.staged.as_ref().map(|s| &s.invalid)
+    );
 
     // Generate: positioning and both straightnesses, stored with their run.
     let v = rig
