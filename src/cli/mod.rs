@@ -16,6 +16,7 @@ mod machine;
 mod optics;
 mod report;
 mod run;
+mod run_text;
 mod service;
 mod table;
 

@@ -3,6 +3,7 @@
 //! (`export.rs`).
 
 use super::InputError;
+use super::run_text;
 use anyhow::{Context, Result};
 use axiscomp::run::PlanSpec;
 use axiscomp::service::api::Request;
@@ -76,6 +77,9 @@ pub struct Where {
     /// The service's configuration (default: /etc/axiscomp/axiscomp.toml), for the socket.
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// Print the service's answer as JSON (the control API's) instead of words.
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -126,7 +130,8 @@ pub fn run(c: Command) -> Result<()> {
         .enable_all()
         .build()
         .context("starting the async runtime")?;
-    let (at, req) = match c {
+    type Words = fn(&serde_json::Value) -> String;
+    let (at, req, words): (Where, Request, Words) = match c {
         Command::Start(a) => {
             let mut spec = match &a.plan {
                 Some(p) => {
@@ -164,11 +169,12 @@ pub fn run(c: Command) -> Result<()> {
                     dialect: a.dialect,
                     notes: a.notes,
                 },
+                run_text::started,
             )
         }
-        Command::Status(w) => (w, Request::RunStatus),
-        Command::Abort(w) => (w, Request::RunAbort),
-        Command::Flags(a) => (a.at, Request::RunFlags { run_id: a.run }),
+        Command::Status(w) => (w, Request::RunStatus, run_text::status),
+        Command::Abort(w) => (w, Request::RunAbort, run_text::aborted),
+        Command::Flags(a) => (a.at, Request::RunFlags { run_id: a.run }, run_text::flags),
         Command::Exclude(a) => (
             a.at,
             Request::RunExclude {
@@ -176,6 +182,7 @@ pub fn run(c: Command) -> Result<()> {
                 flag: a.flag,
                 reason: a.reason,
             },
+            run_text::excluded,
         ),
         Command::List(a) => return list(&a),
     };
@@ -192,7 +199,11 @@ pub fn run(c: Command) -> Result<()> {
         c.request(&req).await
     })?;
     super::stdout_closes_quietly();
-    println!("{}", serde_json::to_string_pretty(&v)?);
+    if at.json {
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!("{}", words(&v));
+    }
     Ok(())
 }
 

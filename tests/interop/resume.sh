@@ -61,7 +61,7 @@ sys.exit(0 if s["follower"]["homed"] else 1)
 }
 # field NAME: a field of `axiscomp run status` (empty when it does not answer).
 status_field() {
-  "$bin" run status --socket "$sock" 2>/dev/null | python3 -c "
+  "$bin" run status --json --socket "$sock" 2>/dev/null | python3 -c "
 import json, sys
 print(json.load(sys.stdin).get('$1', ''))" 2>/dev/null || true
 }
@@ -96,7 +96,7 @@ done
 align_cli -1 $((end_mm + 1)) >"$work/align.txt" 2>&1 || { cat "$work/align.txt" >&2; fail "the alignment check did not pass"; }
 # The truth where the alignment took the zero (the carriage has not moved since).
 python3 tests/interop/truth.py zero "$twin_ctl" "$work/zero-truth.json" || fail "the twin did not give its truth"
-"$bin" run start --socket "$sock" --axis X --start-mm 0 --end-mm "$end_mm" --targets 5 --runs 2 \
+"$bin" run start --json --socket "$sock" --axis X --start-mm 0 --end-mm "$end_mm" --targets 5 --runs 2 \
   --dwell-s 1.5 --feed-mm-min "$feed" --overrun-mm 1 --lead-mm 5 --dialect linuxcnc \
   >"$work/start.json" 2>&1 || { cat "$work/start.json" >&2; fail "run start refused"; }
 run_id=$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["run_id"])' "$work/start.json")

@@ -84,7 +84,7 @@ print(p.get("seq", 0), s["unix_us"], p.get("late_frames", 0), io["state"], io["e
       io["reconnects"], int(s["follower"]["homed"]), int(t["valid"] and t["at_rest"]))' 2>/dev/null || true
 }
 run_field() {
-  "$bin" run status --socket "$sock" 2>/dev/null | python3 -c "
+  "$bin" run status --json --socket "$sock" 2>/dev/null | python3 -c "
 import json, sys
 print(json.load(sys.stdin).get('$1', ''))" 2>/dev/null || true
 }
@@ -141,7 +141,7 @@ next_run=0
 next_sample=0
 # start_run: an ISO 230-2 run on the twin (0-20 mm, 5 targets, 2 runs: 20 captures).
 start_run() {
-  "$bin" run start --socket "$sock" --axis X --start-mm 0 --end-mm 20 --targets 5 --runs 2 \
+  "$bin" run start --json --socket "$sock" --axis X --start-mm 0 --end-mm 20 --targets 5 --runs 2 \
     --dwell-s 1.5 --feed-mm-min 3000 --overrun-mm 1 --lead-mm 5 --dialect linuxcnc \
     >"$work/start-$runs_started.json" 2>&1 \
     || { cat "$work/start-$runs_started.json" >&2; fail "run $((runs_started + 1)) refused"; }

@@ -149,7 +149,7 @@ def main():
         return p
 
     def start_run():
-        r = subprocess.run([a.bin, "run", "start", "--socket", a.sock] + shlex.split(a.run_args),
+        r = subprocess.run([a.bin, "run", "start", "--json", "--socket", a.sock] + shlex.split(a.run_args),
                            capture_output=True, text=True)
         if r.returncode != 0:
             sys.exit(f"storm.py: run start refused: {r.stdout}{r.stderr}")
