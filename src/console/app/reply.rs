@@ -301,12 +301,7 @@ impl App {
             | Pending::MachineDetach(_)
             | Pending::MachineNew => {}
             Pending::Other(what) => {
-                let detail = if v.is_null() {
-                    String::new()
-                } else {
-                    format!(": {v}")
-                };
-                let text = format!("{what} done{detail}");
+                let text = format!("{what} done{}", answer_words(&v));
                 self.log(Level::Info, format!("✓ {text}"));
                 self.say(Level::Info, text);
             }
@@ -329,5 +324,57 @@ impl App {
                 self.saved = Some(Err(text));
             }
         }
+    }
+}
+
+/// The service's answer to a zero, a cleared zero or a follower move, in words after "done"
+/// (the console printed `zero here done: {"offsets":[0.0171208…`): the offsets the zero took,
+/// the follower's position; nothing for an answer with nothing to say.
+fn answer_words(v: &serde_json::Value) -> String {
+    const NAMES: [(&str, &str); 6] = [
+        ("dx", "µm"),
+        ("dy", "µm"),
+        ("dz", "µm"),
+        ("ex", "″"),
+        ("ey", "″"),
+        ("ez", "″"),
+    ];
+    if let Some(o) = v["offsets"].as_array().filter(|o| o.len() == 6) {
+        let parts: Vec<String> = o
+            .iter()
+            .zip(NAMES)
+            .map(|(x, (name, unit))| match x.as_f64() {
+                Some(x) if unit == "µm" => format!("{name} {x:+.2} {unit}"),
+                Some(x) => format!("{name} {x:+.2}{unit}"),
+                None => format!("{name} unknown"),
+            })
+            .collect();
+        return format!(": offsets {}", parts.join(", "));
+    }
+    if let Some(p) = v["position_mm"].as_f64() {
+        return format!(": the follower at {p:.3} mm");
+    }
+    String::new()
+}
+
+#[cfg(test)]
+mod answer_tests {
+    use super::answer_words;
+    use serde_json::json;
+
+    #[test]
+    fn answers_are_words() {
+        assert_eq!(
+            answer_words(
+                &json!({"zeroed": true, "offsets": [0.0171208, -1.25, 0.0, 0.41, -0.005, 2.0]})
+            ),
+            ": offsets dx +0.02 µm, dy -1.25 µm, dz +0.00 µm, ex +0.41″, ey -0.01″, ez +2.00″"
+        );
+        assert_eq!(answer_words(&json!({"zeroed": false})), "");
+        assert_eq!(
+            answer_words(&json!({"position_mm": 12.34567})),
+            ": the follower at 12.346 mm"
+        );
+        assert_eq!(answer_words(&serde_json::Value::Null), "");
     }
 }
