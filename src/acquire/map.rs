@@ -341,7 +341,7 @@ fn validate(raw: RawMap, cx: &Ctx) -> Result<IoMap, MapError> {
         cx.err(
             "block_length",
             e.to_string(),
-            "one block read carries 1..=125 registers inside 0..=65535",
+            "one block read carries 1 to 125 registers inside 0 to 65535",
         )
     })?;
     let threshold = cx.range(

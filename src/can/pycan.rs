@@ -175,11 +175,11 @@ pub fn decode_message(buf: &[u8]) -> Result<Option<CanFrame>, CanError> {
     if !(0..=max as i128).contains(&id) {
         let kind = if extended { "extended" } else { "standard" };
         return Err(bad(format!(
-            "{kind} arbitration_id {id:#x} out of range 0..={max:#x}"
+            "{kind} arbitration_id {id:#x} out of range 0 to {max:#x}"
         )));
     }
     if !(0..=8).contains(&dlc) {
-        return Err(bad(format!("dlc {dlc} out of range 0..=8")));
+        return Err(bad(format!("dlc {dlc} out of range 0 to 8")));
     }
     let frame = if remote {
         if !data.is_empty() {

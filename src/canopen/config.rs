@@ -18,7 +18,7 @@ use thiserror::Error;
 #[derive(Clone, Debug, Error, PartialEq)]
 pub enum ConfigError {
     #[error(
-        "canopen.node_id = {0}: a CANopen node id is 1..=127; set the follower drive's node id"
+        "canopen.node_id = {0}: a CANopen node id is 1 to 127; set the follower drive's node id"
     )]
     NodeId(u8),
     #[error("canopen.{key} = {value}: {why}")]
@@ -284,7 +284,7 @@ impl DriveConfig {
             return Err(ConfigError::Invalid {
                 key: "heartbeat_period",
                 value: crate::util::time::span(hb),
-                why: "0x1017 holds whole milliseconds, 1..=65535 ms",
+                why: "0x1017 holds whole milliseconds, 1 to 65535 ms",
             });
         }
         if self.heartbeat_timeout <= hb {
@@ -341,7 +341,7 @@ impl DriveConfig {
             return Err(ConfigError::Invalid {
                 key: "csp_lead_periods",
                 value: self.csp_lead_periods.to_string(),
-                why: "must be 0..=4 SYNC periods",
+                why: "must be 0 to 4 SYNC periods",
             });
         }
         let l = &self.limits;
@@ -570,7 +570,7 @@ mod tests {
                     csp_lead_periods: 5.0,
                     ..Default::default()
                 },
-                "canopen.csp_lead_periods = 5: must be 0..=4 SYNC periods",
+                "canopen.csp_lead_periods = 5: must be 0 to 4 SYNC periods",
             ),
         ];
         for (cfg, want) in bad {

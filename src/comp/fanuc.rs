@@ -198,7 +198,7 @@ fn check_options(o: &PitchOptions) -> Result<(), CompError> {
     if !(1..=100).contains(&o.magnification) {
         return Err(opt(
             "magnification",
-            format!("{}: parameter 3623 takes 1..=100", o.magnification),
+            format!("{}: parameter 3623 takes 1 to 100", o.magnification),
         ));
     }
     for (name, v) in [
@@ -323,8 +323,8 @@ fn build(
     if n_neg < 0 || n_pos > max_n {
         return Err(CompError::Limit {
             format: F,
-            limit: format!("point numbers 0..={max_n} (comp.fanuc.max_number)"),
-            value: format!("points {n_neg}..={n_pos} around reference number 3620 = {r}"),
+            limit: format!("point numbers 0 to {max_n} (comp.fanuc.max_number)"),
+            value: format!("points {n_neg} to {n_pos} around reference number 3620 = {r}"),
             setting: format!(
                 "set comp.fanuc.reference_number (parameter 3620) to {} or leave it out",
                 (-(k_lo + 1)).max(0)
@@ -346,9 +346,9 @@ fn build(
             return Err(CompError::Limit {
                 format: F,
                 limit: format!(
-                    "point numbers 0..={max_n}, apart from the positive set {n_neg}..={n_pos}"
+                    "point numbers 0 to {max_n}, apart from the positive set {n_neg} to {n_pos}"
                 ),
-                value: format!("the negative set {start}..={end}"),
+                value: format!("the negative set {start} to {end}"),
                 setting: "change comp.fanuc.negative_start (parameter 3626) or leave it out".into(),
             });
         }

@@ -59,7 +59,7 @@ pub enum CompError {
         format: &'static str,
         problem: String,
     },
-    #[error("{format}: {what} = {value} at {position_mm} mm is outside {min}..={max}: {hint}")]
+    #[error("{format}: {what} = {value} at {position_mm} mm is outside {min} to {max}: {hint}")]
     OutOfRange {
         format: &'static str,
         what: String,

@@ -303,7 +303,7 @@ pub fn validate(raw: &RawComp) -> Result<CompSettings, (String, String)> {
         return Err((
             "comp.fanuc.magnification".into(),
             format!(
-                "{} is outside parameter 3623's 1..=100",
+                "{} is outside parameter 3623's 1 to 100",
                 raw.fanuc.magnification
             ),
         ));

@@ -700,7 +700,7 @@ fn validate(
             n => {
                 return Err(v.err(
                     "service.max_connections",
-                    format!("{n} is out of range: use 1..=10000 (default 64)"),
+                    format!("{n} is out of range: use 1 to 10000 (default 64)"),
                 ));
             }
         },
@@ -718,7 +718,7 @@ fn validate(
     let unit = u8::try_from(i.unit).map_err(|_| {
         v.err(
             "io.unit",
-            format!("{} is not a Modbus unit id (0..=255)", i.unit),
+            format!("{} is not a Modbus unit id (0 to 255)", i.unit),
         )
     })?;
     let rate = v.range(
@@ -812,14 +812,14 @@ fn validate(
         .ok_or_else(|| {
             v.err(
                 "follower.node_id",
-                format!("{} is not a CANopen node id (1..=127)", f.node_id),
+                format!("{} is not a CANopen node id (1 to 127)", f.node_id),
             )
         })?;
     let homing_method = i8::try_from(f.homing_method).map_err(|_| {
         v.err(
             "follower.homing_method",
             format!(
-                "{} is not a CiA 402 homing method (-128..=127)",
+                "{} is not a CiA 402 homing method (-128 to 127)",
                 f.homing_method
             ),
         )
@@ -1117,7 +1117,7 @@ fn plc_settings(v: &V, p: &RawPlc) -> Result<PlcSettings, ConfigError> {
         let unit = u8::try_from(p.unit).map_err(|_| {
             v.err(
                 "plc.unit",
-                format!("{} is not a Modbus unit id (0..=255)", p.unit),
+                format!("{} is not a Modbus unit id (0 to 255)", p.unit),
             )
         })?;
         let (rmin, rmax) = (
@@ -1169,7 +1169,7 @@ fn plc_settings(v: &V, p: &RawPlc) -> Result<PlcSettings, ConfigError> {
                 n => {
                     return Err(v.err(
                         "plc.pull_max_connections",
-                        format!("{n} is out of range: use 1..=1000 (default 32)"),
+                        format!("{n} is out of range: use 1 to 1000 (default 32)"),
                     ));
                 }
             },
@@ -1179,7 +1179,7 @@ fn plc_settings(v: &V, p: &RawPlc) -> Result<PlcSettings, ConfigError> {
                     return Err(v.err(
                         "plc.pull_idle_timeout_s",
                         format!(
-                            "{n} s is out of range: use 1..=3600 s (default 60), longer than the PLC's poll period"
+                            "{n} s is out of range: use 1 to 3600 s (default 60), longer than the PLC's poll period"
                         ),
                     ));
                 }

@@ -317,7 +317,7 @@ pub fn encode(
 /// Why an address range is not a valid request.
 #[derive(Clone, Copy, Debug, Error, PartialEq, Eq)]
 pub enum AddressError {
-    #[error("quantity {count} is outside 1..={max}")]
+    #[error("quantity {count} is outside 1 to {max}")]
     Quantity { count: u16, max: u16 },
     #[error("registers {start}..{start}+{count} run past the last address 65535")]
     PastEnd { start: u16, count: u16 },

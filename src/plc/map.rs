@@ -841,7 +841,7 @@ fn validate(raw: RawMap, cx: &Ctx) -> Result<CncMap, MapError> {
         return Err(cx.err(
             "limits.max_points",
             format!("{} points", l.max_points),
-            "give 2..=65535 (the PLC's table size)",
+            "give 2 to 65535 (the PLC's table size)",
         ));
     }
     // A compensation value or step from a nanometre to 10 mm: beyond it the machine needs
@@ -892,7 +892,7 @@ fn validate(raw: RawMap, cx: &Ctx) -> Result<CncMap, MapError> {
         return Err(cx.err(
             "payload.scale",
             format!("{} {} is {nm} nm per count", p.scale, unit.name()),
-            "the header's unit field carries the resolution in whole nanometres (1..=65535): use e.g. 0.1 um or 1 um",
+            "the header's unit field carries the resolution in whole nanometres (1 to 65535): use e.g. 0.1 um or 1 um",
         ));
     }
     let sign = match p.sign.as_str() {
@@ -998,9 +998,9 @@ fn validate(raw: RawMap, cx: &Ctx) -> Result<CncMap, MapError> {
                 return Err(cx.err(
                     key,
                     format!(
-                        "registers {lo}..{hi} lie outside TwinCAT's default %MB mapping 0x3000..=0x5FFF"
+                        "registers {lo}..{hi} lie outside TwinCAT's default %MB mapping 0x3000 to 0x5FFF"
                     ),
-                    "move it into 0x3000..=0x5FFF (12288..=24575), or change the server's mapping and use notation scheme \"modbus\"",
+                    "move it into 0x3000 to 0x5FFF (12288 to 24575), or change the server's mapping and use notation scheme \"modbus\"",
                 ));
             }
         }

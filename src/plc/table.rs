@@ -208,7 +208,7 @@ pub fn position_quantum(map: &CncMap) -> f64 {
 #[derive(Clone, Debug, Error, PartialEq)]
 pub enum TableError {
     #[error(
-        "the table has {points} points; the PLC takes 2..={max} (limits.max_points): refit the grid"
+        "the table has {points} points; the PLC takes 2 to {max} (limits.max_points): refit the grid"
     )]
     Points { points: usize, max: u16 },
     #[error("a table of {} needs {need} profile(s) of equal length; got {got}", direction.words())]
@@ -752,7 +752,7 @@ pub fn validate(
     if !(2..=map.limits.max_points as usize).contains(&n) {
         return Err(reject(
             RejectCode::Points,
-            format!("{n} points, not 2..={}", map.limits.max_points),
+            format!("{n} points, not 2 to {}", map.limits.max_points),
         ));
     }
     let kind = kind_from_code(header.kind)

@@ -386,7 +386,7 @@ pub fn parse_all(
     if !(1..=127).contains(&drive.node_id) {
         return Err(bad(
             "drive.node_id",
-            format!("{} is not a CANopen node id (1..=127)", drive.node_id),
+            format!("{} is not a CANopen node id (1 to 127)", drive.node_id),
         ));
     }
     let plc = match &raw.plc {

@@ -13,7 +13,7 @@ pub mod time;
 
 /// A TOML error on one line, with its line number in front.
 pub fn toml_error_line(text: &str, e: &toml::de::Error) -> String {
-    let msg = unknown_key_hint(&e.message().replace('\n', " "));
+    let msg = type_words(&unknown_key_hint(&e.message().replace('\n', " ")));
     match e.span() {
         Some(span) => {
             let before = &text[..span.start.min(text.len())];
@@ -30,6 +30,46 @@ pub fn toml_error_line(text: &str, e: &toml::de::Error) -> String {
         }
         None => msg,
     }
+}
+
+/// serde's Rust type names in words: "expected f64" → "expected a number", "expected u32" →
+/// "expected a whole number from 0 to 4294967295" (what a user of the file can act on).
+fn type_words(msg: &str) -> String {
+    let mut out = msg.to_string();
+    for (rust, words) in [
+        ("expected f64", "expected a number"),
+        ("expected f32", "expected a number"),
+        ("expected u8", "expected a whole number from 0 to 255"),
+        ("expected u16", "expected a whole number from 0 to 65535"),
+        (
+            "expected u32",
+            "expected a whole number from 0 to 4294967295",
+        ),
+        ("expected u64", "expected a whole number, 0 or more"),
+        ("expected usize", "expected a whole number, 0 or more"),
+        ("expected i8", "expected a whole number from -128 to 127"),
+        (
+            "expected i16",
+            "expected a whole number from -32768 to 32767",
+        ),
+        ("expected i32", "expected a whole number"),
+        ("expected i64", "expected a whole number"),
+        ("expected a boolean", "expected true or false"),
+    ] {
+        // Whole words only: "expected u8" is not the start of "expected u80".
+        let mut from = 0;
+        while let Some(i) = out[from..].find(rust) {
+            let at = from + i;
+            let end = at + rust.len();
+            if out[end..].starts_with(|c: char| c.is_ascii_alphanumeric()) {
+                from = end;
+                continue;
+            }
+            out.replace_range(at..end, words);
+            from = at + words.len();
+        }
+    }
+    out
 }
 
 /// serde's "unknown field `x`, expected one of `a`, `b`" in words, with the nearest known key
@@ -166,6 +206,39 @@ pub fn simultaneous_k(n: usize, level: f64) -> f64 {
 
 #[cfg(test)]
 mod stats_tests {
+    #[test]
+    fn rust_type_names_read_as_words() {
+        // `check` said: invalid type: string "fast", expected f64.
+        assert_eq!(
+            super::type_words("invalid type: string \"fast\", expected f64"),
+            "invalid type: string \"fast\", expected a number"
+        );
+        assert_eq!(
+            super::type_words("invalid value: integer `-1`, expected u32"),
+            "invalid value: integer `-1`, expected a whole number from 0 to 4294967295"
+        );
+        assert_eq!(
+            super::type_words("expected u80 and u8"),
+            "expected u80 and u8"
+        );
+        let text = "[io]\nrate_hz = \"fast\"\n";
+        #[derive(serde::Deserialize, Debug)]
+        #[allow(dead_code)]
+        struct Io {
+            rate_hz: f64,
+        }
+        #[derive(serde::Deserialize, Debug)]
+        #[allow(dead_code)]
+        struct File {
+            io: Io,
+        }
+        let e = toml::from_str::<File>(text).unwrap_err();
+        assert_eq!(
+            super::toml_error_line(text, &e),
+            "line 2 in [io]: invalid type: string \"fast\", expected a number"
+        );
+    }
+
     use super::*;
 
     /// Against Python's statistics.NormalDist().inv_cdf.

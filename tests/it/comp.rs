@@ -641,7 +641,7 @@ fn limits_and_refusals() {
     };
     let e = fanuc::pitch(&big, &o).unwrap_err().to_string();
     assert!(
-        e.contains("point 23 = -300 at 300 mm is outside -128..=127"),
+        e.contains("point 23 = -300 at 300 mm is outside -128 to 127"),
         "{e}"
     );
     assert!(e.contains("raise the magnification"), "{e}");

@@ -243,7 +243,10 @@ impl TwinDrive {
         now: Instant,
     ) -> Result<Self, SimError> {
         let node = NodeId::new(cfg.node_id).map_err(|_| {
-            SimError::Input(format!("twin drive node id {} is not 1..=127", cfg.node_id))
+            SimError::Input(format!(
+                "twin drive node id {} is not 1 to 127",
+                cfg.node_id
+            ))
         })?;
         let cpm = cfg.scaling.counts_per_mm();
         if !(cpm.is_finite() && cpm > 0.0) {
