@@ -1106,7 +1106,7 @@ fn io_pipeline(v: &V, n: i64) -> Result<usize, ConfigError> {
     } else {
         Err(v.err(
             "io.pipeline",
-            format!("{n} is out of range: use 1..={max} (1 for a module that takes one request at a time)"),
+            format!("{n} is out of range: use 1 to {max} (1 for a module that takes one request at a time)"),
         ))
     }
 }

@@ -201,7 +201,20 @@ fn debug_field(line: &str) -> bool {
     })
 }
 
-/// Every `{…:?}` in user text under `src/`, and every tracing field given by its Debug in an
+/// Whether a string literal on `line` writes a range as Rust does (`1..=127`, `{lo}..={hi}`):
+/// a user reads "1 to 127".
+fn rust_range(line: &str) -> bool {
+    line.split('"').skip(1).step_by(2).any(|lit| {
+        lit.match_indices("..=").any(|(k, _)| {
+            let before = lit[..k].chars().next_back();
+            let after = lit[k + 3..].chars().next();
+            before.is_some_and(|c| c.is_ascii_digit() || c == '}')
+                && after.is_some_and(|c| c.is_ascii_digit() || c == '-' || c == '{')
+        })
+    })
+}
+
+/// Every `{…:?}` and Rust range (`1..=127`) in user text under `src/`, and every tracing field given by its Debug in an
 /// `info!`, `warn!` or `error!` (what the service's log shows): (file, line number, line).
 fn found(root: &Path) -> Vec<(String, usize, String)> {
     let mut files = Vec::new();
@@ -237,13 +250,33 @@ fn found(root: &Path) -> Vec<(String, usize, String)> {
             if t.starts_with("//") {
                 continue;
             }
-            let placeholder = line.contains('"') && debug_placeholder(line);
+            let placeholder = line.contains('"') && (debug_placeholder(line) || rust_range(line));
             if (placeholder || field) && !for_developers(&lines, i) {
                 out.push((name.clone(), i + 1, t.to_string()));
             }
         }
     }
     out
+}
+
+#[test]
+fn the_range_scan_finds_rust_ranges_in_strings_only() {
+    for yes in [
+        r#"format!("{} is not a node id (1..=127)", n)"#,
+        r#"format!("points {lo}..={hi}")"#,
+        r#"#[error("outside {min}..={max}")]"#,
+        r#""use -7..=7""#,
+    ] {
+        assert!(rust_range(yes), "{yes}");
+    }
+    for no in [
+        r#"for k in 1..=127 {"#,
+        r#"format!("{} is not a node id (1 to 127)", n)"#,
+        r#"let r = 0..=n; format!("{r}")"#,
+        r#""a..=b is not a range of numbers""#,
+    ] {
+        assert!(!rust_range(no), "{no}");
+    }
 }
 
 #[test]
