@@ -1428,7 +1428,7 @@ mod tests {
             assert!(e.origin.ends_with(".toml"), "{e}");
             assert!(
                 e.to_string()
-                    .contains(&format!("{bad} is out of range: use 1..=16")),
+                    .contains(&format!("{bad} is out of range: use 1 to 16")),
                 "{e}"
             );
         }
