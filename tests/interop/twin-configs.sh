@@ -25,13 +25,10 @@ EOF
       -e "s#127.0.0.1:5502#127.0.0.1:$plc#" \
       -e "s#^local = \"127.0.0.1:20000\"#local = \"127.0.0.1:$can_svc\"#" \
       -e "s#^remote = \"127.0.0.1:20001\"#remote = \"127.0.0.1:$can_twin\"#" \
+      -e "s#^twin = \"127.0.0.1:5099\"#twin = \"127.0.0.1:$ctl\"#" \
       configs/twin-service.toml > "$dir/service.toml"
-  cat >> "$dir/service.toml" <<EOF
-
-[cnc]
-mode = "twin"
-twin = "127.0.0.1:$ctl"
-EOF
+  grep -q "^twin = \"127.0.0.1:$ctl\"\$" "$dir/service.toml" \
+    || { echo "twin_configs: configs/twin-service.toml has no [cnc] twin = \"127.0.0.1:5099\" to point at the twin" >&2; return 1; }
   twin_ctl="127.0.0.1:$ctl"
   # TWIN_HEXAPOD_PORTS=free: the twin's hexapod controllers on free ports too (two scripts
   # running at once would otherwise share 50000 and 5001, and one drive the other's platform).
