@@ -110,11 +110,20 @@ pub fn document(a: &Acceptance) -> Document {
         comparison(c, r, b);
     }
     uncertainty(r, b);
-    doc.sign_and_number(
-        "The figures above were measured and evaluated as stated; signing accepts the axis \
-         against the tolerances in section 9.",
-    );
+    doc.sign_and_number(signing(a));
     doc
+}
+
+/// What signing accepts: the axis against the stated tolerances, or (with none configured,
+/// when the report gives no verdict) the figures as measured.
+fn signing(a: &Acceptance) -> &'static str {
+    if a.tolerances.tolerances.is_empty() {
+        "The figures above were measured and evaluated as stated; no tolerances were \
+         configured, so signing accepts the figures as measured, not a verdict."
+    } else {
+        "The figures above were measured and evaluated as stated; signing accepts the axis \
+         against the tolerances in section 9."
+    }
 }
 
 fn identification(a: &Acceptance, b: &mut Vec<Block>) {
@@ -708,9 +717,17 @@ fn tables(r: &RunData, b: &mut Vec<Block>) {
         ),
     };
     if list.is_empty() {
-        b.push(Block::Paragraph(format!(
-            "None: the axis was measured without compensation from axiscomp. {source}"
-        )));
+        b.push(Block::Paragraph(match &r.tables {
+            ActiveTables::Recorded(_) => format!(
+                "None: the PLC applied no table from axiscomp when the run started. {source}"
+            ),
+            // The log sees only what axiscomp published: a run stored by another program
+            // (the demo's lab) or tables loaded at the CNC leave it empty.
+            ActiveTables::Inferred(_) => "Not recorded: the run holds no read-back of the PLC, \
+                 and the publication log has no table accepted before it. Tables loaded at the \
+                 CNC, or by a program other than the service, are not known here."
+                .to_string(),
+        }));
         return;
     }
     b.push(Block::Table(Table {

@@ -556,3 +556,55 @@ fn png_size(p: &Path) -> (u32, u32) {
     let be = |i: usize| u32::from_be_bytes([b[i], b[i + 1], b[i + 2], b[i + 3]]);
     (be(16), be(20))
 }
+
+/// The report says what signing accepts and what compensation it knows, without contradicting
+/// itself (issue 29: "no pass or fail verdict" then "signing accepts the axis against the
+/// tolerances in section 9"; "None: measured without compensation" for a run whose tables were
+/// never recorded).
+#[test]
+fn without_tolerances_or_recorded_tables_the_report_says_so() {
+    let dir = TempDir::new("report-no-tolerances");
+    let db = store(&dir);
+    let config = dir.write(
+        "axiscomp.toml",
+        &CONFIG[..CONFIG.find("[acceptance]").expect("the test's config")],
+    );
+    // Run 1 was measured before the store's table was published.
+    let out = dir.path("report");
+    let o = bin()
+        .args([
+            "report",
+            "--db",
+            db.to_str().expect("path"),
+            "--config",
+            config.to_str().expect("path"),
+            "--run",
+            "1",
+            "--format",
+            "md",
+            "--out",
+            out.to_str().expect("path"),
+        ])
+        .output()
+        .expect("run axiscomp");
+    assert!(o.status.success(), "{}{}", stdout(&o), stderr(&o));
+    let md = std::fs::read_to_string(out.join("acceptance.md")).expect("md");
+    assert!(
+        md.contains("the report gives no pass or fail verdict"),
+        "{md}"
+    );
+    assert!(
+        md.contains("no tolerances were configured, so signing accepts the figures as measured, not a verdict")
+            && !md.contains("against the tolerances in section 9"),
+        "{md}"
+    );
+    assert!(
+        md.contains("Not recorded: the run holds no read-back of the PLC")
+            && !md.contains("measured without compensation"),
+        "{md}"
+    );
+    // With tolerances, signing accepts the axis against them.
+    let with = make_report(&dir, &["--format", "md"]);
+    let md = std::fs::read_to_string(with.join("acceptance.md")).expect("md");
+    assert!(md.contains("signing accepts the axis against the tolerances in section 9"));
+}
