@@ -102,14 +102,36 @@ pub fn md(s: &str) -> String {
     out
 }
 
-/// Rows of a JSON snapshot: an object's top-level entries sorted by key (values as compact
-/// JSON, strings bare, long values shortened); anything else is one row named `name`.
+/// Rows of a JSON snapshot (a run's plan, its configuration) in words: an object's entries
+/// sorted by key, an object inside it opened into rows of its own (the plan's `spec`); numbers
+/// at sensible precision (at most three decimals, trailing zeros dropped: 101.18, not 101.18033988749895), lists
+/// of them comma-separated, null as "none", true and false as yes and no, long values
+/// shortened. Anything else is one row named `name`. (The demo's report printed
+/// `{"axis":"X","dwell_s":2.0,…}` and `[0.0,101.18033988749895,…]`.)
 pub fn json_rows(name: &str, v: &serde_json::Value) -> Vec<(String, String)> {
-    let show = |v: &serde_json::Value| -> String {
-        let s = match v {
-            serde_json::Value::String(s) => s.clone(),
-            other => other.to_string(),
-        };
+    use serde_json::Value;
+    fn number(x: f64) -> String {
+        let t = format!("{x:.3}");
+        let t = t.trim_end_matches('0').trim_end_matches('.');
+        if t == "-0" { "0".into() } else { t.to_string() }
+    }
+    fn words(v: &Value) -> String {
+        match v {
+            Value::String(s) => s.clone(),
+            Value::Number(n) => n.as_f64().map_or_else(|| n.to_string(), number),
+            Value::Bool(true) => "yes".into(),
+            Value::Bool(false) => "no".into(),
+            Value::Null => "none".into(),
+            Value::Array(a) => a.iter().map(words).collect::<Vec<_>>().join(", "),
+            Value::Object(m) => m
+                .iter()
+                .map(|(k, v)| format!("{k} {}", words(v)))
+                .collect::<Vec<_>>()
+                .join(", "),
+        }
+    }
+    let show = |v: &Value| -> String {
+        let s = words(v);
         if s.chars().count() > MAX_VALUE_CHARS {
             let short: String = s.chars().take(MAX_VALUE_CHARS - 1).collect();
             format!("{short}…")
@@ -118,13 +140,25 @@ pub fn json_rows(name: &str, v: &serde_json::Value) -> Vec<(String, String)> {
         }
     };
     match v {
-        serde_json::Value::Object(map) => {
-            let mut rows: Vec<(String, String)> =
-                map.iter().map(|(k, v)| (k.clone(), show(v))).collect();
+        Value::Object(map) => {
+            let mut rows: Vec<(String, String)> = Vec::new();
+            for (k, v) in map {
+                match v {
+                    Value::Object(inner) => rows.extend(inner.iter().map(|(ik, iv)| {
+                        let key = if map.contains_key(ik) {
+                            format!("{k} {ik}")
+                        } else {
+                            ik.clone()
+                        };
+                        (key, show(iv))
+                    })),
+                    _ => rows.push((k.clone(), show(v))),
+                }
+            }
             rows.sort_by(|a, b| a.0.cmp(&b.0));
             rows
         }
-        serde_json::Value::Null => Vec::new(),
+        Value::Null => Vec::new(),
         other => vec![(name.to_string(), show(other))],
     }
 }
@@ -395,7 +429,21 @@ mod tests {
             [
                 ("name".to_string(), "ISO".to_string()),
                 ("runs".to_string(), "5".to_string()),
-                ("targets".to_string(), "[0,10]".to_string()),
+                ("targets".to_string(), "0, 10".to_string()),
+            ]
+        );
+        // The demo's plan: its spec opened into rows, numbers at three decimals at most.
+        let v = serde_json::json!({"reference_mm": 0.0, "spec": {"axis": "X", "dwell_s": 2.0,
+            "reference_mm": null, "stability": true}, "targets": [0.0, 101.18033988749895, -0.0004]});
+        assert_eq!(
+            json_rows("plan", &v),
+            [
+                ("axis".to_string(), "X".to_string()),
+                ("dwell_s".to_string(), "2".to_string()),
+                ("reference_mm".to_string(), "0".to_string()),
+                ("spec reference_mm".to_string(), "none".to_string()),
+                ("stability".to_string(), "yes".to_string()),
+                ("targets".to_string(), "0, 101.18, 0".to_string()),
             ]
         );
         assert_eq!(
