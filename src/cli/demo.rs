@@ -377,7 +377,30 @@ pub fn run(a: Args) -> Result<()> {
         &a.out.join("summary.json"),
         &format!("{}\n", serde_json::to_string_pretty(&json)?),
     )?;
-    println!("\nreport: {} ({} files)", a.out.display(), files + 1);
+    // The acceptance report of the verification run against the first, as `axiscomp report`
+    // writes it from the demo's store: the document a customer signs, in PDF too.
+    let acceptance = super::report::written(super::report::ReportArgs {
+        store: super::run::StoreArgs {
+            run: 2,
+            db: Some(a.out.join("axiscomp.db")),
+            config: None,
+        },
+        compare: Some(1),
+        out: Some(a.out.join("acceptance")),
+        format: Vec::new(),
+        operator: None,
+        json: false,
+        follower_spec_um: None,
+    })?;
+    println!(
+        "\nreport: {} ({} files)",
+        a.out.display(),
+        files + 1 + acceptance.len()
+    );
+    println!(
+        "  {}/acceptance/acceptance.pdf (and .html, .md): the acceptance report, the verification run against the first",
+        a.out.display()
+    );
     println!("{}", report_hint(&a.out));
     Ok(())
 }
@@ -401,7 +424,7 @@ fn report_hint(out: &std::path::Path) -> String {
     };
     format!(
         "  {dir}/after/report.html: the verification run against the first\n  \
-         both runs are in {dir}/axiscomp.db; their acceptance reports, with the PDF:\n    \
+         both runs are in {dir}/axiscomp.db; the acceptance report of each by itself:\n    \
          axiscomp report --db {db} --run 1 --out {quoted}/run-1\n    \
          axiscomp report --db {db} --run 2 --compare 1 --out {quoted}/run-2"
     )

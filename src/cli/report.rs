@@ -112,6 +112,16 @@ fn formats(given: &[String]) -> Result<(Vec<Format>, bool)> {
 
 /// `axiscomp report --run N [--compare M] [--format …] (--out DIR | --json)`.
 pub fn report(a: ReportArgs) -> Result<()> {
+    for f in written(a)? {
+        println!("{}", f.display());
+    }
+    Ok(())
+}
+
+/// The report `a` asks for, written (or printed as JSON with `--json`): the files written
+/// (none with `--json`, which prints instead).
+pub fn written(a: ReportArgs) -> Result<Vec<PathBuf>> {
+    let mut written = Vec::new();
     let (formats, raw) = formats(&a.format)?;
     let settings = super::service::settings(a.store.config.as_deref())?;
     let store = open_store(&a.store)?;
@@ -166,9 +176,7 @@ pub fn report(a: ReportArgs) -> Result<()> {
             files.extend(write_run_report(out, &report)?);
         }
         if !a.json {
-            for f in files {
-                println!("{}", f.display());
-            }
+            written = files;
         }
     }
     if a.json {
@@ -194,5 +202,5 @@ pub fn report(a: ReportArgs) -> Result<()> {
         });
         println!("{}", serde_json::to_string_pretty(&json)?);
     }
-    Ok(())
+    Ok(written)
 }
