@@ -132,9 +132,17 @@ straightness_um = 2.0
 
 /// `axiscomp report --run 2 --compare 1` into `out`; returns the directory.
 fn make_report(dir: &TempDir, extra: &[&str]) -> PathBuf {
+    let mut args = vec!["--compare", "1"];
+    args.extend_from_slice(extra);
+    report_of(dir, CONFIG, "2", "report", &args)
+}
+
+/// `axiscomp report --run RUN` of the test's store with `config` into `dir/name`, with `extra`
+/// arguments; returns the directory.
+fn report_of(dir: &TempDir, config: &str, run: &str, name: &str, extra: &[&str]) -> PathBuf {
     let db = store(dir);
-    let config = dir.write("axiscomp.toml", CONFIG);
-    let out = dir.path("report");
+    let config = dir.write(&format!("{name}.toml"), config);
+    let out = dir.path(name);
     let mut args: Vec<&str> = vec![
         "report",
         "--db",
@@ -142,9 +150,7 @@ fn make_report(dir: &TempDir, extra: &[&str]) -> PathBuf {
         "--config",
         config.to_str().expect("path"),
         "--run",
-        "2",
-        "--compare",
-        "1",
+        run,
         "--out",
         out.to_str().expect("path"),
     ];
@@ -564,30 +570,9 @@ fn png_size(p: &Path) -> (u32, u32) {
 #[test]
 fn without_tolerances_or_recorded_tables_the_report_says_so() {
     let dir = TempDir::new("report-no-tolerances");
-    let db = store(&dir);
-    let config = dir.write(
-        "axiscomp.toml",
-        &CONFIG[..CONFIG.find("[acceptance]").expect("the test's config")],
-    );
     // Run 1 was measured before the store's table was published.
-    let out = dir.path("report");
-    let o = bin()
-        .args([
-            "report",
-            "--db",
-            db.to_str().expect("path"),
-            "--config",
-            config.to_str().expect("path"),
-            "--run",
-            "1",
-            "--format",
-            "md",
-            "--out",
-            out.to_str().expect("path"),
-        ])
-        .output()
-        .expect("run axiscomp");
-    assert!(o.status.success(), "{}{}", stdout(&o), stderr(&o));
+    let no_tolerances = &CONFIG[..CONFIG.find("[acceptance]").expect("the test's config")];
+    let out = report_of(&dir, no_tolerances, "1", "bare", &["--format", "md"]);
     let md = std::fs::read_to_string(out.join("acceptance.md")).expect("md");
     assert!(
         md.contains("the report gives no pass or fail verdict"),
@@ -604,7 +589,8 @@ fn without_tolerances_or_recorded_tables_the_report_says_so() {
         "{md}"
     );
     // With tolerances, signing accepts the axis against them.
-    let with = make_report(&dir, &["--format", "md"]);
+    let other = TempDir::new("report-tolerances");
+    let with = make_report(&other, &["--format", "md"]);
     let md = std::fs::read_to_string(with.join("acceptance.md")).expect("md");
     assert!(md.contains("signing accepts the axis against the tolerances in section 9"));
 }
