@@ -211,6 +211,15 @@ pub fn check(a: ServeArgs) -> Result<()> {
         ),
         None => println!("PLC pull server: off"),
     }
+    let dialect = settings.cnc.dialect.name();
+    match settings.cnc.mode {
+        axiscomp::config::CncMode::Manual => println!(
+            "CNC: manual: each run's part program ({dialect}) is written to the state directory for the operator to load"
+        ),
+        axiscomp::config::CncMode::Twin(a) => {
+            println!("CNC: the twin at {a} runs each part program ({dialect})")
+        }
+    }
     println!("control socket: {}", settings.service.socket.display());
     println!("ok");
     Ok(())

@@ -512,7 +512,8 @@ fn check_validates_the_cnc_map() {
     let o = run(&["check", "--config", "configs/twin-service.toml"], "");
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(
-        stdout(&o).contains("PLC push: 127.0.0.1:5502 unit 1"),
+        stdout(&o).contains("PLC push: 127.0.0.1:5502 unit 1")
+            && stdout(&o).contains("CNC: the twin at 127.0.0.1:5099 runs each part program (iso)"),
         "{}",
         stdout(&o)
     );
