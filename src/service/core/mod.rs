@@ -504,17 +504,25 @@ impl Core {
                     .and_then(|r| r.map_err(|e| e.to_string()));
                 match r {
                     Ok(()) => {
+                        // Kept: this offer or a later one covers any that failed. With none
+                        // failed on record, the newest offer kept clears the alarm too: an
+                        // older offer's failure answered after this one was made (so not
+                        // offered again) left the store alarm up for five minutes in the
+                        // storm once the disk had room again.
+                        let newest = offer == core.reference_offers;
                         if core
                             .reference_unkept
                             .as_ref()
-                            .is_some_and(|u| u.offer <= offer)
+                            .map_or(newest, |u| u.offer <= offer)
                         {
-                            core.reference_unkept = None;
+                            let was_unkept = core.reference_unkept.take().is_some();
                             // The store takes writes again: its alarm goes (else it stayed
                             // raised until a capture was stored, past the storm's minute
                             // when the judge held every capture).
                             core.pipeline.alarms.clear("store");
-                            tracing::info!("the zero reference is kept for a restart again");
+                            if was_unkept {
+                                tracing::info!("the zero reference is kept for a restart again");
+                            }
                         }
                     }
                     Err(e) => core.reference_not_kept(offer, state, e),
