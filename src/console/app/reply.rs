@@ -331,21 +331,14 @@ impl App {
 /// (the console printed `zero here done: {"offsets":[0.0171208…`): the offsets the zero took,
 /// the follower's position; nothing for an answer with nothing to say.
 fn answer_words(v: &serde_json::Value) -> String {
-    const NAMES: [(&str, &str); 6] = [
-        ("dx", "µm"),
-        ("dy", "µm"),
-        ("dz", "µm"),
-        ("ex", "″"),
-        ("ey", "″"),
-        ("ez", "″"),
-    ];
     if let Some(o) = v["offsets"].as_array().filter(|o| o.len() == 6) {
         let parts: Vec<String> = o
             .iter()
-            .zip(NAMES)
-            .map(|(x, (name, unit))| match x.as_f64() {
-                Some(x) if unit == "µm" => format!("{name} {x:+.2} {unit}"),
-                Some(x) => format!("{name} {x:+.2}{unit}"),
+            .zip(crate::units::DOF_NAMES)
+            .enumerate()
+            .map(|(k, (x, name))| match x.as_f64() {
+                Some(x) if k < 3 => format!("{name} {x:+.2} µm"),
+                Some(x) => format!("{name} {x:+.2}″"),
                 None => format!("{name} unknown"),
             })
             .collect();
