@@ -21,6 +21,7 @@ use crate::track::{Strategy, TrackSettings};
 use crate::util::range::{self, POSITION_MM, Range};
 
 pub mod kind;
+pub mod reference;
 
 /// The built-in defaults (the lowest layer).
 pub const DEFAULTS: &str = include_str!("defaults.toml");
@@ -149,6 +150,7 @@ pub struct RawTracking {
     pub encoder_sd_um: f64,
     pub encoder_sd_um_per_m: f64,
     pub mapped_sd_um: f64,
+    pub mapped_vertical_sd_um: f64,
     pub vertical_sd_um: f64,
     pub vertical_sd_um_per_m: f64,
     pub move_timeout_ms: u64,
@@ -979,6 +981,8 @@ fn validate(
         encoder_sd_per_mm: tv.range("encoder_sd_um_per_m", t.encoder_sd_um_per_m, sd_um_per_m)?
             * 1e-6,
         mapped_sd_mm: tv.range("mapped_sd_um", t.mapped_sd_um, sd_um)? * 1e-3,
+        mapped_vertical_sd_mm: tv.range("mapped_vertical_sd_um", t.mapped_vertical_sd_um, sd_um)?
+            * 1e-3,
         vertical_sd_mm: tv.range("vertical_sd_um", t.vertical_sd_um, sd_um)? * 1e-3,
         vertical_sd_per_mm: tv.range(
             "vertical_sd_um_per_m",

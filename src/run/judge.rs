@@ -15,10 +15,15 @@
 //!   re-referenced by the encoder, a resume after a restart; the service records the others,
 //!   `service::pipeline::reference_event`) makes every capture after it *unverified*: it is
 //!   held, not stored. The first unverified capture whose target and direction have a capture
-//!   from before the event settles it: within the repeatability, the reference held and the
-//!   held captures are stored; beyond it, the reference moved by the difference: the zero is
-//!   shifted back by it and the held captures are flagged and retaken (with the zero
-//!   restored). Held captures that nothing could check by the end of the run are flagged.
+//!   from before the event checks it: within the repeatability, the reference held and the
+//!   held captures are stored. Beyond it, the move is only a candidate until a second check
+//!   (another capture with one from before) reads the same move: then the zero is shifted
+//!   back by their mean, the captures held since the event are re-referenced by it and the
+//!   two that measured it are retaken. A second check that agrees with before says the
+//!   first capture was off by itself (a capture the twin's storm took 5 µm off, its backlash,
+//!   moved the zero by it, and every capture after it was flagged against the shifted zero
+//!   until one shifted it back: 56 flags in one run): it alone is flagged. Held captures
+//!   that nothing could check by the end of the run are flagged.
 //!   Nothing held is stored, so a crash loses them and the resumed run takes them again.
 //!
 //! The judge gives decisions; the run machine carries them out (reopens flagged captures for
@@ -153,6 +158,21 @@ pub struct Judge {
     held: Vec<(Capture, usize)>,
     /// Events since the reference was last known good.
     events: Vec<Event>,
+    /// A capture that read the reference moved, held until a second check confirms the move
+    /// or says the capture was off by itself.
+    candidate: Option<Candidate>,
+}
+
+/// A capture that read the reference moved since the event `ev`, by `d` (internal units;
+/// zero in the errors the events cannot move), with that reading's uncertainty `u_by` and
+/// its words `off`.
+#[derive(Clone, Debug)]
+struct Candidate {
+    capture: Capture,
+    ev: usize,
+    d: [f64; 6],
+    u_by: [f64; 6],
+    off: String,
 }
 
 impl Judge {
@@ -163,6 +183,7 @@ impl Judge {
             accepted: stored.into_iter().map(|c| (TargetKey::of(&c), c)).collect(),
             held: Vec::new(),
             events: Vec::new(),
+            candidate: None,
         }
     }
 
@@ -171,14 +192,17 @@ impl Judge {
         self.events.last().map(|e| e.what.as_str())
     }
 
-    /// Captures held now.
+    /// Captures held now (with a candidate move's).
     pub fn held(&self) -> usize {
-        self.held.len()
+        self.held.len() + usize::from(self.candidate.is_some())
     }
 
     /// The keys held now.
     pub fn held_keys(&self) -> impl Iterator<Item = TargetKey> + '_ {
-        self.held.iter().map(|(c, _)| TargetKey::of(c))
+        self.held
+            .iter()
+            .map(|(c, _)| TargetKey::of(c))
+            .chain(self.candidate.iter().map(|m| TargetKey::of(&m.capture)))
     }
 
     /// The run's own scatter per error (internal units): a robust pooled standard deviation
@@ -241,6 +265,14 @@ impl Judge {
         if self.accepted.remove(&key).is_some() {
             return Some(true);
         }
+        if self
+            .candidate
+            .as_ref()
+            .is_some_and(|m| TargetKey::of(&m.capture) == key)
+        {
+            self.candidate = None;
+            return Some(false);
+        }
         let before = self.held.len();
         self.held.retain(|(c, _)| TargetKey::of(c) != key);
         (self.held.len() < before).then_some(false)
@@ -262,6 +294,7 @@ impl Judge {
                 self.held
                     .iter_mut()
                     .map(|(c, _)| c)
+                    .chain(self.candidate.iter_mut().map(|m| &mut m.capture))
                     .find(|c| TargetKey::of(c) == key)?,
                 false,
             ),
@@ -317,6 +350,21 @@ impl Judge {
             })
             .collect();
         (!words.is_empty()).then(|| words.join(", "))
+    }
+
+    /// The components of `d` that are not zero, in words ("dy -29.5 µm").
+    fn amounts(d: &[f64; 6]) -> String {
+        (0..6)
+            .filter(|&k| d[k] != 0.0)
+            .map(|k| {
+                if k < 3 {
+                    format!("{} {:+.1} µm", NAMES[k], d[k] * 1e3)
+                } else {
+                    format!("{} {:+.2}″", NAMES[k], d[k] / ARCSEC)
+                }
+            })
+            .collect::<Vec<_>>()
+            .join(", ")
     }
 
     /// Whether the captures of `group` lie within `limits` of each other.
@@ -391,71 +439,126 @@ impl Judge {
         });
         let what = self.events[last].what.clone();
         let mut out = Vec::new();
-        let held = std::mem::take(&mut self.held);
-        match Self::beyond(&lim, &d) {
-            None => {
-                // The reference held over the events since the last check: what was held is
-                // stored (a capture that an earlier event of several moved is left to the
-                // groups' review at the run's end).
-                for (h, _) in held {
-                    self.accepted.insert(TargetKey::of(&h), h);
-                    out.push(Decision::Store(h));
-                }
-                self.accepted.insert(key, c);
-                out.push(Decision::Store(c));
-            }
-            Some(off) => {
-                let by: [f64; 6] =
-                    std::array::from_fn(|k| if d[k].abs() > lim[k] { d[k] } else { 0.0 });
-                let reason = format!(
-                    "after {what}, {key} {} read {off} off the captures of its target and direction from before: the reference moved",
-                    c.direction.sign()
-                );
-                out.push(Decision::ShiftZero {
-                    by: Errors6::from_array(by),
-                    reason: reason.clone(),
-                });
-                // The captures held since the same event read through the same moved
-                // reference: re-referenced by the move, its uncertainty added to theirs.
-                // Those held since an earlier event had a reference nothing measured: retaken.
-                // This capture measured the move; re-referenced it would only repeat its
-                // group: retaken.
-                for (h, ev) in held {
-                    if ev == last {
-                        let h = rereferenced(h, &by, &u_by);
-                        self.accepted.insert(TargetKey::of(&h), h);
-                        out.push(Decision::Store(h));
-                    } else {
-                        out.push(Decision::Flag {
-                            reason: format!(
-                                "{} {} taken after {}, and the reference moved again before anything checked it: retaken",
-                                TargetKey::of(&h),
-                                h.direction.sign(),
-                                self.events[ev].what
-                            ),
-                            capture: h,
-                            stored: false,
-                        });
-                    }
-                }
+        // A candidate from before a later event read a reference that has moved again since:
+        // nothing can confirm it now.
+        if let Some(m) = self.candidate.take_if(|m| m.ev != last) {
+            out.push(self.unchecked(m.capture, m.ev));
+        }
+        let Some(off) = Self::beyond(&lim, &d) else {
+            // The reference held over the events since the last check: what was held is
+            // stored (a capture that an earlier event of several moved is left to the groups'
+            // review at the run's end). A candidate move was its capture's own error.
+            if let Some(m) = self.candidate.take() {
                 out.push(Decision::Flag {
                     reason: format!(
-                        "{key} {} taken after {what}, when the reference had moved ({off}): it measured the move; retaken",
-                        c.direction.sign()
+                        "{} {} read {} off the captures of its target and direction from before, after {what}, and {key} {} then agreed with its own: the capture was off, not the reference; retaken",
+                        TargetKey::of(&m.capture),
+                        m.capture.direction.sign(),
+                        m.off,
+                        c.direction.sign(),
                     ),
-                    capture: c,
+                    capture: m.capture,
                     stored: false,
                 });
-                // One capture measured the move, with its own error: the captures after the
-                // shift are held and checked again, until one agrees with those from before.
-                self.events = vec![Event {
-                    what: format!("the zero was shifted back by {off}"),
-                    moves,
-                }];
-                return out;
+            }
+            for (h, _) in std::mem::take(&mut self.held) {
+                self.accepted.insert(TargetKey::of(&h), h);
+                out.push(Decision::Store(h));
+            }
+            self.accepted.insert(key, c);
+            out.push(Decision::Store(c));
+            self.events.clear();
+            return out;
+        };
+        let read = Candidate {
+            capture: c,
+            ev: last,
+            d,
+            u_by,
+            off,
+        };
+        let Some(first) = self.candidate.take() else {
+            // One capture reads a move: held until a second reads the same.
+            self.candidate = Some(read);
+            return out;
+        };
+        if (0..6).any(|k| (read.d[k] - first.d[k]).abs() > lim[k]) {
+            // Two checks that disagree: the older is not confirmed (retaken), the newer waits
+            // for a third.
+            out.push(Decision::Flag {
+                reason: format!(
+                    "{} {} read {} off the captures of its target and direction from before, after {what}, and {key} {} read {}: no move confirmed; retaken",
+                    TargetKey::of(&first.capture),
+                    first.capture.direction.sign(),
+                    first.off,
+                    c.direction.sign(),
+                    read.off,
+                ),
+                capture: first.capture,
+                stored: false,
+            });
+            self.candidate = Some(read);
+            return out;
+        }
+        // Two checks read the same move: the reference moved by their mean.
+        let by: [f64; 6] = std::array::from_fn(|k| {
+            let m = 0.5 * (read.d[k] + first.d[k]);
+            if m.abs() > lim[k] { m } else { 0.0 }
+        });
+        let u_by: [f64; 6] = std::array::from_fn(|k| 0.5 * read.u_by[k].hypot(first.u_by[k]));
+        let moved = Self::amounts(&by);
+        let reason = format!(
+            "after {what}, {} {} and {key} {} read {} and {} off the captures of their targets and directions from before: the reference moved by {moved}",
+            TargetKey::of(&first.capture),
+            first.capture.direction.sign(),
+            c.direction.sign(),
+            first.off,
+            read.off,
+        );
+        out.push(Decision::ShiftZero {
+            by: Errors6::from_array(by),
+            reason,
+        });
+        // The captures held since the same event read through the same moved reference:
+        // re-referenced by the move, its uncertainty added to theirs. Those held since an
+        // earlier event had a reference nothing measured: retaken. The two that measured the
+        // move, re-referenced, would only repeat their groups: retaken.
+        for (h, ev) in std::mem::take(&mut self.held) {
+            if ev == last {
+                let h = rereferenced(h, &by, &u_by);
+                self.accepted.insert(TargetKey::of(&h), h);
+                out.push(Decision::Store(h));
+            } else {
+                out.push(Decision::Flag {
+                    reason: format!(
+                        "{} {} taken after {}, and the reference moved again before anything checked it: retaken",
+                        TargetKey::of(&h),
+                        h.direction.sign(),
+                        self.events[ev].what
+                    ),
+                    capture: h,
+                    stored: false,
+                });
             }
         }
-        self.events.clear();
+        for m in [first, read] {
+            out.push(Decision::Flag {
+                reason: format!(
+                    "{} {} taken after {what}, when the reference had moved ({}): it measured the move; retaken",
+                    TargetKey::of(&m.capture),
+                    m.capture.direction.sign(),
+                    m.off
+                ),
+                capture: m.capture,
+                stored: false,
+            });
+        }
+        // The captures after the shift are held and checked again, until one agrees with
+        // those from before.
+        self.events = vec![Event {
+            what: format!("the zero was shifted back by {moved}"),
+            moves,
+        }];
         out
     }
 
@@ -478,6 +581,19 @@ impl Judge {
     /// and comes out of the store.
     pub fn review(&mut self) -> Vec<Decision> {
         let mut out = Vec::new();
+        if let Some(m) = self.candidate.take() {
+            out.push(Decision::Flag {
+                reason: format!(
+                    "{} {} read {} off the captures of its target and direction from before, after {}, and nothing confirmed the move before the run had every capture: retaken",
+                    TargetKey::of(&m.capture),
+                    m.capture.direction.sign(),
+                    m.off,
+                    self.events.get(m.ev).map_or("an event", |e| e.what.as_str()),
+                ),
+                capture: m.capture,
+                stored: false,
+            });
+        }
         let held = std::mem::take(&mut self.held);
         if self.accepted.is_empty() {
             for (h, _) in held {
@@ -733,7 +849,7 @@ mod tests {
     }
 
     #[test]
-    fn a_moved_reference_is_found_by_the_first_capture_with_a_sibling_from_before() {
+    fn a_moved_reference_is_found_by_two_captures_with_siblings_from_before() {
         let mut j = Judge::new(Repeatability::default(), []);
         let (up, down) = (Direction::Up, Direction::Down);
         for t in 0..3 {
@@ -749,31 +865,109 @@ mod tests {
             assert!(j.offer(cap(1, t, down, -30.0, 30 + t as i64)).is_empty());
         }
         assert_eq!(j.held(), 3);
-        // Run 2 up, target 1: 29.5 µm off run 1 up.
-        let d = j.offer(cap(2, 0, up, -33.5, 40));
+        // Run 2 up, target 1: 29.5 µm off run 1 up: a move, not yet confirmed: held too.
+        assert!(j.offer(cap(2, 0, up, -33.5, 40)).is_empty());
+        assert_eq!(j.held(), 4);
+        assert!(
+            j.held_keys()
+                .any(|k| k == TargetKey::of(&cap(2, 0, up, 0.0, 0)))
+        );
+        // Run 2 up, target 2: 29.7 µm off run 1 up: the same move, confirmed.
+        let d = j.offer(cap(2, 1, up, -32.7, 41));
         let Decision::ShiftZero { by, reason } = &d[0] else {
             panic!("{d:?}")
         };
-        assert!((by.to_array()[1] * 1e3 + 29.5).abs() < 1e-9, "{by:?}");
-        assert!(reason.contains("after a following error"), "{reason}");
-        // The three held since the event are re-referenced by the move (−30 + 29.5 µm), the
-        // capture that measured it is retaken.
+        assert!((by.to_array()[1] * 1e3 + 29.6).abs() < 1e-9, "{by:?}");
+        assert!(
+            reason.contains("after a following error")
+                && reason.contains("the reference moved by dy -29.6 µm"),
+            "{reason}"
+        );
+        // The three held since the event are re-referenced by the move (−30 + 29.6 µm), the
+        // two captures that measured it are retaken.
         assert_eq!(stored(&d), [(1, 2), (1, 1), (1, 0)]);
         for c in d.iter().filter_map(|d| match d {
             Decision::Store(c) => Some(c),
             _ => None,
         }) {
-            assert!((c.errors.dy * 1e3 + 0.5).abs() < 1e-9, "{c:?}");
+            assert!((c.errors.dy * 1e3 + 0.4).abs() < 1e-9, "{c:?}");
         }
-        assert_eq!(flagged(&d), [(2, 0, false)]);
+        assert_eq!(flagged(&d), [(2, 0, false), (2, 1, false)]);
         // Checked again after the shift: the next capture with one from before agrees.
         assert!(
             j.unverified()
-                .is_some_and(|e| e.contains("shifted back by dy -29.5 µm"))
+                .is_some_and(|e| e.contains("shifted back by dy -29.6 µm"))
         );
-        assert_eq!(stored(&j.offer(cap(2, 2, down, -0.4, 45))), [(2, 2)]);
+        assert_eq!(stored(&j.offer(cap(2, 2, down, -0.3, 45))), [(2, 2)]);
         assert_eq!(j.unverified(), None);
         assert_eq!(stored(&j.offer(cap(2, 1, up, -3.0, 50))), [(2, 1)]);
+    }
+
+    #[test]
+    fn a_capture_off_by_itself_after_an_event_does_not_move_the_zero() {
+        // The storm at c338461: after an event, a capture read dy 5 µm off its group (an
+        // approach from the wrong side: the twin's backlash is 5 µm). Taken as the
+        // reference's move, the zero was shifted by it and 41 stored captures came out.
+        let (up, down) = (Direction::Up, Direction::Down);
+        let before = (0..4).map(|t| cap(1, t, up, -4.0, 1 + t as i64));
+        let mut j = Judge::new(Repeatability::default(), before);
+        j.event("PSD2 re-referenced by the encoder", MOVES_ALL);
+        assert!(j.offer(cap(1, 0, down, 2.0, 10)).is_empty());
+        assert!(j.offer(cap(2, 0, up, 1.0, 11)).is_empty(), "a candidate");
+        assert_eq!(j.held(), 2);
+        // The next check agrees with before: the candidate alone was off.
+        let d = j.offer(cap(2, 1, up, -4.1, 12));
+        assert!(
+            !d.iter().any(|d| matches!(d, Decision::ShiftZero { .. })),
+            "{d:?}"
+        );
+        assert_eq!(flagged(&d), [(2, 0, false)]);
+        let Decision::Flag { reason, .. } = &d[0] else {
+            panic!("{d:?}")
+        };
+        assert!(
+            reason.contains("read dy +5.0 µm (limit 2.0) off")
+                && reason.contains("run 2, target 2 + then agreed")
+                && reason.contains("the capture was off, not the reference"),
+            "{reason}"
+        );
+        assert_eq!(stored(&d), [(1, 0), (2, 1)]);
+        assert_eq!((j.held(), j.unverified()), (0, None));
+
+        // Two checks that disagree: the first is retaken, the second waits for a third.
+        let before = (0..4).map(|t| cap(1, t, up, -4.0, 1 + t as i64));
+        let mut j = Judge::new(Repeatability::default(), before);
+        j.event("a resume after a restart", MOVES_ALL);
+        assert!(j.offer(cap(2, 0, up, 1.0, 11)).is_empty());
+        let d = j.offer(cap(2, 1, up, 6.0, 12));
+        assert_eq!(flagged(&d), [(2, 0, false)]);
+        assert!(stored(&d).is_empty());
+        assert_eq!(j.held(), 1);
+        let d = j.offer(cap(2, 2, up, 6.2, 13));
+        assert!(matches!(d[0], Decision::ShiftZero { .. }), "{d:?}");
+        assert_eq!(flagged(&d), [(2, 1, false), (2, 2, false)]);
+
+        // A candidate nothing confirmed by the run's end is retaken.
+        let before = (0..2).map(|t| cap(1, t, up, -4.0, 1 + t as i64));
+        let mut j = Judge::new(Repeatability::default(), before);
+        j.event("a resume after a restart", MOVES_ALL);
+        assert!(j.offer(cap(2, 0, up, 1.0, 11)).is_empty());
+        let d = j.review();
+        assert_eq!(flagged(&d)[0], (2, 0, false));
+        let Decision::Flag { reason, .. } = &d[0] else {
+            panic!("{d:?}")
+        };
+        assert!(reason.contains("nothing confirmed the move"), "{reason}");
+        // A candidate is withdrawn like a held capture.
+        let mut j = Judge::new(Repeatability::default(), [cap(1, 0, up, -4.0, 1)]);
+        j.event("a resume after a restart", MOVES_ALL);
+        assert!(j.offer(cap(2, 0, up, 1.0, 11)).is_empty());
+        assert_eq!(
+            j.withdraw(TargetKey::of(&cap(2, 0, up, 0.0, 0))),
+            Some(false)
+        );
+        assert_eq!(j.held(), 0);
+        let _ = down;
     }
 
     #[test]
@@ -809,28 +1003,40 @@ mod tests {
         // The retake agrees in dy: the reference held, the held capture is stored.
         let d = j.offer(cap(2, 0, Direction::Up, -4.2, 9));
         assert_eq!(stored(&d), [(1, 1), (2, 0)]);
-        // A move in dy, which the stitch can make, still shifts the zero.
+        // A move in dy, which the stitch can make, read by two captures, still shifts the
+        // zero.
         let mut j = Judge::new(
             Repeatability::default(),
-            [cap(1, 0, Direction::Up, -4.0, 1)],
+            [
+                cap(1, 0, Direction::Up, -4.0, 1),
+                cap(1, 1, Direction::Up, -3.0, 2),
+            ],
         );
         j.event("PSD2's stitch re-referenced", stitch);
-        let d = j.offer(cap(2, 0, Direction::Up, 1.0, 7));
+        assert!(j.offer(cap(2, 0, Direction::Up, 1.0, 7)).is_empty());
+        let d = j.offer(cap(2, 1, Direction::Up, 2.1, 8));
         assert!(matches!(d[0], Decision::ShiftZero { .. }), "{d:?}");
     }
 
     #[test]
     fn captures_held_before_a_second_event_are_retaken_when_the_reference_moved() {
-        let mut j = Judge::new(Repeatability::default(), [cap(1, 0, Direction::Up, 0.0, 1)]);
+        let mut j = Judge::new(
+            Repeatability::default(),
+            [
+                cap(1, 0, Direction::Up, 0.0, 1),
+                cap(1, 3, Direction::Up, 0.0, 2),
+            ],
+        );
         j.event("PSD2's stitch re-referenced", MOVES_ALL);
         assert!(j.offer(cap(1, 1, Direction::Up, 10.0, 6)).is_empty());
         j.event("a resume after a restart", MOVES_ALL);
         assert!(j.offer(cap(1, 2, Direction::Up, 20.0, 8)).is_empty());
-        // 5 µm off run 1: the reference since the resume moved by 5 µm; what came before the
-        // resume was under a reference nothing measured.
-        let d = j.offer(cap(2, 0, Direction::Up, 5.0, 9));
+        // 5 µm off run 1, twice: the reference since the resume moved by 5 µm; what came
+        // before the resume was under a reference nothing measured.
+        assert!(j.offer(cap(2, 0, Direction::Up, 5.0, 9)).is_empty());
+        let d = j.offer(cap(2, 3, Direction::Up, 5.0, 10));
         assert_eq!(stored(&d), [(1, 2)]);
-        assert_eq!(flagged(&d), [(1, 1, false), (2, 0, false)]);
+        assert_eq!(flagged(&d), [(1, 1, false), (2, 0, false), (2, 3, false)]);
         let Some(Decision::Store(c)) = d.iter().find(|d| matches!(d, Decision::Store(_))) else {
             panic!("{d:?}")
         };
