@@ -4,6 +4,7 @@
 mod align;
 mod calibrate;
 mod client;
+mod config;
 mod console;
 mod decouple;
 mod demo;
@@ -62,6 +63,9 @@ enum Command {
     Console(console::Args),
     /// Check the configuration and every file it names, offline.
     Check(service::ServeArgs),
+    /// The configuration's reference and its documented example.
+    #[command(subcommand)]
+    Config(config::Command),
     /// Run the digital twin (I/O module, follower drive, axis) for the service to measure.
     Sim(service::SimArgs),
     /// ISO 230-2 measurement runs on the running service.
@@ -129,6 +133,7 @@ pub fn run(cli: Cli) -> Result<()> {
             | Command::Decouple(_)
             | Command::Evaluate(_)
             | Command::Check(_)
+            | Command::Config(_)
             | Command::Report(_)
             | Command::Export(_)
     ) {
@@ -144,6 +149,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Status(a) => service::status(a),
         Command::Console(a) => console::run(a),
         Command::Check(a) => service::check(a),
+        Command::Config(c) => config::run(c),
         Command::Sim(a) => service::sim(a),
         Command::Run(c) => run::run(c),
         Command::Report(a) => report::report(a),

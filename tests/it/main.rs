@@ -14,6 +14,7 @@ mod comp_export;
 mod console;
 mod csv_inputs;
 mod decoupling;
+mod docs;
 mod evaluate;
 mod follower;
 mod follower_selfcal;

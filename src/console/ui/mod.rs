@@ -315,8 +315,9 @@ fn render_status(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
         Layout::horizontal([Constraint::Min(0), Constraint::Length(rw)]).areas(area);
     let left = match &app.message {
         Some(m) => Line::from(Span::styled(format!(" {}", m.text), theme.level(m.level))),
+        // The screens' keys from their number, so that a new screen cannot leave it behind.
         None => Line::from(Span::styled(
-            " ? help  q quit  1–7/Tab screens",
+            format!(" ? help  q quit  1–{}/Tab screens", Screen::ALL.len()),
             theme.dim(),
         )),
     };
