@@ -371,19 +371,29 @@ pub fn run(a: Args) -> Result<()> {
         ("after", result.after.points()?),
     ];
     print_points(&result, &points);
-    let files = write_out(&a.out, &spec, &result, &truth)?;
+    // The head's calibration as `axiscomp calibrate fit` writes it: stored with the runs, so
+    // that the reports name the calibration they were decoupled with.
+    let calibration = axiscomp::calibrate::file::CalibrationFile::from_calibration(
+        &r.calibration,
+        &layout,
+    )
+    .to_toml();
+    let files = write_out(&a.out, &spec, &result, &truth, &calibration)?;
     let json = summary_json(&a, &spec, &result, &truth, &points);
     write(
         &a.out.join("summary.json"),
         &format!("{}\n", serde_json::to_string_pretty(&json)?),
     )?;
     // The acceptance report of the verification run against the first, as `axiscomp report`
-    // writes it from the demo's store: the document a customer signs, in PDF too.
+    // writes it from the demo's store: the document a customer signs, in PDF too, naming the
+    // twin's machine and judged against the demo's tolerances (its configuration beside it).
+    let config = a.out.join("axiscomp.toml");
+    write(&config, &demo_config(&a))?;
     let acceptance = super::report::written(super::report::ReportArgs {
         store: super::run::StoreArgs {
             run: 2,
             db: Some(a.out.join("axiscomp.db")),
-            config: None,
+            config: Some(config),
         },
         compare: Some(1),
         out: Some(a.out.join("acceptance")),
@@ -405,6 +415,41 @@ pub fn run(a: Args) -> Result<()> {
     Ok(())
 }
 
+/// The demo's configuration for its reports: the twin's machine and head by name and serial,
+/// and acceptance tolerances for a 1 m axis of a machining centre after compensation
+/// (positioning A 10 µm, E 8, R 6, B 4, M 5; straightness 10 µm; each angle's range 16″,
+/// 0.08 mm/m, which the twin's uncompensated angles stay within), so that its acceptance
+/// report is the whole document, verdict and signatures included.
+fn demo_config(a: &Args) -> String {
+    [
+        "# The demo's machine and tolerances: `axiscomp report --config` with this file names them",
+        "# on the acceptance report and judges the run against them (written by axiscomp demo).",
+        "[head]",
+        &format!("serial = \"AXC-DEMO-{}\"", a.instrument),
+        "",
+        "[machine]",
+        &format!(
+            "name = \"axiscomp twin machining centre, X axis {:.0} mm\"",
+            a.length_mm
+        ),
+        &format!("serial = \"TWIN-{}\"", a.seed),
+        "customer = \"axiscomp demo\"",
+        "",
+        "[acceptance]",
+        "a_um = 10.0",
+        "e_um = 8.0",
+        "r_um = 6.0",
+        "b_um = 4.0",
+        "m_um = 5.0",
+        "straightness_um = 10.0",
+        "pitch_arcsec = 16.0",
+        "roll_arcsec = 16.0",
+        "yaw_arcsec = 16.0",
+        "",
+    ]
+    .join("\n")
+}
+
 /// Where the demo's reports are, and the commands that write them again from its store, each
 /// one that can be pasted as it stands (the path quoted when the shell would split it).
 fn report_hint(out: &std::path::Path) -> String {
@@ -417,16 +462,19 @@ fn report_hint(out: &std::path::Path) -> String {
     } else {
         format!("'{}'", dir.replace('\'', r"'\''"))
     };
-    let db = if quoted.starts_with('\'') {
-        format!("{}/axiscomp.db'", &quoted[..quoted.len() - 1])
-    } else {
-        format!("{quoted}/axiscomp.db")
+    let inside = |file: &str| {
+        if quoted.starts_with('\'') {
+            format!("{}/{file}'", &quoted[..quoted.len() - 1])
+        } else {
+            format!("{quoted}/{file}")
+        }
     };
+    let (db, config) = (inside("axiscomp.db"), inside("axiscomp.toml"));
     format!(
         "  {dir}/after/report.html: the verification run against the first\n  \
          both runs are in {dir}/axiscomp.db; the acceptance report of each by itself:\n    \
-         axiscomp report --db {db} --run 1 --out {quoted}/run-1\n    \
-         axiscomp report --db {db} --run 2 --compare 1 --out {quoted}/run-2"
+         axiscomp report --db {db} --config {config} --run 1 --out {quoted}/run-1\n    \
+         axiscomp report --db {db} --config {config} --run 2 --compare 1 --out {quoted}/run-2"
     )
 }
 
@@ -725,7 +773,13 @@ fn summary_json(
 
 /// The report directory: a run report per pass (the second compared with the first), the
 /// tables, the part program, a summary, and the store with both runs.
-fn write_out(dir: &Path, spec: &LoopSpec, r: &LoopResult, truth: &Truths) -> Result<usize> {
+fn write_out(
+    dir: &Path,
+    spec: &LoopSpec,
+    r: &LoopResult,
+    truth: &Truths,
+    calibration: &str,
+) -> Result<usize> {
     std::fs::create_dir_all(dir)
         .with_context(|| format!("creating {}; choose another --out", dir.display()))?;
     let mut files = 0;
@@ -733,6 +787,7 @@ fn write_out(dir: &Path, spec: &LoopSpec, r: &LoopResult, truth: &Truths) -> Res
     super::remove_store(&db)?;
     let mut store = Store::open(&db)?;
     files += 1;
+    let calibration = store.insert_calibration(calibration)?;
     let before_caps: Vec<Capture> = r.before.run.captures.iter().map(|c| c.capture).collect();
     let after_caps: Vec<Capture> = r.after.run.captures.iter().map(|c| c.capture).collect();
     let mut ids = Vec::new();
@@ -750,8 +805,8 @@ fn write_out(dir: &Path, spec: &LoopSpec, r: &LoopResult, truth: &Truths) -> Res
         };
         // The twin's PLC applied nothing when the first run started: recorded, as the service
         // records it, so tables made from this run are the axis's own. The verification run
-        // (tables active, not in this store) has no such record: a table from it is refused
-        // unless its residual is asked for by name. What the run's budget was made of, with
+        // records the tables the demo published (by sequence and CRC; they are not in this
+        // store, so a table composed from it is refused, naming them). What the run's budget was made of, with
         // the follower map it applied, so that `axiscomp report` on this store states the
         // same budget.
         let id = store_lab_run(
@@ -765,12 +820,38 @@ fn write_out(dir: &Path, spec: &LoopSpec, r: &LoopResult, truth: &Truths) -> Res
                 },
                 captures: caps,
                 times_us: [from, to],
+                calibration: Some(calibration),
                 budget: Some((&m.budget.inputs, r.follower.as_ref().map(|f| &f.map))),
-                tables: (pass == "before").then(|| axiscomp::store::RunTables {
-                    unix_us: axiscomp::store::now_us(),
-                    known: true,
-                    source: "the demo's twin PLC, before any table was published".into(),
-                    tables: Vec::new(),
+                tables: Some(if pass == "before" {
+                    axiscomp::store::RunTables {
+                        unix_us: from,
+                        known: true,
+                        source: "the demo's twin PLC, before any table was published".into(),
+                        tables: Vec::new(),
+                    }
+                } else {
+                    // The verification run measured the axis with the tables the demo
+                    // published: recorded, as the service reads them back when a run starts.
+                    axiscomp::store::RunTables {
+                        unix_us: from,
+                        known: true,
+                        source: format!(
+                            "the demo's twin PLC: the {} tables it accepted before this run",
+                            r.published.len()
+                        ),
+                        tables: r
+                            .published
+                            .iter()
+                            .map(|p| axiscomp::store::ActiveTable {
+                                kind: p.table.kind.name().into(),
+                                axis: p.table.axis.to_string(),
+                                table: None,
+                                sequence: p.sequence,
+                                crc: p.crc,
+                                read_back: false,
+                            })
+                            .collect(),
+                    }
                 }),
             },
         )?;
@@ -894,16 +975,16 @@ mod tests {
         // The demo printed "axiscomp report --db … --run 1|2".
         let h = report_hint(Path::new("/tmp/demo-out"));
         assert!(
-            h.contains("axiscomp report --db /tmp/demo-out/axiscomp.db --run 1 --out /tmp/demo-out/run-1\n")
+            h.contains("axiscomp report --db /tmp/demo-out/axiscomp.db --config /tmp/demo-out/axiscomp.toml --run 1 --out /tmp/demo-out/run-1\n")
                 && h.ends_with(
-                    "axiscomp report --db /tmp/demo-out/axiscomp.db --run 2 --compare 1 --out /tmp/demo-out/run-2"
+                    "axiscomp report --db /tmp/demo-out/axiscomp.db --config /tmp/demo-out/axiscomp.toml --run 2 --compare 1 --out /tmp/demo-out/run-2"
                 ),
             "{h}"
         );
         // A path the shell would split is quoted.
         let h = report_hint(Path::new("/tmp/my demo's out"));
         assert!(
-            h.contains(r"--db '/tmp/my demo'\''s out/axiscomp.db' --run 1 --out '/tmp/my demo'\''s out'/run-1"),
+            h.contains(r"--db '/tmp/my demo'\''s out/axiscomp.db' --config '/tmp/my demo'\''s out/axiscomp.toml' --run 1 --out '/tmp/my demo'\''s out'/run-1"),
             "{h}"
         );
     }

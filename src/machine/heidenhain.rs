@@ -82,7 +82,7 @@ pub fn write(model: &MachineModel, title: &str) -> Vec<(String, String)> {
          each axis (COMPTAB X..C2: column C2 of X.COM) and sets the squarenesses C0Y, B0Z, A0Z\n\
          (degrees, X the reference) before their axis, taken back after it.\n\
          What of this is confirmed from HEIDENHAIN's manuals and what must be checked against the\n\
-         machine's own kinematics: axiscomp's README, section on the controls' files.\n",
+         machine's own kinematics: axiscomp's user guide, \"Integrating with the controls\".\n",
     );
     files.push((README_FILE.to_string(), readme));
     files

@@ -746,7 +746,7 @@ fn tables(r: &RunData, b: &mut Vec<Block>) {
                 vec![
                     t.kind.clone(),
                     t.axis.clone(),
-                    t.table_id.to_string(),
+                    t.table_id.map_or("–".into(), |id| id.to_string()),
                     t.sequence.to_string(),
                     when(t.published_us),
                     t.source_run.map_or("–".into(), |r| r.to_string()),

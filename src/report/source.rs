@@ -21,7 +21,9 @@ pub enum SourceError {
 /// A compensation table active in the PLC during a run.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ActiveTable {
-    pub table_id: i64,
+    /// The stored table, when the store has it (a run recorded by the demo's lab names the
+    /// tables its twin PLC applied by sequence and CRC only).
+    pub table_id: Option<i64>,
     pub kind: String,
     pub axis: String,
     pub sequence: u32,
@@ -159,7 +161,7 @@ fn active_tables(store: &Store, r: &RunRecord) -> Result<ActiveTables, StoreErro
                     .max()
                     .unwrap_or(rt.unix_us);
                 ActiveTable {
-                    table_id: id,
+                    table_id: a.table.map(|t| t.0),
                     kind: a.kind.clone(),
                     axis: a.axis.clone(),
                     sequence: a.sequence,
@@ -181,7 +183,7 @@ fn active_tables(store: &Store, r: &RunRecord) -> Result<ActiveTables, StoreErro
             continue;
         };
         let a = ActiveTable {
-            table_id: t.id.0,
+            table_id: Some(t.id.0),
             kind: t.entry.kind.clone(),
             axis: t.entry.axis.clone(),
             sequence: p.sequence,

@@ -294,6 +294,8 @@ pub struct Published {
     pub name: String,
     pub table: PlcTable,
     pub sequence: u32,
+    /// Its payload's CRC as the PLC checked it.
+    pub crc: u32,
 }
 
 /// The whole loop's outcome.
@@ -620,10 +622,19 @@ fn publish_all(
                 sequence,
                 points: table.values_mm.len(),
             });
+            // The CRC the PLC checked, as the publication encoded it (the same map and
+            // sequence give the same payload).
+            let crc = crate::plc::table::encode(&table, &map, sequence)
+                .map(|e| e.crc)
+                .map_err(|source| LoopError::PlcTable {
+                    table: name.clone(),
+                    source,
+                })?;
             out.push(Published {
                 name,
                 table,
                 sequence,
+                crc,
             });
         }
         Ok(out)

@@ -23,6 +23,8 @@ pub struct LabRunRecord<'a> {
     pub budget: Option<(&'a BudgetInputs, Option<&'a FollowerMap>)>,
     /// What the twin's PLC applied while it ran, when known (`None`: not recorded).
     pub tables: Option<RunTables>,
+    /// The calibration in the store the run decoupled with, if any.
+    pub calibration: Option<crate::store::CalibrationId>,
 }
 
 /// Store `run`; its id.
@@ -31,7 +33,7 @@ pub fn store_lab_run(store: &mut Store, run: &LabRunRecord) -> Result<RunId, Sou
         axis: run.plan.spec.axis.clone(),
         plan: serde_json::to_value(run.plan).unwrap_or(serde_json::Value::Null),
         config: run.config.clone(),
-        calibration: None,
+        calibration: run.calibration,
         notes: run.notes.clone(),
     })?;
     store.set_run_state(id, RunState::Running)?;

@@ -233,6 +233,7 @@ impl MachineLabResult {
                     times_us,
                     budget: Some((&s.run.budget.inputs, s.map.as_ref())),
                     tables: None,
+                    calibration: None,
                 },
             )?;
             stored::attach(store, id, i, run.0, times_us[1])?;
