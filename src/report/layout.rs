@@ -295,8 +295,8 @@ fn pages(doc: &Document) -> Vec<Page> {
     f.pages
 }
 
-/// The document as a PDF file.
-pub fn pdf(doc: &Document, info: &pdf::Info) -> Vec<u8> {
+/// The document as a PDF file (PDF/A-2b).
+pub fn pdf(doc: &Document, info: &pdf::Info) -> Result<Vec<u8>, pdf::PdfError> {
     let mut pages = pages(doc);
     let count = pages.len();
     for (i, p) in pages.iter_mut().enumerate() {

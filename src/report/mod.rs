@@ -46,6 +46,8 @@ pub enum ReportError {
     Plot { what: String, detail: String },
     #[error("the built-in plot font (DejaVu Sans) could not be loaded; this build is broken")]
     Font,
+    #[error("the acceptance PDF: {0}")]
+    Pdf(#[from] pdf::PdfError),
     #[error(
         "report {path}: cannot write it ({source}); check that the directory is writable and \
          the disk is not full"
@@ -457,7 +459,7 @@ pub fn write_acceptance(
                     subject: doc.subtitle.clone(),
                     creation_date: format!("D:{stamp}Z"),
                 };
-                write("acceptance.pdf", &layout::pdf(doc, &info))?;
+                write("acceptance.pdf", &layout::pdf(doc, &info)?)?;
             }
         }
     }

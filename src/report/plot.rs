@@ -24,7 +24,7 @@ pub const CHART_SIZE: (u32, u32) = (1000, 560);
 /// Size (px) of the six-error sheet (3 × 2 charts).
 pub const SIX_SIZE: (u32, u32) = (1500, 1000);
 
-const FONT: &[u8] = include_bytes!("DejaVuSans.ttf");
+const FONT: &[u8] = include_bytes!("fonts/DejaVuSans.ttf");
 const FAMILY: &str = "sans-serif";
 
 const UP: RGBColor = RGBColor(31, 119, 180);
