@@ -373,11 +373,9 @@ pub fn run(a: Args) -> Result<()> {
     print_points(&result, &points);
     // The head's calibration as `axiscomp calibrate fit` writes it: stored with the runs, so
     // that the reports name the calibration they were decoupled with.
-    let calibration = axiscomp::calibrate::file::CalibrationFile::from_calibration(
-        &r.calibration,
-        &layout,
-    )
-    .to_toml();
+    let calibration =
+        axiscomp::calibrate::file::CalibrationFile::from_calibration(&r.calibration, &layout)
+            .to_toml();
     let files = write_out(&a.out, &spec, &result, &truth, &calibration)?;
     let json = summary_json(&a, &spec, &result, &truth, &points);
     write(
