@@ -218,7 +218,23 @@ fn env_var(key: &str) -> String {
 
 /// Words of a comment block as one paragraph (the example wraps at 100 columns).
 fn paragraph(lines: &[String]) -> String {
-    lines.join(" ").replace('|', "\\|")
+    words(&lines.join(" "))
+}
+
+/// Comment text as Markdown prose: outside its code spans, `<` is escaped (`runs/<id>/` is a
+/// path, not an HTML tag) and `|` too.
+fn words(text: &str) -> String {
+    text.split('`')
+        .enumerate()
+        .map(|(i, part)| {
+            if i % 2 == 1 {
+                part.to_string()
+            } else {
+                part.replace('<', "\\<").replace('|', "\\|")
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("`")
 }
 
 /// The reference in Markdown.
@@ -274,7 +290,7 @@ pub fn markdown() -> Result<String, ReferenceError> {
                 }
                 let _ = write!(row, "; set by `{}`", env_var(&key));
                 if let Some(w) = &e.inline {
-                    let _ = write!(row, ". {w}");
+                    let _ = write!(row, ". {}", words(w));
                 } else if single {
                     row.push('.');
                 }
@@ -369,6 +385,14 @@ mod tests {
         assert_eq!(g[1].words, vec!["c alone"]);
         assert_eq!(g[1].keys[1].key, "opt");
         assert!(g[1].keys[1].optional);
+    }
+
+    #[test]
+    fn prose_escapes_what_markdown_would_read_as_html() {
+        assert_eq!(
+            words("programs in runs/<id>/ (`runs/<id>/`), a | b"),
+            "programs in runs/\\<id>/ (`runs/<id>/`), a \\| b"
+        );
     }
 
     #[test]
