@@ -58,6 +58,20 @@ struct Section {
     groups: Vec<Group>,
 }
 
+impl Section {
+    /// `entry` into the group the last key opened (`open`: no blank line or comment since),
+    /// else into a new group described by the `comments` gathered above it.
+    fn add(&mut self, entry: Entry, open: bool, comments: &mut Vec<String>) {
+        match self.groups.last_mut() {
+            Some(g) if open && comments.is_empty() => g.keys.push(entry),
+            _ => self.groups.push(Group {
+                words: std::mem::take(comments),
+                keys: vec![entry],
+            }),
+        }
+    }
+}
+
 /// `key = value  # words` split, the comment outside any string.
 fn split_comment(s: &str) -> (&str, Option<&str>) {
     let mut quote = None;
@@ -114,13 +128,7 @@ fn sections(example: &str) -> Result<Vec<Section>, ReferenceError> {
                     inline: Some(words.to_string()),
                     optional: true,
                 };
-                match section.groups.last_mut() {
-                    Some(g) if open && comments.is_empty() => g.keys.push(entry),
-                    _ => section.groups.push(Group {
-                        words: std::mem::take(&mut comments),
-                        keys: vec![entry],
-                    }),
-                }
+                section.add(entry, open, &mut comments);
                 open = true;
                 continue;
             }
@@ -155,13 +163,7 @@ fn sections(example: &str) -> Result<Vec<Section>, ReferenceError> {
             inline: inline.map(str::to_string),
             optional: false,
         };
-        match section.groups.last_mut() {
-            Some(g) if open && comments.is_empty() => g.keys.push(entry),
-            _ => section.groups.push(Group {
-                words: std::mem::take(&mut comments),
-                keys: vec![entry],
-            }),
-        }
+        section.add(entry, open, &mut comments);
         open = true;
     }
     Ok(out)

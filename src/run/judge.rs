@@ -175,6 +175,22 @@ struct Candidate {
     off: String,
 }
 
+impl Candidate {
+    /// Flag its capture: it read `off` after `after`, and `then` says what came of it.
+    fn flag(self, after: &str, then: &str) -> Decision {
+        Decision::Flag {
+            reason: format!(
+                "{} {} read {} off the captures of its target and direction from before, after {after}, and {then}",
+                TargetKey::of(&self.capture),
+                self.capture.direction.sign(),
+                self.off,
+            ),
+            capture: self.capture,
+            stored: false,
+        }
+    }
+}
+
 impl Judge {
     /// A judge with `limits`; `stored`: captures already stored (a resumed run), taken as true.
     pub fn new(limits: Repeatability, stored: impl IntoIterator<Item = Capture>) -> Judge {
@@ -449,17 +465,13 @@ impl Judge {
             // stored (a capture that an earlier event of several moved is left to the groups'
             // review at the run's end). A candidate move was its capture's own error.
             if let Some(m) = self.candidate.take() {
-                out.push(Decision::Flag {
-                    reason: format!(
-                        "{} {} read {} off the captures of its target and direction from before, after {what}, and {key} {} then agreed with its own: the capture was off, not the reference; retaken",
-                        TargetKey::of(&m.capture),
-                        m.capture.direction.sign(),
-                        m.off,
-                        c.direction.sign(),
+                out.push(m.flag(
+                    &what,
+                    &format!(
+                        "{key} {} then agreed with its own: the capture was off, not the reference; retaken",
+                        c.direction.sign()
                     ),
-                    capture: m.capture,
-                    stored: false,
-                });
+                ));
             }
             for (h, _) in std::mem::take(&mut self.held) {
                 self.accepted.insert(TargetKey::of(&h), h);
@@ -485,18 +497,12 @@ impl Judge {
         if (0..6).any(|k| (read.d[k] - first.d[k]).abs() > lim[k]) {
             // Two checks that disagree: the older is not confirmed (retaken), the newer waits
             // for a third.
-            out.push(Decision::Flag {
-                reason: format!(
-                    "{} {} read {} off the captures of its target and direction from before, after {what}, and {key} {} read {}: no move confirmed; retaken",
-                    TargetKey::of(&first.capture),
-                    first.capture.direction.sign(),
-                    first.off,
-                    c.direction.sign(),
-                    read.off,
-                ),
-                capture: first.capture,
-                stored: false,
-            });
+            let then = format!(
+                "{key} {} read {}: no move confirmed; retaken",
+                c.direction.sign(),
+                read.off
+            );
+            out.push(first.flag(&what, &then));
             self.candidate = Some(read);
             return out;
         }
@@ -582,17 +588,14 @@ impl Judge {
     pub fn review(&mut self) -> Vec<Decision> {
         let mut out = Vec::new();
         if let Some(m) = self.candidate.take() {
-            out.push(Decision::Flag {
-                reason: format!(
-                    "{} {} read {} off the captures of its target and direction from before, after {}, and nothing confirmed the move before the run had every capture: retaken",
-                    TargetKey::of(&m.capture),
-                    m.capture.direction.sign(),
-                    m.off,
-                    self.events.get(m.ev).map_or("an event", |e| e.what.as_str()),
-                ),
-                capture: m.capture,
-                stored: false,
-            });
+            let after = self
+                .events
+                .get(m.ev)
+                .map_or("an event".to_string(), |e| e.what.clone());
+            out.push(m.flag(
+                &after,
+                "nothing confirmed the move before the run had every capture: retaken",
+            ));
         }
         let held = std::mem::take(&mut self.held);
         if self.accepted.is_empty() {
