@@ -4,7 +4,7 @@
 //! positions in mm to 0.001 mm; uncertainties say whether they are standard (u) or expanded
 //! (U, with k).
 
-use super::doc::{Block, Chart, ChartLine, Column, Document, Table};
+use super::doc::{Block, Chart, ChartBand, ChartLine, Column, Document, Table};
 use super::settings::{AcceptanceSettings, MachineSettings};
 use super::source::{ActiveTables, FollowerMapInfo, RunData};
 use super::text::{fixed, when};
@@ -448,7 +448,7 @@ fn positioning(r: &RunData, b: &mut Vec<Block>) {
                 .into(),
         ),
     }));
-    let mut lines = Vec::new();
+    let (mut lines, mut bands) = (Vec::new(), Vec::new());
     for (d, colour) in [(Direction::Up, 0), (Direction::Down, 1)] {
         let pts: Vec<(f64, f64, f64)> = p
             .targets
@@ -466,25 +466,19 @@ fn positioning(r: &RunData, b: &mut Vec<Block>) {
         }
         let name = arrow(d);
         lines.push(ChartLine {
-            label: format!("mean {name}"),
+            label: format!("mean {name} ± 2s"),
             colour,
             dashed: false,
             markers: true,
             points: pts.iter().map(|&(x, y, _)| (x, y)).collect(),
         });
-        lines.push(ChartLine {
-            label: format!("mean {name} ± 2s"),
+        bands.push(ChartBand {
             colour,
-            dashed: true,
-            markers: false,
-            points: pts.iter().map(|&(x, y, s)| (x, y + 2.0 * s)).collect(),
-        });
-        lines.push(ChartLine {
-            label: String::new(),
-            colour,
-            dashed: true,
-            markers: false,
-            points: pts.iter().map(|&(x, y, s)| (x, y - 2.0 * s)).collect(),
+            opacity: 0.2,
+            points: pts
+                .iter()
+                .map(|&(x, y, s)| (x, y - 2.0 * s, y + 2.0 * s))
+                .collect(),
         });
     }
     b.push(Block::Chart(Chart {
@@ -492,6 +486,7 @@ fn positioning(r: &RunData, b: &mut Vec<Block>) {
         x_label: "position (mm)".into(),
         y_label: "deviation (µm)".into(),
         lines,
+        bands,
         note: "Mean deviation per direction with the ±2s band of the runs; as measured (no \
                reference line removed)."
             .into(),
@@ -585,6 +580,7 @@ fn straightness_chart(r: &RunData, dof: Dof, st: &DirectionalStraightness) -> Ch
         x_label: "position (mm)".into(),
         y_label: "deviation from the line (µm)".into(),
         lines,
+        bands: Vec::new(),
         note: format!(
             "Relative to the least-squares reference line of the bidirectional mean: slope {} \
              µm/m and {} µm at 0 mm removed; straightness {} µm.",
@@ -656,6 +652,7 @@ fn angular(r: &RunData, b: &mut Vec<Block>) {
         x_label: "position (mm)".into(),
         y_label: "angle (arcsec)".into(),
         lines,
+        bands: Vec::new(),
         note: "Bidirectional mean angle at each target, relative to the zero reference.".into(),
     }));
 }
@@ -955,6 +952,7 @@ fn comparison(before: &RunData, after: &RunData, b: &mut Vec<Block>) {
             line(first, 3, format!("before: {}", label(first))),
             line(second, 2, format!("after: {}", label(second))),
         ],
+        bands: Vec::new(),
         note: "Bidirectional mean deviation at each target, as measured.".into(),
     }));
 }

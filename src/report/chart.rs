@@ -1,9 +1,11 @@
 //! A chart drawn in a box (origin top-left, y down, points) on a `Canvas`: the PDF page
-//! (`layout`) or an SVG document (the HTML and Markdown reports), from one piece of code.
-//! Title above, the plot area with ticks and axis labels, and the legend **below** the plot
-//! area so it never covers data.
+//! (`layout`), an SVG document (the HTML and Markdown reports, the run report's charts) or a
+//! raster (`raster`, their PNGs), from one piece of code: every chart the product draws goes
+//! through here. Title above, the plot area with ticks and axis labels, translucent bands
+//! under the lines, markers on them (hollow on a dashed line, a "before"), and the legend
+//! **below** the plot area so it never covers data.
 
-use super::doc::{Chart, colour};
+use super::doc::{Chart, ChartBand, colour};
 use super::pdf::{Font, text_width};
 use std::fmt::Write as _;
 
@@ -15,13 +17,18 @@ pub enum Anchor {
     End,
 }
 
-/// Where a chart is drawn: the PDF page or an SVG document. Coordinates are the chart box's
+/// The radius of a marker (points).
+pub const MARKER_R: f64 = 1.8;
+
+/// Where a chart is drawn: the PDF page, an SVG document or a raster. Coordinates are the chart box's
 /// (origin top-left, y down, points).
 pub trait Canvas {
     /// An open polyline.
     fn line(&mut self, pts: &[(f64, f64)], rgb: (u8, u8, u8), width: f64, dashed: bool);
-    /// A small filled square centred at (x, y).
-    fn marker(&mut self, x: f64, y: f64, rgb: (u8, u8, u8));
+    /// A small circle centred at (x, y), filled or `hollow` (its outline).
+    fn marker(&mut self, x: f64, y: f64, rgb: (u8, u8, u8), hollow: bool);
+    /// A closed polygon filled at `opacity` (0 to 1), not stroked.
+    fn band(&mut self, pts: &[(f64, f64)], rgb: (u8, u8, u8), opacity: f64);
     /// Text with its baseline at y; `up` turns it to read upwards.
     fn text(&mut self, at: (f64, f64), text: &str, style: TextStyle);
 }
@@ -139,17 +146,27 @@ pub fn draw(chart: &Chart, w: f64, plot_h: f64, c: &mut impl Canvas) {
     );
     let (left, top) = (50.0, 16.0);
     let (pw, ph) = (w - left - 8.0, plot_h);
+    let band_xs = chart
+        .bands
+        .iter()
+        .flat_map(|b| b.points.iter().map(|p| p.0));
+    let band_ys = chart
+        .bands
+        .iter()
+        .flat_map(|b| b.points.iter().flat_map(|p| [p.1, p.2]));
     let (x0, x1) = range(
         chart
             .lines
             .iter()
-            .flat_map(|l| l.points.iter().map(|p| p.0)),
+            .flat_map(|l| l.points.iter().map(|p| p.0))
+            .chain(band_xs),
     );
     let (y0, y1) = range(
         chart
             .lines
             .iter()
-            .flat_map(|l| l.points.iter().map(|p| p.1)),
+            .flat_map(|l| l.points.iter().map(|p| p.1))
+            .chain(band_ys),
     );
     let sx = |x: f64| left + (x - x0) / (x1 - x0) * pw;
     let sy = |y: f64| top + ph - (y - y0) / (y1 - y0) * ph;
@@ -209,13 +226,23 @@ pub fn draw(chart: &Chart, w: f64, plot_h: f64, c: &mut impl Canvas) {
         },
     );
 
+    if chart.lines.is_empty() && chart.bands.is_empty() {
+        c.text(
+            (left + pw / 2.0, top + ph / 2.0),
+            "no data",
+            TextStyle::plain(TITLE_SIZE, Anchor::Middle),
+        );
+    }
+    for b in &chart.bands {
+        c.band(&band_outline(b, sx, sy), colour(b.colour), b.opacity);
+    }
     for l in &chart.lines {
         let rgb = colour(l.colour);
         let pts: Vec<(f64, f64)> = l.points.iter().map(|&(x, y)| (sx(x), sy(y))).collect();
         c.line(&pts, rgb, 1.1, l.dashed);
         if l.markers {
             for &(x, y) in &pts {
-                c.marker(x, y, rgb);
+                c.marker(x, y, rgb, l.dashed);
             }
         }
     }
@@ -228,7 +255,7 @@ pub fn draw(chart: &Chart, w: f64, plot_h: f64, c: &mut impl Canvas) {
             let lx = left + x;
             c.line(&[(lx, y - 2.5), (lx + 18.0, y - 2.5)], rgb, 1.1, l.dashed);
             if l.markers {
-                c.marker(lx + 9.0, y - 2.5, rgb);
+                c.marker(lx + 9.0, y - 2.5, rgb, l.dashed);
             }
             c.text(
                 (lx + 22.0, y),
@@ -237,6 +264,107 @@ pub fn draw(chart: &Chart, w: f64, plot_h: f64, c: &mut impl Canvas) {
             );
         }
         y += 12.0;
+    }
+}
+
+/// A band's outline in the box: along its tops, back along its bottoms.
+fn band_outline(
+    b: &ChartBand,
+    sx: impl Fn(f64) -> f64,
+    sy: impl Fn(f64) -> f64,
+) -> Vec<(f64, f64)> {
+    b.points
+        .iter()
+        .map(|&(x, _, hi)| (sx(x), sy(hi)))
+        .chain(b.points.iter().rev().map(|&(x, lo, _)| (sx(x), sy(lo))))
+        .collect()
+}
+
+/// A canvas drawn on with its origin moved to `at` of another's.
+struct Shifted<'a, C: Canvas> {
+    inner: &'a mut C,
+    at: (f64, f64),
+}
+
+impl<C: Canvas> Canvas for Shifted<'_, C> {
+    fn line(&mut self, pts: &[(f64, f64)], rgb: (u8, u8, u8), width: f64, dashed: bool) {
+        let moved: Vec<(f64, f64)> = pts.iter().map(|&p| self.moved(p)).collect();
+        self.inner.line(&moved, rgb, width, dashed);
+    }
+    fn marker(&mut self, x: f64, y: f64, rgb: (u8, u8, u8), hollow: bool) {
+        let (x, y) = self.moved((x, y));
+        self.inner.marker(x, y, rgb, hollow);
+    }
+    fn band(&mut self, pts: &[(f64, f64)], rgb: (u8, u8, u8), opacity: f64) {
+        let moved: Vec<(f64, f64)> = pts.iter().map(|&p| self.moved(p)).collect();
+        self.inner.band(&moved, rgb, opacity);
+    }
+    fn text(&mut self, at: (f64, f64), text: &str, style: TextStyle) {
+        let at = self.moved(at);
+        self.inner.text(at, text, style);
+    }
+}
+
+impl<C: Canvas> Shifted<'_, C> {
+    fn moved(&self, (x, y): (f64, f64)) -> (f64, f64) {
+        (x + self.at.0, y + self.at.1)
+    }
+}
+
+/// A sheet of charts under a title, `cols` to a row, each `w` wide with a plot area `plot_h`
+/// high: its size (points).
+pub fn sheet_size(charts: &[Chart], cols: usize, w: f64, plot_h: f64) -> (f64, f64) {
+    let cols = cols.max(1);
+    let rows = charts
+        .chunks(cols)
+        .map(|row| row.iter().map(|c| height(c, w, plot_h)).fold(0.0, f64::max));
+    (
+        cols as f64 * (w + SHEET_GAP) + SHEET_GAP,
+        SHEET_TITLE_H + rows.map(|h| h + SHEET_GAP).sum::<f64>(),
+    )
+}
+
+const SHEET_GAP: f64 = 10.0;
+const SHEET_TITLE_H: f64 = 26.0;
+
+/// Draw the sheet ([`sheet_size`]) on `c`.
+pub fn draw_sheet(
+    title: &str,
+    charts: &[Chart],
+    cols: usize,
+    w: f64,
+    plot_h: f64,
+    c: &mut impl Canvas,
+) {
+    let cols = cols.max(1);
+    c.text(
+        (SHEET_GAP, 17.0),
+        title,
+        TextStyle {
+            bold: true,
+            ..TextStyle::plain(12.0, Anchor::Start)
+        },
+    );
+    let mut y = SHEET_TITLE_H;
+    for row in charts.chunks(cols) {
+        let mut x = SHEET_GAP;
+        for chart in row {
+            draw(
+                chart,
+                w,
+                plot_h,
+                &mut Shifted {
+                    inner: c,
+                    at: (x, y),
+                },
+            );
+            x += w + SHEET_GAP;
+        }
+        y += row
+            .iter()
+            .map(|ch| height(ch, w, plot_h))
+            .fold(0.0, f64::max)
+            + SHEET_GAP;
     }
 }
 
@@ -262,12 +390,23 @@ impl Canvas for Svg {
             }
         );
     }
-    fn marker(&mut self, x: f64, y: f64, rgb: (u8, u8, u8)) {
+    fn marker(&mut self, x: f64, y: f64, rgb: (u8, u8, u8), hollow: bool) {
+        let paint = if hollow {
+            format!("fill=\"none\" stroke=\"{}\" stroke-width=\"0.8\"", hex(rgb))
+        } else {
+            format!("fill=\"{}\"", hex(rgb))
+        };
         let _ = writeln!(
             self.0,
-            "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"3\" height=\"3\" fill=\"{}\"/>",
-            x - 1.5,
-            y - 1.5,
+            "<circle cx=\"{x:.1}\" cy=\"{y:.1}\" r=\"{MARKER_R}\" {paint}/>"
+        );
+    }
+    fn band(&mut self, pts: &[(f64, f64)], rgb: (u8, u8, u8), opacity: f64) {
+        let d: Vec<String> = pts.iter().map(|(x, y)| format!("{x:.1},{y:.1}")).collect();
+        let _ = writeln!(
+            self.0,
+            "<polygon points=\"{}\" fill=\"{}\" fill-opacity=\"{opacity:.2}\" stroke=\"none\"/>",
+            d.join(" "),
             hex(rgb)
         );
     }
@@ -292,16 +431,52 @@ impl Canvas for Svg {
     }
 }
 
-/// The chart as a standalone SVG document `w` points wide.
+/// A standalone chart's size (points): the chart `w` wide with a plot area `plot_h` high, and
+/// a margin round it.
+pub fn standalone_size(chart: &Chart, w: f64, plot_h: f64) -> (f64, f64) {
+    (
+        w + 2.0 * SHEET_GAP,
+        height(chart, w, plot_h) + 2.0 * SHEET_GAP,
+    )
+}
+
+/// Draw a standalone chart ([`standalone_size`]) on `c`.
+pub fn draw_standalone(chart: &Chart, w: f64, plot_h: f64, c: &mut impl Canvas) {
+    let at = (SHEET_GAP, SHEET_GAP);
+    draw(chart, w, plot_h, &mut Shifted { inner: c, at });
+}
+
+/// The chart as a standalone SVG document ([`standalone_size`]).
 pub fn svg(chart: &Chart, w: f64, plot_h: f64) -> String {
-    let h = height(chart, w, plot_h);
-    let mut s = Svg(format!(
-        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w:.0}\" height=\"{h:.0}\" \
-         viewBox=\"0 0 {w:.0} {h:.0}\" font-family=\"Helvetica, Arial, sans-serif\">\n"
-    ));
-    draw(chart, w, plot_h, &mut s);
-    s.0.push_str("</svg>\n");
-    s.0
+    let (sw, sh) = standalone_size(chart, w, plot_h);
+    let mut s = Svg::open(sw, sh);
+    draw_standalone(chart, w, plot_h, &mut s);
+    s.close()
+}
+
+/// The sheet ([`draw_sheet`]) as a standalone SVG document.
+pub fn sheet_svg(title: &str, charts: &[Chart], cols: usize, w: f64, plot_h: f64) -> String {
+    let (sw, sh) = sheet_size(charts, cols, w, plot_h);
+    let mut s = Svg::open(sw, sh);
+    draw_sheet(title, charts, cols, w, plot_h, &mut s);
+    s.close()
+}
+
+impl Svg {
+    /// A document `w` × `h` points on white, its text in the family the PDF embeds (a viewer
+    /// without DejaVu Sans falls back to its own sans-serif).
+    fn open(w: f64, h: f64) -> Svg {
+        Svg(format!(
+            "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w:.0}\" height=\"{h:.0}\" \
+             viewBox=\"0 0 {w:.0} {h:.0}\" font-family=\"DejaVu Sans, sans-serif\">\n\
+             <rect width=\"100%\" height=\"100%\" fill=\"#ffffff\"/>\n"
+        ))
+    }
+
+    fn close(mut self) -> String {
+        self.0.push_str("</svg>\n");
+        self.0
+    }
 }
 
 #[cfg(test)]

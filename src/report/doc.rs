@@ -87,8 +87,21 @@ pub struct Chart {
     pub x_label: String,
     pub y_label: String,
     pub lines: Vec<ChartLine>,
+    /// Translucent bands under the lines (a ±2s spread).
+    pub bands: Vec<ChartBand>,
     /// What the chart shows relative to what (reference line and its slope), under it.
     pub note: String,
+}
+
+/// A filled band of a chart: at each x, from `lo` to `hi`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ChartBand {
+    /// Index into the chart palette.
+    pub colour: usize,
+    /// 0 (clear) to 1 (solid).
+    pub opacity: f64,
+    /// (x, lo, hi), in x order.
+    pub points: Vec<(f64, f64, f64)>,
 }
 
 /// One line of a chart, with its legend entry.

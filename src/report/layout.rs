@@ -195,11 +195,19 @@ impl chart::Canvas for OnPage<'_> {
         let moved: Vec<(f64, f64)> = pts.iter().map(|(a, b)| (a + x, b + y)).collect();
         self.page.polyline(&moved);
     }
-    fn marker(&mut self, mx: f64, my: f64, rgb: (u8, u8, u8)) {
+    fn marker(&mut self, mx: f64, my: f64, rgb: (u8, u8, u8), hollow: bool) {
         let (x, y) = self.at;
+        if hollow {
+            self.page.stroke_style(rgb, 0.6, false);
+        }
         self.page.fill(rgb);
-        self.page.rect(mx + x - 1.6, my + y - 1.6, 3.2, 3.2, true);
+        self.page.circle(mx + x, my + y, chart::MARKER_R, !hollow);
         self.page.fill((0, 0, 0));
+    }
+    fn band(&mut self, pts: &[(f64, f64)], rgb: (u8, u8, u8), opacity: f64) {
+        let (x, y) = self.at;
+        let moved: Vec<(f64, f64)> = pts.iter().map(|(a, b)| (a + x, b + y)).collect();
+        self.page.polygon(&moved, rgb, opacity);
     }
     fn text(&mut self, (tx, ty): (f64, f64), text: &str, st: TextStyle) {
         let (x, y) = self.at;

@@ -8,8 +8,9 @@
 //!
 //! Output:
 //! - plots (`plot`): each error against position, per direction, mean with a ±2s band; the six
-//!   errors of a run on one sheet; a before/after comparison. SVG and PNG, drawn by plotters
-//!   with the built-in DejaVu Sans (no system fonts or libraries);
+//!   errors of a run on one sheet; a before/after comparison. SVG and PNG, drawn by the one
+//!   chart code the PDF's charts use too (`chart`; PNG rasterised by tiny-skia with the
+//!   built-in DejaVu Sans: no system fonts or libraries);
 //! - `write_run_report`: a directory with a self-contained HTML report (inline SVG, inline
 //!   style, no scripts, no external resources), a Markdown report that references the PNGs by
 //!   relative path, and the SVG and PNG files.
@@ -23,6 +24,7 @@ pub mod layout;
 mod markdown;
 pub mod pdf;
 pub mod plot;
+mod raster;
 pub mod render;
 pub mod runs;
 pub mod settings;
@@ -44,8 +46,6 @@ pub enum ReportError {
     Input { what: String, problem: String },
     #[error("plot {what}: drawing failed ({detail})")]
     Plot { what: String, detail: String },
-    #[error("the built-in plot font (DejaVu Sans) could not be loaded; this build is broken")]
-    Font,
     #[error("the acceptance PDF: {0}")]
     Pdf(#[from] pdf::PdfError),
     #[error(

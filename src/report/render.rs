@@ -28,7 +28,7 @@ pub fn chart_svgs(doc: &Document) -> Vec<(String, String)> {
         .collect()
 }
 
-const STYLE: &str = "body{font-family:Helvetica,Arial,sans-serif;font-size:14px;max-width:60em;\
+const STYLE: &str = "body{font-family:\"DejaVu Sans\",Verdana,sans-serif;font-size:14px;max-width:60em;\
 margin:2em auto;color:#111}h1{font-size:1.6em;margin-bottom:0}h2{font-size:1.2em;margin-top:1.6em;\
 border-bottom:1px solid #999}h3{font-size:1em}table{border-collapse:collapse;margin:.5em 0}\
 th,td{padding:2px 10px;border-bottom:1px solid #ddd;text-align:left}td.n,th.n{text-align:right;\

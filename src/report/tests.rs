@@ -151,6 +151,10 @@ fn sample() -> RunReport {
     }
 }
 
+/// The palette's blue and red (`doc::PALETTE` 0 and 3): ↑ and ↓.
+const UP_HEX: &str = "#1f5ab4";
+const DOWN_HEX: &str = "#be2828";
+
 fn svg_doc(svg: &str) -> Doc {
     let doc = xml_check::parse(svg).unwrap_or_else(|e| panic!("SVG is not well-formed: {e}"));
     assert_eq!(doc.root, "svg");
@@ -169,7 +173,8 @@ fn dof_svg_has_one_marker_per_point_and_a_band_per_direction() {
     let r = result(Dof::Dy);
     let svg = plot::dof_svg(&r).unwrap();
     let doc = svg_doc(&svg);
-    assert_eq!(doc.count("circle"), 2 * TARGETS);
+    // A marker per point, and one beside each legend entry (drawn last).
+    assert_eq!(doc.count("circle"), 2 * TARGETS + 2);
     assert_eq!(doc.count("polygon"), 2, "one ±2s band per direction");
     assert!(doc.has_text("dy — positioning"));
     assert!(doc.has_text("position (mm)"));
@@ -179,8 +184,9 @@ fn dof_svg_has_one_marker_per_point_and_a_band_per_direction() {
     // The ↑ markers are the ↑ series, in position order, higher means higher up.
     let up: Vec<(f64, f64)> = doc
         .named("circle")
-        .filter(|c| c.attr("fill") == Some("#1F77B4"))
+        .filter(|c| c.attr("fill") == Some(UP_HEX))
         .map(centre)
+        .take(TARGETS)
         .collect();
     assert_eq!(up.len(), TARGETS);
     assert!(
@@ -204,9 +210,9 @@ fn dof_svg_has_one_marker_per_point_and_a_band_per_direction() {
     }
     let down = doc
         .named("circle")
-        .filter(|c| c.attr("fill") == Some("#D62728"))
+        .filter(|c| c.attr("fill") == Some(DOWN_HEX))
         .count();
-    assert_eq!(down, TARGETS);
+    assert_eq!(down, TARGETS + 1);
 }
 
 #[test]
@@ -222,7 +228,7 @@ fn six_svg_has_all_six_charts() {
     let mut dofs = report.dofs.clone();
     dofs.retain(|d| d.dof != Dof::Ez);
     let doc = svg_doc(&plot::six_svg(&dofs, "Run 12, axis Y: the six errors").unwrap());
-    assert_eq!(doc.count("circle"), 5 * 2 * TARGETS);
+    assert_eq!(doc.count("circle"), 5 * 2 * (TARGETS + 1));
     assert_eq!(doc.count("polygon"), 5 * 2);
     assert!(doc.has_text("Run 12, axis Y: the six errors"));
     for d in Dof::ALL {
@@ -236,13 +242,17 @@ fn six_svg_has_all_six_charts() {
 fn comparison_svg_draws_both_sets() {
     let c = &sample().comparisons[0];
     let doc = svg_doc(&plot::comparison_svg(c).unwrap());
-    assert_eq!(doc.count("circle"), 4 * TARGETS);
+    assert_eq!(doc.count("circle"), 4 * (TARGETS + 1));
     assert_eq!(doc.count("polygon"), 4);
     let hollow = doc
         .named("circle")
         .filter(|e| e.attr("fill") == Some("none"))
         .count();
-    assert_eq!(hollow, 2 * TARGETS, "the before set has hollow markers");
+    assert_eq!(
+        hollow,
+        2 * (TARGETS + 1),
+        "the before set has hollow markers"
+    );
     assert!(doc.has_text("dy — positioning: before vs after"));
     for label in ["before ↑", "before ↓", "after ↑", "after ↓"] {
         assert!(doc.has_text(label), "{label}");
@@ -263,13 +273,34 @@ fn pngs_have_the_signature_and_size() {
     let r = sample();
     let one = dir.0.join("dy.png");
     plot::dof_png(&r.dofs[1], &one).unwrap();
-    assert_eq!(png_size(&one), plot::CHART_SIZE);
+    // Each PNG is its SVG's size at the PNG scale (the same drawing).
+    let svg_size = |svg: &str| {
+        let doc = svg_doc(svg);
+        let root = doc.named("svg").next().unwrap();
+        let px = |a: &str| (root.attr(a).unwrap().parse::<f64>().unwrap() * plot::PNG_SCALE) as u32;
+        (px("width"), px("height"))
+    };
+    assert_eq!(
+        png_size(&one),
+        svg_size(&plot::dof_svg(&r.dofs[1]).unwrap())
+    );
+    assert_eq!(
+        png_size(&one).0,
+        1040,
+        "500 points and a margin of 10, at 2 pixels a point"
+    );
     let six = dir.0.join("six.png");
     plot::six_png(&r.dofs, "six", &six).unwrap();
-    assert_eq!(png_size(&six), plot::SIX_SIZE);
+    assert_eq!(
+        png_size(&six),
+        svg_size(&plot::six_svg(&r.dofs, "six").unwrap())
+    );
     let cmp = dir.0.join("compare.png");
     plot::comparison_png(&r.comparisons[0], &cmp).unwrap();
-    assert_eq!(png_size(&cmp), plot::CHART_SIZE);
+    assert_eq!(
+        png_size(&cmp),
+        svg_size(&plot::comparison_svg(&r.comparisons[0]).unwrap())
+    );
     // Not blank: a real plot has many distinct bytes after compression.
     assert!(std::fs::metadata(&one).unwrap().len() > 10_000);
 }
