@@ -281,7 +281,6 @@ fn duration_text(d: std::time::Duration) -> String {
 
 fn hexapod_run(a: RunArgs) -> Result<()> {
     use axiscomp::hexapod::plan::{PlanSpec, PosePlan};
-    use axiscomp::hexapod::procedure::never_stop;
     use axiscomp::hexapod::session::{self, SessionEvent};
     use axiscomp::units::{DOF_NAMES, DOF_TO_USER, DOF_UNITS};
     let wall = std::time::Instant::now();
@@ -319,6 +318,11 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
     let total = plan.poses.len();
     let step = (total / 20).max(1);
     let mut fit_progress: Option<Progress> = None;
+    let mut sigint = {
+        let _in_runtime = rt.enter();
+        tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
+            .context("installing the Ctrl-C handler")?
+    };
     let out = rt.block_on(async {
         let mut map = prepared.map.clone();
         if settings.io.unit != 0 {
@@ -330,6 +334,23 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
             settings.io.acquire,
         );
         let mut rx = acq.subscribe();
+        // Ctrl-C halts the hexapod before its next pose; what is stored stays (the procedure
+        // says so, and how to resume).
+        let (stop_tx, stop) = tokio::sync::watch::channel(false);
+        let out_dir = a.out.display().to_string();
+        tokio::spawn(async move {
+            if sigint.recv().await.is_some() {
+                eprintln!(
+                    "Ctrl-C: halting the hexapod before its next pose; the poses taken so far \
+                     stay in {out_dir} (Ctrl-C again leaves at once)"
+                );
+                let _ = stop_tx.send(true);
+            }
+            if sigint.recv().await.is_some() {
+                eprintln!("Ctrl-C again: leaving now; the poses taken so far stay in {out_dir}");
+                std::process::exit(130);
+            }
+        });
         let r = session::run(
             &hx,
             &mut rx,
@@ -338,7 +359,7 @@ fn hexapod_run(a: RunArgs) -> Result<()> {
             &a.out,
             &layout,
             a.holdout_every,
-            &never_stop(),
+            &stop,
             &mut |e| match e {
                 SessionEvent::Resuming { stored, total } => eprintln!(
                     "resuming {}: {stored} of {total} poses stored",

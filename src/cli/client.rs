@@ -47,18 +47,43 @@ pub(super) fn duration_words(s: f64) -> String {
     }
 }
 
+/// Ctrl-C while the command line follows a procedure the service runs: listened for from
+/// before the procedure starts (a SIGINT in between would otherwise end the command without a
+/// word), and what to say then: the procedure goes on in the service.
+pub(super) struct Leave {
+    sigint: tokio::signal::unix::Signal,
+    /// What goes on, and the commands to follow and to stop it.
+    words: String,
+}
+
+impl Leave {
+    /// Listen for Ctrl-C from now on (inside the runtime).
+    pub(super) fn listen(words: String) -> Result<Leave> {
+        use tokio::signal::unix::{SignalKind, signal};
+        let sigint = signal(SignalKind::interrupt()).context("installing the Ctrl-C handler")?;
+        Ok(Leave { sigint, words })
+    }
+}
+
 /// Follow a procedure on the service until it is over: ask for its `status` every 2 s, print
 /// its `progress_line` on standard error whenever the line changes, and return the first
-/// status in which it is no longer `running`.
+/// status in which it is no longer `running`. Ctrl-C leaves it running in the service and says
+/// so (`Leave`; exit code 130).
 pub(super) async fn follow(
     c: &mut Client,
     status: &Request,
     progress_line: fn(&serde_json::Value) -> String,
     running: fn(&serde_json::Value) -> bool,
-) -> Result<serde_json::Value, ClientError> {
+    leave: &mut Leave,
+) -> Result<serde_json::Value> {
     let mut last = String::new();
     loop {
-        tokio::time::sleep(FOLLOW_EVERY).await;
+        tokio::select! {
+            () = tokio::time::sleep(FOLLOW_EVERY) => {}
+            _ = leave.sigint.recv() => {
+                return Err(super::Interrupted(format!("Ctrl-C: {}", leave.words)).into());
+            }
+        }
         let v = c.request(status).await?;
         let line = progress_line(&v);
         if line != last {

@@ -10,7 +10,7 @@
 //! certificate, arguments or a refused request, 1 for anything else.
 
 use super::InputError;
-use super::client::{duration_words, follow, refused, runtime, socket_path};
+use super::client::{Leave, duration_words, follow, refused, runtime, socket_path};
 use anyhow::{Context, Result};
 use axiscomp::follower::{Certificate, FollowerMap};
 use axiscomp::service::api::Request;
@@ -365,6 +365,11 @@ fn map_on_service(a: MapArgs) -> Result<()> {
             print_status(&v);
             return if a.stop { Ok(()) } else { outcome(&v) };
         }
+        let mut leave = Leave::listen(
+            "the follower mapping goes on in the service; follow it with: axiscomp follower map \
+             --status; stop it with: axiscomp follower map --stop"
+                .into(),
+        )?;
         let v = c
             .request(&Request::FollowerMapStart(req))
             .await
@@ -374,12 +379,19 @@ fn map_on_service(a: MapArgs) -> Result<()> {
             println!("follow it with: axiscomp follower map --status");
             return Ok(());
         }
-        let v = follow(&mut c, &Request::FollowerMapStatus, progress_line, |v| {
+        let running = |v: &serde_json::Value| {
             matches!(
                 v["state"].as_str(),
                 Some("approaching" | "mapping" | "finishing")
             )
-        })
+        };
+        let v = follow(
+            &mut c,
+            &Request::FollowerMapStatus,
+            progress_line,
+            running,
+            &mut leave,
+        )
         .await?;
         print_status(&v);
         outcome(&v)

@@ -5,7 +5,7 @@
 //! at the station being read (`--reading ARCSEC`, `[follower] level = "manual"`). Exit codes:
 //! 2 for a refused request, 1 for anything else.
 
-use super::client::{duration_words, follow, refused, runtime, socket_path};
+use super::client::{Leave, duration_words, follow, refused, runtime, socket_path};
 use anyhow::Result;
 use axiscomp::service::api::LevelRequest;
 use axiscomp::service::api::Request;
@@ -202,6 +202,11 @@ pub fn run(a: LevelArgs) -> Result<()> {
             print_status(&v);
             return if a.stop { Ok(()) } else { outcome(&v) };
         }
+        let mut leave = Leave::listen(
+            "the level stations go on in the service; follow them with: axiscomp follower level \
+             --status; stop them with: axiscomp follower level --stop"
+                .into(),
+        )?;
         let v = c
             .request(&Request::FollowerLevelStart(req))
             .await
@@ -216,9 +221,15 @@ pub fn run(a: LevelArgs) -> Result<()> {
                 "at each station, type the level's reading from another terminal: axiscomp follower level --reading ARCSEC"
             );
         }
-        let v = follow(&mut c, &Request::FollowerLevelStatus, progress_line, |v| {
-            matches!(v["state"].as_str(), Some("stations" | "finishing"))
-        })
+        let running =
+            |v: &serde_json::Value| matches!(v["state"].as_str(), Some("stations" | "finishing"));
+        let v = follow(
+            &mut c,
+            &Request::FollowerLevelStatus,
+            progress_line,
+            running,
+            &mut leave,
+        )
         .await?;
         print_status(&v);
         outcome(&v)

@@ -30,6 +30,12 @@ use std::path::{Path, PathBuf};
 #[error("{0}")]
 pub struct InputError(pub String);
 
+/// The user pressed Ctrl-C: what was left as it stands, and how to take it up (exit code 130,
+/// as a shell reports a command ended by SIGINT).
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct Interrupted(pub String);
+
 #[derive(Parser, Debug)]
 #[command(
     name = "axiscomp",
@@ -178,7 +184,16 @@ pub fn one_line(e: &anyhow::Error) -> String {
 /// 2 for input the user must fix, 1 for anything else.
 pub fn exit_code(e: &anyhow::Error) -> u8 {
     use axiscomp::calibrate::CalError;
+    use axiscomp::hexapod::procedure::ProcedureError;
     for cause in e.chain() {
+        if cause.is::<Interrupted>()
+            || matches!(
+                cause.downcast_ref::<ProcedureError>(),
+                Some(ProcedureError::Stopped { .. })
+            )
+        {
+            return 130;
+        }
         if cause.is::<InputError>()
             || cause.is::<axiscomp::optics::LayoutError>()
             || cause.is::<axiscomp::util::csv::CsvError>()

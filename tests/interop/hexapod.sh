@@ -91,6 +91,22 @@ idx = [int(l.split(",")[0]) for l in open(sys.argv[1]) if l[:1].isdigit()]
 assert idx == list(range(1, 41)), idx
 PY
 echo "   killed after $stored of 40 poses (newport-xps), resumed: every pose stored once"
+# Ctrl-C (issue 29: it ended the command without a word): the hexapod halts before its next
+# pose, the command says what stays stored and how to resume, and exits with 130.
+env "${quick[@]}" "$bin" calibrate run --config "$work/service.toml" --poses 40 \
+  --out "$work/int" >"$work/int.out" 2>"$work/int.err" & run=$!
+for _ in $(seq 1 300); do
+  grep -q "hexapod pose 1[0-9]/40" "$work/int.err" 2>/dev/null && break
+  sleep 0.1
+done
+kill -INT "$run"
+rc=0; wait "$run" || rc=$?
+[ "$rc" = 130 ] || { cat "$work/int.err" >&2; fail "Ctrl-C on calibrate run exited with $rc, not 130"; }
+grep -q "Ctrl-C: halting the hexapod before its next pose; the poses taken so far stay in $work/int" \
+  "$work/int.err" || { cat "$work/int.err" >&2; fail "Ctrl-C on calibrate run said nothing"; }
+grep -q "stopped by the operator before pose [0-9]* of 40; the poses taken so far are stored: start again to resume" \
+  "$work/int.err" || { cat "$work/int.err" >&2; fail "Ctrl-C on calibrate run: no word on resuming"; }
+echo "   Ctrl-C after $(grep -c '^[0-9]' "$work/int/run.csv" || true) of 40 poses: halted, said so, exit 130"
 
 echo "3. $poses poses (pi-gcs, 50 frames per pose)"
 "$bin" calibrate run --config "$work/service.toml" --poses "$poses" --out "$work/full" \

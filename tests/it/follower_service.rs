@@ -479,6 +479,62 @@ async fn the_command_line_imports_and_maps_through_the_service() {
         "{}",
         stdout(&o)
     );
+    // Followed on the command line, Ctrl-C leaves the mapping running in the service and says
+    // so, with how to follow and stop it (it ended the command without a word).
+    let sock2 = sock.clone();
+    let o = tokio::task::spawn_blocking(move || {
+        use std::io::BufRead;
+        let mut child = crate::helpers::bin()
+            .args([
+                "follower",
+                "map",
+                "--socket",
+                &sock2,
+                "--from-mm",
+                "0",
+                "--to-mm",
+                "40",
+            ])
+            .args(["--passes", "1", "--probe-every", "4", "--frames", "200"])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .expect("spawn axiscomp");
+        // Its first line is the started mapping's status: it follows from then on.
+        let mut out = std::io::BufReader::new(child.stdout.take().expect("stdout"));
+        let mut first = String::new();
+        out.read_line(&mut first).expect("first line");
+        // SAFETY: kill(2) on our own child's pid, which it keeps until we wait for it.
+        let sent = unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGINT) };
+        assert_eq!(sent, 0, "SIGINT");
+        let o = child.wait_with_output().expect("wait axiscomp");
+        (first, o)
+    })
+    .await
+    .unwrap();
+    let (first, o) = o;
+    assert!(first.contains("follower mapping approaching"), "{first}");
+    assert_eq!(o.status.code(), Some(130), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains(
+            "axiscomp: Ctrl-C: the follower mapping goes on in the service; follow it with: \
+             axiscomp follower map --status; stop it with: axiscomp follower map --stop"
+        ),
+        "{}",
+        stderr(&o)
+    );
+    let o = cli(args(&["follower", "map", "--status", "--socket", &sock]))
+        .await
+        .unwrap();
+    assert!(
+        stdout(&o).contains(" of 14, "),
+        "still running: {}",
+        stdout(&o)
+    );
+    let o = cli(args(&["follower", "map", "--stop", "--socket", &sock]))
+        .await
+        .unwrap();
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     rig.stop().await;
 }
 
