@@ -387,10 +387,14 @@ pub fn run(a: Args) -> Result<()> {
     // twin's machine and judged against the demo's tolerances (its configuration beside it).
     let config = a.out.join("axiscomp.toml");
     write(&config, &demo_config(&a))?;
+    let db = a.out.join("axiscomp.db");
+    let verified_us = axiscomp::store::Store::open(&db)?
+        .run(axiscomp::store::RunId(2))?
+        .updated_us;
     let acceptance = super::report::written(super::report::ReportArgs {
         store: super::run::StoreArgs {
             run: 2,
-            db: Some(a.out.join("axiscomp.db")),
+            db: Some(db),
             config: Some(config),
         },
         compare: Some(1),
@@ -399,6 +403,7 @@ pub fn run(a: Args) -> Result<()> {
         operator: None,
         json: false,
         follower_spec_um: None,
+        made_us: Some(verified_us),
     })?;
     println!(
         "\nreport: {} ({} files)",

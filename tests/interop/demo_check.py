@@ -9,6 +9,8 @@ all for up to 1 m with the instrument's map re-used, and the truth's positioning
 compensation <= 1.0 um. Usage: demo_check.py DEMO_OUT_DIR
 """
 import json
+import os
+import re
 import sys
 
 DIFF = {"dx": 0.5, "dy": 1.0, "dz": 0.5, "ex": 0.3, "ey": 0.5, "ez": 0.3}
@@ -61,6 +63,20 @@ def main(out):
         print(f"  positioning E after, by the truth: {e_after[0]:.2f} µm (limit 1.0)")
         if e_after[0] > 1.0:
             failures.append(f"positioning E after {e_after[0]:.2f} µm > 1.0 µm by the truth")
+    # Issue 29: the acceptance report is not made before the runs it reports ended (the demo's
+    # runs are dated by the twin's clock, its machine time ahead of the wall's).
+    acc = f"{out}/acceptance/acceptance.md"
+    if os.path.exists(acc):
+        text = open(acc, encoding="utf-8").read()
+        measured = re.search(r"\*\*Measured\*\* \| (.+?) UTC to (.+?) UTC", text)
+        made = re.search(r"\*\*Report made\*\* \| (.+?) UTC", text)
+        if not (measured and made):
+            failures.append(f"{acc}: no Measured or Report made line")
+        elif made.group(1) < measured.group(2):
+            failures.append(f"{acc}: report made {made.group(1)}, before the run ended "
+                            f"{measured.group(2)}")
+        else:
+            print(f"  acceptance report made {made.group(1)} UTC, the run ended {measured.group(2)} UTC")
     if failures:
         sys.exit(f"seed {summary['seed']}, {summary['length_mm']} mm: " + "; ".join(failures))
     print(f"seed {summary['seed']}, {summary['length_mm']} mm: PASS")
