@@ -806,12 +806,18 @@ fn write_out(
         } else {
             &r.after
         };
+        // The tables the demo published, stored as the service stores a generated table (from
+        // the first run), before the verification run that measured under them: its record
+        // names them, so its report and a table composed from it find them.
+        let published_ids = match ids.first() {
+            Some(&first) if pass == "after" => store_published(&mut store, spec, r, first, from)?,
+            _ => Vec::new(),
+        };
         // The twin's PLC applied nothing when the first run started: recorded, as the service
         // records it, so tables made from this run are the axis's own. The verification run
-        // records the tables the demo published (by sequence and CRC; they are not in this
-        // store, so a table composed from it is refused, naming them). What the run's budget was made of, with
-        // the follower map it applied, so that `axiscomp report` on this store states the
-        // same budget.
+        // records the tables the demo published, as stored above. What the run's budget was
+        // made of, with the follower map it applied, so that `axiscomp report` on this store
+        // states the same budget.
         let id = store_lab_run(
             &mut store,
             &LabRunRecord {
@@ -845,10 +851,16 @@ fn write_out(
                         tables: r
                             .published
                             .iter()
-                            .map(|p| axiscomp::store::ActiveTable {
+                            .zip(
+                                published_ids
+                                    .iter()
+                                    .map(Some)
+                                    .chain(std::iter::repeat(None)),
+                            )
+                            .map(|(p, id)| axiscomp::store::ActiveTable {
                                 kind: p.table.kind.name().into(),
                                 axis: p.table.axis.to_string(),
-                                table: None,
+                                table: id.copied(),
                                 sequence: p.sequence,
                                 crc: p.crc,
                                 read_back: false,
@@ -895,6 +907,48 @@ fn write_out(
     write(&dir.join("program.ngc"), &r.before.run.program)?;
     write(&dir.join("summary.md"), &summary(r, truth, &ids))?;
     Ok(files + 3)
+}
+
+/// Store the tables the loop published, each from the measured table of its name, as the
+/// service stores a generated one (`service::stored::StoredTable`, fitted to the loop's CNC
+/// map, from run `source`, made at `made_us`): their ids, in publication order.
+fn store_published(
+    store: &mut Store,
+    spec: &LoopSpec,
+    r: &LoopResult,
+    source: RunId,
+    made_us: i64,
+) -> Result<Vec<axiscomp::store::TableId>> {
+    use axiscomp::plc::table::TableDirection;
+    let measured: Vec<&axiscomp::comp::CompTable> = std::iter::once(&r.tables.positioning)
+        .chain(&r.tables.straightness)
+        .chain(&r.tables.abbe)
+        .collect();
+    let mut ids = Vec::new();
+    for p in &r.published {
+        let Some(m) = measured.iter().find(|t| t.name == p.name) else {
+            anyhow::bail!(
+                "the published table {} is not among the demo's tables",
+                p.name
+            );
+        };
+        let stored = axiscomp::service::stored::StoredTable::new(&spec.map, &p.table, m);
+        let entry = axiscomp::store::TableEntry {
+            kind: p.table.kind.name().into(),
+            axis: p.table.axis.letter().into(),
+            direction: match p.table.direction {
+                TableDirection::Positive => Some(Direction::Up),
+                TableDirection::Negative => Some(Direction::Down),
+                _ => None,
+            },
+            generated_us: made_us,
+            source_run: Some(source),
+            values: serde_json::to_value(&stored)?,
+            crc: p.crc,
+        };
+        ids.push(store.insert_table(&entry)?);
+    }
+    Ok(ids)
 }
 
 fn comparisons(before: &[Capture], after: &[Capture]) -> Vec<Comparison> {
