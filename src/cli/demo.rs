@@ -919,7 +919,6 @@ fn store_published(
     source: RunId,
     made_us: i64,
 ) -> Result<Vec<axiscomp::store::TableId>> {
-    use axiscomp::plc::table::TableDirection;
     let measured: Vec<&axiscomp::comp::CompTable> = std::iter::once(&r.tables.positioning)
         .chain(&r.tables.straightness)
         .chain(&r.tables.abbe)
@@ -932,20 +931,12 @@ fn store_published(
                 p.name
             );
         };
-        let stored = axiscomp::service::stored::StoredTable::new(&spec.map, &p.table, m);
-        let entry = axiscomp::store::TableEntry {
-            kind: p.table.kind.name().into(),
-            axis: p.table.axis.letter().into(),
-            direction: match p.table.direction {
-                TableDirection::Positive => Some(Direction::Up),
-                TableDirection::Negative => Some(Direction::Down),
-                _ => None,
-            },
-            generated_us: made_us,
-            source_run: Some(source),
-            values: serde_json::to_value(&stored)?,
-            crc: p.crc,
-        };
+        let entry = axiscomp::service::stored::StoredTable::new(&spec.map, &p.table, m).entry(
+            &p.table,
+            p.crc,
+            Some(source),
+            made_us,
+        )?;
         ids.push(store.insert_table(&entry)?);
     }
     Ok(ids)

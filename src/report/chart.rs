@@ -43,6 +43,20 @@ pub struct TextStyle {
 }
 
 impl TextStyle {
+    /// The embedded font it is set in.
+    pub fn font(&self) -> Font {
+        if self.bold { Font::Bold } else { Font::Regular }
+    }
+
+    /// How far `text` starts before its anchor (points), as the font's shaping measures it.
+    pub fn anchor_shift(&self, text: &str) -> f64 {
+        match self.anchor {
+            Anchor::Start => 0.0,
+            Anchor::Middle => text_width(text, self.font(), self.size) / 2.0,
+            Anchor::End => text_width(text, self.font(), self.size),
+        }
+    }
+
     fn plain(size: f64, anchor: Anchor) -> TextStyle {
         TextStyle {
             size,
@@ -315,13 +329,25 @@ impl<C: Canvas> Shifted<'_, C> {
 /// high: its size (points).
 pub fn sheet_size(charts: &[Chart], cols: usize, w: f64, plot_h: f64) -> (f64, f64) {
     let cols = cols.max(1);
-    let rows = charts
-        .chunks(cols)
-        .map(|row| row.iter().map(|c| height(c, w, plot_h)).fold(0.0, f64::max));
     (
         cols as f64 * (w + SHEET_GAP) + SHEET_GAP,
-        SHEET_TITLE_H + rows.map(|h| h + SHEET_GAP).sum::<f64>(),
+        SHEET_TITLE_H
+            + row_heights(charts, cols, w, plot_h)
+                .map(|h| h + SHEET_GAP)
+                .sum::<f64>(),
     )
+}
+
+/// Each row's height on a sheet: its tallest chart's.
+fn row_heights(
+    charts: &[Chart],
+    cols: usize,
+    w: f64,
+    plot_h: f64,
+) -> impl Iterator<Item = f64> + '_ {
+    charts
+        .chunks(cols.max(1))
+        .map(move |row| row.iter().map(|c| height(c, w, plot_h)).fold(0.0, f64::max))
 }
 
 const SHEET_GAP: f64 = 10.0;
@@ -346,7 +372,10 @@ pub fn draw_sheet(
         },
     );
     let mut y = SHEET_TITLE_H;
-    for row in charts.chunks(cols) {
+    for (row, h) in charts
+        .chunks(cols)
+        .zip(row_heights(charts, cols, w, plot_h))
+    {
         let mut x = SHEET_GAP;
         for chart in row {
             draw(
@@ -360,11 +389,7 @@ pub fn draw_sheet(
             );
             x += w + SHEET_GAP;
         }
-        y += row
-            .iter()
-            .map(|ch| height(ch, w, plot_h))
-            .fold(0.0, f64::max)
-            + SHEET_GAP;
+        y += h + SHEET_GAP;
     }
 }
 

@@ -2,7 +2,7 @@
 //! kept with what follows, tables whose column widths fit their content and whose heading row
 //! repeats after a page break, charts drawn as vector paths, and the signature block.
 
-use super::chart::{self, Anchor, TextStyle};
+use super::chart::{self, TextStyle};
 use super::doc::{Block, Chart, Document, Table};
 use super::pdf::{self, Font, PAGE_H, PAGE_W, Page, text_width};
 
@@ -211,12 +211,7 @@ impl chart::Canvas for OnPage<'_> {
     }
     fn text(&mut self, (tx, ty): (f64, f64), text: &str, st: TextStyle) {
         let (x, y) = self.at;
-        let font = if st.bold { Font::Bold } else { Font::Regular };
-        let shift = match st.anchor {
-            Anchor::Start => 0.0,
-            Anchor::Middle => text_width(text, font, st.size) / 2.0,
-            Anchor::End => text_width(text, font, st.size),
-        };
+        let (font, shift) = (st.font(), st.anchor_shift(text));
         if st.up {
             self.page
                 .text_up(tx + x, ty + y + shift, text, font, st.size);

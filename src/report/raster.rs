@@ -3,8 +3,8 @@
 //! built-in DejaVu Sans (`pdf::shaped`), its glyph outlines filled as paths, so a PNG shows
 //! the same characters (µ, ″, ↑) at the same widths as the other two; anti-aliased, on white.
 
-use super::chart::{Anchor, Canvas, MARKER_R, TextStyle};
-use super::pdf::{Font, shaped, text_width};
+use super::chart::{Canvas, MARKER_R, TextStyle};
+use super::pdf::{Font, shaped};
 use tiny_skia::{
     Color, FillRule, LineCap, LineJoin, Paint, PathBuilder, Pixmap, Stroke, StrokeDash, Transform,
 };
@@ -178,13 +178,8 @@ impl Canvas for Raster {
     }
 
     fn text(&mut self, (x, y): (f64, f64), text: &str, st: TextStyle) {
-        let font = if st.bold { Font::Bold } else { Font::Regular };
-        let shift = match st.anchor {
-            Anchor::Start => 0.0,
-            Anchor::Middle => text_width(text, font, st.size) / 2.0,
-            Anchor::End => text_width(text, font, st.size),
-        } as f32;
-        let Some(path) = text_path(text, font, st.size) else {
+        let shift = st.anchor_shift(text) as f32;
+        let Some(path) = text_path(text, st.font(), st.size) else {
             return;
         };
         let (x, y) = (x as f32, y as f32);
@@ -203,6 +198,8 @@ impl Canvas for Raster {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::report::chart::Anchor;
+    use crate::report::pdf::text_width;
 
     /// The pixel at (x, y) points, as RGBA.
     fn at(r: &Raster, x: f64, y: f64) -> [u8; 4] {

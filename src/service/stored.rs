@@ -6,7 +6,8 @@
 use crate::comp::{CompTable, MachineAxis, TableKind};
 use crate::plc::table::TableDirection;
 use crate::plc::{CncMap, PlcTable};
-use crate::store::{ActiveTable, TableRecord};
+use crate::run::Direction;
+use crate::store::{ActiveTable, RunId, TableEntry, TableRecord};
 use serde::{Deserialize, Serialize};
 
 /// The `format` of a stored table's values.
@@ -116,6 +117,30 @@ impl StoredTable {
         }
     }
 
+    /// The store's row for this table as `t` was fitted (its kind, axis and direction), made at
+    /// `generated_us` from run `source_run`, its payload's CRC `crc` as published.
+    pub fn entry(
+        &self,
+        t: &PlcTable,
+        crc: u32,
+        source_run: Option<RunId>,
+        generated_us: i64,
+    ) -> Result<TableEntry, serde_json::Error> {
+        Ok(TableEntry {
+            kind: t.kind.name().into(),
+            axis: t.axis.letter().into(),
+            direction: match t.direction {
+                TableDirection::Positive => Some(Direction::Up),
+                TableDirection::Negative => Some(Direction::Down),
+                _ => None,
+            },
+            generated_us,
+            source_run,
+            values: serde_json::to_value(self)?,
+            crc,
+        })
+    }
+
     /// What the values are: "composed: …", or "measured" (with why nothing was composed).
     pub fn composition(&self) -> String {
         match &self.base {
@@ -170,7 +195,7 @@ impl StoredTable {
 mod tests {
     use super::*;
     use crate::comp;
-    use crate::store::{TableEntry, TableId};
+    use crate::store::TableId;
 
     fn record(id: i64) -> TableRecord {
         TableRecord {

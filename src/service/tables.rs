@@ -27,9 +27,8 @@ use crate::comp::{self, AxisMapping, MachineAxis, TableSpec};
 use crate::config::{PlcSettings, TableBuild};
 use crate::evaluate::{EvalOptions, ReferenceLine, evaluate_captures};
 use crate::modbus::Link;
-use crate::plc::table::{self as ptable, RawHeader, Reject, TableDirection};
+use crate::plc::table::{self as ptable, RawHeader, Reject};
 use crate::plc::{self, CncMap, PlcStatus, PlcTable, PublishOutcome, PullServer, StatusCode};
-use crate::run::Direction;
 use crate::store::{
     AuditEntry, Publication, PublicationOutcome, PublicationRecord, RunId, RunTables, Store,
     StoreError, StoreQueue, TableEntry, TableId, TableRecord, now_us,
@@ -535,19 +534,9 @@ pub fn generate(
             let enc = ptable::encode(&t, map, 1).map_err(|e| fail(e.to_string()))?;
             let mut stored = StoredTable::new(map, &t, c);
             stored.base = base;
-            let entry = TableEntry {
-                kind: t.kind.name().into(),
-                axis: t.axis.letter().into(),
-                direction: match t.direction {
-                    TableDirection::Positive => Some(Direction::Up),
-                    TableDirection::Negative => Some(Direction::Down),
-                    _ => None,
-                },
-                generated_us,
-                source_run: Some(rec.id),
-                values: serde_json::to_value(&stored).map_err(|e| fail(e.to_string()))?,
-                crc: enc.crc,
-            };
+            let entry = stored
+                .entry(&t, enc.crc, Some(rec.id), generated_us)
+                .map_err(|e| fail(e.to_string()))?;
             Ok((entry, stored))
         })
         .collect()
