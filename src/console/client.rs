@@ -129,6 +129,12 @@ impl Conn {
         Ok(Conn(control::Client::connect(path).await?))
     }
 
+    /// Whether the service closed this connection while it was idle (see
+    /// [`control::Client::closed_by_peer`]).
+    fn closed_by_peer(&mut self) -> bool {
+        self.0.closed_by_peer()
+    }
+
     async fn send(&mut self, r: &Request) -> Result<(), ClientError> {
         Ok(self.0.send(r).await?)
     }
@@ -294,7 +300,9 @@ async fn stream_session(
 }
 
 /// Carry requests one at a time on a connection opened on demand; a broken connection is
-/// dropped and the next request opens a new one.
+/// dropped and the next request opens a new one. A connection the service closed while it
+/// sat idle (the service restarted since the last request) is replaced before the request
+/// goes out: the request was never sent on it, so this is not a re-send.
 async fn request_task(
     socket: PathBuf,
     mut rx: mpsc::Receiver<(u64, Request)>,
@@ -303,6 +311,9 @@ async fn request_task(
     let mut conn: Option<Conn> = None;
     while let Some((id, request)) = rx.recv().await {
         let result: Result<serde_json::Value, ClientError> = async {
+            if conn.as_mut().is_some_and(Conn::closed_by_peer) {
+                conn = None;
+            }
             let c = match conn.as_mut() {
                 Some(c) => c,
                 None => conn.insert(Conn::connect(&socket).await?),
@@ -413,17 +424,21 @@ mod tests {
         tokio::time::timeout(within, wait_snapshot(&mut client, 1))
             .await
             .expect("first service");
-        client.send(7, Request::Zero).await.expect("send");
-        let reply = tokio::time::timeout(within, async {
-            loop {
-                if let Some(LinkEvent::Reply { id, result }) = client.events.recv().await {
-                    return (id, result);
+        let reply = async |client: &mut Client, id: u64| {
+            client.send(id, Request::Zero).await.expect("send");
+            let got = tokio::time::timeout(within, async {
+                loop {
+                    if let Some(LinkEvent::Reply { id, result }) = client.events.recv().await {
+                        return (id, result);
+                    }
                 }
-            }
-        })
-        .await
-        .expect("reply");
-        assert_eq!(reply, (7, Ok(serde_json::json!({"echo": true}))));
+            });
+            got.await.expect("a reply")
+        };
+        assert_eq!(
+            reply(&mut client, 7).await,
+            (7, Ok(serde_json::json!({"echo": true})))
+        );
         // The service goes away and comes back: the stream reconnects by itself.
         trigger.trigger();
         tokio::time::sleep(Duration::from_millis(100)).await;
@@ -431,6 +446,13 @@ mod tests {
         tokio::time::timeout(within, wait_snapshot(&mut client, 2))
             .await
             .expect("second service");
+        // The first request after the restart reaches the new service: the request
+        // connection the old one closed is not used for it (it answered 'control connection:
+        // Broken pipe (os error 32)' under a connected header).
+        assert_eq!(
+            reply(&mut client, 8).await,
+            (8, Ok(serde_json::json!({"echo": true})))
+        );
         trigger.trigger();
         let _ = std::fs::remove_dir_all(&dir);
     }

@@ -431,6 +431,23 @@ impl Client {
         })
     }
 
+    /// Whether the service has closed this connection while it sat idle (a restarted
+    /// service, an idle timeout): its end of the socket reads end-of-file, or a line nobody
+    /// asked for waits in it. A request connection is only read for the reply to its own
+    /// request, so either means the next request would go nowhere: open a new one instead.
+    pub fn closed_by_peer(&mut self) -> bool {
+        let buffered = self.lines.get_mut();
+        if !buffered.buffer().is_empty() {
+            return true;
+        }
+        let mut probe = [0u8; 1];
+        match buffered.get_ref().try_read(&mut probe) {
+            // End of file, or bytes nobody asked for.
+            Ok(_) => true,
+            Err(e) => e.kind() != std::io::ErrorKind::WouldBlock,
+        }
+    }
+
     /// Send one request line (its reply is read with [`next_value`](Self::next_value)).
     pub async fn send(&mut self, r: &Request) -> Result<(), ClientError> {
         let mut s = serde_json::to_string(r).map_err(|e| ClientError::Reply(e.to_string()))?;

@@ -79,16 +79,19 @@ sleep 1
 RUST_LOG=warn "$bin" serve --config "$work/service.toml" >"$work/serve.log" 2>&1 & svc=$!
 
 # The service is up with the follower homed and the stitch referenced.
-ready=""
-for _ in $(seq 1 120); do
-  if "$bin" status --socket "$work/control.sock" --json 2>/dev/null | python3 -c '
+wait_ready() {
+  local ready=""
+  for _ in $(seq 1 120); do
+    if "$bin" status --socket "$work/control.sock" --json 2>/dev/null | python3 -c '
 import json, sys
 s = json.load(sys.stdin)
 sys.exit(0 if s["follower"]["homed"] and s["tracking"]["valid"] and s["tracking"]["at_rest"] else 1)
 ' 2>/dev/null; then ready=1; break; fi
-  sleep 0.5
-done
-[ -n "$ready" ] || { tail -n 20 "$work/serve.log" >&2; echo "console.sh: the service did not come up" >&2; exit 1; }
+    sleep 0.5
+  done
+  [ -n "$ready" ] || { tail -n 20 "$work/serve.log" >&2; echo "console.sh: the service did not come up" >&2; exit 1; }
+}
+wait_ready
 
 source tests/interop/tmux-screen.sh
 # field VALUE: type VALUE into the selected plan field, then select the next one.
@@ -458,6 +461,43 @@ expect 5 "Accept the calibration?"
 keys y
 expect 15 "in use   stored calibration"
 
+echo "console.sh: the service restarted under the console, tables generated from the command line"
+# Issue 29: the first key after a service restart answered 'control connection: Broken pipe
+# (os error 32)' under a connected header, and Publish said nothing of tables generated from
+# the command line until r.
+keys 1
+kill "$svc"
+wait "$svc" 2>/dev/null || true
+expect 20 "○ no service"
+RUST_LOG=warn "$bin" serve --config "$work/service.toml" >>"$work/serve.log" 2>&1 & svc=$!
+wait_ready
+expect 20 "● connected"
+cli_ids=$("$bin" table generate --run "$run2" --socket "$work/control.sock" --json \
+  | python3 -c 'import json, sys; print(" ".join(str(t["id"]) for t in json.load(sys.stdin)["tables"]))') \
+  || fail "table generate --run $run2 from the command line"
+cli_pos=${cli_ids%% *}
+keys 6
+expect 10 "Tables (map" "${cli_pos}  E" "PLC ready, active sequence $seq2;"
+screen | grep -q "Broken pipe" && fail "a request after the restart went to the old connection"
+echo "console.sh: tables $cli_ids from the command line listed on Publish, no key but 6"
+
+echo "console.sh: 160×48"
+"${tmx[@]}" resize-window -t console -x 160 -y 48
+expect 10 "Tables (map" "${cli_pos}  E" "PLC ready, active sequence $seq2;" "active: table $pos2 positioning X seq $seq2"
+[ "$(screen | wc -l)" -ge 48 ] || fail "the pane is not 48 rows high"
+keys 1
+expect 10 "Six errors" "● connected" "PSD1 pitch/yaw" "dy "
+keys 2
+# From 120 columns the follower's map stands beside the beam alignment.
+expect 10 "Beam alignment over the travel" "Follower" "✓ CHECK PASSED"
+keys 5
+expect 10 "run $run2 X finished, 20 captures" "dy positioning (µm)" "A (accuracy)"
+keys 4
+expect 10 "Plan (ISO 230-2)" "targets (mm): 0.0 2.0 4.0 6.0 8.0"
+"${tmx[@]}" resize-window -t console -x 80 -y 24
+keys 1
+expect 10 "Six errors"
+
 echo "console.sh: colours, then quit"
 "${tmx[@]}" capture-pane -e -p -t console | grep -qE $'\e\\[[0-9;]*(3[0-7]|38;)' \
   || fail "no colour escapes with colours on"
@@ -480,6 +520,11 @@ expect 20 "Six errors" "● connected"
 if "${tmx[@]}" capture-pane -e -p -t console | grep -qE $'\e\\[[0-9;]*(3[0-7]|38;|4[0-7]|48;)'; then
   fail "NO_COLOR=1 still draws colours"
 fi
+# A new console, the service restarted since the alignment: Align shows the alignment the
+# pre-run check uses (it said 'no advice yet').
+keys 2
+expect 10 "stored alignment of X over -1–400 mm" "✓ CHECK PASSED"
+echo "console.sh: a new console shows the stored alignment: $(screen | grep -o 'stored alignment of X[^│]*' | head -1 | sed 's/ *$//')"
 keys q
 
 echo "console.sh: all screens as expected"

@@ -56,6 +56,7 @@ VIEWING = [
     {"cmd": "calibration"},
     {"cmd": "table_list", "limit": 5},
     {"cmd": "table_status"},
+    {"cmd": "align_stored", "axis": "X"},
 ]
 
 

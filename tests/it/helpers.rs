@@ -715,6 +715,41 @@ pub async fn align_service(socket: &Path, twin: &axiscomp::sim::twin::Twin, span
         advice["passed"], true,
         "a square-mounted head failed: {advice}"
     );
+    // The stored alignment of the axis is this advice, with its id, span and time.
+    let stored = c
+        .request(&Request::AlignStored {
+            axis: Some("X".into()),
+        })
+        .await
+        .expect("align stored");
+    assert_eq!(
+        (
+            &stored["alignment_id"],
+            &stored["passed"],
+            &stored["check"],
+            stored["from_mm"].as_f64(),
+            stored["to_mm"].as_f64()
+        ),
+        (
+            &advice["alignment_id"],
+            &advice["passed"],
+            &advice["check"],
+            Some(span.0),
+            Some(span.1)
+        ),
+        "{stored}"
+    );
+    assert!(
+        stored["unix_us"].as_i64().is_some_and(|t| t > 0),
+        "{stored}"
+    );
+    let other = c
+        .request(&Request::AlignStored {
+            axis: Some("Q".into()),
+        })
+        .await
+        .expect("align stored for an axis never aligned");
+    assert!(other.is_null(), "{other}");
     twin.move_and_wait(0.0).await;
     at_rest(&mut c, twin, 0.0).await;
     c.request(&Request::Zero).await.expect("zero");

@@ -71,6 +71,33 @@ impl AdviceView {
     }
 }
 
+/// The newest alignment the store holds for the plan's axis, as `align_stored` says it.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub enum StoredAlignment {
+    /// Not asked since the console (or the service) started, or a newer one was stored.
+    #[default]
+    Unknown,
+    /// The axis has none (or the service could not say).
+    None,
+    Found {
+        unix_us: i64,
+        advice: AdviceView,
+    },
+}
+
+impl StoredAlignment {
+    fn from_json(v: &serde_json::Value) -> StoredAlignment {
+        let span = v["from_mm"].as_f64().zip(v["to_mm"].as_f64());
+        match (v["unix_us"].as_i64(), span) {
+            (Some(unix_us), Some(span)) => StoredAlignment::Found {
+                unix_us,
+                advice: AdviceView::from_json(v, span),
+            },
+            _ => StoredAlignment::None,
+        }
+    }
+}
+
 /// The alignment procedure's state on the Align screen.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct AlignProc {
@@ -79,6 +106,8 @@ pub struct AlignProc {
     /// The stations read since the last clear, in reading order (one per position).
     pub stations: Vec<StationView>,
     pub advice: Option<AdviceView>,
+    /// The newest stored alignment of the plan's axis: shown while there is no advice.
+    pub stored: StoredAlignment,
 }
 
 /// Parse the span typed: "FROM TO" in mm, FROM below TO.
@@ -197,6 +226,30 @@ impl App {
             );
         }
         self.align.advice = Some(a);
+        // The advice was stored: the stored one is this one now.
+        self.align.stored = StoredAlignment::Unknown;
+    }
+
+    /// The stored alignment's reply.
+    pub(super) fn apply_align_stored(&mut self, v: &serde_json::Value) {
+        self.align.stored = StoredAlignment::from_json(v);
+    }
+
+    /// On the Align screen, the stored alignment of the plan's axis once (again after a
+    /// reconnect or a new advice).
+    pub(super) fn align_need_stored(&mut self) -> Vec<Action> {
+        if self.screen != Screen::Align
+            || self.align.stored != StoredAlignment::Unknown
+            || self.waiting(&Pending::AlignStored)
+        {
+            return Vec::new();
+        }
+        vec![self.send(
+            Request::AlignStored {
+                axis: Some(self.plan.spec.axis.clone()),
+            },
+            Pending::AlignStored,
+        )]
     }
 
     /// The Align screen's alignment keys (`None`: not one of them).

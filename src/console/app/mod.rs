@@ -21,7 +21,7 @@ mod results;
 #[cfg(test)]
 mod tests;
 
-pub use align::{AdviceView, AlignProc, StationSpot, StationView};
+pub use align::{AdviceView, AlignProc, StationSpot, StationView, StoredAlignment};
 pub use calibrate::{CalSummary, CalibrateState, HexapodView};
 pub use follower_level::parse_level_reading;
 pub use follower_map::{AlignPanel, FollowerPanel, parse_mapping};
@@ -250,6 +250,7 @@ enum Pending {
     AlignTarget,
     /// The advice over this span (mm).
     AlignAdvice((f64, f64)),
+    AlignStored,
     AlignClear,
     Certificate,
     MapStart,
@@ -529,6 +530,7 @@ impl App {
                 out.push(self.send(Request::Calibration, Pending::Calibration));
             }
             Screen::Machine => out.extend(self.machine_need()),
+            Screen::Align => out.extend(self.align_need_stored()),
             _ => {}
         }
         out.extend(self.calibrate_need_hexapod());
@@ -617,6 +619,12 @@ impl App {
         }
         if was_down {
             self.log(Level::Info, "connected to the service");
+            // A service that restarted may hold other tables, calibration and alignment
+            // than this console last read: what the screens show from the store is read again.
+            self.publish.listed = false;
+            self.publish.status = None;
+            self.calibrate.loaded = false;
+            self.align.stored = StoredAlignment::Unknown;
         }
     }
 
@@ -827,6 +835,12 @@ impl App {
 
     /// Go to `screen` (and ask for what it shows, if it has nothing yet).
     fn show(&mut self, screen: Screen) -> Vec<Action> {
+        // Publish reads the store and the PLC again each time it is opened: tables generated
+        // from the command line, or published by another console, show without `r`.
+        if screen == Screen::Publish && self.screen != Screen::Publish {
+            self.publish.listed = false;
+            self.publish.status = None;
+        }
         self.screen = screen;
         let mut out = self.results_need_list();
         out.extend(self.events_need_audit());

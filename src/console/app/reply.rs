@@ -67,6 +67,11 @@ impl App {
                             self.calibrate.error = Some(e.to_string());
                         }
                         Pending::HexapodStatus => self.calibrate.error = Some(e.to_string()),
+                        // Asked once: a service that cannot say leaves the screen as it was.
+                        Pending::AlignStored => {
+                            self.align.stored = StoredAlignment::None;
+                            self.log(Level::Warn, format!("stored alignment: {e}"));
+                        }
                         Pending::Fit
                         | Pending::CalAccept
                         | Pending::CalReject
@@ -276,6 +281,7 @@ impl App {
             Pending::AlignRead => self.apply_align_station(&v, false),
             Pending::AlignTarget => self.apply_align_station(&v, true),
             Pending::AlignAdvice(span) => self.apply_align_advice(&v, span),
+            Pending::AlignStored => self.apply_align_stored(&v),
             Pending::AlignClear => {
                 self.align.stations.clear();
                 self.align.advice = None;

@@ -1351,3 +1351,141 @@ fn machine_screen_stores_a_new_machine_from_its_record_on_the_service_s_host() {
     assert_eq!(a.message.as_ref().map(|m| m.text.as_str()), Some(why));
     assert_eq!(a.machine.view.as_ref().map(|v| v.id), Some(3));
 }
+
+/// Issue 29 at 80×24: a refusal too long for one row wraps onto the status bar's next rows
+/// instead of losing its end (a missing certificate read `cannot read it (No such`; a mapping
+/// too short for its fit lost the reason "it needs at least 11").
+#[test]
+fn a_long_refusal_is_read_to_its_end_at_80x24() {
+    let (mut a, t0) = app();
+    a.handle_key(ch('2'));
+    a.handle_key(ch('i'));
+    for c in "/srv/certs/stage-0421.csv".chars() {
+        a.handle_key(ch(c));
+    }
+    // The service's own words for a file it cannot open.
+    let why = "the certificate /srv/certs/stage-0421.csv: cannot read it (No such file or directory (os error 2)): check the path on the service's host";
+    let (id, request) = sent(&a.handle_key(key(KeyCode::Enter)));
+    assert!(
+        matches!(request, Request::FollowerCertificate(_)),
+        "{request:?}"
+    );
+    a.handle_reply(id, Err(ClientError::Refused(why.into())), t0);
+    let text = screen_text(&a);
+    let flat: String = text
+        .lines()
+        .rev()
+        .take(3)
+        .collect::<Vec<_>>()
+        .into_iter()
+        .rev()
+        .map(str::trim)
+        .collect::<Vec<_>>()
+        .join(" ");
+    assert!(
+        flat.contains("(os error 2)): check the path on the service's host"),
+        "the end of the refusal is not on the status bar:\n{text}"
+    );
+    // The screen keeps its tabs and its title row.
+    assert!(
+        text.lines().next().unwrap_or_default().contains("1 Live"),
+        "{text}"
+    );
+}
+
+fn requests(out: &[Action]) -> Vec<(u64, Request)> {
+    out.iter()
+        .filter_map(|a| match a {
+            Action::Send { id, request } => Some((*id, request.clone())),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Issue 29: what the store holds is read again after a restart. Align showed "no advice yet"
+/// while a passed alignment was stored and used by the pre-run check; Publish said "no stored
+/// tables" after `table generate` from the command line until `r`.
+#[test]
+fn align_and_publish_show_what_the_store_holds_after_a_restart() {
+    let (mut a, t0) = app();
+    let asked = |out: &[Action]| {
+        requests(out)
+            .into_iter()
+            .find(|(_, r)| matches!(r, Request::AlignStored { .. }))
+    };
+    let (id, request) = asked(&a.handle_key(ch('2'))).expect("the stored alignment asked for");
+    assert_eq!(
+        request,
+        Request::AlignStored {
+            axis: Some("X".into())
+        }
+    );
+    // Asked once, not at every tick.
+    assert!(asked(&a.tick(t0 + Duration::from_secs(1))).is_none());
+    a.handle_reply(
+        id,
+        Ok(serde_json::json!({"axis": "X", "alignment_id": 3, "unix_us": 1_700_000_000_000_000i64,
+            "from_mm": -1.0, "to_mm": 400.0, "passed": true,
+            "check": "every spot stays on its PSD from -1 to 400 mm, at least 4.40 mm inside the edge",
+            "after": "", "turns": [], "misalignment_urad": [20.0, 20.0], "stations": 2})),
+        t0,
+    );
+    let text = screen_text(&a);
+    assert!(
+        text.contains("stored alignment of X over -1–400 mm, 2023-11-14")
+            && text.contains("✓ CHECK PASSED: every spot stays on its PSD")
+            && text.contains("beam to travel: yaw +20 µrad, pitch +20 µrad")
+            && !text.contains("no advice yet"),
+        "{text}"
+    );
+    // Once a station is read the operator is on a new round: the stored one steps aside.
+    a.align.stations.push(StationView {
+        at_mm: -1.0,
+        spots: [None; 3],
+    });
+    let text = screen_text(&a);
+    assert!(
+        text.contains("no advice yet") && !text.contains("stored alignment"),
+        "{text}"
+    );
+    a.align.stations.clear();
+    // The service restarts: the console asks again when it is back.
+    a.handle_down(
+        &ClientError::Closed,
+        Duration::from_millis(100),
+        t0 + Duration::from_secs(2),
+    );
+    a.handle_connected(
+        Identity {
+            user: Some("op".into()),
+            role: Some(PeerRole::Operator),
+        },
+        t0 + Duration::from_secs(3),
+    );
+    let (id, _) =
+        asked(&a.tick(t0 + Duration::from_secs(3))).expect("asked again after the restart");
+    a.handle_reply(id, Ok(serde_json::Value::Null), t0);
+    let text = screen_text(&a);
+    assert!(
+        text.contains("no advice yet") && text.contains("no alignment of X stored"),
+        "{text}"
+    );
+    // Publish lists the tables each time it is opened.
+    let listed = |out: &[Action]| {
+        requests(out)
+            .iter()
+            .any(|(_, r)| matches!(r, Request::TableList { .. }))
+    };
+    let out = a.handle_key(ch('6'));
+    assert!(listed(&out), "{out:?}");
+    for (id, r) in requests(&out) {
+        let v = match r {
+            Request::TableList { .. } => serde_json::json!({"map": "m", "tables": []}),
+            _ => serde_json::json!({}),
+        };
+        a.handle_reply(id, Ok(v), t0);
+    }
+    assert!(!listed(&a.tick(t0 + Duration::from_secs(4))));
+    a.handle_key(ch('1'));
+    assert!(listed(&a.handle_key(ch('6'))), "Publish opened again");
+}

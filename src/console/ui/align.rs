@@ -6,8 +6,8 @@
 //! columns they are side by side.
 
 use super::live::psd_row;
-use super::{TALL, Theme, WIDE, bar, panel};
-use crate::console::app::{AlignPanel, App, StationSpot};
+use super::{TALL, Theme, WIDE, bar, date_utc, panel};
+use crate::console::app::{AdviceView, AlignPanel, App, StationSpot, StoredAlignment};
 use crate::service::api::snapshot::Snapshot;
 use ratatui::Frame;
 use ratatui::layout::{Constraint, Layout, Rect};
@@ -379,48 +379,78 @@ fn spot_text(k: usize, s: Option<StationSpot>) -> String {
     }
 }
 
+/// An advice's lines: the check, the screws to turn, the beam's angle to the travel.
+fn advice_lines(adv: &AdviceView, theme: Theme, lines: &mut Vec<Line<'static>>) {
+    if adv.passed {
+        lines.push(Line::from(vec![
+            Span::styled("✓ CHECK PASSED: ", theme.ok()),
+            Span::raw(adv.check.clone()),
+        ]));
+    } else {
+        lines.push(Line::from(vec![
+            Span::styled("check not passed: ", theme.warn()),
+            Span::raw(adv.check.clone()),
+        ]));
+    }
+    if adv.passed && !adv.turns.is_empty() {
+        lines.push(Line::styled(
+            "optional, to centre the spots further:",
+            theme.dim(),
+        ));
+    }
+    for t in &adv.turns {
+        lines.push(Line::styled(t.clone(), theme.bold()));
+    }
+    if !adv.turns.is_empty() && !adv.passed {
+        lines.push(Line::styled(
+            format!("then: {} (read both ends again)", adv.after),
+            theme.dim(),
+        ));
+    }
+    lines.push(Line::raw(match adv.misalignment_urad {
+        Some([y, p]) => format!("beam to travel: yaw {y:+.0} µrad, pitch {p:+.0} µrad"),
+        None => "beam to travel: not known (PSD3 not read at both ends)".into(),
+    }));
+}
+
 /// The check first (it decides what to do), the screws to turn, the beam's angle, the stations
 /// read, then the span and the keys.
 pub fn alignment_lines(app: &App, theme: Theme) -> Vec<Line<'static>> {
     let a = &app.align;
     let (from, to) = app.align_span();
     let mut lines = Vec::new();
-    match &a.advice {
-        None => lines.push(Line::styled(
-            "no advice yet: read both ends (n, f), then a",
-            theme.dim(),
-        )),
-        Some(adv) => {
-            if adv.passed {
-                lines.push(Line::from(vec![
-                    Span::styled("✓ CHECK PASSED: ", theme.ok()),
-                    Span::raw(adv.check.clone()),
-                ]));
-            } else {
-                lines.push(Line::from(vec![
-                    Span::styled("check not passed: ", theme.warn()),
-                    Span::raw(adv.check.clone()),
-                ]));
-            }
-            if adv.passed && !adv.turns.is_empty() {
+    match (&a.advice, &a.stored) {
+        (Some(adv), _) => advice_lines(adv, theme, &mut lines),
+        // After a restart of the console or the service, until a station is read: the
+        // alignment the pre-run check judges, in brief (its check and the beam's angle).
+        (None, StoredAlignment::Found { unix_us, advice }) if a.stations.is_empty() => {
+            lines.push(Line::styled(
+                format!(
+                    "stored alignment of {} over {}–{} mm, {} UTC (the pre-run check's):",
+                    app.plan.spec.axis,
+                    advice.span_mm.0,
+                    advice.span_mm.1,
+                    date_utc(*unix_us)
+                ),
+                theme.dim(),
+            ));
+            let brief = AdviceView {
+                turns: Vec::new(),
+                ..advice.clone()
+            };
+            advice_lines(&brief, theme, &mut lines);
+        }
+        (None, stored) => {
+            lines.push(Line::styled(
+                "no advice yet: read both ends (n, f), then a",
+                theme.dim(),
+            ));
+            if *stored == StoredAlignment::None && a.stations.is_empty() {
                 lines.push(Line::styled(
-                    "optional, to centre the spots further:",
+                    format!("no alignment of {} stored", app.plan.spec.axis),
                     theme.dim(),
                 ));
             }
-            for t in &adv.turns {
-                lines.push(Line::styled(t.clone(), theme.bold()));
-            }
-            if !adv.turns.is_empty() && !adv.passed {
-                lines.push(Line::styled(
-                    format!("then: {} (read both ends again)", adv.after),
-                    theme.dim(),
-                ));
-            }
-            lines.push(Line::raw(match adv.misalignment_urad {
-                Some([y, p]) => format!("beam to travel: yaw {y:+.0} µrad, pitch {p:+.0} µrad"),
-                None => "beam to travel: not known (PSD3 not read at both ends)".into(),
-            }));
         }
     }
     if a.stations.is_empty() {

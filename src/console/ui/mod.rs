@@ -96,7 +96,7 @@ pub fn render(frame: &mut Frame, app: &App) {
     let [tabs, body, status] = Layout::vertical([
         Constraint::Length(1),
         Constraint::Min(1),
-        Constraint::Length(1),
+        Constraint::Length(status_rows(app, frame.area().width)),
     ])
     .areas(frame.area());
     render_tabs(frame, tabs, app, theme);
@@ -289,7 +289,11 @@ fn banner(frame: &mut Frame, area: Rect, app: &App, theme: Theme) -> Rect {
     rest
 }
 
-fn render_status(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
+/// The most rows the status bar takes for a long message: the rest stays the screen's.
+const STATUS_MAX_ROWS: u16 = 3;
+
+/// The status bar's right side: who and the link, two blanks apart from the message.
+fn status_right(app: &App, theme: Theme) -> Line<'static> {
     let link = match &app.link {
         LinkState::Up => Span::styled("● connected", theme.ok()),
         LinkState::Connecting => Span::styled("○ connecting", theme.warn()),
@@ -303,25 +307,73 @@ fn render_status(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
         (Access::Unknown, None) => Span::raw(""),
     };
     // Two blanks keep a long message apart from who and the link.
-    let right = Line::from(vec![
+    Line::from(vec![
         Span::raw("  "),
         who,
         Span::raw("  "),
         link,
         Span::raw(" "),
-    ]);
-    let rw = right.width() as u16;
-    let [left_area, right_area] =
-        Layout::horizontal([Constraint::Min(0), Constraint::Length(rw)]).areas(area);
-    let left = match &app.message {
+    ])
+}
+
+/// The status bar's message: the last one, or the keys that always work.
+fn status_left(app: &App, theme: Theme) -> Line<'static> {
+    match &app.message {
         Some(m) => Line::from(Span::styled(format!(" {}", m.text), theme.level(m.level))),
         // The screens' keys from their number, so that a new screen cannot leave it behind.
         None => Line::from(Span::styled(
             format!(" ? help  q quit  1–{}/Tab screens", Screen::ALL.len()),
             theme.dim(),
         )),
-    };
-    frame.render_widget(left, left_area);
+    }
+}
+
+/// Rows the status bar needs at `width` columns: a message too long for one row (a refusal
+/// with its reason, a file the service cannot read) wraps onto up to [`STATUS_MAX_ROWS`]
+/// rows rather than losing its end at 80 columns.
+fn status_rows(app: &App, width: u16) -> u16 {
+    let theme = Theme { color: false };
+    let room = width.saturating_sub(status_right(app, theme).width() as u16);
+    let text: String = status_left(app, theme)
+        .spans
+        .iter()
+        .map(|s| s.content.as_ref())
+        .collect();
+    wrapped_rows(&text, room).clamp(1, STATUS_MAX_ROWS)
+}
+
+/// Rows `text` takes wrapped at word boundaries to `width` columns (a word longer than a row
+/// is broken), as the status bar's paragraph wraps it.
+fn wrapped_rows(text: &str, width: u16) -> u16 {
+    let width = usize::from(width.max(1));
+    let (mut rows, mut used) = (1usize, 0usize);
+    for word in text.split(' ') {
+        let w = Span::raw(word).width();
+        if used > 0 && used + 1 + w <= width {
+            used += 1 + w;
+            continue;
+        }
+        if used > 0 {
+            rows += 1;
+        }
+        // On a row of its own; a word longer than a row is broken across rows.
+        rows += w.saturating_sub(1) / width;
+        used = w - w.saturating_sub(1) / width * width;
+    }
+    u16::try_from(rows).unwrap_or(u16::MAX)
+}
+
+fn render_status(frame: &mut Frame, area: Rect, app: &App, theme: Theme) {
+    let right = status_right(app, theme);
+    let rw = right.width() as u16;
+    let [left_area, right_area] =
+        Layout::horizontal([Constraint::Min(0), Constraint::Length(rw)]).areas(area);
+    let [right_area, _] =
+        Layout::vertical([Constraint::Length(1), Constraint::Min(0)]).areas(right_area);
+    frame.render_widget(
+        Paragraph::new(status_left(app, theme)).wrap(Wrap { trim: false }),
+        left_area,
+    );
     frame.render_widget(right, right_area);
 }
 
@@ -610,5 +662,15 @@ mod tests {
         assert_eq!(duration(std::time::Duration::from_secs(3725)), "1 h 02 min");
         assert_eq!(duration(std::time::Duration::from_secs(185)), "3 min 05 s");
         assert_eq!(clock_utc(1_700_000_000_000_000), "22:13:20");
+    }
+
+    #[test]
+    fn a_message_wraps_at_word_boundaries_and_breaks_a_long_word() {
+        assert_eq!(wrapped_rows("", 10), 1);
+        assert_eq!(wrapped_rows("abc def", 7), 1);
+        assert_eq!(wrapped_rows("abc def", 6), 2);
+        assert_eq!(wrapped_rows("abcdefghij", 4), 3);
+        assert_eq!(wrapped_rows("ab abcdefghij", 4), 4);
+        assert_eq!(wrapped_rows("µµµ µµµ", 7), 1);
     }
 }

@@ -180,6 +180,12 @@ pub enum Request {
     },
     /// Forget the stations read (after turning screws, read both ends again).
     AlignClear,
+    /// The newest stored alignment of `axis` ("X" when not given), the one the pre-run check
+    /// judges, or null: what a console shows after a restart until the next advice.
+    AlignStored {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        axis: Option<String>,
+    },
     /// The follower error map in use and the stored ones; with `id`, put stored map `id` in
     /// use first (operators).
     FollowerMap {
@@ -255,6 +261,7 @@ impl Request {
             | Request::HexapodStatus
             | Request::TableList { .. }
             | Request::TableStatus
+            | Request::AlignStored { .. }
             | Request::FollowerMap { id: None }
             | Request::FollowerMapStatus
             | Request::FollowerLevelStatus
@@ -366,6 +373,7 @@ impl Request {
             | Request::HexapodStop
             | Request::TableStatus
             | Request::AlignClear
+            | Request::AlignStored { .. }
             | Request::FollowerCertificate(_)
             | Request::FollowerMapStatus
             | Request::FollowerMapStop

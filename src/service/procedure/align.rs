@@ -45,6 +45,7 @@ impl Procedure for Alignment {
                 | Request::AlignTarget { .. }
                 | Request::AlignAdvice { .. }
                 | Request::AlignClear
+                | Request::AlignStored { .. }
         )
     }
 
@@ -75,6 +76,14 @@ impl Procedure for Alignment {
             Request::AlignClear => {
                 self.state.clear();
                 reply.send(Ok(serde_json::json!({"stations": 0})));
+            }
+            Request::AlignStored { axis } => {
+                let axis = axis.unwrap_or_else(|| "X".into());
+                reply.send(Ok(ctx
+                    .cached
+                    .alignments
+                    .get(&axis)
+                    .map_or(serde_json::Value::Null, stored_json)));
             }
             Request::AlignAdvice {
                 from_mm,
@@ -136,5 +145,72 @@ impl Procedure for Alignment {
                 Err(e) => s.reply.send(Err(format!("the advice was not stored: {e}"))),
             }
         }
+    }
+}
+
+/// A stored alignment as `align_stored` answers it: its advice as `align_advice` gave it, with
+/// the record's id, time and span.
+fn stored_json(rec: &AlignmentRecord) -> serde_json::Value {
+    let a = &rec.alignment;
+    let mut v = match &a.advice {
+        serde_json::Value::Object(_) => a.advice.clone(),
+        // A record whose advice is not an object: what the record itself says.
+        _ => serde_json::json!({"passed": a.passed, "check": a.check}),
+    };
+    v["axis"] = serde_json::json!(a.axis);
+    v["alignment_id"] = serde_json::json!(rec.id);
+    v["unix_us"] = serde_json::json!(rec.unix_us);
+    v["from_mm"] = serde_json::json!(a.from_mm);
+    v["to_mm"] = serde_json::json!(a.to_mm);
+    v
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::NewAlignment;
+
+    #[test]
+    fn a_stored_alignment_answers_with_its_advice_time_and_span() {
+        let advice = serde_json::json!({"passed": true, "check": "every spot stays on its PSD",
+            "after": "", "turns": [], "misalignment_urad": [20.0, -5.0], "stations": 2, "text": "t"});
+        let rec = AlignmentRecord {
+            id: 4,
+            unix_us: 1_700_000_000_000_000,
+            alignment: NewAlignment {
+                axis: "Y".into(),
+                from_mm: -1.0,
+                to_mm: 400.0,
+                passed: true,
+                yaw_rad: 20e-6,
+                pitch_rad: -5e-6,
+                check: "every spot stays on its PSD".into(),
+                advice,
+            },
+        };
+        let v = stored_json(&rec);
+        assert_eq!(v["alignment_id"], 4);
+        assert_eq!(v["axis"], "Y");
+        assert_eq!(v["unix_us"], 1_700_000_000_000_000i64);
+        assert_eq!(
+            (v["from_mm"].as_f64(), v["to_mm"].as_f64()),
+            (Some(-1.0), Some(400.0))
+        );
+        assert_eq!(v["passed"], true);
+        assert_eq!(v["misalignment_urad"][0], 20.0);
+        // An advice that is not an object still answers with what the record says.
+        let odd = AlignmentRecord {
+            alignment: NewAlignment {
+                advice: serde_json::Value::Null,
+                passed: false,
+                ..rec.alignment.clone()
+            },
+            ..rec
+        };
+        let v = stored_json(&odd);
+        assert_eq!(
+            (v["passed"].as_bool(), v["check"].as_str()),
+            (Some(false), Some("every spot stays on its PSD"))
+        );
     }
 }
