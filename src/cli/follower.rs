@@ -269,8 +269,17 @@ fn progress_line(v: &serde_json::Value) -> String {
 /// The mapping's state as `follower_map_status` gives it.
 fn print_status(v: &serde_json::Value) {
     let state = v["state"].as_str().unwrap_or("?");
+    let refused = &v["last_refused"];
     if state == "idle" {
-        println!("no follower mapping since the service started");
+        match (refused["reason"].as_str(), refused["unix_us"].as_i64()) {
+            (Some(why), Some(t)) => println!(
+                "no follower mapping since the service started; the last start, at {}, was refused: {why}",
+                axiscomp::store::iso_utc(t)
+                    .replace('T', " ")
+                    .replace('Z', " UTC")
+            ),
+            _ => println!("no follower mapping since the service started"),
+        }
         return;
     }
     println!("follower mapping {}", progress_line(v));

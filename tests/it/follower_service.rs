@@ -417,6 +417,36 @@ async fn the_command_line_imports_and_maps_through_the_service() {
         )) && out.contains("in use from the service's next start"),
         "{out}"
     );
+    // A start refused (a span too short for the fit): the status says so, with the reason
+    // (it said only that no mapping ran since the service started).
+    let o = cli(args(&[
+        "follower",
+        "map",
+        "--socket",
+        &sock,
+        "--from-mm",
+        "0",
+        "--to-mm",
+        "5",
+    ]))
+    .await
+    .unwrap();
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    let why = stderr(&o);
+    let o = cli(args(&["follower", "map", "--status", "--socket", &sock]))
+        .await
+        .unwrap();
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let out = stdout(&o);
+    let reason = why.trim().strip_prefix("axiscomp: ").unwrap_or_default();
+    assert!(
+        out.contains("no follower mapping since the service started; the last start, at 20")
+            && out.contains(" UTC, was refused: ")
+            && out.contains("was refused: ")
+            && !reason.is_empty()
+            && out.contains(reason.lines().next().unwrap_or_default()),
+        "status:\n{out}\nthe refusal:\n{why}"
+    );
     // The mapping, detached; its status; stopped.
     let o = cli(args(&[
         "follower",

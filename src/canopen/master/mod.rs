@@ -283,8 +283,10 @@ pub struct DriveStatus {
     pub last_emcy: Option<Emcy>,
     /// Whether an error EMCY is pending (not yet followed by an error-reset EMCY).
     pub emcy_active: bool,
-    /// The command in progress.
+    /// The command in progress, and since when (a homing takes seconds to a minute: a
+    /// console says how long it has been going).
     pub busy: Option<&'static str>,
+    pub busy_since: Option<Instant>,
     /// The controlword the master sends.
     pub controlword: u16,
     /// TPDOs received.
@@ -322,6 +324,7 @@ impl DriveStatus {
             last_emcy: None,
             emcy_active: false,
             busy: None,
+            busy_since: None,
             controlword: 0,
             tpdo_count: 0,
         }

@@ -65,6 +65,7 @@ impl Master {
             }
         };
         self.status.busy = None;
+        self.status.busy_since = None;
         self.complete(op.id, op.name, result);
     }
 
@@ -79,6 +80,7 @@ impl Master {
                     break;
                 };
                 self.status.busy = Some(cmd.name());
+                self.status.busy_since = Some(now);
                 let steps = self.plan(&cmd);
                 self.op = Some(Op {
                     id,

@@ -1489,3 +1489,37 @@ fn align_and_publish_show_what_the_store_holds_after_a_restart() {
     a.handle_key(ch('1'));
     assert!(listed(&a.handle_key(ch('6'))), "Publish opened again");
 }
+
+/// Issue 29: a homing after a restart takes up to a minute; Live and Align say it is under
+/// way and for how long (they said "NOT homed" meanwhile).
+#[test]
+fn a_homing_under_way_says_how_long_it_has_been_going() {
+    use crate::service::api::snapshot::FollowerView;
+    let (mut a, t0) = app();
+    let follower = |busy: Option<&str>, busy_s: Option<f64>| Snapshot {
+        follower: FollowerView {
+            state: "Operation enabled".into(),
+            homed: false,
+            heartbeat_ok: true,
+            busy: busy.map(str::to_string),
+            busy_s,
+            ..FollowerView::default()
+        },
+        ..Snapshot::default()
+    };
+    a.handle_snapshot(follower(Some("home"), Some(12.6)), t0);
+    for screen in ['1', '2'] {
+        a.handle_key(ch(screen));
+        let text = screen_text(&a);
+        assert!(
+            text.contains("homing for 12 s") && !text.contains("NOT homed"),
+            "screen {screen}:\n{text}"
+        );
+    }
+    // Another command under way, or none: not homed, as before.
+    a.handle_snapshot(follower(Some("move"), Some(1.0)), t0);
+    assert!(screen_text(&a).contains("NOT homed (h)"));
+    a.handle_key(ch('1'));
+    a.handle_snapshot(follower(None, None), t0);
+    assert!(screen_text(&a).contains("NOT homed"));
+}

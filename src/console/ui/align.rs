@@ -122,11 +122,7 @@ fn follower_lines(app: &App, snap: Option<&Snapshot>, theme: Theme) -> Vec<Line<
                 "{} ",
                 if f.state.is_empty() { "?" } else { &f.state }
             )),
-            if f.homed {
-                Span::styled("homed", theme.ok())
-            } else {
-                Span::styled("NOT homed (h)", theme.warn())
-            },
+            super::live::homed_span(f, "NOT homed (h)", theme),
         ]));
         lines.push(Line::raw(format!(
             "at {}{}",

@@ -145,6 +145,26 @@ fn yes_no(b: bool, yes: &'static str, no: &'static str, theme: Theme) -> Span<'s
     }
 }
 
+/// Whether the follower is homed, or how long its homing has been going (a homing after a
+/// restart takes up to a minute: the console said only "NOT homed" meanwhile).
+pub fn homed_span(
+    f: &crate::service::api::snapshot::FollowerView,
+    not: &'static str,
+    theme: Theme,
+) -> Span<'static> {
+    match (f.homed, f.busy.as_deref(), f.busy_s) {
+        (true, _, _) => Span::styled("homed", theme.ok()),
+        (false, Some("home"), Some(s)) => Span::styled(
+            format!(
+                "homing for {}",
+                super::duration(std::time::Duration::from_secs(s.max(0.0) as u64))
+            ),
+            theme.warn(),
+        ),
+        (false, _, _) => Span::styled(not, theme.bad()),
+    }
+}
+
 fn follower_lines(s: &Snapshot, theme: Theme) -> Vec<Line<'static>> {
     let f = &s.follower;
     let t = &s.tracking;
@@ -172,7 +192,7 @@ fn follower_lines(s: &Snapshot, theme: Theme) -> Vec<Line<'static>> {
                     .map(|p| format!("{p:.4} mm"))
                     .unwrap_or_else(|| "?".into())
             )),
-            yes_no(f.homed, "homed", "NOT homed", theme),
+            homed_span(f, "NOT homed", theme),
             Span::raw(", heartbeat "),
             yes_no(f.heartbeat_ok, "ok", "LOST", theme),
         ]),

@@ -96,6 +96,11 @@ pub struct FollowerView {
     pub heartbeat_ok: bool,
     /// The last emergency message, decoded.
     pub last_emcy: Option<String>,
+    /// The drive command under way ("home", "move", ...) and for how long (s).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub busy: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub busy_s: Option<f64>,
 }
 
 /// The follower tracking and stitching.

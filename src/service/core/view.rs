@@ -166,6 +166,10 @@ impl Core {
                 homed: st.homed,
                 heartbeat_ok: st.heartbeat_ok,
                 last_emcy: st.last_emcy.map(|e| e.to_string()),
+                busy: st.busy.map(str::to_string),
+                busy_s: st
+                    .busy_since
+                    .map(|t| now.saturating_duration_since(t).as_secs_f64()),
             },
             tracking: TrackingView {
                 strategy: stitch.strategy.name().into(),

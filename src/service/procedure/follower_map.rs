@@ -102,6 +102,9 @@ pub struct FollowerMapping {
     rx: mpsc::Receiver<Stored>,
     /// Found interrupted at start: tell (an alarm) and stop the twin's program, once.
     interrupted: bool,
+    /// The last start refused, and when (µs since the epoch): the status says it (a refused
+    /// start left it saying only that no mapping ran since the service started).
+    refused: Option<(String, i64)>,
 }
 
 /// The marker's content: enough to say what was interrupted.
@@ -153,6 +156,7 @@ impl FollowerMapping {
             tx,
             rx,
             interrupted,
+            refused: None,
         }
     }
 
@@ -168,10 +172,17 @@ impl FollowerMapping {
 
     /// `follower_map_status`.
     pub fn status(&self) -> serde_json::Value {
-        match &self.view {
+        let mut v = match &self.view {
             Some(v) => serde_json::to_value(v).unwrap_or_default(),
             None => serde_json::json!({"state": "idle"}),
+        };
+        if let (Some((reason, unix_us)), Some(o)) = (&self.refused, v.as_object_mut()) {
+            o.insert(
+                "last_refused".into(),
+                serde_json::json!({"reason": reason, "unix_us": unix_us}),
+            );
         }
+        v
     }
 
     /// The frame rate the dwell assumes (Hz), and why: the configured rate (at 0, as fast as
@@ -223,7 +234,10 @@ impl FollowerMapping {
                 self.cnc
                     .deliver(file, text, dialect, &axis, Some((reply, view)))
             }
-            Err(e) => reply.send(Err(e)),
+            Err(e) => {
+                self.refused = Some((e.clone(), crate::store::now_us()));
+                reply.send(Err(e))
+            }
         }
     }
 

@@ -116,7 +116,19 @@ fn homing_handshake() {
         Err(DriveError::NotHomed)
     );
     let start = r.log.len();
-    r.ok(Command::Home);
+    // Under way, the status says so and since when.
+    let t0 = r.t;
+    let id = r.m.submit(Command::Home, r.t);
+    r.advance(Duration::from_millis(5));
+    let st = r.m.status();
+    assert_eq!((st.busy, st.busy_since), (Some("home"), Some(t0)));
+    while r.completion(id).is_none() {
+        assert!(r.t - t0 < Duration::from_secs(60), "homing not done");
+        r.advance(Duration::from_millis(5));
+    }
+    assert_eq!(r.completion(id), Some(Ok(Reply::Done)));
+    let st = r.m.status();
+    assert_eq!((st.busy, st.busy_since), (None, None));
     // 0x6060 = 6 (homing) by SDO, confirmed in 0x6061; bit 4 up, then down.
     assert!(
         r.frames_since(start, "601#")
