@@ -981,8 +981,8 @@ fn uncertainty(r: &RunData, b: &mut Vec<Block>) {
         rows,
         note: Some(
             "u: combined standard uncertainty of a mean point (ISO/TR 230-9 budget: PSD noise, \
-             decoupling, stitching, follower, thermal, drift); U = k·u. `axiscomp report --json` \
-             gives every term and point."
+             decoupling, stitching, follower, thermal, drift); U = k·u. Every term and point: the \
+             command axiscomp report --json."
                 .into(),
         ),
     }));

@@ -10,7 +10,7 @@ pub mod session;
 
 pub use judge::{Decision, Judge, Repeatability};
 pub use machine::{CaptureSettings, FrameSample, RunAction, RunMachine};
-pub use plan::{Plan, PlanError, PlanSpec, Step, TargetKey};
+pub use plan::{ETA_ACCEL_MM_S2, Plan, PlanError, PlanSpec, Step, TargetKey};
 pub use program::{CaptureMode, Dialect, Handshake};
 
 use crate::units::Errors6;

@@ -31,6 +31,10 @@ fn bad(field: &'static str, problem: impl Into<String>) -> PlanError {
     }
 }
 
+/// The acceleration the run's estimates assume (mm/s²): a machine tool's axis at measuring
+/// feed is at speed within a millimetre or two, so the dwells and the feed set the time.
+pub const ETA_ACCEL_MM_S2: f64 = 500.0;
+
 /// What the user asks for.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

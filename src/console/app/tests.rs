@@ -169,6 +169,26 @@ fn start_confirms_then_sends_the_plan_and_progress_gives_an_eta() {
     a.plan.spec.runs = 2;
     assert!(a.handle_key(ch('s')).is_empty());
     assert!(matches!(a.overlay, Overlay::Confirm(Confirm::StartRun(_))));
+    // The confirmation says the least machine time: 20 captures' dwells, plus the moves of
+    // 2 runs over 0–20 mm and their overruns at the plan's feed (a few seconds).
+    let text = screen_text(&a);
+    let dwell_s = 20.0 * a.plan.spec.dwell_s;
+    let said = text
+        .split("At least ")
+        .nth(1)
+        .and_then(|t| t.split(" of machine time").next())
+        .unwrap_or_else(|| panic!("no machine time on the confirmation:\n{text}"));
+    let secs: f64 = match said.split_once(" min ") {
+        Some((m, s)) => {
+            m.trim().parse::<f64>().unwrap() * 60.0
+                + s.trim_end_matches(" s").trim().parse::<f64>().unwrap()
+        }
+        None => said.trim_end_matches(" s").trim().parse().unwrap(),
+    };
+    assert!(
+        secs >= dwell_s && secs <= dwell_s + 30.0,
+        "{said}: the dwells alone are {dwell_s} s"
+    );
     let out = a.handle_key(ch('y'));
     let [
         Action::Send {

@@ -435,11 +435,20 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
             ],
         ),
         Confirm::StartRun(spec) => {
-            let captures = app
-                .plan
-                .checked()
+            let checked = app.plan.checked();
+            let captures = checked
+                .as_ref()
                 .map(|p| p.capture_count().to_string())
                 .unwrap_or_else(|_| "?".into());
+            // The plan's motion and dwell: the least the run takes on the machine.
+            let time = checked.as_ref().map_or_else(
+                |_| "?".into(),
+                |p| {
+                    duration(std::time::Duration::from_secs_f64(
+                        p.motion_time_s(crate::run::ETA_ACCEL_MM_S2).max(0.0),
+                    ))
+                },
+            );
             (
                 " Start the run? ",
                 vec![
@@ -450,6 +459,9 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
                     Line::raw(format!(
                         "{captures} captures; overrun {} mm, dwell {} s, feed {} mm/min.",
                         spec.overrun_mm, spec.dwell_s, spec.feed_mm_min
+                    )),
+                    Line::raw(format!(
+                        "At least {time} of machine time (motion and dwell; make-up passes add to it)."
                     )),
                     Line::raw("The service writes the part program; the CNC moves the axis."),
                 ],
@@ -528,6 +540,9 @@ fn render_confirm(frame: &mut Frame, c: &Confirm, app: &App, theme: Theme) {
                 )),
                 Line::raw(
                     "The part program goes to the CNC (load it on a CNC the service does not drive). At the end the map is stored and put in use, and the zero taken again.",
+                ),
+                Line::raw(
+                    "The service plans the stops and says the machine time as it starts; the follower panel then shows the time left.",
                 ),
             ],
         ),

@@ -25,9 +25,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
 
-/// The acceleration the run's ETA assumes (mm/s²): a machine tool's axis at measuring feed
-/// is at speed within a millimetre or two, so the dwells and the feed set the time.
-const ETA_ACCEL_MM_S2: f64 = 500.0;
+use crate::run::ETA_ACCEL_MM_S2;
 
 /// A capture the store did not take is offered again after this long.
 const RETRY_EVERY: Duration = Duration::from_secs(1);
