@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
 # The console in a real terminal (issue 6, must-show 3): tmux runs `axiscomp console` at 80×24
+# (or CONSOLE_SIZE, e.g. 160x48: .ci/run walks both; issue 29, must-show 5)
 # against `axiscomp sim` + `axiscomp serve` (the twin's CNC runs the part programs), keys go in
 # with send-keys and every screen is checked with capture-pane: Live, help, Align, the beam
 # alignment (issue 13, must-show 4: the twin's head is knocked off the axis, and the script does
@@ -32,6 +33,16 @@ else
   bin="${CARGO_TARGET_DIR:-target}/debug/axiscomp"
 fi
 [ -x "$bin" ] || { echo "console.sh: no binary at $bin" >&2; exit 1; }
+
+# CONSOLE_SIZE: the terminal the walk runs in (default 80x24; .ci/run also runs it at 160x48).
+size=${CONSOLE_SIZE:-80x24}
+cols=${size%x*}
+rows=${size#*x}
+echo "console.sh: the walk at ${cols}×${rows}"
+# From 120 columns the screens lay out wider: Results shows every error's figures and charts at
+# once, the run list names its columns.
+wide=""
+[ "$cols" -ge 120 ] && wide=1
 
 work=$(mktemp -d)
 tmx=(tmux -L "axiscomp-console-$$" -f /dev/null)
@@ -104,7 +115,7 @@ field() {
 
 # The pane's shell writes the console's exit status to a file: tmux's own #{pane_dead_status}
 # is sometimes empty after the process has been reaped (tmux 3.3a).
-"${tmx[@]}" new-session -d -s console -x 80 -y 24 \
+"${tmx[@]}" new-session -d -s console -x "$cols" -y "$rows" \
   "$bin console --socket $work/control.sock; echo \$? > $work/console.rc"
 "${tmx[@]}" set-option -t console remain-on-exit on >/dev/null
 
@@ -267,20 +278,25 @@ keys y
 expect 15 "running" "/20" "captures in cycle order"
 
 echo "console.sh: progress"
-expect 60 "ETA" "run 1  ↑ ■■"
+expect 60 "ETA" "run 1  ↑" "■"
 expect 30 "dy positioning (µm)"
 
 echo "console.sh: the run ends, its results"
 expect 150 "finished: its results are on screen 5"
 keys 5
-expect 15 "X finished, 20 captures" "dy positioning (µm)" "Figures (←→ error)" "A (accuracy)" "R (repeatability)"
-keys Right
-expect 5 "dz vertical straightness (µm)" "straight LS"
+if [ -n "$wide" ]; then
+  expect 15 "X finished, 20 captures" "dy positioning (µm)" "ISO 230-2 / 230-1 figures" "A (accuracy)" "R (repeatability)" \
+    "dz vertical straightness (µm)" "straightness (least squares)"
+else
+  expect 15 "X finished, 20 captures" "dy positioning (µm)" "Figures (←→ error)" "A (accuracy)" "R (repeatability)"
+  keys Right
+  expect 5 "dz vertical straightness (µm)" "straight LS"
+fi
 # The commissioning run's date as its row on the run list shows it: what a maintenance
 # engineer finds it by years later.
-run1_row=$(screen | grep -oE '▶ *[0-9]+ X finished +[0-9]+ [0-9]{4}-[0-9]{2}-[0-9]{2} [0-9]{2}:[0-9]{2}' | head -1)
+run1_row=$(screen | grep -oE '▶ *(run +)?[0-9]+ +X finished +[0-9]+ (captures +)?[0-9]{4}-[0-9]{2}-[0-9]{2} [0-9]{2}:[0-9]{2}' | head -1)
 [ -n "$run1_row" ] || fail "the run list shows no finished run with its date"
-run1=$(sed -E 's/^▶ *([0-9]+) .*/\1/' <<<"$run1_row")
+run1=$(sed -E 's/^▶ *(run +)?([0-9]+) .*/\2/' <<<"$run1_row")
 run1_date=$(grep -oE '[0-9]{4}-[0-9]{2}-[0-9]{2} [0-9]{2}:[0-9]{2}$' <<<"$run1_row")
 echo "console.sh: the commissioning run is run $run1 of $run1_date"
 
@@ -391,15 +407,15 @@ for _ in $(seq 1 8); do
   keys Down
 done
 row=$(selected | grep -F "$run1_date") || fail "no row dated $run1_date could be selected"
-grep -qE "^ *$run1 X finished" <<<"$row" || fail "the row dated $run1_date is not run $run1: $row"
+grep -qE "^ *(run +)?$run1 +X finished" <<<"$row" || fail "the row dated $run1_date is not run $run1: $row"
 keys b
 expect 10 "comparing with run $run1 (before)" "before: run $run1"
-grep -qE "^b *$run1 X finished" <<<"$(selected)" || fail "run $run1's row is not marked b"
+grep -qE "^b *(run +)?$run1 +X finished" <<<"$(selected)" || fail "run $run1's row is not marked b"
 keys Left
-expect 5 "dy positioning (µm) + − ·before" "B̄ mean rev."
+expect 5 "dy positioning (µm) + − ·before" "B̄ "
 # The re-measurement ran under the commissioning tables: its mean reversal is the backlash
 # the ageing added (3 µm: x↑ − x↓ = −3 µm), where the commissioning run saw the axis' own.
-rev=$(screen | grep -oE 'B̄ mean rev\. +[-+0-9.]+ +[-+0-9.]+' | head -1) || true
+rev=$(screen | grep -oE 'B̄ (mean rev\.|\(mean reversal\)) +[-+0-9.]+ +[-+0-9.]+' | head -1) || true
 rev_before=$(awk '{print $(NF - 1)}' <<<"$rev")
 rev_after=$(awk '{print $NF}' <<<"$rev")
 echo "console.sh: mean reversal B̄ before $rev_before µm (run $run1), after $rev_after µm (run $run2; the ageing added -3 µm)"
@@ -419,11 +435,16 @@ done
 # The values panel says what the table is made of: the active positioning table, its
 # sequence and CRC, and the residual measured by run 2 (wrapped at 80 columns).
 base=$(sed -E 's/active: table ([0-9]+) positioning X seq ([0-9]+)/\1 \2/' <<<"$pos1")
-composition=$(screen | sed -n '/┌ Table '"$pos2"' EXX/,/└/p' | awk -F'│' '{print $2}' | tr -s ' \n' '  ')
+if [ -n "$wide" ]; then
+  # Wide enough for the composition on one row of its panel.
+  composition=$(screen | tr -s ' \n' '  ')
+else
+  composition=$(screen | sed -n '/┌ Table '"$pos2"' EXX/,/└/p' | awk -F'│' '{print $2}' | tr -s ' \n' '  ')
+fi
 grep -qF "composed: table ${base% *} (sequence ${base#* }, CRC 0x" <<<"$composition" \
   && grep -qF "+ the residual measured by run $run2" <<<"$composition" \
   || fail "table $pos2 does not say it is composed of table ${base% *} (sequence ${base#* }) and run $run2"
-echo "console.sh: table $pos2: $(grep -oE 'composed: .*run [0-9]+' <<<"$composition")"
+echo "console.sh: table $pos2: $(grep -oE 'composed: table [0-9]+ \(sequence [0-9]+, CRC 0x[0-9A-F]+\) \+ the residual measured by run [0-9]+' <<<"$composition" | head -1)"
 seq2=$(publish "$pos2")
 expect 10 "PLC ready, active sequence $seq2;" "commit: accepted sequence $seq2" \
   "active: table $pos2 positioning X seq $seq2"
@@ -481,7 +502,7 @@ expect 10 "Tables (map" "${cli_pos}  E" "PLC ready, active sequence $seq2;"
 screen | grep -q "Broken pipe" && fail "a request after the restart went to the old connection"
 echo "console.sh: tables $cli_ids from the command line listed on Publish, no key but 6"
 
-echo "console.sh: 160×48"
+echo "console.sh: 160×48$([ "$cols" = 160 ] && [ "$rows" = 48 ] || echo " (then back to ${cols}×${rows})")"
 "${tmx[@]}" resize-window -t console -x 160 -y 48
 expect 10 "Tables (map" "${cli_pos}  E" "PLC ready, active sequence $seq2;" "active: table $pos2 positioning X seq $seq2"
 [ "$(screen | wc -l)" -ge 48 ] || fail "the pane is not 48 rows high"
@@ -494,7 +515,7 @@ keys 5
 expect 10 "run $run2 X finished, 20 captures" "dy positioning (µm)" "A (accuracy)"
 keys 4
 expect 10 "Plan (ISO 230-2)" "targets (mm): 0.0 2.0 4.0 6.0 8.0"
-"${tmx[@]}" resize-window -t console -x 80 -y 24
+"${tmx[@]}" resize-window -t console -x "$cols" -y "$rows"
 keys 1
 expect 10 "Six errors"
 
@@ -512,7 +533,7 @@ rc=$(cat "$work/console.rc" 2>/dev/null || echo "none within 10 s")
 echo "console.sh: NO_COLOR"
 # The new session opens before the old one closes: a tmux server whose last session ends exits,
 # and a new-session sent while it exits fails ("server exited unexpectedly").
-"${tmx[@]}" new-session -d -s nocolor -x 80 -y 24 \
+"${tmx[@]}" new-session -d -s nocolor -x "$cols" -y "$rows" \
   "NO_COLOR=1 $bin console --socket $work/control.sock"
 "${tmx[@]}" kill-session -t console
 "${tmx[@]}" rename-session -t nocolor console
