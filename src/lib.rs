@@ -42,6 +42,7 @@ pub mod service;
 pub mod sim;
 pub mod store;
 pub mod track;
+pub mod trend;
 pub mod units;
 pub mod util;
 

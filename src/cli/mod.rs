@@ -20,6 +20,7 @@ mod run;
 mod run_text;
 mod service;
 mod table;
+mod trend;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -61,6 +62,9 @@ enum Command {
     Decouple(decouple::Args),
     /// ISO 230-2 positioning figures from a deviation table (CSV).
     Evaluate(evaluate::Args),
+    /// An axis's figures over its stored runs: control limits from its first runs, the drift
+    /// alarm, and when each reaches its tolerance.
+    Trend(trend::Args),
     /// Run the measurement service (systemd: Type=notify).
     Serve(service::ServeArgs),
     /// Print the running service's live snapshot.
@@ -138,6 +142,7 @@ pub fn run(cli: Cli) -> Result<()> {
             | Command::Calibrate(_)
             | Command::Decouple(_)
             | Command::Evaluate(_)
+            | Command::Trend(_)
             | Command::Check(_)
             | Command::Config(_)
             | Command::Report(_)
@@ -151,6 +156,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Calibrate(c) => calibrate::run(c),
         Command::Decouple(a) => decouple::run(a),
         Command::Evaluate(a) => evaluate::run(a),
+        Command::Trend(a) => trend::run(a),
         Command::Serve(a) => service::serve(a),
         Command::Status(a) => service::status(a),
         Command::Console(a) => console::run(a),

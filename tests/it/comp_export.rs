@@ -4,7 +4,6 @@
 //! the `axiscomp export` CLI contract over a real store.
 
 use crate::helpers::{TempDir, run};
-use axiscomp::Errors6;
 use axiscomp::comp::beckhoff::{self, SsfkOptions};
 use axiscomp::comp::fanuc::{self, PitchOptions, ValueRange};
 use axiscomp::comp::heidenhain::{self, Backlash, ComOptions, Family};
@@ -12,10 +11,8 @@ use axiscomp::comp::linuxcnc::{self, CompFileOptions, CompFileType, Units};
 use axiscomp::comp::mitsubishi::{self, MecOptions, Mode};
 use axiscomp::comp::siemens::{self, CecOptions, EndHandling, LecOptions, SiemensControl};
 use axiscomp::comp::{CompTable, MachineAxis, TableKind, TableValues};
-use axiscomp::evaluate::axis::synthetic_capture;
 use axiscomp::run::Direction;
-use axiscomp::store::RunState;
-use axiscomp::store::{NewRun, Store};
+use axiscomp::store::Store;
 
 const UM: f64 = 1e-3;
 
@@ -612,35 +609,9 @@ fn mitsubishi_one_point_sign_and_range() {
 fn store_with_run(dir: &TempDir) -> std::path::PathBuf {
     let path = dir.path("axiscomp.db");
     let mut store = Store::open(&path).unwrap();
-    let run = store
-        .create_run(&NewRun {
-            axis: "X".into(),
-            plan: serde_json::json!({}),
-            config: serde_json::json!({}),
-            calibration: None,
-            notes: String::new(),
-        })
-        .unwrap();
-    store.set_run_state(run, RunState::Running).unwrap();
-    crate::helpers::record_no_tables(&mut store, run);
-    for t in 0..5u32 {
-        for r in 1..=2u32 {
-            for d in [Direction::Up, Direction::Down] {
-                let dy =
-                    if t == 2 { 10.0 } else { 0.0 } + if d == Direction::Down { 4.0 } else { 0.0 };
-                let c = synthetic_capture(
-                    t,
-                    100.0 * f64::from(t),
-                    r,
-                    d,
-                    Errors6::from_user([0.0, dy, 0.0, 0.0, 0.0, 0.0]),
-                    Errors6::from_user([0.1; 6]),
-                );
-                store.insert_capture(run, &c).unwrap();
-            }
-        }
-    }
-    store.set_run_state(run, RunState::Finished).unwrap();
+    crate::helpers::store_synthetic_run(&mut store, None, |t, _, d| {
+        (if t == 2 { 10.0 } else { 0.0 }) + if d == Direction::Down { 4.0 } else { 0.0 }
+    });
     path
 }
 

@@ -771,3 +771,53 @@ pub fn record_no_tables(store: &mut axiscomp::store::Store, run: axiscomp::store
         )
         .expect("record the tables active during the run");
 }
+
+/// A finished run of axis X stored as the service would: 5 targets 100 mm apart (0 to 400 mm),
+/// 2 bidirectional runs, each capture's positioning deviation `dy_um(target, run, direction)`
+/// with 0.1 µm (and 0.1″) stated as its u; the PLC's active tables `tables` recorded at its
+/// start (none when `None`).
+pub fn store_synthetic_run(
+    store: &mut axiscomp::store::Store,
+    tables: Option<&axiscomp::store::RunTables>,
+    mut dy_um: impl FnMut(u32, u32, axiscomp::run::Direction) -> f64,
+) -> axiscomp::store::RunId {
+    use axiscomp::Errors6;
+    use axiscomp::evaluate::axis::synthetic_capture;
+    use axiscomp::run::Direction;
+    use axiscomp::store::{NewRun, RunState};
+    let run = store
+        .create_run(&NewRun {
+            axis: "X".into(),
+            plan: serde_json::json!({}),
+            config: serde_json::json!({}),
+            calibration: None,
+            notes: String::new(),
+        })
+        .expect("a run");
+    store
+        .set_run_state(run, RunState::Running)
+        .expect("running");
+    match tables {
+        Some(t) => store.record_run_tables(run, t).expect("its tables"),
+        None => record_no_tables(store, run),
+    }
+    for t in 0..5u32 {
+        for r in 1..=2u32 {
+            for d in [Direction::Up, Direction::Down] {
+                let c = synthetic_capture(
+                    t,
+                    100.0 * f64::from(t),
+                    r,
+                    d,
+                    Errors6::from_user([0.0, dy_um(t, r, d), 0.0, 0.0, 0.0, 0.0]),
+                    Errors6::from_user([0.1; 6]),
+                );
+                store.insert_capture(run, &c).expect("a capture");
+            }
+        }
+    }
+    store
+        .set_run_state(run, RunState::Finished)
+        .expect("finished");
+    run
+}

@@ -34,4 +34,5 @@ mod report_budget;
 mod service;
 mod socketcan;
 mod store;
+mod trend;
 mod user_text;

@@ -1,0 +1,404 @@
+//! `axiscomp trend AXIS [FIGURE] [--json]`: every figure of the axis's finished runs over time,
+//! each against control limits learned from its first runs, with the drift alarm and, where
+//! `[acceptance]` gives its tolerance, the day the figure's trend line reaches it
+//! ([`axiscomp::trend`]). Reads the store; the service need not run.
+
+use super::InputError;
+use super::run::open_store_at;
+use anyhow::Result;
+use axiscomp::report::settings::AcceptanceSettings;
+use axiscomp::service::results::run_result;
+use axiscomp::store::iso_utc;
+use axiscomp::trend::{self, Chart, Forecast, Point, Settings};
+use serde_json::json;
+use std::path::PathBuf;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// The axis (as its runs name it: X, Y, Z).
+    pub axis: String,
+    /// One figure (its error and name, e.g. "dy E" or "ey max − min (mean)"): each run's value
+    /// with the EWMA and its limits. Without it, one line per figure.
+    pub figure: Option<String>,
+    /// The store (default: axiscomp.db in the configured state directory).
+    #[arg(long)]
+    pub db: Option<PathBuf>,
+    /// The configuration (the state directory and the `[acceptance]` tolerances).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// The first runs, as commissioned, the limits are learned from.
+    #[arg(long, default_value_t = Settings::default().baseline)]
+    pub baseline: usize,
+    /// The newest runs the forecast's line is fitted to.
+    #[arg(long, default_value_t = Settings::default().window)]
+    pub window: usize,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// One figure's history: its error, name and unit, and (day since the first run, value, run).
+struct History {
+    dof: String,
+    name: String,
+    unit: String,
+    points: Vec<(i64, i64, f64)>,
+}
+
+impl History {
+    fn label(&self) -> String {
+        format!("{} {}", self.dof, self.name)
+    }
+}
+
+/// The acceptance figure a run's figure is judged against, when it has one.
+fn tolerance_figure(dof: &str, name: &str) -> Option<&'static str> {
+    let first = name.split(' ').next().unwrap_or_default();
+    match (dof, first) {
+        ("dy", "A") => Some("A"),
+        ("dy", "E") => Some("E"),
+        ("dy", "R") => Some("R"),
+        ("dy", "B") => Some("B"),
+        ("dy", "M") => Some("M"),
+        ("dx" | "dz", _) if name == "straightness (least squares)" => Some("straightness"),
+        ("ex", _) if name == "max − min (mean)" => Some("pitch"),
+        ("ey", _) if name == "max − min (mean)" => Some("roll"),
+        ("ez", _) if name == "max − min (mean)" => Some("yaw"),
+        _ => None,
+    }
+}
+
+/// The compensation a run measured under: the tables the PLC applied, as recorded when it
+/// started.
+fn compensation(store: &axiscomp::store::Store, run: axiscomp::store::RunId) -> String {
+    match store.run_tables(run) {
+        Ok(Some(t)) if t.known => {
+            let tables: Vec<String> = t
+                .tables
+                .iter()
+                .map(|a| format!("{} {} seq {} crc {:08X}", a.kind, a.axis, a.sequence, a.crc))
+                .collect();
+            if tables.is_empty() {
+                "no tables".into()
+            } else {
+                tables.join(", ")
+            }
+        }
+        Ok(Some(t)) => format!("unknown ({})", t.source),
+        Ok(None) | Err(_) => "not recorded".into(),
+    }
+}
+
+/// What was trended: the runs used, and those left out for another compensation.
+struct Runs {
+    ids: Vec<i64>,
+    /// The newest run's compensation, in words.
+    compensation: String,
+    other: usize,
+}
+
+/// Every figure of `axis`'s finished runs measured under the same compensation as the newest
+/// (a table published since an earlier run changed what its figures mean), oldest first.
+fn histories(store: &axiscomp::store::Store, axis: &str) -> Result<(Vec<History>, Runs), String> {
+    let mut runs: Vec<_> = store
+        .list_runs()
+        .map_err(|e| e.to_string())?
+        .into_iter()
+        .filter(|r| r.axis.eq_ignore_ascii_case(axis) && r.state.as_str() == "finished")
+        .collect();
+    runs.sort_by_key(|r| (r.created_us, r.id.0));
+    let keys: Vec<String> = runs.iter().map(|r| compensation(store, r.id)).collect();
+    let newest = keys.last().cloned().unwrap_or_default();
+    let other = keys.iter().filter(|k| **k != newest).count();
+    let mut out: Vec<History> = Vec::new();
+    let mut ids = Vec::new();
+    for (r, _) in runs.iter().zip(&keys).filter(|(_, k)| **k == newest) {
+        let result = run_result(store, Some(r.id.0))?;
+        if result.incomplete.is_some() {
+            continue;
+        }
+        ids.push(r.id.0);
+        for d in &result.dofs {
+            for f in &d.figures {
+                let at = (r.id.0, r.created_us, f.value);
+                match out.iter_mut().find(|h| h.dof == d.name && h.name == f.name) {
+                    Some(h) => h.points.push(at),
+                    None => out.push(History {
+                        dof: d.name.clone(),
+                        name: f.name.clone(),
+                        unit: f.unit.clone(),
+                        points: vec![at],
+                    }),
+                }
+            }
+        }
+    }
+    Ok((
+        out,
+        Runs {
+            ids,
+            compensation: newest
+                .replace("crc ", "CRC 0x")
+                .replace("seq ", "sequence "),
+            other,
+        },
+    ))
+}
+
+/// The days since `t0_us` of each point.
+fn points(h: &History, t0_us: i64) -> Vec<Point> {
+    h.points
+        .iter()
+        .map(|&(_, us, value)| Point {
+            days: (us - t0_us) as f64 / 86_400e6,
+            value,
+        })
+        .collect()
+}
+
+struct Judged<'a> {
+    history: &'a History,
+    baseline: usize,
+    chart: Result<Chart, trend::TrendError>,
+    tolerance: Option<f64>,
+    forecast: Option<Forecast>,
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let store = open_store_at(a.db.as_ref(), a.config.as_ref())?;
+    let acceptance = match &a.config {
+        Some(c) => super::service::settings(Some(c))?.acceptance,
+        None => AcceptanceSettings::default(),
+    };
+    let (all, runs) = histories(&store, &a.axis).map_err(InputError)?;
+    if runs.ids.is_empty() {
+        return Err(InputError(format!(
+            "axis {}: no finished run in the store to trend; measure it (axiscomp run start) first",
+            a.axis
+        ))
+        .into());
+    }
+    let t0_us = all
+        .iter()
+        .flat_map(|h| h.points.iter().map(|p| p.1))
+        .min()
+        .unwrap_or(0);
+    let settings = Settings {
+        baseline: a.baseline,
+        window: a.window,
+        ..Settings::default()
+    };
+    let wanted: Vec<&History> = match &a.figure {
+        None => all.iter().collect(),
+        Some(f) => {
+            let f = f.trim().to_lowercase();
+            // "dy B" is the reversal, not also B̄: a figure by its short name first, then
+            // every figure whose name begins with what was given.
+            let short = |h: &History| {
+                format!("{} {}", h.dof, h.name.split(' ').next().unwrap_or_default()).to_lowercase()
+            };
+            let mut hit: Vec<&History> = all.iter().filter(|h| short(h) == f).collect();
+            if hit.is_empty() {
+                hit = all
+                    .iter()
+                    .filter(|h| h.label().to_lowercase().starts_with(&f))
+                    .collect();
+            }
+            if hit.is_empty() {
+                let names: Vec<String> = all.iter().map(History::label).collect();
+                return Err(InputError(format!(
+                    "no figure \"{f}\" in axis {}'s runs: give one of {}",
+                    a.axis,
+                    names.join(", ")
+                ))
+                .into());
+            }
+            hit
+        }
+    };
+    let judged: Vec<Judged> = wanted
+        .into_iter()
+        .map(|h| {
+            let pts = points(h, t0_us);
+            let tolerance = tolerance_figure(&h.dof, &h.name)
+                .and_then(|f| acceptance.of(f))
+                .map(|t| t.limit);
+            Judged {
+                history: h,
+                baseline: settings.baseline,
+                chart: trend::chart(&pts, &settings),
+                tolerance,
+                forecast: tolerance.and_then(|t| trend::forecast(&pts, t, settings.window)),
+            }
+        })
+        .collect();
+    if a.json {
+        let figures: Vec<serde_json::Value> = judged.iter().map(|j| to_json(j, t0_us)).collect();
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&json!({"axis": a.axis, "runs": runs.ids,
+                "compensation": runs.compensation, "runs_under_other_tables": runs.other,
+                "figures": figures}))?
+        );
+        return Ok(());
+    }
+    println!(
+        "axis {}: {} finished run{} under the newest's compensation ({}), {} to {}; limits from the first {}",
+        a.axis,
+        runs.ids.len(),
+        if runs.ids.len() == 1 { "" } else { "s" },
+        runs.compensation,
+        day(t0_us),
+        day(all
+            .iter()
+            .flat_map(|h| h.points.iter().map(|p| p.1))
+            .max()
+            .unwrap_or(t0_us)),
+        settings.baseline
+    );
+    match runs.other {
+        0 => {}
+        1 => println!(
+            "  1 earlier run measured under other tables is not in the trend: a table published changes what the figures measure"
+        ),
+        n => println!(
+            "  {n} earlier runs measured under other tables are not in the trend: a table published changes what the figures measure"
+        ),
+    }
+    if a.figure.is_some() && judged.len() == 1 {
+        print!("{}", detail(&judged[0], t0_us));
+    } else {
+        for j in &judged {
+            println!("{}", line(j, t0_us));
+        }
+    }
+    Ok(())
+}
+
+fn day(us: i64) -> String {
+    iso_utc(us)[..10].to_string()
+}
+
+/// The date `days` after `t0_us`.
+fn date_after(t0_us: i64, days: f64) -> String {
+    day(t0_us + (days * 86_400e6) as i64)
+}
+
+fn line(j: &Judged, t0_us: i64) -> String {
+    let h = j.history;
+    let last = h.points.last().map_or(f64::NAN, |p| p.2);
+    let state = match &j.chart {
+        Err(trend::TrendError::TooFew { have, need, .. }) => {
+            format!("no limits yet: {have} of the {need} runs they need")
+        }
+        Err(e) => format!("no limits: {e}"),
+        Ok(c) => {
+            let (lo, hi) = c.limits.last().copied().unwrap_or((f64::NAN, f64::NAN));
+            let alarm = match c.alarm {
+                Some(i) => format!("DRIFT since run {} ({})", h.points[i].0, day(h.points[i].1)),
+                None => "in control".into(),
+            };
+            format!(
+                "EWMA {:.2} within {:.2} to {:.2}: {alarm}",
+                c.ewma.last().copied().unwrap_or(f64::NAN),
+                lo,
+                hi
+            )
+        }
+    };
+    let reach = forecast_text(j, t0_us)
+        .map(|t| format!("; {t}"))
+        .unwrap_or_default();
+    format!(
+        "{:<36} {:>9.2} {:<6} {state}{reach}",
+        h.label(),
+        last,
+        h.unit
+    )
+}
+
+fn forecast_text(j: &Judged, t0_us: i64) -> Option<String> {
+    let t = j.tolerance?;
+    let unit = &j.history.unit;
+    Some(match j.forecast.and_then(|f| f.crossing.map(|c| (f, c))) {
+        Some((f, c)) => format!(
+            "reaches its tolerance {t} {unit} about {} (95 %: {} to {}; {:+.3} {unit}/day over the last {} runs)",
+            date_after(t0_us, c.day),
+            date_after(t0_us, c.low),
+            date_after(t0_us, c.high),
+            f.slope_per_day,
+            f.points
+        ),
+        None => format!("not heading for its tolerance {t} {unit}"),
+    })
+}
+
+fn detail(j: &Judged, t0_us: i64) -> String {
+    let h = j.history;
+    let mut out = format!("{}, {}\n", h.label(), h.unit);
+    out.push_str("run    date         value      EWMA    limits\n");
+    for (i, p) in h.points.iter().enumerate() {
+        let (z, lim) = match &j.chart {
+            Ok(c) => (
+                format!("{:>9.2}", c.ewma[i]),
+                format!("{:.2} to {:.2}", c.limits[i].0, c.limits[i].1),
+            ),
+            Err(_) => ("        —".into(), "—".into()),
+        };
+        let mark = match &j.chart {
+            Ok(c) if c.alarm == Some(i) => "  ← drift alarm",
+            _ => "",
+        };
+        out.push_str(&format!(
+            "{:<6} {} {:>9.2} {z}    {lim}{mark}\n",
+            p.0,
+            day(p.1),
+            p.2
+        ));
+    }
+    match &j.chart {
+        Ok(c) => out.push_str(&format!(
+            "baseline: mean {:.2} {}, σ {:.2} {} (the first {} runs)\n",
+            c.mean, h.unit, c.sigma, h.unit, j.baseline
+        )),
+        Err(e) => out.push_str(&format!("no limits yet: {e}\n")),
+    }
+    if let Some(t) = forecast_text(j, t0_us) {
+        out.push_str(&format!("forecast: {t}\n"));
+    }
+    out
+}
+
+fn to_json(j: &Judged, t0_us: i64) -> serde_json::Value {
+    let h = j.history;
+    let chart = j.chart.as_ref().ok();
+    let points: Vec<serde_json::Value> = h
+        .points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            json!({
+                "run_id": p.0, "unix_us": p.1, "value": p.2,
+                "ewma": chart.map(|c| c.ewma[i]),
+                "limits": chart.map(|c| [c.limits[i].0, c.limits[i].1]),
+            })
+        })
+        .collect();
+    json!({
+        "dof": h.dof, "name": h.name, "unit": h.unit,
+        "points": points,
+        "mean": chart.map(|c| c.mean),
+        "sigma": chart.map(|c| c.sigma),
+        "alarm_run": chart.and_then(|c| c.alarm).map(|i| h.points[i].0),
+        "no_limits": j.chart.as_ref().err().map(ToString::to_string),
+        "tolerance": j.tolerance,
+        "forecast": j.forecast.map(|f| json!({
+            "slope_per_day": f.slope_per_day,
+            "slope_u": f.slope_u,
+            "points": f.points,
+            "crossing_unix_us": f.crossing.map(|c| t0_us + (c.day * 86_400e6) as i64),
+            "crossing_low_unix_us": f.crossing.map(|c| t0_us + (c.low * 86_400e6) as i64),
+            "crossing_high_unix_us": f.crossing.map(|c| t0_us + (c.high * 86_400e6) as i64),
+        })),
+    })
+}
