@@ -320,8 +320,13 @@ fn line(j: &Judged, t0_us: i64) -> String {
 fn forecast_text(j: &Judged, t0_us: i64) -> Option<String> {
     let t = j.tolerance?;
     let unit = &j.history.unit;
-    Some(match j.forecast.and_then(|f| f.crossing.map(|c| (f, c))) {
-        Some((f, c)) => format!(
+    let Some(f) = j.forecast else {
+        return Some(format!(
+            "no forecast against its tolerance {t} {unit}: it needs 3 runs spanning a day or more"
+        ));
+    };
+    Some(match f.crossing {
+        Some(c) => format!(
             "reaches its tolerance {t} {unit} about {} (95 %: {} to {}; {:+.3} {unit}/day over the last {} runs)",
             date_after(t0_us, c.day),
             date_after(t0_us, c.low),
@@ -329,7 +334,10 @@ fn forecast_text(j: &Judged, t0_us: i64) -> Option<String> {
             f.slope_per_day,
             f.points
         ),
-        None => format!("not heading for its tolerance {t} {unit}"),
+        None => format!(
+            "not heading for its tolerance {t} {unit} within a century ({:+.3} {unit}/day over the last {} runs)",
+            f.slope_per_day, f.points
+        ),
     })
 }
 

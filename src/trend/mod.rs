@@ -238,14 +238,24 @@ fn t975(dof: usize) -> f64 {
     }
 }
 
-/// The line through the newest `window` points (at least 3, and their days not all the same)
-/// and the day it reaches `tolerance` (above the line's present value), with a 95 % interval.
+/// Runs closer together than this (days) give no forecast: a slope per day needs days.
+pub const FORECAST_MIN_SPAN_DAYS: f64 = 1.0;
+
+/// A crossing further ahead than this (days: a century) is none at all.
+pub const FORECAST_HORIZON_DAYS: f64 = 36_525.0;
+
+/// The line through the newest `window` points (at least 3, spanning at least
+/// [`FORECAST_MIN_SPAN_DAYS`]) and the day it reaches `tolerance` (above the line's present
+/// value, within [`FORECAST_HORIZON_DAYS`]), with a 95 % interval.
 pub fn forecast(points: &[Point], tolerance: f64, window: usize) -> Option<Forecast> {
     let w = window.max(3).min(points.len());
     if w < 3 {
         return None;
     }
     let pts = &points[points.len() - w..];
+    if pts[w - 1].days - pts[0].days < FORECAST_MIN_SPAN_DAYS {
+        return None;
+    }
     let n = w as f64;
     let tm = pts.iter().map(|p| p.days).sum::<f64>() / n;
     let ym = pts.iter().map(|p| p.value).sum::<f64>() / n;
@@ -263,8 +273,10 @@ pub fn forecast(points: &[Point], tolerance: f64, window: usize) -> Option<Forec
     let s2 = rss / (n - 2.0);
     let slope_u = (s2 / sxx).sqrt();
     let last = pts[w - 1].days;
-    let crossing = (b > 0.0 && tolerance > a + b * last).then(|| {
-        let day = (tolerance - a) / b;
+    let ahead = (tolerance - a) / b;
+    let reachable = b > 0.0 && tolerance > a + b * last && ahead - last <= FORECAST_HORIZON_DAYS;
+    let crossing = reachable.then(|| {
+        let day = ahead;
         // Delta method: the line's value at `day` is uncertain by s²(1/n + (day − t̄)²/Sxx);
         // divided by the slope, that is the day's.
         let u = (s2 * (1.0 / n + (day - tm).powi(2) / sxx)).sqrt() / b;
@@ -272,7 +284,7 @@ pub fn forecast(points: &[Point], tolerance: f64, window: usize) -> Option<Forec
         Crossing {
             day,
             low: (day - k * u).max(last),
-            high: day + k * u,
+            high: (day + k * u).min(last + FORECAST_HORIZON_DAYS),
         }
     });
     Some(Forecast {
@@ -462,6 +474,18 @@ mod tests {
             })
             .collect();
         assert!(forecast(&falling, 12.0, 8).unwrap().crossing.is_none());
+        // Runs within a day of each other: no slope per day worth the name. A crossing a
+        // thousand years out: none.
+        let hours: Vec<Point> = line
+            .iter()
+            .map(|p| Point {
+                days: p.days / 100.0,
+                ..*p
+            })
+            .collect();
+        assert!(forecast(&hours, 7.0, 8).is_none());
+        let slow = forecast(&line, 2.0 + 0.05 * 400_000.0, 8).unwrap();
+        assert!(slow.crossing.is_none() && slow.slope_per_day > 0.0);
         // With noise, 30 days ahead: the 95 % interval holds the true day on most seeds, and
         // the day itself is within ±20 % of the time left on most.
         let (mut covered, mut close, trials) = (0, 0, 400);

@@ -96,6 +96,27 @@ fn an_axes_reversal_growing_raises_the_drift_alarm_at_the_run_it_shows() {
     assert_eq!(f["points"].as_array().map(Vec::len), Some(14));
     let mean = f["mean"].as_f64().unwrap();
     assert!((mean - 1.0).abs() < 0.1, "baseline mean of B {mean} µm");
+    // With the configuration's tolerance for B: the runs here were stored within a second, so
+    // no date can be forecast from them, and the command says why.
+    let cfg = dir.write(
+        "axiscomp.toml",
+        &format!(
+            "[service]\nstate_dir = \"{}\"\n\n[acceptance]\nb_um = 4.0\n",
+            dir.path("").display()
+        ),
+    );
+    let o = run(
+        &["trend", "X", "dy B", "--config", cfg.to_str().unwrap()],
+        "",
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains(
+            "forecast: no forecast against its tolerance 4 µm: it needs 3 runs spanning a day or more"
+        ),
+        "{}",
+        stdout(&o)
+    );
     // Not a figure of the runs: refused, naming the ones there are.
     let o = run(&["trend", "X", "dy Q", "--db", db], "");
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
