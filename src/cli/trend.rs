@@ -76,7 +76,12 @@ fn compensation(store: &axiscomp::store::Store, run: axiscomp::store::RunId) -> 
             let tables: Vec<String> = t
                 .tables
                 .iter()
-                .map(|a| format!("{} {} seq {} crc {:08X}", a.kind, a.axis, a.sequence, a.crc))
+                .map(|a| {
+                    format!(
+                        "{} {} sequence {} CRC 0x{:08X}",
+                        a.kind, a.axis, a.sequence, a.crc
+                    )
+                })
                 .collect();
             if tables.is_empty() {
                 "no tables".into()
@@ -89,9 +94,12 @@ fn compensation(store: &axiscomp::store::Store, run: axiscomp::store::RunId) -> 
     }
 }
 
-/// What was trended: the runs used, and those left out for another compensation.
+/// What was trended: the runs used (and when the first and the last were made), and those
+/// left out for another compensation.
 struct Runs {
     ids: Vec<i64>,
+    first_us: i64,
+    last_us: i64,
     /// The newest run's compensation, in words.
     compensation: String,
     other: usize,
@@ -111,13 +119,15 @@ fn histories(store: &axiscomp::store::Store, axis: &str) -> Result<(Vec<History>
     let newest = keys.last().cloned().unwrap_or_default();
     let other = keys.iter().filter(|k| **k != newest).count();
     let mut out: Vec<History> = Vec::new();
-    let mut ids = Vec::new();
+    let (mut ids, mut first_us, mut last_us) = (Vec::new(), i64::MAX, i64::MIN);
     for (r, _) in runs.iter().zip(&keys).filter(|(_, k)| **k == newest) {
         let result = run_result(store, Some(r.id.0))?;
         if result.incomplete.is_some() {
             continue;
         }
         ids.push(r.id.0);
+        first_us = first_us.min(r.created_us);
+        last_us = last_us.max(r.created_us);
         for d in &result.dofs {
             for f in &d.figures {
                 let at = (r.id.0, r.created_us, f.value);
@@ -137,9 +147,9 @@ fn histories(store: &axiscomp::store::Store, axis: &str) -> Result<(Vec<History>
         out,
         Runs {
             ids,
-            compensation: newest
-                .replace("crc ", "CRC 0x")
-                .replace("seq ", "sequence "),
+            first_us,
+            last_us,
+            compensation: newest,
             other,
         },
     ))
@@ -158,7 +168,6 @@ fn points(h: &History, t0_us: i64) -> Vec<Point> {
 
 struct Judged<'a> {
     history: &'a History,
-    baseline: usize,
     chart: Result<Chart, trend::TrendError>,
     tolerance: Option<f64>,
     forecast: Option<Forecast>,
@@ -178,11 +187,7 @@ pub fn run(a: Args) -> Result<()> {
         ))
         .into());
     }
-    let t0_us = all
-        .iter()
-        .flat_map(|h| h.points.iter().map(|p| p.1))
-        .min()
-        .unwrap_or(0);
+    let t0_us = runs.first_us;
     let settings = Settings {
         baseline: a.baseline,
         window: a.window,
@@ -225,7 +230,6 @@ pub fn run(a: Args) -> Result<()> {
                 .map(|t| t.limit);
             Judged {
                 history: h,
-                baseline: settings.baseline,
                 chart: trend::chart(&pts, &settings),
                 tolerance,
                 forecast: tolerance.and_then(|t| trend::forecast(&pts, t, settings.window)),
@@ -249,11 +253,7 @@ pub fn run(a: Args) -> Result<()> {
         if runs.ids.len() == 1 { "" } else { "s" },
         runs.compensation,
         day(t0_us),
-        day(all
-            .iter()
-            .flat_map(|h| h.points.iter().map(|p| p.1))
-            .max()
-            .unwrap_or(t0_us)),
+        day(runs.last_us),
         settings.baseline
     );
     match runs.other {
@@ -266,7 +266,7 @@ pub fn run(a: Args) -> Result<()> {
         ),
     }
     if a.figure.is_some() && judged.len() == 1 {
-        print!("{}", detail(&judged[0], t0_us));
+        print!("{}", detail(&judged[0], t0_us, settings.baseline));
     } else {
         for j in &judged {
             println!("{}", line(j, t0_us));
@@ -341,7 +341,7 @@ fn forecast_text(j: &Judged, t0_us: i64) -> Option<String> {
     })
 }
 
-fn detail(j: &Judged, t0_us: i64) -> String {
+fn detail(j: &Judged, t0_us: i64, baseline: usize) -> String {
     let h = j.history;
     let mut out = format!("{}, {}\n", h.label(), h.unit);
     out.push_str("run    date         value      EWMA    limits\n");
@@ -367,7 +367,7 @@ fn detail(j: &Judged, t0_us: i64) -> String {
     match &j.chart {
         Ok(c) => out.push_str(&format!(
             "baseline: mean {:.2} {}, σ {:.2} {} (the first {} runs)\n",
-            c.mean, h.unit, c.sigma, h.unit, j.baseline
+            c.mean, h.unit, c.sigma, h.unit, baseline
         )),
         Err(e) => out.push_str(&format!("no limits yet: {e}\n")),
     }
