@@ -9,6 +9,7 @@ mod console;
 mod decouple;
 mod demo;
 mod demo_machine;
+mod demo_trend;
 mod evaluate;
 mod export;
 mod follower;
@@ -151,6 +152,9 @@ pub fn run(cli: Cli) -> Result<()> {
         stdout_closes_quietly();
     }
     match cli.command {
+        // The year of checks builds on the demo's set-up: it takes its turn here, so that the
+        // demo does not call back into what it serves.
+        Command::Demo(a) if a.trend && !a.machine => demo_trend::run(&a),
         Command::Demo(a) => demo::run(a),
         Command::Optics(c) => optics::run(c),
         Command::Calibrate(c) => calibrate::run(c),

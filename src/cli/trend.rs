@@ -1,5 +1,6 @@
 //! `axiscomp trend AXIS [FIGURE] [--json]`: every figure of the axis's finished runs over time,
-//! each against control limits learned from its first runs, with the drift alarm and, where
+//! each against control limits learned from its first runs and each later one in control,
+//! with the drift alarm and, where
 //! `[acceptance]` gives its tolerance, the day the figure's trend line reaches it
 //! ([`axiscomp::trend`]). Reads the store; the service need not run.
 
@@ -247,7 +248,7 @@ pub fn run(a: Args) -> Result<()> {
         return Ok(());
     }
     println!(
-        "axis {}: {} finished run{} under the newest's compensation ({}), {} to {}; limits from the first {}",
+        "axis {}: {} finished run{} under the newest's compensation ({}), {} to {}; limits from the first {} and each later run in control",
         a.axis,
         runs.ids.len(),
         if runs.ids.len() == 1 { "" } else { "s" },
@@ -366,8 +367,13 @@ fn detail(j: &Judged, t0_us: i64, baseline: usize) -> String {
     }
     match &j.chart {
         Ok(c) => out.push_str(&format!(
-            "baseline: mean {:.2} {}, σ {:.2} {} (the first {} runs)\n",
-            c.mean, h.unit, c.sigma, h.unit, baseline
+            "limits learned from {} runs (the first {} and each later one in control): mean {:.2} {}, σ {:.2} {}\n",
+            c.history.len(),
+            baseline,
+            c.mean,
+            h.unit,
+            c.sigma,
+            h.unit
         )),
         Err(e) => out.push_str(&format!("no limits yet: {e}\n")),
     }

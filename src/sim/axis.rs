@@ -229,8 +229,14 @@ impl AxisProfile {
     /// The positioning error (mm) the wear in force adds at nominal position `d`, moving in
     /// `dir` (what a re-measurement should find on top of the commissioned axis).
     pub fn wear_dy(&self, d: f64, dir: Direction) -> f64 {
+        self.wear_dy_of(&self.wear.get(), d, dir)
+    }
+
+    /// The positioning error (mm) wear `w` would add at `d` moving in `dir`: what the axis
+    /// would read on a day it had aged that far.
+    pub fn wear_dy_of(&self, w: &Wear, d: f64, dir: Direction) -> f64 {
         let u = (d / self.spec.length_mm.max(1e-9)).clamp(-0.1, 1.1);
-        self.wear.get().dy_mm(u, dir)
+        w.dy_mm(u, dir)
     }
 
     /// A perfect axis of the given length.

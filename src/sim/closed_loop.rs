@@ -359,10 +359,6 @@ impl Figures {
 
 /// Run the loop. `step` hears of each stage as it happens.
 pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, LoopError> {
-    let axis = &spec.plan.spec.axis;
-    let mapping = AxisMapping::standard(
-        MachineAxis::from_letter(axis).ok_or_else(|| LoopError::Axis(axis.clone()))?,
-    );
     let mut lab = Lab::new(&spec.lab).map_err(|source| LoopError::Lab {
         pass: Pass::Before,
         source,
@@ -375,19 +371,10 @@ pub fn run(spec: &LoopSpec, mut step: impl FnMut(Step)) -> Result<LoopResult, Lo
     machine_time.before = lab.now() - t;
     let before_us = [u0, lab.unix_us()];
     let mount_aligned = lab.plant.mount();
-    let tables = build_tables(
-        &before.eval,
-        &TableSpec {
-            mapping,
-            reference_mm: spec.plan.reference_mm,
-            positioning: spec.positioning,
-            straightness_line: spec.straightness_line,
-            functional_point_mm: None,
-        },
-    )?;
+    let tables = tables_of(spec, &before.eval)?;
     // Real Modbus TCP on loopback: the wall clock.
     let wall = std::time::Instant::now();
-    let published = publish_all(&lab, spec, &tables, &mut step)?;
+    let published = publish_all(&lab, spec, &tables, 1, &mut step)?;
     machine_time.publish = wall.elapsed();
     let (t, u0) = (lab.now(), lab.unix_us());
     let after = measure(&mut lab, spec, Pass::After, &mut step)?;
@@ -559,11 +546,32 @@ fn plc_tables(set: &TableSet) -> Vec<(String, &CompTable)> {
         .collect()
 }
 
-/// Publish every table into a twin PLC serving `lab`'s plant, sequence 1, 2, …
-fn publish_all(
+/// The tables of a measured run (positioning per `spec.positioning`, both straightnesses
+/// against `spec.straightness_line`), zero at the plan's reference.
+pub fn tables_of(spec: &LoopSpec, eval: &AxisEvaluation) -> Result<TableSet, LoopError> {
+    let axis = &spec.plan.spec.axis;
+    let mapping = AxisMapping::standard(
+        MachineAxis::from_letter(axis).ok_or_else(|| LoopError::Axis(axis.clone()))?,
+    );
+    Ok(build_tables(
+        eval,
+        &TableSpec {
+            mapping,
+            reference_mm: spec.plan.reference_mm,
+            positioning: spec.positioning,
+            straightness_line: spec.straightness_line,
+            functional_point_mm: None,
+        },
+    )?)
+}
+
+/// Publish every table of `set` into a twin PLC serving `lab`'s plant (a PLC of its own:
+/// its tables replace every one in force), sequence `first`, `first + 1`, …
+pub fn publish_all(
     lab: &Lab,
     spec: &LoopSpec,
     set: &TableSet,
+    first: u32,
     step: &mut impl FnMut(Step),
 ) -> Result<Vec<Published>, LoopError> {
     let mut tables = Vec::new();
@@ -592,7 +600,7 @@ fn publish_all(
         };
         let mut out = Vec::new();
         for (k, (name, table)) in tables.into_iter().enumerate() {
-            let sequence = k as u32 + 1;
+            let sequence = first + k as u32;
             match publish(&link, &map, &table, sequence, timeouts).await {
                 Ok(PublishOutcome::Accepted { .. }) => {}
                 Ok(other) => {

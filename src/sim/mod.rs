@@ -11,6 +11,7 @@
 //! of those errors on the lab (`follower_cal`), and the PLC that takes compensation tables and
 //! applies them to the axis (`plc`).
 
+pub mod ageing;
 pub mod axis;
 pub mod closed_loop;
 pub mod cnc;

@@ -9,15 +9,25 @@
 //! good, and an EWMA sees a sustained shift of 1 σ in about 10 checks and of 2 σ in about 4, where
 //! a Shewhart chart (each point alone against 3 σ) needs about 44 and 6, at the same false-alarm
 //! rate (λ = 0.2, L = 3: about one false signal in 500 points with σ known). CUSUM does as well
-//! for the one shift it is tuned to and worse for others. A point 3.5 σ from the mean alarms
+//! for the one shift it is tuned to and worse for others. A point far above the mean alarms
 //! by itself too (Lucas and Saccucci 1990's combined Shewhart-EWMA): a fast change is seen at
-//! once, and a stable machine gives such a point once in about 2000 checks.
+//! once. **Upward only:** every figure charted is a range or a deviation, larger is worse, and
+//! a figure getting better calls for no maintenance; the widths are the one-sided ones with the
+//! two-sided rates of L = 3 and a 3.5 σ point: L = 2.8 and 3.3 σ (a 2 σ-per-check drift seen
+//! within 3 checks on 92 machines of 100 against 89 two-sided, at the same false-alarm rate).
 //!
 //! **Limits from the machine's own history:** `μ0` and `σ` are the mean and the standard
-//! deviation of the first `baseline` points (the axis as commissioned; the limits widened by
-//! the mean's own uncertainty, `σ²/baseline` added to the EWMA's variance), with σ not below
-//! `sigma_floor` (the figure's stated standard uncertainty, when the caller knows it: a short
-//! baseline can happen to scatter little, and limits drawn from it would cry wolf).
+//! deviation of the first `baseline` points (the axis as commissioned), then of every point
+//! since that gave no signal: the history grows with each check in control (a self-starting
+//! chart, after Hawkins 1987). The limits are widened by the mean's own uncertainty (`σ²/m`
+//! added to the EWMA's variance, m the points learned from), with σ not below `sigma_floor`
+//! (the figure's stated standard uncertainty, when the caller knows it). Why the growing
+//! history: σ from 8 points is uncertain by a quarter, and a machine whose first checks
+//! happened to scatter little would cry wolf for ever (the twin's seed 11: σ of M from its
+//! first 8 checks 0.029 µm against 0.046 µm over 200, and 25 of 200 stable checks outside
+//! limits learned from the 8 alone). A drift is seen in the few checks after its onset, before
+//! its points can move the history: a point is learned only once the checks after it have
+//! raised no alarm that stood (an alarm that cleared by itself was the scatter).
 //!
 //! **Forecast:** a straight line fitted by least squares to the last `window` points, the day
 //! it reaches the tolerance, and a 95 % interval for that day by the delta method on the line's
@@ -40,9 +50,10 @@ pub struct Settings {
     pub baseline: usize,
     /// The EWMA's weight of the newest point (0 < λ ≤ 1).
     pub lambda: f64,
-    /// The limits' width in standard deviations of the EWMA (L).
+    /// The upper limit's width in standard deviations of the EWMA (L); the lower limit is
+    /// drawn, a figure below it does not alarm.
     pub width: f64,
-    /// A single point this many σ from the baseline's mean alarms at once (the Shewhart rule
+    /// A single point this many σ above the history's mean alarms at once (the Shewhart rule
     /// beside the EWMA, for a fast change the EWMA would take a few checks to see).
     pub point_width: f64,
     /// The points the forecast's line is fitted to (the newest), at least 3.
@@ -56,8 +67,8 @@ impl Default for Settings {
         Settings {
             baseline: 8,
             lambda: 0.2,
-            width: 3.0,
-            point_width: 3.5,
+            width: 2.8,
+            point_width: 3.3,
             window: 8,
             sigma_floor: 0.0,
         }
@@ -88,16 +99,62 @@ pub enum TrendError {
 /// The EWMA chart of a figure.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Chart {
-    /// The baseline's mean and the σ the limits assume.
+    /// The mean of the history the last limits were learned from, and the σ they assume.
     pub mean: f64,
     pub sigma: f64,
     /// The EWMA after each point.
     pub ewma: Vec<f64>,
     /// The limits (lower, upper) at each point.
     pub limits: Vec<(f64, f64)>,
-    /// The first point after the baseline whose EWMA is outside its limits, or that is itself
-    /// `point_width` σ from the mean: the drift alarm.
+    /// Whether each point signals: judged (after the baseline), its EWMA outside its limits or
+    /// itself `point_width` σ from the mean.
+    pub signals: Vec<bool>,
+    /// The first point that signals: the drift alarm.
     pub alarm: Option<usize>,
+    /// The values the limits were learned from at the end: the baseline and every later
+    /// point settled without an alarm that stood (all but the newest few).
+    pub history: Vec<f64>,
+}
+
+/// The limits' centre and scale, learned from a machine's history.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Baseline {
+    /// The mean of the points learned from, and the σ the limits assume.
+    pub mean: f64,
+    pub sigma: f64,
+    /// How many points it was learned from.
+    pub points: usize,
+    /// Whether σ is the floor (known, not estimated from the points).
+    pub floored: bool,
+}
+
+impl Baseline {
+    /// From the first `s.baseline` of `points` (at least one more must follow to chart).
+    pub fn learn(points: &[Point], s: &Settings) -> Result<Baseline, TrendError> {
+        check(points, s)?;
+        if points.len() <= s.baseline {
+            return Err(TrendError::TooFew {
+                have: points.len(),
+                need: s.baseline + 1,
+                baseline: s.baseline,
+            });
+        }
+        let base: Vec<f64> = points[..s.baseline].iter().map(|p| p.value).collect();
+        Ok(Baseline::of(&base, s.sigma_floor))
+    }
+
+    /// From `values` (at least 2), σ not below `sigma_floor`.
+    pub fn of(values: &[f64], sigma_floor: f64) -> Baseline {
+        let n = values.len() as f64;
+        let mean = values.iter().sum::<f64>() / n;
+        let sd = (values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+        Baseline {
+            mean,
+            sigma: sd.max(sigma_floor),
+            points: values.len(),
+            floored: sigma_floor >= sd,
+        }
+    }
 }
 
 impl Chart {
@@ -119,13 +176,13 @@ fn check(points: &[Point], s: &Settings) -> Result<(), TrendError> {
     }
     if !(s.point_width > 0.0 && s.point_width.is_finite()) {
         return Err(TrendError::Settings(format!(
-            "point_width {} must be a positive number of standard deviations (3.5 is usual)",
+            "point_width {} must be a positive number of standard deviations (3.3 is usual)",
             s.point_width
         )));
     }
     if !(s.width > 0.0 && s.width.is_finite()) {
         return Err(TrendError::Settings(format!(
-            "width {} must be a positive number of standard deviations (3 is usual)",
+            "width {} must be a positive number of standard deviations (2.8 is usual)",
             s.width
         )));
     }
@@ -159,49 +216,129 @@ fn check(points: &[Point], s: &Settings) -> Result<(), TrendError> {
     Ok(())
 }
 
-/// The EWMA chart of `points` (in time order) with limits from its first `s.baseline` points.
+/// The EWMA chart of `points` (in time order), its limits learned from its first
+/// `s.baseline` points and every later one in control.
 pub fn chart(points: &[Point], s: &Settings) -> Result<Chart, TrendError> {
-    check(points, s)?;
-    if points.len() <= s.baseline {
-        return Err(TrendError::TooFew {
-            have: points.len(),
-            need: s.baseline + 1,
-            baseline: s.baseline,
-        });
+    Baseline::learn(points, s)?;
+    Ok(run(Vec::new(), points, s.baseline, s))
+}
+
+/// The EWMA chart of `points` against a history learned before (`history`: the values of the
+/// points in control, as [`Chart::history`] gives them), every point judged, the EWMA starting
+/// from the history's mean. After a new table has brought an axis back to how it was
+/// commissioned, its checks are charted against its commissioned history again. `history`
+/// needs at least 2 values (else nothing signals); `points` are taken as [`chart`] checked
+/// them.
+pub fn follow(history: &[f64], points: &[Point], s: &Settings) -> Chart {
+    run(history.to_vec(), points, 0, s)
+}
+
+/// A point joins the history once this many later points have been judged, at a point that
+/// gives no signal: the first points of a drift (still inside the limits) wait while the drift
+/// is seen, which an EWMA does within a few checks, and are never learned while its alarm
+/// stands; the points of an alarm that cleared by itself (the scatter) are learned when it
+/// clears. Learning each point inside the limits at once let 2 σ-per-check drifts into the
+/// history (18 of 100 machines seen later than their 3rd check); learning only the points
+/// inside the limits kept limits drawn from a few quiet first checks narrow (10 false alarms
+/// in 200 checks on one stable machine in 100).
+const SETTLE: usize = 3;
+
+/// The quantile of Student's t on `dof` degrees with the normal's tail beyond `z`: the
+/// Cornish–Fisher expansion to 1/dof² (Abramowitz and Stegun 26.7.5): a little narrow at few
+/// degrees (5.86 against the exact 6.16 at 7 degrees for z = 3.5, 4.42 against 4.53 for z =
+/// 3), within 0.3 % from 20.
+fn student_width(z: f64, dof: f64) -> f64 {
+    if dof.is_infinite() {
+        return z;
     }
-    let base: Vec<f64> = points[..s.baseline].iter().map(|p| p.value).collect();
-    let n = base.len() as f64;
-    let mean = base.iter().sum::<f64>() / n;
-    let sd = (base.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
-    let sigma = sd.max(s.sigma_floor);
+    if dof.is_nan() || dof < 1.0 {
+        return f64::INFINITY;
+    }
+    let (z3, z5) = (z.powi(3), z.powi(5));
+    z + (z3 + z) / (4.0 * dof) + (5.0 * z5 + 16.0 * z3 + 3.0 * z) / (96.0 * dof * dof)
+}
+
+/// Before point `i` is judged: when the point before it gave no signal, every point with
+/// [`SETTLE`] points judged after it joins the history (`learned`: those before it have).
+fn settle(
+    history: &mut Vec<f64>,
+    learned: &mut usize,
+    points: &[Point],
+    signals: &[bool],
+    i: usize,
+    unjudged: usize,
+) {
+    if i <= unjudged || signals.get(i - 1).copied().unwrap_or(true) {
+        return;
+    }
+    while *learned + SETTLE < i {
+        history.push(points[*learned].value);
+        *learned += 1;
+    }
+}
+
+/// The chart: the first `unjudged` points join the history at once (the baseline); each later
+/// one is judged against the history before it, and joins it when in control.
+fn run(mut history: Vec<f64>, points: &[Point], unjudged: usize, s: &Settings) -> Chart {
+    history.extend(points.iter().take(unjudged).map(|p| p.value));
     let (lambda, width) = (s.lambda, s.width);
-    let mut z = mean;
+    let start = (history.len() >= 2).then(|| Baseline::of(&history, s.sigma_floor));
+    let mut z = start.map_or(f64::NAN, |b| b.mean);
     let mut ewma = Vec::with_capacity(points.len());
     let mut limits = Vec::with_capacity(points.len());
-    let mut alarm = None;
+    let mut signals: Vec<bool> = Vec::with_capacity(points.len());
+    let mut b = start;
+    // The points before this one are in the history (or were the baseline).
+    let mut learned = unjudged;
     for (i, p) in points.iter().enumerate() {
+        settle(&mut history, &mut learned, points, &signals, i, unjudged);
+        if i >= unjudged && history.len() >= 2 {
+            b = Some(Baseline::of(&history, s.sigma_floor));
+        }
+        let Some(base) = b else {
+            ewma.push(f64::NAN);
+            limits.push((f64::NAN, f64::NAN));
+            signals.push(false);
+            continue;
+        };
+        let (mean, sigma, n) = (base.mean, base.sigma, base.points as f64);
         z = lambda * p.value + (1.0 - lambda) * z;
         let k = (i + 1) as i32;
-        // The EWMA's variance about the true mean, plus the baseline mean's own (σ²/m): with
+        // The EWMA's variance about the true mean, plus the history mean's own (σ²/m): with
         // a baseline of 8, leaving it out put 4.7 % of a stable machine's checks outside.
-        let half = width
+        // σ estimated from n points (not the floor): each width is the one Student's t on
+        // n − 1 degrees gives the same tail as the normal's (σ from 8 points put 1 point in
+        // 100 beyond 3.5 of its σ, not 1 in 2000).
+        let dof = if base.floored { f64::INFINITY } else { n - 1.0 };
+        let half = student_width(width, dof)
             * sigma
             * (lambda / (2.0 - lambda) * (1.0 - (1.0 - lambda).powi(2 * k)) + 1.0 / n).sqrt();
         ewma.push(z);
         limits.push((mean - half, mean + half));
-        let point = s.point_width * sigma * (1.0 + 1.0 / n).sqrt();
-        let beyond = z < mean - half || z > mean + half || (p.value - mean).abs() > point;
-        if alarm.is_none() && i >= s.baseline && beyond {
-            alarm = Some(i);
-        }
+        let point = student_width(s.point_width, dof) * sigma * (1.0 + 1.0 / n).sqrt();
+        // Upward only: every figure here is a range or a deviation, larger is worse.
+        let beyond = z > mean + half || p.value - mean > point;
+        signals.push(i >= unjudged && beyond);
     }
-    Ok(Chart {
-        mean,
-        sigma,
+    settle(
+        &mut history,
+        &mut learned,
+        points,
+        &signals,
+        points.len(),
+        unjudged,
+    );
+    let last = (history.len() >= 2).then(|| Baseline::of(&history, s.sigma_floor));
+    let alarm = signals.iter().position(|&b| b);
+    Chart {
+        mean: last.map_or(f64::NAN, |b| b.mean),
+        sigma: last.map_or(f64::NAN, |b| b.sigma),
         ewma,
         limits,
+        signals,
         alarm,
-    })
+        history,
+    }
 }
 
 /// When the fitted line reaches the tolerance.
@@ -210,8 +347,10 @@ pub struct Forecast {
     /// The line's slope (the figure's unit per day) and its standard uncertainty.
     pub slope_per_day: f64,
     pub slope_u: f64,
-    /// The points the line was fitted to (the newest).
+    /// The points the line was fitted to (the newest), and the newest's day: no crossing is
+    /// forecast before it.
     pub points: usize,
+    pub made_day: f64,
     /// The day the line reaches the tolerance (days on the points' scale), with its 95 %
     /// interval; `None` when the line does not grow towards it.
     pub crossing: Option<Crossing>,
@@ -222,6 +361,25 @@ pub struct Crossing {
     pub day: f64,
     pub low: f64,
     pub high: f64,
+}
+
+impl Forecast {
+    /// The crossing's interval widened for the figure's own uncertainty `u` (standard, the
+    /// figure's unit), which the points share and their scatter cannot show (a head that reads
+    /// a range 0.2 µm low reads it low at every check: the line, and its crossing, lie late by
+    /// 0.2 µm over the slope). Added in quadrature to the fit's, at k = 2.
+    pub fn with_level_u(mut self, u: f64) -> Forecast {
+        if let Some(c) = self.crossing.as_mut()
+            && u > 0.0
+            && self.slope_per_day > 0.0
+        {
+            let shift = 2.0 * u / self.slope_per_day;
+            let widen = |half: f64| (half * half + shift * shift).sqrt();
+            c.low = (c.day - widen(c.day - c.low)).max(self.made_day);
+            c.high = c.day + widen(c.high - c.day);
+        }
+        self
+    }
 }
 
 /// Student's t at 97.5 % for `dof` degrees of freedom (1 to 30 tabulated; 1.96 beyond).
@@ -291,6 +449,7 @@ pub fn forecast(points: &[Point], tolerance: f64, window: usize) -> Option<Forec
         slope_per_day: b,
         slope_u,
         points: w,
+        made_day: last,
         crossing,
     })
 }
@@ -313,28 +472,33 @@ mod tests {
 
     #[test]
     fn the_ewma_and_its_limits_are_the_textbook_ones() {
-        // Baseline 1, 3 (mean 2, sd √2), then 2 and 8.
+        // Baseline 1, 3 (mean 2, sd √2) under a floor of 1.5 (σ known: no widening for its
+        // estimate), then 2 and 8.
         let s = Settings {
             baseline: 2,
             lambda: 0.5,
             width: 2.0,
             point_width: 100.0,
+            sigma_floor: 1.5,
             ..Settings::default()
         };
         let c = chart(&series(&[1.0, 3.0, 2.0, 8.0]), &s).unwrap();
-        assert!((c.mean - 2.0).abs() < 1e-12 && (c.sigma - 2f64.sqrt()).abs() < 1e-12);
         // z: 0.5·1 + 0.5·2 = 1.5; 0.5·3 + 0.75 = 2.25; 1 + 1.125 = 2.125; 4 + 1.0625 = 5.0625.
         let want = [1.5, 2.25, 2.125, 5.0625];
         for (z, w) in c.ewma.iter().zip(want) {
             assert!((z - w).abs() < 1e-12, "{:?}", c.ewma);
         }
-        // Limits at point 4: 2 ± 2·√2·√(0.5/1.5·(1 − 0.5⁸) + 1/2).
-        let half = 2.0 * 2f64.sqrt() * (1.0 / 3.0 * (1.0 - 0.5f64.powi(8)) + 0.5).sqrt();
-        assert!((c.limits[3].1 - (2.0 + half)).abs() < 1e-12);
-        // 5.0625 is above 2 + 2.58: the alarm at the fourth point, not in the baseline.
+        // Limits at point 3: 2 ± 2·1.5·√(0.5/1.5·(1 − 0.5⁶) + 1/2); at point 4 the same
+        // history (point 3 joins it only once 3 more are judged): 2 ± 3·√(1/3·(1 − 0.5⁸) + 1/2)
+        // = 2 ± 2.737.
+        let half = |k: i32| 3.0 * (1.0 / 3.0 * (1.0 - 0.5f64.powi(2 * k)) + 0.5).sqrt();
+        assert!((c.limits[2].1 - (2.0 + half(3))).abs() < 1e-12);
+        assert!((c.limits[3].1 - (2.0 + half(4))).abs() < 1e-12);
+        // 5.0625 is above 4.737: the alarm at the fourth point, not in the baseline.
         assert_eq!(c.alarm, Some(3));
         assert!(c.out_now());
-        // A floor widens the limits: no alarm with σ ≥ 2.
+        assert_eq!(c.history, vec![1.0, 3.0]);
+        // A higher floor widens the limits: no alarm with σ = 2 (2 + 3.65 at point 4).
         let floored = chart(
             &series(&[1.0, 3.0, 2.0, 8.0]),
             &Settings {
@@ -344,6 +508,48 @@ mod tests {
         )
         .unwrap();
         assert_eq!((floored.sigma, floored.alarm), (2.0, None));
+    }
+
+    /// A point joins the history once 3 later points are judged at a point in control; those
+    /// of an alarm that stands do not.
+    #[test]
+    fn the_history_grows_with_settled_points_only() {
+        let s = Settings {
+            baseline: 2,
+            sigma_floor: 1.0,
+            ..Settings::default()
+        };
+        // Baseline 1, 3; then 2, 2, 2, 2, 2: at the last, points 3 and 4 have 3 judged after
+        // them.
+        let c = chart(&series(&[1.0, 3.0, 2.0, 2.0, 2.0, 2.0, 2.0]), &s).unwrap();
+        assert_eq!(c.history, vec![1.0, 3.0, 2.0, 2.0]);
+        // A step of 20 σ that stands: none of its points, nor the three before it, is learned.
+        let mut v = vec![1.0, 3.0, 2.0, 2.0, 2.0, 2.0];
+        v.extend([22.0; 6]);
+        let c = chart(&series(&v), &s).unwrap();
+        assert_eq!(c.alarm, Some(6));
+        assert_eq!(c.history, vec![1.0, 3.0, 2.0]);
+    }
+
+    /// Student's t widths against the exact quantiles (by numerical integration of its
+    /// density): the same tail as the normal's beyond 3 and 3.5.
+    #[test]
+    fn student_widths_are_near_the_exact_quantiles() {
+        for (dof, z, exact, within) in [
+            (7.0, 3.0, 4.530, 0.03),
+            (7.0, 3.5, 6.155, 0.05),
+            (11.0, 3.0, 3.850, 0.01),
+            (11.0, 3.5, 4.909, 0.015),
+            (20.0, 3.0, 3.422, 0.003),
+            (20.0, 3.5, 4.177, 0.003),
+        ] {
+            let w = student_width(z, dof);
+            assert!(
+                (w / exact - 1.0).abs() <= within,
+                "{dof} degrees, z {z}: {w} against {exact}"
+            );
+        }
+        assert_eq!(student_width(3.0, f64::INFINITY), 3.0);
     }
 
     #[test]
@@ -376,62 +582,71 @@ mod tests {
     /// (seeds), the EWMA is outside its limits at no more than 1 % of the checks.
     #[test]
     fn a_stable_machine_rarely_alarms() {
-        let (mut out, mut checks) = (0usize, 0usize);
+        // No floor: the limits come from the machines' own checks alone, the first 8 of
+        // which scatter as little as 0.56 σ on one machine in 20 (χ² on 7 degrees). At most
+        // 0.5 % of the checks outside the limits (0.23 %), and at most 2 machines in 100 with
+        // more than 1 % of their checks raising an alarm (2, with 3; 12 of 1000 machines).
+        let (mut out, mut checks, mut worst, mut over2) = (0usize, 0usize, 0usize, 0usize);
         for seed in 0..100 {
             let mut rng = Rng::new(9000 + seed);
             let v: Vec<f64> = (0..208).map(|_| 5.0 + rng.gauss(0.3)).collect();
-            let c = chart(
-                &series(&v),
-                &Settings {
-                    // The figure's stated standard uncertainty.
-                    sigma_floor: 0.3,
-                    ..Settings::default()
-                },
-            )
-            .unwrap();
-            for i in 8..208 {
-                checks += 1;
-                let (lo, hi) = c.limits[i];
-                out += usize::from(c.ewma[i] < lo || c.ewma[i] > hi);
-            }
+            let c = chart(&series(&v), &Settings::default()).unwrap();
+            let alarms = (8..208)
+                .filter(|&i| c.signals[i] && !c.signals[i - 1])
+                .count();
+            worst = worst.max(alarms);
+            over2 += usize::from(alarms > 2);
+            checks += 200;
+            out += c.signals.iter().filter(|&&x| x).count();
         }
         let rate = out as f64 / checks as f64;
-        assert!(rate <= 0.01, "{out} of {checks} checks out of the limits");
+        assert!(
+            rate <= 0.005 && over2 <= 2,
+            "{out} of {checks} checks out of the limits; {over2} machines with more than 2 alarms in 200 checks (the most {worst})"
+        );
     }
 
-    /// A drift of 2 σ per check from check 12 on (a wear of 5 µm in 6 months, checked
-    /// monthly, against 0.4 µm of scatter), on 100 machines: seen within 3 checks of its
-    /// onset on at least 95 of them and within 5 on all, and never before it on 99.
-    #[test]
-    fn a_drift_is_seen_within_three_checks() {
+    /// A drift of `per_check_sd` σ per check from check 12 on, on 100 machines, σ learned
+    /// from their own checks: how many see it within 3 checks of its onset, and how many
+    /// alarm before it.
+    fn drift_seen(per_check_sd: f64) -> (usize, usize) {
         let (mut within3, mut early) = (0, 0);
         for seed in 0..100 {
             let mut rng = Rng::new(7000 + seed);
             let sd = 0.4;
-            let per_check = 5.0 / 6.0;
+            let per_check = per_check_sd * sd;
             let v: Vec<f64> = (0..24)
                 .map(|i| {
                     let drift = per_check * (i as f64 - 11.0).max(0.0);
                     5.0 + drift + rng.gauss(sd)
                 })
                 .collect();
-            let c = chart(
-                &series(&v),
-                &Settings {
-                    sigma_floor: sd,
-                    ..Settings::default()
-                },
-            )
-            .unwrap();
+            let c = chart(&series(&v), &Settings::default()).unwrap();
             let alarm = c.alarm.unwrap_or(usize::MAX);
             // Onset after check 11: checks 12, 13, 14 are the first three.
             early += usize::from(alarm < 12);
             within3 += usize::from((12..=14).contains(&alarm));
-            assert!(alarm <= 16, "seed {seed}: alarm at {alarm}");
+            assert!(alarm <= 17, "seed {seed}: alarm at {alarm}");
         }
+        (within3, early)
+    }
+
+    /// A wear of 5 µm in 6 months checked monthly against 0.33 µm of scatter (2.5 σ per
+    /// check) is seen within 3 checks of its onset on at least 95 machines of 100 (98), and
+    /// never before it on 99; against 0.4 µm (2 σ per check), on at least 85 (92): the price
+    /// of limits that widen for σ learned from a few checks (without the widening, 98 with 2 σ
+    /// per check, and 4 stable machines in 100 with 3 false alarms in 200 checks).
+    #[test]
+    fn a_drift_is_seen_within_three_checks() {
+        let (within3, early) = drift_seen(2.5);
         assert!(
             within3 >= 95 && early <= 1,
-            "within 3: {within3}, early: {early}"
+            "2.5 σ per check: within 3: {within3}, early: {early}"
+        );
+        let (within3, early) = drift_seen(2.0);
+        assert!(
+            within3 >= 85 && early <= 1,
+            "2 σ per check: within 3: {within3}, early: {early}"
         );
     }
 
@@ -446,10 +661,35 @@ mod tests {
             &Settings::default(),
         )
         .unwrap();
-        v.push(base.mean + 5.0 * base.sigma);
+        // 8 σ: beyond the point rule's 3.3 σ widened for σ from 8 points (5.5 σ).
+        v.push(base.mean + 8.0 * base.sigma);
         let c = chart(&series(&v), &Settings::default()).unwrap();
         assert_eq!(c.alarm, Some(8));
         assert!(!c.out_now(), "the EWMA alone is still inside: {:?}", c.ewma);
+    }
+
+    /// The figure's own uncertainty widens the crossing's interval by 2u over the slope, in
+    /// quadrature; never before the newest point.
+    #[test]
+    fn a_stated_uncertainty_widens_the_crossing() {
+        // 2 + 0.05·t through day 45 (10 points, exactly): the crossing of 7 on day 100, an
+        // interval of zero width from the fit.
+        let line: Vec<Point> = (0..10)
+            .map(|i| Point {
+                days: 5.0 * i as f64,
+                value: 2.0 + 0.25 * i as f64,
+            })
+            .collect();
+        let f = forecast(&line, 7.0, 8).unwrap().with_level_u(0.5);
+        let c = f.crossing.unwrap();
+        // 2·0.5/0.05 = 20 days either side; the low end no earlier than day 45.
+        assert!(
+            (c.high - 120.0).abs() < 1e-6 && (c.low - 80.0).abs() < 1e-6,
+            "{c:?}"
+        );
+        let f = forecast(&line, 7.0, 8).unwrap().with_level_u(2.0);
+        let c = f.crossing.unwrap();
+        assert!((c.high - 180.0).abs() < 1e-6 && c.low == 45.0, "{c:?}");
     }
 
     #[test]

@@ -3,13 +3,17 @@
 //! generated program) on a simulated clock, compared with the plant's truth.
 
 use axiscomp::align::Mount;
-use axiscomp::evaluate::{EvalOptions, evaluate_captures};
+use axiscomp::comp::PositioningMode;
+use axiscomp::evaluate::{EvalOptions, ReferenceLine, evaluate_captures};
+use axiscomp::plc::CncMap;
 use axiscomp::run::Direction;
 use axiscomp::run::program::CaptureMode;
 use axiscomp::run::{Dialect, Plan, PlanSpec};
 use axiscomp::sim::InstallSpec;
+use axiscomp::sim::axis::AxisSpec;
+use axiscomp::sim::closed_loop::{BudgetSpec, LoopSpec};
 use axiscomp::sim::lab::{Lab, LabRun, LabSpec};
-use axiscomp::sim::plant::PlantSpec;
+use axiscomp::sim::plant::{FollowerSpec, PlantSpec};
 use axiscomp::units::{DOF_NAMES, Errors6};
 use std::collections::BTreeSet;
 use std::time::Duration;
@@ -23,6 +27,47 @@ fn perfect_head(seed: u64) -> PlantSpec {
             gain_error: 0.0,
         },
         ..PlantSpec::default()
+    }
+}
+
+/// A loop on a short axis with the twin's default errors, a head mounted square and a follower
+/// stage without errors of its own (nothing to map, and issue 14's unmapped follower would
+/// enter every table 1:1): the maintenance and ageing tests' twin. `targets` and `runs` of
+/// the plan at 3000 mm/min.
+pub(crate) fn square_loop(seed: u64, length_mm: f64, targets: usize, runs: u32) -> LoopSpec {
+    let plant = PlantSpec {
+        seed,
+        install: InstallSpec {
+            offset_mm: 0.0,
+            tilt_deg: 0.0,
+            gain_error: 0.0,
+        },
+        axis: AxisSpec {
+            length_mm,
+            ..AxisSpec::default()
+        },
+        follower: FollowerSpec {
+            positioning_um: 0.0,
+            straightness_um: 0.0,
+            periodic_um: 0.0,
+            reversal_um: 0.0,
+            ..FollowerSpec::default()
+        },
+        ..PlantSpec::default()
+    };
+    LoopSpec {
+        budget: BudgetSpec::of_plant(&plant),
+        lab: LabSpec::standard(plant, None).expect("lab spec"),
+        plan: plan(length_mm, targets, runs, 3000.0),
+        dialect: Dialect::LinuxCnc,
+        mode: CaptureMode::Stability,
+        positioning: PositioningMode::Bidirectional,
+        straightness_line: ReferenceLine::LeastSquares,
+        map: CncMap::generic().expect("generic map"),
+        step_mm: Some(2.0),
+        zero_window: Duration::from_millis(500),
+        align_rounds: 0,
+        follower: None,
     }
 }
 

@@ -4,6 +4,7 @@ mod helpers;
 mod lab;
 
 mod acquire;
+mod ageing;
 mod align;
 mod calibration;
 mod can;

@@ -9,18 +9,16 @@ use axiscomp::comp::{self, AxisMapping, MachineAxis, PositioningMode, TableSpec}
 use axiscomp::config::{PlcPush, PlcSettings, Resource, TableBuild};
 use axiscomp::evaluate::{EvalOptions, ReferenceLine, evaluate_captures};
 use axiscomp::modbus::link::LinkConfig;
+use axiscomp::plc::Timeouts;
 use axiscomp::plc::table::{self as ptable, PlcTable};
-use axiscomp::plc::{CncMap, Timeouts};
-use axiscomp::run::program::CaptureMode;
-use axiscomp::run::{Dialect, Direction};
+use axiscomp::run::Direction;
 use axiscomp::service::api::Request;
 use axiscomp::service::stored::StoredTable;
 use axiscomp::service::tables::Tables;
-use axiscomp::sim::InstallSpec;
-use axiscomp::sim::axis::{AxisSpec, Wear};
-use axiscomp::sim::closed_loop::{self, BudgetSpec, Figures, LoopSpec, Measured, Pass};
-use axiscomp::sim::lab::{Lab, LabSpec};
-use axiscomp::sim::plant::{FollowerSpec, PlantSpec};
+use axiscomp::sim::axis::Wear;
+use axiscomp::sim::closed_loop::{self, Figures, LoopSpec, Measured, Pass};
+use axiscomp::sim::lab::Lab;
+use axiscomp::sim::plant::PlantSpec;
 use axiscomp::sim::plc::{TwinPlc, TwinPlcConfig};
 use axiscomp::store::{NewRun, RunId, RunState, Store, TableEntry};
 use std::time::Duration;
@@ -31,45 +29,9 @@ fn um(mm: f64) -> f64 {
     mm * 1e3
 }
 
-/// A 200 mm axis with the twin's default errors, a head mounted square and a follower stage
-/// without errors of its own (issue 14's unmapped follower would enter every table 1:1 and
-/// hide what this test is about: the tables composing).
+/// A 200 mm axis (`lab::square_loop`), 6 targets, 2 runs.
 fn loop_spec() -> LoopSpec {
-    let plant = PlantSpec {
-        seed: 15,
-        install: InstallSpec {
-            offset_mm: 0.0,
-            tilt_deg: 0.0,
-            gain_error: 0.0,
-        },
-        axis: AxisSpec {
-            length_mm: LENGTH_MM,
-            ..AxisSpec::default()
-        },
-        follower: FollowerSpec {
-            positioning_um: 0.0,
-            straightness_um: 0.0,
-            periodic_um: 0.0,
-            reversal_um: 0.0,
-            ..FollowerSpec::default()
-        },
-        ..PlantSpec::default()
-    };
-    LoopSpec {
-        budget: BudgetSpec::of_plant(&plant),
-        lab: LabSpec::standard(plant, None).expect("lab spec"),
-        plan: crate::lab::plan(LENGTH_MM, 6, 2, 3000.0),
-        dialect: Dialect::LinuxCnc,
-        mode: CaptureMode::Stability,
-        positioning: PositioningMode::Bidirectional,
-        straightness_line: ReferenceLine::LeastSquares,
-        map: CncMap::generic().expect("generic map"),
-        step_mm: Some(2.0),
-        zero_window: Duration::from_millis(500),
-        align_rounds: 0,
-        // The twin's follower has no errors of its own here: nothing to map.
-        follower: None,
-    }
+    crate::lab::square_loop(15, LENGTH_MM, 6, 2)
 }
 
 /// The lab, the store, the twin's PLC on the lab's plant and the service's tables task.
