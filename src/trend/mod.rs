@@ -278,7 +278,7 @@ fn settle(
 }
 
 /// The chart: the first `unjudged` points join the history at once (the baseline); each later
-/// one is judged against the history before it, and joins it when in control.
+/// one is judged against the history before it, and joins it once settled ([`SETTLE`]).
 fn run(mut history: Vec<f64>, points: &[Point], unjudged: usize, s: &Settings) -> Chart {
     history.extend(points.iter().take(unjudged).map(|p| p.value));
     let (lambda, width) = (s.lambda, s.width);
