@@ -68,12 +68,16 @@ fail() {
   exit 1
 }
 
-# The twin and the service on free loopback ports, the twin's CNC running the programs.
+# The twin and the service on free loopback ports, the twin's CNC running the programs. A
+# port found free can be taken by another lane before the twin binds it (CI once: the twin
+# gone, the service refused on its ports for a minute): a twin that is not running a second
+# after it started is started again on other ports, twice at most, its log shown.
 source tests/interop/twin-configs.sh
-TWIN_HEXAPOD_PORTS=free twin_configs "$work"
-# Handovers and captures quicker than in production so the short plan takes well under a
-# minute.
-cat >> "$work/service.toml" <<EOF
+for attempt in 1 2 3; do
+  TWIN_HEXAPOD_PORTS=free twin_configs "$work"
+  # Handovers and captures quicker than in production so the short plan takes well under a
+  # minute.
+  cat >> "$work/service.toml" <<EOF
 
 [tracking]
 rest_ms = 200
@@ -84,9 +88,13 @@ settle_ms = 100
 frames = 100
 settle_ms = 200
 EOF
-
-"$bin" sim --config "$work/sim.toml" >"$work/sim.log" 2>&1 & sim=$!
-sleep 1
+  "$bin" sim --config "$work/sim.toml" >"$work/sim.log" 2>&1 & sim=$!
+  sleep 1
+  kill -0 "$sim" 2>/dev/null && break
+  echo "console.sh: the twin did not start (attempt $attempt):" >&2
+  tail -n 5 "$work/sim.log" >&2
+  [ "$attempt" = 3 ] && exit 1
+done
 RUST_LOG=warn "$bin" serve --config "$work/service.toml" >"$work/serve.log" 2>&1 & svc=$!
 
 # The service is up with the follower homed and the stitch referenced.
@@ -100,7 +108,13 @@ sys.exit(0 if s["follower"]["homed"] and s["tracking"]["valid"] and s["tracking"
 ' 2>/dev/null; then ready=1; break; fi
     sleep 0.5
   done
-  [ -n "$ready" ] || { tail -n 20 "$work/serve.log" >&2; echo "console.sh: the service did not come up" >&2; exit 1; }
+  [ -n "$ready" ] || {
+    tail -n 20 "$work/serve.log" >&2
+    echo "---- the twin's log (tail) ----" >&2
+    tail -n 10 "$work/sim.log" >&2
+    echo "console.sh: the service did not come up" >&2
+    exit 1
+  }
 }
 wait_ready
 
