@@ -8,9 +8,9 @@ use super::InputError;
 use super::run::open_store_at;
 use anyhow::Result;
 use axiscomp::report::settings::AcceptanceSettings;
-use axiscomp::service::results::run_result;
+use axiscomp::service::trends::{FigureHistory, Judged, histories};
 use axiscomp::store::iso_utc;
-use axiscomp::trend::{self, Chart, Forecast, Point, Settings};
+use axiscomp::trend::{self, Settings};
 use serde_json::json;
 use std::path::PathBuf;
 
@@ -38,142 +38,6 @@ pub struct Args {
     pub json: bool,
 }
 
-/// One figure's history: its error, name and unit, and (day since the first run, value, run).
-struct History {
-    dof: String,
-    name: String,
-    unit: String,
-    points: Vec<(i64, i64, f64)>,
-}
-
-impl History {
-    fn label(&self) -> String {
-        format!("{} {}", self.dof, self.name)
-    }
-}
-
-/// The acceptance figure a run's figure is judged against, when it has one.
-fn tolerance_figure(dof: &str, name: &str) -> Option<&'static str> {
-    let first = name.split(' ').next().unwrap_or_default();
-    match (dof, first) {
-        ("dy", "A") => Some("A"),
-        ("dy", "E") => Some("E"),
-        ("dy", "R") => Some("R"),
-        ("dy", "B") => Some("B"),
-        ("dy", "M") => Some("M"),
-        ("dx" | "dz", _) if name == "straightness (least squares)" => Some("straightness"),
-        ("ex", _) if name == "max − min (mean)" => Some("pitch"),
-        ("ey", _) if name == "max − min (mean)" => Some("roll"),
-        ("ez", _) if name == "max − min (mean)" => Some("yaw"),
-        _ => None,
-    }
-}
-
-/// The compensation a run measured under: the tables the PLC applied, as recorded when it
-/// started.
-fn compensation(store: &axiscomp::store::Store, run: axiscomp::store::RunId) -> String {
-    match store.run_tables(run) {
-        Ok(Some(t)) if t.known => {
-            let tables: Vec<String> = t
-                .tables
-                .iter()
-                .map(|a| {
-                    format!(
-                        "{} {} sequence {} CRC 0x{:08X}",
-                        a.kind, a.axis, a.sequence, a.crc
-                    )
-                })
-                .collect();
-            if tables.is_empty() {
-                "no tables".into()
-            } else {
-                tables.join(", ")
-            }
-        }
-        Ok(Some(t)) => format!("unknown ({})", t.source),
-        Ok(None) | Err(_) => "not recorded".into(),
-    }
-}
-
-/// What was trended: the runs used (and when the first and the last were made), and those
-/// left out for another compensation.
-struct Runs {
-    ids: Vec<i64>,
-    first_us: i64,
-    last_us: i64,
-    /// The newest run's compensation, in words.
-    compensation: String,
-    other: usize,
-}
-
-/// Every figure of `axis`'s finished runs measured under the same compensation as the newest
-/// (a table published since an earlier run changed what its figures mean), oldest first.
-fn histories(store: &axiscomp::store::Store, axis: &str) -> Result<(Vec<History>, Runs), String> {
-    let mut runs: Vec<_> = store
-        .list_runs()
-        .map_err(|e| e.to_string())?
-        .into_iter()
-        .filter(|r| r.axis.eq_ignore_ascii_case(axis) && r.state.as_str() == "finished")
-        .collect();
-    runs.sort_by_key(|r| (r.created_us, r.id.0));
-    let keys: Vec<String> = runs.iter().map(|r| compensation(store, r.id)).collect();
-    let newest = keys.last().cloned().unwrap_or_default();
-    let other = keys.iter().filter(|k| **k != newest).count();
-    let mut out: Vec<History> = Vec::new();
-    let (mut ids, mut first_us, mut last_us) = (Vec::new(), i64::MAX, i64::MIN);
-    for (r, _) in runs.iter().zip(&keys).filter(|(_, k)| **k == newest) {
-        let result = run_result(store, Some(r.id.0))?;
-        if result.incomplete.is_some() {
-            continue;
-        }
-        ids.push(r.id.0);
-        first_us = first_us.min(r.created_us);
-        last_us = last_us.max(r.created_us);
-        for d in &result.dofs {
-            for f in &d.figures {
-                let at = (r.id.0, r.created_us, f.value);
-                match out.iter_mut().find(|h| h.dof == d.name && h.name == f.name) {
-                    Some(h) => h.points.push(at),
-                    None => out.push(History {
-                        dof: d.name.clone(),
-                        name: f.name.clone(),
-                        unit: f.unit.clone(),
-                        points: vec![at],
-                    }),
-                }
-            }
-        }
-    }
-    Ok((
-        out,
-        Runs {
-            ids,
-            first_us,
-            last_us,
-            compensation: newest,
-            other,
-        },
-    ))
-}
-
-/// The days since `t0_us` of each point.
-fn points(h: &History, t0_us: i64) -> Vec<Point> {
-    h.points
-        .iter()
-        .map(|&(_, us, value)| Point {
-            days: (us - t0_us) as f64 / 86_400e6,
-            value,
-        })
-        .collect()
-}
-
-struct Judged<'a> {
-    history: &'a History,
-    chart: Result<Chart, trend::TrendError>,
-    tolerance: Option<f64>,
-    forecast: Option<Forecast>,
-}
-
 pub fn run(a: Args) -> Result<()> {
     let store = open_store_at(a.db.as_ref(), a.config.as_ref())?;
     let acceptance = match &a.config {
@@ -194,16 +58,16 @@ pub fn run(a: Args) -> Result<()> {
         window: a.window,
         ..Settings::default()
     };
-    let wanted: Vec<&History> = match &a.figure {
+    let wanted: Vec<&FigureHistory> = match &a.figure {
         None => all.iter().collect(),
         Some(f) => {
             let f = f.trim().to_lowercase();
             // "dy B" is the reversal, not also B̄: a figure by its short name first, then
             // every figure whose name begins with what was given.
-            let short = |h: &History| {
+            let short = |h: &FigureHistory| {
                 format!("{} {}", h.dof, h.name.split(' ').next().unwrap_or_default()).to_lowercase()
             };
-            let mut hit: Vec<&History> = all.iter().filter(|h| short(h) == f).collect();
+            let mut hit: Vec<&FigureHistory> = all.iter().filter(|h| short(h) == f).collect();
             if hit.is_empty() {
                 hit = all
                     .iter()
@@ -211,7 +75,7 @@ pub fn run(a: Args) -> Result<()> {
                     .collect();
             }
             if hit.is_empty() {
-                let names: Vec<String> = all.iter().map(History::label).collect();
+                let names: Vec<String> = all.iter().map(FigureHistory::label).collect();
                 return Err(InputError(format!(
                     "no figure \"{f}\" in axis {}'s runs: give one of {}",
                     a.axis,
@@ -224,18 +88,7 @@ pub fn run(a: Args) -> Result<()> {
     };
     let judged: Vec<Judged> = wanted
         .into_iter()
-        .map(|h| {
-            let pts = points(h, t0_us);
-            let tolerance = tolerance_figure(&h.dof, &h.name)
-                .and_then(|f| acceptance.of(f))
-                .map(|t| t.limit);
-            Judged {
-                history: h,
-                chart: trend::chart(&pts, &settings),
-                tolerance,
-                forecast: tolerance.and_then(|t| trend::forecast(&pts, t, settings.window)),
-            }
-        })
+        .map(|h| Judged::of(h.clone(), t0_us, &acceptance, &settings))
         .collect();
     if a.json {
         let figures: Vec<serde_json::Value> = judged.iter().map(|j| to_json(j, t0_us)).collect();
@@ -286,7 +139,7 @@ fn date_after(t0_us: i64, days: f64) -> String {
 }
 
 fn line(j: &Judged, t0_us: i64) -> String {
-    let h = j.history;
+    let h = &j.history;
     let last = h.points.last().map_or(f64::NAN, |p| p.2);
     let state = match &j.chart {
         Err(trend::TrendError::TooFew { have, need, .. }) => {
@@ -343,7 +196,7 @@ fn forecast_text(j: &Judged, t0_us: i64) -> Option<String> {
 }
 
 fn detail(j: &Judged, t0_us: i64, baseline: usize) -> String {
-    let h = j.history;
+    let h = &j.history;
     let mut out = format!("{}, {}\n", h.label(), h.unit);
     out.push_str("run    date         value      EWMA    limits\n");
     for (i, p) in h.points.iter().enumerate() {
@@ -384,7 +237,7 @@ fn detail(j: &Judged, t0_us: i64, baseline: usize) -> String {
 }
 
 fn to_json(j: &Judged, t0_us: i64) -> serde_json::Value {
-    let h = j.history;
+    let h = &j.history;
     let chart = j.chart.as_ref().ok();
     let points: Vec<serde_json::Value> = h
         .points

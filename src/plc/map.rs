@@ -70,6 +70,7 @@ struct RawMap {
     header: RawHeader,
     payload: RawPayload,
     limits: RawLimits,
+    check: Option<RawCheck>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -110,6 +111,16 @@ struct RawHandshake {
     status_sequence: Option<RawField>,
     active_sequence: Option<RawField>,
     commit: Option<RawField>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawCheck {
+    request: Option<RawField>,
+    answered: Option<RawField>,
+    state: Option<RawField>,
+    result: Option<RawField>,
+    run: Option<RawField>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -316,6 +327,35 @@ impl Handshake {
     }
 }
 
+/// The check handshake's fields (`[check]`, optional): the PLC asks for a short check of the
+/// axis in a break, the service answers (`plc::check`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct CheckFields {
+    /// A new nonzero value asks for a check (PLC → service).
+    pub request: Field,
+    /// The request the state and result are for (service → PLC).
+    pub answered: Field,
+    /// 0 idle, 1 busy, 2 done, 3 refused (service → PLC).
+    pub state: Field,
+    /// What the check found, or why it was refused (service → PLC; `plc::check::CheckResult`).
+    pub result: Field,
+    /// The stored run the check is (service → PLC; 0 none).
+    pub run: Field,
+}
+
+impl CheckFields {
+    /// Every field, the PLC's first.
+    pub fn fields(&self) -> [&Field; 5] {
+        [
+            &self.request,
+            &self.answered,
+            &self.state,
+            &self.result,
+            &self.run,
+        ]
+    }
+}
+
 /// The table header fields (written by the service).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Header {
@@ -414,6 +454,8 @@ pub struct CncMap {
     pub header: Header,
     pub payload: Payload,
     pub limits: Limits,
+    /// The check handshake, when the map has one.
+    pub check: Option<CheckFields>,
 }
 
 /// A field as a listing shows it.
@@ -491,6 +533,7 @@ impl CncMap {
             .into_iter()
             .chain([&self.handshake.commit])
             .chain(self.header.fields())
+            .chain(self.check.iter().flat_map(CheckFields::fields))
             .map(|f| FieldDoc {
                 key: f.key.to_string(),
                 kind: f.kind,
@@ -529,6 +572,7 @@ impl CncMap {
             .into_iter()
             .chain([&self.handshake.commit])
             .chain(self.header.fields())
+            .chain(self.check.iter().flat_map(CheckFields::fields))
             .filter(|f| f.kind == RegisterKind::Holding)
         {
             lo = lo.min(f.address as u32);
@@ -952,11 +996,34 @@ fn validate(raw: RawMap, cx: &Ctx) -> Result<CncMap, MapError> {
     };
 
     // No two fields (or a field and the payload area) share a register of the same table.
+    let check = match raw.check {
+        Some(c) => Some(CheckFields {
+            request: field(c.request, "check.request", Sequence, Plc, dflt, cx)?,
+            answered: field(c.answered, "check.answered", Sequence, Service, dflt, cx)?,
+            state: field(c.state, "check.state", Code, Service, dflt, cx)?,
+            result: field(c.result, "check.result", Code, Service, dflt, cx)?,
+            run: field(c.run, "check.run", Sequence, Service, dflt, cx)?,
+        }),
+        None => None,
+    };
+    if let Some(c) = &check
+        && c.request.ty != c.answered.ty
+    {
+        return Err(cx.err(
+            "check.answered.type",
+            format!(
+                "{} while check.request is {}: the service echoes the request",
+                c.answered.ty, c.request.ty
+            ),
+            "give both the same type",
+        ));
+    }
     let mut spans: Vec<(RegisterKind, u32, u32, String)> = handshake
         .plc_fields()
         .into_iter()
         .chain([&handshake.commit])
         .chain(header.fields())
+        .chain(check.iter().flat_map(CheckFields::fields))
         .map(|f| (f.kind, f.address as u32, f.end(), f.key.to_string()))
         .collect();
     spans.push((
@@ -1025,6 +1092,7 @@ fn validate(raw: RawMap, cx: &Ctx) -> Result<CncMap, MapError> {
         header,
         payload,
         limits,
+        check,
     })
 }
 
@@ -1094,8 +1162,60 @@ mod tests {
         assert_eq!(m.doc(&m.header.crc), "40029");
         assert_eq!(m.holding_span(), (0, 32 + 4096));
         let d = m.describe();
-        assert_eq!(d.len(), 18);
+        // 6 PLC handshake fields, commit, 10 header fields, 5 check fields, the payload.
+        assert_eq!(d.len(), 23);
         assert!(d[0].to_string().contains("40001"), "{}", d[0]);
+        let c = m
+            .check
+            .as_ref()
+            .expect("the generic map has the check fields");
+        assert_eq!(
+            c.fields().map(|f| (f.address, f.writer)),
+            [
+                (10, Writer::Plc),
+                (11, Writer::Service),
+                (12, Writer::Service),
+                (13, Writer::Service),
+                (14, Writer::Service)
+            ]
+        );
+        assert_eq!(m.doc(&c.run), "40015");
+    }
+
+    #[test]
+    fn a_check_section_is_checked_like_the_rest() {
+        let g = std::fs::read_to_string(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("plc-maps/cnc/generic.toml"),
+        )
+        .expect("the generic map");
+        // The check's request over the handshake's commit; an answer of another type than
+        // the request; a state the service writes in an input register.
+        for (from, to, key) in [
+            (
+                "request  = { address = 10,",
+                "request  = { address = 9,",
+                "check.request.address",
+            ),
+            (
+                "answered = { address = 11, type = \"u16\" }",
+                "answered = { address = 11, type = \"u32\" }",
+                "check.answered",
+            ),
+            (
+                "state    = { address = 12, type = \"u16\" }",
+                "state    = { address = 12, type = \"u16\", register = \"input\" }",
+                "check.state.register",
+            ),
+        ] {
+            assert!(g.contains(from), "{from}");
+            let e = CncMap::parse(&g.replace(from, to), "generic.toml").unwrap_err();
+            assert!(e.key().is_some_and(|k| k.starts_with(key)), "{key}: {e}");
+        }
+        // Without the section a map has no check.
+        let start = g.find("[check]").expect("section");
+        let end = g.find("[header]").expect("header");
+        let none = format!("{}{}", &g[..start], &g[end..]);
+        assert_eq!(CncMap::parse(&none, "x.toml").expect("valid").check, None);
     }
 
     #[test]

@@ -12,6 +12,7 @@
 //!
 //! The twin's PLC, which plays the other side of both, is `sim::plc`.
 
+pub mod check;
 pub mod map;
 pub mod publish;
 pub mod serve;

@@ -336,7 +336,7 @@ impl Encoded {
     }
 }
 
-fn field_regs(f: &Field, value: f64) -> Result<Vec<u16>, TableError> {
+pub(crate) fn field_regs(f: &Field, value: f64) -> Result<Vec<u16>, TableError> {
     let mut out = vec![0u16; f.words() as usize];
     codec::encode(f.ty, f.order, value, &mut out)
         .map_err(|source| TableError::Field { key: f.key, source })?;

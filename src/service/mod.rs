@@ -7,6 +7,7 @@
 pub mod align;
 pub mod api;
 pub mod calibration;
+pub mod checks;
 pub mod cnc;
 pub mod composition;
 pub mod control;
@@ -23,6 +24,7 @@ mod run_budget;
 pub mod shutdown;
 pub mod stored;
 pub mod tables;
+pub mod trends;
 
 use crate::acquire::{Acquisition, IoMap, MapError};
 use crate::calibrate::{CalError, Calibration, CalibrationFile};
@@ -230,6 +232,26 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
         }
     });
     let tables_task = tokio::spawn(tables.run(tables_rx, shutdown.clone()));
+    // The check the CNC asks for in a break (`[check]` in the CNC map, with push: the service
+    // reads the PLC's request).
+    let checks_task = match (&p.cnc_map.check, &s.plc.push) {
+        (Some(fields), Some(push)) => {
+            let checks = checks::Checks {
+                fields: fields.clone(),
+                unit: if push.unit != 0 {
+                    push.unit
+                } else {
+                    p.cnc_map.unit_id
+                },
+                push: push.clone(),
+                requests: cmd_tx.clone(),
+                store_path: store_path.clone(),
+                acceptance: s.acceptance.clone(),
+            };
+            Some(tokio::spawn(checks.run(shutdown.clone())))
+        }
+        _ => None,
+    };
     let policy = peer::RolePolicy::from_names(&s.service.operator_group, &s.service.viewer_group);
     control::open_to_roles(&s.service.socket, &policy)?;
     let control = tokio::spawn(control::serve(
@@ -250,6 +272,9 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
     };
     notify::stopping();
     drive_task.abort();
+    if let Some(t) = checks_task {
+        t.abort();
+    }
     let _ = control.await;
     router.abort();
     // A publish in progress ends within its own timeouts.

@@ -426,6 +426,12 @@ fn writable(map: &CncMap) -> Vec<(u32, u32)> {
         .fields()
         .into_iter()
         .chain([&map.handshake.commit])
+        .chain(
+            map.check
+                .iter()
+                .flat_map(|c| c.fields().into_iter().skip(1)),
+        )
+        .filter(|f| f.kind == RegisterKind::Holding)
         .map(|f: &Field| (f.address as u32, f.end()))
         .collect();
     v.push((map.payload.address as u32, map.payload.end()));
@@ -552,6 +558,49 @@ impl TwinPlc {
     /// Write requests applied so far.
     pub fn writes(&self) -> u64 {
         self.shared.lock().writes
+    }
+
+    /// The CNC asks for a check in a break: the next request number written into
+    /// `check.request` (1 after the type's largest); `None` when the map has no check fields.
+    pub fn request_check(&self) -> Option<u32> {
+        let c = self.shared.map.check.as_ref()?;
+        let mut st = self.shared.lock();
+        let st = &mut *st;
+        let read = |regs: &[u16]| {
+            crate::plc::table::read_field(&c.request, &|a| {
+                regs.get(a as usize).copied().unwrap_or(0)
+            })
+        };
+        let now = match c.request.kind {
+            RegisterKind::Holding => read(&st.holding),
+            RegisterKind::Input => read(&st.input),
+        };
+        let (_, max) = c.request.ty.range();
+        let next = if now + 1.0 > max { 1 } else { now as u32 + 1 };
+        let regs = crate::plc::table::sequence_regs(&c.request, next).ok()?;
+        put(
+            &mut st.holding,
+            &mut st.input,
+            c.request.kind,
+            c.request.address,
+            &regs,
+        );
+        Some(next)
+    }
+
+    /// The check fields as the PLC holds them: request, answered, state, result, run.
+    pub fn check_fields(&self) -> Option<[u32; 5]> {
+        let c = self.shared.map.check.as_ref()?;
+        let st = self.shared.lock();
+        let read = |f: &Field| {
+            let regs = match f.kind {
+                RegisterKind::Holding => &st.holding,
+                RegisterKind::Input => &st.input,
+            };
+            crate::plc::table::read_field(f, &|a| regs.get(a as usize).copied().unwrap_or(0)) as u32
+        };
+        let f = c.fields();
+        Some(std::array::from_fn(|k| read(f[k])))
     }
 
     /// A copy of the holding registers (the staging area included).
@@ -872,7 +921,8 @@ mod tests {
     #[test]
     fn writable_spans_and_sizes_per_map() {
         let g = CncMap::generic().unwrap();
-        assert_eq!(writable(&g), [(8, 10), (16, 30), (32, 4128)]);
+        // The commit; the check's answer (11..16) beside the header (16..30); the payload.
+        assert_eq!(writable(&g), [(8, 10), (11, 30), (32, 4128)]);
         assert_eq!(sizes(&g), (4128, 0));
         let c = CncMap::load(
             &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("plc-maps/cnc/codesys.toml"),

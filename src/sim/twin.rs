@@ -28,7 +28,9 @@
 //!   points) and every commit it saw; with any of `"reject_next":256`, `"ignore_next":true`,
 //!   `"corrupt_next":3` (payload register), `"silent_after":2` with `"down_ms":1500`,
 //!   `"ready":false`, `"freeze_heartbeat":true` it injects that fault first (DESIGN §6's
-//!   table protocol faults; only once `axiscomp sim` has started its PLC)
+//!   table protocol faults; only once `axiscomp sim` has started its PLC);
+//!   `"request_check":true` is the CNC asking for a check in a break (the next number into
+//!   the map's `check.request`), and `"check"` in the reply holds the check fields
 //! - `{"cmd":"target"}` → what the alignment target in front of each PSD shows (mm, to 0.5 mm;
 //!   `null` where no beam reaches it)
 //! - `{"cmd":"age","positioning_um":6,"backlash_um":3,"thermal_um":5}` ages the axis while the
@@ -625,6 +627,20 @@ fn plc_command(
     if let Some(frozen) = flag("freeze_heartbeat") {
         plc.freeze_heartbeat(frozen);
     }
+    let requested = if flag("request_check") == Some(true) {
+        Some(
+            plc.request_check()
+                .ok_or("the twin PLC's map has no [check] fields")?,
+        )
+    } else {
+        None
+    };
+    let check = plc
+        .check_fields()
+        .map(|[request, answered, state, result, run]| {
+            serde_json::json!({"request": request, "answered": answered, "state": state,
+            "result": result, "run": run, "requested": requested})
+        });
     let st = plc.status();
     let active: Vec<serde_json::Value> = plc
         .active_tables()
@@ -656,7 +672,7 @@ fn plc_command(
     Ok(serde_json::json!({"ok": true, "plc": {
         "ready": st.ready, "active_sequence": st.active_sequence,
         "status_sequence": st.status_sequence, "error_code": st.error_code,
-        "active": active, "commits": commits,
+        "active": active, "commits": commits, "check": check,
     }}))
 }
 
