@@ -8,7 +8,7 @@ use super::InputError;
 use super::run::open_store_at;
 use anyhow::Result;
 use axiscomp::report::settings::AcceptanceSettings;
-use axiscomp::service::trends::{FigureHistory, Judged, histories};
+use axiscomp::service::trends::{FigureHistory, Judged, histories, remedy};
 use axiscomp::store::iso_utc;
 use axiscomp::trend::{self, Settings};
 use serde_json::json;
@@ -149,7 +149,12 @@ fn line(j: &Judged, t0_us: i64) -> String {
         Ok(c) => {
             let (lo, hi) = c.limits.last().copied().unwrap_or((f64::NAN, f64::NAN));
             let alarm = match c.alarm {
-                Some(i) => format!("DRIFT since run {} ({})", h.points[i].0, day(h.points[i].1)),
+                Some(i) => format!(
+                    "DRIFT since run {} ({}); {}",
+                    h.points[i].0,
+                    day(h.points[i].1),
+                    remedy(&h.dof, &h.name).words()
+                ),
                 None => "in control".into(),
             };
             format!(
@@ -257,6 +262,7 @@ fn to_json(j: &Judged, t0_us: i64) -> serde_json::Value {
         "mean": chart.map(|c| c.mean),
         "sigma": chart.map(|c| c.sigma),
         "alarm_run": chart.and_then(|c| c.alarm).map(|i| h.points[i].0),
+        "remedy": chart.and_then(|c| c.alarm).map(|_| remedy(&h.dof, &h.name).words()),
         "no_limits": j.chart.as_ref().err().map(ToString::to_string),
         "tolerance": j.tolerance,
         "forecast": j.forecast.map(|f| json!({

@@ -72,9 +72,12 @@ pub enum CheckResult {
     InControl,
     /// Stored and trended: too few checks under these tables for control limits yet.
     Learning,
-    /// Stored and trended: a figure beyond its control limits (a drift alarm; `axiscomp
-    /// trend` names it).
+    /// Stored and trended: a figure beyond its control limits that a compensation table
+    /// reaches (a drift alarm: compose a table from the check; `axiscomp trend` names it).
     Drift,
+    /// Stored and trended: a figure beyond its control limits that no table reaches (a
+    /// reversal or repeatability growing, an angle, the beam's alignment): a maintenance alarm.
+    Maintenance,
     /// Stored and trended: a figure beyond its tolerance (`[acceptance]`).
     Tolerance,
     /// Refused: no full run of the axis in the store to take the check's targets from.
@@ -91,12 +94,13 @@ pub enum CheckResult {
 }
 
 impl CheckResult {
-    const ALL: [CheckResult; 10] = [
+    const ALL: [CheckResult; 11] = [
         CheckResult::None,
         CheckResult::InControl,
         CheckResult::Learning,
         CheckResult::Drift,
         CheckResult::Tolerance,
+        CheckResult::Maintenance,
         CheckResult::NoPlan,
         CheckResult::NotStarted,
         CheckResult::Flags,
@@ -111,6 +115,7 @@ impl CheckResult {
             CheckResult::Learning => 2,
             CheckResult::Drift => 3,
             CheckResult::Tolerance => 4,
+            CheckResult::Maintenance => 5,
             CheckResult::NoPlan => 16,
             CheckResult::NotStarted => 17,
             CheckResult::Flags => 18,
@@ -137,7 +142,8 @@ impl CheckResult {
             CheckResult::None => "none yet",
             CheckResult::InControl => "in control: every figure within its limits",
             CheckResult::Learning => "stored: too few checks for control limits yet",
-            CheckResult::Drift => "drift: a figure beyond its control limits",
+            CheckResult::Drift => "drift within a table's reach: compose a table from the check",
+            CheckResult::Maintenance => "maintenance alarm: a drift no table reaches",
             CheckResult::Tolerance => "a figure beyond its tolerance",
             CheckResult::NoPlan => {
                 "refused: no full run of the axis to take the check's targets from"
@@ -454,6 +460,6 @@ mod tests {
         }
         assert_eq!(CheckResult::NotStarted.state(), CheckState::Refused);
         assert_eq!(CheckResult::Flags.state(), CheckState::Done);
-        assert_eq!(CheckResult::from_code(5), None);
+        assert_eq!(CheckResult::from_code(6), None);
     }
 }

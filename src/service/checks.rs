@@ -13,7 +13,7 @@ use super::api::{Request, Role};
 use super::control::Command;
 use super::peer::Peer;
 use super::shutdown::Shutdown;
-use super::trends::{AxisTrends, Verdict};
+use super::trends::{AxisTrends, Remedy, Verdict};
 use crate::config::PlcPush;
 use crate::modbus::codec::ReadRange;
 use crate::modbus::{Link, RegisterKind};
@@ -113,10 +113,20 @@ pub fn judge(store: &Store, run: i64, acceptance: &AcceptanceSettings) -> (Check
                 rec.axis
             ),
         ),
-        Verdict::Drift(f) => (
-            CheckResult::Drift,
-            format!("run {run}: drift in {}", f.join(", ")),
-        ),
+        Verdict::Drift(f) => {
+            let said: Vec<String> = f
+                .iter()
+                .map(|(label, r)| format!("{label} ({})", r.words()))
+                .collect();
+            // A drift no table reaches is a maintenance alarm; one a table reaches, a
+            // composed table to propose.
+            let result = if f.iter().all(|(_, r)| *r == Remedy::Table) {
+                CheckResult::Drift
+            } else {
+                CheckResult::Maintenance
+            };
+            (result, format!("run {run}: drift in {}", said.join("; ")))
+        }
         Verdict::Tolerance(f) => (
             CheckResult::Tolerance,
             format!("run {run}: beyond tolerance: {}", f.join(", ")),
@@ -303,10 +313,7 @@ impl Checks {
             }
             if let Some((n, run)) = h.current()
                 && run != 0
-                && self
-                    .running(n)
-                    .await
-                    .is_none_or(|id| id != i64::from(run))
+                && self.running(n).await.is_none_or(|id| id != i64::from(run))
             {
                 let (result, why) = self.outcome(run).await;
                 tracing::info!(

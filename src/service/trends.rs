@@ -65,6 +65,57 @@ pub fn tolerance_figure(dof: &str, name: &str) -> Option<&'static str> {
     }
 }
 
+/// What a drift in a figure calls for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Remedy {
+    /// A compensation table reaches it: compose one from the run that shows it.
+    Table,
+    /// Beyond a table's reach: maintenance, for the likely cause.
+    Maintenance(&'static str),
+    /// The set-up moved, not the machine.
+    SetUp(&'static str),
+}
+
+impl Remedy {
+    /// In words, for a line after the figure.
+    pub fn words(self) -> String {
+        match self {
+            Remedy::Table => "within a table's reach: compose one from the run that shows it (axiscomp table generate)".into(),
+            Remedy::Maintenance(cause) => format!("maintenance: {cause}"),
+            Remedy::SetUp(what) => format!("the set-up: {what}"),
+        }
+    }
+}
+
+/// What a drift in figure `name` of error `dof` calls for, with its likely cause.
+pub fn remedy(dof: &str, name: &str) -> Remedy {
+    let first = name.split(' ').next().unwrap_or_default();
+    if first == "slope" {
+        return Remedy::SetUp(
+            "the beam's slope to the axis moved: the head or its mount shifted, align again",
+        );
+    }
+    match (dof, first) {
+        ("dy", "R") => Remedy::Maintenance(
+            "the repeatability worsens: play, friction or the drive's tuning; no table compensates scatter",
+        ),
+        ("dy", "B" | "B̄") => Remedy::Maintenance(
+            "the reversal grows: wear or lost preload in the ball screw's nut or its bearings, or a coupling working loose; a table holds a steady reversal, not a growing one",
+        ),
+        ("dy" | "dx" | "dz", _) => Remedy::Table,
+        ("ex", _) => Remedy::Maintenance(
+            "pitch grows: guideway wear, or the foundation and the machine's levelling; a table takes its effect at the tool for one set-up only",
+        ),
+        ("ez", _) => Remedy::Maintenance(
+            "yaw grows: guideway or gib wear; a table takes its effect at the tool for one set-up only",
+        ),
+        ("ey", _) => Remedy::Maintenance(
+            "roll grows: guideway twist or wear, or the machine's levelling; no compensation of the axis corrects roll",
+        ),
+        _ => Remedy::Maintenance("a figure of an unknown kind moves: look at the run"),
+    }
+}
+
 /// The compensation a run measured under: the tables the PLC applied, as recorded when it
 /// started.
 pub fn compensation(store: &Store, run: RunId) -> String {
@@ -207,8 +258,8 @@ pub enum Verdict {
     InControl,
     /// Too few runs under these tables for control limits yet.
     Learning,
-    /// These figures signal (labels).
-    Drift(Vec<String>),
+    /// These figures signal (labels), each with what it calls for.
+    Drift(Vec<(String, Remedy)>),
     /// These figures are beyond their tolerance (labels).
     Tolerance(Vec<String>),
     /// The run is not in the trends (not finished, or measured under other tables).
@@ -252,7 +303,12 @@ impl AxisTrends {
         if !beyond.is_empty() {
             return Verdict::Tolerance(beyond);
         }
-        let drift = labels(&|j| j.signals_at(run));
+        let drift: Vec<(String, Remedy)> = self
+            .figures
+            .iter()
+            .filter(|j| j.signals_at(run))
+            .map(|j| (j.history.label(), remedy(&j.history.dof, &j.history.name)))
+            .collect();
         if !drift.is_empty() {
             return Verdict::Drift(drift);
         }
@@ -260,5 +316,43 @@ impl AxisTrends {
             return Verdict::Learning;
         }
         Verdict::InControl
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_drift_names_what_it_calls_for() {
+        // Positioning and straightness: a table reaches them.
+        for (dof, name) in [
+            ("dy", "E (systematic)"),
+            ("dy", "A (accuracy)"),
+            ("dx", "straightness (least squares)"),
+        ] {
+            assert_eq!(remedy(dof, name), Remedy::Table, "{dof} {name}");
+        }
+        // A growing reversal, scatter and the angles are the machine's: maintenance, with
+        // the likely cause named.
+        for (dof, name, cause) in [
+            ("dy", "B (reversal)", "ball screw"),
+            ("dy", "B̄ (mean reversal)", "ball screw"),
+            ("dy", "R (repeatability)", "play"),
+            ("ey", "max − min (mean)", "roll"),
+            ("ex", "max − min (+)", "pitch"),
+            ("ez", "max − min (−)", "yaw"),
+        ] {
+            match remedy(dof, name) {
+                Remedy::Maintenance(c) => assert!(c.contains(cause), "{dof} {name}: {c}"),
+                r => panic!("{dof} {name}: {r:?}"),
+            }
+        }
+        // The beam's slope is the set-up's.
+        assert!(matches!(
+            remedy("dx", "slope (beam alignment)"),
+            Remedy::SetUp(_)
+        ));
+        assert!(Remedy::Table.words().contains("table generate"));
     }
 }
