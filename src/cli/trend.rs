@@ -91,7 +91,7 @@ pub fn run(a: Args) -> Result<()> {
         .map(|h| Judged::of(h.clone(), t0_us, &acceptance, &settings))
         .collect();
     if a.json {
-        let figures: Vec<serde_json::Value> = judged.iter().map(|j| to_json(j, t0_us)).collect();
+        let figures: Vec<serde_json::Value> = judged.iter().map(|j| j.to_json(t0_us)).collect();
         println!(
             "{}",
             serde_json::to_string_pretty(&json!({"axis": a.axis, "runs": runs.ids,
@@ -239,39 +239,4 @@ fn detail(j: &Judged, t0_us: i64, baseline: usize) -> String {
         out.push_str(&format!("forecast: {t}\n"));
     }
     out
-}
-
-fn to_json(j: &Judged, t0_us: i64) -> serde_json::Value {
-    let h = &j.history;
-    let chart = j.chart.as_ref().ok();
-    let points: Vec<serde_json::Value> = h
-        .points
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            json!({
-                "run_id": p.0, "unix_us": p.1, "value": p.2,
-                "ewma": chart.map(|c| c.ewma[i]),
-                "limits": chart.map(|c| [c.limits[i].0, c.limits[i].1]),
-            })
-        })
-        .collect();
-    json!({
-        "dof": h.dof, "name": h.name, "unit": h.unit,
-        "points": points,
-        "mean": chart.map(|c| c.mean),
-        "sigma": chart.map(|c| c.sigma),
-        "alarm_run": chart.and_then(|c| c.alarm).map(|i| h.points[i].0),
-        "remedy": chart.and_then(|c| c.alarm).map(|_| remedy(&h.dof, &h.name).words()),
-        "no_limits": j.chart.as_ref().err().map(ToString::to_string),
-        "tolerance": j.tolerance,
-        "forecast": j.forecast.map(|f| json!({
-            "slope_per_day": f.slope_per_day,
-            "slope_u": f.slope_u,
-            "points": f.points,
-            "crossing_unix_us": f.crossing.map(|c| t0_us + (c.day * 86_400e6) as i64),
-            "crossing_low_unix_us": f.crossing.map(|c| t0_us + (c.low * 86_400e6) as i64),
-            "crossing_high_unix_us": f.crossing.map(|c| t0_us + (c.high * 86_400e6) as i64),
-        })),
-    })
 }

@@ -80,7 +80,7 @@ impl Remedy {
     /// In words, for a line after the figure.
     pub fn words(self) -> String {
         match self {
-            Remedy::Table => "within a table's reach: compose one from the run that shows it (axiscomp table generate)".into(),
+            Remedy::Table => "within a table's reach: generate one from the newest run".into(),
             Remedy::Maintenance(cause) => format!("maintenance: {cause}"),
             Remedy::SetUp(what) => format!("the set-up: {what}"),
         }
@@ -234,6 +234,45 @@ impl Judged {
         }
     }
 
+    /// The figure as JSON (`axiscomp trend --json`, the control API's `trend`): its points
+    /// with the EWMA and limits, the history's mean and σ, the alarm and what it calls for,
+    /// the tolerance and the forecast (dates as unix µs, from `t0_us` the first run's).
+    pub fn to_json(&self, t0_us: i64) -> serde_json::Value {
+        let h = &self.history;
+        let chart = self.chart.as_ref().ok();
+        let points: Vec<serde_json::Value> = h
+            .points
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                serde_json::json!({
+                    "run_id": p.0, "unix_us": p.1, "value": p.2,
+                    "ewma": chart.map(|c| c.ewma[i]),
+                    "limits": chart.map(|c| [c.limits[i].0, c.limits[i].1]),
+                })
+            })
+            .collect();
+        let at = |days: f64| t0_us + (days * 86_400e6) as i64;
+        serde_json::json!({
+            "dof": h.dof, "name": h.name, "unit": h.unit,
+            "points": points,
+            "mean": chart.map(|c| c.mean),
+            "sigma": chart.map(|c| c.sigma),
+            "alarm_run": chart.and_then(|c| c.alarm).map(|i| h.points[i].0),
+            "remedy": chart.and_then(|c| c.alarm).map(|_| remedy(&h.dof, &h.name).words()),
+            "no_limits": self.chart.as_ref().err().map(ToString::to_string),
+            "tolerance": self.tolerance,
+            "forecast": self.forecast.map(|f| serde_json::json!({
+                "slope_per_day": f.slope_per_day,
+                "slope_u": f.slope_u,
+                "points": f.points,
+                "crossing_unix_us": f.crossing.map(|c| at(c.day)),
+                "crossing_low_unix_us": f.crossing.map(|c| at(c.low)),
+                "crossing_high_unix_us": f.crossing.map(|c| at(c.high)),
+            })),
+        })
+    }
+
     /// Whether run `run`'s value is beyond the figure's tolerance.
     pub fn beyond_tolerance_at(&self, run: i64) -> bool {
         match (self.tolerance, self.at(run)) {
@@ -285,6 +324,28 @@ impl AxisTrends {
             runs,
             figures,
         })
+    }
+
+    /// The whole as JSON: the axis, the runs trended, and every figure ([`Judged::to_json`]).
+    pub fn to_json(&self) -> serde_json::Value {
+        let t0 = self.runs.first_us;
+        serde_json::json!({
+            "axis": self.axis, "runs": self.runs.ids,
+            "compensation": self.runs.compensation, "runs_under_other_tables": self.runs.other,
+            "first_unix_us": (!self.runs.ids.is_empty()).then_some(t0),
+            "figures": self.figures.iter().map(|j| j.to_json(t0)).collect::<Vec<_>>(),
+        })
+    }
+
+    /// The axis of the newest finished run in `store`, when there is one.
+    pub fn newest_axis(store: &Store) -> Result<Option<String>, String> {
+        Ok(store
+            .list_runs()
+            .map_err(|e| e.to_string())?
+            .into_iter()
+            .filter(|r| r.state.as_str() == "finished")
+            .max_by_key(|r| (r.created_us, r.id.0))
+            .map(|r| r.axis))
     }
 
     /// What run `run` says: a figure beyond its tolerance first, then a drift.
@@ -353,6 +414,6 @@ mod tests {
             remedy("dx", "slope (beam alignment)"),
             Remedy::SetUp(_)
         ));
-        assert!(Remedy::Table.words().contains("table generate"));
+        assert!(Remedy::Table.words().contains("table's reach"));
     }
 }

@@ -317,6 +317,78 @@ fn every_screen_renders_from_a_twin_run_at_80x24_and_160x48() {
     snapshot_screens(&mut done, &[Screen::Events]);
 }
 
+/// An axis's trend as the service's `trend` computes it (`service::trends`): 14 weekly runs
+/// of E, steady at about 5 µm for 8 and then wearing 0.25 µm a week, with a tolerance of 8 µm;
+/// B steady; everything charted by the library, not here.
+fn trend_reply() -> serde_json::Value {
+    use axiscomp::report::settings::{AcceptanceSettings, Tolerance};
+    use axiscomp::service::trends::{FigureHistory, Judged};
+    let t0 = 1_790_000_000_000_000_i64;
+    let week = 7 * 86_400_000_000_i64;
+    let scatter = [
+        0.04, -0.03, 0.05, -0.06, 0.01, 0.03, -0.02, -0.01, 0.02, -0.04, 0.03, 0.0, -0.02, 0.01,
+    ];
+    let history = |dof: &str, name: &str, f: &dyn Fn(usize) -> f64| FigureHistory {
+        dof: dof.into(),
+        name: name.into(),
+        unit: "µm".into(),
+        points: (0..14)
+            .map(|i| (i as i64 + 3, t0 + i as i64 * week, f(i) + scatter[i]))
+            .collect(),
+    };
+    let e = history("dy", "E (systematic)", &|i| {
+        5.0 + 0.25 * (i as f64 - 7.0).max(0.0)
+    });
+    let b = history("dy", "B (reversal)", &|_| 1.2);
+    let acceptance = AcceptanceSettings {
+        tolerances: vec![Tolerance {
+            figure: "E",
+            limit: 8.0,
+            unit: "µm",
+            key: "acceptance.e_um",
+        }],
+    };
+    let settings = axiscomp::trend::Settings::default();
+    let figures: Vec<serde_json::Value> = [b, e]
+        .into_iter()
+        .map(|h| Judged::of(h, t0, &acceptance, &settings).to_json(t0))
+        .collect();
+    serde_json::json!({"axis": "X", "runs": (3..17).collect::<Vec<i64>>(),
+        "compensation": "positioning X sequence 4 CRC 0x1A2B3C4D", "runs_under_other_tables": 2,
+        "figures": figures})
+}
+
+#[test]
+fn the_trends_view_shows_each_figure_against_its_limits_at_80x24_and_160x48() {
+    let fx = load_fixture();
+    let t0 = axiscomp::util::clock::now();
+    let mut app = results_app(&fx, t0, true);
+    let trend = trend_reply();
+    let reply = |r: &Request| match r {
+        Request::Trend { axis: None } => trend.clone(),
+        other => panic!("the console sent {other:?} here"),
+    };
+    let actions = app.handle_key(key(KeyCode::Char('t')));
+    let sent = answer(&mut app, actions, t0, &reply);
+    assert_eq!(sent, [Request::Trend { axis: None }]);
+    // The figure in alarm is highlighted first: E, wearing since run 11.
+    let f = app.trends.figure().expect("a figure");
+    assert!(f.name.starts_with('E'), "{}", f.name);
+    assert!(f.alarm_run.is_some(), "{f:?}");
+    for (w, h) in SIZES {
+        let screen = text(&render(&app, w, h));
+        assert!(screen.contains("DRIFT since run"), "{screen}");
+        assert!(screen.contains("within a table's reach"), "{screen}");
+        insta::assert_snapshot!(format!("trends_{w}x{h}"), screen);
+    }
+    // ↑ picks B; t goes back to the runs.
+    assert!(app.handle_key(key(KeyCode::Up)).is_empty());
+    assert!(app.trends.figure().is_some_and(|f| f.name.starts_with('B')));
+    assert!(app.handle_key(key(KeyCode::Char('t'))).is_empty());
+    assert!(!app.trends.shown);
+    assert!(text(&render(&app, 80, 24)).contains("Runs (Enter, b, t)"));
+}
+
 /// The Calibrate screen as it shows itself: the service's `calibration` (one in use, one
 /// pending from the twin's head).
 fn calibrate_app(fx: &Fixture, t0: Instant, color: bool) -> App {

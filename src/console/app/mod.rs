@@ -20,6 +20,7 @@ mod reply;
 mod results;
 #[cfg(test)]
 mod tests;
+mod trends;
 
 pub use align::{AdviceView, AlignProc, StationSpot, StationView, StoredAlignment};
 pub use calibrate::{CalSummary, CalibrateState, HexapodView};
@@ -29,6 +30,7 @@ pub use machine::MachinePanel;
 pub use measure::{Field, PlanForm, RunProgress};
 pub use publish::PublishState;
 pub use results::ResultsView;
+pub use trends::{AxisTrend, FigureTrend, ForecastView, TrendPoint, TrendsView};
 
 use super::client::{ClientError, Identity, LinkEvent, PeerRole};
 use crate::run::{Plan, PlanSpec};
@@ -266,6 +268,8 @@ enum Pending {
     MachineDetach(usize),
     /// Storing a machine from its record's file.
     MachineNew,
+    /// The axis's trends (the Results screen's trends view).
+    Trend,
     Other(String),
 }
 
@@ -294,6 +298,7 @@ impl Pending {
                 | Pending::Calibration
                 | Pending::HexapodStatus
                 | Pending::Machine
+                | Pending::Trend
         )
     }
 }
@@ -340,6 +345,8 @@ pub struct App {
     pub jog_step_mm: f64,
     pub run: Option<RunProgress>,
     pub results: ResultsView,
+    /// The Results screen's trends view.
+    pub trends: TrendsView,
     /// The error the Measure screen's live plot shows (0..6, `Errors6` order).
     pub live_dof: usize,
     /// The service's audit log, newest first, as last fetched (the Events screen).
@@ -391,6 +398,7 @@ impl App {
             },
             run: None,
             // Positioning first: the ISO 230-2 result.
+            trends: TrendsView::default(),
             results: ResultsView {
                 dof: 1,
                 ..ResultsView::default()
@@ -724,6 +732,7 @@ impl App {
         match self.screen {
             Screen::Align => self.align_key(key),
             Screen::Measure => self.measure_key(key),
+            Screen::Results if self.trends.shown => self.trends_key(key),
             Screen::Results => self.results_key(key),
             Screen::Publish => self.publish_key(key),
             Screen::Calibrate => self.calibrate_key(key),
@@ -964,12 +973,13 @@ pub fn screen_keys(screen: Screen) -> &'static [(&'static str, &'static str)] {
             ("w", "write the plan's part program to a file"),
         ],
         Screen::Results => &[
-            ("↑ / ↓", "select a stored run"),
+            ("↑ / ↓", "select a stored run (in the trends: a figure)"),
             ("Enter", "show its results"),
             ("b", "compare with it (before)"),
             ("c", "clear the comparison"),
             ("← / →", "previous / next error"),
-            ("r", "reload the run list"),
+            ("t", "the trends of the newest run's axis, and back"),
+            ("r", "reload the run list (in the trends: the trends)"),
         ],
         Screen::Calibrate => &[
             (

@@ -45,6 +45,10 @@ impl App {
                             self.results.error = Some(e.to_string());
                             self.say(Level::Error, e.to_string());
                         }
+                        Pending::Trend => {
+                            self.trends.error = Some(format!("trends: {e}"));
+                            self.say(Level::Error, format!("trends: {e}"));
+                        }
                         Pending::Tables => {
                             self.publish.listed = true;
                             self.say(Level::Error, format!("table list: {e}"));
@@ -257,6 +261,7 @@ impl App {
             }
             Pending::RunStatus => return self.apply_run_status(&v, now),
             Pending::Runs => self.apply_runs(v),
+            Pending::Trend => self.apply_trend(v),
             Pending::Audit => {
                 match serde_json::from_value::<Vec<AuditView>>(v["entries"].clone()) {
                     Ok(entries) => self.audit = Some(entries),

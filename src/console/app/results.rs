@@ -115,6 +115,10 @@ impl App {
                 self.results.listed = false;
                 return self.results_need_list();
             }
+            (_, Some('t')) => {
+                self.trends.shown = true;
+                return vec![self.load_trend()];
+            }
             _ => {}
         }
         Vec::new()

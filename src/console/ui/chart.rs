@@ -23,7 +23,11 @@ fn points(d: &DofView, dir: Direction) -> Vec<(f64, f64)> {
 }
 
 /// Bounds over every point, padded; a flat or empty set gets a unit span.
-fn bounds(sets: &[&[(f64, f64)]], pick: impl Fn(&(f64, f64)) -> f64, pad: f64) -> [f64; 2] {
+pub(super) fn bounds(
+    sets: &[&[(f64, f64)]],
+    pick: impl Fn(&(f64, f64)) -> f64,
+    pad: f64,
+) -> [f64; 2] {
     let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
     for p in sets.iter().flat_map(|s| s.iter()) {
         lo = lo.min(pick(p));
@@ -40,7 +44,7 @@ fn bounds(sets: &[&[(f64, f64)]], pick: impl Fn(&(f64, f64)) -> f64, pad: f64) -
 }
 
 /// Decimals that tell the ends of a span apart.
-fn decimals(span: f64) -> usize {
+pub(super) fn decimals(span: f64) -> usize {
     if span >= 10.0 {
         0
     } else if span >= 1.0 {
@@ -53,7 +57,7 @@ fn decimals(span: f64) -> usize {
 }
 
 /// `v` with `dec` decimals, a value that rounds to zero as "0.0" (never "-0.0").
-fn fixed(v: f64, dec: usize) -> String {
+pub(super) fn fixed(v: f64, dec: usize) -> String {
     let scale = 10f64.powi(dec as i32);
     let r = (v * scale).round() / scale;
     format!("{:.dec$}", r + 0.0)

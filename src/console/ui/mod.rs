@@ -12,6 +12,7 @@ mod measure;
 mod psd;
 mod publish;
 mod results;
+mod trends;
 
 use super::app::{
     Access, App, Confirm, GLOBAL_KEYS, Input, InputFor, Level, LinkState, Overlay, Screen,
@@ -106,6 +107,7 @@ pub fn render(frame: &mut Frame, app: &App) {
         Screen::Align => align::render(frame, body, app),
         Screen::Calibrate => calibrate::render(frame, body, app),
         Screen::Measure => measure::render(frame, body, app),
+        Screen::Results if app.trends.shown => trends::render(frame, body, app),
         Screen::Results => results::render(frame, body, app),
         Screen::Publish => publish::render(frame, body, app),
         Screen::Events => events::render(frame, body, app),

@@ -117,9 +117,9 @@ fn runs(frame: &mut Frame, area: Rect, r: &ResultsView, wide: bool, theme: Theme
         lines.push(Line::styled(text, style));
     }
     let title = if wide {
-        "Stored runs (↑↓ Enter show, b compare)"
+        "Stored runs (↑↓ Enter show, b compare, t trends)"
     } else {
-        "Runs (Enter, b)"
+        "Runs (Enter, b, t)"
     };
     frame.render_widget(Paragraph::new(lines).block(panel(title)), area);
 }

@@ -244,6 +244,12 @@ pub enum Request {
     MachineAttach { id: i64, setup: usize, run_id: i64 },
     /// Detach the run of set-up `setup` (1-based) of machine `id`, and of every set-up after it.
     MachineDetach { id: i64, setup: usize },
+    /// The trends of an axis's finished runs and checks (`service::trends`; `axiscomp trend`
+    /// reads the same): `axis`, or the newest finished run's.
+    Trend {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        axis: Option<String>,
+    },
 }
 
 impl Request {
@@ -266,7 +272,8 @@ impl Request {
             | Request::FollowerMapStatus
             | Request::FollowerLevelStatus
             | Request::Machines
-            | Request::Machine { .. } => Role::Viewer,
+            | Request::Machine { .. }
+            | Request::Trend { .. } => Role::Viewer,
             _ => Role::Operator,
         }
     }
@@ -359,12 +366,16 @@ impl Request {
                 follower::typed_reading(arcsec).map(drop)
             }
             // No numbers (a new request with numbers must be added above).
+            Request::Trend { axis: Some(a) } if !["X", "Y", "Z"].contains(&a.as_str()) => Err(
+                format!("\"axis\": {a:?} is not an axis: give X, Y or Z (or none: the newest run's)"),
+            ),
             Request::Status
             | Request::Zero
             | Request::ClearZero
             | Request::Strategy { .. }
             | Request::RunStatus
             | Request::RunAbort
+            | Request::Trend { .. }
             | Request::Calibration
             | Request::CalibrationFit { .. }
             | Request::CalibrationAccept { .. }

@@ -127,6 +127,23 @@ impl Core {
                     Err(e) => reply.send(Err(e.to_string())),
                 }
             }
+            Request::Trend { axis } => {
+                let acceptance = self.env.settings.acceptance.clone();
+                self.read(
+                    move |s| {
+                        use crate::service::trends::AxisTrends;
+                        let axis = match axis {
+                            Some(a) => a,
+                            None => AxisTrends::newest_axis(s)?.ok_or(
+                                "no finished run in the store to trend: measure an axis first",
+                            )?,
+                        };
+                        AxisTrends::read(s, &axis, &acceptance, &Default::default())
+                            .map(|t| t.to_json())
+                    },
+                    reply,
+                )
+            }
             Request::Machines => self.read(
                 |s| {
                     crate::service::machine::list(s).map(|v| serde_json::json!({ "machines": v }))
