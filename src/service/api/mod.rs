@@ -367,7 +367,7 @@ impl Request {
             }
             // No numbers (a new request with numbers must be added above).
             Request::Trend { axis: Some(a) } if !["X", "Y", "Z"].contains(&a.as_str()) => Err(
-                format!("\"axis\": {a:?} is not an axis: give X, Y or Z (or none: the newest run's)"),
+                format!("\"axis\": \"{a}\" is not an axis: give X, Y or Z (or none: the newest run's)"),
             ),
             Request::Status
             | Request::Zero
@@ -633,6 +633,26 @@ mod tests {
     /// (tiny, huge, negative, zero, negative zero, subnormal, the largest integers): the line
     /// is refused by serde (a fraction or a sign an integer field cannot hold), accepted by
     /// `Request::check`, or refused by it naming the field; never a panic.
+    #[test]
+    fn a_trend_is_asked_for_an_axis_by_its_name() {
+        let r: Request = serde_json::from_str(r#"{"cmd":"trend","axis":"X"}"#).expect("parses");
+        assert_eq!(
+            r,
+            Request::Trend {
+                axis: Some("X".into())
+            }
+        );
+        assert_eq!(r.check(), Ok(()));
+        assert_eq!(r.needs(), Role::Viewer);
+        let newest: Request = serde_json::from_str(r#"{"cmd":"trend"}"#).expect("parses");
+        assert_eq!(newest.check(), Ok(()));
+        let bad = Request::Trend {
+            axis: Some("W".into()),
+        };
+        let e = bad.check().expect_err("W is no axis");
+        assert!(e.contains("\"W\" is not an axis: give X, Y or Z"), "{e}");
+    }
+
     #[test]
     fn every_numeric_field_is_range_checked() {
         const EXTREMES: [&str; 11] = [
