@@ -198,6 +198,18 @@ pub fn check(a: ServeArgs) -> Result<()> {
         ),
         None => println!("PLC push: off"),
     }
+    // The check the CNC asks for is read from the PLC: it needs push.
+    match (&m.check, &pl.push) {
+        (Some(c), Some(_)) => println!(
+            "PLC check requests: read every second (check.request at {}, answered at {})",
+            m.doc(&c.request),
+            m.doc(&c.answered)
+        ),
+        (Some(_), None) => println!(
+            "PLC check requests: not read: the map has [check] but push is off, so the CNC's requests go unanswered; set [plc] push = true and its address"
+        ),
+        (None, _) => println!("PLC check requests: none (the map has no [check] section)"),
+    }
     match &pl.pull {
         Some(pull) => println!(
             "PLC pull server: {} (allow {}, writers {})",

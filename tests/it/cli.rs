@@ -513,7 +513,19 @@ fn check_validates_the_cnc_map() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(
         stdout(&o).contains("PLC push: 127.0.0.1:5502 unit 1")
-            && stdout(&o).contains("CNC: the twin at 127.0.0.1:5099 runs each part program (iso)"),
+            && stdout(&o).contains("CNC: the twin at 127.0.0.1:5099 runs each part program (iso)")
+            && stdout(&o).contains(
+                "PLC check requests: read every second (check.request at 40011, answered at 40012)"
+            ),
+        "{}",
+        stdout(&o)
+    );
+    // The generic map's check fields with push off: said, as the requests go unanswered.
+    let cfg = dir.write("no-push.toml", "[plc]\nmap = \"builtin:generic\"\n");
+    let o = run(&["check", "--config", cfg.to_str().unwrap()], "");
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("PLC check requests: not read: the map has [check] but push is off"),
         "{}",
         stdout(&o)
     );
