@@ -194,7 +194,7 @@ pub fn check(a: ServeArgs) -> Result<()> {
         Some(push) => println!(
             "PLC push: {} unit {}",
             push.link.addr,
-            if push.unit == 0 { m.unit_id } else { push.unit }
+            push.unit_or(m.unit_id)
         ),
         None => println!("PLC push: off"),
     }

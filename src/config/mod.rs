@@ -362,6 +362,13 @@ pub struct PlcPush {
     pub unit: u8,
 }
 
+impl PlcPush {
+    /// The unit id to address: this one, or the map's `map_unit` when it is 0.
+    pub fn unit_or(&self, map_unit: u8) -> u8 {
+        if self.unit != 0 { self.unit } else { map_unit }
+    }
+}
+
 /// Which compensation tables `table generate` builds from a run.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TableBuild {

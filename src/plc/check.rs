@@ -15,6 +15,7 @@
 //! is due, hands them to [`CheckHandshake::handle_read`], starts what it is told to, reports
 //! how the check went, and writes what [`CheckHandshake::poll_write`] gives until it goes.
 
+use super::Image;
 use super::map::{CheckFields, Field};
 use super::table::{TableError, field_regs, read_field};
 use std::time::{Duration, Instant};
@@ -165,12 +166,18 @@ pub struct Polled {
 }
 
 impl Polled {
-    /// The fields from a register image (`regs(address)`).
-    pub fn read(f: &CheckFields, regs: &dyn Fn(u16) -> u16) -> Polled {
+    /// The fields the PLC's request is judged by, each from its own register table.
+    pub fn reads(f: &CheckFields) -> [&Field; 3] {
+        [&f.request, &f.answered, &f.state]
+    }
+
+    /// The fields from a register image read over [`Polled::reads`].
+    pub fn read(f: &CheckFields, img: &Image) -> Polled {
+        let get = |field: &Field| read_field(field, &|a| img.get(field.kind, a));
         Polled {
-            request: read_field(&f.request, regs) as u32,
-            answered: read_field(&f.answered, regs) as u32,
-            state: read_field(&f.state, regs) as u16,
+            request: get(&f.request) as u32,
+            answered: get(&f.answered) as u32,
+            state: get(&f.state) as u16,
         }
     }
 }
@@ -318,8 +325,8 @@ impl CheckHandshake {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::modbus::RegisterKind;
     use crate::plc::CncMap;
-    use std::collections::HashMap;
 
     fn generic() -> CheckFields {
         CncMap::generic()
@@ -386,13 +393,12 @@ mod tests {
             ]
         );
         // The PLC's image after the writes reads the request answered, done.
-        let mut img: HashMap<u16, u16> = HashMap::from([(10, 7)]);
+        let mut img = Image::default();
+        img.put(RegisterKind::Holding, 10, &[7]);
         for (a, regs) in &w {
-            for (k, v) in regs.iter().enumerate() {
-                img.insert(a + k as u16, *v);
-            }
+            img.put(RegisterKind::Holding, *a, regs);
         }
-        let p = Polled::read(&generic(), &|a| img.get(&a).copied().unwrap_or(0));
+        let p = Polled::read(&generic(), &img);
         assert_eq!(p, polled(7, 7, CheckState::Done));
         assert_eq!(h.handle_read(t1, p), Next::Nothing);
         // The next request after it is new.

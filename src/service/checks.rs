@@ -15,14 +15,14 @@ use super::peer::Peer;
 use super::shutdown::Shutdown;
 use super::trends::{AxisTrends, Remedy, Verdict};
 use crate::config::PlcPush;
+use crate::modbus::Link;
 use crate::modbus::codec::ReadRange;
-use crate::modbus::{Link, RegisterKind};
+use crate::plc::Image;
 use crate::plc::check::{CheckHandshake, CheckResult, Next, Polled};
 use crate::plc::map::CheckFields;
 use crate::report::settings::AcceptanceSettings;
 use crate::run::{Plan, PlanSpec};
 use crate::store::{RunId, RunState, Store};
-use std::collections::HashMap;
 use std::path::PathBuf;
 use std::time::Duration;
 use tokio::sync::{mpsc, oneshot};
@@ -139,35 +139,18 @@ pub fn judge(store: &Store, run: i64, acceptance: &AcceptanceSettings) -> (Check
 }
 
 impl Checks {
-    /// Read the PLC's check fields: one read per register table the fields lie in.
+    /// Read the PLC's check fields, each from its own register table.
     async fn read(&self, link: &Link) -> Result<Polled, String> {
-        let mut img: HashMap<(RegisterKind, u16), u16> = HashMap::new();
-        for f in [
-            &self.fields.request,
-            &self.fields.answered,
-            &self.fields.state,
-        ] {
+        let mut img = Image::default();
+        for f in Polled::reads(&self.fields) {
             let range = ReadRange::new(f.address, f.words()).map_err(|e| e.to_string())?;
             let v = link
                 .read(f.kind, self.unit, range)
                 .await
                 .map_err(|e| e.to_string())?;
-            for (k, w) in v.iter().enumerate() {
-                img.insert((f.kind, f.address + k as u16), *w);
-            }
+            img.put(f.kind, f.address, &v);
         }
-        let kind = |f: &crate::plc::map::Field| f.kind;
-        let (rq, an, st) = (
-            kind(&self.fields.request),
-            kind(&self.fields.answered),
-            kind(&self.fields.state),
-        );
-        let get = |k: RegisterKind, a: u16| img.get(&(k, a)).copied().unwrap_or(0);
-        Ok(Polled {
-            request: crate::plc::table::read_field(&self.fields.request, &|a| get(rq, a)) as u32,
-            answered: crate::plc::table::read_field(&self.fields.answered, &|a| get(an, a)) as u32,
-            state: crate::plc::table::read_field(&self.fields.state, &|a| get(st, a)) as u16,
-        })
+        Ok(Polled::read(&self.fields, &img))
     }
 
     /// Send `request` to the service as the PLC and wait for the answer.

@@ -238,11 +238,7 @@ pub async fn run(p: Prepared, shutdown: Shutdown) -> Result<(), ServiceError> {
         (Some(fields), Some(push)) => {
             let checks = checks::Checks {
                 fields: fields.clone(),
-                unit: if push.unit != 0 {
-                    push.unit
-                } else {
-                    p.cnc_map.unit_id
-                },
+                unit: push.unit_or(p.cnc_map.unit_id),
                 push: push.clone(),
                 requests: cmd_tx.clone(),
                 store_path: store_path.clone(),

@@ -602,10 +602,8 @@ impl Tables {
     ) -> Result<Tables, TablesError> {
         let store = Store::open(store_path)?;
         let mut map = map;
-        if let Some(p) = &settings.push
-            && p.unit != 0
-        {
-            map.unit_id = p.unit;
+        if let Some(p) = &settings.push {
+            map.unit_id = p.unit_or(map.unit_id);
         }
         let link = settings.push.as_ref().map(|p| Link::spawn(p.link.clone()));
         let pull = match &settings.pull {

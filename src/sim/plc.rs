@@ -420,6 +420,15 @@ fn sizes(map: &CncMap) -> (usize, usize) {
     (holding, input)
 }
 
+/// A field's value as the PLC holds it, from its own register table.
+fn field_value(st: &State, f: &Field) -> f64 {
+    let regs = match f.kind {
+        RegisterKind::Holding => &st.holding,
+        RegisterKind::Input => &st.input,
+    };
+    crate::plc::table::read_field(f, &|a| regs.get(a as usize).copied().unwrap_or(0))
+}
+
 fn writable(map: &CncMap) -> Vec<(u32, u32)> {
     let mut v: Vec<(u32, u32)> = map
         .header
@@ -566,15 +575,7 @@ impl TwinPlc {
         let c = self.shared.map.check.as_ref()?;
         let mut st = self.shared.lock();
         let st = &mut *st;
-        let read = |regs: &[u16]| {
-            crate::plc::table::read_field(&c.request, &|a| {
-                regs.get(a as usize).copied().unwrap_or(0)
-            })
-        };
-        let now = match c.request.kind {
-            RegisterKind::Holding => read(&st.holding),
-            RegisterKind::Input => read(&st.input),
-        };
+        let now = field_value(st, &c.request);
         let (_, max) = c.request.ty.range();
         let next = if now + 1.0 > max { 1 } else { now as u32 + 1 };
         let regs = crate::plc::table::sequence_regs(&c.request, next).ok()?;
@@ -592,15 +593,8 @@ impl TwinPlc {
     pub fn check_fields(&self) -> Option<[u32; 5]> {
         let c = self.shared.map.check.as_ref()?;
         let st = self.shared.lock();
-        let read = |f: &Field| {
-            let regs = match f.kind {
-                RegisterKind::Holding => &st.holding,
-                RegisterKind::Input => &st.input,
-            };
-            crate::plc::table::read_field(f, &|a| regs.get(a as usize).copied().unwrap_or(0)) as u32
-        };
         let f = c.fields();
-        Some(std::array::from_fn(|k| read(f[k])))
+        Some(std::array::from_fn(|k| field_value(&st, f[k]) as u32))
     }
 
     /// A copy of the holding registers (the staging area included).

@@ -134,26 +134,23 @@ fn chart(frame: &mut Frame, area: Rect, f: &FigureTrend, theme: Theme) {
         .tolerance
         .map(|t| vec![(1.0, t), (n as f64, t)])
         .unwrap_or_default();
-    let block = Block::bordered().title(Line::from(vec![
+    let mut title = vec![
         Span::raw(" "),
         Span::styled(f.label(), theme.bold()),
-        Span::raw(format!(" ({}) ", f.unit)),
-        Span::styled("value", Style::new().fg(theme.shape(Color::Green))),
-        Span::raw(" "),
-        Span::styled("EWMA", Style::new().fg(theme.shape(Color::Cyan))),
-        Span::raw(" "),
-        Span::styled("limit", Style::new().fg(theme.shape(Color::Yellow))),
-        Span::raw(if f.tolerance.is_some() { " " } else { "" }),
-        Span::styled(
-            if f.tolerance.is_some() {
-                "tolerance"
-            } else {
-                ""
-            },
-            Style::new().fg(theme.shape(Color::Red)),
-        ),
-        Span::raw(" "),
-    ]));
+        Span::raw(format!(" ({})", f.unit)),
+    ];
+    let legend = [
+        ("value", Color::Green, true),
+        ("EWMA", Color::Cyan, true),
+        ("limit", Color::Yellow, true),
+        ("tolerance", Color::Red, f.tolerance.is_some()),
+    ];
+    for (name, c, _) in legend.iter().filter(|l| l.2) {
+        title.push(Span::raw(" "));
+        title.push(Span::styled(*name, Style::new().fg(theme.shape(*c))));
+    }
+    title.push(Span::raw(" "));
+    let block = Block::bordered().title(Line::from(title));
     let sets: [&[(f64, f64)]; 4] = [&values, &ewma, &upper, &tol];
     let xb = if n > 1 { [1.0, n as f64] } else { [0.0, 2.0] };
     let yb = bounds(&sets, |p| p.1, 0.1);
